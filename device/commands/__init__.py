@@ -1,0 +1,1 @@
+"""Device-side ``stereopath device ...`` subcommands (no host libraries imported)."""

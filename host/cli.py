@@ -1,0 +1,84 @@
+"""The ``stereopath`` command line: one entry point, subcommands in ``host/commands``.
+
+Known errors (:class:`device.errors.StereopathError`) are printed on one line
+and give exit code 2; anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import logging
+import sys
+
+from device.errors import StereopathError
+
+# name -> (module, one-line help).  Groups map to a nested table.
+COMMANDS: dict[str, tuple[str, str] | dict[str, tuple[str, str]]] = {
+    "demo": ("host.commands.demo", "simulate a scan, estimate the path and report (the main job)"),
+    "sim": ("host.commands.sim", "write a simulated stereo-inertial session (ASL layout)"),
+    "eval": ("host.commands.eval", "evaluate an estimated trajectory against ground truth"),
+    "odometry": ("host.commands.odometry", "estimate the camera path of a source and report"),
+    "features": ("host.commands.features", "count keypoints, matches and correct matches of two images"),
+    "device": {
+        "selftest": ("device.commands.selftest", "check the configured sensors and print pass/fail"),
+        "calibrate-stereo": ("device.commands.calibrate_stereo", "chessboard pairs -> rig YAML"),
+        "calibrate-imu": ("device.commands.calibrate_imu", "still-period gyro bias and gravity alignment"),
+    },
+}
+
+
+def _add(sub: argparse._SubParsersAction, name: str, module: str, help_text: str) -> None:
+    if importlib.util.find_spec(module) is None:  # command not built in this version
+        return
+    mod = importlib.import_module(module)
+    p = sub.add_parser(name, help=help_text, description=(mod.__doc__ or help_text).strip())
+    mod.add_arguments(p)
+    p.set_defaults(_run=mod.run)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from device import __version__
+
+    parser = argparse.ArgumentParser(prog="stereopath", description="Handheld stereo-inertial 3D scanner.")
+    parser.add_argument("--version", action="version", version=f"stereopath {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, entry in COMMANDS.items():
+        if isinstance(entry, dict):
+            grp = sub.add_parser(name, help=f"{name} commands")
+            gsub = grp.add_subparsers(dest=f"{name}_command", metavar="COMMAND")
+            for sname, (module, help_text) in entry.items():
+                _add(gsub, sname, module, help_text)
+            grp.set_defaults(_group=grp)
+        else:
+            _add(sub, name, *entry)
+    return parser
+
+
+def setup_logging(verbose: int, quiet: bool) -> None:
+    level = logging.WARNING if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not hasattr(args, "_run"):
+        (getattr(args, "_group", None) or parser).print_help()
+        return 2
+    setup_logging(args.verbose, args.quiet)
+    try:
+        return int(args._run(args) or 0)
+    except StereopathError as exc:
+        print(f"stereopath: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("stereopath: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
