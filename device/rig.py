@@ -393,3 +393,22 @@ def load_euroc_rig(mav0: str | Path) -> Rig:
 
 def with_name(rig: Rig, name: str) -> Rig:
     return dataclasses.replace(rig, name=name, _cache={})
+
+
+# ---------------------------------------------------------------------------------------------
+# the built-in rig (identical to firmware_cfg/rig_paper.yaml; a test keeps them equal)
+
+PAPER_R_CAM1_CAM0 = [[1.0, 0.011, 0.0163], [-0.011, 1.0, 0.008], [-0.0162, -0.008, 1.0]]
+PAPER_T_CAM1_CAM0_MM = [-47.917, -0.142, -13.373]
+PAPER_IMAGE_SIZE = (640, 480)
+PAPER_INTRINSICS = (500.0, 500.0, 319.5, 239.5)  # fx, fy, cx, cy at 640x480 (our choice)
+
+
+def paper_rig(T_body_cam0: Any = None) -> Rig:
+    """The reference paper's rig (Table 1 extrinsics, mm -> m) with our 640x480 intrinsics."""
+    fx, fy, cx, cy = PAPER_INTRINSICS
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    cam = make_camera("cam0", K, np.zeros(5), PAPER_IMAGE_SIZE)
+    cam1 = make_camera("cam1", K, np.zeros(5), PAPER_IMAGE_SIZE)
+    T = np.array(PAPER_T_CAM1_CAM0_MM) / 1000.0
+    return make_rig(cam, cam1, PAPER_R_CAM1_CAM0, T, name="paper", T_body_cam0=T_body_cam0)
