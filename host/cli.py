@@ -21,6 +21,12 @@ COMMANDS: dict[str, tuple[str, str] | dict[str, tuple[str, str]]] = {
     "eval": ("host.commands.eval", "evaluate an estimated trajectory against ground truth"),
     "odometry": ("host.commands.odometry", "estimate the camera path of a source and report"),
     "features": ("host.commands.features", "count keypoints, matches and correct matches of two images"),
+    "keys": {
+        "generate": ("host.commands.keys", "write a CURVE key pair"),
+    },
+    "host": {
+        "live": ("host.commands.live", "receive poses and keyframes from a device and show them live"),
+    },
     "device": {
         "selftest": ("device.commands.selftest", "check the configured sensors and print pass/fail"),
         "calibrate-stereo": ("device.commands.calibrate_stereo", "chessboard pairs -> rig YAML"),

@@ -1,0 +1,6 @@
+"""Camera path estimators (pure: frames and IMU samples in, poses out, no I/O).
+
+``make_estimator(name, rig, ...)`` returns an object with
+``process(frame, imu) -> PoseEstimate`` for on-board incremental use and the
+module-level :func:`device.estimation.base.run_estimator` for whole sequences.
+"""

@@ -1,0 +1,83 @@
+"""What every estimator returns, and the loop that runs one over a sequence."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Iterable, Literal, Protocol
+
+import numpy as np
+
+from device.errors import EstimationError
+from device.frames import ImuSamples, StereoFrame
+from device.trajfile import Trajectory
+
+Status = Literal["ok", "imu_only", "lost"]
+WorldFrame = Literal["first_camera", "gravity_aligned"]
+
+
+@dataclass
+class PoseEstimate:
+    """The pose of camera 1 (left) at one stereo frame."""
+
+    seq: int
+    t_ns: int
+    T_world_cam: np.ndarray
+    status: Status
+    inliers: int = 0
+    keyframe: bool = False
+    note: str = ""  # why a frame is not "ok" (e.g. "too_few_matches")
+
+
+class Estimator(Protocol):
+    name: str
+    world_frame: WorldFrame
+
+    def process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate:
+        """Estimate the pose at ``frame``; ``imu`` holds the samples since the previous frame."""
+
+
+@dataclass
+class EstimateRun:
+    estimates: list[PoseEstimate]
+    frame_ms: list[float]
+    world_frame: WorldFrame
+    estimator: str
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def trajectory(self) -> Trajectory:
+        return Trajectory(np.array([e.t_ns for e in self.estimates], dtype=np.int64),
+                          np.array([e.T_world_cam for e in self.estimates]))
+
+    @property
+    def frames_tracked(self) -> int:
+        return sum(1 for e in self.estimates if e.status == "ok")
+
+
+def run_estimator(estimator: Estimator, frames: Iterable[StereoFrame], imu: ImuSamples | None,
+                  progress: Callable[[int], None] | None = None) -> EstimateRun:
+    """Run ``estimator`` over ``frames``, handing it the IMU samples since the previous frame.
+
+    Frame times count only the estimator's own work (``process``), not the
+    source (rendering or decoding happens inside the iterator, outside the timer).
+    """
+    estimates: list[PoseEstimate] = []
+    frame_ms: list[float] = []
+    prev_t: int | None = None
+    for frame in frames:
+        block = None
+        if imu is not None and len(imu):
+            t0 = int(imu.t_ns[0]) - 1 if prev_t is None else prev_t
+            block = imu.between(t0, frame.t_ns)
+        start = time.perf_counter()
+        est = estimator.process(frame, block)
+        frame_ms.append((time.perf_counter() - start) * 1e3)
+        estimates.append(est)
+        prev_t = frame.t_ns
+        if progress is not None:
+            progress(1)
+    if not estimates:
+        raise EstimationError("no frames to estimate")
+    return EstimateRun(estimates, frame_ms, estimator.world_frame, estimator.name,
+                       extra=getattr(estimator, "stats", lambda: {})())

@@ -1,0 +1,96 @@
+"""Gyro integration, start-up bias and gravity from a still period.  Pure NumPy."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from device.frames import ImuSamples
+from device.geometry import so3_exp
+
+GRAVITY_M_S2 = 9.80665
+
+
+@dataclass
+class StillEstimate:
+    gyro_bias_rad_s: np.ndarray
+    accel_mean_m_s2: np.ndarray
+    samples: int
+    gyro_std_rad_s: float
+
+    @property
+    def gravity_norm_m_s2(self) -> float:
+        return float(np.linalg.norm(self.accel_mean_m_s2))
+
+
+def estimate_still(block: ImuSamples, max_gyro_std_rad_s: float = 0.01, max_accel_dev_m_s2: float = 0.6,
+                   min_samples: int = 50) -> StillEstimate | None:
+    """Gyro bias and mean specific force of a still block, or None when the block is not still."""
+    if len(block) < min_samples:
+        return None
+    g_std = float(np.max(np.std(block.gyro_rad_s, axis=0)))
+    a_norm = np.linalg.norm(block.accel_m_s2, axis=1)
+    if g_std > max_gyro_std_rad_s or np.max(np.abs(a_norm - np.median(a_norm))) > 4 * max_accel_dev_m_s2:
+        return None
+    a_mean = block.accel_m_s2.mean(axis=0)
+    if abs(np.linalg.norm(a_mean) - GRAVITY_M_S2) > max_accel_dev_m_s2:
+        return None
+    return StillEstimate(block.gyro_rad_s.mean(axis=0), a_mean, len(block), g_std)
+
+
+def gravity_aligned_rotation(accel_mean_body: np.ndarray) -> np.ndarray:
+    """``R_world_body`` that maps the measured specific force (pointing up at rest) onto +z.
+
+    The yaw about gravity is unobservable; the body x axis is kept as close to
+    the world x-z plane as possible (minimal rotation).
+    """
+    up_b = np.asarray(accel_mean_body, dtype=float)
+    up_b = up_b / np.linalg.norm(up_b)
+    z = np.array([0.0, 0.0, 1.0])
+    v = np.cross(up_b, z)
+    s = np.linalg.norm(v)
+    c = float(np.dot(up_b, z))
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    return so3_exp(v / s * np.arctan2(s, c))
+
+
+class GyroIntegrator:
+    """Integrates bias-corrected gyro samples into body rotations between frame times.
+
+    Samples are treated as piecewise-linear angular velocity; integration runs
+    over exactly ``[t_prev, t_cur]`` using the last sample before ``t_prev`` kept
+    from the previous block.
+    """
+
+    def __init__(self, bias_rad_s: np.ndarray | None = None) -> None:
+        self.bias = np.zeros(3) if bias_rad_s is None else np.asarray(bias_rad_s, dtype=float)
+        self._last_t: int | None = None
+        self._last_w: np.ndarray | None = None
+
+    def feed_and_integrate(self, block: ImuSamples | None, t_prev: int, t_cur: int) -> np.ndarray | None:
+        """``R_bprev_bcur`` over ``[t_prev, t_cur]``; None when the samples do not cover the interval."""
+        ts: list[int] = []
+        ws: list[np.ndarray] = []
+        if self._last_t is not None:
+            ts.append(self._last_t)
+            ws.append(self._last_w)
+        if block is not None and len(block):
+            ts.extend(int(t) for t in block.t_ns)
+            ws.extend(block.gyro_rad_s - self.bias)
+        if ts:
+            self._last_t, self._last_w = ts[-1], ws[-1]
+        if len(ts) < 2 or ts[0] > t_prev + 5_000_000 or ts[-1] < t_cur - 5_000_000:
+            return None
+        t = np.array(ts, dtype=np.int64)
+        w = np.array(ws)
+        # resample the angular velocity at the interval ends and integrate midpoints
+        knots = np.concatenate([[t_prev], t[(t > t_prev) & (t < t_cur)], [t_cur]])
+        wk = np.stack([np.interp(knots, t, w[:, k]) for k in range(3)], axis=1)
+        R = np.eye(3)
+        dt = np.diff(knots) * 1e-9
+        wm = 0.5 * (wk[1:] + wk[:-1])
+        for d, wi in zip(dt, wm):
+            R = R @ so3_exp(wi * d)
+        return R
