@@ -113,11 +113,11 @@ def from_mapping(cls: type[T], data: Mapping[str, Any], prefix: str = "") -> T:
 def replace(obj: T, **changes: Any) -> T:
     """``dataclasses.replace`` that validates the new values like :func:`from_mapping`."""
     current = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj) if f.init}
-    current.update({k: v for k, v in changes.items()})
-    hints = typing.get_type_hints(type(obj))
     unknown = sorted(set(changes) - set(current))
     if unknown:
         raise ConfigError(f"unknown configuration key(s): {', '.join(unknown)}")
+    current.update(changes)
+    hints = typing.get_type_hints(type(obj))
     return type(obj)(**{k: (_convert(k, hints[k], v) if k in changes else v) for k, v in current.items()})
 
 
