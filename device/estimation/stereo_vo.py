@@ -69,6 +69,7 @@ class StereoConfig:
     min_pnp_inliers: int = 12
     use_imu: bool = True
     huber_px: float = 1.0
+    max_failures_keep_map: int = 10  # failed frames in a row before the map restarts
 
     def __post_init__(self) -> None:
         check_range("max_points", self.max_points, 20, 20000)
@@ -117,6 +118,8 @@ class StereoEstimator:
         self._kf_feats = None  # (xy (N,2), desc (N,128)) of the last keyframe's original view, with 3D
         self._kf_X: np.ndarray | None = None
         self._since_kf = 0
+        self._failures = 0
+        self._pending_feats = None
         self._gyro: GyroIntegrator | None = None
         self._R_body_cam = None if rig.T_body_cam0 is None else rig.T_body_cam0[:3, :3]
         self._klt = dict(winSize=(self.cfg.klt_window, self.cfg.klt_window), maxLevel=self.cfg.klt_levels,
@@ -142,7 +145,6 @@ class StereoEstimator:
         self._T_world_cam = est.T_world_cam
         self._t_prev = frame.t_ns
         self._dt_prev = dt
-        self._prev_left = left
         return est
 
     # ------------------------------------------------------------------ stages
@@ -197,33 +199,47 @@ class StereoEstimator:
         n_inl = 0
         note = ""
         if len(m) >= cfg.min_pnp_inliers and self._prev_left is not None:
-            ok = self._klt_track(left, T_pred)
-            if ok >= cfg.min_pnp_inliers:
-                T_est, n_inl, inl = self._solve_pose(left, right, m.X, m.uv, T_pred)
+            uv_new, good = self._klt_track(left, T_pred)
+            if good.sum() >= cfg.min_pnp_inliers:
+                T_est, n_inl, inl = self._solve_pose(left, right, m.X[good], uv_new[good], T_pred)
                 if T_est is not None:
+                    m.uv = uv_new.astype(np.float32)
+                    m.keep(good)
                     m.keep(inl)
+                else:
+                    note = "pose_failed"
             else:
                 note = "too_few_tracked"
         else:
             note = "no_map"
         self._since_kf += 1
-        is_kf = False
         if T_est is not None:
+            self._failures = 0
+            self._prev_left = left
+            is_kf = False
             parallax = float(np.median(np.linalg.norm(m.uv - m.uv_kf, axis=1))) if len(m) else 0.0
             if n_inl < cfg.min_tracked or parallax > cfg.kf_parallax_px or self._since_kf >= cfg.kf_max_frames:
                 T_est, n_inl = self._keyframe_pose(left, right, T_est, n_inl)
                 self._new_keyframe(left, right, T_est, tracked=True)
                 is_kf = True
             return PoseEstimate(frame.seq, frame.t_ns, T_est, "ok", inliers=n_inl, keyframe=is_kf)
-        # vision failed: fall back to the IMU (or constant velocity) and try to restart the map
+        # Vision failed (black frame, lens cap, no overlap, blur): fall back to the IMU rotation (or
+        # constant velocity).  The map and the last good image are kept so the next good frame can
+        # be tracked against them; after several failures in a row the map restarts here.
         status = "imu_only" if have_rot else "lost"
         self.counters[status] += 1
-        self._map = _Map()
-        n = self._new_keyframe(left, right, T_pred, tracked=None)
-        return PoseEstimate(frame.seq, frame.t_ns, T_pred, status, inliers=0, keyframe=n > 0,
-                            note=note or "pose_failed")
+        self._failures += 1
+        is_kf = False
+        if self._failures > cfg.max_failures_keep_map or len(m) < cfg.min_pnp_inliers:
+            self._map = _Map()
+            n = self._new_keyframe(left, right, T_pred, tracked=None)
+            if n >= cfg.min_pnp_inliers:
+                self._prev_left = left
+                is_kf = True
+        return PoseEstimate(frame.seq, frame.t_ns, T_pred, status, inliers=0, keyframe=is_kf, note=note)
 
-    def _klt_track(self, left: np.ndarray, T_pred: np.ndarray) -> int:
+    def _klt_track(self, left: np.ndarray, T_pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Track the map into ``left``; returns new pixels and the good mask (the map is not changed)."""
         m = self._map
         T_cw = invert_pose(T_pred)
         Xc = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
@@ -244,9 +260,7 @@ class StereoEstimator:
         p1 = p1.reshape(-1, 2)
         good = (st.ravel() == 1) & (stb.ravel() == 1) & (fb < self.cfg.fb_max_px)
         good &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
-        m.uv = p1.astype(np.float32)
-        m.keep(good)
-        return int(good.sum())
+        return p1.astype(np.float32), good
 
     def _stereo_right(self, left: np.ndarray, right: np.ndarray, uv_left: np.ndarray,
                       guess_right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
