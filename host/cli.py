@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str] | dict[str, tuple[str, str]]] = {
     },
     "host": {
         "live": ("host.commands.live", "receive poses and keyframes from a device and show them live"),
+        "map": ("host.commands.map", "dense 3D model (mesh, cloud, preview) from a session or stored keyframes"),
     },
     "device": {
         "selftest": ("device.commands.selftest", "check the configured sensors and print pass/fail"),
