@@ -87,9 +87,10 @@ class _Map:
     X: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # world points
     uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))  # left pixels, last frame
     uv_kf: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))  # at keyframe
+    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # stable point ids
 
     def keep(self, mask: np.ndarray) -> None:
-        self.X, self.uv, self.uv_kf = self.X[mask], self.uv[mask], self.uv_kf[mask]
+        self.X, self.uv, self.uv_kf, self.ids = self.X[mask], self.uv[mask], self.uv_kf[mask], self.ids[mask]
 
     def __len__(self) -> int:
         return len(self.X)
@@ -126,6 +127,13 @@ class StereoEstimator:
                          criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
         self._feature_cfg = None
         self._match_cfg = None
+        # keyframe log for offline bundle adjustment: poses, observations (kf, point id, cam, u, v)
+        self.record_observations = True
+        self.keyframe_poses: list[tuple[int, np.ndarray]] = []
+        self.observations: list[np.ndarray] = []
+        self.landmarks: dict[int, np.ndarray] = {}
+        self._next_id = 0
+        self._cur_seq = 0
         self.counters = {"keyframes": 0, "imu_only": 0, "lost": 0, "asift_matches": 0}
 
     # ------------------------------------------------------------------ public
@@ -135,6 +143,7 @@ class StereoEstimator:
 
     def process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate:
         left, right = _gray(frame.left), _gray(frame.right)
+        self._cur_seq = frame.seq
         if self._T_world_cam is None:
             return self._initialise(frame, left, right, imu)
 
@@ -411,12 +420,34 @@ class StereoEstimator:
         # corners (not SIFT keypoints) become tracked map points, up to max_points
         sel = np.flatnonzero(ok[n_kf_feats:]) + n_kf_feats
         sel = sel[: max(0, need)]
+        # observations of the existing points at this keyframe (for offline bundle adjustment)
+        k = len(self.keyframe_poses)
+        if self.record_observations:
+            self.keyframe_poses.append((self._cur_seq, T_world_cam.copy()))
+        if self.record_observations and len(m):
+            Xc_old = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
+            uvr_old, ok_old = self._stereo_right(left, right, m.uv, self._right_guess(Xc_old))
+            self._record(k, m.ids, m.uv, uvr_old, ok_old)
+        new_ids = np.arange(self._next_id, self._next_id + len(sel), dtype=np.int64)
+        self._next_id += len(sel)
+        if self.record_observations and len(sel):
+            self._record(k, new_ids, cands_all[sel], uvr[sel], np.ones(len(sel), bool))
+            self.landmarks.update({int(i): x for i, x in zip(new_ids, Xw[sel])})
         m.X = np.vstack([m.X, Xw[sel]])
         m.uv = np.vstack([m.uv, cands_all[sel]]).astype(np.float32)
+        m.ids = np.concatenate([m.ids, new_ids])
         m.uv_kf = m.uv.copy()
         self._since_kf = 0
         self.counters["keyframes"] += 1
         return len(m)
+
+    def _record(self, k: int, ids, uv_left, uv_right, ok_right) -> None:
+        """Observations (undistorted pixels) of map points at keyframe ``k``, for bundle adjustment."""
+        ul = undistort_px(uv_left, self.rig.cam0.K, self.rig.cam0.dist)
+        ur = undistort_px(uv_right[ok_right], self.rig.cam1.K, self.rig.cam1.dist)
+        for cam, idv, uv in ((0, ids, ul), (1, ids[ok_right], ur)):
+            if len(idv):
+                self.observations.append(np.column_stack([np.full(len(idv), k), idv, np.full(len(idv), cam), uv]))
 
     def _default_depth(self) -> float:
         # a depth that gives a middle disparity on this rig
