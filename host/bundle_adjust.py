@@ -124,7 +124,7 @@ def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarra
     r0 = residuals(x0)
     rms0 = float(np.sqrt(np.mean(r0**2)))
     res = least_squares(residuals, x0, jac_sparsity=A.tocsr(), loss="huber", f_scale=huber_px, method="trf",
-                        x_scale="jac", max_nfev=max_nfev, verbose=0)
+                        x_scale="jac", tr_solver="lsmr", tr_options={"atol": 1e-12, "btol": 1e-12, "maxiter": 2000}, max_nfev=max_nfev, verbose=0)
     rms1 = float(np.sqrt(np.mean(res.fun**2)))
     poses, pts = unpack(res.x)
     R = _rotvec_to_R(poses[:, :3])
