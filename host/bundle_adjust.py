@@ -1,7 +1,8 @@
 """Bundle adjustment of keyframe poses and points on the reprojection error in both cameras.
 
 Solver: ``scipy.optimize.least_squares`` (trust-region reflective, a Levenberg-Marquardt-type
-method that handles large sparse problems) with a Huber loss and the Jacobian's sparsity
+method that handles large sparse problems) with a robust soft-L1 loss (a smooth Huber: scipy's
+``huber`` stalls in trf on this problem, see tests) and the Jacobian's sparsity
 pattern given explicitly, so finite differences cost only about nine residual evaluations per
 iteration (columns of different keyframes or different points never share a residual).
 
@@ -51,7 +52,7 @@ def _rotvec_to_R(r: np.ndarray) -> np.ndarray:
 
 
 def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarray], observations: np.ndarray,
-                  huber_px: float = 1.0, max_nfev: int = 50, min_keyframes_per_point: int = 2) -> BAResult:
+                  huber_px: float = 1.0, max_nfev: int = 100, loss: str = "soft_l1", min_keyframes_per_point: int = 2) -> BAResult:
     from scipy.optimize import least_squares
     from scipy.sparse import lil_matrix
 
@@ -123,7 +124,7 @@ def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarra
     x0 = np.concatenate([x_pose[1:].ravel(), x_pts.ravel()])
     r0 = residuals(x0)
     rms0 = float(np.sqrt(np.mean(r0**2)))
-    res = least_squares(residuals, x0, jac_sparsity=A.tocsr(), loss="huber", f_scale=huber_px, method="trf",
+    res = least_squares(residuals, x0, jac_sparsity=A.tocsr(), loss=loss, f_scale=huber_px, method="trf",
                         x_scale="jac", tr_solver="lsmr", tr_options={"atol": 1e-12, "btol": 1e-12, "maxiter": 2000}, max_nfev=max_nfev, verbose=0)
     rms1 = float(np.sqrt(np.mean(res.fun**2)))
     poses, pts = unpack(res.x)
