@@ -70,6 +70,7 @@ class StereoConfig:
     use_imu: bool = True
     huber_px: float = 1.0
     max_failures_keep_map: int = 10  # failed frames in a row before the map restarts
+    background_keyframes: bool = True  # affine views of a keyframe computed off the frame loop
 
     def __post_init__(self) -> None:
         check_range("max_points", self.max_points, 20, 20000)
@@ -116,8 +117,14 @@ class StereoEstimator:
         self._dt_prev: float | None = None
         self._prev_left: np.ndarray | None = None
         self._map = _Map()
-        self._kf_feats = None  # (xy (N,2), desc (N,128)) of the last keyframe's original view, with 3D
-        self._kf_X: np.ndarray | None = None
+        # the last keyframe's all-view features with 3D points: a Future while the background
+        # thread computes them (or the plain result when run synchronously)
+        self._kf_future = None
+        self._executor = None
+        if self.cfg.use_asift_keyframes and self.cfg.background_keyframes:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keyframe-features")
         self._since_kf = 0
         self._failures = 0
         self._pending_feats = None
@@ -140,6 +147,18 @@ class StereoEstimator:
 
     def stats(self) -> dict:
         return dict(self.counters)
+
+    def close(self) -> None:
+        """Stop the background keyframe worker (idempotent)."""
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
+            self._executor = None
+
+    def __del__(self) -> None:  # the worker thread must not outlive the estimator
+        try:
+            self.close()
+        except Exception:
+            pass
 
     def process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate:
         left, right = _gray(frame.left), _gray(frame.right)
@@ -334,76 +353,111 @@ class StereoEstimator:
 
     # ------------------------------------------------------------------ keyframes
 
-    def _features(self, img: np.ndarray):
+    def _features(self, img: np.ndarray, views: list[int] | None = None):
         from device.features import PRESETS, detect
 
         if self._feature_cfg is None:
             if self.cfg.feature_preset not in PRESETS:
                 raise ConfigError(f"feature_preset = {self.cfg.feature_preset!r}; known: {sorted(PRESETS)}")
             self._feature_cfg = PRESETS[self.cfg.feature_preset]
-        return detect(img, self._feature_cfg)
+        return detect(img, self._feature_cfg, views=views)
 
     def _keyframe_pose(self, left, right, T_est: np.ndarray, n_inl: int) -> tuple[np.ndarray, int]:
-        """Add modified-ASIFT matches against the previous keyframe's 3D features to the pose solve."""
-        if not self.cfg.use_asift_keyframes or self._kf_feats is None:
-            self._pending_feats = None
+        """Add modified-ASIFT matches against the previous keyframe's 3D features to the pose solve.
+
+        The new keyframe's original-view SIFT features are matched against the previous
+        keyframe's features from all affine views (computed in the background since that
+        keyframe was created, each with a stereo 3D point).
+        """
+        self._pending_feats = None
+        if not self.cfg.use_asift_keyframes:
             return T_est, n_inl
         from device.matching import MatchConfig, match
 
-        feats = self._features(left)
-        self._pending_feats = feats
-        prev = self._kf_feats
-        mt = match(prev, feats, self._match_cfg or MatchConfig())
-        idx = np.asarray(mt.idx if hasattr(mt, "idx") else mt.indices).reshape(-1, 2)
+        feats0 = self._features(left, views=[0])
+        self._pending_feats = feats0
+        prev = self._kf_result()
+        if prev is None:
+            return T_est, n_inl
+        prev_feats, prev_X = prev
+        mt = match(feats0, prev_feats, self._match_cfg or MatchConfig())
+        idx = np.asarray(mt.idx).reshape(-1, 2)
         if len(idx) < self.cfg.min_pnp_inliers:
             return T_est, n_inl
-        X = np.vstack([self._kf_X[idx[:, 0]], self._map.X])
-        uv = np.vstack([feats.xy[idx[:, 1]].astype(np.float64), self._map.uv])
+        X = np.vstack([prev_X[idx[:, 1]], self._map.X])
+        uv = np.vstack([feats0.xy[idx[:, 0]].astype(np.float64), self._map.uv])
         T_new, n_new, mask = self._solve_pose(left, right, X, uv, T_est)
         if T_new is None:
             return T_est, n_inl
-        n_asift = int(mask[: len(idx)].sum())
-        self.counters["asift_matches"] += n_asift
+        self.counters["asift_matches"] += int(mask[: len(idx)].sum())
         self._map.keep(mask[len(idx):])
         return T_new, n_new
 
+    def _kf_result(self):
+        """The previous keyframe's (features, world points), waiting for the background job if needed."""
+        fut = self._kf_future
+        if fut is None:
+            return None
+        return fut.result() if hasattr(fut, "result") else fut
+
+    def _keyframe_features(self, left, right, feats0, T_world_cam: np.ndarray, z0: float):
+        """All-view features of a keyframe with stereo 3D points (runs in the background thread)."""
+        from device.features import Features
+
+        n_views = len(self._feature_cfg.views) if getattr(self._feature_cfg, "views", None) else 1
+        parts = [feats0]
+        if n_views > 1 and getattr(self._feature_cfg, "backend", "ours") != "cv2_affine":
+            parts.append(self._features(left, views=list(range(1, n_views))))
+        feats = Features.concat(parts) if len(parts) > 1 else feats0
+        if len(feats) == 0:
+            return None
+        xy = feats.xy.astype(np.float32)
+        uvu = undistort_px(xy, self.rig.cam0.K, self.rig.cam0.dist)
+        rays = np.column_stack([(uvu[:, 0] - self.rig.cam0.cx) / self.rig.cam0.fx,
+                                (uvu[:, 1] - self.rig.cam0.cy) / self.rig.cam0.fy, np.ones(len(uvu))])
+        uvr, ok = self._stereo_right(left, right, xy, self._right_guess(rays * z0))
+        Xc, err = triangulate(self.rig, uvu, undistort_px(uvr, self.rig.cam1.K, self.rig.cam1.dist))
+        ok &= (err < self.cfg.triangulation_max_px) & (Xc[:, 2] > self.cfg.min_depth_m) & (Xc[:, 2] < self.cfg.max_depth_m)
+        if ok.sum() < self.cfg.min_pnp_inliers:
+            return None
+        Xw = Xc[ok] @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+        return feats.subset(ok), Xw
+
     def _new_keyframe(self, left, right, T_world_cam: np.ndarray, tracked) -> int:
-        """Top up the map with new stereo points and remember this keyframe's SIFT features with 3D."""
+        """Top up the map with new stereo points; start this keyframe's affine-view features in the background."""
         cfg = self.cfg
         m = self._map
-        feats = getattr(self, "_pending_feats", None) if tracked else None
-        if feats is None and cfg.use_asift_keyframes:
-            feats = self._features(left)
+        feats0 = self._pending_feats if tracked else None
         self._pending_feats = None
         T_cw = invert_pose(T_world_cam)
-        # candidate new points: corners away from the existing tracks, plus the keyframe's SIFT keypoints
+        # right-image guess from the median depth of the current map (or a middle depth)
+        z0 = self._default_depth()
+        if len(m):
+            Xc_m = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
+            if np.any(Xc_m[:, 2] > 0):
+                z0 = float(np.median(Xc_m[Xc_m[:, 2] > 0, 2]))
+        if cfg.use_asift_keyframes:
+            if feats0 is None:
+                feats0 = self._features(left, views=[0])
+            args = (left, right, feats0, T_world_cam.copy(), z0)
+            if self._executor is not None:
+                self._kf_future = self._executor.submit(self._keyframe_features, *args)
+            else:
+                self._kf_future = self._keyframe_features(*args)
+        # candidate new map points: corners away from the existing tracks
         need = cfg.max_points - len(m)
         mask = np.full(left.shape[:2], 255, np.uint8)
         for u, v in m.uv.astype(int):
             cv2.circle(mask, (int(u), int(v)), cfg.new_corner_spacing_px, 0, -1)
-        cands = np.zeros((0, 2), np.float32)
+        cands_all = np.zeros((0, 2), np.float32)
         if need > 0:
             c = cv2.goodFeaturesToTrack(left, maxCorners=need, qualityLevel=0.005,
                                         minDistance=cfg.new_corner_spacing_px, mask=mask, blockSize=5)
             if c is not None:
-                cands = c.reshape(-1, 2).astype(np.float32)
-        n_kf_feats = 0
-        if feats is not None:
-            v0 = _original_view(feats)
-            n_kf_feats = len(v0.xy)
-            cands_all = np.vstack([v0.xy.astype(np.float32), cands])
-        else:
-            cands_all = cands
+                cands_all = c.reshape(-1, 2).astype(np.float32)
         if len(cands_all) == 0:
-            self._kf_feats, self._kf_X = None, None
             self._since_kf = 0
             return len(m)
-        # right-image guess from the median depth of the current map (or 1.5 m)
-        if len(m):
-            Xc = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
-            z0 = float(np.median(Xc[:, 2])) if np.any(Xc[:, 2] > 0) else 1.5
-        else:
-            z0 = self._default_depth()
         uvu = undistort_px(cands_all, self.rig.cam0.K, self.rig.cam0.dist)
         rays = np.column_stack([(uvu[:, 0] - self.rig.cam0.cx) / self.rig.cam0.fx,
                                 (uvu[:, 1] - self.rig.cam0.cy) / self.rig.cam0.fy, np.ones(len(uvu))])
@@ -412,13 +466,8 @@ class StereoEstimator:
         Xc, err = triangulate(self.rig, uvu, uvr_u)
         ok &= (err < cfg.triangulation_max_px) & (Xc[:, 2] > cfg.min_depth_m) & (Xc[:, 2] < cfg.max_depth_m)
         Xw = Xc @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
-        if feats is not None:
-            kf_ok = ok[:n_kf_feats]
-            v0 = _original_view(feats)
-            self._kf_feats = v0.subset(kf_ok) if hasattr(v0, "subset") else v0
-            self._kf_X = Xw[:n_kf_feats][kf_ok]
         # corners (not SIFT keypoints) become tracked map points, up to max_points
-        sel = np.flatnonzero(ok[n_kf_feats:]) + n_kf_feats
+        sel = np.flatnonzero(ok)
         sel = sel[: max(0, need)]
         # observations of the existing points at this keyframe (for offline bundle adjustment)
         k = len(self.keyframe_poses)
@@ -452,10 +501,3 @@ class StereoEstimator:
     def _default_depth(self) -> float:
         # a depth that gives a middle disparity on this rig
         return float(np.clip(self._rect.f * self._rect.baseline_m / 20.0, 0.5, 20.0))
-
-
-def _original_view(feats):
-    """The original-view (plain SIFT) subset of modified-ASIFT features."""
-    if hasattr(feats, "original_view"):
-        return feats.original_view()
-    return feats.subset(feats.view == 0)
