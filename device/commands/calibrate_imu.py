@@ -1,0 +1,119 @@
+"""Estimate the gyro bias and the gravity direction from a still period of IMU data.
+
+SOURCE is a recorded sequence (euroc:DIR, session:DIR) or "live" (the configured IMU,
+read for --seconds while the unit rests).  The window is the span of the recorded image
+frames (--window frames, the default for recordings), an automatically detected still
+stretch (--window auto) or explicit times in seconds (--window T0:T1).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("source", metavar="SOURCE", help="euroc:DIR, session:DIR or live")
+    parser.add_argument("--window", default=None,
+                        help="frames | auto | T0:T1 (seconds, same clock as the data); default frames, "
+                             "or auto when the source has no frames")
+    parser.add_argument("--min-still-s", type=float, default=2.0, help="shortest still window accepted (auto)")
+    parser.add_argument("--seconds", type=float, default=5.0, help="live: how long to read")
+    parser.add_argument("--config", default=None, help="device TOML (live: the [imu] section)")
+    parser.add_argument("--imu", choices=("mpu6050", "emulated"), default=None, help="live: override imu.backend")
+    parser.add_argument("--out", default=None, help="write the result as YAML here")
+
+
+def _window(samples, frames_t, spec: str, min_still_s: float):
+    from device.calibration import detect_still_window
+    from device.errors import CalibrationError
+
+    if spec == "frames":
+        if frames_t is None or len(frames_t) < 2:
+            raise CalibrationError("--window frames: the source has no image frames")
+        return int(frames_t[0]), int(frames_t[-1])
+    if spec == "auto":
+        return detect_still_window(samples, min_duration_s=min_still_s)
+    try:
+        a, b = (float(v) for v in spec.split(":"))
+    except ValueError:
+        raise CalibrationError(f"--window {spec!r}: expected frames, auto or T0:T1 in seconds") from None
+    if b <= a:
+        raise CalibrationError(f"--window {spec!r}: T1 must be after T0")
+    return int(round(a * 1e9)), int(round(b * 1e9))
+
+
+def _live(args):
+    import time
+
+    from device.frames import ImuSamples
+    from device.imu import create_imu
+    from device.settings import load_device_config
+
+    cfg = load_device_config(args.config)
+    settings = cfg.imu
+    if args.imu:
+        from device.config import replace
+
+        settings = replace(settings, backend=args.imu)
+    imu = create_imu(settings)
+    if imu is None:
+        from device.errors import ConfigError
+
+        raise ConfigError("imu.backend = 'none': nothing to calibrate")
+    imu.open()
+    blocks = []
+    try:
+        sleep = getattr(imu, "sleep", time.sleep)  # the emulator's simulated clock, or real time
+        n = max(1, int(args.seconds * 1000 / settings.read_period_ms))
+        for _ in range(n):
+            sleep(settings.read_period_ms / 1000.0)
+            blocks.append(imu.read())
+    finally:
+        imu.close()
+    return ImuSamples.concat(blocks), None
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from device.calibration import imu_still_calibration
+    from device.errors import CalibrationError, DatasetError
+
+    if args.source == "live":
+        samples, frames_t = _live(args)
+        window = args.window or "auto"
+        if window == "frames":
+            raise CalibrationError("--window frames needs a recorded source")
+        if window == "auto" and len(samples):
+            window = f"{samples.t_ns[0] / 1e9}:{samples.t_ns[-1] / 1e9 + 1e-9}"
+    else:
+        from device.datasets import open_source
+
+        seq = open_source(args.source)
+        samples = seq.imu
+        if samples is None or not len(samples):
+            raise DatasetError(f"{args.source}: the sequence has no IMU samples")
+        frames_t = np.asarray(seq.t_ns) if len(seq) else None
+        window = args.window or ("frames" if frames_t is not None and len(frames_t) >= 2 else "auto")
+    t0, t1 = _window(samples, frames_t, window, args.min_still_s)
+    still = samples.between(t0 - 1, t1)
+    res = imu_still_calibration(still)
+    deg = np.rad2deg
+    print(f"window: {window}  {res.samples} samples over {res.duration_s:.2f} s")
+    print("gyro bias:  [" + ", ".join(f"{v:+.5f}" for v in res.gyro_bias_rad_s) + "] rad/s  ("
+          + ", ".join(f"{v:+.3f}" for v in deg(res.gyro_bias_rad_s)) + " deg/s)")
+    print("gyro std:   [" + ", ".join(f"{v:.5f}" for v in res.gyro_std_rad_s) + "] rad/s")
+    print("accel mean: [" + ", ".join(f"{v:+.4f}" for v in res.accel_mean_m_s2) + "] m/s^2")
+    print(f"gravity:    {res.gravity_m_s2:.4f} m/s^2 ({res.gravity_error_m_s2:+.4f} vs 9.80665)")
+    tilt = deg(np.arccos(np.clip(res.R_world_imu[2, 2], -1, 1)))
+    print(f"R_world_imu (gravity-aligned, yaw 0): tilt of IMU z from vertical {tilt:.2f} deg")
+    for row in res.R_world_imu:
+        print("  [" + ", ".join(f"{v:+.6f}" for v in row) + "]")
+    if args.out:
+        import yaml
+
+        with open(args.out, "w") as fh:
+            fh.write(f"# stereopath device calibrate-imu {args.source} (window {window})\n")
+            yaml.safe_dump(res.as_dict(), fh, sort_keys=False, default_flow_style=None)
+        print(f"wrote {args.out}")
+    return 0

@@ -1,0 +1,227 @@
+"""Check the configured sensors and print a pass/fail table (exit code 1 on any failure).
+
+Opens the stereo source and captures a few pairs (pairing, frame rate), opens the IMU
+(WHO_AM_I, sample rate, gaps) and reads a still period (gyro bias and noise, gravity
+magnitude: keep the unit still), and checks the free disk space of the recorder folder.
+On a machine without the hardware use --source sim: simulator frames with the emulated
+MPU-6050 (unless --imu says otherwise).
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+from typing import Any
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", default=None, help="device TOML (default: built-in defaults)")
+    parser.add_argument("--source", choices=("picamera2", "depthai", "replay", "sim"), default=None,
+                        help="override source.backend (sim = simulator frames + emulated IMU)")
+    parser.add_argument("--imu", choices=("mpu6050", "emulated", "source", "none"), default=None,
+                        help="override imu.backend")
+    parser.add_argument("--frames", type=int, default=None, help="stereo pairs to capture (selftest.frames)")
+
+
+@dataclass
+class Check:
+    name: str
+    ok: bool
+    value: str
+    limit: str = ""
+
+
+def _free_disk_check(path: str, reserve_mb: float) -> Check:
+    import shutil
+    from pathlib import Path
+
+    p = Path(path).absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    free_mb = shutil.disk_usage(p).free / 1e6
+    return Check("free disk", free_mb >= reserve_mb, f"{free_mb:.0f} MB at {p}", f">= {reserve_mb:.0f} MB")
+
+
+def _camera_checks(cfg: Any, source: Any, frames_wanted: int, imu_blocks: list) -> list[Check]:
+    import numpy as np
+
+    from device.errors import StereopathError
+
+    st = cfg.selftest
+    checks: list[Check] = []
+    t: list[int] = []
+    shapes_ok = True
+    try:
+        source.open()
+    except StereopathError as exc:
+        return [Check("camera open", False, str(exc))]
+    try:
+        checks.append(Check("camera open", True, f"{source.name}"))
+        err = None
+        try:
+            for frame in source:
+                t.append(int(frame.t_ns))
+                shapes_ok &= frame.left.shape == frame.right.shape and frame.left.size > 0
+                imu = getattr(source, "imu", None)
+                if imu is not None:
+                    imu_blocks.append(imu.read())
+                if len(t) >= frames_wanted:
+                    break
+        except StereopathError as exc:
+            err = exc
+        stats = source.stats
+    finally:
+        source.close()
+    received = stats.frames_left + stats.frames_right
+    ratio = stats.dropped_unpaired / received if received else 1.0
+    ok = err is None and len(t) >= min(frames_wanted, 2) and shapes_ok and ratio <= st.max_unpaired_ratio
+    value = f"{len(t)} pairs, {stats.dropped_unpaired} unpaired ({100 * ratio:.1f} %)"
+    if err is not None:
+        value += f"; {err}"
+    if not shapes_ok:
+        value += "; left/right shapes differ"
+    checks.append(Check("frame pairing", ok, value, f"<= {100 * st.max_unpaired_ratio:.0f} % unpaired"))
+    if len(t) >= 3:
+        dts = np.diff(np.asarray(t, np.int64))
+        observed = (len(t) - 1) * 1e9 / (t[-1] - t[0]) if t[-1] > t[0] else 0.0
+        if cfg.source.backend in ("picamera2", "depthai"):
+            nominal = cfg.source.fps
+        else:  # recorded or simulated: the sequence's own rate
+            nominal = 1e9 / float(np.median(dts)) if np.median(dts) > 0 else 0.0
+        ok = nominal > 0 and abs(observed - nominal) <= st.rate_tolerance * nominal and bool(np.all(dts > 0))
+        checks.append(Check("camera rate", ok, f"{observed:.2f} fps",
+                            f"{nominal:.2f} fps +-{100 * st.rate_tolerance:.0f} %"))
+    else:
+        checks.append(Check("camera rate", False, f"only {len(t)} frames", ""))
+    return checks
+
+
+def _imu_checks(cfg: Any, imu: Any, blocks_from_source: list) -> list[Check]:
+    import time
+
+    import numpy as np
+
+    from device.calibration import imu_still_calibration
+    from device.errors import StereopathError
+    from device.frames import ImuSamples
+    from device.imu.mpu6050 import WHO_AM_I_CLONES, WHO_AM_I_MPU6050
+
+    st, s = cfg.selftest, cfg.imu
+    checks: list[Check] = []
+    if imu is None and not blocks_from_source:
+        return [Check("IMU", s.backend == "none", "none configured" if s.backend == "none" else "no IMU data")]
+    gaps = 0
+    if imu is not None and s.backend != "source":
+        try:
+            imu.open()
+        except StereopathError as exc:
+            return [Check("IMU open", False, str(exc))]
+        try:
+            who = getattr(imu, "who_am_i", None)
+            if who is not None:
+                ok = who == WHO_AM_I_MPU6050 or who in WHO_AM_I_CLONES
+                note = f" ({WHO_AM_I_CLONES[who]} clone)" if who in WHO_AM_I_CLONES else ""
+                checks.append(Check("IMU WHO_AM_I", ok, f"{who:#04x}{note}", "0x68 (0x70/0x71 clones)"))
+            sleep = getattr(imu, "sleep", time.sleep)
+            blocks = []
+            n = 0
+            polls = int(st.still_s * 1000 / s.read_period_ms) + 2
+            try:
+                for _ in range(polls):
+                    sleep(s.read_period_ms / 1000.0)
+                    b = imu.read()
+                    blocks.append(b)
+                    n += len(b)
+            except StereopathError as exc:
+                checks.append(Check("IMU read", False, str(exc)))
+                return checks
+            gaps = len(getattr(imu, "gaps", []))
+        finally:
+            imu.close()
+        samples = ImuSamples.concat(blocks)
+        expected_hz = s.rate_hz
+    else:
+        samples = ImuSamples.concat(blocks_from_source)
+        expected_hz = None
+    if len(samples) < 10:
+        checks.append(Check("IMU samples", False, f"{len(samples)} samples", ">= 10"))
+        return checks
+    span = (samples.t_ns[-1] - samples.t_ns[0]) / 1e9
+    hz = (len(samples) - 1) / span if span > 0 else 0.0
+    if expected_hz:
+        ok = abs(hz - expected_hz) <= st.imu_rate_tolerance * expected_hz
+        checks.append(Check("IMU rate", ok, f"{hz:.1f} Hz", f"{expected_hz:g} Hz +-{100 * st.imu_rate_tolerance:.0f} %"))
+    else:
+        checks.append(Check("IMU rate", hz > 0, f"{hz:.1f} Hz", "> 0"))
+    checks.append(Check("IMU gaps", gaps == 0, str(gaps), "0"))
+    cal = imu_still_calibration(samples)
+    bias = float(np.max(np.abs(np.rad2deg(cal.gyro_bias_rad_s))))
+    noise = float(np.max(np.rad2deg(cal.gyro_std_rad_s)))
+    checks.append(Check("gyro still", noise <= st.max_gyro_std_dps, f"std {noise:.3f} deg/s",
+                        f"<= {st.max_gyro_std_dps:g} deg/s (unit must rest)"))
+    checks.append(Check("gyro bias", bias <= st.max_gyro_bias_dps, f"{bias:.3f} deg/s (largest axis)",
+                        f"<= {st.max_gyro_bias_dps:g} deg/s"))
+    checks.append(Check("gravity magnitude", abs(cal.gravity_error_m_s2) <= st.gravity_tolerance_m_s2,
+                        f"{cal.gravity_m_s2:.3f} m/s^2", f"9.807 +- {st.gravity_tolerance_m_s2:g} m/s^2"))
+    return checks
+
+
+def run_selftest(cfg: Any, source: Any = None, imu: Any = None) -> list[Check]:
+    """All checks; ``source``/``imu`` (unopened) may be injected, otherwise built from ``cfg``."""
+    from device.errors import StereopathError
+    from device.imu import create_imu
+    from device.sources import create_source
+
+    checks: list[Check] = []
+    if source is None:
+        try:
+            source = create_source(cfg.source)
+        except StereopathError as exc:
+            checks.append(Check("camera open", False, str(exc)))
+    imu_blocks: list = []
+    if source is not None:
+        checks += _camera_checks(cfg, source, cfg.selftest.frames, imu_blocks)
+    if imu is None and cfg.imu.backend not in ("none", "source"):
+        try:
+            imu = create_imu(cfg.imu)
+        except StereopathError as exc:
+            checks.append(Check("IMU open", False, str(exc)))
+    checks += _imu_checks(cfg, imu, imu_blocks if cfg.imu.backend == "source" else [])
+    checks.append(_free_disk_check(cfg.recorder.dir, cfg.recorder.reserve_mb))
+    return checks
+
+
+def format_table(checks: list[Check]) -> str:
+    w = max(len(c.name) for c in checks)
+    v = max(len(c.value) for c in checks)
+    lines = [f"{'check':<{w}}  result  {'value':<{v}}  limit"]
+    for c in checks:
+        lines.append(f"{c.name:<{w}}  {'PASS' if c.ok else 'FAIL':<6}  {c.value:<{v}}  {c.limit}")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    import logging
+
+    from device.config import replace
+    from device.settings import load_device_config
+
+    cfg = load_device_config(args.config)
+    src, imu_s, st = cfg.source, cfg.imu, cfg.selftest
+    if args.source:
+        src = replace(src, backend=args.source)
+    if args.imu:
+        imu_s = replace(imu_s, backend=args.imu)
+    elif args.source == "sim" and imu_s.backend == "mpu6050":
+        imu_s = replace(imu_s, backend="emulated")
+        logging.getLogger(__name__).info("--source sim: using the emulated MPU-6050")
+    if args.frames:
+        st = replace(st, frames=args.frames)
+    if src.backend == "sim" and src.sim.frames < st.frames:
+        src = replace(src, sim=replace(src.sim, frames=st.frames))
+    cfg = replace(cfg, source=src, imu=imu_s, selftest=st)
+    checks = run_selftest(cfg)
+    print(format_table(checks))
+    failed = [c.name for c in checks if not c.ok]
+    print(f"{len(checks) - len(failed)}/{len(checks)} checks passed" + (f"; FAILED: {', '.join(failed)}" if failed else ""))
+    return 1 if failed else 0

@@ -1,0 +1,69 @@
+"""``open_source("sim[:ARG]")``: the simulator as a recorded-sequence source.
+
+``ARG`` is empty (defaults), a seed (``sim:3``) or comma-separated ``key=value`` settings of
+:class:`device.sim.session.SimConfig` (``sim:seed=3,frames=100,trajectory=orbit``).  Importing
+this module registers the ``sim`` scheme with :mod:`device.datasets.source`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from device.errors import ConfigError
+
+
+def parse_sim_spec(arg: str) -> dict[str, Any]:
+    """``"3"`` -> ``{"seed": 3}``; ``"seed=3,frames=10,motion_blur=true"`` -> typed mapping."""
+    import dataclasses
+    import typing
+
+    from device.sim.session import SimConfig
+
+    arg = arg.strip()
+    if not arg:
+        return {}
+    if "=" not in arg:
+        try:
+            return {"seed": int(arg)}
+        except ValueError:
+            raise ConfigError(f"sim source {arg!r}: expected a seed or key=value settings") from None
+    hints = typing.get_type_hints(SimConfig)
+    known = {f.name for f in dataclasses.fields(SimConfig)}
+    out: dict[str, Any] = {}
+    for item in arg.split(","):
+        key, sep, text = item.partition("=")
+        key, text = key.strip(), text.strip()
+        if not sep or key not in known:
+            raise ConfigError(f"sim source: unknown setting {item.strip()!r} (known: {', '.join(sorted(known))})")
+        tp = hints[key]
+        try:
+            if tp is bool:
+                if text.lower() not in ("true", "false", "1", "0", "yes", "no"):
+                    raise ValueError(text)
+                out[key] = text.lower() in ("true", "1", "yes")
+            elif tp is int:
+                out[key] = int(text)
+            elif tp is float:
+                out[key] = float(text)
+            else:
+                out[key] = text
+        except ValueError:
+            raise ConfigError(f"sim source: {key} = {text!r} is not a valid {tp.__name__}") from None
+    return out
+
+
+def open_sim_spec(arg: str):
+    from device.sim.session import open_sim
+
+    sess = open_sim(**parse_sim_spec(arg))
+    sess.spec = f"sim:{arg}" if arg else "sim"
+    return sess
+
+
+def _register() -> None:
+    from device.datasets.source import register_source
+
+    register_source("sim", open_sim_spec)
+
+
+_register()

@@ -1,0 +1,173 @@
+"""Calibration math and tools: stereo from chessboards (synthetic and OpenCV's set), IMU still period."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from device.calibration import (board_points, calibrate_stereo, detect_still_window, gravity_alignment,
+                                imu_still_calibration, implied_gyro_bias, parse_board)
+from device.errors import CalibrationError
+from device.frames import ImuSamples
+from device.geometry import so3_exp
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def test_parse_board():
+    assert parse_board("9x6") == (9, 6) and parse_board("7X5") == (7, 5)
+    for bad in ("9by6", "1x6", "x"):
+        with pytest.raises(CalibrationError, match="board"):
+            parse_board(bad)
+
+
+def test_synthetic_views_recover_the_rig_in_our_convention():
+    import cv2
+
+    rng = np.random.default_rng(3)
+    K = np.array([[520.0, 0, 322.0], [0, 518.0, 241.0], [0, 0, 1]])
+    d0 = np.array([-0.12, 0.05, 0.0005, -0.0003, 0.0])
+    R_true = so3_exp(np.array([0.01, -0.02, 0.005]))
+    T_true = np.array([-0.06, 0.001, -0.002])          # right camera 6 cm to the right
+    obj = board_points((9, 6), 0.03)
+    center = obj.mean(axis=0)
+    L, Rr = [], []
+    for _ in range(14):
+        rvec = rng.uniform(-0.5, 0.5, 3)
+        Rb = so3_exp(rvec)
+        tvec = np.array([rng.uniform(-0.1, 0.1), rng.uniform(-0.08, 0.08), rng.uniform(0.45, 0.8)]) - Rb @ center
+        p0 = (Rb @ obj.T).T + tvec
+        p1 = (R_true @ p0.T).T + T_true
+        for pts, out in ((p0, L), (p1, Rr)):
+            uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, d0)
+            out.append((uv + rng.normal(0, 0.1, uv.shape)).astype(np.float32))
+    res = calibrate_stereo(L, Rr, (640, 480), (9, 6), 0.03)
+    assert res.rms_px < 0.2
+    assert np.allclose(res.rig.R, R_true, atol=2e-3)
+    assert np.allclose(res.rig.T, T_true, atol=2e-3) and res.rig.T[0] < 0
+    assert np.allclose(res.rig.cam0.K, K, rtol=1e-2, atol=2.0)
+
+
+def test_too_few_views():
+    with pytest.raises(CalibrationError, match="at least 3 pairs"):
+        calibrate_stereo([np.zeros((54, 1, 2), np.float32)] * 2, [np.zeros((54, 1, 2), np.float32)] * 2,
+                         (640, 480), (9, 6), 0.03)
+
+
+@pytest.mark.realdata
+def test_calibrate_stereo_cli_on_the_opencv_chessboards(data_dir, tmp_path, capsys):
+    from device.rig import load_rig_yaml
+    from host.cli import main
+
+    out = tmp_path / "rig.yaml"
+    rc = main(["device", "calibrate-stereo", str(data_dir / "stereo_calib_chessboard"), "--board", "9x6",
+               "--square-mm", "25", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0
+    rms = float(text.split("RMS reprojection error:")[1].split("px")[0])
+    assert rms < 1.0
+    assert "baseline:" in text and "pairs used: 13 of 13" in text
+    rig = load_rig_yaml(out)
+    assert rig.T[0] < 0 and 0.05 < rig.baseline_m < 0.12       # ~3.3 squares of 25 mm
+    assert rig.cam0.size == (640, 480)
+
+
+def test_calibrate_stereo_cli_errors(tmp_path):
+    from host.cli import main
+
+    assert main(["device", "calibrate-stereo", str(tmp_path), "--square-mm", "25"]) == 2   # no pairs
+    assert main(["device", "calibrate-stereo", str(tmp_path / "nope"), "--square-mm", "25"]) == 2
+
+
+def still_imu(n=2000, rate=200.0, bias=(0.01, -0.02, 0.005), tilt=(0.3, -0.2, 0.0), seed=0, turn_after=None):
+    rng = np.random.default_rng(seed)
+    t = (np.arange(n) * 1e9 / rate).astype(np.int64)
+    R = so3_exp(np.array(tilt))                       # R_world_imu
+    g_imu = R.T @ np.array([0, 0, 9.80665])
+    gyro = np.array(bias) + rng.normal(0, 0.003, (n, 3))
+    accel = g_imu + rng.normal(0, 0.05, (n, 3))
+    if turn_after is not None:
+        gyro[turn_after:, 2] += 0.5
+    return ImuSamples(t, gyro, accel), R
+
+
+def test_still_calibration_and_gravity_alignment():
+    s, R = still_imu()
+    res = imu_still_calibration(s)
+    assert np.allclose(res.gyro_bias_rad_s, [0.01, -0.02, 0.005], atol=3e-4)
+    assert res.gravity_m_s2 == pytest.approx(9.80665, abs=0.01)
+    up = res.R_world_imu @ res.accel_mean_m_s2
+    assert np.allclose(up / np.linalg.norm(up), [0, 0, 1], atol=1e-9)
+    # same tilt as the truth up to a yaw about the vertical
+    assert np.allclose(res.R_world_imu[2], R[2], atol=5e-3)
+    for a in ([0, 0, -9.8], [0, 0, 9.8], [1.0, 0, 0]):
+        Rg = gravity_alignment(np.array(a))
+        assert np.allclose(Rg @ np.array(a) / np.linalg.norm(a), [0, 0, 1]) and np.isclose(np.linalg.det(Rg), 1)
+    with pytest.raises(CalibrationError, match="zero"):
+        gravity_alignment(np.zeros(3))
+
+
+def test_still_window_stops_where_the_unit_starts_turning():
+    s, _ = still_imu(n=2000, turn_after=1000)          # still for 5 s, then a 0.5 rad/s turn
+    t0, t1 = detect_still_window(s, min_duration_s=2.0)
+    assert t0 == s.t_ns[0] and 4.4e9 <= t1 <= 5.0e9
+    moving, _ = still_imu(n=2000, turn_after=0)
+    moving.gyro_rad_s[:, 2] += np.linspace(0, 2, 2000)  # accelerating turn: never still
+    with pytest.raises(CalibrationError, match="no still period"):
+        detect_still_window(moving, min_duration_s=2.0)
+
+
+def _euroc_body_rotation(data_dir, t_ns):
+    from device.geometry import quat_xyzw_to_matrix
+
+    gt = np.loadtxt(data_dir / "euroc_v1_01_head" / "groundtruth_tum.txt")
+    i = int(np.argmin(np.abs(gt[:, 0] - t_ns / 1e9)))
+    assert abs(gt[i, 0] - t_ns / 1e9) < 0.01
+    return quat_xyzw_to_matrix(gt[i, 4:8]), gt[i, 0]
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("window", ["frames", "auto"])
+def test_euroc_still_head_gyro_bias_matches_the_ground_truth(data_dir, window):
+    from device.datasets import open_source
+
+    seq = open_source(f"euroc:{data_dir / 'euroc_v1_01_head'}")
+    imu = seq.imu
+    if window == "frames":
+        t0, t1 = int(seq.t_ns[0]), int(seq.t_ns[-1])
+    else:
+        t0, t1 = detect_still_window(imu, min_duration_s=2.0)
+        assert (t1 - t0) / 1e9 >= 4.0 and t1 - imu.t_ns[0] < 6e9   # the rotors-idle start of the flight
+    still = imu.between(t0 - 1, t1)
+    res = imu_still_calibration(still)
+    R0, s0 = _euroc_body_rotation(data_dir, t0)
+    R1, s1 = _euroc_body_rotation(data_dir, t1)
+    implied = implied_gyro_bias(still, R0, R1, s1 - s0)
+    assert np.all(np.abs(res.gyro_bias_rad_s - implied) < 1e-3)
+    assert np.allclose(res.gyro_bias_rad_s, [-0.002, 0.021, 0.078], atol=2e-3)   # the well-known V1_01 bias
+    assert res.gravity_m_s2 == pytest.approx(9.80665, abs=0.1)
+
+
+@pytest.mark.realdata
+def test_calibrate_imu_cli(data_dir, tmp_path, capsys):
+    import yaml
+
+    from host.cli import main
+
+    out = tmp_path / "imu.yaml"
+    rc = main(["device", "calibrate-imu", f"euroc:{data_dir / 'euroc_v1_01_head'}", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0 and "941 samples" in text and "gyro bias" in text
+    data = yaml.safe_load(out.read_text())
+    assert np.allclose(data["gyro_bias_rad_s"], [-0.00201, 0.02092, 0.07815], atol=1e-4)
+    assert main(["device", "calibrate-imu", f"euroc:{data_dir / 'euroc_v1_01_head'}", "--window", "5:3"]) == 2
+
+
+def test_calibrate_imu_cli_live_emulated(capsys):
+    from host.cli import main
+
+    rc = main(["device", "calibrate-imu", "live", "--imu", "emulated", "--seconds", "2"])
+    text = capsys.readouterr().out
+    assert rc == 0
+    bias_dps = [float(v) for v in text.split("rad/s  (")[1].split(" deg/s")[0].split(",")]
+    assert np.allclose(bias_dps, [0.8, -0.5, 0.3], atol=0.05)     # the emulator's configured bias

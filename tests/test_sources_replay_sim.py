@@ -1,0 +1,105 @@
+"""Replay and sim sources: order, timestamps, pacing on an injected clock, IMU release."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+
+from device.config import from_mapping
+from device.errors import CaptureError
+from device.settings import SourceSettings
+from device.sources import create_source
+from tests.fakes.fake_smbus import SimClock
+from tests.fakes.standins import StandinSequence, image_index
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def replay_settings(**kw):
+    return from_mapping(SourceSettings, {"backend": "replay", "replay": kw})
+
+
+def test_replay_at_max_speed_keeps_recorded_times_and_releases_imu_with_the_frames():
+    seq = StandinSequence(n=12)
+    clock = SimClock()
+    src = create_source(replay_settings(start=2, count=6), sequence=seq, clock_ns=clock.now_ns, sleep=clock.sleep)
+    with src:
+        assert src.rig is seq.rig
+        frames, imu_ends = [], []
+        for f in src:
+            frames.append(f)
+            block = src.imu.read()
+            imu_ends.append(int(block.t_ns[-1]))
+    assert [f.seq for f in frames] == list(range(6))
+    assert [image_index(f.left) for f in frames] == list(range(2, 8)) == [f.meta["index"] for f in frames]
+    assert [f.t_ns for f in frames] == [int(t) for t in seq.t_ns[2:8]]
+    assert clock.now_ns() == 1_000_000_000          # max speed never sleeps
+    # IMU released up to the frame time plus the 100 ms look-ahead, never beyond
+    for f, end in zip(frames, imu_ends):
+        assert f.t_ns <= end <= f.t_ns + 100_000_000
+    assert src.stats.delivered == 6
+
+
+def test_replay_at_recorded_speed_sleeps_to_the_timestamps():
+    seq = StandinSequence(n=10, fps=20.0)
+    clock = SimClock()
+    src = create_source(replay_settings(speed="recorded"), sequence=seq, clock_ns=clock.now_ns, sleep=clock.sleep)
+    host = []
+    with src:
+        for f in src:
+            host.append(clock.now_ns())
+    assert np.all(np.diff(host) == np.diff(seq.t_ns))
+
+
+def test_replay_errors():
+    with pytest.raises(CaptureError, match="no sequence configured"):
+        create_source(replay_settings()).open()
+    with pytest.raises(CaptureError, match="start frame 50"):
+        create_source(replay_settings(start=50), sequence=StandinSequence(n=5)).open()
+    with pytest.raises(CaptureError, match="not found|ASL"):
+        create_source(replay_settings(path="euroc:/nonexistent/folder")).open()
+
+
+@pytest.mark.realdata
+def test_replay_of_the_euroc_head(data_dir):
+    if importlib.util.find_spec("device.datasets") is None:
+        pytest.skip("device.datasets not available")
+    src = create_source(replay_settings(path=f"euroc:{data_dir / 'euroc_v1_01_head'}", count=3))
+    with src:
+        frames = list(src)
+        imu = src.imu.read()
+    assert len(frames) == 3 and frames[0].left.shape == (480, 752)
+    assert int(frames[0].t_ns) == 1403715273262142976
+    assert len(imu) > 0 and imu.t_ns[-1] <= frames[-1].t_ns + 100_000_000
+
+
+def sim_settings(**kw):
+    return from_mapping(SourceSettings, {"backend": "sim", "sim": kw})
+
+
+def test_sim_source_paced_at_a_rate():
+    sess = StandinSequence(n=8, fps=20.0)
+    clock = SimClock()
+    src = create_source(sim_settings(frames=8, rate_hz=10.0), session=sess, clock_ns=clock.now_ns, sleep=clock.sleep)
+    host = []
+    with src:
+        for f in src:
+            host.append(clock.now_ns())
+        assert src.imu is not None
+    assert np.all(np.diff(host) == 100_000_000)
+    assert sess.loaded == list(range(8))
+
+
+@pytest.mark.skipif(importlib.util.find_spec("device.sim.session") is None, reason="simulator not available yet")
+def test_sim_source_with_the_real_simulator():
+    src = create_source(sim_settings(frames=3, seed=1))
+    with src:
+        frames = list(src)
+        imu = src.imu.read() if src.imu is not None else None
+    assert len(frames) == 3 and np.all(np.diff([f.t_ns for f in frames]) > 0)
+    assert frames[0].left.shape == frames[0].right.shape
+    assert src.rig is not None
+    if imu is not None:
+        assert len(imu) > 0

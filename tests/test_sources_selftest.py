@@ -1,0 +1,89 @@
+"""stereopath device selftest: pass/fail table over injected fakes and the simulator."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import pytest
+
+from device.commands.selftest import format_table, run_selftest
+from device.config import from_mapping
+from device.imu.emulator import Mpu6050Emulator, SimClock, still_source
+from device.imu.mpu6050 import Mpu6050
+from device.settings import DeviceConfig
+from device.sources import create_source
+from tests.fakes.fake_picamera2 import FakeCameraWorld
+from tests.fakes.standins import StandinSequence
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def config(**sections):
+    base = {"source": {"backend": "sim", "fps": 20.0}, "imu": {"backend": "emulated"},
+            "selftest": {"frames": 10}, "recorder": {"dir": "/tmp"}}
+    for k, v in sections.items():
+        base.setdefault(k, {}).update(v)
+    return from_mapping(DeviceConfig, base)
+
+
+def by_name(checks):
+    return {c.name: c for c in checks}
+
+
+def test_all_checks_pass_on_a_healthy_simulated_unit():
+    cfg = config()
+    src = create_source(cfg.source, session=StandinSequence(n=12, fps=20.0))
+    checks = by_name(run_selftest(cfg, source=src))
+    assert all(c.ok for c in checks.values()), format_table(list(checks.values()))
+    assert set(checks) >= {"camera open", "frame pairing", "camera rate", "IMU WHO_AM_I", "IMU rate",
+                           "gyro bias", "gyro still", "gravity magnitude", "free disk"}
+    assert checks["IMU WHO_AM_I"].value == "0x68"
+
+
+def test_failures_are_reported_in_the_table():
+    cfg = config(recorder={"reserve_mb": 1e7}, selftest={"max_gyro_bias_dps": 0.1})
+    clk = SimClock()
+    bad_imu = Mpu6050(cfg.imu, bus=Mpu6050Emulator(clk, still_source(), who_am_i=0x42), clock_ns=clk.now_ns,
+                      sleep=clk.sleep)
+    checks = by_name(run_selftest(cfg, source=create_source(cfg.source, session=StandinSequence(n=12)),
+                                  imu=bad_imu))
+    assert not checks["IMU open"].ok and "0x42" in checks["IMU open"].value
+    assert not checks["free disk"].ok
+    table = format_table(list(checks.values()))
+    assert "FAIL" in table and "PASS" in table
+    cfg2 = config(selftest={"max_gyro_bias_dps": 0.1})
+    checks2 = by_name(run_selftest(cfg2, source=create_source(cfg2.source, session=StandinSequence(n=12))))
+    assert not checks2["gyro bias"].ok and checks2["gravity magnitude"].ok   # emulated bias 0.8 deg/s
+
+
+def test_picamera2_pairing_and_rate_through_the_fake():
+    cfg = config(source={"backend": "picamera2", "fps": 50.0, "exposure_us": 2000, "pair_tolerance_us": 500,
+                         "size": [32, 24]}, imu={"backend": "none"})
+    world = FakeCameraWorld(sync_ready_after=2)
+    world.cameras[1].drop = frozenset({6})
+    checks = by_name(run_selftest(cfg, source=create_source(cfg.source, api=world.api())))
+    assert checks["frame pairing"].ok and checks["camera rate"].ok and "1 unpaired" in checks["frame pairing"].value
+    assert checks["IMU"].ok and checks["IMU"].value == "none configured"
+
+
+def test_lost_camera_fails_the_pairing_check():
+    cfg = config(source={"backend": "picamera2", "fps": 50.0, "exposure_us": 2000, "pair_tolerance_us": 500,
+                         "size": [32, 24], "timeout_s": 0.3}, imu={"backend": "none"})
+    world = FakeCameraWorld(sync_ready_after=0)
+    world.cameras[0].disappear_after = 3
+    checks = by_name(run_selftest(cfg, source=create_source(cfg.source, api=world.api())))
+    assert not checks["frame pairing"].ok and "left camera" in checks["frame pairing"].value
+
+
+@pytest.mark.skipif(importlib.util.find_spec("device.sim.session") is None, reason="simulator not available")
+def test_cli_selftest_with_the_simulator(capsys, tmp_path):
+    from host.cli import main
+
+    cfgfile = tmp_path / "d.toml"
+    cfgfile.write_text(f'[recorder]\ndir = "{tmp_path}"\nreserve_mb = 1.0\n')
+    rc = main(["device", "selftest", "--config", str(cfgfile), "--source", "sim", "--frames", "5"])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    assert "checks passed" in out and "FAIL" not in out and "IMU WHO_AM_I" in out
+    cfgfile.write_text(f'[recorder]\ndir = "{tmp_path}"\nreserve_mb = 1e7\n')
+    assert main(["device", "selftest", "--config", str(cfgfile), "--source", "sim", "--frames", "5"]) == 1
