@@ -27,11 +27,15 @@ COMMANDS: dict[str, tuple[str, str] | dict[str, tuple[str, str]]] = {
     "host": {
         "live": ("host.commands.live", "receive poses and keyframes from a device and show them live"),
         "map": ("host.commands.map", "dense 3D model (mesh, cloud, preview) from a session or stored keyframes"),
+        "reprocess": ("host.commands.reprocess", "re-estimate a recorded session offline, bundle adjust, and map"),
     },
     "device": {
         "selftest": ("device.commands.selftest", "check the configured sensors and print pass/fail"),
         "calibrate-stereo": ("device.commands.calibrate_stereo", "chessboard pairs -> rig YAML"),
         "calibrate-imu": ("device.commands.calibrate_imu", "still-period gyro bias and gravity alignment"),
+        "run": ("device.commands.run", "capture, estimate, record and stream (the capture service)"),
+        "install": ("device.commands.install", "install the capture service (user, venv, keys, systemd unit)"),
+        "status": ("device.commands.status", "show the status the capture service publishes"),
     },
 }
 
