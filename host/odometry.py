@@ -45,7 +45,7 @@ def report_for(run: EstimateRun, seq, source_label: str) -> tuple[dict, Trajecto
     gt = getattr(seq, "groundtruth", None)
     metrics = evaluate(gt, run.trajectory) if gt is not None else None
     report = make_report(
-        source=source_label, estimator=run.estimator, frames=len(run.estimates),
+        source=source_label, estimator=run.estimator, frames=int(run.extra.get("frames_in", len(run.estimates))),
         frames_tracked=run.frames_tracked, metrics=metrics, frame_ms=run.frame_ms,
         world_frame=run.world_frame,
     )

@@ -33,14 +33,18 @@ class Estimator(Protocol):
     name: str
     world_frame: WorldFrame
 
-    def process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate:
-        """Estimate the pose at ``frame``; ``imu`` holds the samples since the previous frame."""
+    def process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate | None:
+        """Estimate the pose at ``frame``; ``imu`` holds the samples since the previous frame.
+
+        ``None`` means the method gives no pose for this frame (the paper's method and the
+        SFM baseline work on positions every ``frame_step`` frames, not on every video frame).
+        """
 
 
 @dataclass
 class EstimateRun:
-    estimates: list[PoseEstimate]
-    frame_ms: list[float]
+    estimates: list[PoseEstimate]  # one per frame that got a pose
+    frame_ms: list[float]  # one per frame processed
     world_frame: WorldFrame
     estimator: str
     extra: dict = field(default_factory=dict)
@@ -73,11 +77,16 @@ def run_estimator(estimator: Estimator, frames: Iterable[StereoFrame], imu: ImuS
         start = time.perf_counter()
         est = estimator.process(frame, block)
         frame_ms.append((time.perf_counter() - start) * 1e3)
-        estimates.append(est)
+        if est is not None:
+            estimates.append(est)
         prev_t = frame.t_ns
         if progress is not None:
             progress(1)
     if not estimates:
         raise EstimationError("no frames to estimate")
-    return EstimateRun(estimates, frame_ms, estimator.world_frame, estimator.name,
-                       extra=getattr(estimator, "stats", lambda: {})())
+    close = getattr(estimator, "close", None)
+    if close is not None:
+        close()
+    extra = getattr(estimator, "stats", lambda: {})()
+    extra["frames_in"] = len(frame_ms)
+    return EstimateRun(estimates, frame_ms, estimator.world_frame, estimator.name, extra=extra)

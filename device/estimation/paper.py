@@ -37,6 +37,7 @@ log = logging.getLogger(__name__)
 class PaperConfig:
     feature_preset: str = "paper"
     ransac_iterations: int = 10_000
+    frame_step: int = 4  # a "position" every N video frames (consecutive 20 Hz frames barely move)
     ransac_threshold_px: float = 1.0
     epipolar_max_dy_px: float = 1.0
     min_matches: int = 15
@@ -44,6 +45,7 @@ class PaperConfig:
 
     def __post_init__(self) -> None:
         check_range("ransac_iterations", self.ransac_iterations, 10, 1_000_000)
+        check_range("frame_step", self.frame_step, 1, 1000)
         check_range("min_matches", self.min_matches, 8, 100000)
 
 
@@ -75,6 +77,7 @@ class PaperEstimator:
         self._prev = None  # (feats_left, feats_right)
         self._R_F = [np.eye(3), np.eye(3)]  # chained rotation per camera (camera 2 in camera 1 axes)
         self._T_F = np.zeros(3)
+        self._count = 0
         self.counters = {"rotation_failures": 0, "translation_failures": 0}
 
     def stats(self) -> dict:
@@ -116,16 +119,19 @@ class PaperEstimator:
         p0 = prev.original_view()
         K = (self.rig.cam0 if cam == 0 else self.rig.cam1).K
         res = relative_pose(p0.xy[idx[:, 0]], cur.xy[idx[:, 1]], K, K,
-                            TwoViewConfig(ransac_iterations=self.cfg.ransac_iterations,
-                                          ransac_threshold_px=self.cfg.ransac_threshold_px))
+                            TwoViewConfig(max_iters=self.cfg.ransac_iterations,
+                                          threshold_px=self.cfg.ransac_threshold_px))
         if res.R is None:
             return None
         # recoverPose gives x_P = R x_{P-1} + t; the camera's own rotation P-1 -> P is R^T
         return res.R.T
 
-    def process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate:
+    def process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate | None:
         from device.features import detect
 
+        self._count += 1
+        if (self._count - 1) % self.cfg.frame_step:
+            return None
         left, right = _gray(frame.left), _gray(frame.right)
         fl, fr = detect(left, self._fcfg), detect(right, self._fcfg)
         if self._prev is None:

@@ -25,11 +25,13 @@ from device.trajfile import Trajectory
 class SfmConfig:
     feature_preset: str = "sift"
     ransac_iterations: int = 10_000
+    frame_step: int = 4  # a "position" every N video frames (consecutive 20 Hz frames barely move)
     ransac_threshold_px: float = 1.0
     min_matches: int = 15
 
     def __post_init__(self) -> None:
         check_range("ransac_iterations", self.ransac_iterations, 10, 1_000_000)
+        check_range("frame_step", self.frame_step, 1, 1000)
 
 
 class SfmEstimator:
@@ -47,7 +49,9 @@ class SfmEstimator:
         self._prev = None
         self._prev_t: int | None = None
         self._T = np.eye(4)
-        self.counters = {"failures": 0}
+        self._count = 0
+        self._last_dir = np.array([0.0, 0.0, 1.0])
+        self.counters = {"failures": 0, "no_translation": 0}
 
     def stats(self) -> dict:
         return {**self.counters, "oracle_scale": True}
@@ -57,11 +61,14 @@ class SfmEstimator:
         p = self._gt.positions
         return np.array([np.interp(t_ns, t, p[:, k]) for k in range(3)])
 
-    def process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate:
+    def process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate | None:
         from device.features import detect
         from device.matching import MatchConfig, match
         from device.twoview import TwoViewConfig, relative_pose
 
+        self._count += 1
+        if (self._count - 1) % self.cfg.frame_step:
+            return None
         img = cv2.cvtColor(frame.left, cv2.COLOR_BGR2GRAY) if frame.left.ndim == 3 else frame.left
         f = detect(img, self._fcfg)
         if self._prev is None:
@@ -73,8 +80,8 @@ class SfmEstimator:
         if len(idx) >= self.cfg.min_matches:
             K = self.rig.cam0.K
             res = relative_pose(self._prev.original_view().xy[idx[:, 0]], f.xy[idx[:, 1]], K, K,
-                                TwoViewConfig(ransac_iterations=self.cfg.ransac_iterations,
-                                              ransac_threshold_px=self.cfg.ransac_threshold_px))
+                                TwoViewConfig(max_iters=self.cfg.ransac_iterations,
+                                              threshold_px=self.cfg.ransac_threshold_px))
         else:
             res = None
         if res is None or res.R is None:
@@ -83,9 +90,14 @@ class SfmEstimator:
         else:
             # x_P = R x_{P-1} + t  ->  camera P in camera P-1's frame: R_rel = R^T, centre = -R^T t
             R_rel = res.R.T
-            c = np.zeros(3) if res.t is None else -res.R.T @ np.asarray(res.t, dtype=float).reshape(3)
-            n = np.linalg.norm(c)
-            c = c / n * step if n > 1e-12 else c
+            if res.t is None:  # too little parallax for a direction: keep the last one
+                self.counters["no_translation"] += 1
+                c = self._last_dir
+            else:
+                c = -res.R.T @ np.asarray(res.t, dtype=float).reshape(3)
+                c = c / max(np.linalg.norm(c), 1e-12)
+                self._last_dir = R_rel.T @ c  # expressed in the new camera's axes for next time
+            c = c * step
             self._T = self._T @ make_pose(R_rel, c)
         self._prev, self._prev_t = f, frame.t_ns
         return PoseEstimate(frame.seq, frame.t_ns, self._T.copy(), status, note=note)

@@ -1,0 +1,246 @@
+"""Loss-free keyframes: a ROUTER socket with credit-based flow control, resending from the spool.
+
+Protocol (ZeroMQ Guide ch.7 "credit-based flow control" + ch.4 "disconnected reliability"):
+
+* a host connects a DEALER and says ``hello(session, acked_seq, credit)``: the last session it
+  stored keyframes of, the highest seq it holds contiguously from 0, and its window;
+* the server sends the spooled keyframes after ``acked_seq`` (or from 0 when the host knows
+  another session), one per unit of credit, never more than ``max_credit`` in flight;
+* the host stores each keyframe, then answers ``ack(session, seq, credit=1)``;
+* after a reconnect the host says hello again and receives everything newer than what it holds,
+  so it gets every keyframe exactly once (it deduplicates by (session, seq)).
+
+Hosts are keyed by their CURVE public key (the ``User-Id`` ZAP sets on each message), not by
+the ROUTER routing id, which changes on every reconnection.  Without CURVE (insecure loopback)
+the routing id is the key.  Memory is bounded: at most ``max_peers`` hosts, at most
+``max_credit`` keyframes in flight per host (the bytes are read from the spool on demand), and
+the ROUTER's high-water marks bound what ZeroMQ queues.
+
+Also sent on this channel: the status heartbeat (to every connected host, dropped when a host's
+queue is full).  Everything a host sends is decoded as untrusted input; rejected messages are
+counted by reason.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any, Callable
+
+from device.errors import DatasetError
+from device.protocol import Ack, Credit, DecodeError, Hello, decode_control
+from device.streaming.config import StreamConfig
+from device.streaming.sockets import apply_common_options
+from device.streaming.spool import KeyframeSpool
+
+log = logging.getLogger(__name__)
+
+# a frame above this drops the connection in libzmq (it must leave room for the CURVE handshake);
+# control messages above CONTROL_LIMITS.max_message_bytes are rejected and counted by the decoder
+SOCKET_MAX_BYTES = 4096
+
+
+class _Peer:
+    __slots__ = ("key", "routing_id", "next_seq", "credit", "acked", "max_sent", "connected", "last_heard")
+
+    def __init__(self, key: str, routing_id: bytes) -> None:
+        self.key = key
+        self.routing_id = routing_id
+        self.next_seq = 0
+        self.credit = 0
+        self.acked = -1
+        self.max_sent = -1
+        self.connected = True
+        self.last_heard = time.monotonic()
+
+
+class KeyframeServer:
+    """ROUTER socket bound to ``config.keyframe_endpoint``; driven by the streamer's I/O thread."""
+
+    def __init__(self, ctx: Any, config: StreamConfig, spool: KeyframeSpool, session_id: str,
+                 curve_keys: tuple[bytes, bytes] | None, status_fn: Callable[[], bytes]) -> None:
+        import zmq
+
+        self._zmq = zmq
+        self.config = config
+        self.spool = spool
+        self.session_id = session_id
+        self.secure = curve_keys is not None
+        self._status_fn = status_fn
+        self.sock = ctx.socket(zmq.ROUTER)
+        apply_common_options(self.sock, heartbeat_ivl_ms=config.heartbeat_ivl_ms,
+                             heartbeat_timeout_ms=config.heartbeat_timeout_ms,
+                             heartbeat_ttl_ms=config.heartbeat_ttl_ms,
+                             maxmsgsize=SOCKET_MAX_BYTES)
+        self.sock.setsockopt(zmq.ROUTER_MANDATORY, 1)
+        self.sock.setsockopt(zmq.SNDHWM, config.keyframe_sndhwm)
+        self.sock.setsockopt(zmq.RCVHWM, config.control_rcvhwm)
+        if curve_keys is not None:
+            self.sock.curve_publickey, self.sock.curve_secretkey = curve_keys
+            self.sock.curve_server = True
+        self.sock.bind(config.keyframe_endpoint)
+        self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        self._peers: dict[str, _Peer] = {}
+        self.stats: dict[str, int] = {
+            "control_received": 0, "control_rejected": 0, "hellos": 0, "acks": 0, "credits": 0,
+            "keyframes_sent": 0, "keyframes_resent": 0, "status_sent": 0, "status_dropped": 0,
+            "unroutable": 0, "peers_evicted": 0, "spool_errors": 0, "send_blocked": 0,
+        }
+        self.rejected: dict[str, int] = {}
+
+    # ------------------------------------------------------------------ incoming
+
+    def handle_incoming(self, max_messages: int = 256) -> int:
+        """Read and handle up to ``max_messages`` control messages without blocking."""
+        zmq = self._zmq
+        handled = 0
+        while handled < max_messages:
+            try:
+                rid = self.sock.recv(zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            handled += 1
+            payload = None
+            parts = 0
+            more = self.sock.getsockopt(zmq.RCVMORE)
+            while more:  # read part by part, keep only the first payload frame
+                frame = self.sock.recv(copy=False)
+                parts += 1
+                if parts == 1:
+                    payload = frame
+                more = frame.more
+            self.stats["control_received"] += 1
+            if parts != 1 or payload is None:
+                self._reject("frames", f"{parts} payload frames")
+                continue
+            key = self._peer_key(rid, payload)
+            try:
+                msg = decode_control(payload.bytes)
+            except DecodeError as exc:
+                self._reject(exc.reason, str(exc))
+                continue
+            self._handle(key, rid, msg)
+        return handled
+
+    def _peer_key(self, rid: bytes, frame: Any) -> str:
+        if self.secure:
+            try:
+                user = frame.get("User-Id")
+            except self._zmq.ZMQError:
+                user = None
+            if user:
+                return "curve:" + str(user)
+        return "rid:" + rid.hex()
+
+    def _reject(self, reason: str, detail: str) -> None:
+        self.stats["control_rejected"] += 1
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        log.debug("rejected control message (%s): %s", reason, detail[:200])
+
+    def _handle(self, key: str, rid: bytes, msg: Hello | Ack | Credit) -> None:
+        peer = self._peers.get(key)
+        if isinstance(msg, Hello):
+            self.stats["hellos"] += 1
+            if peer is None:
+                peer = self._add_peer(key, rid)
+            peer.routing_id = rid
+            peer.connected = True
+            peer.last_heard = time.monotonic()
+            acked = msg.acked_seq if msg.session_id == self.session_id else -1
+            peer.acked = min(acked, self.spool.last_seq)
+            peer.next_seq = peer.acked + 1
+            peer.credit = min(msg.credit, self.config.max_credit)
+            log.info("host %s: hello (session %s, acked %d, credit %d) -> sending from seq %d",
+                     key[:20], msg.session_id, msg.acked_seq, msg.credit, peer.next_seq)
+            self._send_to(peer, self._status_fn(), status=True)
+            return
+        if peer is None:
+            self._reject("no_hello", f"{type(msg).__name__} from {key[:20]} before hello")
+            return
+        peer.last_heard = time.monotonic()
+        if rid != peer.routing_id or not peer.connected:
+            # the host reconnected without saying hello: whatever was in flight is lost (go back)
+            peer.routing_id = rid
+            peer.connected = True
+            peer.next_seq = peer.acked + 1
+        if isinstance(msg, Ack):
+            self.stats["acks"] += 1
+            if msg.session_id == self.session_id and msg.seq <= peer.max_sent:
+                peer.acked = max(peer.acked, msg.seq)
+            peer.credit = min(peer.credit + msg.credit, self.config.max_credit)
+        else:
+            self.stats["credits"] += 1
+            peer.credit = min(peer.credit + msg.n, self.config.max_credit)
+
+    def _add_peer(self, key: str, rid: bytes) -> _Peer:
+        if len(self._peers) >= self.config.max_peers:
+            oldest = min(self._peers.values(), key=lambda p: p.last_heard)
+            del self._peers[oldest.key]
+            self.stats["peers_evicted"] += 1
+            log.warning("too many hosts (max %d): forgetting %s", self.config.max_peers, oldest.key[:20])
+        peer = _Peer(key, rid)
+        self._peers[key] = peer
+        return peer
+
+    # ------------------------------------------------------------------ outgoing
+
+    def _send_to(self, peer: _Peer, data: bytes, status: bool = False) -> bool:
+        zmq = self._zmq
+        try:
+            self.sock.send_multipart([peer.routing_id, data], flags=zmq.NOBLOCK, copy=len(data) < 65536)
+        except zmq.Again:
+            if status:
+                self.stats["status_dropped"] += 1
+            return False
+        except zmq.ZMQError as exc:
+            if exc.errno != zmq.EHOSTUNREACH:
+                raise
+            peer.connected = False
+            self.stats["unroutable"] += 1
+            if status:
+                self.stats["status_dropped"] += 1
+            return False
+        if status:
+            self.stats["status_sent"] += 1
+        return True
+
+    def pump(self, burst: int = 32) -> bool:
+        """Send spooled keyframes to hosts with credit; True if a host's queue was full (retry soon)."""
+        blocked = False
+        last = self.spool.last_seq
+        for peer in list(self._peers.values()):
+            sent = 0
+            while peer.connected and peer.credit > 0 and peer.next_seq <= last and sent < burst:
+                seq = peer.next_seq
+                try:
+                    data = self.spool.read(seq)
+                except DatasetError as exc:
+                    self.stats["spool_errors"] += 1
+                    log.error("cannot resend keyframe %d: %s (skipped)", seq, exc)
+                    peer.next_seq += 1
+                    continue
+                if not self._send_to(peer, data):
+                    if peer.connected:
+                        blocked = True
+                        self.stats["send_blocked"] += 1
+                    break
+                sent += 1
+                self.stats["keyframes_sent"] += 1
+                if seq <= peer.max_sent:
+                    self.stats["keyframes_resent"] += 1
+                peer.max_sent = max(peer.max_sent, seq)
+                peer.next_seq = seq + 1
+                peer.credit -= 1
+        return blocked
+
+    def broadcast_status(self, data: bytes) -> None:
+        for peer in list(self._peers.values()):
+            if peer.connected:
+                self._send_to(peer, data, status=True)
+
+    def peers(self) -> list[dict[str, Any]]:
+        return [{"key": p.key, "connected": p.connected, "acked": p.acked, "next_seq": p.next_seq,
+                 "credit": p.credit, "max_sent": p.max_sent} for p in self._peers.values()]
+
+    def close(self) -> None:
+        self.sock.close(linger=0)

@@ -1,0 +1,66 @@
+"""Live poses on a PUB socket: lossy by design, never blocks.
+
+:meth:`PosePublisher.send` is called from the producer's thread (under a lock, so several
+producer threads may share it): a ``NOBLOCK`` send only hands the frame to ZeroMQ, whose own I/O
+thread encrypts and transmits it, so the caller never waits on the network and the pose avoids a
+thread hop of latency.  A message a subscriber cannot take (its high-water mark reached) is
+dropped by ZeroMQ, and an ``EAGAIN`` is counted as a drop.  Hosts see drops as gaps in the pose
+seq.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any
+
+from device.streaming.config import StreamConfig
+from device.streaming.sockets import apply_common_options
+
+log = logging.getLogger(__name__)
+
+# inbound traffic on a PUB is subscriptions and the CURVE handshake (INITIATE is ~300 bytes)
+INBOUND_MAX_BYTES = 4096
+
+
+class PosePublisher:
+    """PUB socket bound to ``config.pose_endpoint`` (CURVE server unless insecure)."""
+
+    def __init__(self, ctx: Any, config: StreamConfig, curve_keys: tuple[bytes, bytes] | None) -> None:
+        import zmq
+
+        self._zmq = zmq
+        self.sock = ctx.socket(zmq.PUB)
+        apply_common_options(self.sock, heartbeat_ivl_ms=config.heartbeat_ivl_ms,
+                             heartbeat_timeout_ms=config.heartbeat_timeout_ms,
+                             heartbeat_ttl_ms=config.heartbeat_ttl_ms,
+                             maxmsgsize=INBOUND_MAX_BYTES)
+        self.sock.setsockopt(zmq.SNDHWM, config.pose_sndhwm)
+        if curve_keys is not None:
+            self.sock.curve_publickey, self.sock.curve_secretkey = curve_keys
+            self.sock.curve_server = True
+        self.sock.bind(config.pose_endpoint)
+        self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.sent = 0
+        self.dropped = 0
+        self._lock = threading.Lock()
+        self._closed = False
+
+    def send(self, data: bytes) -> bool:
+        """Hand one pose frame to ZeroMQ without blocking; False if it was dropped."""
+        with self._lock:
+            if self._closed:
+                self.dropped += 1
+                return False
+            try:
+                self.sock.send(data, self._zmq.NOBLOCK)
+            except self._zmq.Again:
+                self.dropped += 1
+                return False
+            self.sent += 1
+            return True
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            self.sock.close(linger=0)

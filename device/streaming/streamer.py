@@ -1,0 +1,355 @@
+"""The device's streaming stage: capture and estimation hand data over, never wait on the network.
+
+:class:`DeviceStreamer` owns a ZeroMQ context, the ZAP authenticator, the pose PUB socket and the
+keyframe ROUTER socket, and two threads:
+
+* the **I/O thread** owns the keyframe socket: it answers hosts (hello, ack, credit), sends
+  spooled keyframes as credit allows, and sends the status heartbeat;
+* the **spool writer** encodes offered keyframes (``cv2.imencode``), writes each atomically
+  to the spool, and only then makes it available to the I/O thread.
+
+The producer-facing calls never block and never raise because of the network:
+:meth:`publish_pose` hands the encoded pose to ZeroMQ with a non-blocking send (ZeroMQ's own
+I/O thread encrypts and transmits it; a subscriber that cannot keep up loses poses, the PUB
+pattern's "latest wins"); :meth:`offer_keyframe` and :meth:`publish_status` append to bounded
+queues and wake the I/O thread through a pipe.  When the keyframe queue is full the offered
+keyframe is refused (``False``) and counted.
+
+Example::
+
+    spool = KeyframeSpool(session_dir / "keyframes")
+    with DeviceStreamer(StreamConfig(...), spool, session_id, rig=rig) as streamer:
+        streamer.publish_pose(seq, t_ns, T_world_cam, tracking="ok", inliers=120)
+        streamer.offer_keyframe(seq, t_ns, T_world_cam, left, right)
+        streamer.publish_status(frame_rate_hz=20.0, imu_rate_hz=200.0, recorder_state="recording")
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from device.errors import ConfigError, DatasetError, ProtocolError
+from device.protocol import Status, check_session_id, encode_keyframe, encode_pose, encode_status, make_keyframe, \
+    pose_from_matrix, rig_reference
+from device.streaming import health
+from device.streaming.config import StreamConfig
+from device.streaming.keyframe_server import KeyframeServer
+from device.streaming.pose_publisher import PosePublisher
+from device.streaming.security import check_loopback_endpoint, load_secret_keypair, require_curve, \
+    start_authenticator
+from device.streaming.spool import KeyframeSpool
+
+log = logging.getLogger(__name__)
+
+UNKNOWN_RIG = ("unknown", "0000000000000000")
+
+
+@dataclass
+class _DeviceHealth:
+    frame_rate_hz: float = 0.0
+    imu_rate_hz: float = 0.0
+    dropped_frames: int = 0
+    imu_gaps: int = 0
+    cpu_load_pct: float | None = None
+    temperature_c: float | None = None
+    disk_free_bytes: int | None = None
+    recorder_state: str = "idle"
+
+
+class DeviceStreamer:
+    """Streams poses, keyframes and status to hosts; see the module docstring.
+
+    ``rig`` (a :class:`device.rig.Rig`) or ``rig_ref`` (``(name, hash)``) names the calibration
+    sent with every keyframe.  Bind errors and key problems raise :class:`ConfigError` here.
+    """
+
+    def __init__(self, config: StreamConfig, spool: KeyframeSpool, session_id: str, rig: Any = None,
+                 rig_ref: tuple[str, str] | None = None) -> None:
+        import zmq
+
+        self.config = config
+        self.spool = spool
+        try:
+            self.session_id = check_session_id(session_id)
+        except ProtocolError as exc:
+            raise ConfigError(f"streaming: {exc}") from None
+        self.rig_ref = rig_ref or (rig_reference(rig) if rig is not None else UNKNOWN_RIG)
+        self._zmq = zmq
+        curve_keys: tuple[bytes, bytes] | None = None
+        if config.insecure:
+            check_loopback_endpoint(config.pose_endpoint)
+            check_loopback_endpoint(config.keyframe_endpoint)
+            log.warning("streaming WITHOUT CURVE (insecure, loopback only)")
+        else:
+            require_curve()
+            curve_keys = load_secret_keypair(config.server_secret)
+        self._ctx = zmq.Context()
+        self._auth = None
+        self._pub: PosePublisher | None = None
+        self._server: KeyframeServer | None = None
+        try:
+            if curve_keys is not None:
+                self._auth = start_authenticator(self._ctx, config.clients_dir)
+            self._pub = PosePublisher(self._ctx, config, curve_keys)
+            self._server = KeyframeServer(self._ctx, config, spool, self.session_id, curve_keys, self._status_bytes)
+        except zmq.ZMQError as exc:
+            self._teardown()
+            raise ConfigError(f"cannot bind streaming endpoints ({config.pose_endpoint}, "
+                              f"{config.keyframe_endpoint}): {exc}") from None
+        except BaseException:
+            self._teardown()
+            raise
+        self._lock = threading.Lock()
+        self._keyframes: queue.Queue[Any] = queue.Queue(maxsize=config.max_pending_keyframes)
+        self._health = _DeviceHealth()
+        self._status_due = threading.Event()
+        self._stop = threading.Event()
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
+        self._counters: dict[str, Any] = {
+            "poses_offered": 0, "keyframes_offered": 0, "keyframes_refused": 0,
+            "keyframes_spooled": 0, "keyframes_failed": 0, "max_keyframe_queue": 0,
+            "max_call_s": 0.0, "io_thread_cpu_s": 0.0, "writer_thread_cpu_s": 0.0, "status_built": 0,
+        }
+        self._closed = False
+        self._writer = threading.Thread(target=self._writer_loop, name="stereopath-spool", daemon=True)
+        self._io = threading.Thread(target=self._io_loop, name="stereopath-stream-io", daemon=True)
+        self._writer.start()
+        self._io.start()
+        log.info("streaming session %s: poses on %s, keyframes on %s (%s), spool %s", self.session_id,
+                 self.pose_endpoint, self.keyframe_endpoint, "insecure" if config.insecure else "CURVE",
+                 spool.dir)
+
+    # ------------------------------------------------------------------ producer side (never blocks)
+
+    @property
+    def pose_endpoint(self) -> str:
+        """The bound pose endpoint (with the real port when a wildcard port was configured)."""
+        return self._pub.endpoint if self._pub else ""
+
+    @property
+    def keyframe_endpoint(self) -> str:
+        return self._server.endpoint if self._server else ""
+
+    def publish_pose(self, seq: int, t_ns: int, T_world_cam: np.ndarray, tracking: str = "ok", inliers: int = 0,
+                     keyframe: bool = False) -> bool:
+        """Publish a live pose (lossy, latest wins); False if ZeroMQ dropped it.
+
+        Raises :class:`ProtocolError` only for invalid input (non-finite pose, bad tracking state).
+        """
+        t0 = time.perf_counter()
+        data = encode_pose(pose_from_matrix(self.session_id, seq, t_ns, T_world_cam, tracking, inliers, keyframe))
+        sent = self._pub.send(data) if self._pub is not None else False
+        with self._lock:
+            self._counters["poses_offered"] += 1
+        self._note_call(t0)
+        return sent
+
+    def offer_keyframe(self, frame_seq: int, t_ns: int, T_world_cam: np.ndarray, left: np.ndarray,
+                       right: np.ndarray) -> bool:
+        """Queue a keyframe for encoding, spooling and sending; False (and counted) if the queue is full.
+
+        The images are copied, so the caller may reuse its buffers at once.
+        """
+        t0 = time.perf_counter()
+        if self._closed:
+            log.warning("keyframe of frame %d offered after close(): refused", frame_seq)
+            return False
+        T = np.array(T_world_cam, dtype=float)
+        item = (int(frame_seq), int(t_ns), T, np.array(left, copy=True), np.array(right, copy=True))
+        try:
+            self._keyframes.put_nowait(item)
+            accepted = True
+        except queue.Full:
+            accepted = False
+        with self._lock:
+            c = self._counters
+            c["keyframes_offered"] += 1
+            c["keyframes_refused"] += int(not accepted)
+            c["max_keyframe_queue"] = max(c["max_keyframe_queue"], self._keyframes.qsize())
+        if not accepted:
+            log.warning("keyframe of frame %d refused: %d keyframes already wait for the spool writer",
+                        frame_seq, self.config.max_pending_keyframes)
+        self._note_call(t0)
+        return accepted
+
+    def publish_status(self, *, frame_rate_hz: float | None = None, imu_rate_hz: float | None = None,
+                       dropped_frames: int | None = None, imu_gaps: int | None = None,
+                       cpu_load_pct: float | None = None, temperature_c: float | None = None,
+                       disk_free_bytes: int | None = None, recorder_state: str | None = None) -> None:
+        """Update the device health fields and send a status message soon.
+
+        The status is also sent every ``status_interval_s`` with the latest values; CPU load,
+        temperature and free disk are probed when not given.
+        """
+        t0 = time.perf_counter()
+        with self._lock:
+            h = self._health
+            for name, value in (("frame_rate_hz", frame_rate_hz), ("imu_rate_hz", imu_rate_hz),
+                                ("dropped_frames", dropped_frames), ("imu_gaps", imu_gaps),
+                                ("cpu_load_pct", cpu_load_pct), ("temperature_c", temperature_c),
+                                ("disk_free_bytes", disk_free_bytes), ("recorder_state", recorder_state)):
+                if value is not None:
+                    setattr(h, name, value)
+        self._status_due.set()
+        self._wake()
+        self._note_call(t0)
+
+    def stats(self) -> dict[str, Any]:
+        """A snapshot of counters (queues, drops, keyframes sent/resent, rejected control messages, hosts)."""
+        with self._lock:
+            out = dict(self._counters)
+        out["pending_keyframes"] = self._keyframes.qsize()
+        out["spool_count"] = self.spool.count
+        if self._pub is not None:
+            out["poses_sent"] = self._pub.sent
+            out["poses_dropped_send"] = self._pub.dropped
+        if self._server is not None:
+            out.update(self._server.stats)
+            out["control_rejected_by_reason"] = dict(self._server.rejected)
+            out["peers"] = self._server.peers()
+        return out
+
+    def wait_spooled(self, count: int, timeout_s: float) -> bool:
+        """Wait until at least ``count`` keyframes are on disk (for tests and shutdown)."""
+        deadline = time.monotonic() + timeout_s
+        while self.spool.count < count:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.005)
+        return True
+
+    def close(self, timeout_s: float = 10.0) -> None:
+        """Spool the keyframes still queued, stop both threads, close the sockets (linger 0)."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._keyframes.put(None, timeout=timeout_s)
+        except queue.Full:
+            log.error("spool writer stuck: %d keyframes not spooled", self._keyframes.qsize())
+        self._writer.join(timeout_s)
+        self._stop.set()
+        self._wake()
+        self._io.join(timeout_s)
+        self._teardown()
+        os.close(self._wake_r)
+        os.close(self._wake_w)
+        log.info("streaming session %s closed: %s", self.session_id,
+                 {k: v for k, v in self.stats().items() if k not in ("peers", "control_rejected_by_reason")})
+
+    def __enter__(self) -> "DeviceStreamer":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ internals
+
+    def _note_call(self, t0: float) -> None:
+        dt = time.perf_counter() - t0
+        if dt > self._counters["max_call_s"]:
+            self._counters["max_call_s"] = dt
+
+    def _wake(self) -> None:
+        try:
+            os.write(self._wake_w, b"\0")
+        except (BlockingIOError, OSError):
+            pass  # pipe full: the I/O thread is already due to wake up
+
+    def _teardown(self) -> None:
+        for closer in (self._server, self._pub):
+            if closer is not None:
+                closer.close()
+        if self._auth is not None:
+            self._auth.stop()
+        self._ctx.term()
+
+    def _status_bytes(self) -> bytes:
+        with self._lock:
+            h = _DeviceHealth(**vars(self._health))
+        pub = self._pub
+        status = Status(
+            session_id=self.session_id, t_ns=time.monotonic_ns(),
+            frame_rate_hz=float(h.frame_rate_hz), imu_rate_hz=float(h.imu_rate_hz),
+            dropped_frames=int(h.dropped_frames), imu_gaps=int(h.imu_gaps),
+            cpu_load_pct=h.cpu_load_pct if h.cpu_load_pct is not None else health.cpu_load_pct(),
+            temperature_c=h.temperature_c if h.temperature_c is not None else health.cpu_temperature_c(),
+            disk_free_bytes=h.disk_free_bytes if h.disk_free_bytes is not None else health.disk_free_bytes(self.spool.dir),
+            recorder_state=h.recorder_state,
+            poses_sent=pub.sent if pub else 0,
+            poses_dropped=pub.dropped if pub else 0,
+            keyframes_spooled=self.spool.count, keyframes_pending=self._keyframes.qsize(),
+        )
+        self._counters["status_built"] += 1
+        try:
+            return encode_status(status)
+        except ProtocolError as exc:  # a bad health value must not stop the stream
+            log.warning("status not encodable (%s); sending defaults", exc)
+            return encode_status(Status(self.session_id, time.monotonic_ns(), keyframes_spooled=self.spool.count))
+
+    def _writer_loop(self) -> None:
+        cfg = self.config
+        while True:
+            item = self._keyframes.get()
+            if item is None:
+                break
+            frame_seq, t_ns, T, left, right = item
+            seq = self.spool.count
+            try:
+                kf = make_keyframe(self.session_id, seq, frame_seq, t_ns, T, left, right, self.rig_ref,
+                                   cfg.image_encoding, cfg.jpeg_quality, cfg.png_compression)
+                self.spool.append(seq, encode_keyframe(kf))
+            except (ProtocolError, DatasetError, OSError) as exc:
+                log.error("keyframe of frame %d not spooled: %s", frame_seq, exc)
+                with self._lock:
+                    self._counters["keyframes_failed"] += 1
+                continue
+            with self._lock:
+                self._counters["keyframes_spooled"] += 1
+                self._counters["writer_thread_cpu_s"] = time.thread_time()
+            self._wake()
+
+    def _io_loop(self) -> None:
+        zmq = self._zmq
+        server = self._server
+        if server is None:  # constructed in __init__; cannot happen
+            raise ConfigError("streamer sockets missing")
+        poller = zmq.Poller()
+        poller.register(server.sock, zmq.POLLIN)
+        poller.register(self._wake_r, zmq.POLLIN)
+        interval = self.config.status_interval_s
+        next_status = time.monotonic()
+        blocked = False
+        try:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                timeout_ms = 5 if blocked else max(0, min(200, int((next_status - now) * 1000)))
+                events = dict(poller.poll(timeout_ms))
+                if self._wake_r in events:
+                    try:
+                        while os.read(self._wake_r, 4096):
+                            pass
+                    except BlockingIOError:
+                        pass
+                if server.sock in events:
+                    server.handle_incoming()
+                blocked = server.pump()
+                now = time.monotonic()
+                if now >= next_status or self._status_due.is_set():
+                    self._status_due.clear()
+                    server.broadcast_status(self._status_bytes())
+                    next_status = now + interval
+                self._counters["io_thread_cpu_s"] = time.thread_time()
+        except Exception:  # a bug here must not pass silently: log it, the producer side stays non-blocking
+            log.exception("streaming I/O thread failed")
+            raise

@@ -1,0 +1,101 @@
+"""Receive a device's live poses and keyframes, show them, and store them.
+
+Connects to the device (CURVE unless --insecure, which only allows loopback), shows a live
+view on stderr (position, speed, tracking, rates, drops, link quality), optionally in rerun,
+and writes into OUT, per device session: OUT/<session>/poses.tum (flushed as poses arrive),
+OUT/<session>/keyframes/ (one file per keyframe plus index.csv), and OUT/receiver.json
+(messages received, duplicates, pose seq gaps, rejected messages by reason).  Restarting with
+the same OUT resumes: keyframes already stored are not received twice.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import threading
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--device", required=True, metavar="ADDRESS",
+                        help="device address HOST[:PORT] (pose port, default 5555; keyframes on PORT+1)")
+    parser.add_argument("--keyframe-port", type=int, default=None, help="keyframe port if not PORT+1")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    parser.add_argument("--keys", metavar="DIR", help="host key directory: one *.key_secret and device.key")
+    parser.add_argument("--device-key", metavar="FILE", help="the device's public key if not KEYS/device.key")
+    parser.add_argument("--insecure", action="store_true", help="plain TCP without CURVE (loopback addresses only)")
+    view = parser.add_mutually_exclusive_group()
+    view.add_argument("--rerun", action="store_true", help="show the path, camera and keyframes in a rerun viewer")
+    view.add_argument("--rerun-save", metavar="FILE.rrd", help="write the rerun recording to FILE.rrd")
+    parser.add_argument("--rig", metavar="FILE.yaml", help="rig calibration for the rerun camera frustum")
+    parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    parser.add_argument("--window", type=int, default=8, help="keyframes in flight (credit window)")
+    parser.add_argument("--no-fsync", action="store_true", help="do not fsync each stored keyframe")
+
+
+def run(args: argparse.Namespace) -> int:
+    from device.errors import ConfigError
+    from host.live_view import RerunView, TerminalView
+    from host.receiver import Receiver, ReceiverConfig, endpoints_from_address
+
+    if args.duration is not None and args.duration <= 0:
+        raise ConfigError(f"--duration must be positive, got {args.duration}")
+    pose_ep, kf_ep = endpoints_from_address(args.device, args.keyframe_port)
+    config = ReceiverConfig(pose_endpoint=pose_ep, keyframe_endpoint=kf_ep, insecure=args.insecure,
+                            keys_dir=args.keys, device_key=args.device_key, window=args.window,
+                            fsync=not args.no_fsync)
+    rig = None
+    if args.rig:
+        from device.rig import load_rig_yaml
+
+        rig = load_rig_yaml(args.rig)
+    rerun_view = None
+    if args.rerun or args.rerun_save:
+        rerun_view = RerunView(save_path=args.rerun_save, spawn=args.rerun, rig=rig)
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set()) \
+        if threading.current_thread() is threading.main_thread() else None
+    term = TerminalView()
+    receiver = Receiver(config, args.out,
+                        on_pose=rerun_view.on_pose if rerun_view else None,
+                        on_keyframe=rerun_view.on_keyframe if rerun_view else None)
+    try:
+        receiver.run(duration_s=args.duration, stop=stop, on_tick=term.update)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        term.close()
+        receiver.close()
+        if rerun_view is not None:
+            rerun_view.close()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    st = receiver.stats
+    log.info("received %d poses, %d keyframes (%d duplicates), %d pose seq gaps, %d rejected; sessions: %s",
+             st.received["pose"], st.received["keyframe"], st.duplicates, st.pose_seq_gaps, st.rejected,
+             ", ".join(st.sessions) or "none")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run this command alone (``python -m host.commands.live ...``), e.g. as a test subprocess."""
+    import sys
+
+    from device.errors import StereopathError
+    from host.cli import setup_logging
+
+    parser = argparse.ArgumentParser(prog="stereopath host live", description=__doc__)
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    setup_logging(0, False)
+    try:
+        return run(args)
+    except StereopathError as exc:
+        print(f"stereopath: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,78 @@
+"""Helpers shared by the streaming tests (no tests here): devices on random loopback ports, waits."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from device.streaming import DeviceStreamer, KeyframeSpool, StreamConfig
+from device.streaming.security import DemoKeys
+from host.keyframe_store import read_index
+
+LOOPBACK_ANY = "tcp://127.0.0.1:*"
+
+
+def small_images(seed: int, h: int = 96, w: int = 128) -> tuple[np.ndarray, np.ndarray]:
+    """A small textured stereo pair (deterministic)."""
+    rng = np.random.default_rng(seed)
+    base = rng.integers(0, 255, (h // 8, w // 8), dtype=np.uint8)
+    left = np.kron(base, np.ones((8, 8), dtype=np.uint8))
+    return left, np.roll(left, 3, axis=1)
+
+
+def device_config(keys: DemoKeys | None, pose_endpoint: str = LOOPBACK_ANY, keyframe_endpoint: str = LOOPBACK_ANY,
+                  **overrides: Any) -> StreamConfig:
+    base: dict[str, Any] = dict(pose_endpoint=pose_endpoint, keyframe_endpoint=keyframe_endpoint,
+                                heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, heartbeat_ttl_ms=3000,
+                                status_interval_s=0.2, spool_fsync=False)
+    if keys is None:
+        base["insecure"] = True
+    else:
+        base.update(server_secret=str(keys.device_secret), clients_dir=str(keys.clients_dir))
+    base.update(overrides)
+    return StreamConfig(**base)
+
+
+def make_device(tmp: Path, keys: DemoKeys | None, session: str, **overrides: Any) -> DeviceStreamer:
+    spool = KeyframeSpool(tmp / f"spool_{session}", fsync=False)
+    return DeviceStreamer(device_config(keys, **overrides), spool, session, rig_ref=("testrig", "0123456789abcdef"))
+
+
+def port_of(endpoint: str) -> int:
+    return int(endpoint.rsplit(":", 1)[1])
+
+
+def wait_for(cond: Callable[[], bool], timeout_s: float, step_s: float = 0.02,
+             between: Callable[[], Any] | None = None) -> bool:
+    """Poll ``cond`` until true or ``timeout_s``; ``between`` runs each step (e.g. a receiver poll)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        if between is not None:
+            between()
+        else:
+            time.sleep(step_s)
+    return cond()
+
+
+def stored_seqs(out: Path, session: str) -> list[int]:
+    d = out / session / "keyframes"
+    if not d.is_dir():
+        return []
+    return sorted(int(p.name[3:-8]) for p in d.glob("kf_*.msgpack"))
+
+
+def assert_exactly_once(out: Path, session: str, spool: KeyframeSpool) -> None:
+    """Every spooled keyframe is in the host store once, byte for byte, and indexed once."""
+    seqs = stored_seqs(out, session)
+    assert seqs == list(range(spool.count)), f"host holds {seqs}, device spooled 0..{spool.count - 1}"
+    d = out / session / "keyframes"
+    for seq in seqs:
+        assert (d / f"kf_{seq:08d}.msgpack").read_bytes() == spool.read(seq), f"keyframe {seq} differs"
+    rows = [r["seq"] for r in read_index(out / session)]
+    assert sorted(rows) == seqs, f"index rows {sorted(rows)}"
+    assert not list(d.glob("*.tmp"))
