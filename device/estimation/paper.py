@@ -42,6 +42,9 @@ class PaperConfig:
     epipolar_max_dy_px: float = 1.0
     min_matches: int = 15
     min_disparity_px: float = 1.0
+    # Eq. 4 as written ignores the rotation between P-1 and P; True removes it (T_P from
+    # X_{P-1} - R_P X_P), which is not the paper's method but shows what the rotation costs.
+    rotation_compensated: bool = False
 
     def __post_init__(self) -> None:
         check_range("ransac_iterations", self.ransac_iterations, 10, 1_000_000)
@@ -162,7 +165,10 @@ class PaperEstimator:
             b = fl.subset(inl_cur)
             idx = match_indices(match(a, b, MatchConfig()))
             if len(idx) >= 3:
-                T_P = np.median(X_prev[idx[:, 0]] - X_cur[idx[:, 1]], axis=0)
+                Xc = X_cur[idx[:, 1]]
+                if self.cfg.rotation_compensated and Rl is not None:
+                    Xc = Xc @ Rl.T  # the current points in camera P-1's axes
+                T_P = np.median(X_prev[idx[:, 0]] - Xc, axis=0)
         if T_P is None:
             self.counters["translation_failures"] += 1
             status, note = ("lost", note or "translation_failed")

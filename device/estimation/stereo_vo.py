@@ -328,6 +328,7 @@ class StereoEstimator:
         uv_u = undistort_px(uv, K0, d0)
         T_cw = invert_pose(T_guess)
         rvec, tvec = pose_to_rvec_tvec(T_cw)
+        cv2.setRNGSeed(self._cur_seq)  # RANSAC draws do not depend on what ran before in the process
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
             X.reshape(-1, 1, 3), uv_u.reshape(-1, 1, 2), K0, None, rvec, tvec, useExtrinsicGuess=True,
             iterationsCount=200, reprojectionError=cfg.pnp_reproj_px, confidence=0.999,
