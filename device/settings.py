@@ -12,9 +12,10 @@ Sections (TOML tables):
 ``[imu]``         the inertial sensor (MPU-6050 on I2C, its emulator, the source's own, or none);
 ``[timealign]``   camera-IMU time offset and how long a frame may wait for IMU samples;
 ``[estimator]``   the motion estimator preset (filled in by the estimation stage);
-``[stream]``      ZeroMQ endpoints;
+``[stream]``      ZeroMQ endpoints, security and keyframe encoding;
 ``[keys]``        CURVE key locations;
 ``[recorder]``    session directory and free-disk reserve;
+``[service]``     the capture service: status file, watchdog data age, start/stop timeouts;
 ``[selftest]``    pass/fail limits of ``stereopath device selftest``.
 
 Other stages add their own section dataclass here and a field in :class:`DeviceConfig`.
@@ -236,6 +237,16 @@ class StreamSettings:
 
     pose_endpoint: str = "tcp://*:5555"       # PUB, lossy live poses
     keyframe_endpoint: str = "tcp://*:5556"   # ROUTER, loss-free keyframes
+    enabled: bool = True                      # stream at all (``device run --no-stream`` overrides)
+    insecure: bool = False                    # plain TCP without CURVE; only loopback endpoints allowed
+    image_encoding: Literal["jpg", "png", "raw"] = "jpg"  # keyframe images on the wire
+    jpeg_quality: int = 90                    # 1..100 (image_encoding = "jpg")
+    drain_s: float = 3.0                      # at the end of a run, wait up to this long (s) for a
+    #                                           connected host to acknowledge every keyframe
+
+    def __post_init__(self) -> None:
+        check_range("stream.jpeg_quality", self.jpeg_quality, 1, 100)
+        check_range("stream.drain_s", self.drain_s, 0.0, 600.0)
 
 
 @dataclass(frozen=True)
@@ -256,6 +267,24 @@ class RecorderSettings:
 
     def __post_init__(self) -> None:
         check_range("recorder.reserve_mb", self.reserve_mb, 0.0, 1e7)
+
+
+@dataclass(frozen=True)
+class ServiceSettings:
+    """The capture service (``stereopath device run``): health reporting and lifecycle."""
+
+    status_file: str = "/run/stereopath/status.json"  # health JSON rewritten each status period ("" = none)
+    status_interval_s: float = 1.0    # status file, STATUS= line and status message period (s)
+    max_data_age_s: float = 2.0       # WATCHDOG=1 only if a frame and an IMU sample arrived this recently (s;
+    #                                   capped at half the systemd watchdog period)
+    ready_timeout_s: float = 30.0     # no paired frame / IMU sample this long after start -> exit 1 (s)
+    stop_timeout_s: float = 10.0      # wait this long for the pipeline to finish its frame at stop (s)
+
+    def __post_init__(self) -> None:
+        check_range("service.status_interval_s", self.status_interval_s, 0.05, 60.0)
+        check_range("service.max_data_age_s", self.max_data_age_s, 0.05, 600.0)
+        check_range("service.ready_timeout_s", self.ready_timeout_s, 0.5, 3600.0)
+        check_range("service.stop_timeout_s", self.stop_timeout_s, 0.5, 600.0)
 
 
 @dataclass(frozen=True)
@@ -290,6 +319,7 @@ class DeviceConfig:
     stream: StreamSettings = field(default_factory=StreamSettings)
     keys: KeySettings = field(default_factory=KeySettings)
     recorder: RecorderSettings = field(default_factory=RecorderSettings)
+    service: ServiceSettings = field(default_factory=ServiceSettings)
     selftest: SelftestSettings = field(default_factory=SelftestSettings)
 
 
