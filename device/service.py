@@ -39,6 +39,8 @@ Test seams: ``notifier=``, ``environ=``, ``source=`` (an unopened stereo source)
 
 from __future__ import annotations
 
+import collections
+
 import dataclasses
 import json
 import logging
@@ -337,6 +339,9 @@ class CaptureService:
         self.ready_at: float | None = None
         self.watchdog_pings = 0
         self.stage_ms: dict[str, float] = {}   # average time per frame of record / estimate / stream (ms)
+        # the estimator's own time per frame (ms), kept for the session's estimator.json
+        self.estimate_ms: collections.deque[float] = collections.deque(maxlen=200_000)
+        self.tracked_frames = 0
         self._failure: BaseException | None = None
         self._pipeline_done = threading.Event()
         self._stop = threading.Event()
@@ -603,7 +608,9 @@ class CaptureService:
             t0 = self._time("record", t0)
         try:
             est = self.estimator.process(frame, frame.meta.get("imu"))
+            t_est = t0
             t0 = self._time("estimate", t0)
+            self.estimate_ms.append((t0 - t_est) * 1e3)
         except EstimationError as exc:
             self.estimation_errors += 1
             log.log(logging.WARNING if self.estimation_errors == 1 else logging.DEBUG,
@@ -612,6 +619,7 @@ class CaptureService:
             return
         self.last_estimate = est
         self.frames_done += 1
+        self.tracked_frames += est.status == "ok"
         if rec is not None:
             rec.add_pose(est.t_ns, est.T_world_cam)
         st = self.streamer
@@ -812,6 +820,7 @@ class CaptureService:
         if self.streamer is not None:
             self.streamer.close()
         self._write_groundtruth()
+        self._write_estimator_summary()
         if self.recorder is not None:
             try:
                 self.recorder.close()
@@ -827,6 +836,32 @@ class CaptureService:
             except StereopathError as exc:
                 log.warning("closing the IMU: %s", exc)
         self._close_source()
+
+    def _write_estimator_summary(self) -> None:
+        """``estimator.json`` in the session: the estimator's time per frame and tracking counts."""
+        rec = self.recorder
+        if rec is None or not self.estimate_ms:
+            return
+        import json
+
+        import numpy as np
+
+        ms = np.array(self.estimate_ms)
+        stats = getattr(self.estimator, "stats", lambda: {})()
+        summary = {
+            "estimator": getattr(self.estimator, "name", "?"),
+            "world_frame": getattr(self.estimator, "world_frame", "first_camera"),
+            "frames": int(self.frames_done), "frames_tracked": int(self.tracked_frames),
+            "median_frame_ms": float(np.median(ms)), "p95_frame_ms": float(np.percentile(ms, 95)),
+            "stats": {k: v for k, v in stats.items() if isinstance(v, (int, float, bool, str))},
+        }
+        try:
+            path = Path(rec.dir) / "estimator.json"
+            tmp = path.with_suffix(".json.tmp")
+            tmp.write_text(json.dumps(summary, indent=2))
+            os.replace(tmp, path)
+        except OSError as exc:
+            log.warning("could not write estimator.json: %s", exc)
 
     def _write_groundtruth(self) -> None:
         """Simulated runs: ground truth over the frames recorded (for evaluating the session)."""
