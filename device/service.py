@@ -854,6 +854,7 @@ class CaptureService:
             "frames": int(self.frames_done), "frames_tracked": int(self.tracked_frames),
             "median_frame_ms": float(np.median(ms)), "p95_frame_ms": float(np.percentile(ms, 95)),
             "stats": {k: v for k, v in stats.items() if isinstance(v, (int, float, bool, str))},
+            "frame_ms": [round(float(v), 3) for v in ms],
         }
         try:
             path = Path(rec.dir) / "estimator.json"

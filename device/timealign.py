@@ -7,7 +7,8 @@ a calibrated parameter (``timealign.time_offset_us``).
 :class:`TimeAligner` buffers IMU samples and gives every frame ``k`` the block
 ``frame.meta["imu"]``: an interpolated sample at the previous frame's time, every raw
 sample strictly between the two frames, and an interpolated sample at this frame's time
-(the first frame gets only the sample at its own time).  Integrating the block therefore
+(the first frame gets the pre-roll instead: up to 2 s of samples before it, so that an
+estimator can take the gyro bias and gravity from the start-up rest).  Integrating the block therefore
 covers exactly ``[t_{k-1}, t_k]``.  A frame is released once a sample at or after its
 time has arrived; if none arrives within ``max_wait`` (measured in frame time, so
 independent of the host clock) it is released with the last sample held
@@ -28,6 +29,8 @@ from typing import TYPE_CHECKING, Iterable, Iterator
 import numpy as np
 
 from device.frames import ImuSamples, StereoFrame
+
+PREROLL_NS = 2_000_000_000  # IMU samples before the first frame handed to it
 
 if TYPE_CHECKING:
     from device.settings import TimeAlignSettings
@@ -204,6 +207,10 @@ class TimeAligner:
         if t_prev is not None and t_prev < t_k:
             parts.append(interpolate(imu, t_prev))
             inner = imu.between(t_prev, t_k - 1)  # t_prev < t < t_k
+        elif t_prev is None:
+            # first frame: the pre-roll (up to PREROLL_NS of samples before it), from which an
+            # estimator takes the gyro bias and gravity when the device starts at rest
+            inner = imu.between(t_k - PREROLL_NS - 1, t_k - 1)
         else:
             inner = ImuSamples.empty()
         parts.append(inner)

@@ -40,7 +40,9 @@ def test_each_frame_gets_exactly_the_interval_since_the_previous_one():
         out += aligner.add_frame(f)
     assert len(out) == 10
     first = out[0].meta["imu"]
-    assert list(first.t_ns) == [out[0].t_ns]
+    # the first frame gets the pre-roll: every sample before it (here from 0.9 s), then its own time
+    assert first.t_ns[-1] == out[0].t_ns
+    assert set(first.t_ns[:-1]) == {t for t in imu.t_ns if t < out[0].t_ns}
     for prev, f in zip(out, out[1:]):
         b = f.meta["imu"]
         assert b.t_ns[0] == prev.t_ns and b.t_ns[-1] == f.t_ns

@@ -1,7 +1,10 @@
-"""The main job on the built-in simulated rig: simulate a scan, estimate its path, evaluate, report.
+"""The main job on the built-in simulated rig (no hardware, no downloads).
 
-Writes OUT/trajectory.tum, OUT/groundtruth.tum, OUT/report.json and OUT/path.png.
-No hardware and no downloads are needed.
+Runs the device (simulated cameras and IMU -> on-board path estimation -> recording ->
+streaming) and the host (live receiver) as two processes talking over loopback TCP with
+freshly generated CURVE keys, then evaluates the path the host received against the
+simulator's ground truth.  Writes OUT/trajectory.tum, OUT/groundtruth.tum, OUT/report.json,
+OUT/path.png, the device's recording in OUT/session/ and the host's store in OUT/live/.
 """
 
 from __future__ import annotations
@@ -11,40 +14,31 @@ import argparse
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="demo-out", help="output folder (default: demo-out)")
-    p.add_argument("--frames", type=int, default=None, help="number of simulated frames (default: the full scan)")
+    p.add_argument("--frames", type=int, default=None, help="number of simulated frames (default: the full 5.12 m scan)")
     p.add_argument("--seed", type=int, default=0, help="simulation seed")
-    p.add_argument("--estimator", default="stereo", choices=["stereo", "paper", "sfm"])
+    p.add_argument("--no-model", action="store_true", help="skip the dense 3D model")
 
 
 def run(args: argparse.Namespace) -> int:
-    import logging
-    import time
-    from pathlib import Path
+    from host.demo_pipeline import run_demo
 
-    from device.trajfile import write_tum
-    from host.odometry import estimate_sequence, write_outputs
-    from host.sequences import open_sequence
-
-    log = logging.getLogger("stereopath.demo")
-    start = time.perf_counter()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    seq = open_sequence(f"sim:{args.seed}", frames=args.frames)
-    log.info("simulated scan: %d frames, %.2f m of camera travel", len(seq), seq.groundtruth.path_length_m())
-    run_ = estimate_sequence(seq, args.estimator)
-    write_tum(out / "groundtruth.tum", seq.groundtruth)
-    report = write_outputs(out, run_, seq, f"sim:{args.seed}")
-    wall = time.perf_counter() - start
+    res = run_demo(args.out, frames=args.frames, seed=args.seed, with_model=not args.no_model)
+    r = res.report
+    x = r.get("extra", {})
 
     def mm(v):
         return "n/a" if v is None else f"{v * 1000:.2f} mm"
 
-    print(f"stereopath demo: {report['frames']} frames, {report['frames_tracked']} tracked, "
-          f"estimator {report['estimator']} ({report['world_frame']})")
-    print(f"  path length {report['path_length_m']:.3f} m, end error {mm(report['end_error_m'])} "
-          f"({report['end_error_pct']:.3f} %), ATE RMSE {mm(report['ate_rmse_m'])}, "
-          f"accuracy {report['accuracy_pct']:.2f} %")
-    print(f"  estimator time per frame: median {report['median_frame_ms']:.1f} ms, "
-          f"p95 {report['p95_frame_ms']:.1f} ms; wall time {wall:.1f} s")
-    print(f"  wrote {out}/trajectory.tum, groundtruth.tum, report.json, path.png")
+    print(f"stereopath demo: device and host ran as two processes over CURVE-encrypted loopback TCP")
+    print(f"  {r['frames']} frames estimated on the device, {r['frames_tracked']} tracked "
+          f"({r['estimator']}, world frame {r['world_frame']}); host received {x.get('poses_received')} poses "
+          f"and {x.get('keyframes_received')} keyframes, {x.get('pose_seq_gaps')} pose gaps")
+    if r.get("path_length_m") is not None:
+        print(f"  path {r['path_length_m']:.3f} m: end error {mm(r['end_error_m'])} ({r['end_error_pct']:.3f} %), "
+              f"ATE RMSE {mm(r['ate_rmse_m'])}, accuracy {r['accuracy_pct']:.2f} %")
+    print(f"  estimator time per frame: median {r['median_frame_ms']:.1f} ms, p95 {r['p95_frame_ms']:.1f} ms; "
+          f"demo wall time {res.wall_s:.1f} s")
+    model = x.get("model")
+    files = "trajectory.tum, groundtruth.tum, report.json, path.png" + (", mesh.ply, cloud.ply, model.png" if model else "")
+    print(f"  wrote {res.out}/: {files}")
     return 0
