@@ -225,6 +225,11 @@ PRESETS: dict[str, FeatureConfig] = {
         edge_threshold=20.0,
     ),
     "full": FeatureConfig(backend="cv2_affine", pairing="symmetric"),
+    # the on-board estimator's keyframes: plain SIFT density, two tilted views at half scale
+    "onboard": FeatureConfig(
+        views=(ORIGINAL_VIEW, (2.0, 0.0), (2.0, 90.0)),
+        view_scale=0.5,
+    ),
 }
 
 PRESET_HELP: dict[str, str] = {
@@ -233,6 +238,7 @@ PRESET_HELP: dict[str, str] = {
     "fast": "paper's asymmetric scheme, real time: original + tilt 2 at longitudes 0/45/90/135, views at 0.7 scale",
     "fast_sym": "symmetric: original + tilt 2 at longitudes 0/60/120 on both images (views reused per image)",
     "full": "OpenCV cv2.AffineFeature(SIFT) with its default view parameters (reference ASIFT)",
+    "onboard": "the stereo estimator's keyframes: original + tilt 2 at longitudes 0/90, views at 0.5 scale",
 }
 
 

@@ -55,22 +55,24 @@ class StereoConfig:
     use_asift_keyframes: bool = True
     max_points: int = 500  # map points kept for tracking
     new_corner_spacing_px: int = 14
-    min_tracked: int = 150  # fewer tracked inliers -> keyframe
-    kf_parallax_px: float = 30.0  # median flow since the keyframe -> keyframe
-    kf_max_frames: int = 12
+    min_tracked: int = 120  # fewer tracked inliers -> keyframe
+    kf_parallax_px: float = 45.0  # median flow since the keyframe -> keyframe
+    kf_max_frames: int = 20
     klt_window: int = 21
     klt_levels: int = 3
     fb_max_px: float = 0.6  # forward-backward KLT disagreement
     epipolar_max_dy_px: float = 1.0
     triangulation_max_px: float = 1.0
     min_depth_m: float = 0.1
-    max_depth_m: float = 40.0
+    max_depth_m: float = 20.0
     pnp_reproj_px: float = 2.0
     min_pnp_inliers: int = 12
     use_imu: bool = True
     huber_px: float = 1.0
     max_failures_keep_map: int = 10  # failed frames in a row before the map restarts
     background_keyframes: bool = True  # affine views of a keyframe computed off the frame loop
+    refine_points: bool = True  # average each tracked point's stereo triangulations at keyframes
+    kf_library_max: int = 6000  # keypoints (all views) kept with 3D per keyframe for the next match
 
     def __post_init__(self) -> None:
         check_range("max_points", self.max_points, 20, 20000)
@@ -89,9 +91,11 @@ class _Map:
     uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))  # left pixels, last frame
     uv_kf: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))  # at keyframe
     ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # stable point ids
+    nobs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float64))  # stereo observations averaged
 
     def keep(self, mask: np.ndarray) -> None:
         self.X, self.uv, self.uv_kf, self.ids = self.X[mask], self.uv[mask], self.uv_kf[mask], self.ids[mask]
+        self.nobs = self.nobs[mask]
 
     def __len__(self) -> int:
         return len(self.X)
@@ -291,17 +295,23 @@ class StereoEstimator:
         return p1.astype(np.float32), good
 
     def _stereo_right(self, left: np.ndarray, right: np.ndarray, uv_left: np.ndarray,
-                      guess_right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Locate left points in the right image (KLT seeded by ``guess_right``), checked on rectified rows."""
+                      guess_right: np.ndarray, fb_check: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Locate left points in the right image (KLT seeded by ``guess_right``), checked on rectified rows.
+
+        ``fb_check`` adds the right-to-left track back (new points); the rectified-row check
+        alone is enough where the points are already known inliers (refinement)."""
         if len(uv_left) == 0:
             return np.zeros((0, 2), np.float32), np.zeros(0, bool)
         p0 = uv_left.reshape(-1, 1, 2).astype(np.float32)
         g = guess_right.reshape(-1, 1, 2).astype(np.float32)
         p1, st, _ = cv2.calcOpticalFlowPyrLK(left, right, p0, g.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
                                              **self._klt)
-        pb, stb, _ = cv2.calcOpticalFlowPyrLK(right, left, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-                                              **self._klt)
-        fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
+        if fb_check:
+            pb, stb, _ = cv2.calcOpticalFlowPyrLK(right, left, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                                                  **self._klt)
+            fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
+        else:
+            stb, fb = st, np.zeros(len(p0))
         p1 = p1.reshape(-1, 2)
         r = self._rect
         rl = cv2.undistortPoints(p0, self.rig.cam0.K, self.rig.cam0.dist, R=r.R0, P=r.P0).reshape(-1, 2)
@@ -341,7 +351,7 @@ class StereoEstimator:
         # right-image observations of the inliers for the two-camera refinement
         Xc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
         idx = np.flatnonzero(mask & (Xc[:, 2] > cfg.min_depth_m))
-        uvr, okr = self._stereo_right(left, right, uv[idx], self._right_guess(Xc[idx]))
+        uvr, okr = self._stereo_right(left, right, uv[idx], self._right_guess(Xc[idx]), fb_check=False)
         ridx = idx[okr]
         uvr_u = undistort_px(uvr[okr], self.rig.cam1.K, self.rig.cam1.dist)
         res = refine_pose_lm(self.rig, T_cw, X[mask], uv_u[mask], X[ridx], uvr_u, huber_px=cfg.huber_px,
@@ -412,6 +422,9 @@ class StereoEstimator:
         feats = Features.concat(parts) if len(parts) > 1 else feats0
         if len(feats) == 0:
             return None
+        if len(feats) > self.cfg.kf_library_max:  # the strongest keypoints of all views
+            keep = np.argsort(-feats.response, kind="stable")[: self.cfg.kf_library_max]
+            feats = feats.subset(np.sort(keep))
         xy = feats.xy.astype(np.float32)
         uvu = undistort_px(xy, self.rig.cam0.K, self.rig.cam0.dist)
         rays = np.column_stack([(uvu[:, 0] - self.rig.cam0.cx) / self.rig.cam0.fx,
@@ -474,10 +487,22 @@ class StereoEstimator:
         k = len(self.keyframe_poses)
         if self.record_observations:
             self.keyframe_poses.append((self._cur_seq, T_world_cam.copy()))
-        if self.record_observations and len(m):
+        if (self.record_observations or cfg.refine_points) and len(m):
             Xc_old = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
             uvr_old, ok_old = self._stereo_right(left, right, m.uv, self._right_guess(Xc_old))
-            self._record(k, m.ids, m.uv, uvr_old, ok_old)
+            if self.record_observations:
+                self._record(k, m.ids, m.uv, uvr_old, ok_old)
+            if cfg.refine_points and ok_old.any():
+                # running mean of each tracked point over its stereo observations at keyframes
+                Xc_new, err_new = triangulate(self.rig, undistort_px(m.uv[ok_old], self.rig.cam0.K, self.rig.cam0.dist),
+                                              undistort_px(uvr_old[ok_old], self.rig.cam1.K, self.rig.cam1.dist))
+                good = (err_new < cfg.triangulation_max_px) & (Xc_new[:, 2] > cfg.min_depth_m) & \
+                    (Xc_new[:, 2] < cfg.max_depth_m)
+                idx = np.flatnonzero(ok_old)[good]
+                Xw_new = Xc_new[good] @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+                n = m.nobs[idx][:, None]
+                m.X[idx] = (m.X[idx] * n + Xw_new) / (n + 1)
+                m.nobs[idx] += 1
         new_ids = np.arange(self._next_id, self._next_id + len(sel), dtype=np.int64)
         self._next_id += len(sel)
         if self.record_observations and len(sel):
@@ -486,6 +511,7 @@ class StereoEstimator:
         m.X = np.vstack([m.X, Xw[sel]])
         m.uv = np.vstack([m.uv, cands_all[sel]]).astype(np.float32)
         m.ids = np.concatenate([m.ids, new_ids])
+        m.nobs = np.concatenate([m.nobs, np.ones(len(sel))])
         m.uv_kf = m.uv.copy()
         self._since_kf = 0
         self.counters["keyframes"] += 1

@@ -1,0 +1,47 @@
+"""Dense 3D model of a recorded session or of keyframes stored by `host live`.
+
+SESSION_OR_KEYFRAMES_DIR is a session folder (with mav0/; poses from its trajectory.tum, or
+--poses FILE) or a keyframes folder written by `host live` (kf_*.msgpack + index.csv; the rig
+calibration comes from a rig.yaml beside them or --rig).  Stereo depth (semi-global matching with
+a left-right check) of each keyframe is fused into a TSDF volume; OUT gets mesh.ply, cloud.ply,
+model.png (a rendered preview) and map.json (counts, voxel size, timings).  Nothing is written
+when the input is unusable.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("input", metavar="SESSION_OR_KEYFRAMES_DIR", help="session folder or stored keyframes folder")
+    p.add_argument("--out", required=True, help="output folder (created; existing model files are replaced)")
+    p.add_argument("--preset", default="object", choices=["object", "room"],
+                   help="depth range, voxel size and keyframe spacing for object scans (4 mm) or rooms (2 cm)")
+    p.add_argument("--voxel-mm", type=float, default=None, help="TSDF voxel size in mm (default from the preset)")
+    p.add_argument("--poses", default=None, help="TUM or KITTI pose file to use instead of trajectory.tum")
+    p.add_argument("--rig", default=None, help="rig YAML for stored keyframes (default: rig.yaml beside them)")
+    p.add_argument("--stride", type=int, default=None,
+                   help="every N-th posed frame is a keyframe (default: by pose change)")
+    p.add_argument("--max-keyframes", type=int, default=None, help="use at most this many keyframes (evenly)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from host.mapping import map_path, map_preset
+
+    changes = {}
+    if args.stride is not None:
+        changes["stride"] = args.stride
+    if args.max_keyframes is not None:
+        changes["max_keyframes"] = args.max_keyframes
+    config = map_preset(args.preset, voxel_mm=args.voxel_mm, **changes)
+    result = map_path(args.input, args.out, config, poses=args.poses, rig=args.rig,
+                      progress=False if args.no_progress else None)
+    s = result.stats
+    t = s["timings_s"]
+    print(f"{s['keyframes']} keyframes ({s['frames_total']} frames), voxel {s['voxel_mm']:.1f} mm: "
+          f"mesh {s['mesh_vertices']} vertices / {s['mesh_triangles']} triangles, cloud {s['cloud_points']} points")
+    print(f"depth {t['depth']:.1f} s ({s['depth_ms_per_keyframe']:.0f} ms/keyframe), fusion {t['fusion']:.1f} s, "
+          f"total {t['total']:.1f} s -> {args.out}/mesh.ply, cloud.ply, model.png, map.json")
+    return 0
