@@ -192,11 +192,11 @@ def _evaluate(out: Path, session_dir: Path, live_dir: Path, source: str) -> dict
     return report
 
 
-def _build_model(session_dir: Path, out: Path) -> dict | None:
-    import importlib.util
+def _build_model(session_dir: Path, out: Path) -> dict:
+    """Dense model of the recorded session at the on-board poses: OUT/mesh.ply, cloud.ply, model.png."""
+    from host.mapping import map_path, map_preset
 
-    if importlib.util.find_spec("host.mapping") is None:
-        return None
-    from host.mapping import map_session
-
-    return map_session(session_dir, out)
+    result = map_path(session_dir, out, map_preset("object"), progress=False)
+    st = result.stats
+    keep = ("keyframes", "keyframes_used", "voxel_size_m", "vertices", "triangles", "points", "seconds")
+    return {k: v for k, v in st.items() if k in keep or not isinstance(v, (list, dict))}

@@ -10,10 +10,10 @@ from host.report import REPORT_KEYS
 
 def test_demo_runs_device_and_host_and_reports(tmp_path, repo_root):
     out = tmp_path / "demo"
-    proc = subprocess.run([sys.executable, "-m", "host", "demo", "--out", str(out), "--frames", "40", "--no-model"],
+    proc = subprocess.run([sys.executable, "-m", "host", "demo", "--out", str(out), "--frames", "40"],
                           cwd=repo_root, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    for name in ("trajectory.tum", "groundtruth.tum", "report.json", "path.png"):
+    for name in ("trajectory.tum", "groundtruth.tum", "report.json", "path.png", "mesh.ply", "cloud.ply", "model.png"):
         assert (out / name).stat().st_size > 0
     report = json.loads((out / "report.json").read_text())
     assert set(REPORT_KEYS) <= set(report)
@@ -25,3 +25,4 @@ def test_demo_runs_device_and_host_and_reports(tmp_path, repo_root):
     assert report["median_frame_ms"] > 0
     assert len(read_tum(out / "trajectory.tum")) == 40
     assert "CURVE" in proc.stdout
+    assert report["extra"]["model"]["mesh_vertices"] > 1000  # the dense model of the simulated scan
