@@ -164,6 +164,15 @@ class RerunView:
                                                              **kwargs), static=True)
         self._pinhole_size[sid] = (w, h)
 
+    def on_mesh(self, session_id: str, mesh: Any) -> None:
+        """Show the live dense model (called by the live mapper's thread)."""
+        from host.fusion import mesh_arrays
+
+        v, f, c = mesh_arrays(mesh)
+        with self._lock:
+            kw = {} if c is None else {"vertex_colors": c}
+            self.rec.log(f"world/{session_id}/model", self.rr.Mesh3D(vertex_positions=v, triangle_indices=f, **kw))
+
     def on_keyframe(self, kf: Keyframe, new: bool) -> None:
         if new:
             with self._lock:

@@ -33,6 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     parser.add_argument("--window", type=int, default=8, help="keyframes in flight (credit window)")
     parser.add_argument("--no-fsync", action="store_true", help="do not fsync each stored keyframe")
+    parser.add_argument("--map", action="store_true",
+                        help="build the dense model as keyframes arrive (needs --rig); mesh refreshed every --map-every")
+    parser.add_argument("--map-every", type=int, default=10, metavar="N", help="refresh the live mesh every N keyframes")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,13 +57,27 @@ def run(args: argparse.Namespace) -> int:
     rerun_view = None
     if args.rerun or args.rerun_save:
         rerun_view = RerunView(save_path=args.rerun_save, spawn=args.rerun, rig=rig)
+    mapper = None
+    if args.map:
+        if rig is None:
+            raise ConfigError("--map needs --rig FILE.yaml (keyframes carry only the rig's name and hash)")
+        from host.live_map import LiveMapper
+
+        mapper = LiveMapper(rig, args.out, every=args.map_every,
+                            on_mesh=getattr(rerun_view, "on_mesh", None) if rerun_view else None)
+
+    def on_keyframe(kf, new):
+        if rerun_view is not None:
+            rerun_view.on_keyframe(kf, new)
+        if mapper is not None:
+            mapper.on_keyframe(kf, new)
     stop = threading.Event()
     previous = signal.signal(signal.SIGTERM, lambda *_: stop.set()) \
         if threading.current_thread() is threading.main_thread() else None
     term = TerminalView()
     receiver = Receiver(config, args.out,
                         on_pose=rerun_view.on_pose if rerun_view else None,
-                        on_keyframe=rerun_view.on_keyframe if rerun_view else None)
+                        on_keyframe=on_keyframe if (rerun_view or mapper) else None)
     try:
         receiver.run(duration_s=args.duration, stop=stop, on_tick=term.update)
     except KeyboardInterrupt:
@@ -68,6 +85,10 @@ def run(args: argparse.Namespace) -> int:
     finally:
         term.close()
         receiver.close()
+        if mapper is not None:
+            models = mapper.close()
+            for session, folder in models.items():
+                log.info("dense model of session %s: %s", session, folder)
         if rerun_view is not None:
             rerun_view.close()
         if previous is not None:
