@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class StereoConfig:
-    feature_preset: str = "fast"  # modified-ASIFT preset used at keyframes
+    feature_preset: str = "onboard"  # modified-ASIFT preset used at keyframes
     use_asift_keyframes: bool = True
     max_points: int = 500  # map points kept for tracking
     new_corner_spacing_px: int = 14
@@ -71,6 +71,7 @@ class StereoConfig:
     huber_px: float = 1.0
     max_failures_keep_map: int = 10  # failed frames in a row before the map restarts
     background_keyframes: bool = True  # affine views of a keyframe computed off the frame loop
+    guided_radius_px: float = 24.0  # keyframe matching around the predicted positions (0 = global)
     refine_points: bool = True  # average each tracked point's stereo triangulations at keyframes
     kf_library_max: int = 6000  # keypoints (all views) kept with 3D per keyframe for the next match
 
@@ -383,7 +384,7 @@ class StereoEstimator:
         self._pending_feats = None
         if not self.cfg.use_asift_keyframes:
             return T_est, n_inl
-        from device.matching import MatchConfig, match
+        from device.matching import MatchConfig, match, match_guided
 
         feats0 = self._features(left, views=[0])
         self._pending_feats = feats0
@@ -391,8 +392,20 @@ class StereoEstimator:
         if prev is None:
             return T_est, n_inl
         prev_feats, prev_X = prev
-        mt = match(feats0, prev_feats, self._match_cfg or MatchConfig())
-        idx = np.asarray(mt.idx).reshape(-1, 2)
+        if self.cfg.guided_radius_px > 0:
+            # the previous keyframe's 3D features projected with the tracked pose: match only nearby
+            T_cw = invert_pose(T_est)
+            Xc = prev_X @ T_cw[:3, :3].T + T_cw[:3, 3]
+            pred = np.full((len(Xc), 2), np.nan)
+            front = Xc[:, 2] > self.cfg.min_depth_m
+            if np.any(front):
+                pred[front] = cv2.projectPoints(Xc[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
+                                                self.rig.cam0.K, self.rig.cam0.dist)[0].reshape(-1, 2)
+            mt = match_guided(prev_feats, feats0, pred, self.cfg.guided_radius_px, self._match_cfg or MatchConfig())
+            idx = np.asarray(mt.idx).reshape(-1, 2)[:, ::-1]  # (current, previous)
+        else:
+            mt = match(feats0, prev_feats, self._match_cfg or MatchConfig())
+            idx = np.asarray(mt.idx).reshape(-1, 2)
         if len(idx) < self.cfg.min_pnp_inliers:
             return T_est, n_inl
         X = np.vstack([prev_X[idx[:, 1]], self._map.X])
@@ -489,7 +502,7 @@ class StereoEstimator:
             self.keyframe_poses.append((self._cur_seq, T_world_cam.copy()))
         if (self.record_observations or cfg.refine_points) and len(m):
             Xc_old = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
-            uvr_old, ok_old = self._stereo_right(left, right, m.uv, self._right_guess(Xc_old))
+            uvr_old, ok_old = self._stereo_right(left, right, m.uv, self._right_guess(Xc_old), fb_check=False)
             if self.record_observations:
                 self._record(k, m.ids, m.uv, uvr_old, ok_old)
             if cfg.refine_points and ok_old.any():
