@@ -41,6 +41,7 @@ import numpy as np
 
 from device.datasets import layout
 from device.errors import CaptureError, ConfigError
+from device.fileio import fsync_dir, write_atomic
 from device.frames import ImuSamples, StereoFrame
 from device.rig import Rig, save_rig_yaml
 from device.trajfile import Trajectory, format_tum_line, write_tum
@@ -72,14 +73,6 @@ def _utc_now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _write_all(fd: int, data: bytes) -> None:
     view = memoryview(data)
     while view:
@@ -88,15 +81,7 @@ def _write_all(fd: int, data: bytes) -> None:
 
 
 def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name("." + path.name + ".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-    try:
-        _write_all(fd, text.encode())
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.replace(tmp, path)
-    _fsync_dir(path.parent)
+    write_atomic(path, text.encode())
 
 
 def _yaml_list(values: Any) -> str:
@@ -232,8 +217,8 @@ class SessionRecorder:
         self._open_csv("imu", m / layout.IMU / "data.csv", layout.IMU_CSV_HEADER)
         self._open_csv("traj", self.dir / layout.TRAJECTORY, layout.TRAJECTORY_HEADER)
         self._write_manifest()
-        _fsync_dir(m)
-        _fsync_dir(self.dir)
+        fsync_dir(m)
+        fsync_dir(self.dir)
 
     def _open_csv(self, key: str, path: Path, header: str) -> None:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
@@ -474,7 +459,7 @@ class SessionRecorder:
                 for fd in images:
                     os.close(fd)
             for cam in layout.CAMERAS:
-                _fsync_dir(self.dir / layout.MAV0 / cam / "data")
+                fsync_dir(self.dir / layout.MAV0 / cam / "data")
         for key in FLUSH_ORDER:  # IMU first: a durable frame row has its IMU samples before it
             lines = self._pending.get(key)
             if lines:

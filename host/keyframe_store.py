@@ -28,6 +28,8 @@ from pathlib import Path
 from typing import Any
 
 from device.errors import DatasetError, ProtocolError
+from device.fileio import fsync_dir
+from device.fileio import write_atomic as _write_atomic
 from device.protocol import SESSION_ID_RE, Keyframe, decode_keyframe
 
 log = logging.getLogger(__name__)
@@ -43,25 +45,9 @@ def keyframe_name(seq: int) -> str:
     return f"kf_{int(seq):08d}.msgpack"
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def write_atomic(path: Path, data: bytes, fsync: bool) -> None:
-    """Write ``data`` to ``path`` through a temporary file and a rename."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        if fsync:
-            os.fsync(fh.fileno())
-    os.replace(tmp, path)
-    if fsync:
-        _fsync_dir(path.parent)
+    """Write ``data`` to ``path`` through ``NAME.tmp`` and a rename (leftovers are swept at open)."""
+    _write_atomic(path, data, fsync=fsync, tmp_name=path.name + ".tmp")
 
 
 def _index_row(kf: Keyframe, nbytes: int) -> list[Any]:
