@@ -79,7 +79,7 @@ def main() -> None:
     print(f"simulated scan: {len(sim)} frames, path {sim.groundtruth.path_length_m():.3f} m "
           f"(rendered in {time.perf_counter() - t:.1f} s)")
     stereo = [run_once(sim, "stereo") for _ in range(args.runs)]
-    med, m_stereo = summary("stereo (fast modified ASIFT)", stereo)
+    med, m_stereo = summary("stereo (onboard modified ASIFT)", stereo)
     sift = [run_once(sim, "stereo", preset="sift") for _ in range(args.runs)]
     med_sift, _ = summary("stereo (SIFT-only keyframes)", sift)
     print(f"time ratio stereo / SIFT-only stereo: {med / med_sift:.2f}")

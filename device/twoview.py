@@ -182,6 +182,18 @@ def _unique_count(p1: np.ndarray, p2: np.ndarray) -> int:
 # --------------------------------------------------------------------------- rotation only
 
 
+def _prepare(xy1, xy2, K1, K2):
+    """Validated intrinsics and points, and the indices of the finite matches."""
+    K1 = _as_K(K1, "K1")
+    K2 = K1 if K2 is None else _as_K(K2, "K2")
+    p1 = _as_points(xy1, "xy1")
+    p2 = _as_points(xy2, "xy2")
+    if len(p1) != len(p2):
+        raise ConfigError(f"xy1 and xy2 differ in length: {len(p1)} vs {len(p2)}")
+    finite = np.isfinite(p1).all(axis=1) & np.isfinite(p2).all(axis=1)
+    return K1, K2, p1, p2, np.nonzero(finite)[0]
+
+
 def rotation_only(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarray | None = None, cfg: TwoViewConfig = TwoViewConfig()) -> TwoViewResult:
     """Rotation-only model ``b2 ~ R b1`` from matched bearings: 2-point RANSAC + Kabsch refinement.
 
@@ -189,16 +201,9 @@ def rotation_only(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarr
     matches whose reprojection through ``K2 R K1^-1`` lands within
     ``cfg.threshold_px`` of ``xy2``.  ``t`` is always None.
     """
-    K1 = _as_K(K1, "K1")
-    K2 = K1 if K2 is None else _as_K(K2, "K2")
-    p1 = _as_points(xy1, "xy1")
-    p2 = _as_points(xy2, "xy2")
-    if len(p1) != len(p2):
-        raise ConfigError(f"xy1 and xy2 differ in length: {len(p1)} vs {len(p2)}")
+    K1, K2, p1, p2, idx = _prepare(xy1, xy2, K1, K2)
     n_all = len(p1)
     inl_all = np.zeros(n_all, bool)
-    finite = np.isfinite(p1).all(axis=1) & np.isfinite(p2).all(axis=1)
-    idx = np.nonzero(finite)[0]
     if _unique_count(p1[idx], p2[idx]) < 3:
         return TwoViewResult("too_few_matches", inliers=inl_all, n_matches=n_all, message=f"{len(idx)} finite matches, fewer than 3 distinct")
     b1 = _bearings(p1[idx], K1)
@@ -342,16 +347,9 @@ def relative_pose(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarr
     argument shapes raise :class:`ConfigError`.
     """
     cv2.setRNGSeed(cfg.seed)  # OpenCV's RANSAC draws do not depend on earlier calls in the process
-    K1 = _as_K(K1, "K1")
-    K2 = K1 if K2 is None else _as_K(K2, "K2")
-    p1 = _as_points(xy1, "xy1")
-    p2 = _as_points(xy2, "xy2")
-    if len(p1) != len(p2):
-        raise ConfigError(f"xy1 and xy2 differ in length: {len(p1)} vs {len(p2)}")
+    K1, K2, p1, p2, idx = _prepare(xy1, xy2, K1, K2)
     n_all = len(p1)
     none = np.zeros(n_all, bool)
-    finite = np.isfinite(p1).all(axis=1) & np.isfinite(p2).all(axis=1)
-    idx = np.nonzero(finite)[0]
     n_unique = _unique_count(p1[idx], p2[idx])
     if n_unique < cfg.min_matches:
         return TwoViewResult("too_few_matches", inliers=none, n_matches=n_all, message=f"{n_unique} distinct finite matches < {cfg.min_matches}")
