@@ -71,6 +71,7 @@ class StereoConfig:
     huber_px: float = 1.0
     max_failures_keep_map: int = 10  # failed frames in a row before the map restarts
     background_keyframes: bool = True  # affine views of a keyframe computed off the frame loop
+    record_observations: bool = False  # keep a keyframe observation log (memory grows with the session)
     guided_radius_px: float = 24.0  # keyframe matching around the predicted positions (0 = global)
     refine_points: bool = True  # average each tracked point's stereo triangulations at keyframes
     kf_library_max: int = 6000  # keypoints (all views) kept with 3D per keyframe for the next match
@@ -140,7 +141,7 @@ class StereoEstimator:
         self._feature_cfg = None
         self._match_cfg = None
         # keyframe log for offline bundle adjustment: poses, observations (kf, point id, cam, u, v)
-        self.record_observations = True
+        self.record_observations = self.cfg.record_observations
         self.keyframe_poses: list[tuple[int, np.ndarray]] = []
         self.observations: list[np.ndarray] = []
         self.landmarks: dict[int, np.ndarray] = {}
