@@ -5,7 +5,13 @@ from device.errors import EstimationError
 from device.estimation.stereo_geometry import project
 from device.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp
 from device.rig import paper_rig
-from host.bundle_adjust import bundle_adjust, propagate_to_frames
+from host.bundle_adjust import (
+    RotationPrior,
+    bundle_adjust,
+    interpolate_corrections,
+    propagate_to_frames,
+    refine_poses_fixed_points,
+)
 
 
 def _problem(rng, n_kf=6, n_pts=200):
@@ -54,3 +60,101 @@ def test_propagation_moves_frames_with_their_keyframe():
     out = propagate_to_frames(frames, np.array([0, 1]), T_old, T_new)
     assert np.allclose(out[0], np.eye(4))
     assert np.allclose(out[1], T_new[1] @ make_pose(np.eye(3), [0.5, 0, 0]))
+
+
+def _perturbed(rng, T_true, pts, rot=0.01, trans=0.02, pt=0.02):
+    T_noisy = T_true.copy()
+    for k in range(1, len(T_noisy)):
+        T_noisy[k] = T_noisy[k] @ make_pose(so3_exp(rng.normal(0, rot, 3)), rng.normal(0, trans, 3))
+    return T_noisy, {i: X + rng.normal(0, pt, 3) for i, X in pts.items()}
+
+
+def test_scipy_solver_still_converges():
+    rng = np.random.default_rng(2)
+    rig, T_true, pts, obs = _problem(rng, n_kf=4, n_pts=60)
+    T_noisy, pts_noisy = _perturbed(rng, T_true, pts, 0.005, 0.01, 0.01)
+    res = bundle_adjust(rig, T_noisy, pts_noisy, obs, solver="scipy", max_nfev=50)
+    assert res.rms_after_px < 0.5 < res.rms_before_px
+    for k in range(len(T_true)):
+        assert np.linalg.norm(res.T_world_cam[k][:3, 3] - T_true[k][:3, 3]) < 5e-3
+
+
+def test_disparity_offset_is_estimated_and_removes_the_scale_error():
+    rng = np.random.default_rng(3)
+    rig, T_true, pts, obs = _problem(rng, n_kf=8, n_pts=300)
+    shifted = obs.copy()
+    shifted[shifted[:, 2] == 1, 3] += 0.5  # a constant disparity error of 0.5 px
+    plain = bundle_adjust(rig, T_true, pts, shifted)
+    fitted = bundle_adjust(rig, T_true, pts, shifted, estimate_disparity_offset=True)
+    assert fitted.disparity_offset_px == pytest.approx(0.5, abs=0.05)
+    assert plain.disparity_offset_px == 0.0
+
+    def path_error(res):
+        return max(np.linalg.norm(res.T_world_cam[k][:3, 3] - T_true[k][:3, 3]) for k in range(len(T_true)))
+
+    assert path_error(fitted) < 2e-3 < path_error(plain)
+    # an offset below the threshold is treated as noise and not applied
+    tiny = bundle_adjust(rig, T_true, pts, obs, estimate_disparity_offset=True, disparity_offset_min_px=0.2)
+    assert tiny.disparity_offset_px == 0.0
+
+
+def test_gross_outliers_are_removed_and_weights_scale_residuals():
+    rng = np.random.default_rng(4)
+    rig, T_true, pts, obs = _problem(rng)
+    bad = rng.choice(len(obs), 100, replace=False)
+    obs = obs.copy()
+    obs[bad, 3:5] += rng.uniform(20, 40, (100, 2))
+    T_noisy, pts_noisy = _perturbed(rng, T_true, pts)
+    res = bundle_adjust(rig, T_noisy, pts_noisy, obs, outlier_px=3.0, outlier_rounds=1)
+    assert res.n_obs <= len(obs) - 100
+    for k in range(len(T_true)):
+        assert np.linalg.norm(res.T_world_cam[k][:3, 3] - T_true[k][:3, 3]) < 2e-3
+    # a 6th column scales residuals: halving every weight halves the rms
+    w = np.column_stack([obs, np.full(len(obs), 0.5)])
+    r_full = bundle_adjust(rig, T_true, pts, obs, max_iterations=1, outlier_rounds=0)
+    r_half = bundle_adjust(rig, T_true, pts, w, max_iterations=1, outlier_rounds=0)
+    assert r_half.rms_before_px == pytest.approx(0.5 * r_full.rms_before_px, rel=1e-9)
+    with pytest.raises(EstimationError, match="rows"):
+        bundle_adjust(rig, T_true, pts, obs[:, :4])
+
+
+def test_motion_only_refinement_with_fixed_points():
+    rng = np.random.default_rng(5)
+    rig, T_true, pts, obs = _problem(rng, n_kf=5, n_pts=150)
+    T_noisy, _ = _perturbed(rng, T_true, pts, 0.01, 0.03, 0.0)
+    T_noisy[0] = T_true[0] @ make_pose(so3_exp([0.01, 0, 0]), [0.02, 0, 0])
+    few = obs[~((obs[:, 0] == 4) & (obs[:, 1] > 2))]  # pose 4 keeps only 3 points x 2 cameras
+    out, ok = refine_poses_fixed_points(rig, T_noisy, pts, few, min_obs=8)
+    assert list(ok) == [True, True, True, True, False]
+    for k in range(4):
+        assert np.linalg.norm(out[k][:3, 3] - T_true[k][:3, 3]) < 2e-3
+        assert rotation_angle_deg(out[k][:3, :3].T @ T_true[k][:3, :3]) < 0.05
+    assert np.array_equal(out[4], T_noisy[4])  # too few observations: left as it was
+
+
+def test_rotation_priors_pull_the_relative_rotation():
+    rng = np.random.default_rng(6)
+    rig, T_true, pts, obs = _problem(rng, n_kf=3, n_pts=40)
+    obs = obs[obs[:, 2] == 0]  # one camera only: weaker geometry
+    R01_true = invert_pose(T_true[0])[:3, :3] @ invert_pose(T_true[1])[:3, :3].T
+    wrong = so3_exp([0.0, 0.0, 0.02]) @ R01_true
+    free = bundle_adjust(rig, T_true, pts, obs, n_fixed=1)
+    pulled = bundle_adjust(rig, T_true, pts, obs, n_fixed=1,
+                           rotation_priors=[RotationPrior(0, 1, wrong, 1e-5)])
+
+    def rel(res):
+        return invert_pose(res.T_world_cam[0])[:3, :3] @ invert_pose(res.T_world_cam[1])[:3, :3].T
+
+    assert rotation_angle_deg(rel(free).T @ R01_true) < 0.05
+    assert rotation_angle_deg(rel(pulled).T @ wrong) < 0.05
+
+
+def test_interpolated_corrections_are_smooth_between_keyframes():
+    T_old = np.array([np.eye(4), np.eye(4)])
+    T_new = np.array([np.eye(4), make_pose(so3_exp([0, 0, 0.2]), [0.2, 0, 0])])
+    frames = np.array([np.eye(4)] * 3)
+    out = interpolate_corrections(np.array([0, 5, 10]), frames, np.array([0, 10]), T_old, T_new)
+    assert np.allclose(out[0], np.eye(4))
+    assert np.allclose(out[2], T_new[1])
+    assert np.allclose(out[1][:3, 3], [0.1, 0, 0])
+    assert rotation_angle_deg(out[1][:3, :3]) == pytest.approx(np.degrees(0.1), rel=1e-6)

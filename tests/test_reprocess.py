@@ -1,0 +1,230 @@
+"""`stereopath host reprocess`: outputs, improvement over the re-estimate, resume, bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from device.errors import CalibrationError, ConfigError, DatasetError
+from host.reprocess import REPROCESS_PRESETS, reprocess_session
+from host.report import REPORT_KEYS
+
+FRAMES = 60
+OUTPUTS = ("trajectory.tum", "report.json", "path.png", "errors.png", "mesh.ply", "cloud.ply", "model.png",
+           "map.json", "report.html")
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory) -> Path:
+    """A short simulated session (what `stereopath sim --out DIR --frames 60` writes)."""
+    from device.recorder import record_sequence
+    from device.sim.session import SimConfig, open_sim
+
+    d = tmp_path_factory.mktemp("reprocess") / "session"
+    man = record_sequence(open_sim(SimConfig(frames=FRAMES)), d, config_dict={"source": "sim"})
+    assert man["status"] == "closed"
+    return d
+
+
+@pytest.fixture(scope="module")
+def session_with_onboard(session, tmp_path_factory) -> Path:
+    """The same session with an on-board path in trajectory.tum (a coarse one: every other frame)."""
+    from device.trajfile import write_tum
+    from host.odometry import estimate_sequence
+    from host.sequences import open_sequence
+
+    d = tmp_path_factory.mktemp("reprocess") / "with_onboard"
+    shutil.copytree(session, d)
+    run = estimate_sequence(open_sequence(f"session:{d}"), "stereo", options={"use_asift_keyframes": False},
+                            progress=False)
+    write_tum(d / "trajectory.tum", run.trajectory)
+    return d
+
+
+@pytest.fixture(scope="module")
+def full_run(session, tmp_path_factory):
+    """One uninterrupted reprocessing of the session (the reference for the other tests)."""
+    out = tmp_path_factory.mktemp("reprocess") / "full"
+    seen: list[str] = []
+    res = reprocess_session(session, out, progress=False, after_stage=seen.append)
+    return out, res, seen
+
+
+def _mtimes(stages: Path) -> dict[str, int]:
+    return {p.name: p.stat().st_mtime_ns for p in sorted(stages.glob("*.npz"))}
+
+
+def _no_temp_files(root: Path) -> None:
+    leftovers = [p for p in root.rglob("*") if ".tmp" in p.name]
+    assert leftovers == []
+
+
+def test_reprocess_writes_every_output_and_improves_the_path(full_run):
+    out, res, seen = full_run
+    assert seen == ["estimate", "tracks", "ba", "map"]
+    assert res.stages == {"estimate": "computed", "tracks": "computed", "ba": "computed", "map": "computed"}
+    for name in OUTPUTS:
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    _no_temp_files(out)
+    rep = json.loads((out / "report.json").read_text())
+    assert all(k in rep for k in REPORT_KEYS)
+    assert rep["estimator"] == "stereo+ba" and rep["frames"] == FRAMES
+    ba = rep["extra"]["before_after"]
+    assert ba["onboard"] is None  # a simulated session carries no on-board path
+    before, after = ba["reestimated"]["ate_rmse_m"], ba["bundle_adjusted"]["ate_rmse_m"]
+    assert after == pytest.approx(rep["ate_rmse_m"])
+    assert after <= before  # bundle adjustment improves (or keeps) the path
+    assert ba["ate_ratio_vs_reestimated"] == pytest.approx(after / before)
+    assert rep["extra"]["bundle_adjustment"]["rms_after_px"] < rep["extra"]["bundle_adjustment"]["rms_before_px"]
+    from device.trajfile import read_tum
+
+    traj = read_tum(out / "trajectory.tum")
+    assert len(traj) == FRAMES and np.all(np.isfinite(traj.T_world_cam))
+    html = (out / "report.html").read_text()
+    for img in ("path.png", "errors.png", "model.png"):
+        assert f"src='{img}'" in html
+    assert "bundle adjusted" in html
+    man = json.loads((out / "stages" / "manifest.json").read_text())
+    assert set(man["stages"]) == {"estimate", "tracks", "ba", "map"}
+
+
+def test_rerun_reuses_every_stage_and_gives_identical_outputs(full_run, session):
+    out, _, _ = full_run
+    traj_before = (out / "trajectory.tum").read_bytes()
+    mt = _mtimes(out / "stages")
+    seen: list[str] = []
+    res = reprocess_session(session, out, progress=False, after_stage=seen.append)
+    assert seen == [] and set(res.stages.values()) == {"reused"}
+    assert _mtimes(out / "stages") == mt
+    assert (out / "trajectory.tum").read_bytes() == traj_before
+
+
+def test_resume_after_an_interruption(full_run, session, tmp_path):
+    ref_out, ref, _ = full_run
+    out = tmp_path / "out"
+
+    def stop_after_ba(name: str) -> None:
+        if name == "ba":
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        reprocess_session(session, out, progress=False, after_stage=stop_after_ba)
+    stages = out / "stages"
+    assert sorted(p.name for p in stages.iterdir()) == ["ba.npz", "estimate.npz", "manifest.json", "tracks.npz"]
+    assert not (out / "trajectory.tum").exists()
+    _no_temp_files(out)
+    mt = _mtimes(stages)
+    seen: list[str] = []
+    res = reprocess_session(session, out, progress=False, after_stage=seen.append)
+    assert seen == ["map"]  # the earlier stages were not recomputed
+    assert res.stages == {"estimate": "reused", "tracks": "reused", "ba": "reused", "map": "computed"}
+    assert _mtimes(stages) == mt
+    # the resumed run gives the same path as the uninterrupted one
+    assert (out / "trajectory.tum").read_bytes() == (ref_out / "trajectory.tum").read_bytes()
+    assert res.report["ate_rmse_m"] == ref.report["ate_rmse_m"]
+    for name in OUTPUTS:
+        assert (out / name).is_file()
+
+    # a corrupted stage file is recomputed (and only it), with the same result
+    (stages / "ba.npz").write_bytes(b"not an npz")
+    seen.clear()
+    res = reprocess_session(session, out, progress=False, after_stage=seen.append)
+    assert seen == ["ba"]
+    assert (out / "trajectory.tum").read_bytes() == (ref_out / "trajectory.tum").read_bytes()
+
+    # a deleted stage is recomputed too; later stages keyed on its settings are reused
+    (stages / "tracks.npz").unlink()
+    seen.clear()
+    reprocess_session(session, out, progress=False, after_stage=seen.append)
+    assert seen == ["tracks"]
+    _no_temp_files(out)
+
+
+def test_ctrl_c_inside_a_stage_leaves_no_half_written_stage(session, tmp_path, monkeypatch):
+    import host.tracks
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(host.tracks, "build_tracks", interrupted)
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        reprocess_session(session, out, do_map=False, progress=False)
+    stages = out / "stages"
+    assert sorted(p.name for p in stages.iterdir()) == ["estimate.npz", "manifest.json"]
+    man = json.loads((stages / "manifest.json").read_text())
+    assert list(man["stages"]) == ["estimate"]
+
+
+def test_bad_input_raises_and_writes_nothing(session, tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(DatasetError, match="empty"):
+        reprocess_session(empty, tmp_path / "o1")
+    with pytest.raises(DatasetError, match="not found"):
+        reprocess_session(tmp_path / "missing", tmp_path / "o2")
+    nocal = tmp_path / "nocal"
+    for cam in ("cam0", "cam1"):
+        shutil.copytree(session / "mav0" / cam, nocal / "mav0" / cam)
+        (nocal / "mav0" / cam / "sensor.yaml").unlink()
+    with pytest.raises(CalibrationError, match="sensor.yaml"):
+        reprocess_session(nocal, tmp_path / "o3")
+    with pytest.raises(ConfigError, match="unknown reprocess preset"):
+        reprocess_session(session, tmp_path / "o4", preset="nonsense")
+    for name in ("o1", "o2", "o3", "o4"):
+        assert not (tmp_path / name).exists()
+
+
+def test_cli_reprocess(full_run, session, capsys):
+    from host.cli import main
+
+    out, _, _ = full_run
+    assert main(["-q", "host", "reprocess", str(session), "--out", str(out), "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "estimate reused" in text and "bundle adjusted" in text and "report.html" in text
+    assert main(["-q", "host", "reprocess", str(out / "nowhere"), "--out", str(out / "x")]) == 2
+    assert not (out / "x").exists()
+
+
+def test_onboard_path_of_the_session_is_the_before_figure(session_with_onboard, tmp_path):
+    res = reprocess_session(session_with_onboard, tmp_path / "out", do_map=False, progress=False)
+    ba = res.report["extra"]["before_after"]
+    assert ba["onboard"]["frames"] == FRAMES and ba["onboard"]["ate_rmse_m"] > 0
+    after, onboard = ba["bundle_adjusted"]["ate_rmse_m"], ba["onboard"]["ate_rmse_m"]
+    assert ba["ate_ratio_vs_onboard"] == pytest.approx(after / onboard)
+    assert res.stages["map"] == "skipped" and not (tmp_path / "out" / "mesh.ply").exists()
+    assert "on-board (recorded)" in (tmp_path / "out" / "report.html").read_text()
+
+
+def test_a_tiny_session_still_gives_a_path(tmp_path):
+    from device.recorder import record_sequence
+    from device.sim.session import SimConfig, open_sim
+
+    d = tmp_path / "tiny"
+    record_sequence(open_sim(SimConfig(frames=3)), d, config_dict={"source": "sim"})
+    res = reprocess_session(d, tmp_path / "out", do_map=False, progress=False)
+    assert len(res.trajectory) == 3 and np.all(np.isfinite(res.trajectory.T_world_cam))
+    assert (tmp_path / "out" / "report.html").is_file()
+
+
+def test_cli_preset_names_match_the_library():
+    from host.commands import reprocess as cmd
+    from host.reprocess import DEFAULT_PRESET
+
+    assert tuple(cmd.PRESET_NAMES) == tuple(REPROCESS_PRESETS)
+    assert cmd.DEFAULT_PRESET == DEFAULT_PRESET
+
+
+def test_html_report_without_ground_truth_says_so(tmp_path):
+    from host.report_html import render_html
+
+    rep = {"source": "s", "frames": 3, "frames_tracked": 3, "world_frame": "first_camera",
+           "extra": {"before_after": {"onboard": None, "reestimated": {"frames": 3},
+                                      "bundle_adjusted": {"frames": 3}, "ate_ratio_vs_onboard": None,
+                                      "ate_ratio_vs_reestimated": None}}}
+    html = render_html(rep, [])
+    assert "No ground truth" in html and "not in the session" in html
