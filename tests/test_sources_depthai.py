@@ -9,32 +9,18 @@ import time
 import numpy as np
 import pytest
 
-from device.config import from_mapping
 from device.errors import CaptureError
-from device.settings import SourceSettings
 from device.sources import create_source
 from device.sources.oak import DEPTHAI_NAMES, DepthaiSource, rig_from_calibration, timedelta_to_ns
+from tests.fakes.standins import source_settings, take
 from tests.fakes.fake_depthai import FakeOakWorld
 
 pytestmark = pytest.mark.timeout(30)
 
 
 def settings(**kw):
-    base = {"backend": "depthai", "fps": 100.0, "exposure_us": 2000, "pair_tolerance_us": 1000,
-            "timeout_s": 0.4, "size": [64, 40]}
-    dai = kw.pop("depthai", {})
-    base.update(kw)
-    base["depthai"] = dai
-    return from_mapping(SourceSettings, base)
+    return source_settings("depthai", [64, 40], 1000, **kw)
 
-
-def take(src, n):
-    out = []
-    for f in src:
-        out.append(f)
-        if len(out) >= n:
-            break
-    return out
 
 
 def index_of(img):

@@ -9,32 +9,18 @@ import time
 
 import pytest
 
-from device.config import from_mapping
 from device.errors import CaptureError
-from device.settings import SourceSettings
 from device.sources import create_source
 from device.sources.csi import LIBCAMERA_NAMES, PICAMERA2_NAMES, Picamera2Source
+from tests.fakes.standins import source_settings, take
 from tests.fakes.fake_picamera2 import FakeCameraSpec, FakeCameraWorld, decode_slot
 
 pytestmark = pytest.mark.timeout(30)
 
 
 def settings(**kw):
-    base = {"backend": "picamera2", "fps": 100.0, "exposure_us": 2000, "pair_tolerance_us": 500,
-            "timeout_s": 0.4, "size": [64, 48]}
-    pic = kw.pop("picamera2", {})
-    base.update(kw)
-    base["picamera2"] = pic
-    return from_mapping(SourceSettings, base)
+    return source_settings("picamera2", [64, 48], 500, **kw)
 
-
-def take(src, n):
-    out = []
-    for f in src:
-        out.append(f)
-        if len(out) >= n:
-            break
-    return out
 
 
 def assert_all_threads_stopped(world):

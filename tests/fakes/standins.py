@@ -50,3 +50,26 @@ class StandinSequence:
     # the simulator's name for it
     def render(self, i: int) -> StereoFrame:
         return self.frame(i)
+
+
+def source_settings(backend: str, size: list[int], pair_tolerance_us: int, **kw):
+    """A validated SourceSettings for a fake-backed source test (fast frame rate, short timeout)."""
+    from device.config import from_mapping
+    from device.settings import SourceSettings
+
+    base = {"backend": backend, "fps": 100.0, "exposure_us": 2000, "pair_tolerance_us": pair_tolerance_us,
+            "timeout_s": 0.4, "size": size}
+    sub = kw.pop(backend, {})
+    base.update(kw)
+    base[backend] = sub
+    return from_mapping(SourceSettings, base)
+
+
+def take(src, n: int) -> list:
+    """The first ``n`` frames of a source (stops iterating as soon as it has them)."""
+    out = []
+    for f in src:
+        out.append(f)
+        if len(out) >= n:
+            break
+    return out
