@@ -165,36 +165,34 @@ def _tmp_sibling(path: Path) -> Path:
     return path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
 
 
+def _write_ply(path: str | Path, count: int, what: str, write) -> Path:
+    """Atomic PLY write (temporary file, then rename) through Open3D's ``write(tmp_path)``."""
+    p = Path(path)
+    if count == 0:
+        raise StereopathError(f"refusing to write an empty {what} to {p}")
+    tmp = _tmp_sibling(p)
+    ok = write(str(tmp))
+    if not ok or not tmp.is_file():
+        tmp.unlink(missing_ok=True)
+        raise StereopathError(f"could not write {what} {p}")
+    os.replace(tmp, p)
+    return p
+
+
 def write_mesh(mesh: Any, path: str | Path) -> Path:
     """Write a legacy triangle mesh (binary PLY) atomically: temporary file, then rename."""
     import open3d as o3d
 
-    p = Path(path)
-    if len(mesh.vertices) == 0:
-        raise StereopathError(f"refusing to write an empty mesh to {p}")
-    tmp = _tmp_sibling(p)
-    ok = o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False, compressed=False, print_progress=False)
-    if not ok or not tmp.is_file():
-        tmp.unlink(missing_ok=True)
-        raise StereopathError(f"could not write mesh {p}")
-    os.replace(tmp, p)
-    return p
+    return _write_ply(path, len(mesh.vertices), "mesh", lambda t: o3d.io.write_triangle_mesh(
+        t, mesh, write_ascii=False, compressed=False, print_progress=False))
 
 
 def write_cloud(cloud: Any, path: str | Path) -> Path:
     """Write a legacy point cloud (binary PLY) atomically."""
     import open3d as o3d
 
-    p = Path(path)
-    if len(cloud.points) == 0:
-        raise StereopathError(f"refusing to write an empty point cloud to {p}")
-    tmp = _tmp_sibling(p)
-    ok = o3d.io.write_point_cloud(str(tmp), cloud, write_ascii=False, compressed=False, print_progress=False)
-    if not ok or not tmp.is_file():
-        tmp.unlink(missing_ok=True)
-        raise StereopathError(f"could not write point cloud {p}")
-    os.replace(tmp, p)
-    return p
+    return _write_ply(path, len(cloud.points), "point cloud", lambda t: o3d.io.write_point_cloud(
+        t, cloud, write_ascii=False, compressed=False, print_progress=False))
 
 
 def mesh_arrays(mesh: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:

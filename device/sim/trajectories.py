@@ -229,12 +229,7 @@ class LookAtOrbitShape(Shape):
         P = np.stack([r * c, r * s, h], 1)
         dP = np.stack([dr * c - r * k * s, dr * s + r * k * c, dh], 1)
         ddP = np.stack([ddr * c - 2 * dr * k * s - r * k * k * c, ddr * s + 2 * dr * k * c - r * k * k * s, ddh], 1)
-        if self.shake_pos is not None:
-            for i, sh in enumerate(self.shake_pos):
-                a, da, dda = sh(g)
-                P[:, i] += a
-                dP[:, i] += da
-                ddP[:, i] += dda
+        _add_shake(P, dP, ddP, self.shake_pos, g)
         return P, dP, ddP
 
     def rotation_factors(self, g):
@@ -257,6 +252,17 @@ class LookAtOrbitShape(Shape):
         return [("z", yaw, np.full(n, self.k), zeros), ("const", _R_BASE), ("x", *ax), ("y", *ay), ("z", *az)]
 
 
+def _add_shake(P, dP, ddP, shake_pos, g) -> None:
+    """Add hand shake (per-axis sums of sines with analytic derivatives) to a position track."""
+    if shake_pos is None:
+        return
+    for i, sh in enumerate(shake_pos):
+        a, da, dda = sh(g)
+        P[:, i] += a
+        dP[:, i] += da
+        ddP[:, i] += dda
+
+
 class LineShape(Shape):
     """A straight slide ``p0 + dir * speed * g`` with a fixed orientation looking at the table."""
 
@@ -274,12 +280,7 @@ class LineShape(Shape):
         P = self.p0 + np.outer(g * self.speed, self.d)
         dP = np.tile(self.d * self.speed, (n, 1))
         ddP = np.zeros((n, 3))
-        if self.shake_pos is not None:
-            for i, sh in enumerate(self.shake_pos):
-                a, da, dda = sh(g)
-                P[:, i] += a
-                dP[:, i] += da
-                ddP[:, i] += dda
+        _add_shake(P, dP, ddP, self.shake_pos, g)
         return P, dP, ddP
 
     def rotation_factors(self, g):
