@@ -2,7 +2,7 @@
 
 Pre-rendered simulator frames (rendering excluded) are played through the fake picamera2
 (two camera threads, synchronised, YUV420 buffers built once) into the real
-:class:`~device.sources.csi.Picamera2Source`: per frame and camera the callback maps the
+:class:`~stereopath.device.capture.sources.csi.Picamera2Source`: per frame and camera the callback maps the
 request, copies the luma plane, and the pairer matches the two; the consumer receives
 :class:`StereoFrame` objects.  The process CPU time over the run, as a share of one core,
 is the figure; the reference measured in the same process is the fake cameras alone
@@ -23,9 +23,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from device.config import from_mapping  # noqa: E402
-from device.settings import SourceSettings  # noqa: E402
-from device.sources.csi import Picamera2Source  # noqa: E402
+from stereopath.device.core.config import from_mapping  # noqa: E402
+from stereopath.device.service.settings import SourceSettings  # noqa: E402
+from stereopath.device.capture.sources.csi import Picamera2Source  # noqa: E402
 from tests.fakes.fake_picamera2 import FakeCameraWorld  # noqa: E402
 
 W, H, FPS = 640, 480, 30.0
@@ -33,7 +33,7 @@ W, H, FPS = 640, 480, 30.0
 
 def prerendered(n: int) -> list[tuple[np.ndarray, np.ndarray]]:
     try:
-        from device.sim.session import SimConfig, open_sim
+        from stereopath.device.sim.session import SimConfig, open_sim
 
         sess = open_sim(SimConfig(frames=n, seed=0))
         frames = [sess.render(i) for i in range(n)]

@@ -31,7 +31,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from host.depth import (  # noqa: E402
+from stereopath.host.mapping.depth import (  # noqa: E402
     DEPTH_PRESETS, DepthConfig, StereoDepth, compute_disparity, fill_holes_background, make_matcher,
 )
 
@@ -89,7 +89,7 @@ def gt_depth_in_rect(depth0: np.ndarray, K0: np.ndarray, rect) -> np.ndarray:
 
 
 def sim_accuracy(frames: int) -> None:
-    from device.sim.session import SimConfig, open_sim
+    from stereopath.device.sim.session import SimConfig, open_sim
 
     sess = open_sim(SimConfig(frames=400, with_depth=True))
     cfg = dataclasses.replace(DEPTH_PRESETS["object"], min_depth_m=0.4, max_depth_m=1.5)
@@ -116,7 +116,7 @@ def sim_accuracy(frames: int) -> None:
 
 
 def speed(runs: int) -> None:
-    from device.sim.session import SimConfig, open_sim
+    from stereopath.device.sim.session import SimConfig, open_sim
 
     sess = open_sim(SimConfig(frames=400))
     pairs = [sess.frame(i) for i in (50, 150, 250, 350)]

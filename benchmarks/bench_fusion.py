@@ -32,11 +32,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from device.sim.session import SimConfig, open_sim  # noqa: E402
-from device.sim.scene import point_to_scene_distance, sample_surface_points  # noqa: E402
-from host.depth import StereoDepth  # noqa: E402
-from host.fusion import TsdfVolume  # noqa: E402
-from host.mapping import build_map, keyframes_from_sequence, map_preset  # noqa: E402
+from stereopath.device.sim.session import SimConfig, open_sim  # noqa: E402
+from stereopath.device.sim.scene import point_to_scene_distance, sample_surface_points  # noqa: E402
+from stereopath.host.mapping.depth import StereoDepth  # noqa: E402
+from stereopath.host.mapping.fusion import TsdfVolume  # noqa: E402
+from stereopath.host.mapping.mapper import build_map, keyframes_from_sequence, map_preset  # noqa: E402
 
 RANGE_M = (0.4, 1.5)
 
@@ -170,11 +170,11 @@ def main() -> int:
             cfg = dataclasses.replace(cfg, keyframes=dataclasses.replace(cfg.keyframes, **kf_changes))
         accuracy(sess, sess.groundtruth, "ground-truth", cfg)
         if args.estimated:
-            from host.odometry import estimate_sequence
+            from stereopath.host.evaluation.odometry import estimate_sequence
 
             t0 = time.perf_counter()
             run = estimate_sequence(sess, "stereo", progress=False)
-            from host.evaluate import associate_and_align, evaluate
+            from stereopath.host.evaluation.evaluate import associate_and_align, evaluate
 
             m = evaluate(sess.groundtruth, run.trajectory)
             aligned = associate_and_align(sess.groundtruth, run.trajectory).est_aligned

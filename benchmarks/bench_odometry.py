@@ -21,10 +21,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from device.estimation.base import run_estimator  # noqa: E402
-from device.estimation.registry import make_estimator  # noqa: E402
-from host.evaluate import evaluate  # noqa: E402
-from host.sequences import open_sequence  # noqa: E402
+from stereopath.device.estimation.base import run_estimator  # noqa: E402
+from stereopath.device.estimation.registry import make_estimator  # noqa: E402
+from stereopath.host.evaluation.evaluate import evaluate  # noqa: E402
+from stereopath.host.evaluation.sequences import open_sequence  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 
@@ -94,7 +94,7 @@ def main() -> None:
         print(f"targets: end <= 1 % -> {mk['end_error_pct']:.3f} %; ATE <= 0.3 m -> {mk['ate_rmse_m']:.3f} m")
 
     if not args.skip_paper:
-        from host.commands.odometry import format_table
+        from stereopath.host.commands.odometry import format_table
 
         reports = {}
         variants = (("paper", "paper", args.paper_preset, None),

@@ -27,10 +27,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from host.evaluate import evaluate  # noqa: E402
-from host.odometry import estimate_sequence  # noqa: E402
-from host.reprocess import REPROCESS_PRESETS, reprocess_sequence, reprocess_session  # noqa: E402
-from host.sequences import open_sequence  # noqa: E402
+from stereopath.host.evaluation.evaluate import evaluate  # noqa: E402
+from stereopath.host.evaluation.odometry import estimate_sequence  # noqa: E402
+from stereopath.host.reprocess.pipeline import REPROCESS_PRESETS, reprocess_sequence, reprocess_session  # noqa: E402
+from stereopath.host.evaluation.sequences import open_sequence  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 KITTI = DATA / "kitti_odometry" / "sequences" / "06"
@@ -61,8 +61,8 @@ def main() -> int:
         tmp.mkdir(parents=True, exist_ok=True)
         session = tmp / "session"
         if not (session / "mav0").is_dir():
-            from device.recorder import record_sequence
-            from device.sim.session import SimConfig, open_sim
+            from stereopath.device.formats.recorder import record_sequence
+            from stereopath.device.sim.session import SimConfig, open_sim
 
             record_sequence(open_sim(SimConfig()), session, config_dict={"source": "sim"})
         seq = open_sequence(f"session:{session}")

@@ -9,7 +9,7 @@ acknowledged) for ``--frames`` frames, several times, and prints medians of
 * time per frame of each stage (record, estimate, stream; exponential averages),
 
 next to a reference measured in the same process: the same simulated frames rendered and
-estimated by :func:`device.estimation.base.run_estimator` without recording or streaming.
+estimated by :func:`stereopath.device.estimation.base.run_estimator` without recording or streaming.
 The ratio (service CPU per frame / reference CPU per frame) is the cost of recording,
 streaming and supervision.
 
@@ -37,7 +37,7 @@ def _cpu() -> float:
 
 
 def run_service_once(frames: int, estimator: str, tmp: Path) -> dict:
-    from device.service import CaptureService, RunOptions, load_config
+    from stereopath.device.service.service import CaptureService, RunOptions, load_config
 
     cfg_path = tmp / "device.toml"
     cfg_path.write_text(
@@ -59,10 +59,10 @@ def run_service_once(frames: int, estimator: str, tmp: Path) -> dict:
 
 
 def run_reference_once(frames: int, estimator: str) -> dict:
-    from device.estimation.base import run_estimator
-    from device.estimation.registry import make_estimator
-    from device.settings import SimSettings, SourceSettings
-    from device.sources import create_source
+    from stereopath.device.estimation.base import run_estimator
+    from stereopath.device.estimation.registry import make_estimator
+    from stereopath.device.service.settings import SimSettings, SourceSettings
+    from stereopath.device.capture.sources import create_source
 
     src = create_source(SourceSettings(backend="sim", sim=SimSettings(frames=frames, seed=0)))
     cpu0, t0 = _cpu(), time.perf_counter()

@@ -39,7 +39,7 @@ def main() -> int:
     import cv2
     import numpy as np
 
-    from device.sim import open_sim
+    from stereopath.device.sim import open_sim
 
     print(f"cv2 threads: {cv2.getNumThreads()}")
     src = (np.random.default_rng(0).random((480, 640)) * 255).astype(np.uint8)

@@ -1,7 +1,7 @@
 """Streaming benchmark: pose size and latency, keyframe throughput, device CPU, full-size fault runs.
 
 The device runs as a separate process (this script with ``--role device``); the host is this
-process (``Receiver``) or, for the fault runs, ``python -m host.commands.live``.  Everything is on
+process (``Receiver``) or, for the fault runs, ``python -m stereopath.host.commands.live``.  Everything is on
 loopback with CURVE on.  Keyframes are 640x480 stereo pairs cut from the EuRoC V1_01 head
 (synthetic texture if the data is absent), JPEG quality 90 unless said otherwise.
 
@@ -99,7 +99,7 @@ def stop_device(proc: subprocess.Popen, work: Path, name: str, result: Path) -> 
 
 
 def receiver_config(ready: dict, keys_root: Path, **kw):
-    from host.receiver import ReceiverConfig
+    from stereopath.host.live.receiver import ReceiverConfig
 
     return ReceiverConfig(ready["pose_endpoint"], ready["keyframe_endpoint"], keys_dir=str(keys_root / "host"), **kw)
 
@@ -113,7 +113,7 @@ def kf_count(out: Path, session: str) -> int:
 
 
 def device_role(args: argparse.Namespace) -> int:
-    from device.streaming import DeviceStreamer, KeyframeSpool, StreamConfig
+    from stereopath.device.streaming import DeviceStreamer, KeyframeSpool, StreamConfig
 
     pairs, _ = load_pairs()
     keys = Path(args.keys_root)
@@ -127,8 +127,8 @@ def device_role(args: argparse.Namespace) -> int:
     if args.bare:  # reference: a plain CURVE PUB socket sending the same bytes from the capture loop
         import zmq
 
-        from device.protocol import encode_pose, pose_from_matrix
-        from device.streaming.security import load_secret_keypair, start_authenticator
+        from stereopath.device.wire.protocol import encode_pose, pose_from_matrix
+        from stereopath.device.wire.security import load_secret_keypair, start_authenticator
 
         bare_ctx = zmq.Context()
         bare_auth = start_authenticator(bare_ctx, cfg.clients_dir)
@@ -138,7 +138,7 @@ def device_role(args: argparse.Namespace) -> int:
         bare.curve_server = True
         bare.bind("tcp://127.0.0.1:*")
     if streamer is not None and args.prefill:
-        from device.protocol import encode_keyframe, make_keyframe
+        from stereopath.device.wire.protocol import encode_keyframe, make_keyframe
 
         for i in range(args.prefill):
             left, right = pairs[i % len(pairs)]
@@ -203,7 +203,7 @@ def device_role(args: argparse.Namespace) -> int:
 
 
 def bench_sizes(pairs) -> None:
-    from device.protocol import Pose, encode_keyframe, encode_pose, make_keyframe, new_session_id
+    from stereopath.device.wire.protocol import Pose, encode_keyframe, encode_pose, make_keyframe, new_session_id
 
     real = encode_pose(Pose(new_session_id(), 123456, time.monotonic_ns(), (1.234, -0.5, 2.0),
                             (0.1, 0.2, 0.3, float(np.sqrt(1 - 0.14))), "ok", 250, False))
@@ -223,8 +223,8 @@ def _bare_latency(work: Path, keys_root: Path, name: str, seconds: float) -> lis
     """Reference: the same pose bytes over a plain CURVE PUB -> SUB pair (no streamer, no receiver)."""
     import zmq
 
-    from device.protocol import decode_pose
-    from device.streaming.security import load_host_keys
+    from stereopath.device.wire.protocol import decode_pose
+    from stereopath.device.wire.security import load_host_keys
 
     proc, ready, result = start_device(work, keys_root, name, seconds=seconds, pose_hz=20, kf_hz=0, bare=True,
                                        start_delay=1.0)
@@ -247,7 +247,7 @@ def _bare_latency(work: Path, keys_root: Path, name: str, seconds: float) -> lis
 
 
 def bench_latency_cpu(work: Path, keys_root: Path, runs: int, seconds: float) -> None:
-    from host.receiver import Receiver
+    from stereopath.host.live.receiver import Receiver
 
     print(f"\n-- pose latency and device CPU: 20 Hz poses + 2 keyframes/s, {seconds:.0f} s per run, CURVE; "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cpus")
@@ -292,7 +292,7 @@ def bench_latency_cpu(work: Path, keys_root: Path, runs: int, seconds: float) ->
 
 
 def bench_throughput(work: Path, keys_root: Path, runs: int, n: int) -> None:
-    from host.receiver import Receiver
+    from stereopath.host.live.receiver import Receiver
 
     print(f"\n-- keyframe channel throughput: {n} spooled 640x480 stereo keyframes, CURVE, loopback")
     for enc, fsync_options in (("jpg", (True, False)), ("png", (True,))):
@@ -324,7 +324,7 @@ def bench_throughput(work: Path, keys_root: Path, runs: int, n: int) -> None:
 def _live_host(ready: dict, keys_root: Path, out: Path, log: Path) -> subprocess.Popen:
     host, port = ready["pose_endpoint"].rsplit(":", 1)
     kport = ready["keyframe_endpoint"].rsplit(":", 1)[1]
-    cmd = [sys.executable, "-m", "host.commands.live", "--device", f"127.0.0.1:{port}", "--keyframe-port", kport,
+    cmd = [sys.executable, "-m", "stereopath.host.commands.live", "--device", f"127.0.0.1:{port}", "--keyframe-port", kport,
            "--keys", str(keys_root / "host"), "--out", str(out), "--duration", "600"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL,
@@ -332,8 +332,8 @@ def _live_host(ready: dict, keys_root: Path, out: Path, log: Path) -> subprocess
 
 
 def _check_exactly_once(out: Path, spool_dir: Path, session: str) -> str:
-    from device.streaming import KeyframeSpool
-    from host.keyframe_store import read_index
+    from stereopath.device.streaming import KeyframeSpool
+    from stereopath.host.live.store import read_index
 
     spool = KeyframeSpool(spool_dir, fsync=False)
     d = out / session / "keyframes"
@@ -426,7 +426,7 @@ def main() -> int:
 
     import zmq
 
-    from device.streaming.security import make_demo_keys
+    from stereopath.device.wire.security import make_demo_keys
 
     pairs, source = load_pairs()
     print(f"pyzmq {zmq.__version__}, libzmq {zmq.zmq_version()}, CURVE {zmq.has('curve')}, cpus {os.cpu_count()}; "

@@ -1,6 +1,6 @@
 """The ``stereopath`` command line: one entry point, subcommands in ``host/commands``.
 
-Known errors (:class:`device.errors.StereopathError`) are printed on one line
+Known errors (:class:`stereopath.device.errors.StereopathError`) are printed on one line
 and give exit code 2; anything else is a bug and keeps its traceback.
 """
 
@@ -12,30 +12,30 @@ import importlib.util
 import logging
 import sys
 
-from device.errors import StereopathError
+from stereopath.device.errors import StereopathError
 
 # name -> (module, one-line help).  Groups map to a nested table.
 COMMANDS: dict[str, tuple[str, str] | dict[str, tuple[str, str]]] = {
-    "demo": ("host.commands.demo", "simulate a scan, estimate the path and report (the main job)"),
-    "sim": ("host.commands.sim", "write a simulated stereo-inertial session (ASL layout)"),
-    "eval": ("host.commands.eval", "evaluate an estimated trajectory against ground truth"),
-    "odometry": ("host.commands.odometry", "estimate the camera path of a source and report"),
-    "features": ("host.commands.features", "count keypoints, matches and correct matches of two images"),
+    "demo": ("stereopath.host.commands.demo", "simulate a scan, estimate the path and report (the main job)"),
+    "sim": ("stereopath.host.commands.sim", "write a simulated stereo-inertial session (ASL layout)"),
+    "eval": ("stereopath.host.commands.eval", "evaluate an estimated trajectory against ground truth"),
+    "odometry": ("stereopath.host.commands.odometry", "estimate the camera path of a source and report"),
+    "features": ("stereopath.host.commands.features", "count keypoints, matches and correct matches of two images"),
     "keys": {
-        "generate": ("host.commands.keys", "write a CURVE key pair"),
+        "generate": ("stereopath.host.commands.keys", "write a CURVE key pair"),
     },
     "host": {
-        "live": ("host.commands.live", "receive poses and keyframes from a device and show them live"),
-        "map": ("host.commands.map", "dense 3D model (mesh, cloud, preview) from a session or stored keyframes"),
-        "reprocess": ("host.commands.reprocess", "re-estimate a recorded session offline, bundle adjust, and map"),
+        "live": ("stereopath.host.commands.live", "receive poses and keyframes from a device and show them live"),
+        "map": ("stereopath.host.commands.map", "dense 3D model (mesh, cloud, preview) from a session or stored keyframes"),
+        "reprocess": ("stereopath.host.commands.reprocess", "re-estimate a recorded session offline, bundle adjust, and map"),
     },
     "device": {
-        "selftest": ("device.commands.selftest", "check the configured sensors and print pass/fail"),
-        "calibrate-stereo": ("device.commands.calibrate_stereo", "chessboard pairs -> rig YAML"),
-        "calibrate-imu": ("device.commands.calibrate_imu", "still-period gyro bias and gravity alignment"),
-        "run": ("device.commands.run", "capture, estimate, record and stream (the capture service)"),
-        "install": ("device.commands.install", "install the capture service (user, venv, keys, systemd unit)"),
-        "status": ("device.commands.status", "show the status the capture service publishes"),
+        "selftest": ("stereopath.device.commands.selftest", "check the configured sensors and print pass/fail"),
+        "calibrate-stereo": ("stereopath.device.commands.calibrate_stereo", "chessboard pairs -> rig YAML"),
+        "calibrate-imu": ("stereopath.device.commands.calibrate_imu", "still-period gyro bias and gravity alignment"),
+        "run": ("stereopath.device.commands.run", "capture, estimate, record and stream (the capture service)"),
+        "install": ("stereopath.device.commands.install", "install the capture service (user, venv, keys, systemd unit)"),
+        "status": ("stereopath.device.commands.status", "show the status the capture service publishes"),
     },
 }
 
@@ -50,7 +50,7 @@ def _add(sub: argparse._SubParsersAction, name: str, module: str, help_text: str
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from device import __version__
+    from stereopath.device import __version__
 
     parser = argparse.ArgumentParser(prog="stereopath", description="Handheld stereo-inertial 3D scanner.")
     parser.add_argument("--version", action="version", version=f"stereopath {__version__}")

@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
 
-from device.errors import EstimationError
-from device.estimation.stereo_geometry import project
-from device.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp
-from device.rig import paper_rig
-from host.bundle_adjust import (
+from stereopath.device.errors import EstimationError
+from stereopath.device.core.stereo import project
+from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp
+from stereopath.device.core.rig import paper_rig
+from stereopath.host.reprocess.bundle_adjust import (
     RotationPrior,
     bundle_adjust,
     interpolate_corrections,

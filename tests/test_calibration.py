@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from device.calibration import (board_points, calibrate_stereo, detect_still_window, gravity_alignment,
+from stereopath.device.core.calibration import (board_points, calibrate_stereo, detect_still_window, gravity_alignment,
                                 imu_still_calibration, implied_gyro_bias, parse_board)
-from device.errors import CalibrationError
-from device.frames import ImuSamples
-from device.geometry import so3_exp
+from stereopath.device.errors import CalibrationError
+from stereopath.device.core.frames import ImuSamples
+from stereopath.device.core.geometry import so3_exp
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -56,8 +56,8 @@ def test_too_few_views():
 
 @pytest.mark.realdata
 def test_calibrate_stereo_cli_on_the_opencv_chessboards(data_dir, tmp_path, capsys):
-    from device.rig import load_rig_yaml
-    from host.cli import main
+    from stereopath.device.core.rig import load_rig_yaml
+    from stereopath.host.cli import main
 
     out = tmp_path / "rig.yaml"
     rc = main(["device", "calibrate-stereo", str(data_dir / "stereo_calib_chessboard"), "--board", "9x6",
@@ -73,7 +73,7 @@ def test_calibrate_stereo_cli_on_the_opencv_chessboards(data_dir, tmp_path, caps
 
 
 def test_calibrate_stereo_cli_errors(tmp_path):
-    from host.cli import main
+    from stereopath.host.cli import main
 
     assert main(["device", "calibrate-stereo", str(tmp_path), "--square-mm", "25"]) == 2   # no pairs
     assert main(["device", "calibrate-stereo", str(tmp_path / "nope"), "--square-mm", "25"]) == 2
@@ -118,7 +118,7 @@ def test_still_window_stops_where_the_unit_starts_turning():
 
 
 def _euroc_body_rotation(data_dir, t_ns):
-    from device.geometry import quat_xyzw_to_matrix
+    from stereopath.device.core.geometry import quat_xyzw_to_matrix
 
     gt = np.loadtxt(data_dir / "euroc_v1_01_head" / "groundtruth_tum.txt")
     i = int(np.argmin(np.abs(gt[:, 0] - t_ns / 1e9)))
@@ -129,7 +129,7 @@ def _euroc_body_rotation(data_dir, t_ns):
 @pytest.mark.realdata
 @pytest.mark.parametrize("window", ["frames", "auto"])
 def test_euroc_still_head_gyro_bias_matches_the_ground_truth(data_dir, window):
-    from device.datasets import open_source
+    from stereopath.device.formats import open_source
 
     seq = open_source(f"euroc:{data_dir / 'euroc_v1_01_head'}")
     imu = seq.imu
@@ -152,7 +152,7 @@ def test_euroc_still_head_gyro_bias_matches_the_ground_truth(data_dir, window):
 def test_calibrate_imu_cli(data_dir, tmp_path, capsys):
     import yaml
 
-    from host.cli import main
+    from stereopath.host.cli import main
 
     out = tmp_path / "imu.yaml"
     rc = main(["device", "calibrate-imu", f"euroc:{data_dir / 'euroc_v1_01_head'}", "--out", str(out)])
@@ -164,7 +164,7 @@ def test_calibrate_imu_cli(data_dir, tmp_path, capsys):
 
 
 def test_calibrate_imu_cli_live_emulated(capsys):
-    from host.cli import main
+    from stereopath.host.cli import main
 
     rc = main(["device", "calibrate-imu", "live", "--imu", "emulated", "--seconds", "2"])
     text = capsys.readouterr().out

@@ -4,13 +4,13 @@ import json
 import subprocess
 import sys
 
-from device.trajfile import read_tum
-from host.report import REPORT_KEYS
+from stereopath.device.formats.tum import read_tum
+from stereopath.host.evaluation.report import REPORT_KEYS
 
 
 def test_demo_runs_device_and_host_and_reports(tmp_path, repo_root):
     out = tmp_path / "demo"
-    proc = subprocess.run([sys.executable, "-m", "host", "demo", "--out", str(out), "--frames", "40"],
+    proc = subprocess.run([sys.executable, "-m", "stereopath.host", "demo", "--out", str(out), "--frames", "40"],
                           cwd=repo_root, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     for name in ("trajectory.tum", "groundtruth.tum", "report.json", "path.png", "mesh.ply", "cloud.ply", "model.png"):

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from host.cli import main
+from stereopath.host.cli import main
 
 
 def test_eval_table_and_json(data_dir, capsys):
@@ -42,13 +42,13 @@ def test_eval_errors_are_one_line(tmp_path, capsys):
 
 
 def test_sim_writes_a_session_that_reads_back_identically(tmp_path, capsys):
-    sim = pytest.importorskip("device.sim.session", reason="the simulator is not built yet")
+    sim = pytest.importorskip("stereopath.device.sim.session", reason="the simulator is not built yet")
     out = tmp_path / "sess"
     assert main(["sim", "--out", str(out), "--frames", "4", "--seed", "3"]) == 0
     assert "4 stereo frames" in capsys.readouterr().out
     assert (out / "groundtruth.tum").is_file() and (out / "manifest.json").is_file()
 
-    from device.datasets import open_source
+    from stereopath.device.formats import open_source
 
     back = open_source(f"session:{out}")
     ref = sim.open_sim(sim.SimConfig(frames=4, seed=3))
@@ -74,7 +74,7 @@ def test_sim_writes_a_session_that_reads_back_identically(tmp_path, capsys):
 
 
 def test_sim_refuses_an_existing_session(tmp_path, capsys):
-    pytest.importorskip("device.sim.session", reason="the simulator is not built yet")
+    pytest.importorskip("stereopath.device.sim.session", reason="the simulator is not built yet")
     (tmp_path / "x").write_text("keep me")
     assert main(["sim", "--out", str(tmp_path), "--frames", "1"]) == 2
     assert "not empty" in capsys.readouterr().err

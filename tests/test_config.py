@@ -2,8 +2,8 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from device.config import check_range, from_mapping, load_toml, replace
-from device.errors import ConfigError
+from stereopath.device.core.config import check_range, from_mapping, load_toml, replace
+from stereopath.device.errors import ConfigError
 
 
 @dataclass(frozen=True)

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.datasets import open_asl, open_kitti, open_source, parse_spec, register_source
-from device.errors import CalibrationError, DatasetError
+from stereopath.device.formats import open_asl, open_kitti, open_source, parse_spec, register_source
+from stereopath.device.errors import CalibrationError, DatasetError
 
 
 @pytest.fixture(scope="module")
@@ -88,7 +88,7 @@ def test_euroc_imu_and_groundtruth(data_dir):
     gt = s.groundtruth
     assert len(gt) == 2895
     # camera pose = body pose @ T_BS(cam0)
-    from device.trajfile import read_tum
+    from stereopath.device.formats.tum import read_tum
 
     body = read_tum(data_dir / "euroc_v1_01_head" / "groundtruth_tum.txt")
     np.testing.assert_allclose(gt.T_world_cam[10], body.T_world_cam[10] @ s.rig.T_body_cam0)
@@ -239,6 +239,6 @@ def test_register_source_hook():
     try:
         assert open_source("fake:7") == "SEQ" and calls == ["7"]
     finally:
-        from device.datasets import source
+        from stereopath.device.formats import source
 
         source._OPENERS.pop("fake")

@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from device.errors import ConfigError, StereopathError
-from device.rig import make_camera, make_rig
-from host.depth import (
+from stereopath.device.errors import ConfigError, StereopathError
+from stereopath.device.core.rig import make_camera, make_rig
+from stereopath.host.mapping.depth import (
     DEPTH_PRESETS,
     DepthConfig,
     StereoDepth,
@@ -119,7 +119,7 @@ def test_compute_rejects_size_mismatch():
 
 @pytest.fixture(scope="module")
 def sim_frames():
-    from device.sim.session import SimConfig, open_sim
+    from stereopath.device.sim.session import SimConfig, open_sim
 
     sess = open_sim(SimConfig(frames=400, with_depth=True))
     return sess, [sess.frame(i) for i in (150, 230)]
@@ -158,7 +158,7 @@ def test_depth_matches_simulator_ground_truth(sim_frames):
 
 def test_rectified_pose_composes_with_cam0_pose(sim_frames):
     """Points of the depth map, moved to the world with pose_world_rect, land on the scene."""
-    from device.sim.scene import point_to_scene_distance
+    from stereopath.device.sim.scene import point_to_scene_distance
 
     sess, frames = sim_frames
     sd = StereoDepth(sess.rig, DEPTH_PRESETS["object"])

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from device.estimation.base import run_estimator
-from device.estimation.registry import make_estimator
-from device.frames import StereoFrame
-from device.rig import load_kitti_calib
+from stereopath.device.estimation.base import run_estimator
+from stereopath.device.estimation.registry import make_estimator
+from stereopath.device.core.frames import StereoFrame
+from stereopath.device.core.rig import load_kitti_calib
 
 
 def _kitti(data_dir, n):
@@ -20,8 +20,8 @@ def _kitti(data_dir, n):
 
 
 def test_stereo_on_kitti06_end_error_below_2_percent(data_dir):
-    from host.evaluate import evaluate
-    from host.sequences import open_sequence
+    from stereopath.host.evaluation.evaluate import evaluate
+    from stereopath.host.evaluation.sequences import open_sequence
 
     seq = open_sequence(f"kitti:{data_dir / 'kitti_odometry/sequences/06'}")
     run = run_estimator(make_estimator("stereo", seq.rig), seq.frames(), None)

@@ -4,10 +4,10 @@ tight enough to catch a broken estimator; and the IMU fallback on broken frames.
 import numpy as np
 import pytest
 
-from device.estimation.base import run_estimator
-from device.estimation.registry import make_estimator
-from host.evaluate import evaluate
-from host.sequences import open_sequence
+from stereopath.device.estimation.base import run_estimator
+from stereopath.device.estimation.registry import make_estimator
+from stereopath.host.evaluation.evaluate import evaluate
+from stereopath.host.evaluation.sequences import open_sequence
 
 N = 100  # 5 s: 1.25 s still, then the start of the arc
 

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from device.estimation.inertial import GyroIntegrator, estimate_still, gravity_aligned_rotation
-from device.estimation.stereo_geometry import project, refine_pose_lm, triangulate
-from device.frames import ImuSamples
-from device.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp
-from device.rig import paper_rig
+from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still, gravity_aligned_rotation
+from stereopath.device.core.stereo import project, refine_pose_lm, triangulate
+from stereopath.device.core.frames import ImuSamples
+from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp
+from stereopath.device.core.rig import paper_rig
 
 rng = np.random.default_rng(3)
 

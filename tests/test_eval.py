@@ -8,11 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from device.errors import DatasetError
-from device.geometry import make_pose, rot_x, rot_y, rot_z
-from device.trajfile import Trajectory, read_trajectory
-from host.evaluate import associate_and_align, end_point_error, evaluate
-from host.report import REPORT_KEYS, make_report, read_report, write_report
+from stereopath.device.errors import DatasetError
+from stereopath.device.core.geometry import make_pose, rot_x, rot_y, rot_z
+from stereopath.device.formats.tum import Trajectory, read_trajectory
+from stereopath.host.evaluation.evaluate import associate_and_align, end_point_error, evaluate
+from stereopath.host.evaluation.report import REPORT_KEYS, make_report, read_report, write_report
 
 
 @pytest.fixture(scope="module")
@@ -148,7 +148,7 @@ def test_report_schema_with_and_without_ground_truth(tmp_path):
 def test_plot_path_writes_png(tmp_path, traj_dir):
     import cv2
 
-    from host.plots import plot_path
+    from stereopath.host.evaluation.plots import plot_path
 
     gt = read_trajectory(traj_dir / "V101_gt.txt")
     est = read_trajectory(traj_dir / "V101_openvins.txt")

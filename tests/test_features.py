@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from device.config import from_mapping
-from device.errors import ConfigError
-from device.features import (
+from stereopath.device.core.config import from_mapping
+from stereopath.device.errors import ConfigError
+from stereopath.device.core.features import (
     PRESETS,
     FeatureConfig,
     Features,

@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from device.errors import DatasetError
-from host.cli import main
-from host.commands.features import compare_pair, correct_mask, load_homography
+from stereopath.device.errors import DatasetError
+from stereopath.host.cli import main
+from stereopath.host.commands.features import compare_pair, correct_mask, load_homography
 
 pytestmark = pytest.mark.realdata
 

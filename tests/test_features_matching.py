@@ -6,10 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from device.config import from_mapping
-from device.errors import ConfigError
-from device.features import Features
-from device.matching import (
+from stereopath.device.core.config import from_mapping
+from stereopath.device.errors import ConfigError
+from stereopath.device.core.features import Features
+from stereopath.device.core.matching import (
     MatchConfig,
     Matches,
     collapse_duplicates,

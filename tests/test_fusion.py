@@ -5,18 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from device.errors import ConfigError, StereopathError
-from device.geometry import rot_z
-from host.fusion import FUSION_PRESETS, FusionConfig, TsdfVolume, fusion_preset, write_cloud, write_mesh
-from host.render_preview import look_at
+from stereopath.device.errors import ConfigError, StereopathError
+from stereopath.device.core.geometry import rot_z
+from stereopath.host.mapping.fusion import FUSION_PRESETS, FusionConfig, TsdfVolume, fusion_preset, write_cloud, write_mesh
+from stereopath.host.mapping.preview import look_at
 
 BOX_SIZE = np.array([0.30, 0.20, 0.15])
 BOX_YAW_DEG = 20.0
 
 
 def _box_scene():
-    from device.sim.scene import BoxGeometry, Quad, Scene, facing_quad, texture_shape
-    from device.sim.textures import make_texture
+    from stereopath.device.sim.scene import BoxGeometry, Quad, Scene, facing_quad, texture_shape
+    from stereopath.device.sim.textures import make_texture
 
     T_box = np.eye(4)
     T_box[:3, :3] = rot_z(np.radians(BOX_YAW_DEG))
@@ -47,8 +47,8 @@ def _ring_poses(n: int, radius: float = 0.65, height: float = 0.45) -> list[np.n
 
 @pytest.fixture(scope="module")
 def box_world():
-    from device.sim.render import Renderer
-    from device.sim.session import sim_rig
+    from stereopath.device.sim.render import Renderer
+    from stereopath.device.sim.session import sim_rig
 
     scene, box = _box_scene()
     rig = sim_rig()
@@ -90,7 +90,7 @@ def test_box_from_ground_truth_depth_has_true_dimensions(box_world):
 
 def test_box_from_stereo_depth_has_true_dimensions(box_world):
     """End to end: rendered stereo pairs -> SGBM depth (rectified frame) -> TSDF -> mesh."""
-    from host.depth import DEPTH_PRESETS, StereoDepth
+    from stereopath.host.mapping.depth import DEPTH_PRESETS, StereoDepth
 
     scene, box, rig, rend = box_world
     sd = StereoDepth(rig, DEPTH_PRESETS["object"])
@@ -112,7 +112,7 @@ def test_wrong_extrinsic_convention_would_be_caught(box_world):
         _, depth = rend.render_view(rig.cam0.K, rig.cam0.size, T)
         vol.integrate(depth, rig.cam0.K, np.linalg.inv(T))
     v = np.asarray(vol.extract_mesh().vertices)
-    from device.sim.scene import point_to_scene_distance
+    from stereopath.device.sim.scene import point_to_scene_distance
 
     assert len(v) == 0 or np.median(point_to_scene_distance(scene, v)) > 0.02
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from device.geometry import (
+from stereopath.device.core.geometry import (
     chordal_mean, euler_xyz_to_matrix, invert_pose, make_pose, matrix_to_euler_xyz,
     matrix_to_quat_xyzw, project_to_so3, quat_xyzw_to_matrix, rot_x, rot_y, rot_z,
     rotation_angle_deg, so3_exp, so3_log,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from smbus2 import i2c_msg
 
-from device.imu import mpu6050 as R
+from stereopath.device.capture.imu import mpu6050 as R
 from tests.fakes.fake_smbus import Mpu6050Emulator, SimClock, counting_source
 
 A = 0x68

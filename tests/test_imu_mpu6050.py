@@ -7,12 +7,12 @@ import logging
 import numpy as np
 import pytest
 
-from device.config import from_mapping
-from device.errors import CaptureError
-from device.frames import ImuSamples
-from device.imu import create_imu, mpu6050 as R
-from device.imu.mpu6050 import Mpu6050
-from device.settings import ImuSettings
+from stereopath.device.core.config import from_mapping
+from stereopath.device.errors import CaptureError
+from stereopath.device.core.frames import ImuSamples
+from stereopath.device.capture.imu import create_imu, mpu6050 as R
+from stereopath.device.capture.imu.mpu6050 import Mpu6050
+from stereopath.device.service.settings import ImuSettings
 from tests.fakes.fake_smbus import Mpu6050Emulator, SimClock, counting_source, decode_index, still_source
 
 pytestmark = pytest.mark.timeout(60)
@@ -49,7 +49,7 @@ def test_initialisation_writes_the_configuration():
 
 def test_clone_who_am_i_is_accepted_with_a_warning(caplog):
     drv, _, _ = make(who=0x70)
-    with caplog.at_level(logging.WARNING, logger="device.imu.mpu6050"):
+    with caplog.at_level(logging.WARNING, logger="stereopath.device.capture.imu.mpu6050"):
         drv.open()
     assert "0x70" in caplog.text and "MPU-6500" in caplog.text
 
@@ -219,7 +219,7 @@ def test_create_imu_emulated_backend_runs_on_its_own_clock():
 def test_polling_reader_thread_on_real_time_and_its_error_path():
     import time
 
-    from device.imu import PollingImuReader
+    from stereopath.device.capture.imu import PollingImuReader
     from tests.fakes.fake_smbus import RealClock
 
     s = from_mapping(ImuSettings, {"rate_hz": 200.0})

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from device.imu.period_fit import PeriodFit
+from stereopath.device.capture.imu.period_fit import PeriodFit
 
 
 def observe(fit, true_period, t0, n_reads, rng, read_ms=20.0, latency_max_ns=300_000, start_index=0):

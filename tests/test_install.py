@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from device.installer import UNIT_NAME, InstallError, Installer, Layout, install
+from stereopath.device.service.installer import UNIT_NAME, InstallError, Installer, Layout, install
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -28,7 +28,7 @@ class FakeVenv:
     def install_project(self, venv_dir: Path, project_dir: Path) -> None:
         self.installs += 1
         launcher = venv_dir / "bin" / "stereopath"
-        launcher.write_text(f"#!{Layout().venv}/bin/python\nimport sys\nfrom host.cli import main\nsys.exit(main())\n")
+        launcher.write_text(f"#!{Layout().venv}/bin/python\nimport sys\nfrom stereopath.host.cli import main\nsys.exit(main())\n")
         launcher.chmod(0o755)
 
 
@@ -127,7 +127,7 @@ def test_default_venv_outside_slash_is_cheap_and_touches_no_system(tmp_path):
 
 
 def test_host_keys_are_authorised_and_secrets_refused(tmp_path):
-    from device.streaming.security import generate_keypair
+    from stereopath.device.wire.security import generate_keypair
 
     pub, sec = generate_keypair(tmp_path / "laptop", "laptop")
     root = tmp_path / "root"

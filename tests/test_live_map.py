@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from device.geometry import matrix_to_quat_xyzw
-from device.protocol import Keyframe, decode_keyframe, encode_image, encode_keyframe, rig_reference
-from device.rig import paper_rig
-from host.live_map import LiveMapper
-from host.sequences import open_sequence
+from stereopath.device.core.geometry import matrix_to_quat_xyzw
+from stereopath.device.wire.protocol import Keyframe, decode_keyframe, encode_image, encode_keyframe, rig_reference
+from stereopath.device.core.rig import paper_rig
+from stereopath.host.live.live_map import LiveMapper
+from stereopath.host.evaluation.sequences import open_sequence
 
 
 def _keyframes(seq, rig, step=4, n=6, session="s1"):

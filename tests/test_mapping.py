@@ -10,10 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
-from device.errors import CalibrationError, ConfigError, DatasetError, StereopathError
-from device.trajfile import Trajectory
-from host.cli import main as cli_main
-from host.mapping import (
+from stereopath.device.errors import CalibrationError, ConfigError, DatasetError, StereopathError
+from stereopath.device.formats.tum import Trajectory
+from stereopath.host.cli import main as cli_main
+from stereopath.host.mapping.mapper import (
     MAP_FILES,
     KeyframeSelection,
     associate_poses,
@@ -29,7 +29,7 @@ FAST = dict(max_keyframes=6)
 
 
 def _pose(x: float, yaw_deg: float = 0.0) -> np.ndarray:
-    from device.geometry import rot_z
+    from stereopath.device.core.geometry import rot_z
 
     T = np.eye(4)
     T[:3, :3] = rot_z(np.radians(yaw_deg))
@@ -111,7 +111,7 @@ def test_map_command_on_a_session(session, tmp_path, capsys):
     assert png.shape == (720, 960, 3)
     assert (png < 250).any(axis=2).mean() > 0.05  # something was drawn on the white background
     # the model sits on the simulated scene's surfaces
-    from device.sim.scene import point_to_scene_distance, table_top_scene
+    from stereopath.device.sim.scene import point_to_scene_distance, table_top_scene
 
     d = point_to_scene_distance(table_top_scene(0), np.asarray(mesh.vertices))
     assert np.median(d) < 0.01
@@ -168,9 +168,9 @@ def test_not_a_session_or_keyframes(tmp_path):
 
 @pytest.fixture(scope="module")
 def keyframe_dir(session, tmp_path_factory) -> Path:
-    from device.datasets import open_source
-    from device.protocol import encode_keyframe, make_keyframe, rig_reference
-    from host.keyframe_store import SessionKeyframes
+    from stereopath.device.formats import open_source
+    from stereopath.device.wire.protocol import encode_keyframe, make_keyframe, rig_reference
+    from stereopath.host.live.store import SessionKeyframes
 
     seq = open_source(f"session:{session}")
     gt = seq.groundtruth
@@ -192,7 +192,7 @@ def test_keyframes_without_calibration_raise(keyframe_dir, tmp_path):
 
 
 def test_keyframes_with_the_wrong_rig_raise(keyframe_dir, tmp_path):
-    from device.rig import paper_rig, save_rig_yaml
+    from stereopath.device.core.rig import paper_rig, save_rig_yaml
 
     other = tmp_path / "other.yaml"
     save_rig_yaml(paper_rig(), other)  # no T_body_cam0: a different calibration hash
@@ -219,8 +219,8 @@ def test_map_from_stored_keyframes(keyframe_dir, session, tmp_path):
 
 
 def test_write_map_replaces_model_files_only(session, tmp_path):
-    from device.datasets import open_source
-    from host.mapping import keyframes_from_sequence
+    from stereopath.device.formats import open_source
+    from stereopath.host.mapping.mapper import keyframes_from_sequence
 
     seq = open_source(f"session:{session}")
     inp = keyframes_from_sequence(seq, seq.groundtruth, KeyframeSelection(stride=8, max_keyframes=6))
@@ -238,8 +238,8 @@ def test_write_map_replaces_model_files_only(session, tmp_path):
 
 
 def test_dense_mapper_is_incremental(session):
-    from device.datasets import open_source
-    from host.mapping import DenseMapper
+    from stereopath.device.formats import open_source
+    from stereopath.host.mapping.mapper import DenseMapper
 
     seq = open_source(f"session:{session}")
     mapper = DenseMapper(seq.rig, _fast_config(), source="live")
@@ -259,7 +259,7 @@ def test_dense_mapper_is_incremental(session):
 
 def test_preview_renderer_orientation(tmp_path):
     """look_at puts the target on the optical axis with world-up at the top of the image."""
-    from host.render_preview import look_at, preview_camera, render_mesh, write_png
+    from stereopath.host.mapping.preview import look_at, preview_camera, render_mesh, write_png
 
     T = look_at(np.array([2.0, 0.0, 0.0]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
     p = np.linalg.inv(T) @ np.array([0.0, 0.0, 0.0, 1.0])

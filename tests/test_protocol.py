@@ -8,14 +8,14 @@ import msgpack
 import numpy as np
 import pytest
 
-from device.errors import ProtocolError
-from device.geometry import euler_xyz_to_matrix, make_pose
-from device.protocol import (
+from stereopath.device.errors import ProtocolError
+from stereopath.device.core.geometry import euler_xyz_to_matrix, make_pose
+from stereopath.device.wire.protocol import (
     CONTROL_LIMITS, KEYFRAME_LIMITS, POSE_LIMITS, POSE_MAX_BYTES, PROTOCOL_VERSION, Ack, Credit, DecodeError,
     EncodedImage, Hello, Keyframe, Pose, Status, decode_control, decode_image, decode_keyframe, decode_message,
     decode_pose, decode_status, encode_ack, encode_credit, encode_hello, encode_image, encode_keyframe,
     encode_message, encode_pose, encode_status, make_keyframe, new_session_id, pose_from_matrix, rig_reference)
-from device.rig import paper_rig
+from stereopath.device.core.rig import paper_rig
 
 RIG = ("paper", "0123456789abcdef")
 

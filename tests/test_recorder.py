@@ -16,14 +16,14 @@ from collections import namedtuple
 import numpy as np
 import pytest
 
-from device import recorder as recmod
-from device.datasets import open_session, open_source
-from device.errors import CaptureError
-from device.frames import ImuSamples, StereoFrame
-from device.geometry import make_pose, rot_x, rot_z
-from device.recorder import SessionRecorder, record_sequence
-from device.rig import load_euroc_rig, make_camera, make_rig, paper_rig
-from device.trajfile import Trajectory
+from stereopath.device.formats import recorder as recmod
+from stereopath.device.formats import open_session, open_source
+from stereopath.device.errors import CaptureError
+from stereopath.device.core.frames import ImuSamples, StereoFrame
+from stereopath.device.core.geometry import make_pose, rot_x, rot_z
+from stereopath.device.formats.recorder import SessionRecorder, record_sequence
+from stereopath.device.core.rig import load_euroc_rig, make_camera, make_rig, paper_rig
+from stereopath.device.formats.tum import Trajectory
 
 Usage = namedtuple("Usage", "total used free")
 PLENTY = lambda _p: Usage(10**12, 0, 10**12)  # noqa: E731
@@ -67,7 +67,7 @@ def test_round_trip_layout_and_manifest(tmp_path):
     assert (out / "mav0" / "cam1" / "data" / f"{10**18}.png").is_file()
     assert not list(out.rglob("*.tmp"))
     man = json.loads((out / "manifest.json").read_text())
-    from device import __version__
+    from stereopath.device import __version__
 
     assert man["session_id"] == "abc" and man["status"] == "closed" and man["software_version"] == __version__
     assert man["rig"] == "small" and man["configuration"] == {"estimator": "stereo", "n": 3}
@@ -205,8 +205,8 @@ WRITER = textwrap.dedent("""
     import sys, numpy as np
     sys.path.insert(0, sys.argv[2])
     from tests.test_recorder import small_rig, make_imu, PLENTY
-    from device.frames import StereoFrame
-    from device.recorder import SessionRecorder
+    from stereopath.device.core.frames import StereoFrame
+    from stereopath.device.formats.recorder import SessionRecorder
     rng = np.random.default_rng(0)
     rec = SessionRecorder(sys.argv[1], small_rig(), chunk_s=0.02, disk_usage=PLENTY)
     i = 0

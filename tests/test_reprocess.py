@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.errors import CalibrationError, ConfigError, DatasetError
-from host.reprocess import REPROCESS_PRESETS, reprocess_session
-from host.report import REPORT_KEYS
+from stereopath.device.errors import CalibrationError, ConfigError, DatasetError
+from stereopath.host.reprocess.pipeline import REPROCESS_PRESETS, reprocess_session
+from stereopath.host.evaluation.report import REPORT_KEYS
 
 FRAMES = 60
 OUTPUTS = ("trajectory.tum", "report.json", "path.png", "errors.png", "mesh.ply", "cloud.ply", "model.png",
@@ -21,8 +21,8 @@ OUTPUTS = ("trajectory.tum", "report.json", "path.png", "errors.png", "mesh.ply"
 @pytest.fixture(scope="module")
 def session(tmp_path_factory) -> Path:
     """A short simulated session (what `stereopath sim --out DIR --frames 60` writes)."""
-    from device.recorder import record_sequence
-    from device.sim.session import SimConfig, open_sim
+    from stereopath.device.formats.recorder import record_sequence
+    from stereopath.device.sim.session import SimConfig, open_sim
 
     d = tmp_path_factory.mktemp("reprocess") / "session"
     man = record_sequence(open_sim(SimConfig(frames=FRAMES)), d, config_dict={"source": "sim"})
@@ -33,9 +33,9 @@ def session(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def session_with_onboard(session, tmp_path_factory) -> Path:
     """The same session with an on-board path in trajectory.tum (a coarse one: every other frame)."""
-    from device.trajfile import write_tum
-    from host.odometry import estimate_sequence
-    from host.sequences import open_sequence
+    from stereopath.device.formats.tum import write_tum
+    from stereopath.host.evaluation.odometry import estimate_sequence
+    from stereopath.host.evaluation.sequences import open_sequence
 
     d = tmp_path_factory.mktemp("reprocess") / "with_onboard"
     shutil.copytree(session, d)
@@ -80,7 +80,7 @@ def test_reprocess_writes_every_output_and_improves_the_path(full_run):
     assert after <= before  # bundle adjustment improves (or keeps) the path
     assert ba["ate_ratio_vs_reestimated"] == pytest.approx(after / before)
     assert rep["extra"]["bundle_adjustment"]["rms_after_px"] < rep["extra"]["bundle_adjustment"]["rms_before_px"]
-    from device.trajfile import read_tum
+    from stereopath.device.formats.tum import read_tum
 
     traj = read_tum(out / "trajectory.tum")
     assert len(traj) == FRAMES and np.all(np.isfinite(traj.T_world_cam))
@@ -145,12 +145,12 @@ def test_resume_after_an_interruption(full_run, session, tmp_path):
 
 
 def test_ctrl_c_inside_a_stage_leaves_no_half_written_stage(session, tmp_path, monkeypatch):
-    import host.tracks
+    import stereopath.host.reprocess.tracks
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(host.tracks, "build_tracks", interrupted)
+    monkeypatch.setattr(stereopath.host.reprocess.tracks, "build_tracks", interrupted)
     out = tmp_path / "out"
     with pytest.raises(KeyboardInterrupt):
         reprocess_session(session, out, do_map=False, progress=False)
@@ -180,7 +180,7 @@ def test_bad_input_raises_and_writes_nothing(session, tmp_path):
 
 
 def test_cli_reprocess(full_run, session, capsys):
-    from host.cli import main
+    from stereopath.host.cli import main
 
     out, _, _ = full_run
     assert main(["-q", "host", "reprocess", str(session), "--out", str(out), "--no-progress"]) == 0
@@ -201,8 +201,8 @@ def test_onboard_path_of_the_session_is_the_before_figure(session_with_onboard, 
 
 
 def test_a_tiny_session_still_gives_a_path(tmp_path):
-    from device.recorder import record_sequence
-    from device.sim.session import SimConfig, open_sim
+    from stereopath.device.formats.recorder import record_sequence
+    from stereopath.device.sim.session import SimConfig, open_sim
 
     d = tmp_path / "tiny"
     record_sequence(open_sim(SimConfig(frames=3)), d, config_dict={"source": "sim"})
@@ -212,15 +212,15 @@ def test_a_tiny_session_still_gives_a_path(tmp_path):
 
 
 def test_cli_preset_names_match_the_library():
-    from host.commands import reprocess as cmd
-    from host.reprocess import DEFAULT_PRESET
+    from stereopath.host.commands import reprocess as cmd
+    from stereopath.host.reprocess.pipeline import DEFAULT_PRESET
 
     assert tuple(cmd.PRESET_NAMES) == tuple(REPROCESS_PRESETS)
     assert cmd.DEFAULT_PRESET == DEFAULT_PRESET
 
 
 def test_html_report_without_ground_truth_says_so(tmp_path):
-    from host.report_html import render_html
+    from stereopath.host.reprocess.report_html import render_html
 
     rep = {"source": "s", "frames": 3, "frames_tracked": 3, "world_frame": "first_camera",
            "extra": {"before_after": {"onboard": None, "reestimated": {"frames": 3},

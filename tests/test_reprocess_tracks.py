@@ -1,18 +1,18 @@
-"""Keyframe feature tracks (host.tracks) on rendered frames of the simulated scan."""
+"""Keyframe feature tracks (stereopath.host.reprocess.tracks) on rendered frames of the simulated scan."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from device.geometry import invert_pose
-from host.bundle_adjust import bundle_adjust
-from host.tracks import TrackConfig, build_tracks, frame_observations, stereo_features
+from stereopath.device.core.geometry import invert_pose
+from stereopath.host.reprocess.bundle_adjust import bundle_adjust
+from stereopath.host.reprocess.tracks import TrackConfig, build_tracks, frame_observations, stereo_features
 
 
 @pytest.fixture(scope="module")
 def scan():
-    from device.sim.session import SimConfig, open_sim
+    from stereopath.device.sim.session import SimConfig, open_sim
 
     sess = open_sim(SimConfig(frames=40))
     frames = {i: sess.render(i) for i in (0, 4, 8, 12, 14)}
@@ -20,7 +20,7 @@ def scan():
 
 
 def test_stereo_keypoints_have_accurate_depth():
-    from device.sim.session import SimConfig, open_sim
+    from stereopath.device.sim.session import SimConfig, open_sim
 
     sess = open_sim(SimConfig(frames=40, with_depth=True))
     fr = sess.render(4)

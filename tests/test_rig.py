@@ -3,8 +3,8 @@ import logging
 import numpy as np
 import pytest
 
-from device.errors import CalibrationError
-from device.rig import (
+from stereopath.device.errors import CalibrationError
+from stereopath.device.core.rig import (
     load_euroc_rig, load_kitti_calib, load_rig_yaml, paper_rig, rig_from_dict, rig_to_dict, save_rig_yaml,
 )
 

@@ -8,7 +8,7 @@ import socket
 
 import pytest
 
-from device.sdnotify import Notifier, format_message, socket_address, watchdog_interval_s
+from stereopath.device.service.sdnotify import Notifier, format_message, socket_address, watchdog_interval_s
 
 
 def _bound(tmp_path, abstract: bool) -> tuple[socket.socket, str]:
@@ -45,7 +45,7 @@ def test_without_notify_socket_everything_is_a_no_op():
 
 def test_a_vanished_socket_is_logged_once_and_never_raises(tmp_path, caplog):
     n = Notifier(str(tmp_path / "gone"))
-    caplog.set_level(logging.WARNING, logger="device.sdnotify")
+    caplog.set_level(logging.WARNING, logger="stereopath.device.service.sdnotify")
     assert n.notify("WATCHDOG=1") is False and n.notify("WATCHDOG=1") is False
     assert len(caplog.records) == 1 and "cannot notify" in caplog.records[0].getMessage()
 

@@ -13,9 +13,9 @@ import threading
 
 import pytest
 
-from device.datasets import open_source
-from device.service import CaptureService, RunOptions, load_config
-from device.trajfile import read_tum
+from stereopath.device.formats import open_source
+from stereopath.device.service.service import CaptureService, RunOptions, load_config
+from stereopath.device.formats.tum import read_tum
 from tests.test_service_support import FakeEstimator, HangingSimSource, NotifyListener, sim_tables, wait_until, \
     write_toml
 
@@ -105,7 +105,7 @@ def test_frame_limit_ends_cleanly_and_reports_status(tmp_path):
     assert status["imu_samples"] > 0 and status["source"] == "sim" and status["imu"] == "source"
     assert len(open_source(f"session:{tmp_path / 's'}")) == 12
     # `stereopath device status` reads it (exit 1: the service is not running any more)
-    from device.commands import status as status_cmd
+    from stereopath.device.commands import status as status_cmd
 
     args = argparse.Namespace(config=None, status_file=str(tmp_path / "status.json"), json=False)
     assert status_cmd.run(args) == 1
@@ -121,12 +121,12 @@ def test_sighup_reload_applies_live_settings_and_names_the_others(tmp_path, capl
     try:
         assert wait_until(lambda: service.ready, 30)
         # `stereopath device status` on a running service: exit 0 and the rates
-        from device.commands import status as status_cmd
+        from stereopath.device.commands import status as status_cmd
 
         assert wait_until(lambda: json.loads((tmp_path / "status.json").read_text())["frames"] > 0, 10)
         args = argparse.Namespace(config=None, status_file=str(tmp_path / "status.json"), json=False)
         assert status_cmd.run(args) == 0
-        caplog.set_level(logging.INFO, logger="device.service")
+        caplog.set_level(logging.INFO, logger="stereopath.device.service.service")
         # a bad file is refused and the running configuration kept
         (tmp_path / "device.toml").write_text(cfg_path.read_text() + "\n[timealign]\nbogus = 1\n")
         service.request_reload()
@@ -151,7 +151,7 @@ def test_sighup_reload_applies_live_settings_and_names_the_others(tmp_path, capl
 
 
 def test_capture_failure_exits_1_with_one_log_line(tmp_path, caplog):
-    from device.errors import CaptureError
+    from stereopath.device.errors import CaptureError
 
     class Broken(HangingSimSource):
         def _frames(self):

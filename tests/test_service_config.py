@@ -8,11 +8,11 @@ from dataclasses import replace
 
 import pytest
 
-from device.errors import ConfigError
-from device.service import RunOptions, apply_options, check_config, load_config, secret_key_path, split_changes, \
+from stereopath.device.errors import ConfigError
+from stereopath.device.service.service import RunOptions, apply_options, check_config, load_config, secret_key_path, split_changes, \
     status_line, write_status_file
-from device.settings import DeviceConfig
-from device.streaming.security import generate_keypair
+from stereopath.device.service.settings import DeviceConfig
+from stereopath.device.wire.security import generate_keypair
 
 
 def test_source_overrides_pick_the_recordings_own_imu():
@@ -98,10 +98,10 @@ def test_status_file_is_atomic_and_world_readable(tmp_path):
 def test_journal_lines_carry_the_syslog_priority_and_stay_on_one_line():
     import logging
 
-    from device.service import _JournalFormatter
+    from stereopath.device.service.service import _JournalFormatter
 
     fmt = _JournalFormatter("%(levelname)s %(name)s: %(message)s")
-    rec = logging.LogRecord("device.service", logging.ERROR, __file__, 1, "camera lost\nagain", None, None)
-    assert fmt.format(rec) == "<3>ERROR device.service: camera lost | again"
-    rec = logging.LogRecord("device.service", logging.WARNING, __file__, 1, "low disk", None, None)
+    rec = logging.LogRecord("stereopath.device.service.service", logging.ERROR, __file__, 1, "camera lost\nagain", None, None)
+    assert fmt.format(rec) == "<3>ERROR stereopath.device.service.service: camera lost | again"
+    rec = logging.LogRecord("stereopath.device.service.service", logging.WARNING, __file__, 1, "low disk", None, None)
     assert fmt.format(rec).startswith("<4>WARNING")

@@ -12,10 +12,10 @@ import subprocess
 
 import pytest
 
-from device.datasets import open_source
-from device.streaming.security import make_demo_keys
-from device.trajfile import read_tum
-from host.receiver import Receiver, ReceiverConfig
+from stereopath.device.formats import open_source
+from stereopath.device.wire.security import make_demo_keys
+from stereopath.device.formats.tum import read_tum
+from stereopath.host.live.receiver import Receiver, ReceiverConfig
 from tests.test_service_support import NotifyListener, device_run, sim_tables, wait_until, write_toml
 
 pytestmark = pytest.mark.timeout(90)

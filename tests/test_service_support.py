@@ -14,9 +14,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from device.estimation.base import PoseEstimate
-from device.settings import SimSettings
-from device.sources.sim import SimSource
+from stereopath.device.estimation.base import PoseEstimate
+from stereopath.device.service.settings import SimSettings
+from stereopath.device.capture.sources.sim import SimSource
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -216,7 +216,7 @@ def device_run(args: list[str], env_extra: dict[str, str] | None = None, **popen
                                                            "CREDENTIALS_DIRECTORY", "JOURNAL_STREAM")}
     env.update(env_extra or {})
     env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    return subprocess.Popen([sys.executable, "-m", "host", "device", "run", *args], cwd=REPO, env=env,
+    return subprocess.Popen([sys.executable, "-m", "stereopath.host", "device", "run", *args], cwd=REPO, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
 
 

@@ -5,14 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from device.errors import ConfigError
-from device.frames import ImuSamples
-from device.geometry import invert_pose, rotation_angle_deg, so3_exp, so3_log
-from device.sim.imu import (
+from stereopath.device.errors import ConfigError
+from stereopath.device.core.frames import ImuSamples
+from stereopath.device.core.geometry import invert_pose, rotation_angle_deg, so3_exp, so3_log
+from stereopath.device.sim.imu import (
     ACCEL_LSB_PER_G, G_M_S2, GYRO_LSB_PER_DPS, T_BODY_CAM0, ImuNoiseModel, counts_to_si, measure,
 )
-from device.sim.session import open_sim
-from device.sim.trajectories import (
+from stereopath.device.sim.session import open_sim
+from stereopath.device.sim.trajectories import (
     DEFAULT_DURATION_S, STILL_S, TRAJECTORIES, default_frame_times, get_trajectory,
 )
 

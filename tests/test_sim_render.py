@@ -6,10 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from device.geometry import euler_xyz_to_matrix, invert_pose, make_pose
-from device.rig import paper_rig
-from device.sim.render import Renderer
-from device.sim.scene import Quad, Scene, point_to_scene_distance
+from stereopath.device.core.geometry import euler_xyz_to_matrix, invert_pose, make_pose
+from stereopath.device.core.rig import paper_rig
+from stereopath.device.sim.render import Renderer
+from stereopath.device.sim.scene import Quad, Scene, point_to_scene_distance
 
 # ---------------------------------------------------------------------------------------------
 # a single textured quad carrying Gaussian dots at known texels
@@ -142,7 +142,7 @@ def test_quad_crossing_the_near_plane_is_clipped_correctly():
 
 @pytest.fixture(scope="module")
 def session():
-    from device.sim import open_sim
+    from stereopath.device.sim import open_sim
 
     return open_sim(frames=400, with_depth=True)
 
@@ -204,7 +204,7 @@ def _warp_right_to_left(right, depth0, K0, K1, T_cam1_cam0):
 
 
 def test_paper_rig_right_image_is_the_left_seen_through_the_extrinsics():
-    from device.sim import open_sim
+    from stereopath.device.sim import open_sim
 
     sess = open_sim(frames=400, noise_sigma=0.0, with_depth=True)
     rig = sess.rig

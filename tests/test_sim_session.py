@@ -6,14 +6,14 @@ import cv2
 import numpy as np
 import pytest
 
-from device.config import from_mapping
-from device.errors import ConfigError
-from device.frames import ImuSamples, StereoFrame
-from device.rig import Rig
-from device.sim.scene import OBJECTS, TABLE_SIZE_M, TABLE_TOP_Z_M, table_top_scene
-from device.sim.session import SimConfig, SimSession, open_sim
-from device.sim.textures import STYLES, make_texture
-from device.trajfile import Trajectory
+from stereopath.device.core.config import from_mapping
+from stereopath.device.errors import ConfigError
+from stereopath.device.core.frames import ImuSamples, StereoFrame
+from stereopath.device.core.rig import Rig
+from stereopath.device.sim.scene import OBJECTS, TABLE_SIZE_M, TABLE_TOP_Z_M, table_top_scene
+from stereopath.device.sim.session import SimConfig, SimSession, open_sim
+from stereopath.device.sim.textures import STYLES, make_texture
+from stereopath.device.formats.tum import Trajectory
 
 
 def test_pinned_api_and_defaults():
@@ -140,8 +140,8 @@ def test_textures_are_deterministic_and_detailed():
 
 
 def test_source_spec_parsing_and_registration():
-    from device.datasets.source import open_source
-    from device.sim.source import open_sim_spec, parse_sim_spec
+    from stereopath.device.formats.source import open_source
+    from stereopath.device.sim.source import open_sim_spec, parse_sim_spec
 
     assert parse_sim_spec("") == {} and parse_sim_spec("3") == {"seed": 3}
     assert parse_sim_spec("seed=2, frames=5,motion_blur=true,noise_sigma=1.5,trajectory=orbit") == {

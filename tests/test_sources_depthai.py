@@ -9,9 +9,9 @@ import time
 import numpy as np
 import pytest
 
-from device.errors import CaptureError
-from device.sources import create_source
-from device.sources.oak import DEPTHAI_NAMES, DepthaiSource, rig_from_calibration, timedelta_to_ns
+from stereopath.device.errors import CaptureError
+from stereopath.device.capture.sources import create_source
+from stereopath.device.capture.sources.oak import DEPTHAI_NAMES, DepthaiSource, rig_from_calibration, timedelta_to_ns
 from tests.fakes.standins import source_settings, take
 from tests.fakes.fake_depthai import FakeOakWorld
 
@@ -78,14 +78,14 @@ def test_factory_calibration_in_metres_as_T_cam1_cam0():
 
 
 def test_reversed_extrinsics_are_inverted_with_a_warning(caplog):
-    from device.geometry import so3_exp
+    from stereopath.device.core.geometry import so3_exp
 
     T = np.eye(4)
     T[:3, :3] = so3_exp(np.array([0.0, 0.0, 0.02]))
     T[:3, 3] = [0.075, 0.001, 0.0]  # a calibration whose CAM_B->CAM_C goes the other way
     world = FakeOakWorld(T_C_B_m=T.tolist())
     dai = world.module()
-    with caplog.at_level(logging.WARNING, logger="device.sources.oak"):
+    with caplog.at_level(logging.WARNING, logger="stereopath.device.capture.sources.oak"):
         rig = rig_from_calibration(dai.CalibrationHandler(world), dai, (640, 400))
     assert "inverting" in caplog.text
     Ti = np.linalg.inv(T)

@@ -8,7 +8,7 @@ from collections import Counter
 
 import pytest
 
-from device.sources.pairing import LEFT, RIGHT, FramePairer
+from stereopath.device.capture.pairing import LEFT, RIGHT, FramePairer
 
 pytestmark = pytest.mark.timeout(30)
 P = 10_000_000  # 10 ms frame period

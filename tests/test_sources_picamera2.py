@@ -9,9 +9,9 @@ import time
 
 import pytest
 
-from device.errors import CaptureError
-from device.sources import create_source
-from device.sources.csi import LIBCAMERA_NAMES, PICAMERA2_NAMES, Picamera2Source
+from stereopath.device.errors import CaptureError
+from stereopath.device.capture.sources import create_source
+from stereopath.device.capture.sources.csi import LIBCAMERA_NAMES, PICAMERA2_NAMES, Picamera2Source
 from tests.fakes.standins import source_settings, take
 from tests.fakes.fake_picamera2 import FakeCameraSpec, FakeCameraWorld, decode_slot
 
@@ -136,7 +136,7 @@ def test_free_running_cameras_within_tolerance_pair(caplog):
     world = FakeCameraWorld(free_run_phase_ns=100_000)
     for c in world.cameras:
         c.has_sync = False
-    with caplog.at_level(logging.WARNING, logger="device.sources.csi"):
+    with caplog.at_level(logging.WARNING, logger="stereopath.device.capture.sources.csi"):
         with Picamera2Source(settings(), api=world.api()) as src:
             frames = take(src, 5)
     assert "no SyncMode" in caplog.text

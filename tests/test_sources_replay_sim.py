@@ -7,10 +7,10 @@ import importlib.util
 import numpy as np
 import pytest
 
-from device.config import from_mapping
-from device.errors import CaptureError
-from device.settings import SourceSettings
-from device.sources import create_source
+from stereopath.device.core.config import from_mapping
+from stereopath.device.errors import CaptureError
+from stereopath.device.service.settings import SourceSettings
+from stereopath.device.capture.sources import create_source
 from tests.fakes.fake_smbus import SimClock
 from tests.fakes.standins import StandinSequence, image_index
 
@@ -64,8 +64,8 @@ def test_replay_errors():
 
 @pytest.mark.realdata
 def test_replay_of_the_euroc_head(data_dir):
-    if importlib.util.find_spec("device.datasets") is None:
-        pytest.skip("device.datasets not available")
+    if importlib.util.find_spec("stereopath.device.formats") is None:
+        pytest.skip("stereopath.device.formats not available")
     src = create_source(replay_settings(path=f"euroc:{data_dir / 'euroc_v1_01_head'}", count=3))
     with src:
         frames = list(src)
@@ -92,7 +92,7 @@ def test_sim_source_paced_at_a_rate():
     assert sess.loaded == list(range(8))
 
 
-@pytest.mark.skipif(importlib.util.find_spec("device.sim.session") is None, reason="simulator not available yet")
+@pytest.mark.skipif(importlib.util.find_spec("stereopath.device.sim.session") is None, reason="simulator not available yet")
 def test_sim_source_with_the_real_simulator():
     src = create_source(sim_settings(frames=3, seed=1))
     with src:

@@ -6,12 +6,12 @@ import importlib.util
 
 import pytest
 
-from device.commands.selftest import format_table, run_selftest
-from device.config import from_mapping
-from device.imu.emulator import Mpu6050Emulator, SimClock, still_source
-from device.imu.mpu6050 import Mpu6050
-from device.settings import DeviceConfig
-from device.sources import create_source
+from stereopath.device.commands.selftest import format_table, run_selftest
+from stereopath.device.core.config import from_mapping
+from stereopath.device.capture.imu.emulator import Mpu6050Emulator, SimClock, still_source
+from stereopath.device.capture.imu.mpu6050 import Mpu6050
+from stereopath.device.service.settings import DeviceConfig
+from stereopath.device.capture.sources import create_source
 from tests.fakes.fake_picamera2 import FakeCameraWorld
 from tests.fakes.standins import StandinSequence
 
@@ -75,9 +75,9 @@ def test_lost_camera_fails_the_pairing_check():
     assert not checks["frame pairing"].ok and "left camera" in checks["frame pairing"].value
 
 
-@pytest.mark.skipif(importlib.util.find_spec("device.sim.session") is None, reason="simulator not available")
+@pytest.mark.skipif(importlib.util.find_spec("stereopath.device.sim.session") is None, reason="simulator not available")
 def test_cli_selftest_with_the_simulator(capsys, tmp_path):
-    from host.cli import main
+    from stereopath.host.cli import main
 
     cfgfile = tmp_path / "d.toml"
     cfgfile.write_text(f'[recorder]\ndir = "{tmp_path}"\nreserve_mb = 1.0\n')

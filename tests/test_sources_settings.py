@@ -7,9 +7,9 @@ import tomllib
 
 import pytest
 
-from device.config import from_mapping
-from device.errors import ConfigError
-from device.settings import DeviceConfig, ImuSettings, SourceSettings, load_device_config
+from stereopath.device.core.config import from_mapping
+from stereopath.device.errors import ConfigError
+from stereopath.device.service.settings import DeviceConfig, ImuSettings, SourceSettings, load_device_config
 
 
 def _keys(cls, prefix=""):

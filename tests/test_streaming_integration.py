@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 import zmq
 
-from device.protocol import Hello, Keyframe, Status, decode_message, encode_hello, encode_keyframe, \
+from stereopath.device.wire.protocol import Hello, Keyframe, Status, decode_message, encode_hello, encode_keyframe, \
     encode_status, make_keyframe, KEYFRAME_LIMITS
-from device.streaming.security import generate_keypair, load_public_key, load_secret_keypair, make_demo_keys
-from device.trajfile import read_tum
-from host.receiver import Receiver, ReceiverConfig
+from stereopath.device.wire.security import generate_keypair, load_public_key, load_secret_keypair, make_demo_keys
+from stereopath.device.formats.tum import read_tum
+from stereopath.host.live.receiver import Receiver, ReceiverConfig
 from tests.test_streaming_support import assert_exactly_once, make_device, port_of, small_images, stored_seqs, \
     wait_for
 
@@ -322,7 +322,7 @@ def test_host_rejects_malformed_device_messages_and_carries_on(tmp_path, keys):
 
 def test_live_command_writes_rerun_recording(tmp_path, keys):
     pytest.importorskip("rerun")
-    from host.commands import live
+    from stereopath.host.commands import live
 
     dev = make_device(tmp_path, keys, "sessR")
     stop = threading.Event()

@@ -8,9 +8,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from device.streaming import DeviceStreamer, KeyframeSpool, StreamConfig
-from device.streaming.security import DemoKeys
-from host.keyframe_store import read_index
+from stereopath.device.streaming import DeviceStreamer, KeyframeSpool, StreamConfig
+from stereopath.device.wire.security import DemoKeys
+from stereopath.host.live.store import read_index
 
 LOOPBACK_ANY = "tcp://127.0.0.1:*"
 

@@ -11,15 +11,15 @@ import stat
 import numpy as np
 import pytest
 
-from device.config import from_mapping
-from device.errors import ConfigError, DatasetError
-from device.protocol import Status, encode_keyframe, make_keyframe
-from device.streaming import KeyframeSpool, StreamConfig
-from device.streaming.security import (
+from stereopath.device.core.config import from_mapping
+from stereopath.device.errors import ConfigError, DatasetError
+from stereopath.device.wire.protocol import Status, encode_keyframe, make_keyframe
+from stereopath.device.streaming import KeyframeSpool, StreamConfig
+from stereopath.device.wire.security import (
     authorized_keys, check_loopback_endpoint, generate_keypair, load_host_keys, load_secret_keypair, make_demo_keys)
-from host.keyframe_store import KeyframeStore, list_sessions, load_keyframe, read_index
-from host.live_view import TerminalView, summary_lines
-from host.receiver import LiveState, Receiver, ReceiverConfig, ReceiverStats, endpoints_from_address
+from stereopath.host.live.store import KeyframeStore, list_sessions, load_keyframe, read_index
+from stereopath.host.live.view import TerminalView, summary_lines
+from stereopath.host.live.receiver import LiveState, Receiver, ReceiverConfig, ReceiverStats, endpoints_from_address
 from tests.test_streaming_support import make_device, small_images
 
 
@@ -112,7 +112,7 @@ def test_generate_keypair_and_refuse_overwrite(tmp_path):
 
 
 def test_keys_command(tmp_path, capsys):
-    from host.commands import keys
+    from stereopath.host.commands import keys
 
     parser = argparse.ArgumentParser()
     keys.add_arguments(parser)
@@ -228,7 +228,7 @@ def test_receiver_stats_json_round_trip():
 
 class _FakeReceiver:
     def __init__(self):
-        from device.protocol import Pose
+        from stereopath.device.wire.protocol import Pose
 
         self.live = LiveState(session_id="sessA", pose=Pose("sessA", 3, 10, (1.0, 2.0, 3.0), (0, 0, 0, 1), "ok", 99),
                               speed_m_s=0.5, pose_rate_hz=20.0, keyframe_rate_hz=2.0, acked_seq=4,
@@ -248,7 +248,7 @@ def test_terminal_view_tty_and_log_modes(caplog):
     text = buf.getvalue()
     assert text.count("\x1b[2K") == 6 and "\x1b[3F" in text
     quiet = io.StringIO()
-    with caplog.at_level(logging.INFO, logger="host.live_view"):
+    with caplog.at_level(logging.INFO, logger="stereopath.host.live.view"):
         logged = TerminalView(quiet, tty=False, log_interval_s=0.0)
         logged.update(rx)
     assert quiet.getvalue() == "" and "link good" in caplog.text

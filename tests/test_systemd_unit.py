@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from device.installer import UNIT_NAME, Layout, install
+from stereopath.device.service.installer import UNIT_NAME, Layout, install
 from tests.test_install import FakeVenv
 
 pytestmark = [

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from device.frames import ImuSamples, StereoFrame
-from device.imu.base import OfflineImu
-from device.timealign import RateMonitor, TimeAligner, align_stream, interpolate
+from stereopath.device.core.frames import ImuSamples, StereoFrame
+from stereopath.device.capture.imu.base import OfflineImu
+from stereopath.device.capture.timealign import RateMonitor, TimeAligner, align_stream, interpolate
 
 FRAME_NS = 33_333_333
 IMU_NS = 5_000_000
@@ -137,8 +137,8 @@ def test_interpolate_holds_outside_the_span():
 
 
 def test_aligner_from_the_settings_section():
-    from device.config import from_mapping
-    from device.settings import TimeAlignSettings
+    from stereopath.device.core.config import from_mapping
+    from stereopath.device.service.settings import TimeAlignSettings
 
     a = TimeAligner.from_settings(from_mapping(TimeAlignSettings, {"time_offset_us": -2500.0, "max_wait_ms": 50.0}))
     assert (a.time_offset_ns, a.max_wait_ns, a.gap_factor) == (-2_500_000, 50_000_000, 2.5)

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from device.errors import DatasetError
-from device.geometry import make_pose, so3_exp
-from device.trajfile import (
+from stereopath.device.errors import DatasetError
+from stereopath.device.core.geometry import make_pose, so3_exp
+from stereopath.device.formats.tum import (
     Trajectory, ns_to_seconds_str, read_kitti_poses, read_trajectory, read_tum, seconds_to_ns, write_tum,
 )
 

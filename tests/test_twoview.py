@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from device.config import from_mapping
-from device.errors import ConfigError
-from device.geometry import euler_xyz_to_matrix, rotation_angle_deg, so3_exp
-from device.twoview import TwoViewConfig, euler_xyz_deg, relative_pose, rotation_only
+from stereopath.device.core.config import from_mapping
+from stereopath.device.errors import ConfigError
+from stereopath.device.core.geometry import euler_xyz_to_matrix, rotation_angle_deg, so3_exp
+from stereopath.device.core.twoview import TwoViewConfig, euler_xyz_deg, relative_pose, rotation_only
 
 K = np.array([[500.0, 0.0, 319.5], [0.0, 500.0, 239.5], [0.0, 0.0, 1.0]])
 

@@ -24,8 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _window(samples, frames_t, spec: str, min_still_s: float):
-    from device.calibration import detect_still_window
-    from device.errors import CalibrationError
+    from stereopath.device.core.calibration import detect_still_window
+    from stereopath.device.errors import CalibrationError
 
     if spec == "frames":
         if frames_t is None or len(frames_t) < 2:
@@ -45,19 +45,19 @@ def _window(samples, frames_t, spec: str, min_still_s: float):
 def _live(args):
     import time
 
-    from device.frames import ImuSamples
-    from device.imu import create_imu
-    from device.settings import load_device_config
+    from stereopath.device.core.frames import ImuSamples
+    from stereopath.device.capture.imu import create_imu
+    from stereopath.device.service.settings import load_device_config
 
     cfg = load_device_config(args.config)
     settings = cfg.imu
     if args.imu:
-        from device.config import replace
+        from stereopath.device.core.config import replace
 
         settings = replace(settings, backend=args.imu)
     imu = create_imu(settings)
     if imu is None:
-        from device.errors import ConfigError
+        from stereopath.device.errors import ConfigError
 
         raise ConfigError("imu.backend = 'none': nothing to calibrate")
     imu.open()
@@ -76,8 +76,8 @@ def _live(args):
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from device.calibration import imu_still_calibration
-    from device.errors import CalibrationError, DatasetError
+    from stereopath.device.core.calibration import imu_still_calibration
+    from stereopath.device.errors import CalibrationError, DatasetError
 
     if args.source == "live":
         samples, frames_t = _live(args)
@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         if window == "auto" and len(samples):
             window = f"{samples.t_ns[0] / 1e9}:{samples.t_ns[-1] / 1e9 + 1e-9}"
     else:
-        from device.datasets import open_source
+        from stereopath.device.formats import open_source
 
         seq = open_source(args.source)
         samples = seq.imu

@@ -24,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def find_pairs(folder: Path) -> list[tuple[str, Path, Path]]:
-    from device.errors import CalibrationError
+    from stereopath.device.errors import CalibrationError
 
     if not folder.is_dir():
         raise CalibrationError(f"image folder not found: {folder}")
@@ -45,9 +45,9 @@ def find_pairs(folder: Path) -> list[tuple[str, Path, Path]]:
 def run(args: argparse.Namespace) -> int:
     import cv2
 
-    from device.calibration import calibrate_stereo, find_corners, parse_board
-    from device.errors import CalibrationError
-    from device.rig import save_rig_yaml
+    from stereopath.device.core.calibration import calibrate_stereo, find_corners, parse_board
+    from stereopath.device.errors import CalibrationError
+    from stereopath.device.core.rig import save_rig_yaml
 
     board = parse_board(args.board)
     if args.square_mm <= 0:

@@ -26,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from device.installer import UNIT_NAME, install
+    from stereopath.device.service.installer import UNIT_NAME, install
 
     report = install(args.root, dry_run=args.dry_run, python=args.python, host_keys=args.host_key)
     for action in report.actions:

@@ -44,8 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import logging
 
-    from device.errors import ConfigError
-    from device.service import EXIT_CONFIG, RunOptions, run_service, use_journal_format
+    from stereopath.device.errors import ConfigError
+    from stereopath.device.service.service import EXIT_CONFIG, RunOptions, run_service, use_journal_format
 
     use_journal_format()
     try:
@@ -54,6 +54,6 @@ def run(args: argparse.Namespace) -> int:
                              insecure=True if args.insecure else None, status_file=args.status_file,
                              drain_s=args.drain, wait_for_host_s=args.wait_for_host)
     except ConfigError as exc:
-        logging.getLogger("device.service").error("configuration error: %s", exc)
+        logging.getLogger("stereopath.device.service.service").error("configuration error: %s", exc)
         return EXIT_CONFIG
     return run_service(args.config, options)

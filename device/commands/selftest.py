@@ -45,7 +45,7 @@ def _free_disk_check(path: str, reserve_mb: float) -> Check:
 def _camera_checks(cfg: Any, source: Any, frames_wanted: int, imu_blocks: list) -> list[Check]:
     import numpy as np
 
-    from device.errors import StereopathError
+    from stereopath.device.errors import StereopathError
 
     st = cfg.selftest
     checks: list[Check] = []
@@ -101,10 +101,10 @@ def _imu_checks(cfg: Any, imu: Any, blocks_from_source: list) -> list[Check]:
 
     import numpy as np
 
-    from device.calibration import imu_still_calibration
-    from device.errors import StereopathError
-    from device.frames import ImuSamples
-    from device.imu.mpu6050 import WHO_AM_I_CLONES, WHO_AM_I_MPU6050
+    from stereopath.device.core.calibration import imu_still_calibration
+    from stereopath.device.errors import StereopathError
+    from stereopath.device.core.frames import ImuSamples
+    from stereopath.device.capture.imu.mpu6050 import WHO_AM_I_CLONES, WHO_AM_I_MPU6050
 
     st, s = cfg.selftest, cfg.imu
     checks: list[Check] = []
@@ -168,9 +168,9 @@ def _imu_checks(cfg: Any, imu: Any, blocks_from_source: list) -> list[Check]:
 
 def run_selftest(cfg: Any, source: Any = None, imu: Any = None) -> list[Check]:
     """All checks; ``source``/``imu`` (unopened) may be injected, otherwise built from ``cfg``."""
-    from device.errors import StereopathError
-    from device.imu import create_imu
-    from device.sources import create_source
+    from stereopath.device.errors import StereopathError
+    from stereopath.device.capture.imu import create_imu
+    from stereopath.device.capture.sources import create_source
 
     checks: list[Check] = []
     if source is None:
@@ -203,8 +203,8 @@ def format_table(checks: list[Check]) -> str:
 def run(args: argparse.Namespace) -> int:
     import logging
 
-    from device.config import replace
-    from device.settings import load_device_config
+    from stereopath.device.core.config import replace
+    from stereopath.device.service.settings import load_device_config
 
     cfg = load_device_config(args.config)
     src, imu_s, st = cfg.source, cfg.imu, cfg.selftest

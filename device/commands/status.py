@@ -24,7 +24,7 @@ DEFAULT_CONFIG = "/etc/stereopath/device.toml"
 def _status_path(args: argparse.Namespace) -> str:
     from pathlib import Path
 
-    from device.settings import load_device_config
+    from stereopath.device.service.settings import load_device_config
 
     if args.status_file is not None:
         return args.status_file

@@ -2,5 +2,5 @@
 
 ``make_estimator(name, rig, ...)`` returns an object with
 ``process(frame, imu) -> PoseEstimate`` for on-board incremental use and the
-module-level :func:`device.estimation.base.run_estimator` for whole sequences.
+module-level :func:`stereopath.device.estimation.base.run_estimator` for whole sequences.
 """

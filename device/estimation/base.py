@@ -8,9 +8,9 @@ from typing import Callable, Iterable, Literal, Protocol
 
 import numpy as np
 
-from device.errors import EstimationError
-from device.frames import ImuSamples, StereoFrame
-from device.trajfile import Trajectory
+from stereopath.device.errors import EstimationError
+from stereopath.device.core.frames import ImuSamples, StereoFrame
+from stereopath.device.formats.tum import Trajectory
 
 Status = Literal["ok", "imu_only", "lost"]
 WorldFrame = Literal["first_camera", "gravity_aligned"]

@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from device.frames import ImuSamples
-from device.geometry import so3_exp
+from stereopath.device.core.frames import ImuSamples
+from stereopath.device.core.geometry import so3_exp
 
 GRAVITY_M_S2 = 9.80665
 

@@ -23,12 +23,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from device.config import check_range
-from device.errors import ConfigError
-from device.estimation.base import PoseEstimate, WorldFrame
-from device.frames import ImuSamples, StereoFrame
-from device.geometry import chordal_mean, make_pose
-from device.rig import Rig
+from stereopath.device.core.config import check_range
+from stereopath.device.errors import ConfigError
+from stereopath.device.estimation.base import PoseEstimate, WorldFrame
+from stereopath.device.core.frames import ImuSamples, StereoFrame
+from stereopath.device.core.geometry import chordal_mean, make_pose
+from stereopath.device.core.rig import Rig
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +57,7 @@ def _gray(img: np.ndarray) -> np.ndarray:
 
 
 def match_indices(m) -> np.ndarray:
-    """Index pairs (M, 2) of a :mod:`device.matching` result."""
+    """Index pairs (M, 2) of a :mod:`stereopath.device.core.matching` result."""
     for name in ("idx", "indices", "pairs"):
         if hasattr(m, name):
             return np.asarray(getattr(m, name)).reshape(-1, 2)
@@ -68,7 +68,7 @@ class PaperEstimator:
     name = "paper"
 
     def __init__(self, rig: Rig, config: PaperConfig | None = None) -> None:
-        from device.features import PRESETS
+        from stereopath.device.core.features import PRESETS
 
         self.rig = rig
         self.cfg = config or PaperConfig()
@@ -95,7 +95,7 @@ class PaperEstimator:
 
     def _stereo_points(self, fl, fr) -> tuple[np.ndarray, np.ndarray]:
         """Indices into ``fl`` and their 3D points (cam0 frame) from rectified stereo matching."""
-        from device.matching import match_epipolar_rectified
+        from stereopath.device.core.matching import match_epipolar_rectified
 
         rl, rr = self._rectified(fl.xy, 0), self._rectified(fr.xy, 1)
         m = match_epipolar_rectified(rl, rr, fl.desc, fr.desc, max_dy=self.cfg.epipolar_max_dy_px,
@@ -112,8 +112,8 @@ class PaperEstimator:
         return idx[:, 0], X_rect @ r.R0  # rectified -> cam0 axes (R0 maps cam0 -> rectified)
 
     def _relative_rotation(self, prev, cur, cam: int) -> np.ndarray | None:
-        from device.matching import MatchConfig, match
-        from device.twoview import TwoViewConfig, relative_pose
+        from stereopath.device.core.matching import MatchConfig, match
+        from stereopath.device.core.twoview import TwoViewConfig, relative_pose
 
         m = match(prev.original_view(), cur, MatchConfig())
         idx = match_indices(m)
@@ -130,7 +130,7 @@ class PaperEstimator:
         return res.R.T
 
     def process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate | None:
-        from device.features import detect
+        from stereopath.device.core.features import detect
 
         self._count += 1
         if (self._count - 1) % self.cfg.frame_step:
@@ -159,7 +159,7 @@ class PaperEstimator:
         inl_cur, X_cur = self._stereo_points(fl, fr)
         T_P = None
         if len(inl_prev) and len(inl_cur):
-            from device.matching import MatchConfig, match
+            from stereopath.device.core.matching import MatchConfig, match
 
             a = pl.original_view().subset(inl_prev)
             b = fl.subset(inl_cur)

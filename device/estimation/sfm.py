@@ -12,13 +12,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from device.config import check_range
-from device.estimation.base import PoseEstimate, WorldFrame
-from device.estimation.paper import match_indices
-from device.frames import ImuSamples, StereoFrame
-from device.geometry import make_pose
-from device.rig import Rig
-from device.trajfile import Trajectory
+from stereopath.device.core.config import check_range
+from stereopath.device.estimation.base import PoseEstimate, WorldFrame
+from stereopath.device.estimation.paper import match_indices
+from stereopath.device.core.frames import ImuSamples, StereoFrame
+from stereopath.device.core.geometry import make_pose
+from stereopath.device.core.rig import Rig
+from stereopath.device.formats.tum import Trajectory
 
 
 @dataclass(frozen=True)
@@ -39,7 +39,7 @@ class SfmEstimator:
     oracle_scale = True
 
     def __init__(self, rig: Rig, groundtruth: Trajectory, config: SfmConfig | None = None) -> None:
-        from device.features import PRESETS
+        from stereopath.device.core.features import PRESETS
 
         self.rig = rig
         self.cfg = config or SfmConfig()
@@ -62,9 +62,9 @@ class SfmEstimator:
         return np.array([np.interp(t_ns, t, p[:, k]) for k in range(3)])
 
     def process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate | None:
-        from device.features import detect
-        from device.matching import MatchConfig, match
-        from device.twoview import TwoViewConfig, relative_pose
+        from stereopath.device.core.features import detect
+        from stereopath.device.core.matching import MatchConfig, match
+        from stereopath.device.core.twoview import TwoViewConfig, relative_pose
 
         self._count += 1
         if (self._count - 1) % self.cfg.frame_step:

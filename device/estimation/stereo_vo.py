@@ -31,20 +31,20 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from device.config import check_range
-from device.errors import ConfigError
-from device.estimation.base import PoseEstimate, WorldFrame
-from device.estimation.inertial import GyroIntegrator, estimate_still, gravity_aligned_rotation
-from device.estimation.stereo_geometry import (
+from stereopath.device.core.config import check_range
+from stereopath.device.errors import ConfigError
+from stereopath.device.estimation.base import PoseEstimate, WorldFrame
+from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still, gravity_aligned_rotation
+from stereopath.device.core.stereo import (
     pose_to_rvec_tvec,
     refine_pose_lm,
     rvec_tvec_to_pose,
     triangulate,
     undistort_px,
 )
-from device.frames import ImuSamples, StereoFrame
-from device.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, so3_log
-from device.rig import Rig
+from stereopath.device.core.frames import ImuSamples, StereoFrame
+from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, so3_log
+from stereopath.device.core.rig import Rig
 
 log = logging.getLogger(__name__)
 
@@ -367,7 +367,7 @@ class StereoEstimator:
     # ------------------------------------------------------------------ keyframes
 
     def _features(self, img: np.ndarray, views: list[int] | None = None):
-        from device.features import PRESETS, detect
+        from stereopath.device.core.features import PRESETS, detect
 
         if self._feature_cfg is None:
             if self.cfg.feature_preset not in PRESETS:
@@ -385,7 +385,7 @@ class StereoEstimator:
         self._pending_feats = None
         if not self.cfg.use_asift_keyframes:
             return T_est, n_inl
-        from device.matching import MatchConfig, match, match_guided
+        from stereopath.device.core.matching import MatchConfig, match, match_guided
 
         feats0 = self._features(left, views=[0])
         self._pending_feats = feats0
@@ -427,7 +427,7 @@ class StereoEstimator:
 
     def _keyframe_features(self, left, right, feats0, T_world_cam: np.ndarray, z0: float):
         """All-view features of a keyframe with stereo 3D points (runs in the background thread)."""
-        from device.features import Features
+        from stereopath.device.core.features import Features
 
         n_views = len(self._feature_cfg.views) if getattr(self._feature_cfg, "views", None) else 1
         parts = [feats0]

@@ -37,9 +37,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from device.errors import ConfigError
-from device.frames import ImuSamples
-from device.sim.scene import GRAVITY_WORLD
+from stereopath.device.errors import ConfigError
+from stereopath.device.core.frames import ImuSamples
+from stereopath.device.sim.scene import GRAVITY_WORLD
 
 G_M_S2 = 9.81  # 1 g: both the simulated gravity and the accelerometer's LSB/g scale
 GYRO_LSB_PER_DPS = {250: 131.0, 500: 65.5, 1000: 32.8, 2000: 16.4}

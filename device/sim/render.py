@@ -39,9 +39,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from device.geometry import invert_pose
-from device.rig import CameraModel, Rig
-from device.sim.scene import Scene
+from stereopath.device.core.geometry import invert_pose
+from stereopath.device.core.rig import CameraModel, Rig
+from stereopath.device.sim.scene import Scene
 
 log = logging.getLogger(__name__)
 

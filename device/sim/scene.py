@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from device.geometry import rot_z
+from stereopath.device.core.geometry import rot_z
 
 ROOM_HALF_M = 2.0
 ROOM_HEIGHT_M = 2.6
@@ -191,7 +191,7 @@ class _Builder:
         self.textures: list[np.ndarray] = []
 
     def add(self, name: str, origin, u, v, style: str, mpt: float, view_dist_m: float, shading: float | None = None) -> None:
-        from device.sim.textures import make_texture
+        from stereopath.device.sim.textures import make_texture
 
         q_u, q_v = np.asarray(u, float), np.asarray(v, float)
         shape = texture_shape(np.linalg.norm(q_u), np.linalg.norm(q_v), mpt)

@@ -6,7 +6,7 @@ noise-free) and random-access rendering of stereo frames.
 
 Clock: ``t_ns`` counts from the first IMU sample (``t_ns = 0``); the first camera frame is at
 ``1_000_000_000`` (one second of IMU data before it, during which the rig is still; it starts to
-move at 1.25 s, see :mod:`device.sim.trajectories`), frame ``i`` at ``1e9 + round(i * 1e9 / rate_hz)``
+move at 1.25 s, see :mod:`stereopath.device.sim.trajectories`), frame ``i`` at ``1e9 + round(i * 1e9 / rate_hz)``
 (mid-exposure).  The IMU covers ``[0, t_ns[-1]]`` at ``imu_rate_hz``.
 
 World frame: z up, gravity ``(0, 0, -9.81)``; ground truth is ``T_world_cam0`` of the left camera.
@@ -26,14 +26,14 @@ from typing import Any
 
 import numpy as np
 
-from device.config import check_range, from_mapping, replace
-from device.errors import ConfigError
-from device.frames import ImuSamples, StereoFrame
-from device.rig import Rig, paper_rig
-from device.sim.imu import ACCEL_LSB_PER_G, GYRO_LSB_PER_DPS, T_BODY_CAM0, ImuNoiseModel, simulate_imu
-from device.sim.scene import GRAVITY_WORLD
-from device.sim.trajectories import FIRST_FRAME_S, TRAJECTORIES, get_trajectory
-from device.trajfile import Trajectory
+from stereopath.device.core.config import check_range, from_mapping, replace
+from stereopath.device.errors import ConfigError
+from stereopath.device.core.frames import ImuSamples, StereoFrame
+from stereopath.device.core.rig import Rig, paper_rig
+from stereopath.device.sim.imu import ACCEL_LSB_PER_G, GYRO_LSB_PER_DPS, T_BODY_CAM0, ImuNoiseModel, simulate_imu
+from stereopath.device.sim.scene import GRAVITY_WORLD
+from stereopath.device.sim.trajectories import FIRST_FRAME_S, TRAJECTORIES, get_trajectory
+from stereopath.device.formats.tum import Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +47,7 @@ class SimConfig:
     frames: int = 400               # stereo frames
     rate_hz: float = 20.0           # frame rate
     seed: int = 0                   # textures, hand shake, image and IMU noise
-    trajectory: str = "arc"         # a name in device.sim.trajectories.TRAJECTORIES
+    trajectory: str = "arc"         # a name in stereopath.device.sim.trajectories.TRAJECTORIES
     imu_rate_hz: float = 200.0      # IMU sample rate
     noise_sigma: float = 2.0        # image noise (DN, Gaussian)
     exposure_drift: bool = False    # slow per-frame gain changes (and a small left/right difference)
@@ -84,13 +84,13 @@ class SimConfig:
 
 @functools.lru_cache(maxsize=1)
 def sim_rig() -> Rig:
-    """The simulated rig: :func:`device.rig.paper_rig` with the simulated IMU's ``T_body_cam0``."""
+    """The simulated rig: :func:`stereopath.device.core.rig.paper_rig` with the simulated IMU's ``T_body_cam0``."""
     return paper_rig(T_body_cam0=np.array(T_BODY_CAM0))
 
 
 @functools.lru_cache(maxsize=2)
 def _scene(seed: int):
-    from device.sim.scene import table_top_scene
+    from stereopath.device.sim.scene import table_top_scene
 
     return table_top_scene(seed)
 
@@ -117,7 +117,7 @@ class SimSession:
         )
         self.imu_truth: ImuSamples = truth
         self.imu: ImuSamples = meas
-        self.imu_raw = raw            # int16 register counts (device.sim.imu.RawImu)
+        self.imu_raw = raw            # int16 register counts (stereopath.device.sim.imu.RawImu)
         self.imu_biases = biases      # biases that were added (SI, per sample)
         self._renderer = None
         log.debug("sim session: %d frames, %s, %.2f m", cfg.frames, cfg.trajectory, self.groundtruth.path_length_m())
@@ -132,13 +132,13 @@ class SimSession:
 
     @property
     def scene(self):
-        """The rendered :class:`device.sim.scene.Scene` (built on first use)."""
+        """The rendered :class:`stereopath.device.sim.scene.Scene` (built on first use)."""
         return _scene(self.cfg.seed)
 
     @property
     def renderer(self):
         if self._renderer is None:
-            from device.sim.render import Renderer
+            from stereopath.device.sim.render import Renderer
 
             self._renderer = Renderer(self.scene, self.rig, noise_sigma=self.cfg.noise_sigma, seed=self.cfg.seed,
                                       vignetting=self.cfg.vignetting)

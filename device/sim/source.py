@@ -1,15 +1,15 @@
 """``open_source("sim[:ARG]")``: the simulator as a recorded-sequence source.
 
 ``ARG`` is empty (defaults), a seed (``sim:3``) or comma-separated ``key=value`` settings of
-:class:`device.sim.session.SimConfig` (``sim:seed=3,frames=100,trajectory=orbit``).  Importing
-this module registers the ``sim`` scheme with :mod:`device.datasets.source`.
+:class:`stereopath.device.sim.session.SimConfig` (``sim:seed=3,frames=100,trajectory=orbit``).  Importing
+this module registers the ``sim`` scheme with :mod:`stereopath.device.formats.source`.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from device.errors import ConfigError
+from stereopath.device.errors import ConfigError
 
 
 def parse_sim_spec(arg: str) -> dict[str, Any]:
@@ -17,7 +17,7 @@ def parse_sim_spec(arg: str) -> dict[str, Any]:
     import dataclasses
     import typing
 
-    from device.sim.session import SimConfig
+    from stereopath.device.sim.session import SimConfig
 
     arg = arg.strip()
     if not arg:
@@ -53,7 +53,7 @@ def parse_sim_spec(arg: str) -> dict[str, Any]:
 
 
 def open_sim_spec(arg: str):
-    from device.sim.session import open_sim
+    from stereopath.device.sim.session import open_sim
 
     sess = open_sim(**parse_sim_spec(arg))
     sess.spec = f"sim:{arg}" if arg else "sim"
@@ -61,7 +61,7 @@ def open_sim_spec(arg: str):
 
 
 def _register() -> None:
-    from device.datasets.source import register_source
+    from stereopath.device.formats.source import register_source
 
     register_source("sim", open_sim_spec)
 

@@ -39,8 +39,8 @@ from typing import Callable
 
 import numpy as np
 
-from device.errors import ConfigError
-from device.sim.scene import TARGET_WORLD
+from stereopath.device.errors import ConfigError
+from stereopath.device.sim.scene import TARGET_WORLD
 
 STILL_S = 1.25
 RAMP_S = 1.5

@@ -7,8 +7,8 @@ each: :mod:`.config` (settings), :mod:`.security` (CURVE keys, ZAP, loopback che
 Importing this package opens nothing: sockets are created when a streamer is constructed.
 """
 
-from device.streaming.config import StreamConfig
-from device.streaming.spool import KeyframeSpool
-from device.streaming.streamer import DeviceStreamer
+from stereopath.device.streaming.config import StreamConfig
+from stereopath.device.streaming.spool import KeyframeSpool
+from stereopath.device.streaming.streamer import DeviceStreamer
 
 __all__ = ["DeviceStreamer", "KeyframeSpool", "StreamConfig"]

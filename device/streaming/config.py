@@ -5,12 +5,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from device.config import check_range
+from stereopath.device.core.config import check_range
 
 
 @dataclass(frozen=True)
 class StreamConfig:
-    """Endpoints, security and bounds of :class:`device.streaming.DeviceStreamer`.
+    """Endpoints, security and bounds of :class:`stereopath.device.streaming.DeviceStreamer`.
 
     Every in-memory queue is bounded by one of these numbers, so the device's memory does not
     depend on what the host does.  Times are milliseconds unless the name says otherwise.

@@ -27,11 +27,11 @@ import logging
 import time
 from typing import Any, Callable
 
-from device.errors import DatasetError
-from device.protocol import Ack, Credit, DecodeError, Hello, decode_control
-from device.streaming.config import StreamConfig
-from device.streaming.sockets import apply_common_options
-from device.streaming.spool import KeyframeSpool
+from stereopath.device.errors import DatasetError
+from stereopath.device.wire.protocol import Ack, Credit, DecodeError, Hello, decode_control
+from stereopath.device.streaming.config import StreamConfig
+from stereopath.device.wire.sockets import apply_common_options
+from stereopath.device.streaming.spool import KeyframeSpool
 
 log = logging.getLogger(__name__)
 

@@ -14,8 +14,8 @@ import logging
 import threading
 from typing import Any
 
-from device.streaming.config import StreamConfig
-from device.streaming.sockets import apply_common_options
+from stereopath.device.streaming.config import StreamConfig
+from stereopath.device.wire.sockets import apply_common_options
 
 log = logging.getLogger(__name__)
 

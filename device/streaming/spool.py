@@ -17,7 +17,7 @@ import os
 import re
 from pathlib import Path
 
-from device.errors import DatasetError
+from stereopath.device.errors import DatasetError
 
 log = logging.getLogger(__name__)
 

@@ -36,16 +36,16 @@ from typing import Any
 
 import numpy as np
 
-from device.errors import ConfigError, DatasetError, ProtocolError
-from device.protocol import Status, check_session_id, encode_keyframe, encode_pose, encode_status, make_keyframe, \
+from stereopath.device.errors import ConfigError, DatasetError, ProtocolError
+from stereopath.device.wire.protocol import Status, check_session_id, encode_keyframe, encode_pose, encode_status, make_keyframe, \
     pose_from_matrix, rig_reference
-from device.streaming import health
-from device.streaming.config import StreamConfig
-from device.streaming.keyframe_server import KeyframeServer
-from device.streaming.pose_publisher import PosePublisher
-from device.streaming.security import check_loopback_endpoint, load_secret_keypair, require_curve, \
+from stereopath.device.streaming import health
+from stereopath.device.streaming.config import StreamConfig
+from stereopath.device.streaming.keyframe_server import KeyframeServer
+from stereopath.device.streaming.pose_publisher import PosePublisher
+from stereopath.device.wire.security import check_loopback_endpoint, load_secret_keypair, require_curve, \
     start_authenticator
-from device.streaming.spool import KeyframeSpool
+from stereopath.device.streaming.spool import KeyframeSpool
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +67,7 @@ class _DeviceHealth:
 class DeviceStreamer:
     """Streams poses, keyframes and status to hosts; see the module docstring.
 
-    ``rig`` (a :class:`device.rig.Rig`) or ``rig_ref`` (``(name, hash)``) names the calibration
+    ``rig`` (a :class:`stereopath.device.core.rig.Rig`) or ``rig_ref`` (``(name, hash)``) names the calibration
     sent with every keyframe.  Bind errors and key problems raise :class:`ConfigError` here.
     """
 

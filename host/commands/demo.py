@@ -20,7 +20,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from host.demo_pipeline import run_demo
+    from stereopath.host.demo import run_demo
 
     res = run_demo(args.out, frames=args.frames, seed=args.seed, with_model=not args.no_model)
     r = res.report

@@ -32,7 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _is_kitti(path: Path) -> bool:
-    from device.errors import DatasetError
+    from stereopath.device.errors import DatasetError
 
     try:
         with path.open() as fh:
@@ -49,7 +49,7 @@ def _is_kitti(path: Path) -> bool:
 
 def read_any(path: Path, times_ns=None):
     """TUM or KITTI file; KITTI rows take ``times_ns`` when given (else 10 Hz)."""
-    from device.trajfile import read_kitti_poses, read_tum
+    from stereopath.device.formats.tum import read_kitti_poses, read_tum
 
     if _is_kitti(path):
         return read_kitti_poses(path, times_ns)
@@ -59,9 +59,9 @@ def read_any(path: Path, times_ns=None):
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from device.datasets.kitti import read_times
-    from device.errors import DatasetError
-    from host.evaluate import evaluate
+    from stereopath.device.formats.kitti import read_times
+    from stereopath.device.errors import DatasetError
+    from stereopath.host.evaluation.evaluate import evaluate
 
     if args.max_diff <= 0:
         raise DatasetError(f"--max-diff must be positive, got {args.max_diff}")

@@ -33,7 +33,7 @@ def load_homography(path: str | Path):
     import cv2
     import numpy as np
 
-    from device.errors import DatasetError
+    from stereopath.device.errors import DatasetError
 
     p = Path(path)
     if not p.is_file():
@@ -78,7 +78,7 @@ def correct_mask(p1, p2, H, tolerance: float = 3.0):
 def _read_gray(path: str):
     import cv2
 
-    from device.errors import DatasetError
+    from stereopath.device.errors import DatasetError
 
     if not Path(path).is_file():
         raise DatasetError(f"image not found: {path}")
@@ -90,8 +90,8 @@ def _read_gray(path: str):
 
 def compare_pair(img1, img2, preset: str, homography=None, tolerance: float = 3.0, match_cfg=None) -> dict:
     """Detect, match and (with a homography) count correct matches; returns the JSON record."""
-    from device.features import detect, earlier_features, get_preset
-    from device.matching import MatchConfig, match
+    from stereopath.device.core.features import detect, earlier_features, get_preset
+    from stereopath.device.core.matching import MatchConfig, match
 
     cfg = get_preset(preset)
     t0 = time.perf_counter()
@@ -116,8 +116,8 @@ def compare_pair(img1, img2, preset: str, homography=None, tolerance: float = 3.
 
 
 def run(args: argparse.Namespace) -> int:
-    from device.errors import ConfigError
-    from device.features import PRESET_HELP, PRESETS, get_preset
+    from stereopath.device.errors import ConfigError
+    from stereopath.device.core.features import PRESET_HELP, PRESETS, get_preset
 
     if args.list_presets:
         for name, cfg in PRESETS.items():

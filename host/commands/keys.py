@@ -17,7 +17,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from device.streaming.security import generate_keypair
+    from stereopath.device.wire.security import generate_keypair
 
     public, secret = generate_keypair(args.dir, args.name, overwrite=args.force)
     print(f"public key: {public}")

@@ -39,9 +39,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from device.errors import ConfigError
-    from host.live_view import RerunView, TerminalView
-    from host.receiver import Receiver, ReceiverConfig, endpoints_from_address
+    from stereopath.device.errors import ConfigError
+    from stereopath.host.live.view import RerunView, TerminalView
+    from stereopath.host.live.receiver import Receiver, ReceiverConfig, endpoints_from_address
 
     if args.duration is not None and args.duration <= 0:
         raise ConfigError(f"--duration must be positive, got {args.duration}")
@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
                             fsync=not args.no_fsync)
     rig = None
     if args.rig:
-        from device.rig import load_rig_yaml
+        from stereopath.device.core.rig import load_rig_yaml
 
         rig = load_rig_yaml(args.rig)
     rerun_view = None
@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     if args.map:
         if rig is None:
             raise ConfigError("--map needs --rig FILE.yaml (keyframes carry only the rig's name and hash)")
-        from host.live_map import LiveMapper
+        from stereopath.host.live.live_map import LiveMapper
 
         mapper = LiveMapper(rig, args.out, every=args.map_every,
                             on_mesh=getattr(rerun_view, "on_mesh", None) if rerun_view else None)
@@ -101,11 +101,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run this command alone (``python -m host.commands.live ...``), e.g. as a test subprocess."""
+    """Run this command alone (``python -m stereopath.host.commands.live ...``), e.g. as a test subprocess."""
     import sys
 
-    from device.errors import StereopathError
-    from host.cli import setup_logging
+    from stereopath.device.errors import StereopathError
+    from stereopath.host.cli import setup_logging
 
     parser = argparse.ArgumentParser(prog="stereopath host live", description=__doc__)
     add_arguments(parser)

@@ -28,7 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from host.mapping import map_path, map_preset
+    from stereopath.host.mapping.mapper import map_path, map_preset
 
     changes = {}
     if args.stride is not None:

@@ -56,8 +56,8 @@ def format_table(reports: dict[str, dict]) -> str:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from host.odometry import estimate_sequence, write_outputs
-    from host.sequences import open_sequence
+    from stereopath.host.evaluation.odometry import estimate_sequence, write_outputs
+    from stereopath.host.evaluation.sequences import open_sequence
 
     names = [n.strip() for n in args.compare.split(",")] if args.compare else [args.estimator]
     reports = {}

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import argparse
 
-# host.reprocess.REPROCESS_PRESETS (kept here so that building the parser imports nothing heavy;
+# stereopath.host.reprocess.pipeline.REPROCESS_PRESETS (kept here so that building the parser imports nothing heavy;
 # a test checks they agree)
 PRESET_NAMES = ("standard", "quick", "paper", "full")
 DEFAULT_PRESET = "standard"
@@ -41,7 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import time
 
-    from host.reprocess import reprocess_session
+    from stereopath.host.reprocess.pipeline import reprocess_session
 
     start = time.perf_counter()
     try:

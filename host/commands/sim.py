@@ -21,9 +21,9 @@ def run(args: argparse.Namespace) -> int:
     import dataclasses
     import time
 
-    from device.errors import ConfigError
-    from device.recorder import record_sequence
-    from device.sim.session import SimConfig, open_sim
+    from stereopath.device.errors import ConfigError
+    from stereopath.device.formats.recorder import record_sequence
+    from stereopath.device.sim.session import SimConfig, open_sim
 
     if args.frames is not None and args.frames < 1:
         raise ConfigError(f"--frames must be at least 1, got {args.frames}")

@@ -1,6 +1,6 @@
 """The register-level MPU-6050 emulator as a fake ``smbus2.SMBus`` for tests.
 
-The emulator itself lives in :mod:`device.imu.emulator` because ``stereopath device
+The emulator itself lives in :mod:`stereopath.device.capture.imu.emulator` because ``stereopath device
 selftest --imu emulated`` uses it on machines without the chip; this module re-exports it
 and adds the helpers the tests share.
 """
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from device.imu.emulator import Mpu6050Emulator, RealClock, SimClock, samples_source, still_source
+from stereopath.device.capture.imu.emulator import Mpu6050Emulator, RealClock, SimClock, samples_source, still_source
 
 __all__ = ["Mpu6050Emulator", "RealClock", "SimClock", "counting_source", "samples_source", "still_source",
            "decode_index"]

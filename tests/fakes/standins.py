@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from device.frames import ImuSamples, StereoFrame
-from device.rig import paper_rig
+from stereopath.device.core.frames import ImuSamples, StereoFrame
+from stereopath.device.core.rig import paper_rig
 
 
 def frame_image(i: int, side: int, size: tuple[int, int] = (64, 48)) -> np.ndarray:
@@ -54,8 +54,8 @@ class StandinSequence:
 
 def source_settings(backend: str, size: list[int], pair_tolerance_us: int, **kw):
     """A validated SourceSettings for a fake-backed source test (fast frame rate, short timeout)."""
-    from device.config import from_mapping
-    from device.settings import SourceSettings
+    from stereopath.device.core.config import from_mapping
+    from stereopath.device.service.settings import SourceSettings
 
     base = {"backend": backend, "fps": 100.0, "exposure_us": 2000, "pair_tolerance_us": pair_tolerance_us,
             "timeout_s": 0.4, "size": size}

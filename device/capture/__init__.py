@@ -1,0 +1,1 @@
+"""Capture: stereo sources, IMU sources, left/right pairing and IMU-to-frame time alignment."""

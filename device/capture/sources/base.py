@@ -1,0 +1,151 @@
+"""The stereo source seam: one small protocol, shared statistics and a base class.
+
+A :class:`StereoSource` is opened (``open()`` or ``with``), iterated for
+:class:`~stereopath.device.core.frames.StereoFrame` objects and closed.  Every frame's ``t_ns`` is
+the mid-exposure instant on one monotonic clock (CLOCK_MONOTONIC on the device,
+the recording's clock on replay).  ``rig`` is the calibrated rig (available once
+opened), ``imu`` the source's own inertial stream (an :class:`stereopath.device.capture.imu.ImuSource`)
+or ``None``, and ``stats`` the counters below.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+from dataclasses import dataclass
+from typing import Any, Iterator, Protocol, runtime_checkable
+
+from stereopath.device.errors import CaptureError
+from stereopath.device.core.frames import StereoFrame
+from stereopath.device.core.rig import Rig
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class SourceStats:
+    """Counters of a stereo source (safe to read at any time; copies via :meth:`snapshot`)."""
+
+    frames_left: int = 0        # frames received from the left camera
+    frames_right: int = 0       # frames received from the right camera
+    paired: int = 0             # pairs formed
+    delivered: int = 0          # pairs handed to the consumer
+    dropped_unpaired: int = 0   # frames whose partner never came (lost on the other camera)
+    dropped_presync: int = 0    # frames before the cameras reported SyncReady
+    dropped_overflow: int = 0   # frames or pairs dropped because a bounded buffer was full
+    dropped_sensor: int = 0     # frames the sensor itself skipped (sequence-number gaps)
+    max_skew_ns: int = 0        # largest |t_left - t_right| among delivered pairs
+    last_skew_ns: int = 0       # |t_left - t_right| of the latest pair or near-miss
+
+    def snapshot(self) -> "SourceStats":
+        return dataclasses.replace(self)
+
+    def as_dict(self) -> dict[str, int]:
+        return dataclasses.asdict(self)
+
+
+@runtime_checkable
+class StereoSource(Protocol):
+    """What every stereo backend offers."""
+
+    name: str
+
+    def open(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> "StereoSource": ...
+
+    def __exit__(self, *exc: Any) -> None: ...
+
+    def __iter__(self) -> Iterator[StereoFrame]: ...
+
+    @property
+    def rig(self) -> Rig | None: ...
+
+    @property
+    def imu(self) -> Any: ...
+
+    @property
+    def stats(self) -> SourceStats: ...
+
+
+class SourceBase:
+    """Common lifecycle: idempotent open/close, context manager, stats under a lock."""
+
+    name = "source"
+
+    def __init__(self) -> None:
+        self._stats = SourceStats()
+        self._stats_lock = threading.Lock()
+        self._opened = False
+        self._rig: Rig | None = None
+        self._imu: Any = None
+
+    # lifecycle -------------------------------------------------------------------------
+    def open(self) -> None:
+        if self._opened:
+            return
+        self._open()
+        self._opened = True
+        log.info("%s source opened", self.name)
+
+    def close(self) -> None:
+        if not self._opened:
+            return
+        self._opened = False
+        try:
+            self._close()
+        finally:
+            log.info("%s source closed: %s", self.name, self._stats.as_dict())
+
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def __iter__(self) -> Iterator[StereoFrame]:
+        if not self._opened:
+            raise CaptureError(f"{self.name} source: iterate only after open() (or use 'with')")
+        return self._frames()
+
+    # properties ------------------------------------------------------------------------
+    @property
+    def rig(self) -> Rig | None:
+        return self._rig
+
+    @property
+    def imu(self) -> Any:
+        return self._imu
+
+    @property
+    def stats(self) -> SourceStats:
+        with self._stats_lock:
+            return self._stats.snapshot()
+
+    def _count(self, **increments: int) -> None:
+        with self._stats_lock:
+            for key, inc in increments.items():
+                setattr(self._stats, key, getattr(self._stats, key) + inc)
+
+    # to implement ----------------------------------------------------------------------
+    def _open(self) -> None:
+        raise NotImplementedError
+
+    def _close(self) -> None:
+        raise NotImplementedError
+
+    def _frames(self) -> Iterator[StereoFrame]:
+        raise NotImplementedError
+
+
+def load_rig_override(path: str) -> Rig | None:
+    """The configured rig YAML, or None when ``path`` is empty."""
+    if not path:
+        return None
+    from stereopath.device.core.rig import load_rig_yaml
+
+    return load_rig_yaml(path)

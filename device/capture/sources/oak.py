@@ -1,0 +1,267 @@
+"""OAK-D mono pair through depthai v3: CAM_B (left) and CAM_C (right), GRAY8, one Sync node.
+
+The two mono sensors are hardware-synchronised (FSYNC); a ``Sync`` node groups their
+frames within ``sync_threshold_ms`` and emits only synchronised groups.  Frame time is
+``ImgFrame.getTimestamp(CameraExposureOffset.MIDDLE)``: the host-synchronised
+``dai::Clock`` (std::chrono::steady_clock = CLOCK_MONOTONIC) at mid-exposure.  A group
+whose two mid-exposure times differ by more than ``source.pair_tolerance_us`` is dropped
+(``dropped_unpaired``); gaps in the left sequence numbers count as ``dropped_sensor``.
+
+Factory calibration is read from the EEPROM into our :class:`~stereopath.device.core.rig.Rig`:
+intrinsics scaled to the output size, the 14 OpenCV distortion coefficients, and the
+extrinsics with ``unit=LengthUnit.METER`` (depthai's default is centimetres).
+``getCameraExtrinsics(src, dst)`` returns the transform that carries points from the
+source camera's coordinates into the destination camera's (Luxonis stores OpenCV's
+``stereoCalibrate`` R, T of left -> right), so ``(CAM_B, CAM_C)`` is exactly our
+``T_cam1_cam0``, with ``T[0] < 0`` for a right camera on the right.  A positive ``T[0]``
+means the other direction: it is inverted with a warning.
+
+The OAK's own IMU (when enabled) is exposed as ``source.imu`` (:class:`DepthaiImu`).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import time
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+from stereopath.device.errors import CaptureError
+from stereopath.device.core.frames import ImuSamples, StereoFrame
+from stereopath.device.core.geometry import invert_pose
+from stereopath.device.core.rig import Rig, make_camera, make_rig
+from stereopath.device.service.settings import SourceSettings
+from stereopath.device.capture.sources.base import SourceBase, load_rig_override
+
+log = logging.getLogger(__name__)
+
+DEPTHAI_NAMES = (
+    "Pipeline", "Pipeline.create", "Pipeline.start", "Pipeline.stop", "Pipeline.isRunning",
+    "Pipeline.getDefaultDevice", "node.Camera", "node.Camera.build", "node.Camera.requestOutput",
+    "node.Sync", "node.Sync.setSyncThreshold", "node.IMU", "node.IMU.enableIMUSensor",
+    "node.IMU.setBatchReportThreshold", "node.IMU.setMaxBatchReports",
+    "CameraBoardSocket.CAM_B", "CameraBoardSocket.CAM_C", "ImgFrame.Type.GRAY8", "ImgFrame.getTimestamp",
+    "ImgFrame.getFrame", "ImgFrame.getSequenceNum", "CameraExposureOffset.MIDDLE", "LengthUnit.METER",
+    "IMUSensor.ACCELEROMETER_RAW", "IMUSensor.GYROSCOPE_RAW", "MessageGroup", "MessageQueue",
+    "CalibrationHandler.getCameraIntrinsics", "CalibrationHandler.getDistortionCoefficients",
+    "CalibrationHandler.getCameraExtrinsics",
+)
+
+
+def import_depthai() -> Any:
+    try:
+        import depthai
+    except ImportError as exc:
+        raise CaptureError(f"depthai backend: cannot import depthai ({exc}); pip install 'stereopath[oak]'") from None
+    return depthai
+
+
+def timedelta_to_ns(td: dt.timedelta) -> int:
+    """Exact integer nanoseconds of a ``datetime.timedelta`` (microsecond resolution)."""
+    return ((td.days * 86400 + td.seconds) * 1_000_000 + td.microseconds) * 1000
+
+
+def rig_from_calibration(cal: Any, dai: Any, size: tuple[int, int], name: str = "oak-d") -> Rig:
+    """Our rig from a depthai ``CalibrationHandler`` (metres, ``T_cam1_cam0``)."""
+    w, h = (int(v) for v in size)
+    socks = (dai.CameraBoardSocket.CAM_B, dai.CameraBoardSocket.CAM_C)
+    cams = []
+    for cname, sock in zip(("cam0", "cam1"), socks):
+        model = getattr(cal, "getDistortionModel", None)
+        if model is not None and hasattr(dai, "CameraModel"):
+            m = model(sock)
+            if m != dai.CameraModel.Perspective:
+                raise CaptureError(f"depthai: {cname} uses the {m} lens model; only Perspective is supported")
+        K = np.asarray(cal.getCameraIntrinsics(sock, w, h), float)
+        d = np.asarray(cal.getDistortionCoefficients(sock), float).reshape(-1)
+        cams.append(make_camera(cname, K, d, (w, h)))
+    T = np.asarray(cal.getCameraExtrinsics(socks[0], socks[1], unit=dai.LengthUnit.METER), float)
+    if T.shape != (4, 4):
+        raise CaptureError(f"depthai: CAM_B -> CAM_C extrinsics have shape {T.shape}, expected 4x4")
+    if T[0, 3] > 0:
+        log.warning("depthai: CAM_B -> CAM_C extrinsics have T[0] = %+.4f m > 0; taking them as the "
+                    "reverse direction and inverting", T[0, 3])
+        T = invert_pose(T)
+    baseline = float(np.linalg.norm(T[:3, 3]))
+    if not 0.005 < baseline < 1.0:
+        raise CaptureError(f"depthai: implausible stereo baseline {baseline:.4f} m from the factory "
+                           "calibration (wrong unit?)")
+    T_body_cam0 = None
+    getter = getattr(cal, "getCameraToImuExtrinsics", None)
+    if getter is not None:
+        try:
+            T_body_cam0 = np.asarray(getter(socks[0], unit=dai.LengthUnit.METER), float)
+        except Exception as exc:  # older boards carry no IMU extrinsics
+            log.info("depthai: no camera-IMU extrinsics in the calibration (%s)", exc)
+    return make_rig(cams[0], cams[1], T[:3, :3], T[:3, 3], name=name, T_body_cam0=T_body_cam0)
+
+
+class DepthaiImu:
+    """The OAK's IMU as an :class:`stereopath.device.capture.imu.ImuSource` (host-synchronised timestamps)."""
+
+    name = "depthai-imu"
+
+    def __init__(self, queue: Any, rate_hz: float) -> None:
+        self._q = queue
+        self.rate_hz = float(rate_hz)
+        self.gaps: list[tuple[int, int]] = []
+        self.samples = 0
+        self._last_t: int | None = None
+
+    def open(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def read(self) -> ImuSamples:
+        """All packets received since the last call (timestamps of the gyro reports)."""
+        t, g, a = [], [], []
+        try:
+            msgs = self._q.tryGetAll()
+        except Exception as exc:
+            raise CaptureError(f"depthai: IMU queue failed: {exc}") from None
+        for msg in msgs:
+            for pk in msg.packets:
+                gy, ac = pk.gyroscope, pk.acceleroMeter
+                ts = timedelta_to_ns(gy.getTimestamp())
+                if self._last_t is not None and ts <= self._last_t:
+                    continue
+                if self._last_t is not None and ts - self._last_t > 2.5e9 / self.rate_hz:
+                    self.gaps.append((self._last_t, ts))
+                self._last_t = ts
+                t.append(ts)
+                g.append((gy.x, gy.y, gy.z))
+                a.append((ac.x, ac.y, ac.z))
+        self.samples += len(t)
+        if not t:
+            return ImuSamples.empty()
+        return ImuSamples(np.array(t, np.int64), np.array(g, float), np.array(a, float))
+
+
+class DepthaiSource(SourceBase):
+    """Stereo pairs from an OAK-D's mono cameras (see module doc)."""
+
+    name = "depthai"
+
+    def __init__(self, settings: SourceSettings, dai: Any | Callable[[], Any] | None = None,
+                 rig: Rig | None = None) -> None:
+        super().__init__()
+        self.settings = settings
+        self._dai_arg = dai
+        self._rig_arg = rig
+        self._pipeline: Any = None
+        self._queue: Any = None
+        self._dai: Any = None
+
+    def _module(self) -> Any:
+        if self._dai_arg is None:
+            return import_depthai()
+        if callable(self._dai_arg) and not hasattr(self._dai_arg, "Pipeline"):
+            return self._dai_arg()
+        return self._dai_arg
+
+    def _open(self) -> None:
+        s, ds = self.settings, self.settings.depthai
+        dai = self._dai = self._module()
+        try:
+            p = dai.Pipeline()  # connects to the first available device
+        except Exception as exc:
+            raise CaptureError(f"depthai: no OAK device ({exc})") from None
+        self._pipeline = p
+        try:
+            size = (int(s.size[0]), int(s.size[1]))
+            cams, outs = [], []
+            for sock in (dai.CameraBoardSocket.CAM_B, dai.CameraBoardSocket.CAM_C):
+                cam = p.create(dai.node.Camera).build(sock)
+                outs.append(cam.requestOutput(size, type=dai.ImgFrame.Type.GRAY8, fps=float(s.fps)))
+                cam.initialControl.setManualExposure(int(s.exposure_us), int(ds.iso))
+                cams.append(cam)
+            sync = p.create(dai.node.Sync)
+            sync.setSyncThreshold(dt.timedelta(milliseconds=ds.sync_threshold_ms))
+            outs[0].link(sync.inputs["left"])
+            outs[1].link(sync.inputs["right"])
+            self._queue = sync.out.createOutputQueue(maxSize=ds.queue_size, blocking=False)
+            if ds.imu:
+                imu = p.create(dai.node.IMU)
+                imu.enableIMUSensor([dai.IMUSensor.ACCELEROMETER_RAW, dai.IMUSensor.GYROSCOPE_RAW], ds.imu_rate_hz)
+                imu.setBatchReportThreshold(5)
+                imu.setMaxBatchReports(20)
+                self._imu = DepthaiImu(imu.out.createOutputQueue(maxSize=50, blocking=False), ds.imu_rate_hz)
+            if self._rig_arg is not None:
+                self._rig = self._rig_arg
+            else:
+                self._rig = load_rig_override(s.rig_file)
+                if self._rig is None:
+                    cal = p.getDefaultDevice().readCalibration()
+                    self._rig = rig_from_calibration(cal, dai, size)
+            p.start()
+        except CaptureError:
+            self._stop_pipeline()
+            raise
+        except Exception as exc:
+            self._stop_pipeline()
+            raise CaptureError(f"depthai: building/starting the pipeline failed: {exc}") from None
+        log.info("depthai: CAM_B/CAM_C %dx%d GRAY8 at %.2f fps, exposure %d us ISO %d, baseline %.4f m",
+                 s.size[0], s.size[1], s.fps, s.exposure_us, ds.iso, self._rig.baseline_m)
+
+    def _frames(self) -> Iterator[StereoFrame]:
+        s, dai = self.settings, self._dai
+        mid = dai.CameraExposureOffset.MIDDLE
+        tol_ns = s.pair_tolerance_us * 1000
+        seq = 0
+        last_seq: int | None = None
+        last_progress = time.monotonic()
+        while self._opened:
+            try:
+                running = self._pipeline.isRunning()
+                group = self._queue.get(timeout=dt.timedelta(seconds=min(0.1, s.timeout_s))) if running else None
+            except Exception as exc:  # QueueException when the device went away, XLink errors
+                raise CaptureError(f"depthai: lost the device: {exc}") from None
+            if not running:
+                raise CaptureError("depthai: the pipeline stopped (device disconnected?)")
+            if group is None:
+                if time.monotonic() - last_progress > s.timeout_s:
+                    raise CaptureError(f"depthai: no synchronised frame pair for {s.timeout_s:.1f} s")
+                continue
+            last_progress = time.monotonic()
+            lf, rf = group["left"], group["right"]
+            tl = timedelta_to_ns(lf.getTimestamp(mid))
+            tr = timedelta_to_ns(rf.getTimestamp(mid))
+            sn = int(lf.getSequenceNum())
+            self._count(frames_left=1, frames_right=1)
+            if last_seq is not None and sn - last_seq > 1:
+                self._count(dropped_sensor=sn - last_seq - 1)
+            last_seq = sn
+            skew = abs(tl - tr)
+            if skew > tol_ns:
+                self._count(dropped_unpaired=2)
+                with self._stats_lock:
+                    self._stats.last_skew_ns = skew
+                continue
+            left, right = np.asarray(lf.getFrame()), np.asarray(rf.getFrame())
+            if left.ndim == 3:
+                left, right = left[..., 0], right[..., 0]
+            with self._stats_lock:
+                self._stats.paired += 1
+                self._stats.delivered += 1
+                self._stats.max_skew_ns = max(self._stats.max_skew_ns, skew)
+                self._stats.last_skew_ns = skew
+            meta = {"source": self.name, "t_left_ns": tl, "t_right_ns": tr, "skew_ns": skew,
+                    "sequence_num": sn, "exposure_us": s.exposure_us}
+            yield StereoFrame(seq=seq, t_ns=(tl + tr) // 2, left=left, right=right, meta=meta)
+            seq += 1
+
+    def _stop_pipeline(self) -> None:
+        p, self._pipeline = self._pipeline, None
+        if p is None:
+            return
+        try:
+            p.stop()
+        except Exception as exc:
+            log.warning("depthai: stopping the pipeline failed: %s", exc)
+
+    def _close(self) -> None:
+        self._stop_pipeline()

@@ -1,0 +1,107 @@
+"""Replay of a recorded sequence (our ASL sessions, EuRoC, KITTI) as a stereo source.
+
+The sequence comes from :func:`stereopath.device.formats.open_source` (``session:DIR``,
+``euroc:DIR``, ``kitti:DIR``) or is passed in directly: anything with ``rig``, ``t_ns``,
+``len()``, ``frame(i) -> StereoFrame`` and ``imu`` (``ImuSamples`` or ``None``).
+Frames keep their recorded ``t_ns``.  At ``speed = "recorded"`` each frame is held back
+until its recorded time has elapsed since the first one (on the injected clock); at
+``"max"`` frames come as fast as they are decoded.  The recorded IMU is exposed as
+``source.imu`` (an :class:`~stereopath.device.capture.imu.base.OfflineImu` released up to the latest frame
+time plus a look-ahead, as a live IMU would have delivered it).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any, Callable, Iterator
+
+from stereopath.device.errors import CaptureError, DatasetError
+from stereopath.device.core.frames import StereoFrame
+from stereopath.device.capture.imu.base import OfflineImu
+from stereopath.device.service.settings import ReplaySettings
+from stereopath.device.capture.sources.base import SourceBase, load_rig_override
+
+log = logging.getLogger(__name__)
+
+
+def paced(times_ns: list[int] | Any, clock_ns: Callable[[], int], sleep: Callable[[float], None]) -> Callable[[int], None]:
+    """A function that waits until recorded time ``t`` (relative to the first call) is due."""
+    state: dict[str, int] = {}
+
+    def wait_for(t_ns: int) -> None:
+        if "t0" not in state:
+            state["t0"], state["h0"] = int(t_ns), clock_ns()
+            return
+        due = state["h0"] + (int(t_ns) - state["t0"])
+        delay = (due - clock_ns()) / 1e9
+        if delay > 0:
+            sleep(delay)
+
+    return wait_for
+
+
+class ReplaySource(SourceBase):
+    """Frames of a recorded sequence (see module doc)."""
+
+    name = "replay"
+
+    def __init__(self, settings: ReplaySettings, sequence: Any = None, rig_file: str = "",
+                 clock_ns: Callable[[], int] = time.monotonic_ns, sleep: Callable[[float], None] = time.sleep,
+                 imu_lookahead_ns: int = 100_000_000) -> None:
+        super().__init__()
+        self.settings = settings
+        self._seq_arg = sequence
+        self._rig_file = rig_file
+        self._clock_ns = clock_ns
+        self._sleep = sleep
+        self._lookahead = imu_lookahead_ns
+        self.sequence: Any = None
+
+    def _open(self) -> None:
+        seq = self._seq_arg
+        if seq is None:
+            if not self.settings.path:
+                raise CaptureError("replay source: no sequence configured (source.replay.path, e.g. 'euroc:DIR')")
+            from stereopath.device.formats import open_source
+
+            try:
+                seq = open_source(self.settings.path)
+            except DatasetError as exc:
+                raise CaptureError(f"replay source: {exc}") from None
+        self.sequence = seq
+        n = len(seq)
+        if n == 0:
+            raise CaptureError(f"replay source: {getattr(seq, 'name', 'sequence')} has no frames")
+        if self.settings.start >= n:
+            raise CaptureError(f"replay source: start frame {self.settings.start} beyond the last frame ({n - 1})")
+        self._rig = load_rig_override(self._rig_file) or seq.rig
+        imu = getattr(seq, "imu", None)
+        self._imu = OfflineImu(imu, self._lookahead) if imu is not None and len(imu) else None
+        self.name = f"replay:{getattr(seq, 'name', 'sequence')}"
+
+    def _frames(self) -> Iterator[StereoFrame]:
+        s, seq = self.settings, self.sequence
+        stop = len(seq) if s.count == 0 else min(len(seq), s.start + s.count)
+        wait = paced([], self._clock_ns, self._sleep) if s.speed == "recorded" else None
+        for out_seq, i in enumerate(range(s.start, stop)):
+            if not self._opened:
+                return
+            t = int(seq.t_ns[i])
+            if wait is not None:
+                wait(t)
+            frame = seq.frame(i)
+            self._count(frames_left=1, frames_right=1, paired=1, delivered=1)
+            if self._imu is not None:
+                self._imu.advance(t)
+            meta = dict(frame.meta)
+            meta.setdefault("source", self.name)
+            meta["index"] = i
+            yield StereoFrame(seq=out_seq, t_ns=t, left=frame.left, right=frame.right, meta=meta)
+        if self._imu is not None and stop == len(seq):
+            self._imu.finish()  # end of the recording: the IMU tail is available too
+
+    def _close(self) -> None:
+        close = getattr(self.sequence, "close", None)
+        if callable(close) and self._seq_arg is None:
+            close()

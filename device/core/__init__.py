@@ -1,0 +1,1 @@
+"""The pure core: geometry, frames, rig model, features, matching, two-view and stereo geometry (no I/O)."""

@@ -1,0 +1,473 @@
+"""Keypoints and descriptors: SIFT, OpenCV's full ASIFT, and the paper's modified ASIFT.
+
+Pure compute: a grey ``uint8`` image in, a :class:`Features` set out.
+
+The *modified ASIFT* of the reference paper runs SIFT on affine-simulated views
+of an image.  A view is a pair ``(tilt t, longitude phi_deg)``: the image is
+rotated by ``phi``, blurred along x with ``sigma = blur_k * sqrt(t^2 - 1)``
+(anti-aliasing, as in Morel & Yu's ASIFT) and squeezed along x by ``1/t``.  SIFT
+runs on the view (with a mask that ignores the blank corners and a thin border)
+and every keypoint is mapped back to the original image with the inverse affine
+map.  ``t = 1 / cos(latitude)``.
+
+The paper's scheme is asymmetric: SIFT on the *earlier* image, affine views of
+the *later* one.  Each image is therefore detected once with the preset; its
+original-view subset (:meth:`Features.original_view`) is what the next pair
+uses as "SIFT on the earlier image", so no image is ever detected twice.
+
+Presets (:data:`PRESETS`):
+
+* ``sift``  - the original view only (plain SIFT);
+* ``paper`` - latitudes 15/30/45/60 deg x longitudes 0..150 every 30 deg plus the
+  original view (25 views), full resolution, unlimited keypoints;
+* ``fast``  - our real-time preset in the paper's asymmetric scheme: the original
+  view plus tilt 2 (60 deg of latitude, where plain SIFT fails) at four
+  longitudes, views downscaled to 0.7, lower contrast and looser edge thresholds
+  (more keypoints per view);
+* ``fast_sym`` - symmetric pairing (all views of both images are matched view
+  against view): tilt 2 at three longitudes.  In a sequence every image's views
+  are computed once anyway (when it is the later image), so the symmetric pairing
+  costs only matching time, and it doubles the covered tilt directions
+  (image 1 squeezed along phi = image 2 stretched along phi);
+* ``full``  - OpenCV's ``cv2.AffineFeature`` with its default view parameters (the
+  reference; its keypoints carry ``view = -1`` since OpenCV does not report the view).
+
+ASIFT is covered by US patent 8687920; ``cv2.AffineFeature`` is OpenCV's own
+implementation and the view simulation here is written for this project.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any, Literal, Mapping
+
+import cv2
+import numpy as np
+
+from stereopath.device.core.config import check_range, from_mapping
+from stereopath.device.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "Features",
+    "FeatureConfig",
+    "PRESETS",
+    "get_preset",
+    "detect",
+    "earlier_features",
+    "earlier_subset",
+    "view_transform",
+    "simulate_view",
+    "tilt_of_latitude",
+]
+
+ORIGINAL_VIEW = (1.0, 0.0)
+
+
+def tilt_of_latitude(latitude_deg: float) -> float:
+    """ASIFT tilt ``t = 1 / cos(latitude)``."""
+    return 1.0 / math.cos(math.radians(latitude_deg))
+
+
+# --------------------------------------------------------------------------- features
+
+
+@dataclass(frozen=True, eq=False)
+class Features:
+    """Keypoints of one image, all in that image's pixel coordinates.
+
+    ``view`` is the index of the simulated view a keypoint came from in the
+    :class:`FeatureConfig` that produced it (0 = the original image, -1 = unknown,
+    e.g. ``cv2.AffineFeature``).
+    """
+
+    xy: np.ndarray  # (N, 2) float32, pixels
+    desc: np.ndarray  # (N, 128) float32
+    size: np.ndarray  # (N,) float32, keypoint diameter in original pixels
+    angle: np.ndarray  # (N,) float32, degrees, in original image coordinates
+    response: np.ndarray  # (N,) float32
+    view: np.ndarray  # (N,) int16
+
+    def __len__(self) -> int:
+        return int(self.xy.shape[0])
+
+    @staticmethod
+    def empty(dim: int = 128) -> "Features":
+        z = np.zeros(0, np.float32)
+        return Features(np.zeros((0, 2), np.float32), np.zeros((0, dim), np.float32), z, z.copy(), z.copy(), np.zeros(0, np.int16))
+
+    def subset(self, index: np.ndarray) -> "Features":
+        """Features selected by a boolean mask or an integer index array."""
+        index = np.asarray(index)
+        return Features(self.xy[index], self.desc[index], self.size[index], self.angle[index], self.response[index], self.view[index])
+
+    def original_view(self) -> "Features":
+        """The keypoints of the original (untilted) view: plain SIFT on this image."""
+        return self.subset(self.view == 0)
+
+    @staticmethod
+    def concat(parts: list["Features"]) -> "Features":
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return Features.empty()
+        return Features(
+            np.concatenate([p.xy for p in parts]),
+            np.concatenate([p.desc for p in parts]),
+            np.concatenate([p.size for p in parts]),
+            np.concatenate([p.angle for p in parts]),
+            np.concatenate([p.response for p in parts]),
+            np.concatenate([p.view for p in parts]),
+        )
+
+
+# --------------------------------------------------------------------------- configuration
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """How to detect features.  Build from a mapping with ``stereopath.device.core.config.from_mapping``.
+
+    ``views`` lists ``(tilt, longitude_deg)`` pairs; the first one must be the
+    original view ``(1.0, 0.0)``.  ``nfeatures`` caps the original view and
+    ``view_nfeatures`` each simulated view (0 = unlimited).  Simulated views are
+    computed on the image resized by ``view_scale``.
+    """
+
+    views: tuple[tuple[float, float], ...] = (ORIGINAL_VIEW,)
+    backend: Literal["views", "cv2_affine"] = "views"
+    # How a pair (earlier, later) is matched: "asymmetric" is the paper's scheme
+    # (original view of the earlier image vs all views of the later one);
+    # "symmetric" matches all views of both (each image's views are computed
+    # once anyway when it is the later image, so in a sequence this costs only
+    # matching time).
+    pairing: Literal["asymmetric", "symmetric"] = "asymmetric"
+    nfeatures: int = 0
+    view_nfeatures: int = 0
+    contrast_threshold: float = 0.04
+    view_contrast_threshold: float | None = None  # None: same as contrast_threshold
+    edge_threshold: float = 10.0
+    sigma: float = 1.6
+    n_octave_layers: int = 3
+    view_scale: float = 1.0
+    blur_k: float = 0.8
+    border_px: int = 4
+    threads: int = 1  # views on a thread pool; SIFT is already parallel inside OpenCV, so 1 was fastest on 2 cores
+    compact_views: bool = True  # turn oblique views to the smallest canvas (SIFT is rotation invariant)
+    precise_upscale: bool = True  # OpenCV's unbiased 2x upsampling (no 0.25 px shift)
+    # cv2.AffineFeature parameters (backend "cv2_affine" only); OpenCV's defaults.
+    affine_max_tilt: int = 5
+    affine_min_tilt: int = 0
+    affine_tilt_step: float = 1.4142135623730951
+    affine_rotate_step_base: float = 72.0
+
+    def __post_init__(self) -> None:
+        if not self.views:
+            raise ConfigError("views must list at least the original view (1.0, 0.0)")
+        if tuple(map(float, self.views[0])) != ORIGINAL_VIEW:
+            raise ConfigError(f"views[0] must be the original view (1.0, 0.0), got {self.views[0]!r}")
+        for i, v in enumerate(self.views):
+            if len(v) != 2:
+                raise ConfigError(f"views[{i}] must be a (tilt, longitude_deg) pair, got {v!r}")
+            check_range(f"views[{i}].tilt", float(v[0]), 1.0, 16.0)
+            check_range(f"views[{i}].longitude_deg", float(v[1]), -360.0, 360.0)
+        check_range("nfeatures", self.nfeatures, 0, 1_000_000)
+        check_range("view_nfeatures", self.view_nfeatures, 0, 1_000_000)
+        check_range("contrast_threshold", self.contrast_threshold, 1e-4, 1.0)
+        if self.view_contrast_threshold is not None:
+            check_range("view_contrast_threshold", self.view_contrast_threshold, 1e-4, 1.0)
+        check_range("edge_threshold", self.edge_threshold, 1.0, 100.0)
+        check_range("sigma", self.sigma, 0.5, 5.0)
+        check_range("n_octave_layers", self.n_octave_layers, 1, 10)
+        check_range("view_scale", self.view_scale, 0.1, 2.0)
+        check_range("blur_k", self.blur_k, 0.0, 5.0)
+        check_range("border_px", self.border_px, 0, 100)
+        check_range("threads", self.threads, 1, 64)
+        check_range("affine_max_tilt", self.affine_max_tilt, 1, 10)
+        check_range("affine_min_tilt", self.affine_min_tilt, 0, self.affine_max_tilt - 1)
+        check_range("affine_tilt_step", self.affine_tilt_step, 1.01, 4.0)
+        check_range("affine_rotate_step_base", self.affine_rotate_step_base, 1.0, 180.0)
+
+    @staticmethod
+    def from_mapping(mapping: Mapping[str, Any]) -> "FeatureConfig":
+        return from_mapping(FeatureConfig, mapping)
+
+    @property
+    def n_views(self) -> int:
+        return len(self.views)
+
+
+def _paper_views() -> tuple[tuple[float, float], ...]:
+    views = [ORIGINAL_VIEW]
+    for lat in (15.0, 30.0, 45.0, 60.0):
+        t = round(tilt_of_latitude(lat), 6)
+        for phi in range(0, 180, 30):
+            views.append((t, float(phi)))
+    return tuple(views)
+
+
+PRESETS: dict[str, FeatureConfig] = {
+    "sift": FeatureConfig(pairing="symmetric"),
+    "paper": FeatureConfig(views=_paper_views()),
+    "fast": FeatureConfig(
+        views=(ORIGINAL_VIEW, (2.0, 0.0), (2.0, 45.0), (2.0, 90.0), (2.0, 135.0)),
+        view_scale=0.7,
+        contrast_threshold=0.02,
+        edge_threshold=20.0,
+    ),
+    "fast_sym": FeatureConfig(
+        views=(ORIGINAL_VIEW, (2.0, 0.0), (2.0, 60.0), (2.0, 120.0)),
+        pairing="symmetric",
+        contrast_threshold=0.015,
+        edge_threshold=20.0,
+    ),
+    "full": FeatureConfig(backend="cv2_affine", pairing="symmetric"),
+    # the on-board estimator's keyframes: plain SIFT density, two tilted views at half scale
+    "onboard": FeatureConfig(
+        views=(ORIGINAL_VIEW, (2.0, 0.0), (2.0, 90.0)),
+        view_scale=0.5,
+    ),
+}
+
+PRESET_HELP: dict[str, str] = {
+    "sift": "plain SIFT (original view only)",
+    "paper": "the paper's modified ASIFT: latitudes 15/30/45/60 x longitudes 0..150 step 30 + original (25 views)",
+    "fast": "paper's asymmetric scheme, real time: original + tilt 2 at longitudes 0/45/90/135, views at 0.7 scale",
+    "fast_sym": "symmetric: original + tilt 2 at longitudes 0/60/120 on both images (views reused per image)",
+    "full": "OpenCV cv2.AffineFeature(SIFT) with its default view parameters (reference ASIFT)",
+    "onboard": "the stereo estimator's keyframes: original + tilt 2 at longitudes 0/90, views at 0.5 scale",
+}
+
+
+def earlier_subset(feats: Features, cfg: FeatureConfig | str) -> Features:
+    """The part of an already detected image used as the *earlier* image of a pair.
+
+    Asymmetric pairing (the paper): the original view (plain SIFT); symmetric: all.
+    """
+    if isinstance(cfg, str):
+        cfg = get_preset(cfg)
+    if cfg.backend == "views" and cfg.pairing == "asymmetric":
+        return feats.original_view()
+    return feats
+
+
+def earlier_features(image: np.ndarray, cfg: FeatureConfig | str) -> Features:
+    """Detect only what the earlier image of a pair needs (the original view when asymmetric)."""
+    if isinstance(cfg, str):
+        cfg = get_preset(cfg)
+    if cfg.backend == "views" and cfg.pairing == "asymmetric":
+        return detect(image, cfg, views=[0])
+    return detect(image, cfg)
+
+
+def get_preset(name: str) -> FeatureConfig:
+    """The preset called ``name``; ConfigError lists the known ones otherwise."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ConfigError(f"unknown feature preset {name!r}; known: {', '.join(PRESETS)}") from None
+
+
+# --------------------------------------------------------------------------- view simulation
+
+
+def _rot(deg: float) -> np.ndarray:
+    """Counter-clockwise rotation as seen on screen (image y axis points down)."""
+    a = math.radians(deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, s], [-s, c]])
+
+
+def _fit(L: np.ndarray, size_wh: tuple[int, int]) -> tuple[np.ndarray, tuple[int, int]]:
+    """2x3 map ``[L | offset]`` placing the image's corners at >= 0, and the size that holds them."""
+    w, h = size_wh
+    corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], float) @ L.T
+    lo = corners.min(axis=0)
+    hi = corners.max(axis=0)
+    M = np.hstack([L, -lo[:, None]])
+    return M, (int(math.ceil(hi[0] - lo[0])) + 1, int(math.ceil(hi[1] - lo[1])) + 1)
+
+
+def _compact_rotation_deg(A: np.ndarray, size_wh: tuple[int, int]) -> float:
+    """In-plane rotation ``psi`` minimising the bounding box of ``R(psi) A`` applied to the image.
+
+    SIFT does not care about in-plane rotation, so an oblique view can be turned
+    to fit a smaller canvas: 25-35 % fewer pixels for views at 30-60 deg longitude.
+    """
+    w, h = size_wh
+    corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], float) @ A.T  # (4, 2)
+    psi = np.radians(np.arange(0.0, 180.0, 1.0))
+    c, s = np.cos(psi)[:, None], np.sin(psi)[:, None]
+    x = c * corners[:, 0] + s * corners[:, 1]
+    y = -s * corners[:, 0] + c * corners[:, 1]
+    area = np.ptp(x, axis=1) * np.ptp(y, axis=1)
+    return float(np.degrees(psi[int(np.argmin(area))]))
+
+
+def view_transform(size_wh: tuple[int, int], tilt: float, phi_deg: float, scale: float = 1.0, compact: bool = True) -> tuple[np.ndarray, tuple[int, int]]:
+    """Affine map (2x3) from original pixels to the simulated view, and the view size ``(w, h)``.
+
+    The linear part is ``R(psi) diag(1/tilt, 1) R(phi) * scale``: rotate by
+    ``phi_deg``, squeeze x by ``1/tilt`` and (``compact``) turn by the ``psi``
+    that gives the smallest canvas.
+    """
+    A = np.diag([1.0 / tilt, 1.0]) @ _rot(phi_deg) * scale
+    if compact and tilt != 1.0:
+        A = _rot(_compact_rotation_deg(A, size_wh)) @ A
+    elif tilt == 1.0:
+        A = np.eye(2) * scale  # a pure rotation is no new view for SIFT
+    return _fit(A, size_wh)
+
+
+def simulate_view(image: np.ndarray, tilt: float, phi_deg: float, scale: float = 1.0, blur_k: float = 0.8, border_px: int = 4, compact: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Simulated view of ``image``: returns ``(view, mask, M)`` with ``M`` original -> view (2x3).
+
+    Steps (as in ASIFT): rotate by ``phi`` (with ``scale``), blur along x with
+    ``sigma = blur_k * sqrt(tilt^2 - 1)``, squeeze x by ``1/tilt``; the squeeze
+    and the compacting rotation are one warp.  ``mask`` marks the image's interior
+    (``border_px`` inside its edges) in the view.  ``image`` must already be
+    anti-aliased when ``scale < 1`` (:func:`detect` resizes with area interpolation
+    first and passes ``scale = 1``).
+    """
+    h, w = image.shape[:2]
+    if tilt == 1.0:
+        M, (vw, vh) = view_transform((w, h), 1.0, 0.0, scale)
+        view = image if scale == 1.0 else cv2.warpAffine(image, M, (vw, vh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    else:
+        M_rot, (rw, rh) = _fit(_rot(phi_deg) * scale, (w, h))
+        if phi_deg % 360.0 == 0.0 and scale == 1.0:
+            rotated = image
+        else:
+            rotated = cv2.warpAffine(image, M_rot, (rw, rh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        sigma = blur_k * math.sqrt(tilt * tilt - 1.0)
+        if sigma > 0.05:
+            ksize = 2 * int(math.ceil(3.0 * sigma)) + 1
+            rotated = cv2.GaussianBlur(rotated, (ksize, 1), sigmaX=sigma, sigmaY=0.01)
+        S = np.diag([1.0 / tilt, 1.0])
+        psi = _compact_rotation_deg(S @ M_rot[:, :2], (w, h)) if compact else 0.0
+        L2 = _rot(psi) @ S
+        # full map original -> view, placed so the image's corners fit
+        M, (vw, vh) = _fit(L2 @ M_rot[:, :2], (w, h))
+        # second warp: rotated canvas -> view
+        M2 = np.hstack([L2, (M[:, 2] - L2 @ M_rot[:, 2])[:, None]])
+        view = cv2.warpAffine(rotated, M2, (vw, vh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    # Valid region: the original frame shrunk by border_px, mapped into the view.
+    b = float(border_px)
+    rect = np.array([[b, b], [w - 1 - b, b], [w - 1 - b, h - 1 - b], [b, h - 1 - b]], float)
+    poly = rect @ M[:, :2].T + M[:, 2]
+    mask = np.zeros((vh, vw), np.uint8)
+    cv2.fillConvexPoly(mask, np.round(poly).astype(np.int32), 255)
+    return view, mask, M
+
+
+def _keypoints_to_arrays(kps, desc, view_index: int, M: np.ndarray | None, n_dim: int = 128) -> Features:
+    if not kps:
+        return Features.empty(n_dim)
+    xy = np.array([k.pt for k in kps], np.float64)
+    size = np.array([k.size for k in kps], np.float64)
+    angle = np.array([k.angle for k in kps], np.float64)
+    resp = np.array([k.response for k in kps], np.float32)
+    if M is not None:
+        Minv = cv2.invertAffineTransform(M)
+        L = Minv[:, :2]
+        xy = xy @ L.T + Minv[:, 2]
+        size = size * math.sqrt(abs(np.linalg.det(L)))
+        # Orientation: map the unit direction of each keypoint back (SIFT angles are
+        # measured with y down, as on screen).
+        a = np.radians(angle)
+        d = np.stack([np.cos(a), np.sin(a)], axis=1) @ L.T
+        angle = np.degrees(np.arctan2(d[:, 1], d[:, 0])) % 360.0
+    return Features(
+        xy.astype(np.float32),
+        np.asarray(desc, np.float32).reshape(len(kps), -1),
+        size.astype(np.float32),
+        angle.astype(np.float32),
+        resp,
+        np.full(len(kps), view_index, np.int16),
+    )
+
+
+def _make_sift(cfg: FeatureConfig, view: bool):
+    n = cfg.view_nfeatures if view else cfg.nfeatures
+    ct = cfg.view_contrast_threshold if (view and cfg.view_contrast_threshold is not None) else cfg.contrast_threshold
+    return cv2.SIFT_create(n, cfg.n_octave_layers, ct, cfg.edge_threshold, cfg.sigma, enable_precise_upscale=cfg.precise_upscale)
+
+
+def _check_image(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim != 2:
+        raise ConfigError(f"detect() needs a single-channel image, got shape {image.shape}")
+    if image.dtype != np.uint8:
+        raise ConfigError(f"detect() needs a uint8 image, got {image.dtype}")
+    return np.ascontiguousarray(image)
+
+
+def _detect_view(image: np.ndarray, small: np.ndarray, cfg: FeatureConfig, index: int, scale: float) -> Features:
+    tilt, phi = map(float, cfg.views[index])
+    if index == 0:
+        sift = _make_sift(cfg, view=False)
+        h, w = image.shape
+        mask = None
+        if cfg.border_px > 0:
+            mask = np.zeros((h, w), np.uint8)
+            b = cfg.border_px
+            mask[b:h - b, b:w - b] = 255
+        kps, desc = sift.detectAndCompute(image, mask)
+        return _keypoints_to_arrays(kps, desc, 0, None)
+    view, mask, M = simulate_view(small, tilt, phi, 1.0, cfg.blur_k, max(1, int(round(cfg.border_px * scale))), cfg.compact_views)
+    if scale != 1.0:
+        # original -> small (pixel centres: x_s = scale * x + 0.5 * scale - 0.5) -> view
+        off = 0.5 * scale - 0.5
+        M = np.hstack([M[:, :2] * scale, (M[:, 2] + M[:, :2].sum(axis=1) * off)[:, None]])
+    sift = _make_sift(cfg, view=True)
+    kps, desc = sift.detectAndCompute(view, mask)
+    return _keypoints_to_arrays(kps, desc, index, M)
+
+
+def detect(image: np.ndarray, cfg: FeatureConfig | str = "sift", views: list[int] | None = None) -> Features:
+    """Detect and describe keypoints of a grey uint8 image with ``cfg`` (or a preset name).
+
+    ``views`` restricts detection to those view indices (e.g. ``[0]`` for the
+    plain-SIFT half of the paper's asymmetric scheme); default all.
+    """
+    if isinstance(cfg, str):
+        cfg = get_preset(cfg)
+    image = _check_image(image)
+    if image.size == 0:
+        return Features.empty()
+    if cfg.backend == "cv2_affine":
+        return _detect_cv2_affine(image, cfg)
+    indices = list(range(cfg.n_views)) if views is None else list(views)
+    for i in indices:
+        if not 0 <= i < cfg.n_views:
+            raise ConfigError(f"view index {i} out of range for a configuration with {cfg.n_views} views")
+    scale = cfg.view_scale
+    small = image
+    if any(i > 0 for i in indices) and scale != 1.0:
+        h, w = image.shape
+        small = cv2.resize(image, (max(1, int(round(w * scale))), max(1, int(round(h * scale)))), interpolation=cv2.INTER_AREA)
+        scale = small.shape[1] / w  # the scale actually used
+    if cfg.threads > 1 and len(indices) > 1:
+        # OpenCV releases the GIL, so views run in parallel.  The original view (the
+        # largest) goes first so the pool stays balanced; results keep view order.
+        with ThreadPoolExecutor(max_workers=cfg.threads) as pool:
+            futures = {i: pool.submit(_detect_view, image, small, cfg, i, scale) for i in sorted(indices, key=lambda i: i != 0)}
+            parts = [futures[i].result() for i in indices]
+    else:
+        parts = [_detect_view(image, small, cfg, i, scale) for i in indices]
+    feats = Features.concat(parts)
+    log.debug("detect: %d keypoints from %d views", len(feats), len(indices))
+    return feats
+
+
+def _detect_cv2_affine(image: np.ndarray, cfg: FeatureConfig) -> Features:
+    sift = _make_sift(cfg, view=False)
+    af = cv2.AffineFeature_create(sift, cfg.affine_max_tilt, cfg.affine_min_tilt, cfg.affine_tilt_step, cfg.affine_rotate_step_base)
+    kps, desc = af.detectAndCompute(image, None)
+    feats = _keypoints_to_arrays(kps, desc, -1, None)
+    return Features(feats.xy, feats.desc, feats.size, feats.angle, feats.response, np.full(len(feats), -1, np.int16))

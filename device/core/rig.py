@@ -1,0 +1,414 @@
+"""The stereo rig model: two pinhole cameras with distortion and their relative pose.
+
+Extrinsics follow OpenCV's ``stereoCalibrate``: ``R``, ``T`` map a point from
+camera 1 (left, ``cam0``) coordinates into camera 2 (right, ``cam1``)
+coordinates, ``x_cam1 = R @ x_cam0 + T``, i.e. they form ``T_cam1_cam0``.  A
+right camera to the right of the left one therefore has ``T[0] < 0`` (the
+reference paper's Table 1: T = [-47.917, -0.142, -13.373] mm).
+
+Loaders for our YAML, KITTI ``calib.txt`` and EuRoC ``sensor.yaml`` live here
+too: they only parse text into the model and validate it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stereopath.device.errors import CalibrationError
+from stereopath.device.core.geometry import invert_pose, make_pose, project_to_so3
+
+log = logging.getLogger(__name__)
+
+ORTHO_TOL = 1e-2  # |R^T R - I| (max element) above this is not a rotation
+ORTHO_SILENT = 1e-9  # below this R is taken as it is
+
+
+@dataclass(frozen=True, eq=False)
+class CameraModel:
+    """One pinhole camera: 3x3 ``K`` (pixels), OpenCV distortion ``dist`` and ``(width, height)``."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    size: tuple[int, int]
+
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+
+@dataclass(frozen=True)
+class Rectification:
+    """Result of ``cv2.stereoRectify`` plus the undistort-rectify maps for both cameras."""
+
+    R0: np.ndarray  # rectifying rotation of cam0 (rectified <- original)
+    R1: np.ndarray
+    P0: np.ndarray  # 3x4 projection of the rectified cam0
+    P1: np.ndarray
+    Q: np.ndarray
+    maps0: tuple[np.ndarray, np.ndarray]
+    maps1: tuple[np.ndarray, np.ndarray]
+    size: tuple[int, int]
+
+    @property
+    def f(self) -> float:
+        return float(self.P0[0, 0])
+
+    @property
+    def cx(self) -> float:
+        return float(self.P0[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.P0[1, 2])
+
+    @property
+    def baseline_m(self) -> float:
+        return float(-self.P1[0, 3] / self.P1[0, 0])
+
+    @property
+    def K(self) -> np.ndarray:
+        return self.P0[:, :3].copy()
+
+    def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Undistort and rectify a left/right image pair (bilinear)."""
+        import cv2
+
+        l = cv2.remap(left, self.maps0[0], self.maps0[1], cv2.INTER_LINEAR)
+        r = cv2.remap(right, self.maps1[0], self.maps1[1], cv2.INTER_LINEAR)
+        return l, r
+
+
+@dataclass(frozen=True, eq=False)
+class Rig:
+    """A calibrated stereo pair.  ``R``, ``T`` form ``T_cam1_cam0`` (see module doc)."""
+
+    cam0: CameraModel
+    cam1: CameraModel
+    R: np.ndarray
+    T: np.ndarray
+    name: str = "rig"
+    T_body_cam0: np.ndarray | None = None  # IMU/body frame <- cam0, when known
+    _cache: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def baseline_m(self) -> float:
+        return float(np.linalg.norm(self.T))
+
+    @property
+    def T_cam1_cam0(self) -> np.ndarray:
+        return make_pose(self.R, self.T)
+
+    @property
+    def T_cam0_cam1(self) -> np.ndarray:
+        return invert_pose(self.T_cam1_cam0)
+
+    @property
+    def is_rectified(self) -> bool:
+        """True when the pair is already row-aligned (KITTI): no rotation, no distortion, x-only baseline."""
+        return (
+            np.allclose(self.R, np.eye(3), atol=1e-9)
+            and abs(self.T[1]) < 1e-9
+            and abs(self.T[2]) < 1e-9
+            and not np.any(self.cam0.dist)
+            and not np.any(self.cam1.dist)
+            and np.allclose(self.cam0.K, self.cam1.K)
+        )
+
+    def rectification(self, alpha: float = 0.0) -> Rectification:
+        """Rectification maps (computed once per rig and alpha, then cached)."""
+        key = f"rect:{alpha}"
+        if key not in self._cache:
+            self._cache[key] = _compute_rectification(self, alpha)
+        return self._cache[key]
+
+
+def _compute_rectification(rig: Rig, alpha: float) -> Rectification:
+    import cv2
+
+    size = rig.cam0.size
+    R0, R1, P0, P1, Q, _, _ = cv2.stereoRectify(
+        rig.cam0.K, rig.cam0.dist, rig.cam1.K, rig.cam1.dist, size, rig.R, rig.T.reshape(3, 1),
+        flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha,
+    )
+    m0 = cv2.initUndistortRectifyMap(rig.cam0.K, rig.cam0.dist, R0, P0, size, cv2.CV_32FC1)
+    m1 = cv2.initUndistortRectifyMap(rig.cam1.K, rig.cam1.dist, R1, P1, size, cv2.CV_32FC1)
+    return Rectification(R0, R1, P0, P1, Q, m0, m1, size)
+
+
+# ---------------------------------------------------------------------------------------------
+# construction and validation
+
+
+def _array(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{name}: not numeric: {value!r}") from None
+    if a.size == int(np.prod(shape)) and a.shape != shape:
+        a = a.reshape(shape)
+    if a.shape != shape:
+        raise CalibrationError(f"{name}: expected shape {shape}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise CalibrationError(f"{name}: contains non-finite values")
+    return a
+
+
+def make_camera(name: str, K: Any, dist: Any, size: Any) -> CameraModel:
+    """Validated :class:`CameraModel`; errors name the field (e.g. ``cam0.K``)."""
+    K = _array(f"{name}.K", K, (3, 3))
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise CalibrationError(f"{name}.K: focal length must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
+    if abs(K[2, 2] - 1.0) > 1e-9 or abs(K[1, 0]) > 1e-9 or abs(K[2, 0]) > 1e-9 or abs(K[2, 1]) > 1e-9:
+        raise CalibrationError(f"{name}.K: not an upper-triangular intrinsic matrix with K[2,2] = 1")
+    d = np.asarray(dist if dist is not None else np.zeros(5), dtype=float).reshape(-1)
+    if d.size not in (4, 5, 8, 12, 14):
+        raise CalibrationError(f"{name}.distortion: expected 4, 5, 8, 12 or 14 coefficients, got {d.size}")
+    if not np.all(np.isfinite(d)):
+        raise CalibrationError(f"{name}.distortion: contains non-finite values")
+    try:
+        w, h = (int(v) for v in size)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{name}.image_size: expected [width, height], got {size!r}") from None
+    if w <= 0 or h <= 0:
+        raise CalibrationError(f"{name}.image_size: must be positive, got {w}x{h}")
+    return CameraModel(K=K, dist=d, size=(w, h))
+
+
+def validated_rotation(name: str, R: Any) -> np.ndarray:
+    """Check that ``R`` is (nearly) a rotation; project a nearly orthonormal one onto SO(3)."""
+    R = _array(name, R, (3, 3))
+    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    det = float(np.linalg.det(R))
+    if det <= 0:
+        raise CalibrationError(f"{name}: not a rotation (det = {det:.4f} <= 0)")
+    if err > ORTHO_TOL:
+        raise CalibrationError(f"{name}: not a rotation (max |R^T R - I| = {err:.3g} > {ORTHO_TOL})")
+    if err > ORTHO_SILENT:
+        Rp = project_to_so3(R)
+        log.warning(
+            "%s is not exactly orthonormal (max |R^T R - I| = %.2e); projected onto SO(3), "
+            "largest element change %.2e", name, err, float(np.max(np.abs(Rp - R))),
+        )
+        R = Rp
+    return R
+
+
+def make_rig(cam0: CameraModel, cam1: CameraModel, R: Any, T: Any, name: str = "rig",
+             T_body_cam0: Any = None) -> Rig:
+    """Validated :class:`Rig` from parts (``R``, ``T`` = ``T_cam1_cam0``, metres)."""
+    R = validated_rotation("R", R)
+    T = _array("T", T, (3,))
+    if np.linalg.norm(T) < 1e-6:
+        raise CalibrationError("T: zero baseline (the two cameras coincide)")
+    Tb = None if T_body_cam0 is None else _array("T_body_cam0", T_body_cam0, (4, 4))
+    if Tb is not None:
+        Tb = Tb.copy()
+        Tb[:3, :3] = validated_rotation("T_body_cam0 rotation", Tb[:3, :3])
+    return Rig(cam0=cam0, cam1=cam1, R=R, T=T, name=name, T_body_cam0=Tb)
+
+
+# ---------------------------------------------------------------------------------------------
+# our YAML format
+
+
+def rig_from_dict(data: Any, source: str = "rig") -> Rig:
+    """Rig from our YAML schema (see ``firmware_cfg/rig_paper.yaml``)."""
+    if not isinstance(data, dict):
+        raise CalibrationError(f"{source}: expected a mapping at top level")
+    known = {"name", "units", "cam0", "cam1", "R_cam1_cam0", "T_cam1_cam0_m", "T_body_cam0", "comment", "source"}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise CalibrationError(f"{source}: unknown key(s) {', '.join(unknown)}")
+    for key in ("cam0", "cam1", "R_cam1_cam0", "T_cam1_cam0_m"):
+        if key not in data:
+            raise CalibrationError(f"{source}: missing key {key}")
+    cams = []
+    for cname in ("cam0", "cam1"):
+        c = data[cname]
+        if not isinstance(c, dict):
+            raise CalibrationError(f"{source}: {cname} must be a mapping")
+        for key in ("intrinsics", "image_size"):
+            if key not in c:
+                raise CalibrationError(f"{source}: missing key {cname}.{key}")
+        intr = c["intrinsics"]
+        if not isinstance(intr, (list, tuple)) or len(intr) != 4:
+            raise CalibrationError(f"{source}: {cname}.intrinsics must be [fx, fy, cx, cy]")
+        fx, fy, cx, cy = (float(v) for v in intr)
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+        cams.append(make_camera(cname, K, c.get("distortion", [0, 0, 0, 0, 0]), c["image_size"]))
+    return make_rig(cams[0], cams[1], data["R_cam1_cam0"], data["T_cam1_cam0_m"],
+                    name=str(data.get("name", Path(source).stem)), T_body_cam0=data.get("T_body_cam0"))
+
+
+def rig_to_dict(rig: Rig) -> dict[str, Any]:
+    """Inverse of :func:`rig_from_dict` (plain lists, ready for YAML)."""
+    def cam(c: CameraModel) -> dict[str, Any]:
+        return {
+            "image_size": [int(c.size[0]), int(c.size[1])],
+            "intrinsics": [c.fx, c.fy, c.cx, c.cy],
+            "distortion": [float(v) for v in c.dist],
+        }
+
+    out: dict[str, Any] = {
+        "name": rig.name,
+        "units": "metres",
+        "cam0": cam(rig.cam0),
+        "cam1": cam(rig.cam1),
+        "R_cam1_cam0": [[float(v) for v in row] for row in rig.R],
+        "T_cam1_cam0_m": [float(v) for v in rig.T],
+    }
+    if rig.T_body_cam0 is not None:
+        out["T_body_cam0"] = [[float(v) for v in row] for row in rig.T_body_cam0]
+    return out
+
+
+def load_rig_yaml(path: str | Path) -> Rig:
+    """Load our rig YAML; any problem raises :class:`CalibrationError` naming the file and field."""
+    import yaml
+
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except FileNotFoundError:
+        raise CalibrationError(f"calibration file not found: {p}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise CalibrationError(f"{p}: invalid YAML: {exc}") from None
+    try:
+        return rig_from_dict(data, source=str(p))
+    except CalibrationError as exc:
+        msg = str(exc)
+        raise CalibrationError(msg if msg.startswith(str(p)) else f"{p}: {msg}") from None
+
+
+def save_rig_yaml(rig: Rig, path: str | Path, comment: str | None = None) -> None:
+    import yaml
+
+    text = yaml.safe_dump(rig_to_dict(rig), sort_keys=False, default_flow_style=None)
+    header = "".join(f"# {line}\n" for line in (comment or "").splitlines())
+    Path(path).write_text(header + text)
+
+
+# ---------------------------------------------------------------------------------------------
+# KITTI and EuRoC
+
+
+def load_kitti_calib(path: str | Path, image_size: tuple[int, int]) -> Rig:
+    """KITTI odometry ``calib.txt``: ``P0``, ``P1`` (rectified, so R = I, T = [-B, 0, 0])."""
+    p = Path(path)
+    try:
+        lines = p.read_text().splitlines()
+    except FileNotFoundError:
+        raise CalibrationError(f"KITTI calibration not found: {p}") from None
+    mats: dict[str, np.ndarray] = {}
+    for i, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        key, _, rest = line.partition(":")
+        try:
+            vals = np.array([float(v) for v in rest.split()])
+        except ValueError:
+            raise CalibrationError(f"{p}:{i}: {key.strip()}: non-numeric value") from None
+        mats[key.strip()] = vals
+    for key in ("P0", "P1"):
+        if key not in mats:
+            raise CalibrationError(f"{p}: missing {key}")
+        if mats[key].size != 12:
+            raise CalibrationError(f"{p}: {key} must have 12 values, got {mats[key].size}")
+    P0 = mats["P0"].reshape(3, 4)
+    P1 = mats["P1"].reshape(3, 4)
+    if P1[0, 0] <= 0:
+        raise CalibrationError(f"{p}: P1: focal length must be positive")
+    baseline = -P1[0, 3] / P1[0, 0]
+    cam0 = make_camera("cam0", P0[:, :3], np.zeros(5), image_size)
+    cam1 = make_camera("cam1", P1[:, :3], np.zeros(5), image_size)
+    return make_rig(cam0, cam1, np.eye(3), [-baseline, 0.0, 0.0], name="kitti")
+
+
+def _euroc_sensor(path: Path) -> dict[str, Any]:
+    import yaml
+
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise CalibrationError(f"EuRoC sensor file not found: {path}") from None
+    text = re.sub(r"^%YAML.*$", "", text, count=1, flags=re.MULTILINE)  # OpenCV-style header
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise CalibrationError(f"{path}: invalid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise CalibrationError(f"{path}: expected a mapping")
+    return data
+
+
+def _euroc_camera(name: str, path: Path) -> tuple[CameraModel, np.ndarray]:
+    d = _euroc_sensor(path)
+    for key in ("T_BS", "intrinsics", "resolution", "distortion_coefficients"):
+        if key not in d:
+            raise CalibrationError(f"{path}: missing {key}")
+    model = d.get("distortion_model", "radial-tangential")
+    if model not in ("radial-tangential", "radtan"):
+        raise CalibrationError(f"{path}: distortion_model {model!r} is not supported (radial-tangential only)")
+    tbs = d["T_BS"]
+    data = tbs.get("data") if isinstance(tbs, dict) else tbs
+    T_BS = _array(f"{name}.T_BS", data, (4, 4))
+    intr = d["intrinsics"]
+    if not isinstance(intr, list) or len(intr) != 4:
+        raise CalibrationError(f"{path}: intrinsics must be [fu, fv, cu, cv]")
+    fu, fv, cu, cv = (float(v) for v in intr)
+    K = np.array([[fu, 0, cu], [0, fv, cv], [0, 0, 1.0]])
+    cam = make_camera(name, K, d["distortion_coefficients"], d["resolution"])
+    return cam, T_BS
+
+
+def load_euroc_rig(mav0: str | Path) -> Rig:
+    """EuRoC/ASL rig from ``mav0/cam0/sensor.yaml`` and ``mav0/cam1/sensor.yaml``."""
+    m = Path(mav0)
+    cam0, T_B_C0 = _euroc_camera("cam0", m / "cam0" / "sensor.yaml")
+    cam1, T_B_C1 = _euroc_camera("cam1", m / "cam1" / "sensor.yaml")
+    T_C1_C0 = invert_pose(T_B_C1) @ T_B_C0
+    return make_rig(cam0, cam1, T_C1_C0[:3, :3], T_C1_C0[:3, 3], name="euroc", T_body_cam0=T_B_C0)
+
+
+def with_name(rig: Rig, name: str) -> Rig:
+    return dataclasses.replace(rig, name=name, _cache={})
+
+
+# ---------------------------------------------------------------------------------------------
+# the built-in rig (identical to firmware_cfg/rig_paper.yaml; a test keeps them equal)
+
+PAPER_R_CAM1_CAM0 = [[1.0, 0.011, 0.0163], [-0.011, 1.0, 0.008], [-0.0162, -0.008, 1.0]]
+PAPER_T_CAM1_CAM0_MM = [-47.917, -0.142, -13.373]
+PAPER_IMAGE_SIZE = (640, 480)
+PAPER_INTRINSICS = (500.0, 500.0, 319.5, 239.5)  # fx, fy, cx, cy at 640x480 (our choice)
+
+
+def paper_rig(T_body_cam0: Any = None) -> Rig:
+    """The reference paper's rig (Table 1 extrinsics, mm -> m) with our 640x480 intrinsics."""
+    fx, fy, cx, cy = PAPER_INTRINSICS
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    cam = make_camera("cam0", K, np.zeros(5), PAPER_IMAGE_SIZE)
+    cam1 = make_camera("cam1", K, np.zeros(5), PAPER_IMAGE_SIZE)
+    T = np.array(PAPER_T_CAM1_CAM0_MM) / 1000.0
+    return make_rig(cam, cam1, PAPER_R_CAM1_CAM0, T, name="paper", T_body_cam0=T_body_cam0)

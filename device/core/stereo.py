@@ -1,0 +1,180 @@
+"""Stereo triangulation, projection and Levenberg-Marquardt pose refinement in both cameras.
+
+Pixel coordinates handed to these functions are *undistorted* (ideal pinhole
+with the camera's own K).  Poses: ``T_cam_world`` maps world points into the
+left camera; the right camera is ``T_cam1_cam0 @ T_cam_world``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from stereopath.device.core.geometry import skew, so3_exp
+from stereopath.device.core.rig import Rig
+
+
+def undistort_px(xy: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Distorted pixel coordinates -> ideal pinhole pixels with the same K."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    if len(xy) == 0 or not np.any(dist):
+        return xy.copy()
+    return cv2.undistortPoints(xy.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
+
+
+def project(K: np.ndarray, X_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole projection; returns pixels (N,2) and depths (N,)."""
+    z = X_cam[:, 2]
+    zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
+    u = K[0, 0] * X_cam[:, 0] / zs + K[0, 2]
+    v = K[1, 1] * X_cam[:, 1] / zs + K[1, 2]
+    return np.stack([u, v], axis=1), z
+
+
+def triangulate(rig: Rig, uv0: np.ndarray, uv1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Triangulate undistorted left/right pixel pairs; returns X in cam0 (N,3) and max reprojection error."""
+    if len(uv0) == 0:
+        return np.zeros((0, 3)), np.zeros(0)
+    P0 = rig.cam0.K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    P1 = rig.cam1.K @ np.hstack([rig.R, rig.T.reshape(3, 1)])
+    Xh = cv2.triangulatePoints(P0, P1, uv0.T.astype(np.float64), uv1.T.astype(np.float64))
+    w = Xh[3]
+    w = np.where(np.abs(w) < 1e-12, 1e-12, w)
+    X = (Xh[:3] / w).T
+    p0, z0 = project(rig.cam0.K, X)
+    p1, z1 = project(rig.cam1.K, X @ rig.R.T + rig.T)
+    err = np.maximum(np.linalg.norm(p0 - uv0, axis=1), np.linalg.norm(p1 - uv1, axis=1))
+    err = np.where((z0 > 0) & (z1 > 0), err, np.inf)
+    return X, err
+
+
+@dataclass
+class RefineResult:
+    T_cam_world: np.ndarray
+    inliers_left: np.ndarray
+    inliers_right: np.ndarray
+    rms_px: float
+    iterations: int
+
+
+def _residuals(T: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray, T_extra: np.ndarray | None):
+    Xc = X @ T[:3, :3].T + T[:3, 3]
+    Xk = Xc if T_extra is None else Xc @ T_extra[:3, :3].T + T_extra[:3, 3]
+    p, z = project(K, Xk)
+    return p - uv, Xc, Xk, z
+
+
+def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, X_world: np.ndarray, uv_left: np.ndarray,
+                   X_world_r: np.ndarray | None = None, uv_right: np.ndarray | None = None,
+                   huber_px: float = 1.0, max_iter: int = 15, outlier_px: float = 3.0,
+                   prior_R: np.ndarray | None = None, prior_weight: float = 0.0) -> RefineResult:
+    """Levenberg-Marquardt on the reprojection error in both cameras (Huber loss, IRLS).
+
+    The update is a left perturbation ``T <- [exp(dtheta) | dt] @ T``.  An optional
+    rotation prior (e.g. gyro-integrated ``R_cam_world``) adds ``prior_weight *
+    log(R prior^T)`` residuals (radians scaled to pixels by the weight).
+    """
+    T = T_cam_world.copy()
+    K0, K1 = rig.cam0.K, rig.cam1.K
+    T10 = rig.T_cam1_cam0
+    has_r = X_world_r is not None and uv_right is not None and len(uv_right) > 0
+    lam = 1e-3
+    n_iter = 0
+
+    def cost_and_system(T: np.ndarray):
+        H = np.zeros((6, 6))
+        g = np.zeros(6)
+        cost = 0.0
+        blocks = [(X_world, uv_left, K0, None)]
+        if has_r:
+            blocks.append((X_world_r, uv_right, K1, T10))
+        for X, uv, K, Te in blocks:
+            r, Xc, Xk, z = _residuals(T, X, uv, K, Te)
+            valid = z > 1e-6
+            e = np.linalg.norm(r, axis=1)
+            w = np.where(e <= huber_px, 1.0, huber_px / np.maximum(e, 1e-12))
+            w = np.where(valid & (e < 10 * outlier_px), w, 0.0)
+            cost += float(np.sum(w * e * e))
+            x, y, zz = Xk[:, 0], Xk[:, 1], np.where(valid, Xk[:, 2], 1.0)
+            fx, fy = K[0, 0], K[1, 1]
+            # d(u,v)/d(Xk)
+            Ju = np.stack([fx / zz, np.zeros_like(zz), -fx * x / zz**2], axis=1)
+            Jv = np.stack([np.zeros_like(zz), fy / zz, -fy * y / zz**2], axis=1)
+            R_e = np.eye(3) if Te is None else Te[:3, :3]
+            # d(Xc)/d(dt, dtheta) = [I, -[Xc]x]; d(Xk) = R_e d(Xc)
+            n = len(Xc)
+            J_xc = np.zeros((n, 3, 6))
+            J_xc[:, :, :3] = np.eye(3)
+            J_xc[:, 0, 4], J_xc[:, 0, 5] = Xc[:, 2], -Xc[:, 1]
+            J_xc[:, 1, 3], J_xc[:, 1, 5] = -Xc[:, 2], Xc[:, 0]
+            J_xc[:, 2, 3], J_xc[:, 2, 4] = Xc[:, 1], -Xc[:, 0]
+            J_xk = np.einsum("ij,njk->nik", R_e, J_xc)
+            Jpu = np.einsum("ni,nik->nk", Ju, J_xk)
+            Jpv = np.einsum("ni,nik->nk", Jv, J_xk)
+            H += (Jpu * w[:, None]).T @ Jpu + (Jpv * w[:, None]).T @ Jpv
+            g += (Jpu * w[:, None]).T @ r[:, 0] + (Jpv * w[:, None]).T @ r[:, 1]
+        if prior_R is not None and prior_weight > 0:
+            from stereopath.device.core.geometry import so3_log
+
+            rr = so3_log(T[:3, :3] @ prior_R.T) * prior_weight
+            cost += float(rr @ rr)
+            Jr = np.zeros((3, 6))
+            Jr[:, 3:] = np.eye(3) * prior_weight
+            H += Jr.T @ Jr
+            g += Jr.T @ rr
+        return cost, H, g
+
+    cost, H, g = cost_and_system(T)
+    for n_iter in range(1, max_iter + 1):
+        A = H + lam * np.diag(np.maximum(np.diag(H), 1e-9))
+        try:
+            delta = -np.linalg.solve(A, g)
+        except np.linalg.LinAlgError:
+            break
+        Tn = np.eye(4)
+        Tn[:3, :3] = so3_exp(delta[3:])
+        Tn[:3, 3] = delta[:3]
+        T_new = Tn @ T
+        new_cost, H_new, g_new = cost_and_system(T_new)
+        if new_cost < cost:
+            T, cost, H, g = T_new, new_cost, H_new, g_new
+            lam = max(lam / 10, 1e-7)
+            if np.linalg.norm(delta) < 1e-10:
+                break
+        else:
+            lam *= 10
+            if lam > 1e6:
+                break
+    rl, *_ = _residuals(T, X_world, uv_left, K0, None)
+    el = np.linalg.norm(rl, axis=1)
+    inl = el < outlier_px
+    errs = [el[inl]]
+    if has_r:
+        rr, *_ = _residuals(T, X_world_r, uv_right, K1, T10)
+        er = np.linalg.norm(rr, axis=1)
+        inr = er < outlier_px
+        errs.append(er[inr])
+    else:
+        inr = np.zeros(0, bool)
+    allerr = np.concatenate(errs)
+    rms = float(np.sqrt(np.mean(allerr**2))) if len(allerr) else float("inf")
+    return RefineResult(T, inl, inr, rms, n_iter)
+
+
+def pose_to_rvec_tvec(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    rvec, _ = cv2.Rodrigues(T[:3, :3])
+    return rvec.reshape(3, 1), T[:3, 3].reshape(3, 1).copy()
+
+
+def rvec_tvec_to_pose(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    R, _ = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(tvec, dtype=np.float64).reshape(3)
+    return T
+
+
+__all__ = ["undistort_px", "project", "triangulate", "refine_pose_lm", "RefineResult",
+           "pose_to_rvec_tvec", "rvec_tvec_to_pose", "skew"]

@@ -1,0 +1,63 @@
+"""What every recorded sequence offers, whatever its on-disk format.
+
+A sequence (:class:`SequenceBase` subclasses, or anything with the same attributes) has
+
+* ``rig``: the calibrated :class:`stereopath.device.core.rig.Rig`;
+* ``t_ns``: (N,) int64 mid-exposure times of the stereo pairs, increasing;
+* ``len(seq)`` and ``seq.frame(i) -> StereoFrame`` (decoded on demand, 8-bit grey);
+* ``seq.frames(start=0, stop=None, step=1)``: an iterator of frames;
+* ``imu``: :class:`stereopath.device.core.frames.ImuSamples` or ``None`` when the sequence has no IMU;
+* ``groundtruth``: :class:`stereopath.device.formats.tum.Trajectory` of ``T_world_cam0`` or ``None``;
+* ``name`` (short, for logs) and ``spec`` (the ``open_source`` string that reopens it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+from stereopath.device.core.frames import ImuSamples, StereoFrame
+from stereopath.device.core.rig import Rig
+from stereopath.device.formats.tum import Trajectory
+
+
+class SequenceBase:
+    """Shared behaviour: length, bounds checks, iteration; subclasses implement ``_load``."""
+
+    name: str = "sequence"
+    spec: str = ""
+
+    def __init__(self, rig: Rig, t_ns: np.ndarray) -> None:
+        self.rig = rig
+        self.t_ns = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.name!r}: {len(self)} stereo frames>"
+
+    def frame(self, i: int) -> StereoFrame:
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"{self.name}: frame {i} out of range (0..{n - 1})")
+        return self._load(i % n)
+
+    def frames(self, start: int = 0, stop: int | None = None, step: int = 1) -> Iterator[StereoFrame]:
+        for i in range(*slice(start, stop, step).indices(len(self))):
+            yield self._load(i)
+
+    def __iter__(self) -> Iterator[StereoFrame]:
+        return self.frames()
+
+    def _load(self, i: int) -> StereoFrame:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @property
+    def imu(self) -> ImuSamples | None:
+        return None
+
+    @property
+    def groundtruth(self) -> Trajectory | None:
+        return None

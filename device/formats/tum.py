@@ -1,0 +1,153 @@
+"""Trajectory files: TUM (``t tx ty tz qx qy qz qw``, seconds) and KITTI (3x4 row-major poses).
+
+A :class:`Trajectory` holds ``t_ns`` (N,) int64 and ``T_world_cam`` (N, 4, 4).
+Malformed files raise :class:`DatasetError` with the line number.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from dataclasses import dataclass
+from decimal import Decimal, InvalidOperation
+from pathlib import Path
+
+import numpy as np
+
+from stereopath.device.errors import DatasetError
+from stereopath.device.core.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix
+
+
+@dataclass
+class Trajectory:
+    t_ns: np.ndarray
+    T_world_cam: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.t_ns = np.asarray(self.t_ns, dtype=np.int64).reshape(-1)
+        self.T_world_cam = np.asarray(self.T_world_cam, dtype=float).reshape(-1, 4, 4)
+        if len(self.t_ns) != len(self.T_world_cam):
+            raise ValueError("Trajectory: t_ns and T_world_cam lengths differ")
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.T_world_cam[:, :3, 3]
+
+    def path_length_m(self) -> float:
+        p = self.positions
+        return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1))) if len(p) > 1 else 0.0
+
+
+def seconds_to_ns(text: str) -> int:
+    """Exact conversion of a decimal seconds string to integer nanoseconds."""
+    return int((Decimal(text) * 1_000_000_000).to_integral_value())
+
+
+def ns_to_seconds_str(t_ns: int) -> str:
+    t = int(t_ns)
+    sign = "-" if t < 0 else ""
+    t = abs(t)
+    return f"{sign}{t // 1_000_000_000}.{t % 1_000_000_000:09d}"
+
+
+def format_tum_line(t_ns: int, T: np.ndarray) -> str:
+    q = matrix_to_quat_xyzw(T[:3, :3])
+    p = T[:3, 3]
+    return (f"{ns_to_seconds_str(t_ns)} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} "
+            f"{q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}\n")
+
+
+def write_tum(path: str | Path, traj: Trajectory) -> None:
+    """Write a TUM file atomically (temp file + rename)."""
+    p = Path(path)
+    buf = io.StringIO()
+    buf.write("# timestamp tx ty tz qx qy qz qw (T_world_cam, metres, seconds)\n")
+    for t, T in zip(traj.t_ns, traj.T_world_cam):
+        buf.write(format_tum_line(int(t), T))
+    tmp = p.with_suffix(p.suffix + ".tmp")
+    tmp.write_text(buf.getvalue())
+    os.replace(tmp, p)
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    p = Path(path)
+    try:
+        lines = p.read_text().splitlines()
+    except FileNotFoundError:
+        raise DatasetError(f"trajectory file not found: {p}") from None
+    except UnicodeDecodeError:
+        raise DatasetError(f"{p}: not a text file") from None
+    ts, Ts = [], []
+    for i, line in enumerate(lines, 1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = s.replace(",", " ").split()
+        if len(parts) != 8:
+            raise DatasetError(f"{p}:{i}: expected 8 values (t tx ty tz qx qy qz qw), got {len(parts)}")
+        try:
+            t = seconds_to_ns(parts[0])
+            v = np.array([float(x) for x in parts[1:]])
+        except (InvalidOperation, ValueError):
+            raise DatasetError(f"{p}:{i}: non-numeric value") from None
+        if not np.all(np.isfinite(v)) or np.linalg.norm(v[3:]) < 1e-9:
+            raise DatasetError(f"{p}:{i}: non-finite value or zero quaternion")
+        T = np.eye(4)
+        T[:3, :3] = quat_xyzw_to_matrix(v[3:])
+        T[:3, 3] = v[:3]
+        ts.append(t)
+        Ts.append(T)
+    if not ts:
+        raise DatasetError(f"{p}: no poses")
+    return Trajectory(np.array(ts, dtype=np.int64), np.array(Ts))
+
+
+def read_kitti_poses(path: str | Path, t_ns: np.ndarray | None = None) -> Trajectory:
+    """KITTI pose file (12 values a row).  Without ``t_ns`` the rows get 0.1 s steps."""
+    p = Path(path)
+    try:
+        lines = p.read_text().splitlines()
+    except FileNotFoundError:
+        raise DatasetError(f"pose file not found: {p}") from None
+    Ts = []
+    for i, line in enumerate(lines, 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        try:
+            v = np.array([float(x) for x in line.split()])
+        except ValueError:
+            raise DatasetError(f"{p}:{i}: non-numeric value") from None
+        if v.size != 12:
+            raise DatasetError(f"{p}:{i}: expected 12 values, got {v.size}")
+        T = np.eye(4)
+        T[:3, :] = v.reshape(3, 4)
+        Ts.append(T)
+    if not Ts:
+        raise DatasetError(f"{p}: no poses")
+    if t_ns is None:
+        t_ns = np.arange(len(Ts), dtype=np.int64) * 100_000_000
+    if len(t_ns) != len(Ts):
+        raise DatasetError(f"{p}: {len(Ts)} poses but {len(t_ns)} timestamps")
+    return Trajectory(np.asarray(t_ns), np.array(Ts))
+
+
+def read_trajectory(path: str | Path) -> Trajectory:
+    """TUM or KITTI, decided by the number of columns of the first data line."""
+    p = Path(path)
+    try:
+        with p.open() as fh:
+            for line in fh:
+                s = line.strip()
+                if s and not s.startswith("#"):
+                    n = len(s.replace(",", " ").split())
+                    break
+            else:
+                raise DatasetError(f"{p}: no poses")
+    except FileNotFoundError:
+        raise DatasetError(f"trajectory file not found: {p}") from None
+    if n == 12:
+        return read_kitti_poses(p)
+    return read_tum(p)

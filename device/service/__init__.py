@@ -1,0 +1,1 @@
+"""The capture service: options, the frame pipeline over its sinks, status, systemd integration, installer."""

@@ -1,0 +1,205 @@
+"""CURVE keys, the ZAP authenticator and the loopback rule for plain TCP.
+
+Key files are ZeroMQ certificates (``zmq.auth.create_certificates``): ``NAME.key`` holds the
+public key, ``NAME.key_secret`` both keys.  The device holds its own secret key and a directory
+of authorised host public keys; a host holds its own secret key and the device's public key.
+Layout used by :func:`make_demo_keys` (and by the demo)::
+
+    ROOT/device/device.key, device.key_secret    the device's key pair
+    ROOT/device/clients/host.key                 hosts allowed to connect
+    ROOT/host/host.key, host.key_secret          the host's key pair
+    ROOT/host/device.key                         the device's public key
+
+Without CURVE (``insecure``), endpoints must be loopback addresses: :func:`check_loopback_endpoint`.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import logging
+import os
+import re
+import shutil
+import stat
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from stereopath.device.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+KEY_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+def require_curve() -> None:
+    """Raise :class:`ConfigError` if this libzmq was built without CURVE."""
+    import zmq
+
+    if not zmq.has("curve"):
+        raise ConfigError(f"libzmq {zmq.zmq_version()} has no CURVE support; install a pyzmq wheel "
+                          "built with libsodium, or run with --insecure on loopback only")
+
+
+def generate_keypair(directory: str | Path, name: str, overwrite: bool = False) -> tuple[Path, Path]:
+    """Write ``DIR/NAME.key`` (public) and ``DIR/NAME.key_secret`` (mode 0600); return both paths."""
+    import zmq.auth
+
+    require_curve()
+    if not KEY_NAME_RE.match(name):
+        raise ConfigError(f"key name {name!r} must match {KEY_NAME_RE.pattern}")
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    public, secret = d / f"{name}.key", d / f"{name}.key_secret"
+    if not overwrite and (public.exists() or secret.exists()):
+        raise ConfigError(f"key files for {name!r} already exist in {d} (refusing to overwrite)")
+    pub_path, sec_path = zmq.auth.create_certificates(str(d), name)
+    os.chmod(sec_path, 0o600)
+    return Path(pub_path), Path(sec_path)
+
+
+def load_secret_keypair(path: str | Path) -> tuple[bytes, bytes]:
+    """``(public, secret)`` Z85 keys from a ``*.key_secret`` file."""
+    import zmq.auth
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"CURVE secret key file not found: {p}")
+    try:
+        public, secret = zmq.auth.load_certificate(str(p))
+    except (ValueError, OSError) as exc:
+        raise ConfigError(f"{p}: not a ZeroMQ certificate: {exc}") from None
+    if not secret:
+        raise ConfigError(f"{p} holds no secret key (is it the public .key file?)")
+    mode = p.stat().st_mode
+    if mode & (stat.S_IRGRP | stat.S_IROTH):
+        log.warning("secret key %s is readable by group/others (chmod 600 it)", p)
+    return public, secret
+
+
+def load_public_key(path: str | Path) -> bytes:
+    """Z85 public key from a ``*.key`` (or ``*.key_secret``) file."""
+    import zmq.auth
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"CURVE public key file not found: {p}")
+    try:
+        public, _ = zmq.auth.load_certificate(str(p))
+    except (ValueError, OSError) as exc:
+        raise ConfigError(f"{p}: not a ZeroMQ certificate: {exc}") from None
+    return public
+
+
+def authorized_keys(clients_dir: str | Path) -> list[Path]:
+    """The ``*.key`` files of the authorised-hosts directory (at least one, else ConfigError)."""
+    d = Path(clients_dir)
+    if not d.is_dir():
+        raise ConfigError(f"authorised host key directory not found: {d}")
+    keys = sorted(d.glob("*.key"))
+    if not keys:
+        raise ConfigError(f"no authorised host keys (*.key) in {d}: no host could connect")
+    for k in keys:
+        load_public_key(k)  # fail early on a damaged file
+    return keys
+
+
+def start_authenticator(ctx: Any, clients_dir: str | Path) -> Any:
+    """Start a ZAP authenticator on ``ctx`` admitting only the CURVE keys in ``clients_dir``."""
+    from zmq.auth.thread import ThreadAuthenticator
+
+    keys = authorized_keys(clients_dir)
+    auth = ThreadAuthenticator(ctx, log=logging.getLogger(__name__ + ".zap"))
+    auth.start()
+    auth.configure_curve(domain="*", location=str(Path(clients_dir)))
+    log.info("CURVE: %d authorised host key(s) in %s", len(keys), clients_dir)
+    return auth
+
+
+def load_host_keys(keys_dir: str | Path, device_key: str | Path | None = None) -> tuple[bytes, bytes, bytes]:
+    """``(host_public, host_secret, device_public)`` from a host key directory.
+
+    The directory holds exactly one ``*.key_secret`` (the host's pair) and, unless
+    ``device_key`` names another file, the device's public key as ``device.key``.
+    """
+    d = Path(keys_dir)
+    if not d.is_dir():
+        raise ConfigError(f"host key directory not found: {d}")
+    secrets_ = sorted(d.glob("*.key_secret"))
+    if len(secrets_) != 1:
+        raise ConfigError(f"{d} must hold exactly one *.key_secret (the host's key pair), found "
+                          f"{[s.name for s in secrets_]}")
+    pub, sec = load_secret_keypair(secrets_[0])
+    server = load_public_key(Path(device_key) if device_key else d / "device.key")
+    return pub, sec, server
+
+
+@dataclass(frozen=True)
+class DemoKeys:
+    """Paths of a freshly generated device/host key set (see the module docstring)."""
+
+    root: Path
+    device_secret: Path
+    clients_dir: Path
+    host_keys_dir: Path
+    host_secret: Path
+    device_public: Path
+
+
+def make_demo_keys(root: str | Path, host_name: str = "host") -> DemoKeys:
+    """Generate a device key pair and one authorised host key pair under ``root``."""
+    r = Path(root)
+    dev_pub, dev_sec = generate_keypair(r / "device", "device", overwrite=True)
+    host_pub, host_sec = generate_keypair(r / "host", host_name, overwrite=True)
+    clients = r / "device" / "clients"
+    clients.mkdir(parents=True, exist_ok=True)
+    shutil.copy(host_pub, clients / host_pub.name)
+    shutil.copy(dev_pub, r / "host" / "device.key")
+    return DemoKeys(r, dev_sec, clients, r / "host", host_sec, r / "host" / "device.key")
+
+
+_ENDPOINT_RE = re.compile(r"^(?P<scheme>[a-z]+)://(?P<rest>.+)$")
+
+
+def endpoint_host(endpoint: str) -> tuple[str, str]:
+    """``(scheme, host)`` of a ZeroMQ endpoint (``tcp://HOST:PORT``; IPv6 as ``[::1]``)."""
+    m = _ENDPOINT_RE.match(endpoint)
+    if not m:
+        raise ConfigError(f"endpoint {endpoint!r} is not of the form scheme://address")
+    scheme, rest = m.group("scheme"), m.group("rest")
+    if scheme != "tcp":
+        return scheme, rest
+    if ";" in rest:
+        raise ConfigError(f"endpoint {endpoint!r}: source-address endpoints are not supported")
+    if rest.startswith("["):
+        host, sep, _ = rest[1:].partition("]")
+        if not sep:
+            raise ConfigError(f"endpoint {endpoint!r}: unterminated IPv6 address")
+        return scheme, host
+    host, sep, port = rest.rpartition(":")
+    if not sep or not host or not port:
+        raise ConfigError(f"endpoint {endpoint!r} must be tcp://HOST:PORT")
+    return scheme, host
+
+
+def is_loopback_host(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def check_loopback_endpoint(endpoint: str) -> None:
+    """Refuse (ConfigError) any endpoint that could reach the network without CURVE.
+
+    Allowed: ``tcp://`` with a loopback address (127.0.0.0/8, ::1, localhost), ``ipc://`` and
+    ``inproc://``.  Wildcards (``*``, ``0.0.0.0``), interface names and other hosts are refused.
+    """
+    scheme, host = endpoint_host(endpoint)
+    if scheme in ("ipc", "inproc"):
+        return
+    if scheme != "tcp" or not is_loopback_host(host):
+        raise ConfigError(f"insecure (no CURVE) endpoint {endpoint!r} refused: without encryption only "
+                          "loopback addresses (127.0.0.1, ::1, localhost) are allowed")

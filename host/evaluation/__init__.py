@@ -1,0 +1,1 @@
+"""Evaluation: trajectory metrics, report.json, plots, and running an estimator over a sequence."""

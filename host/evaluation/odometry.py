@@ -1,0 +1,66 @@
+"""Run an estimator over a sequence and write ``trajectory.tum``, ``report.json``, ``path.png``."""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+from stereopath.device.estimation.base import EstimateRun, run_estimator
+from stereopath.device.estimation.registry import make_estimator
+from stereopath.device.formats.tum import Trajectory, write_tum
+
+log = logging.getLogger(__name__)
+
+
+def _frames(seq, limit: int | None):
+    it = seq.frames()
+    return it if limit is None else itertools.islice(it, limit)
+
+
+def estimate_sequence(seq, estimator: str = "stereo", preset: str | None = None, max_frames: int | None = None,
+                      options: dict[str, Any] | None = None, progress: bool = True) -> EstimateRun:
+    gt = getattr(seq, "groundtruth", None)
+    est = make_estimator(estimator, seq.rig, preset=preset, groundtruth=gt, options=options)
+    total = len(seq) if max_frames is None else min(len(seq), max_frames)
+    bar = None
+    if progress and sys.stderr.isatty():
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, desc=f"{estimator} odometry", unit="frame", leave=False)
+    try:
+        return run_estimator(est, _frames(seq, max_frames), getattr(seq, "imu", None),
+                             progress=None if bar is None else bar.update)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def report_for(run: EstimateRun, seq, source_label: str) -> tuple[dict, Trajectory | None]:
+    from stereopath.host.evaluation.evaluate import evaluate
+    from stereopath.host.evaluation.report import make_report
+
+    gt = getattr(seq, "groundtruth", None)
+    metrics = evaluate(gt, run.trajectory) if gt is not None else None
+    report = make_report(
+        source=source_label, estimator=run.estimator, frames=int(run.extra.get("frames_in", len(run.estimates))),
+        frames_tracked=run.frames_tracked, metrics=metrics, frame_ms=run.frame_ms,
+        world_frame=run.world_frame,
+    )
+    report.setdefault("extra", {}).update({"estimator_stats": run.extra})
+    return report, gt
+
+
+def write_outputs(out_dir: str | Path, run: EstimateRun, seq, source_label: str) -> dict:
+    from stereopath.host.evaluation.plots import plot_path
+    from stereopath.host.evaluation.report import write_report
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    write_tum(out / "trajectory.tum", run.trajectory)
+    report, gt = report_for(run, seq, source_label)
+    write_report(out / "report.json", report)
+    plot_path(out / "path.png", gt, run.trajectory)
+    return report

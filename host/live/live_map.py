@@ -1,0 +1,99 @@
+"""Live incremental mapping for ``stereopath host live --map``.
+
+Keyframes are handed over by the receiver thread and fused on a worker thread (depth + TSDF
+take about 0.1 s per keyframe), so receiving never waits on mapping.  Every ``every``
+keyframes the current mesh is written to ``OUT/<session>/model/mesh.ply`` (atomically) and
+shown in rerun when a view is open; at the end the whole model (mesh, cloud, preview,
+map.json) is written for each session.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from pathlib import Path
+from typing import Any
+
+from stereopath.device.errors import CalibrationError, StereopathError
+from stereopath.device.core.rig import Rig
+
+log = logging.getLogger(__name__)
+
+
+class LiveMapper:
+    def __init__(self, rig: Rig, out_dir: str | Path, every: int = 10, preset: str = "object",
+                 on_mesh: Any = None) -> None:
+        from stereopath.device.wire.protocol import rig_reference
+
+        self.rig = rig
+        self.out = Path(out_dir)
+        self.every = max(1, int(every))
+        self.preset = preset
+        self.on_mesh = on_mesh
+        self._ref = rig_reference(rig)
+        self._mappers: dict[str, Any] = {}
+        self._q: queue.Queue = queue.Queue()
+        self._thread = threading.Thread(target=self._work, name="live-map", daemon=True)
+        self._thread.start()
+        self.rejected = 0
+        self.fused = 0
+        self.refreshes = 0
+
+    def on_keyframe(self, kf: Any, new: bool) -> None:
+        if new:
+            self._q.put(kf)
+
+    def _mapper(self, session: str):
+        from stereopath.host.mapping.mapper import DenseMapper, map_preset
+
+        if session not in self._mappers:
+            self._mappers[session] = DenseMapper(self.rig, map_preset(self.preset), source=f"live:{session}")
+        return self._mappers[session]
+
+    def _work(self) -> None:
+        from stereopath.device.wire.protocol import decode_image
+        from stereopath.host.mapping.fusion import write_mesh
+
+        while True:
+            kf = self._q.get()
+            if kf is None:
+                return
+            try:
+                if (kf.rig_name, kf.rig_hash) != self._ref:
+                    raise CalibrationError(f"keyframe {kf.seq} of session {kf.session_id} was taken with rig "
+                                           f"{kf.rig_name} ({kf.rig_hash}); --rig is {self._ref[0]} ({self._ref[1]})")
+                m = self._mapper(kf.session_id)
+                m.add(decode_image(kf.left), decode_image(kf.right), kf.T_world_cam, kf.seq)
+                self.fused += 1
+            except StereopathError as exc:
+                self.rejected += 1
+                log.warning("live map: keyframe %s not fused: %s", getattr(kf, "seq", "?"), exc)
+                continue
+            if m.keyframes % self.every == 0:
+                mesh = m.mesh()
+                if len(mesh.triangles) == 0:  # too few views of any surface yet
+                    continue
+                path = self.out / kf.session_id / "model" / "mesh.ply"
+                path.parent.mkdir(parents=True, exist_ok=True)
+                write_mesh(mesh, path)
+                self.refreshes += 1
+                if self.on_mesh is not None:
+                    self.on_mesh(kf.session_id, mesh)
+
+    def close(self) -> dict[str, Path]:
+        """Finish the worker and write each session's full model; returns the model folders."""
+        from stereopath.host.mapping.mapper import write_map
+
+        self._q.put(None)
+        self._thread.join()
+        out = {}
+        for session, m in self._mappers.items():
+            if m.keyframes == 0:
+                continue
+            try:
+                write_map(m.finish(), self.out / session / "model")
+                out[session] = self.out / session / "model"
+            except StereopathError as exc:
+                log.warning("live map of session %s not written: %s", session, exc)
+        return out

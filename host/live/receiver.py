@@ -1,0 +1,594 @@
+"""The host's receiving end: live poses (SUB), keyframes and status (DEALER), stored per session.
+
+:class:`Receiver` connects to a device (CURVE by default; plain TCP only to loopback), and for
+each device session id it sees keeps a folder ``OUT/<session>/`` with
+
+* ``poses.tum``  every received pose, appended and flushed as it arrives;
+* ``keyframes/`` every keyframe exactly once (see :mod:`stereopath.host.live.store`).
+
+``OUT/receiver.json`` counts messages received, keyframe duplicates, gaps in the pose seq and
+rejected messages by reason (totals over restarts of the receiver).
+
+Keyframe flow control (see :mod:`stereopath.device.streaming.keyframe_server`): on every completed
+handshake (a socket monitor reports it, so reconnects are noticed) the receiver says
+``hello(last session, highest contiguous seq, window)``; it acknowledges each keyframe after
+storing it, granting one more credit; if the device's status shows keyframes the receiver does
+not have and none arrived for ``stall_timeout_s``, it says hello again.
+
+Poses are received on their own thread (they never wait behind a keyframe being written to
+disk); keyframes, status and the flow control run in :meth:`Receiver.poll`.  Callbacks
+``on_pose`` run on the pose thread, ``on_keyframe``/``on_status`` on the polling thread.
+
+Everything received is decoded as untrusted input; a rejected message is counted and dropped,
+and the receiver carries on.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, TextIO
+
+from stereopath.device.core.config import check_range
+from stereopath.device.errors import ConfigError
+from stereopath.device.wire.protocol import KEYFRAME_LIMITS, POSE_LIMITS, Ack, DecodeError, Hello, Keyframe, Limits, Pose, Status, \
+    decode_message, encode_ack, encode_hello
+from stereopath.device.wire.security import check_loopback_endpoint, load_host_keys, require_curve
+from stereopath.device.wire.sockets import apply_common_options
+from stereopath.device.formats.tum import ns_to_seconds_str
+from stereopath.host.live.store import KeyframeStore, write_atomic
+
+log = logging.getLogger(__name__)
+
+RECEIVER_JSON = "receiver.json"
+DEFAULT_POSE_PORT = 5555
+
+
+@dataclass(frozen=True)
+class ReceiverConfig:
+    """Where the device is, how to authenticate, and the flow-control window."""
+
+    pose_endpoint: str
+    keyframe_endpoint: str
+    insecure: bool = False
+    keys_dir: str | None = None      # the host's key pair (*.key_secret) and device.key
+    device_key: str | None = None    # the device's public key, if not KEYS/device.key
+    window: int = 8                  # keyframes in flight (credit)
+    heartbeat_ivl_ms: int = 1000
+    heartbeat_timeout_ms: int = 5000
+    heartbeat_ttl_ms: int = 10000
+    reconnect_ivl_ms: int = 100
+    reconnect_ivl_max_ms: int = 5000
+    stall_timeout_s: float = 3.0
+    fsync: bool = True
+    stats_interval_s: float = 1.0
+    max_keyframe_bytes: int = KEYFRAME_LIMITS.max_message_bytes
+
+    def __post_init__(self) -> None:
+        check_range("window", self.window, 1, 1024)
+        check_range("stall_timeout_s", self.stall_timeout_s, 0.05, 3600.0)
+        check_range("max_keyframe_bytes", self.max_keyframe_bytes, 1024, 2**31 - 1)
+        if not self.insecure and not self.keys_dir:
+            raise ConfigError("a host key directory (--keys DIR) is required unless --insecure is given")
+
+
+def endpoints_from_address(address: str, keyframe_port: int | None = None) -> tuple[str, str]:
+    """``HOST``, ``HOST:PORT``, ``[IPv6]:PORT`` or ``tcp://HOST:PORT`` -> (pose, keyframe) endpoints.
+
+    The pose port defaults to 5555; the keyframe port to the pose port + 1.
+    """
+    a = address.strip()
+    if a.startswith("tcp://"):
+        a = a[len("tcp://"):]
+    port = DEFAULT_POSE_PORT
+    if a.startswith("["):
+        host, sep, rest = a[1:].partition("]")
+        if not sep:
+            raise ConfigError(f"device address {address!r}: unterminated IPv6 address")
+        host_part = f"[{host}]"
+        if rest:
+            if not rest.startswith(":"):
+                raise ConfigError(f"device address {address!r} is not HOST[:PORT]")
+            port_text = rest[1:]
+        else:
+            port_text = ""
+    else:
+        host, sep, port_text = a.partition(":")
+        host_part = host
+        if ":" in port_text:
+            raise ConfigError(f"device address {address!r}: write IPv6 addresses as [ADDR]:PORT")
+    if not host_part or any(c in host_part for c in "/;* "):
+        raise ConfigError(f"device address {address!r} is not HOST[:PORT]")
+    if port_text:
+        if not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
+            raise ConfigError(f"device address {address!r}: bad port {port_text!r}")
+        port = int(port_text)
+    kport = keyframe_port if keyframe_port is not None else port + 1
+    if not 1 <= kport <= 65535:
+        raise ConfigError(f"keyframe port {kport} out of range")
+    return f"tcp://{host_part}:{port}", f"tcp://{host_part}:{kport}"
+
+
+@dataclass
+class SessionStats:
+    poses: int = 0
+    pose_gaps: int = 0            # poses missing between consecutive received seqs
+    pose_out_of_order: int = 0
+    keyframes: int = 0            # new keyframes stored
+    keyframe_duplicates: int = 0
+    last_pose_seq: int = -1
+    first_t_ns: int | None = None
+    last_t_ns: int | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        return dict(vars(self))
+
+
+@dataclass
+class ReceiverStats:
+    """Counters written to ``receiver.json`` (cumulative over receiver restarts)."""
+
+    received: dict[str, int] = field(default_factory=lambda: {"pose": 0, "keyframe": 0, "status": 0})
+    duplicates: int = 0
+    pose_seq_gaps: int = 0
+    rejected_by_reason: dict[str, int] = field(default_factory=dict)
+    rejected_by_channel: dict[str, int] = field(default_factory=lambda: {"pose": 0, "keyframe": 0})
+    link: dict[str, int] = field(default_factory=lambda: {
+        "connects": 0, "disconnects": 0, "auth_failures": 0, "handshake_failures": 0, "hellos": 0,
+        "rehellos_after_stall": 0, "acks_unsent": 0})
+    sessions: dict[str, SessionStats] = field(default_factory=dict)
+    runs: int = 0
+
+    @property
+    def rejected(self) -> int:
+        return sum(self.rejected_by_reason.values())
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "received": dict(self.received),
+            "duplicates": self.duplicates,
+            "pose_seq_gaps": self.pose_seq_gaps,
+            "rejected": {"total": self.rejected, "by_reason": dict(self.rejected_by_reason),
+                         "by_channel": dict(self.rejected_by_channel)},
+            "link": dict(self.link),
+            "sessions": {sid: s.to_json() for sid, s in self.sessions.items()},
+            "runs": self.runs,
+        }
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> "ReceiverStats":
+        st = cls()
+        st.received.update({k: int(v) for k, v in data.get("received", {}).items() if k in st.received})
+        st.duplicates = int(data.get("duplicates", 0))
+        st.pose_seq_gaps = int(data.get("pose_seq_gaps", 0))
+        rej = data.get("rejected", {})
+        st.rejected_by_reason = {str(k): int(v) for k, v in rej.get("by_reason", {}).items()}
+        st.rejected_by_channel.update({k: int(v) for k, v in rej.get("by_channel", {}).items()
+                                       if k in st.rejected_by_channel})
+        st.link.update({k: int(v) for k, v in data.get("link", {}).items() if k in st.link})
+        for sid, s in data.get("sessions", {}).items():
+            known = {k: v for k, v in s.items() if k in SessionStats.__dataclass_fields__}
+            st.sessions[str(sid)] = SessionStats(**known)
+        st.runs = int(data.get("runs", 0))
+        return st
+
+
+class _Rate:
+    """Events per second over a sliding window (bounded memory)."""
+
+    def __init__(self, window_s: float = 2.0, max_events: int = 4096) -> None:
+        self.window_s = window_s
+        self.t: collections.deque[float] = collections.deque(maxlen=max_events)
+
+    def add(self, now: float) -> None:
+        self.t.append(now)
+
+    def rate(self, now: float) -> float:
+        while self.t and now - self.t[0] > self.window_s:
+            self.t.popleft()
+        return len(self.t) / self.window_s
+
+
+@dataclass
+class LiveState:
+    """What the live view shows (updated by the receiver as messages arrive)."""
+
+    session_id: str | None = None
+    pose: Pose | None = None
+    speed_m_s: float = 0.0
+    pose_rate_hz: float = 0.0
+    keyframe_rate_hz: float = 0.0
+    acked_seq: int = -1
+    status: Status | None = None
+    connected: bool = False
+    last_rx: float | None = None           # monotonic time of the last message of any kind
+    link_quality: str = "waiting"
+    pose_window_ratio: float = 0.0          # poses received / poses sent over the last window
+
+
+class Receiver:
+    """Receives from one device into ``out_dir``; drive it with :meth:`poll` or :meth:`run`."""
+
+    def __init__(self, config: ReceiverConfig, out_dir: str | Path,
+                 on_pose: Callable[[Pose], None] | None = None,
+                 on_keyframe: Callable[[Keyframe, bool], None] | None = None,
+                 on_status: Callable[[Status], None] | None = None) -> None:
+        import zmq
+
+        self._zmq = zmq
+        self.config = config
+        self.out = Path(out_dir)
+        self.on_pose, self.on_keyframe, self.on_status = on_pose, on_keyframe, on_status
+        curve: tuple[bytes, bytes, bytes] | None = None
+        if config.insecure:
+            check_loopback_endpoint(config.pose_endpoint)
+            check_loopback_endpoint(config.keyframe_endpoint)
+            log.warning("receiving WITHOUT CURVE (insecure, loopback only)")
+        else:
+            require_curve()
+            curve = load_host_keys(config.keys_dir or "", config.device_key)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.stats = self._load_stats()
+        self.stats.runs += 1
+        self.store = KeyframeStore(self.out, fsync=config.fsync)
+        self.live = LiveState(session_id=self.store.last_session)
+        self._kf_limits = Limits(max_message_bytes=config.max_keyframe_bytes,
+                                 max_bin_len=min(KEYFRAME_LIMITS.max_bin_len, config.max_keyframe_bytes))
+        self._tum: dict[str, TextIO] = {}
+        self._pose_rate, self._kf_rate = _Rate(), _Rate()
+        self._pose_window: collections.deque[tuple[float, int]] = collections.deque(maxlen=4096)
+        self._hello_pending = False
+        self._last_progress = time.monotonic()
+        self._next_stats = time.monotonic()
+        self._auth_warned = False
+        self._warned: set[str] = set()
+        self._ctx = zmq.Context()
+        common = dict(heartbeat_ivl_ms=config.heartbeat_ivl_ms, heartbeat_timeout_ms=config.heartbeat_timeout_ms,
+                      heartbeat_ttl_ms=config.heartbeat_ttl_ms, reconnect_ivl_ms=config.reconnect_ivl_ms,
+                      reconnect_ivl_max_ms=config.reconnect_ivl_max_ms)
+        self.sub = self._ctx.socket(zmq.SUB)
+        apply_common_options(self.sub, maxmsgsize=max(4096, 4 * POSE_LIMITS.max_message_bytes), **common)
+        self.sub.setsockopt(zmq.CONFLATE, 1)
+        self.sub.setsockopt(zmq.SUBSCRIBE, b"")
+        self.dealer = self._ctx.socket(zmq.DEALER)
+        apply_common_options(self.dealer, maxmsgsize=config.max_keyframe_bytes, **common)
+        self.dealer.setsockopt(zmq.IMMEDIATE, 1)
+        self.dealer.setsockopt(zmq.RCVHWM, 4 * config.window + 64)
+        self.dealer.setsockopt(zmq.SNDHWM, 4 * config.window + 64)
+        if curve is not None:
+            pub, sec, server = curve
+            for s in (self.sub, self.dealer):
+                s.curve_publickey, s.curve_secretkey, s.curve_serverkey = pub, sec, server
+        self.monitor = self.dealer.get_monitor_socket(
+            zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_FAILED_AUTH
+            | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL)
+        try:
+            self.sub.connect(config.pose_endpoint)
+            self.dealer.connect(config.keyframe_endpoint)
+        except zmq.ZMQError as exc:
+            self.dealer.disable_monitor()
+            for s in (self.monitor, self.sub, self.dealer):
+                s.close(linger=0)
+            self._ctx.term()
+            self.store.close()
+            raise ConfigError(f"cannot connect to {config.pose_endpoint} / {config.keyframe_endpoint}: {exc}") from None
+        self._poller = zmq.Poller()
+        for s in (self.dealer, self.monitor):
+            self._poller.register(s, zmq.POLLIN)
+        self._closed = False
+        self.lock = threading.RLock()  # hold it to read stats/live consistently (the pose thread writes them)
+        self._stop = threading.Event()
+        self._pose_thread = threading.Thread(target=self._pose_loop, name="stereopath-poses", daemon=True)
+        self._pose_thread.start()
+        log.info("receiving from %s (poses) and %s (keyframes), %s, into %s", config.pose_endpoint,
+                 config.keyframe_endpoint, "insecure" if config.insecure else "CURVE", self.out)
+
+    # ------------------------------------------------------------------ main loop
+
+    def poll(self, timeout_s: float = 0.1) -> int:
+        """Wait up to ``timeout_s`` for traffic and handle everything available; returns messages handled."""
+        events = dict(self._poller.poll(int(max(0.0, timeout_s) * 1000)))
+        n = 0
+        if self.monitor in events:
+            self._handle_monitor()
+        if self.dealer in events:
+            n += self._drain(self.dealer, "keyframe", 64)
+        now = time.monotonic()
+        if self._hello_pending:
+            self._send_hello()
+        self._check_stall(now)
+        self._update_live(now)
+        if now >= self._next_stats:
+            self.write_stats()
+            self._next_stats = now + self.config.stats_interval_s
+        return n
+
+    def run(self, duration_s: float | None = None, stop: threading.Event | None = None,
+            on_tick: Callable[["Receiver"], None] | None = None, tick_s: float = 0.25) -> None:
+        """Poll until ``duration_s`` elapsed or ``stop`` is set, calling ``on_tick`` every ``tick_s``."""
+        t_end = None if duration_s is None else time.monotonic() + duration_s
+        next_tick = time.monotonic() + tick_s
+        while not (stop is not None and stop.is_set()):
+            now = time.monotonic()
+            if t_end is not None and now >= t_end:
+                break
+            wait = min(tick_s, max(0.0, next_tick - now))
+            if t_end is not None:
+                wait = min(wait, t_end - now)
+            self.poll(wait)
+            if on_tick is not None and time.monotonic() >= next_tick:
+                on_tick(self)
+                next_tick = time.monotonic() + tick_s
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        self._pose_thread.join(5.0)
+        self.write_stats()
+        for fh in self._tum.values():
+            fh.close()
+        self._tum.clear()
+        self.store.close()
+        try:
+            self.dealer.disable_monitor()
+        except self._zmq.ZMQError:
+            pass
+        for s in (self.monitor, self.sub, self.dealer):
+            s.close(linger=0)
+        self._ctx.term()
+
+    def __enter__(self) -> "Receiver":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ handlers
+
+    def _pose_loop(self) -> None:
+        zmq = self._zmq
+        poller = zmq.Poller()
+        poller.register(self.sub, zmq.POLLIN)
+        try:
+            while not self._stop.is_set():
+                if poller.poll(100):
+                    self._drain(self.sub, "pose", 256)
+        except Exception:  # a bug must not pass silently
+            log.exception("pose receiver thread failed")
+            raise
+
+    def _drain(self, sock: Any, channel: str, limit: int) -> int:
+        zmq = self._zmq
+        n = 0
+        while n < limit:
+            try:
+                frames = sock.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            n += 1
+            self.live.last_rx = time.monotonic()
+            if len(frames) != 1:
+                self._reject(channel, "frames")
+                continue
+            try:
+                if channel == "pose":
+                    msg = decode_message(frames[0], POSE_LIMITS, ("pose",))
+                else:
+                    msg = decode_message(frames[0], self._kf_limits, ("keyframe", "status"))
+            except DecodeError as exc:
+                self._reject(channel, exc.reason, str(exc))
+                continue
+            if isinstance(msg, Pose):
+                self._handle_pose(msg)
+            elif isinstance(msg, Keyframe):
+                self._handle_keyframe(msg, frames[0])
+            elif isinstance(msg, Status):
+                self._handle_status(msg)
+        return n
+
+    def _reject(self, channel: str, reason: str, detail: str = "") -> None:
+        with self.lock:
+            st = self.stats
+            st.rejected_by_reason[reason] = st.rejected_by_reason.get(reason, 0) + 1
+            st.rejected_by_channel[channel] = st.rejected_by_channel.get(channel, 0) + 1
+            warn = reason == "version" and reason not in self._warned
+        if warn:
+            self._warned.add(reason)
+            log.warning("%s", detail)
+        else:
+            log.debug("rejected %s message (%s): %s", channel, reason, detail[:200])
+
+    def _session(self, sid: str) -> SessionStats:
+        s = self.stats.sessions.get(sid)
+        if s is None:
+            s = self.stats.sessions[sid] = SessionStats()
+        if sid != self.live.session_id:
+            log.info("device session %s (previous: %s): stored apart in %s", sid, self.live.session_id,
+                     self.out / sid)
+            self.live.session_id = sid
+            self.live.pose = None
+        return s
+
+    def _handle_pose(self, pose: Pose) -> None:
+        now = time.monotonic()
+        with self.lock:
+            self.stats.received["pose"] += 1
+            s = self._session(pose.session_id)
+            if s.last_pose_seq >= 0:
+                if pose.seq > s.last_pose_seq + 1:
+                    s.pose_gaps += pose.seq - s.last_pose_seq - 1
+                    self.stats.pose_seq_gaps += pose.seq - s.last_pose_seq - 1
+                elif pose.seq <= s.last_pose_seq:
+                    s.pose_out_of_order += 1
+            s.last_pose_seq = max(s.last_pose_seq, pose.seq)
+            s.poses += 1
+            s.first_t_ns = pose.t_ns if s.first_t_ns is None else s.first_t_ns
+            s.last_t_ns = pose.t_ns
+            prev = self.live.pose
+            if prev is not None and prev.session_id == pose.session_id and pose.t_ns > prev.t_ns:
+                dt = (pose.t_ns - prev.t_ns) * 1e-9
+                v = math.dist(pose.position_m, prev.position_m) / dt
+                self.live.speed_m_s = 0.7 * self.live.speed_m_s + 0.3 * v
+            self.live.pose = pose
+            self._pose_rate.add(now)
+            self._pose_window.append((now, pose.seq))
+        if self.on_pose is not None:  # before the file write: the live view first
+            self.on_pose(pose)
+        fh = self._tum_file(pose.session_id)
+        p, q = pose.position_m, pose.quat_xyzw
+        fh.write(f"{ns_to_seconds_str(pose.t_ns)} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} "
+                 f"{q[0]:.7f} {q[1]:.7f} {q[2]:.7f} {q[3]:.7f}\n")
+        fh.flush()
+
+    def _tum_file(self, sid: str) -> TextIO:
+        fh = self._tum.get(sid)
+        if fh is None:
+            if len(self._tum) >= 4:
+                self._tum.pop(next(iter(self._tum))).close()
+            d = self.out / sid
+            d.mkdir(parents=True, exist_ok=True)
+            fh = self._tum[sid] = (d / "poses.tum").open("a")
+        return fh
+
+    def _handle_keyframe(self, kf: Keyframe, data: bytes) -> None:
+        new = self.store.put(kf, data)  # written (and fsynced) before the ack
+        self.store.set_last_session(kf.session_id)
+        now = time.monotonic()
+        with self.lock:
+            self.stats.received["keyframe"] += 1
+            s = self._session(kf.session_id)
+            if new:
+                s.keyframes += 1
+                self._kf_rate.add(now)
+            else:
+                s.keyframe_duplicates += 1
+                self.stats.duplicates += 1
+            self.live.acked_seq = self.store.session(kf.session_id).acked_seq
+        self._last_progress = now
+        try:
+            self.dealer.send(encode_ack(Ack(kf.session_id, kf.seq, 1)), self._zmq.NOBLOCK)
+        except self._zmq.Again:
+            with self.lock:
+                self.stats.link["acks_unsent"] += 1  # not connected: the next hello resynchronises
+        if self.on_keyframe is not None:
+            self.on_keyframe(kf, new)
+
+    def _handle_status(self, st: Status) -> None:
+        with self.lock:
+            self.stats.received["status"] += 1
+            self._session(st.session_id)
+            self.live.status = st
+        if self.on_status is not None:
+            self.on_status(st)
+
+    def _handle_monitor(self) -> None:
+        from zmq.utils.monitor import recv_monitor_message
+
+        zmq = self._zmq
+        while True:
+            try:
+                ev = recv_monitor_message(self.monitor, zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            e = ev["event"]
+            if e == zmq.EVENT_HANDSHAKE_SUCCEEDED:
+                self.stats.link["connects"] += 1
+                self.live.connected = True
+                log.info("connected to device %s", self.config.keyframe_endpoint)
+                self._hello_pending = True
+            elif e == zmq.EVENT_DISCONNECTED:
+                if self.live.connected:
+                    self.stats.link["disconnects"] += 1
+                    log.info("disconnected from device; reconnecting")
+                self.live.connected = False
+            elif e == zmq.EVENT_HANDSHAKE_FAILED_AUTH:
+                self.stats.link["auth_failures"] += 1
+                if not self._auth_warned:
+                    self._auth_warned = True
+                    log.warning("device refused this host's key (is its public key in the device's clients dir?)")
+            else:
+                self.stats.link["handshake_failures"] += 1
+                if not self._auth_warned:
+                    self._auth_warned = True
+                    log.warning("handshake with the device failed (wrong device key, or CURVE on one side only?)")
+
+    def _send_hello(self) -> None:
+        sid, acked = self.store.hello_state()
+        try:
+            self.dealer.send(encode_hello(Hello(sid, acked, self.config.window)), self._zmq.NOBLOCK)
+        except self._zmq.Again:
+            self._hello_pending = True  # pipe not attached yet: retry on the next poll
+            return
+        self._hello_pending = False
+        self.stats.link["hellos"] += 1
+        self._last_progress = time.monotonic()
+        log.debug("hello: session %s, acked %d, window %d", sid, acked, self.config.window)
+
+    def _check_stall(self, now: float) -> None:
+        st = self.live.status
+        if not self.live.connected or st is None or now - self._last_progress < self.config.stall_timeout_s:
+            return
+        have = self.store.session(st.session_id).acked_seq if st.session_id == self.store.last_session else -1
+        if st.keyframes_spooled - 1 > have:
+            self.stats.link["rehellos_after_stall"] += 1
+            log.info("keyframes stalled (device has %d, host holds up to %d): hello again",
+                     st.keyframes_spooled, have)
+            if st.session_id != self.store.last_session:
+                self.store.set_last_session(st.session_id)
+            self._send_hello()
+        self._last_progress = now
+
+    def _update_live(self, now: float) -> None:
+        with self.lock:
+            self._update_live_locked(now)
+
+    def _update_live_locked(self, now: float) -> None:
+        live = self.live
+        live.pose_rate_hz = self._pose_rate.rate(now)
+        live.keyframe_rate_hz = self._kf_rate.rate(now)
+        w = self._pose_window
+        while w and now - w[0][0] > 2.0:
+            w.popleft()
+        if len(w) >= 2:
+            span = max(s for _, s in w) - min(s for _, s in w) + 1
+            live.pose_window_ratio = min(1.0, len(w) / span)
+        age = None if live.last_rx is None else now - live.last_rx
+        if self.stats.link["auth_failures"] and not live.connected:
+            live.link_quality = "refused"
+        elif age is None:
+            live.link_quality = "waiting"
+        elif age > 3.0 or not live.connected:
+            live.link_quality = "lost"
+        elif age > 0.5 or live.pose_window_ratio < 0.9:
+            live.link_quality = "poor"
+        else:
+            live.link_quality = "good"
+
+    # ------------------------------------------------------------------ statistics
+
+    def _load_stats(self) -> ReceiverStats:
+        p = self.out / RECEIVER_JSON
+        if p.is_file():
+            try:
+                return ReceiverStats.from_json(json.loads(p.read_text()))
+            except (OSError, ValueError, TypeError, AttributeError) as exc:
+                log.warning("starting fresh counters: %s unreadable (%s)", p, exc)
+        return ReceiverStats()
+
+    def write_stats(self) -> None:
+        """Write ``receiver.json`` (atomically) and the store's state."""
+        with self.lock:
+            data = self.stats.to_json()
+            data["current_session"] = self.live.session_id
+        data["updated_unix"] = time.time()
+        write_atomic(self.out / RECEIVER_JSON, (json.dumps(data, indent=1) + "\n").encode(), fsync=False)
+        if self.store.last_session:
+            self.store.save_state()

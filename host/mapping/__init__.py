@@ -1,0 +1,1 @@
+"""Dense mapping: stereo depth, TSDF fusion, the mapper, mesh previews."""

@@ -1,0 +1,1 @@
+"""Offline reprocessing of a recorded session: stages chained by a short pipeline."""
