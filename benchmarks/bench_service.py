@@ -37,7 +37,8 @@ def _cpu() -> float:
 
 
 def run_service_once(frames: int, estimator: str, tmp: Path) -> dict:
-    from stereopath.device.service.service import CaptureService, RunOptions, load_config
+    from stereopath.device.service.options import RunOptions, load_config
+    from stereopath.device.service.service import CaptureService
 
     cfg_path = tmp / "device.toml"
     cfg_path.write_text(

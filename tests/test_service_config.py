@@ -9,8 +9,9 @@ from dataclasses import replace
 import pytest
 
 from stereopath.device.errors import ConfigError
-from stereopath.device.service.service import RunOptions, apply_options, check_config, load_config, secret_key_path, split_changes, \
-    status_line, write_status_file
+from stereopath.device.service.options import RunOptions, apply_options, check_config, load_config, secret_key_path, \
+    split_changes
+from stereopath.device.service.status import status_line, write_status_file
 from stereopath.device.service.settings import DeviceConfig
 from stereopath.device.wire.security import generate_keypair
 
@@ -98,7 +99,7 @@ def test_status_file_is_atomic_and_world_readable(tmp_path):
 def test_journal_lines_carry_the_syslog_priority_and_stay_on_one_line():
     import logging
 
-    from stereopath.device.service.service import _JournalFormatter
+    from stereopath.device.service.journal import JournalFormatter as _JournalFormatter
 
     fmt = _JournalFormatter("%(levelname)s %(name)s: %(message)s")
     rec = logging.LogRecord("stereopath.device.service.service", logging.ERROR, __file__, 1, "camera lost\nagain", None, None)

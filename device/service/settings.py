@@ -137,6 +137,11 @@ class SourceSettings:
     def frame_duration_us(self) -> int:
         return int(round(1e6 / self.fps))
 
+    @property
+    def recorded(self) -> bool:
+        """Frames on a recorded clock (simulator, replay) rather than live cameras."""
+        return self.backend in ("sim", "replay")
+
 
 @dataclass(frozen=True)
 class EmulatedImuSettings:
@@ -199,6 +204,11 @@ class ImuSettings:
             raise ConfigError(
                 f"imu.read_period_ms = {self.read_period_ms} lets the FIFO overflow: it fills in "
                 f"{fill_ms:.0f} ms at {self.rate_hz:g} Hz; poll at most every {0.8 * fill_ms:.0f} ms")
+
+    @property
+    def polled(self) -> bool:
+        """A chip (or its emulator) read on its own thread on this machine's clock."""
+        return self.backend in ("mpu6050", "emulated")
 
     @property
     def output_rate_hz(self) -> float:
