@@ -187,11 +187,9 @@ class StreamingSink(NoStreaming):
 
     def publish_health(self, status: dict[str, Any]) -> None:
         """The device health part of the status report, sent to the hosts on the keyframe channel."""
-        self.streamer.publish_status(
-            frame_rate_hz=status["frame_rate_hz"], imu_rate_hz=status["imu_rate_hz"],
-            dropped_frames=status["dropped_frames"], imu_gaps=status["imu_gaps"],
-            cpu_load_pct=status["cpu_load_pct"], temperature_c=status["temperature_c"],
-            disk_free_bytes=status["disk_free_bytes"], recorder_state=status["recorder_state"])
+        from stereopath.device.wire.protocol import HEALTH_FIELDS
+
+        self.streamer.publish_status(**{k: status[k] for k in HEALTH_FIELDS})
 
     def drain(self, seconds: float, clock: Callable[[], float]) -> None:
         """Wait up to ``seconds`` for a connected host to acknowledge every spooled keyframe."""
