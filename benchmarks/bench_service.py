@@ -43,7 +43,7 @@ def run_service_once(frames: int, estimator: str, tmp: Path) -> dict:
     cfg_path = tmp / "device.toml"
     cfg_path.write_text(
         f'[source]\nbackend = "sim"\n[source.sim]\nframes = {frames}\nseed = 0\n[imu]\nbackend = "source"\n'
-        f'[estimator]\npreset = "{estimator}"\n'
+        f'[estimator]\nname = "{estimator}"\n'
         '[stream]\npose_endpoint = "tcp://127.0.0.1:*"\nkeyframe_endpoint = "tcp://127.0.0.1:*"\ninsecure = true\n'
         'drain_s = 0.0\n'
         f'[recorder]\nreserve_mb = 1.0\n[service]\nstatus_file = "{tmp / "status.json"}"\n')

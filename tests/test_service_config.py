@@ -106,3 +106,16 @@ def test_journal_lines_carry_the_syslog_priority_and_stay_on_one_line():
     assert fmt.format(rec) == "<3>ERROR stereopath.device.service.service: camera lost | again"
     rec = logging.LogRecord("stereopath.device.service.service", logging.WARNING, __file__, 1, "low disk", None, None)
     assert fmt.format(rec).startswith("<4>WARNING")
+
+
+def test_estimator_name_and_its_old_spelling(tmp_path):
+    new = tmp_path / "new.toml"
+    new.write_text('[estimator]\nname = "sfm"\n')
+    old = tmp_path / "old.toml"
+    old.write_text('[estimator]\npreset = "paper"\n')
+    both = tmp_path / "both.toml"
+    both.write_text('[estimator]\npreset = "paper"\nname = "sfm"\n')
+    assert load_config(new, RunOptions()).estimator.name == "sfm"
+    assert load_config(old, RunOptions()).estimator.name == "paper"
+    with pytest.raises(ConfigError, match="preset"):
+        load_config(both, RunOptions())

@@ -140,7 +140,7 @@ def open_components(cfg: DeviceConfig, session_dir: Path, session_id: str, *, so
     cam_hz, imu_hz = nominal_rates(cfg, c.source)
     if estimator is None:
         gt = getattr(getattr(c.source, "session", None), "groundtruth", None)
-        estimator = make_estimator(cfg.estimator.preset, c.source.rig, groundtruth=gt)
+        estimator = make_estimator(cfg.estimator.name, c.source.rig, groundtruth=gt)
     c.estimator = estimator
     c.monitor = RateMonitor(None if cfg.source.recorded else cam_hz, imu_hz if cfg.imu.polled else None,
                             cfg.timealign.gap_factor)

@@ -8,9 +8,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-from stereopath.device.core.config import as_dict, from_mapping, load_toml, replace
+from stereopath.device.core.config import as_dict, replace
 from stereopath.device.errors import ConfigError
-from stereopath.device.service.settings import DeviceConfig
+from stereopath.device.service.settings import DeviceConfig, load_device_config
 
 CREDENTIAL_NAME = "server.key_secret"     # LoadCredential= name of the device's CURVE secret key
 SOURCE_CHOICES = ("sim", "picamera2", "depthai", "replay")
@@ -79,8 +79,7 @@ def apply_options(cfg: DeviceConfig, opts: RunOptions) -> DeviceConfig:
 
 def load_config(path: str | Path | None, opts: RunOptions) -> DeviceConfig:
     """Defaults < file < command line."""
-    cfg = DeviceConfig() if path is None else from_mapping(DeviceConfig, load_toml(path))
-    return apply_options(cfg, opts)
+    return apply_options(load_device_config(path), opts)
 
 
 def secret_key_path(cfg: DeviceConfig, environ: Mapping[str, str] | None = None) -> Path:
