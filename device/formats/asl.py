@@ -28,7 +28,6 @@ from stereopath.device.formats.csvrows import parse_float, parse_int, read_lines
 from stereopath.device.formats.images import read_gray
 from stereopath.device.errors import DatasetError
 from stereopath.device.core.frames import ImuSamples, StereoFrame
-from stereopath.device.core.geometry import quat_xyzw_to_matrix
 from stereopath.device.core.rig import Rig, load_euroc_rig, load_rig_yaml
 from stereopath.device.formats.tum import Trajectory, read_tum, seconds_to_ns
 
@@ -213,17 +212,14 @@ def _read_euroc_state_csv(path: Path) -> Trajectory:
     for line, f in rows:
         t = parse_int(path, line, f[0])
         v = [parse_float(path, line, x) for x in f[1:8]]
-        q = np.array([v[4], v[5], v[6], v[3]])  # -> x, y, z, w
-        if np.linalg.norm(q) < 1e-9:
+        row = [*v[:3], v[4], v[5], v[6], v[3]]  # q w, x, y, z -> x, y, z, w
+        if np.linalg.norm(row[3:]) < 1e-9:
             raise DatasetError(f"{path}:{line}: zero quaternion")
-        T = np.eye(4)
-        T[:3, :3] = quat_xyzw_to_matrix(q)
-        T[:3, 3] = v[:3]
         ts.append(t)
-        Ts.append(T)
+        Ts.append(row)
     if not ts:
         raise DatasetError(f"{path}: no poses")
-    return Trajectory(np.array(ts, dtype=np.int64), np.array(Ts))
+    return Trajectory.from_pose_rows(ts, Ts)
 
 
 def read_appended_tum(path: Path) -> Trajectory | None:
@@ -240,11 +236,8 @@ def read_appended_tum(path: Path) -> Trajectory | None:
         v = [parse_float(path, line, x) for x in parts[1:]]
         if np.linalg.norm(v[3:]) < 1e-9:
             raise DatasetError(f"{path}:{line}: zero quaternion")
-        T = np.eye(4)
-        T[:3, :3] = quat_xyzw_to_matrix(np.array(v[3:]))
-        T[:3, 3] = v[:3]
         ts.append(t)
-        Ts.append(T)
+        Ts.append(v)
     if not ts:
         return None
-    return Trajectory(np.array(ts, dtype=np.int64), np.array(Ts))
+    return Trajectory.from_pose_rows(ts, Ts)

@@ -57,12 +57,13 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from stereopath.host.evaluation.odometry import estimate_sequence, write_outputs
-    from stereopath.host.evaluation.sequences import open_sequence
+    from stereopath.device.formats.source import open_source
 
     names = [n.strip() for n in args.compare.split(",")] if args.compare else [args.estimator]
     reports = {}
     for name in names:
-        seq = open_sequence(args.source, frames=args.frames if args.source.startswith("sim") else None)
+        sim_frames = {"frames": args.frames} if args.frames and args.source.startswith("sim") else {}
+        seq = open_source(args.source, **sim_frames)
         run_ = estimate_sequence(seq, name, preset=args.preset, max_frames=args.frames)
         out = Path(args.out) / name if len(names) > 1 else Path(args.out)
         reports[name] = write_outputs(out, run_, seq, args.source)
