@@ -113,16 +113,17 @@ def kf_count(out: Path, session: str) -> int:
 
 
 def device_role(args: argparse.Namespace) -> int:
-    from stereopath.device.streaming import DeviceStreamer, KeyframeSpool, StreamConfig
+    from stereopath.device.service.settings import KeySettings, StreamSettings
+    from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
 
     pairs, _ = load_pairs()
     keys = Path(args.keys_root)
-    cfg = StreamConfig(pose_endpoint="tcp://127.0.0.1:*", keyframe_endpoint="tcp://127.0.0.1:*",
-                       server_secret=str(keys / "device" / "device.key_secret"),
-                       clients_dir=str(keys / "device" / "clients"), image_encoding=args.encoding,
-                       spool_fsync=True)
+    cfg = StreamSettings(pose_endpoint="tcp://127.0.0.1:*", keyframe_endpoint="tcp://127.0.0.1:*",
+                         image_encoding=args.encoding, spool_fsync=True)
+    key_files = KeySettings(server_secret=str(keys / "device" / "device.key_secret"),
+                            clients_dir=str(keys / "device" / "clients"))
     spool = KeyframeSpool(args.spool)
-    streamer = None if (args.no_stream or args.bare) else DeviceStreamer(cfg, spool, args.session)
+    streamer = None if (args.no_stream or args.bare) else DeviceStreamer(cfg, spool, args.session, keys=key_files)
     bare = None
     if args.bare:  # reference: a plain CURVE PUB socket sending the same bytes from the capture loop
         import zmq
@@ -131,10 +132,10 @@ def device_role(args: argparse.Namespace) -> int:
         from stereopath.device.wire.security import load_secret_keypair, start_authenticator
 
         bare_ctx = zmq.Context()
-        bare_auth = start_authenticator(bare_ctx, cfg.clients_dir)
+        bare_auth = start_authenticator(bare_ctx, key_files.clients_dir)
         bare = bare_ctx.socket(zmq.PUB)
         bare.linger = 0
-        bare.curve_publickey, bare.curve_secretkey = load_secret_keypair(cfg.server_secret)
+        bare.curve_publickey, bare.curve_secretkey = load_secret_keypair(key_files.server_secret)
         bare.curve_server = True
         bare.bind("tcp://127.0.0.1:*")
     if streamer is not None and args.prefill:

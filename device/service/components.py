@@ -115,15 +115,14 @@ def open_streaming(cfg: DeviceConfig, session_dir: Path, session_id: str, rig: A
     if not cfg.stream.enabled:
         log.info("streaming disabled")
         return NoStreaming()
-    from stereopath.device.streaming import DeviceStreamer, KeyframeSpool, StreamConfig
+    import dataclasses
+
+    from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
 
     spool = KeyframeSpool(session_dir / "keyframes")
-    scfg = StreamConfig(pose_endpoint=cfg.stream.pose_endpoint, keyframe_endpoint=cfg.stream.keyframe_endpoint,
-                        insecure=cfg.stream.insecure, server_secret=str(secret_key_path(cfg, environ)),
-                        clients_dir=cfg.keys.clients_dir, image_encoding=cfg.stream.image_encoding,
-                        jpeg_quality=cfg.stream.jpeg_quality,
-                        status_interval_s=cfg.service.status_interval_s)
-    return StreamingSink(DeviceStreamer(scfg, spool, session_id, rig=rig))
+    keys = dataclasses.replace(cfg.keys, server_secret=str(secret_key_path(cfg, environ)))
+    return StreamingSink(DeviceStreamer(cfg.stream, spool, session_id, rig=rig, keys=keys,
+                                        status_interval_s=cfg.service.status_interval_s))
 
 
 def open_components(cfg: DeviceConfig, session_dir: Path, session_id: str, *, source: Any = None,

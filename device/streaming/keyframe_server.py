@@ -29,7 +29,7 @@ from typing import Any, Callable
 
 from stereopath.device.errors import DatasetError
 from stereopath.device.wire.protocol import Ack, Credit, DecodeError, Hello, decode_control
-from stereopath.device.streaming.config import StreamConfig
+from stereopath.device.service.settings import StreamSettings
 from stereopath.device.wire.sockets import apply_common_options
 from stereopath.device.streaming.spool import KeyframeSpool
 
@@ -57,7 +57,7 @@ class _Peer:
 class KeyframeServer:
     """ROUTER socket bound to ``config.keyframe_endpoint``; driven by the streamer's I/O thread."""
 
-    def __init__(self, ctx: Any, config: StreamConfig, spool: KeyframeSpool, session_id: str,
+    def __init__(self, ctx: Any, config: StreamSettings, spool: KeyframeSpool, session_id: str,
                  curve_keys: tuple[bytes, bytes] | None, status_fn: Callable[[], bytes]) -> None:
         import zmq
 

@@ -14,7 +14,7 @@ import logging
 import threading
 from typing import Any
 
-from stereopath.device.streaming.config import StreamConfig
+from stereopath.device.service.settings import StreamSettings
 from stereopath.device.wire.sockets import apply_common_options
 
 log = logging.getLogger(__name__)
@@ -26,7 +26,7 @@ INBOUND_MAX_BYTES = 4096
 class PosePublisher:
     """PUB socket bound to ``config.pose_endpoint`` (CURVE server unless insecure)."""
 
-    def __init__(self, ctx: Any, config: StreamConfig, curve_keys: tuple[bytes, bytes] | None) -> None:
+    def __init__(self, ctx: Any, config: StreamSettings, curve_keys: tuple[bytes, bytes] | None) -> None:
         import zmq
 
         self._zmq = zmq
