@@ -27,7 +27,9 @@ LAYERS: list[tuple[str, ...]] = [
     ("stereopath.device.streaming",),
     ("stereopath.device.service",),
     ("stereopath.device.commands", "stereopath.device"),
-    ("stereopath.host.evaluation", "stereopath.host.mapping", "stereopath.host.live", "stereopath.host.reprocess"),
+    ("stereopath.host.progress",),
+    ("stereopath.host.evaluation", "stereopath.host.mapping", "stereopath.host.live", "stereopath.host.reprocess",
+     "stereopath.host.fleet"),
     ("stereopath.host.commands", "stereopath.host"),
 ]
 # What the pure core must not import: I/O libraries and our own I/O layers.
@@ -210,6 +212,10 @@ def test_no_upward_import(tree):
 
 def test_every_package_folder_is_installed(tree):
     assert missing_packages(tree, (ROOT / "pyproject.toml").read_text()) == []
+
+
+def test_every_module_has_a_layer(tree):
+    assert [m for m in sorted(tree) if layer_of(m, LAYERS) is None] == []
 
 
 def test_nothing_runs_at_import(tree):

@@ -29,7 +29,6 @@ import errno
 import json
 import logging
 import os
-import secrets
 import shutil
 import threading
 import time
@@ -41,7 +40,8 @@ import numpy as np
 
 from stereopath.device.formats import layout
 from stereopath.device.errors import CaptureError, ConfigError
-from stereopath.device.formats.fileio import fsync_dir, write_text_atomic
+from stereopath.device.formats.fileio import fsync_dir, write_renamed_open, write_text_atomic
+from stereopath.device.wire.protocol import new_session_id
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.rig import Rig, save_rig_yaml
 from stereopath.device.formats.tum import Trajectory, format_tum_line, write_tum
@@ -62,11 +62,6 @@ MPU6050_NOISE = {
 FLUSH_ORDER = ("imu", "temp", "cam0", "cam1", "traj")
 
 RECORDING, CLOSED, STOPPED_LOW_DISK, ERROR = "recording", "closed", "stopped_low_disk", "error"
-
-
-def new_session_id() -> str:
-    """``YYYYmmddTHHMMSSZ-xxxxxx`` (UTC time plus 6 random hex digits)."""
-    return time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + secrets.token_hex(3)
 
 
 def _utc_now() -> str:
@@ -424,19 +419,7 @@ class SessionRecorder:
     @staticmethod
     def _write_image(path: Path, blob: bytes) -> int:
         """Write ``blob`` under a temporary name and rename it; the open fd is fsynced at flush."""
-        tmp = path.with_name("." + path.name + ".tmp")
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-        try:
-            _write_all(fd, blob)
-            os.replace(tmp, path)
-        except OSError:
-            os.close(fd)
-            try:
-                tmp.unlink()
-            except OSError:
-                pass
-            raise
-        return fd
+        return write_renamed_open(path, blob)
 
     def _maybe_flush(self) -> None:
         if (self._clock() - self._last_flush >= self.chunk_s) or len(self._pending_images) >= 2 * MAX_PENDING_IMAGES:

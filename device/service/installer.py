@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Callable, Protocol, Sequence
 
 from stereopath.device.errors import ConfigError, StereopathError
+from stereopath.device.formats.fileio import write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -183,10 +184,7 @@ class Installer:
         if self.dry_run:
             return
         p.parent.mkdir(parents=True, exist_ok=True)
-        tmp = p.with_name(f".{p.name}.tmp")
-        tmp.write_bytes(content)
-        os.chmod(tmp, mode)
-        os.replace(tmp, p)
+        write_atomic(p, content, fsync=False, mode=mode)
 
     def _symlink(self, absolute: str, target: str) -> None:
         p = self.path(absolute)

@@ -192,7 +192,7 @@ class CaptureService:
     # ------------------------------------------------------------------ set-up
 
     def _setup(self) -> None:
-        from stereopath.device.formats.recorder import new_session_id
+        from stereopath.device.wire.protocol import new_session_id
 
         cfg = self.cfg
         check_config(cfg, self.environ)

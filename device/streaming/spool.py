@@ -13,11 +13,11 @@ Thread model: one writer (:meth:`append`), any number of readers (:meth:`read`) 
 from __future__ import annotations
 
 import logging
-import os
 import re
 from pathlib import Path
 
 from stereopath.device.errors import DatasetError
+from stereopath.device.formats.fileio import is_temp, write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -36,8 +36,9 @@ class KeyframeSpool:
         self.dir = Path(directory)
         self.fsync = fsync
         self.dir.mkdir(parents=True, exist_ok=True)
-        for tmp in self.dir.glob("*.tmp"):
-            tmp.unlink(missing_ok=True)
+        for tmp in self.dir.iterdir():
+            if is_temp(tmp):
+                tmp.unlink(missing_ok=True)
         seqs = sorted(int(m.group(1)) for p in self.dir.iterdir() if (m := _NAME_RE.match(p.name)))
         if seqs and seqs != list(range(len(seqs))):
             raise DatasetError(f"keyframe spool {self.dir} is not contiguous from 0 "
@@ -63,24 +64,7 @@ class KeyframeSpool:
         if seq != self._count:
             raise DatasetError(f"keyframe spool {self.dir}: expected seq {self._count}, got {seq}")
         final = self.path(seq)
-        tmp = final.with_name(final.name + ".tmp")
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-        try:
-            view = memoryview(data)
-            while view:
-                n = os.write(fd, view)
-                view = view[n:]
-            if self.fsync:
-                os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, final)
-        if self.fsync:
-            dfd = os.open(self.dir, os.O_RDONLY)
-            try:
-                os.fsync(dfd)
-            finally:
-                os.close(dfd)
+        write_atomic(final, data, fsync=self.fsync)
         self.bytes_written += len(data)
         self._count = seq + 1
 

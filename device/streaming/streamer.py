@@ -43,8 +43,8 @@ from stereopath.device.streaming import health
 from stereopath.device.service.settings import KeySettings, StreamSettings
 from stereopath.device.streaming.keyframe_server import KeyframeServer
 from stereopath.device.streaming.pose_publisher import PosePublisher
-from stereopath.device.wire.security import check_loopback_endpoint, load_secret_keypair, require_curve, \
-    start_authenticator
+from stereopath.device.wire.security import load_secret_keypair, start_authenticator
+from stereopath.device.wire.sockets import CurveKeys, secure_channel
 from stereopath.device.streaming.spool import KeyframeSpool
 
 log = logging.getLogger(__name__)
@@ -73,16 +73,14 @@ class DeviceStreamer:
             raise ConfigError(f"streaming: {exc}") from None
         self.rig_ref = rig_ref or (rig_reference(rig) if rig is not None else UNKNOWN_RIG)
         self._zmq = zmq
-        curve_keys: tuple[bytes, bytes] | None = None
-        if config.insecure:
-            check_loopback_endpoint(config.pose_endpoint)
-            check_loopback_endpoint(config.keyframe_endpoint)
-            log.warning("streaming WITHOUT CURVE (insecure, loopback only)")
-        else:
-            require_curve()
+
+        def server_keys() -> CurveKeys:
             if keys is None:
                 raise ConfigError("streaming with CURVE needs the [keys] section (or stream.insecure on loopback)")
-            curve_keys = load_secret_keypair(keys.server_secret)
+            return CurveKeys(*load_secret_keypair(keys.server_secret))
+
+        curve_keys = secure_channel(config.insecure, (config.pose_endpoint, config.keyframe_endpoint), server_keys,
+                                    "streaming")
         self._ctx = zmq.Context()
         self._auth = None
         self._pub: PosePublisher | None = None

@@ -39,8 +39,8 @@ from stereopath.device.core.config import check_range
 from stereopath.device.errors import ConfigError
 from stereopath.device.wire.protocol import KEYFRAME_LIMITS, POSE_LIMITS, Ack, DecodeError, Hello, Keyframe, Limits, Pose, Status, \
     decode_message, encode_ack, encode_hello
-from stereopath.device.wire.security import check_loopback_endpoint, load_host_keys, require_curve
-from stereopath.device.wire.sockets import apply_common_options
+from stereopath.device.wire.security import load_host_keys
+from stereopath.device.wire.sockets import CurveKeys, open_socket, secure_channel
 from stereopath.device.formats.tum import ns_to_seconds_str
 from stereopath.device.formats.fileio import write_json_atomic
 from stereopath.host.live.store import KeyframeStore
@@ -226,14 +226,9 @@ class Receiver:
         self.config = config
         self.out = Path(out_dir)
         self.on_pose, self.on_keyframe, self.on_status = on_pose, on_keyframe, on_status
-        curve: tuple[bytes, bytes, bytes] | None = None
-        if config.insecure:
-            check_loopback_endpoint(config.pose_endpoint)
-            check_loopback_endpoint(config.keyframe_endpoint)
-            log.warning("receiving WITHOUT CURVE (insecure, loopback only)")
-        else:
-            require_curve()
-            curve = load_host_keys(config.keys_dir or "", config.device_key)
+        curve = secure_channel(config.insecure, (config.pose_endpoint, config.keyframe_endpoint),
+                               lambda: CurveKeys(*load_host_keys(config.keys_dir or "", config.device_key)),
+                               "receiving")
         self.out.mkdir(parents=True, exist_ok=True)
         self.stats = self._load_stats()
         self.stats.runs += 1
@@ -253,19 +248,13 @@ class Receiver:
         common = dict(heartbeat_ivl_ms=config.heartbeat_ivl_ms, heartbeat_timeout_ms=config.heartbeat_timeout_ms,
                       heartbeat_ttl_ms=config.heartbeat_ttl_ms, reconnect_ivl_ms=config.reconnect_ivl_ms,
                       reconnect_ivl_max_ms=config.reconnect_ivl_max_ms)
-        self.sub = self._ctx.socket(zmq.SUB)
-        apply_common_options(self.sub, maxmsgsize=max(4096, 4 * POSE_LIMITS.max_message_bytes), **common)
-        self.sub.setsockopt(zmq.CONFLATE, 1)
+        self.sub = open_socket(self._ctx, zmq.SUB, curve, options={zmq.CONFLATE: 1},
+                               maxmsgsize=max(4096, 4 * POSE_LIMITS.max_message_bytes), **common)
         self.sub.setsockopt(zmq.SUBSCRIBE, b"")
-        self.dealer = self._ctx.socket(zmq.DEALER)
-        apply_common_options(self.dealer, maxmsgsize=config.max_keyframe_bytes, **common)
-        self.dealer.setsockopt(zmq.IMMEDIATE, 1)
-        self.dealer.setsockopt(zmq.RCVHWM, 4 * config.window + 64)
-        self.dealer.setsockopt(zmq.SNDHWM, 4 * config.window + 64)
-        if curve is not None:
-            pub, sec, server = curve
-            for s in (self.sub, self.dealer):
-                s.curve_publickey, s.curve_secretkey, s.curve_serverkey = pub, sec, server
+        hwm = 4 * config.window + 64
+        self.dealer = open_socket(self._ctx, zmq.DEALER, curve,
+                                  options={zmq.IMMEDIATE: 1, zmq.RCVHWM: hwm, zmq.SNDHWM: hwm},
+                                  maxmsgsize=config.max_keyframe_bytes, **common)
         self.monitor = self.dealer.get_monitor_socket(
             zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_FAILED_AUTH
             | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL)

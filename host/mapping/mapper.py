@@ -25,7 +25,6 @@ import json
 import logging
 import os
 import shutil
-import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -42,6 +41,7 @@ from stereopath.device.core.rig import Rig
 from stereopath.device.formats.tum import Trajectory
 from stereopath.host.mapping.depth import DEPTH_PRESETS, DepthConfig, StereoDepth
 from stereopath.host.mapping.fusion import FUSION_PRESETS, FusionConfig, TsdfVolume
+from stereopath.host.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -310,16 +310,6 @@ class MapResult:
     stats: dict[str, Any]
 
 
-def _progress(total: int, desc: str, enabled: bool | None):
-    if enabled is None:
-        enabled = sys.stderr.isatty()
-    if not enabled:
-        return None
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc=desc, unit="kf", leave=False, file=sys.stderr)
-
-
 class DenseMapper:
     """Incremental dense mapping for one rig: ``add`` keyframes, ``mesh()`` any time, ``finish()``.
 
@@ -437,7 +427,7 @@ def build_map(inp: MapInput, config: MapConfig, progress: bool | None = None,
         raise DatasetError(f"{inp.source}: no keyframes to map")
     t_start = time.perf_counter()
     mapper = DenseMapper(inp.rig, config, source=inp.source)
-    bar = _progress(len(inp.keyframes), "depth + fusion", progress)
+    bar = progress_bar(len(inp.keyframes), "depth + fusion", progress, unit="kf")
     try:
         for k, kf in enumerate(inp.keyframes):
             t0 = time.perf_counter()
