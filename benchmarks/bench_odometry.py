@@ -94,7 +94,7 @@ def main() -> None:
         print(f"targets: end <= 1 % -> {mk['end_error_pct']:.3f} %; ATE <= 0.3 m -> {mk['ate_rmse_m']:.3f} m")
 
     if not args.skip_paper:
-        from stereopath.host.commands.odometry import format_table
+        from stereopath.host.evaluation.paper_table import format_table
 
         reports = {}
         variants = (("paper", "paper", args.paper_preset, None),

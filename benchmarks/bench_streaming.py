@@ -1,7 +1,7 @@
 """Streaming benchmark: pose size and latency, keyframe throughput, device CPU, full-size fault runs.
 
 The device runs as a separate process (this script with ``--role device``); the host is this
-process (``Receiver``) or, for the fault runs, ``python -m stereopath.host.commands.live``.  Everything is on
+process (``Receiver``) or, for the fault runs, ``python -m stereopath.host host live``.  Everything is on
 loopback with CURVE on.  Keyframes are 640x480 stereo pairs cut from the EuRoC V1_01 head
 (synthetic texture if the data is absent), JPEG quality 90 unless said otherwise.
 
@@ -325,7 +325,7 @@ def bench_throughput(work: Path, keys_root: Path, runs: int, n: int) -> None:
 def _live_host(ready: dict, keys_root: Path, out: Path, log: Path) -> subprocess.Popen:
     host, port = ready["pose_endpoint"].rsplit(":", 1)
     kport = ready["keyframe_endpoint"].rsplit(":", 1)[1]
-    cmd = [sys.executable, "-m", "stereopath.host.commands.live", "--device", f"127.0.0.1:{port}", "--keyframe-port", kport,
+    cmd = [sys.executable, "-m", "stereopath.host", "host", "live", "--device", f"127.0.0.1:{port}", "--keyframe-port", kport,
            "--keys", str(keys_root / "host"), "--out", str(out), "--duration", "600"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL,

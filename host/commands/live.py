@@ -98,25 +98,3 @@ def run(args: argparse.Namespace) -> int:
              st.received["pose"], st.received["keyframe"], st.duplicates, st.pose_seq_gaps, st.rejected,
              ", ".join(st.sessions) or "none")
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Run this command alone (``python -m stereopath.host.commands.live ...``), e.g. as a test subprocess."""
-    import sys
-
-    from stereopath.device.errors import StereopathError
-    from stereopath.host.cli import setup_logging
-
-    parser = argparse.ArgumentParser(prog="stereopath host live", description=__doc__)
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    setup_logging(0, False)
-    try:
-        return run(args)
-    except StereopathError as exc:
-        print(f"stereopath: error: {exc}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
