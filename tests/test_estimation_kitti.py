@@ -6,7 +6,7 @@ import pytest
 from stereopath.device.estimation.base import run_estimator
 from stereopath.device.estimation.registry import make_estimator
 from stereopath.device.core.frames import StereoFrame
-from stereopath.device.core.rig import load_kitti_calib
+from stereopath.device.formats.rig_files import load_kitti_calib
 
 
 def _kitti(data_dir, n):

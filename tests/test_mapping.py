@@ -192,7 +192,8 @@ def test_keyframes_without_calibration_raise(keyframe_dir, tmp_path):
 
 
 def test_keyframes_with_the_wrong_rig_raise(keyframe_dir, tmp_path):
-    from stereopath.device.core.rig import paper_rig, save_rig_yaml
+    from stereopath.device.core.rig import paper_rig
+    from stereopath.device.formats.rig_files import save_rig_yaml
 
     other = tmp_path / "other.yaml"
     save_rig_yaml(paper_rig(), other)  # no T_body_cam0: a different calibration hash

@@ -28,7 +28,8 @@ from stereopath.device.formats.csvrows import parse_float, parse_int, read_lines
 from stereopath.device.formats.images import read_gray
 from stereopath.device.errors import DatasetError
 from stereopath.device.core.frames import ImuSamples, StereoFrame
-from stereopath.device.core.rig import Rig, load_euroc_rig, load_rig_yaml
+from stereopath.device.core.rig import Rig
+from stereopath.device.formats.rig_files import load_euroc_rig, load_rig_yaml
 from stereopath.device.formats.tum import Trajectory, read_tum, seconds_to_ns
 
 log = logging.getLogger(__name__)

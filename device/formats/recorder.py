@@ -43,7 +43,8 @@ from stereopath.device.errors import CaptureError, ConfigError
 from stereopath.device.formats.fileio import fsync_dir, write_renamed_open, write_text_atomic
 from stereopath.device.wire.protocol import new_session_id
 from stereopath.device.core.frames import ImuSamples, StereoFrame
-from stereopath.device.core.rig import Rig, save_rig_yaml
+from stereopath.device.core.rig import Rig
+from stereopath.device.formats.rig_files import save_rig_yaml
 from stereopath.device.formats.tum import Trajectory, format_tum_line, write_tum
 
 log = logging.getLogger(__name__)

@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
                             fsync=not args.no_fsync)
     rig = None
     if args.rig:
-        from stereopath.device.core.rig import load_rig_yaml
+        from stereopath.device.formats.rig_files import load_rig_yaml
 
         rig = load_rig_yaml(args.rig)
     rerun_view = None

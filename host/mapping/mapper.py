@@ -237,7 +237,7 @@ def keyframes_input(path: str | Path, selection: KeyframeSelection | None = None
     folder or its parent; its hash must match the keyframes' rig reference.
     """
     from stereopath.device.wire.protocol import decode_image, rig_reference
-    from stereopath.device.core.rig import load_rig_yaml
+    from stereopath.device.formats.rig_files import load_rig_yaml
     from stereopath.host.live.store import load_keyframe
 
     p = Path(path)
