@@ -1,4 +1,4 @@
-"""Rig calibration files: our rig YAML, KITTI odometry ``calib.txt`` and EuRoC/ASL ``sensor.yaml``.
+"""Rig calibration files: our rig YAML, KITTI odometry ``calib.txt`` and EuRoC/ASL ``sensor.yaml`` (read and written).
 
 The rig itself (cameras, extrinsics, rectification) is the pure model of
 :mod:`stereopath.device.core.rig`; this module only reads and writes it.
@@ -6,6 +6,7 @@ The rig itself (cameras, extrinsics, rectification) is the pure model of
 
 from __future__ import annotations
 
+import logging
 import re
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,8 @@ from stereopath.device.core.rig import CameraModel, Rig, checked_array, make_cam
     rig_to_dict
 from stereopath.device.errors import CalibrationError
 from stereopath.device.formats.fileio import write_text_atomic
+
+log = logging.getLogger(__name__)
 
 
 def load_rig_yaml(path: str | Path) -> Rig:
@@ -125,3 +128,64 @@ def load_euroc_rig(mav0: str | Path) -> Rig:
     cam1, T_B_C1 = _euroc_camera("cam1", m / "cam1" / "sensor.yaml")
     T_C1_C0 = invert_pose(T_B_C1) @ T_B_C0
     return make_rig(cam0, cam1, T_C1_C0[:3, :3], T_C1_C0[:3, 3], name="euroc", T_body_cam0=T_B_C0)
+
+
+# ---------------------------------------------------------------------------------------------
+# EuRoC sensor.yaml writers (the recorder's session layout)
+
+# MPU-6050 nominal noise (datasheet densities; random walks are typical values) for imu0/sensor.yaml
+MPU6050_NOISE = {
+    "gyroscope_noise_density": 8.7266e-05,  # rad/s/sqrt(Hz)   (0.005 deg/s/sqrt(Hz))
+    "gyroscope_random_walk": 2.0e-05,  # rad/s^2/sqrt(Hz)
+    "accelerometer_noise_density": 3.9227e-03,  # m/s^2/sqrt(Hz)  (400 ug/sqrt(Hz))
+    "accelerometer_random_walk": 3.0e-04,  # m/s^3/sqrt(Hz)
+}
+
+
+def _yaml_list(values: Any) -> str:
+    return "[" + ", ".join(repr(float(v)) for v in values) + "]"
+
+
+def _t_bs_block(T: np.ndarray) -> str:
+    rows = [", ".join(repr(float(v)) for v in row) for row in np.asarray(T, dtype=float)]
+    data = ",\n         ".join(rows)
+    return f"T_BS:\n  cols: 4\n  rows: 4\n  data: [{data}]\n"
+
+
+def camera_sensor_yaml(cam: Any, name: str, T_body_cam: np.ndarray, rate_hz: float) -> str:
+    """EuRoC ``camN/sensor.yaml`` text (pinhole, radial-tangential k1 k2 p1 p2)."""
+    dist = np.asarray(cam.dist, dtype=float).reshape(-1)
+    if dist.size > 4 and np.any(dist[4:] != 0):
+        log.warning("%s: sensor.yaml keeps only k1 k2 p1 p2 (EuRoC radial-tangential); the further "
+                    "coefficients %s are only in rig.yaml", name, dist[4:].tolist())
+    d4 = np.zeros(4)
+    d4[: min(4, dist.size)] = dist[:4]
+    return (
+        "%YAML:1.0\n"
+        "# General sensor definitions.\n"
+        "sensor_type: camera\n"
+        f"comment: stereopath {name}\n\n"
+        "# Sensor extrinsics wrt. the body-frame (the IMU frame).\n"
+        + _t_bs_block(T_body_cam)
+        + "\n# Camera specific definitions.\n"
+        f"rate_hz: {float(rate_hz)!r}\n"
+        f"resolution: [{int(cam.size[0])}, {int(cam.size[1])}]\n"
+        "camera_model: pinhole\n"
+        f"intrinsics: {_yaml_list([cam.fx, cam.fy, cam.cx, cam.cy])} #fu, fv, cu, cv\n"
+        "distortion_model: radial-tangential\n"
+        f"distortion_coefficients: {_yaml_list(d4)}\n"
+    )
+
+
+def imu_sensor_yaml(rate_hz: float, noise: dict[str, float]) -> str:
+    """EuRoC ``imu0/sensor.yaml`` text (the body frame is the IMU frame)."""
+    lines = "".join(f"{k}: {float(v)!r}\n" for k, v in noise.items())
+    return (
+        "%YAML:1.0\n"
+        "sensor_type: imu\n"
+        "comment: stereopath IMU (MPU-6050 class)\n\n"
+        + _t_bs_block(np.eye(4))
+        + f"rate_hz: {float(rate_hz)!r}\n\n"
+        "# inertial sensor noise model parameters (static)\n"
+        + lines
+    )

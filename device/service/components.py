@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from stereopath.device.core.config import as_dict
+from stereopath.device.core.frames import median_rate_hz
 from stereopath.device.errors import ConfigError
 from stereopath.device.service.options import secret_key_path
 from stereopath.device.service.settings import DeviceConfig
@@ -67,29 +68,20 @@ def open_imu(cfg: DeviceConfig, source: Any, inject: Mapping[str, Any]) -> Any:
     return imu
 
 
-def _median_rate_hz(t_ns: Any) -> float | None:
-    import numpy as np
-
-    if t_ns is None or len(t_ns) <= 2:
-        return None
-    d = np.diff(np.asarray(t_ns, dtype=np.int64))
-    d = d[d > 0]
-    return round(1e9 / float(np.median(d)), 3) if d.size else None
-
-
 def nominal_rates(cfg: DeviceConfig, source: Any) -> tuple[float, float | None]:
     """(camera Hz, IMU Hz) for the session's sensor files and the rate monitor."""
     cam_hz: float = float(cfg.source.fps)
     if cfg.source.recorded:
         seq = getattr(source, "session", None) or getattr(source, "sequence", None)
-        cam_hz = _median_rate_hz(getattr(seq, "t_ns", None)) or cam_hz
+        t_ns = getattr(seq, "t_ns", None)
+        cam_hz = (median_rate_hz(t_ns) if t_ns is not None and len(t_ns) > 2 else None) or cam_hz
     imu_hz: float | None = None
     if cfg.imu.polled:
         imu_hz = float(cfg.imu.rate_hz)
     elif cfg.imu.backend == "source":
         samples = getattr(getattr(source, "imu", None), "samples", None)
         if samples is not None and len(samples) > 2:
-            imu_hz = _median_rate_hz(samples.t_ns)
+            imu_hz = median_rate_hz(samples.t_ns)
         elif cfg.source.backend == "depthai":
             imu_hz = float(cfg.source.depthai.imu_rate_hz)
     return cam_hz, imu_hz
