@@ -99,7 +99,7 @@ def stop_device(proc: subprocess.Popen, work: Path, name: str, result: Path) -> 
 
 
 def receiver_config(ready: dict, keys_root: Path, **kw):
-    from stereopath.host.live.receiver import ReceiverConfig
+    from stereopath.host.live.receiver_config import ReceiverConfig
 
     return ReceiverConfig(ready["pose_endpoint"], ready["keyframe_endpoint"], keys_dir=str(keys_root / "host"), **kw)
 

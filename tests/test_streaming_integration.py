@@ -18,7 +18,8 @@ from stereopath.device.wire.protocol import Hello, Keyframe, Status, decode_mess
     encode_status, make_keyframe, KEYFRAME_LIMITS
 from stereopath.device.wire.security import generate_keypair, load_public_key, load_secret_keypair, make_demo_keys
 from stereopath.device.formats.tum import read_tum
-from stereopath.host.live.receiver import Receiver, ReceiverConfig
+from stereopath.host.live.receiver import Receiver
+from stereopath.host.live.receiver_config import ReceiverConfig
 from tests.test_streaming_support import assert_exactly_once, make_device, port_of, small_images, stored_seqs, \
     wait_for
 

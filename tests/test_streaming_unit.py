@@ -20,7 +20,9 @@ from stereopath.device.wire.security import (
     authorized_keys, check_loopback_endpoint, generate_keypair, load_host_keys, load_secret_keypair, make_demo_keys)
 from stereopath.host.live.store import KeyframeStore, list_sessions, load_keyframe, read_index
 from stereopath.host.live.view import TerminalView, summary_lines
-from stereopath.host.live.receiver import LiveState, Receiver, ReceiverConfig, ReceiverStats, endpoints_from_address
+from stereopath.host.live.receiver import Receiver
+from stereopath.host.live.receiver_config import ReceiverConfig, endpoints_from_address
+from stereopath.host.live.receiver_stats import LiveState, ReceiverStats
 from tests.test_streaming_support import make_device, small_images
 
 

@@ -41,7 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from stereopath.device.errors import ConfigError
     from stereopath.host.live.view import RerunView, TerminalView
-    from stereopath.host.live.receiver import Receiver, ReceiverConfig, endpoints_from_address
+    from stereopath.host.live.receiver import Receiver
+    from stereopath.host.live.receiver_config import ReceiverConfig, endpoints_from_address
 
     if args.duration is not None and args.duration <= 0:
         raise ConfigError(f"--duration must be positive, got {args.duration}")
