@@ -195,6 +195,22 @@ def test_imu_reader_holds_gyro_samples_until_the_accelerometer_covers_them():
     assert s3.accel_m_s2[:, 0] == pytest.approx([20.0 + 20.0 * 4 / 10, 20.0 + 20.0 * 9 / 10])
 
 
+def test_a_group_missing_a_camera_is_counted_not_fatal():
+    import depthai as dai
+
+    world = FakeOakWorld(max_frames=30)
+    src = DepthaiSource(settings(), dai=world.module())
+    with src:
+        partial = dai.MessageGroup()
+        partial["left"] = src._first["left"]
+        with pytest.raises(IndexError, match="map::at"):  # what the real MessageGroup raises
+            partial["right"]
+        src._first = partial                              # delivered next, as if from the Sync node
+        frames = take(src, 2)
+        st = src.stats
+    assert len(frames) == 2 and st.dropped_unpaired == 1
+
+
 def test_reversed_extrinsics_are_inverted_with_a_warning(caplog):
     from stereopath.device.core.geometry import so3_exp
 

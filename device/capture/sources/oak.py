@@ -53,6 +53,8 @@ log = logging.getLogger(__name__)
 
 # an OAK pipeline needs a moment after start() before its first frames; open() waits this long
 FIRST_PAIR_TIMEOUT_S = 5.0
+# gyroscope samples kept while waiting for an accelerometer report to interpolate from
+MAX_PENDING_IMU = 4096
 
 DEPTHAI_NAMES = (
     "Pipeline", "Pipeline.create", "Pipeline.start", "Pipeline.stop", "Pipeline.isRunning",
@@ -206,7 +208,10 @@ class DepthaiImu:
                 if ta > 0 and (self._last_a is None or ta > self._last_a):
                     self._last_a = ta
                     self._acc.append((ta, ac.x, ac.y, ac.z))
+        if len(self._gyro) > MAX_PENDING_IMU:  # the accelerometer stopped reporting: do not hoard
+            self._gyro = self._gyro[-MAX_PENDING_IMU:]
         if not self._gyro or not self._acc:
+            self._acc = self._acc[-1:]
             return ImuSamples.empty()
         g = np.array(self._gyro, float)
         a = np.array(self._acc, float)
@@ -336,7 +341,11 @@ class DepthaiSource(SourceBase):
                     raise CaptureError(f"depthai: no synchronised frame pair for {s.timeout_s:.1f} s")
                 continue
             last_progress = time.monotonic()
-            lf, rf = group["left"], group["right"]
+            try:
+                lf, rf = group["left"], group["right"]
+            except (IndexError, KeyError):  # MessageGroup raises IndexError("map::at") for a missing name
+                self._count(dropped_unpaired=int(group.getNumMessages()))
+                continue
             tl = timedelta_to_ns(lf.getTimestamp(mid))
             tr = timedelta_to_ns(rf.getTimestamp(mid))
             sn = int(lf.getSequenceNum())
