@@ -6,7 +6,8 @@ the system picamera2 (/opt/stereopath/venv, --system-site-packages) with this pa
 overwritten; the secret stays root-only and reaches the service through LoadCredential=),
 /var/lib/stereopath/sessions, the i2c-dev module load, and the unit
 stereopath-capture.service, enabled at boot, with a drop-in allowing exactly the devices of the
-configured source.backend (libcamera's for picamera2, USB for depthai; rerun after changing it).  Idempotent: run it again after an update.
+configured source.backend (libcamera's for picamera2, USB for depthai; rerun after changing it).
+Idempotent: run it again after an update.
 With --root DIR everything is written under DIR instead of / (accounts into DIR/etc/passwd and
 DIR/etc/group, no pip, no systemctl): for preparing or inspecting a tree without touching
 this system.  Append firmware_cfg/config.txt to /boot/firmware/config.txt yourself.

@@ -305,8 +305,8 @@ class _FakePicamera2:
         ctrl = dict(controls or {})
         if "NoiseReductionMode" in self.camera_controls and "FrameDurationLimits" in self.camera_controls:
             ctrl = {"NoiseReductionMode": _NoiseReductionModeEnum.Fast, "FrameDurationLimits": (33333, 33333)} | ctrl
-        return {"use_case": use_case, "transform": transform, "colour_space": colour_space, "buffer_count": buffer_count,
-                "queue": queue, "main": stream, "lores": lores, "raw": raw, "controls": ctrl, "sensor": sensor,
+        return {"use_case": use_case, "transform": transform, "colour_space": colour_space,
+                "buffer_count": buffer_count, "queue": queue, "main": stream, "lores": lores, "raw": raw, "controls": ctrl, "sensor": sensor,
                 "display": display, "encode": encode}
 
     def configure(self, config: dict[str, Any]) -> None:
