@@ -264,7 +264,8 @@ class _FakePicamera2:
         self._stop = threading.Event()
         try:
             if not self.spec.present:
-                # libcamera's Camera.acquire() -> std::system_error -> RuntimeError in Python
+                # libcamera src/py/libcamera/py_main.cpp, Camera.acquire: std::system_error(-ret,
+                # "Failed to acquire camera"), which pybind11 raises as RuntimeError (EBUSY here)
                 raise RuntimeError("Failed to acquire camera: Device or resource busy")
         except Exception as e:
             # Picamera2.__init__: the real error is chained, the message is generic
