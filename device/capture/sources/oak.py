@@ -63,7 +63,8 @@ DEPTHAI_NAMES = (
     "node.IMU.setBatchReportThreshold", "node.IMU.setMaxBatchReports",
     "CameraBoardSocket.CAM_B", "CameraBoardSocket.CAM_C", "ImgFrame.Type.GRAY8", "ImgFrame.getTimestamp",
     "ImgFrame.getFrame", "ImgFrame.getSequenceNum", "CameraExposureOffset.MIDDLE", "LengthUnit.METER",
-    "IMUSensor.ACCELEROMETER_CALIBRATED", "IMUSensor.GYROSCOPE_CALIBRATED", "MessageGroup", "MessageQueue",
+    "IMUSensor.ACCELEROMETER_CALIBRATED", "IMUSensor.GYROSCOPE_CALIBRATED", "MessageGroup",
+    "MessageGroup.getMessageNames", "MessageQueue",
     "CalibrationHandler.getDefaultIntrinsics", "CalibrationHandler.getDistortionCoefficients",
     "CalibrationHandler.getCameraExtrinsics", "CalibrationHandler.getCameraToImuExtrinsics",
     "ImgFrame.getTransformation", "ImgTransformation.getIntrinsicMatrix", "ImgTransformation.isValid",
@@ -373,7 +374,7 @@ class DepthaiSource(SourceBase):
             seq += 1
 
     def _first_group(self, timeout_s: float) -> Any:
-        """The first synchronised group (its frames carry the transformation K is read from)."""
+        """The first complete synchronised group (its frames carry the transformation K is read from)."""
         deadline = time.monotonic() + timeout_s
         while True:
             try:
@@ -385,7 +386,7 @@ class DepthaiSource(SourceBase):
                 raise
             except Exception as exc:
                 raise CaptureError(f"depthai: lost the device before the first frame pair: {exc}") from None
-            if group is not None:
+            if group is not None and {"left", "right"} <= set(group.getMessageNames()):
                 return group
             if time.monotonic() > deadline:
                 raise CaptureError(f"depthai: no synchronised frame pair within {timeout_s:.1f} s of starting")
