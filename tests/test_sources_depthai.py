@@ -258,11 +258,21 @@ def test_real_library_behaviours_the_backend_relies_on():
     """What the stand-in leaves to depthai itself, checked on the installed wheel."""
     import depthai as dai
 
+    class Idle(dai.node.ThreadedHostNode):
+        def __init__(self):
+            super().__init__()
+            self.out = self.createOutput()
+
+        def run(self):
+            while self.isRunning():
+                time.sleep(0.005)
+
     p = dai.Pipeline(False)
     with pytest.raises(RuntimeError, match="host only"):
         p.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_B)
     sync = p.create(dai.node.Sync)
     sync.setRunOnHost(True)
+    p.create(Idle).out.link(sync.inputs["left"])   # a Sync node needs an input to run
     q = sync.out.createOutputQueue()
     assert q.getMaxSize() == 16 and q.getBlocking() is False      # createOutputQueue defaults
     assert q.get(timeout=dt.timedelta(milliseconds=10)) is None   # timeout -> None
