@@ -22,11 +22,11 @@ def _timing(key: str) -> bool:
             or key in ("finished_utc", "stages"))
 
 
-def _untimed(v: Any) -> Any:
+def _untimed(v: Any, drop: tuple[str, ...] = ()) -> Any:
     if isinstance(v, dict):
-        return {k: _untimed(x) for k, x in v.items() if not _timing(str(k))}
+        return {k: _untimed(x, drop) for k, x in v.items() if not _timing(str(k)) and k not in drop}
     if isinstance(v, list):
-        return [_untimed(x) for x in v]
+        return [_untimed(x, drop) for x in v]
     return v
 
 
@@ -75,8 +75,13 @@ def ply_canonical(path: Path) -> tuple[Any, Any]:
     return v[order], t
 
 
-def differences(a: str | Path, b: str | Path) -> list[str]:
-    """What differs between output folders ``a`` and ``b`` (``[]``: the same results)."""
+def differences(a: str | Path, b: str | Path, ignore_source: bool = False) -> list[str]:
+    """What differs between output folders ``a`` and ``b`` (``[]``: the same results).
+
+    ``ignore_source``: leave out the ``source`` labels (the session path as the process that
+    reprocessed it saw it: another path on a cluster worker that sees the data elsewhere).
+    """
+    drop = ("source",) if ignore_source else ()
     a, b = Path(a), Path(b)
     diffs: list[str] = []
     for name in BYTE_FILES:
@@ -111,7 +116,7 @@ def differences(a: str | Path, b: str | Path) -> list[str]:
         if fa.is_file() != fb.is_file():
             diffs.append(f"{name}: only in {'the first' if fa.is_file() else 'the second'}")
         elif fa.is_file():
-            ja, jb = _untimed(json.loads(fa.read_text())), _untimed(json.loads(fb.read_text()))
+            ja, jb = _untimed(json.loads(fa.read_text()), drop), _untimed(json.loads(fb.read_text()), drop)
             if ja != jb:
                 keys = sorted(k for k in set(ja) | set(jb) if ja.get(k) != jb.get(k))
                 diffs.append(f"{name}: differs in {', '.join(keys)}")
