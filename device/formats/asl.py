@@ -24,13 +24,13 @@ import numpy as np
 
 from stereopath.device.formats import layout
 from stereopath.device.formats.sequence import SequenceBase
-from stereopath.device.formats.csvrows import parse_float, parse_int, read_lines, read_rows
+from stereopath.device.formats.csvrows import parse_float, parse_int, read_rows
 from stereopath.device.formats.images import read_gray
 from stereopath.device.errors import DatasetError
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.rig import Rig
 from stereopath.device.formats.rig_files import load_euroc_rig, load_rig_yaml
-from stereopath.device.formats.tum import Trajectory, read_tum, seconds_to_ns
+from stereopath.device.formats.tum import Trajectory, read_tum, read_tum_poses
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +80,7 @@ class AslSequence(SequenceBase):
         if self.session_dir is None:
             return None
         p = self.session_dir / layout.TRAJECTORY
-        return read_appended_tum(p) if p.is_file() else None
+        return read_tum_poses(p, torn_tail_ok=True) if p.is_file() else None
 
 
 def open_asl(mav0_dir: str | Path, spec: str | None = None) -> AslSequence:
@@ -220,25 +220,4 @@ def _read_euroc_state_csv(path: Path) -> Trajectory:
         Ts.append(row)
     if not ts:
         raise DatasetError(f"{path}: no poses")
-    return Trajectory.from_pose_rows(ts, Ts)
-
-
-def read_appended_tum(path: Path) -> Trajectory | None:
-    """A TUM file that may have been cut mid-line by a crash (final partial line ignored)."""
-    ts, Ts = [], []
-    for line, s in read_lines(path):
-        parts = s.split()
-        if len(parts) != 8:
-            raise DatasetError(f"{path}:{line}: expected 8 values (t tx ty tz qx qy qz qw), got {len(parts)}")
-        try:
-            t = seconds_to_ns(parts[0])
-        except ArithmeticError:
-            raise DatasetError(f"{path}:{line}: timestamp is not a number: {parts[0]!r}") from None
-        v = [parse_float(path, line, x) for x in parts[1:]]
-        if np.linalg.norm(v[3:]) < 1e-9:
-            raise DatasetError(f"{path}:{line}: zero quaternion")
-        ts.append(t)
-        Ts.append(v)
-    if not ts:
-        return None
     return Trajectory.from_pose_rows(ts, Ts)

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from stereopath.device.errors import DatasetError
+from stereopath.device.formats.csvrows import read_lines
 from stereopath.device.formats.fileio import write_text_atomic
 from stereopath.device.core.geometry import matrix_to_quat_xyzw
 from stereopath.device.core.trajectory import Trajectory
@@ -47,19 +48,15 @@ def write_tum(path: str | Path, traj: Trajectory) -> None:
     write_text_atomic(p, buf.getvalue(), fsync=False)
 
 
-def read_tum(path: str | Path) -> Trajectory:
+def read_tum_poses(path: str | Path, torn_tail_ok: bool = False) -> Trajectory | None:
+    """Every pose of a TUM file, None when it has none (commas are accepted as separators).
+
+    With ``torn_tail_ok`` a final line without its newline (a file cut by a crash while being
+    appended to, e.g. a session's ``trajectory.tum``) is logged and ignored.
+    """
     p = Path(path)
-    try:
-        lines = p.read_text().splitlines()
-    except FileNotFoundError:
-        raise DatasetError(f"trajectory file not found: {p}") from None
-    except UnicodeDecodeError:
-        raise DatasetError(f"{p}: not a text file") from None
-    ts, Ts = [], []
-    for i, line in enumerate(lines, 1):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
+    ts, rows = [], []
+    for i, s in read_lines(p, torn_tail_ok=torn_tail_ok):
         parts = s.replace(",", " ").split()
         if len(parts) != 8:
             raise DatasetError(f"{p}:{i}: expected 8 values (t tx ty tz qx qy qz qw), got {len(parts)}")
@@ -71,10 +68,16 @@ def read_tum(path: str | Path) -> Trajectory:
         if not np.all(np.isfinite(v)) or np.linalg.norm(v[3:]) < 1e-9:
             raise DatasetError(f"{p}:{i}: non-finite value or zero quaternion")
         ts.append(t)
-        Ts.append(v)
-    if not ts:
-        raise DatasetError(f"{p}: no poses")
-    return Trajectory.from_pose_rows(ts, Ts)
+        rows.append(v)
+    return Trajectory.from_pose_rows(ts, rows) if ts else None
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """A complete TUM trajectory file (at least one pose)."""
+    traj = read_tum_poses(path)
+    if traj is None:
+        raise DatasetError(f"{path}: no poses")
+    return traj
 
 
 def read_kitti_poses(path: str | Path, t_ns: np.ndarray | None = None) -> Trajectory:
