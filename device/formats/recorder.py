@@ -279,10 +279,7 @@ class SessionRecorder:
         """Make everything queued durable now (images first, then their rows)."""
         with self._lock:
             if self._fds:
-                try:
-                    self._flush()
-                except OSError as exc:
-                    self._io_failed(exc)
+                self._flush_or_fail()
 
     def close(self) -> None:
         """Flush, close the files and rewrite the manifest.  Safe to call more than once."""
@@ -367,10 +364,13 @@ class SessionRecorder:
 
     def _maybe_flush(self) -> None:
         if (self._clock() - self._last_flush >= self.chunk_s) or len(self._pending_images) >= 2 * MAX_PENDING_IMAGES:
-            try:
-                self._flush()
-            except OSError as exc:
-                self._io_failed(exc)
+            self._flush_or_fail()
+
+    def _flush_or_fail(self) -> None:
+        try:
+            self._flush()
+        except OSError as exc:
+            self._io_failed(exc)
 
     def _flush(self) -> None:
         if self._pending_images:

@@ -58,17 +58,22 @@ def generate_keypair(directory: str | Path, name: str, overwrite: bool = False) 
     return Path(pub_path), Path(sec_path)
 
 
-def load_secret_keypair(path: str | Path) -> tuple[bytes, bytes]:
-    """``(public, secret)`` Z85 keys from a ``*.key_secret`` file."""
+def _load_certificate(p: Path, what: str) -> tuple[bytes, bytes | None]:
+    """``(public, secret or None)`` from a ZeroMQ certificate file; ConfigError names the file."""
     import zmq.auth
 
-    p = Path(path)
     if not p.is_file():
-        raise ConfigError(f"CURVE secret key file not found: {p}")
+        raise ConfigError(f"CURVE {what} key file not found: {p}")
     try:
-        public, secret = zmq.auth.load_certificate(str(p))
+        return zmq.auth.load_certificate(str(p))
     except (ValueError, OSError) as exc:
         raise ConfigError(f"{p}: not a ZeroMQ certificate: {exc}") from None
+
+
+def load_secret_keypair(path: str | Path) -> tuple[bytes, bytes]:
+    """``(public, secret)`` Z85 keys from a ``*.key_secret`` file."""
+    p = Path(path)
+    public, secret = _load_certificate(p, "secret")
     if not secret:
         raise ConfigError(f"{p} holds no secret key (is it the public .key file?)")
     mode = p.stat().st_mode
@@ -79,16 +84,7 @@ def load_secret_keypair(path: str | Path) -> tuple[bytes, bytes]:
 
 def load_public_key(path: str | Path) -> bytes:
     """Z85 public key from a ``*.key`` (or ``*.key_secret``) file."""
-    import zmq.auth
-
-    p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"CURVE public key file not found: {p}")
-    try:
-        public, _ = zmq.auth.load_certificate(str(p))
-    except (ValueError, OSError) as exc:
-        raise ConfigError(f"{p}: not a ZeroMQ certificate: {exc}") from None
-    return public
+    return _load_certificate(Path(path), "public")[0]
 
 
 def authorized_keys(clients_dir: str | Path) -> list[Path]:
