@@ -276,18 +276,12 @@ _DECODERS: dict[str, Callable[[dict[str, Any]], Any]] = {
 
 def encode_message(msg: Message) -> bytes:
     """Encode any message type."""
-    if isinstance(msg, Pose):
-        return encode_pose(msg)
-    if isinstance(msg, Keyframe):
-        return encode_keyframe(msg)
-    if isinstance(msg, Status):
-        return encode_status(msg)
-    if isinstance(msg, Hello):
-        return encode_hello(msg)
-    if isinstance(msg, Ack):
-        return encode_ack(msg)
-    if isinstance(msg, Credit):
-        return encode_credit(msg)
+    encoders: dict[type, Callable[[Any], bytes]] = {
+        Pose: encode_pose, Keyframe: encode_keyframe, Status: encode_status, Hello: encode_hello, Ack: encode_ack,
+        Credit: encode_credit}
+    for cls, encode in encoders.items():
+        if isinstance(msg, cls):
+            return encode(msg)
     raise ProtocolError(f"cannot encode {type(msg).__name__}")
 
 
