@@ -71,6 +71,15 @@ class ReprocessResult:
     files: list[str]
 
 
+def _one_blas_thread() -> Any:
+    """A context with every BLAS (NumPy's, SciPy's and OpenCV's OpenBLAS) limited to one thread."""
+    import cv2  # noqa: F401 - each library brings its own BLAS, which must be loaded to be limited
+    import scipy.linalg  # noqa: F401
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
+
+
 class _Runner:
     """Runs or reuses the stages of one reprocessing (keys, stored arrays, status)."""
 
@@ -92,7 +101,11 @@ class _Runner:
     def run_stage(self, name: str, files: list[str], compute: Callable[[], Any]) -> Any:
         self.store.forget(name)
         t0 = time.perf_counter()
-        result = compute()
+        # one BLAS thread: a multi-threaded BLAS sums long dot products in an order that depends on
+        # its thread count, so the adjusted poses would change in the last bits from a 2-core
+        # laptop to a 16-core one or a Ray worker (OMP_NUM_THREADS=1); pinned, they do not
+        with _one_blas_thread():
+            result = compute()
         self.store.finish(name, self.keys[name], files, time.perf_counter() - t0, self.settings.get(name))
         self.status[name] = "computed"
         log.info("stage %s: computed in %.1f s", name, time.perf_counter() - t0)
