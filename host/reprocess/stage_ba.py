@@ -37,7 +37,7 @@ def settings(config: ReprocessPreset) -> dict[str, Any]:
 def gyro_rotation_priors(seq: Any, t_kf: np.ndarray, sigma_rad_per_sqrt_s: float) -> list:
     """Relative rotations between consecutive keyframes from the gyro (bias from the still start)."""
     from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still
-    from stereopath.host.reprocess.bundle_adjust import RotationPrior
+    from stereopath.host.reprocess.ba_common import RotationPrior
 
     imu = getattr(seq, "imu", None)
     rig = seq.rig
@@ -58,10 +58,18 @@ def gyro_rotation_priors(seq: Any, t_kf: np.ndarray, sigma_rad_per_sqrt_s: float
     return out
 
 
+def solver(config: ReprocessPreset):
+    """The back-end module of ``config.ba_solver`` (``bundle_adjust``, ``refine_poses_fixed_points``)."""
+    if config.ba_solver == "schur":
+        from stereopath.host.reprocess import bundle_adjust as mod
+    else:
+        from stereopath.host.reprocess import gtsam_ba as mod
+    return mod
+
+
 def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list):
     """Bundle adjustment of the keyframes (a ``BAResult``); EstimationError when there is too little."""
-    from stereopath.host.reprocess.bundle_adjust import bundle_adjust
-
+    bundle_adjust = solver(config).bundle_adjust
     trk = inputs.results["tracks"]
     points = {int(i): x for i, x in zip(trk["point_ids"], trk["point_xyz"])}
     bar = progress_bar(config.ba_max_iterations * (1 + config.ba_outlier_rounds), "bundle adjustment",
@@ -113,8 +121,7 @@ def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.
 
 def refine_frames(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.ndarray) -> int:
     """Motion-only refinement of the non-keyframes of ``T_frames`` (in place); the number refined."""
-    from stereopath.host.reprocess.bundle_adjust import refine_poses_fixed_points
-
+    refine_poses_fixed_points = solver(config).refine_poses_fixed_points
     is_kf = np.zeros(len(T_frames), bool)
     is_kf[inputs.results["tracks"]["kf_index"]] = True
     rows = _frame_rows(config, inputs, res, T_frames, is_kf)
@@ -128,7 +135,7 @@ def refine_frames(config: ReprocessPreset, inputs: StageInputs, res, T_frames: n
 
 
 def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
-    from stereopath.host.reprocess.bundle_adjust import interpolate_corrections
+    from stereopath.host.reprocess.ba_common import interpolate_corrections
 
     est, trk = inputs.results["estimate"], inputs.results["tracks"]
     kf, T_kf = trk["kf_index"], trk["T_kf"]
