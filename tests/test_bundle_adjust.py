@@ -209,3 +209,23 @@ def test_gtsam_and_the_hand_written_solver_reach_the_same_optimum():
     assert a.disparity_offset_px == pytest.approx(b.disparity_offset_px, abs=1e-4)
     for k in range(len(T_true)):
         assert np.abs(a.T_world_cam[k] - b.T_world_cam[k]).max() < 1e-5
+
+
+def test_gtsam_loop_factor_constrains_the_relative_pose():
+    from stereopath.host.reprocess.loops import Loop
+
+    rng = np.random.default_rng(8)
+    rig, T_true, pts, obs = _problem(rng, n_kf=6, n_pts=120)
+    obs = obs[obs[:, 2] == 0]  # left camera only: the path's scale is free, the loop fixes it
+    rel = invert_pose(T_true[0]) @ T_true[5]
+    meas = rel.copy()
+    meas[:3, 3] *= 1.02  # a measured loop 2 % longer than the truth
+    free = gtsam_ba.bundle_adjust(rig, T_true, pts, obs, outlier_rounds=0)
+    loop = Loop(0, 5, meas, 100, 120, 1e-5, 1e-5, 0.0)
+    tied = gtsam_ba.bundle_adjust(rig, T_true, pts, obs, outlier_rounds=0, loops=[loop])
+
+    def length(res):
+        return np.linalg.norm((invert_pose(res.T_world_cam[0]) @ res.T_world_cam[5])[:3, 3])
+
+    assert length(free) == pytest.approx(np.linalg.norm(rel[:3, 3]), rel=0.01)
+    assert length(tied) == pytest.approx(np.linalg.norm(meas[:3, 3]), rel=1e-3)

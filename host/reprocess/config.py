@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from stereopath.host.reprocess.loops import LoopConfig
 from stereopath.host.reprocess.tracks import TrackConfig
 
 BA_SOLVERS = ("gtsam", "schur")
@@ -25,6 +26,7 @@ class ReprocessPreset:
     estimator_preset: str | None = None  # feature preset of the stereo estimator (None: its on-board default)
     estimator_options: tuple[tuple[str, Any], ...] = ()
     tracks: TrackConfig = field(default_factory=TrackConfig)
+    loops: LoopConfig = field(default_factory=LoopConfig)  # loop closure between keyframes (tracks stage)
     ba_solver: str = "gtsam"  # "gtsam" (gtsam_ba) or "schur" (the hand-written bundle_adjust, a cross-check)
     ba_loss: str = "huber"
     ba_robust_px: float = 1.0

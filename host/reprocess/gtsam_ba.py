@@ -142,6 +142,16 @@ class _Graph:
             self.graph.add(g.BetweenFactorPose3(self.X(pr.i), self.X(pr.j), rel, g.noiseModel.Diagonal.Sigmas(sig)))
 
 
+    def add_loops(self, loops: list, k_sigma: float = 3.0) -> None:
+        """Relative-pose constraints of verified loops (Huber at ``k_sigma`` standard deviations)."""
+        g = self.g
+        nm = g.noiseModel
+        for lp in loops:
+            sig = np.array([lp.sigma_rot_rad] * 3 + [lp.sigma_trans_m] * 3)
+            noise = nm.Robust.Create(nm.mEstimator.Huber.Create(k_sigma), nm.Diagonal.Sigmas(sig))
+            self.graph.add(g.BetweenFactorPose3(self.X(lp.i), self.X(lp.j), self.pose(lp.T_ci_cj), noise))
+
+
 def _optimize(gr: _Graph, max_iterations: int, on_iteration=None) -> tuple[Any, int, list[float]]:
     """Levenberg-Marquardt from ``gr.values``; (values, iterations, error after each iteration)."""
     g = gr.g
@@ -174,6 +184,7 @@ def _read(gr: _Graph, values: Any, n_poses: int, ids: np.ndarray) -> tuple[np.nd
 def _solve(rig: Rig, T: np.ndarray, points: dict[int, np.ndarray], obs: np.ndarray, held: np.ndarray,
            priors: list[RotationPrior], opts: dict[str, Any], offset_px: float, estimate_offset: bool,
            on_iteration=None):
+    # opts: loss, huber_px, max_iterations, loops
     """One batch solve: (poses, points, offset, iterations, history)."""
     gr = _Graph(rig, opts["loss"], opts["huber_px"], offset_px, estimate_offset)
     ids = np.unique(obs[:, 1].astype(np.int64))
@@ -181,6 +192,7 @@ def _solve(rig: Rig, T: np.ndarray, points: dict[int, np.ndarray], obs: np.ndarr
     gr.add_points(ids, np.array([points[int(i)] for i in ids]))
     gr.add_observations(obs)
     gr.add_rotation_priors(priors)
+    gr.add_loops(opts.get("loops") or [])
     values, iters, history = _optimize(gr, opts["max_iterations"], on_iteration)
     T_new, pts_new, offset = _read(gr, values, len(T), ids)
     return T_new, pts_new, offset, iters, history
@@ -191,19 +203,21 @@ def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarra
                   max_iterations: int = 50, n_fixed: int = 1, rotation_priors: list[RotationPrior] | None = None,
                   outlier_px: float = 3.0, outlier_rounds: int = 1, estimate_disparity_offset: bool = False,
                   disparity_offset_px: float = 0.0, disparity_offset_min_px: float = 0.0,
-                  on_iteration=None) -> BAResult:
+                  on_iteration=None, loops: list | None = None) -> BAResult:
     """Refine ``T_world_cam`` (K, 4, 4) and ``points`` {id: XYZ world} on ``observations`` (N, 5|6).
 
     ``huber_px`` is the scale of the robust ``loss`` (pixels).  With ``outlier_rounds > 0`` the
     problem is solved, observations with a residual above ``outlier_px`` are dropped, and solved
-    again (that many times).  ``on_iteration(1)`` is called after every LM iteration.
+    again (that many times).  ``on_iteration(1)`` is called after every LM iteration.  ``loops``:
+    verified loop closures (:class:`stereopath.host.reprocess.loops.Loop`, pose indices ``i``,
+    ``j``) added as relative-pose factors.
     """
     if loss not in LOSSES:
         raise ConfigError(f"loss = {loss!r}; known: {', '.join(LOSSES)}")
     T, obs = check_problem(T_world_cam, observations, points, min_keyframes_per_point)
     held = np.arange(len(T)) < max(n_fixed, 0)
     priors = list(rotation_priors or [])
-    opts = {"loss": loss, "huber_px": huber_px, "max_iterations": max_iterations}
+    opts = {"loss": loss, "huber_px": huber_px, "max_iterations": max_iterations, "loops": list(loops or [])}
     rms0 = rms_px(*reprojection_residuals(rig, T, points, obs, disparity_offset_px))
     offset, est = float(disparity_offset_px), bool(estimate_disparity_offset) and bool(np.any(obs[:, 2] == 1))
     T, pts, new_offset, iters, history = _solve(rig, T, points, obs, held, priors, opts, offset, est, on_iteration)

@@ -176,3 +176,20 @@ def detect_loops(rig: Rig, kfs: list, T_world_cam: np.ndarray, cfg: LoopConfig =
                 loops.append(loop)
     log.info("loop closure: %d candidate pairs, %d loops accepted", sum(map(len, by_i.values())), len(loops))
     return loops
+
+
+_COLS = 7  # i, j, inliers, matches, sigma_rot, sigma_trans, correction; then T_ci_cj (16)
+
+
+def loops_to_array(loops: list[Loop]) -> np.ndarray:
+    """(L, 23) rows for a stage file."""
+    if not loops:
+        return np.zeros((0, _COLS + 16))
+    return np.array([[lp.i, lp.j, lp.inliers, lp.matches, lp.sigma_rot_rad, lp.sigma_trans_m, lp.correction_m,
+                      *np.asarray(lp.T_ci_cj, float).ravel()] for lp in loops])
+
+
+def loops_from_array(a: np.ndarray) -> list[Loop]:
+    a = np.asarray(a, float).reshape(-1, _COLS + 16)
+    return [Loop(int(r[0]), int(r[1]), r[_COLS:].reshape(4, 4), int(r[2]), int(r[3]), float(r[4]), float(r[5]),
+                 float(r[6])) for r in a]

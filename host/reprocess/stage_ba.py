@@ -58,6 +58,21 @@ def gyro_rotation_priors(seq: Any, t_kf: np.ndarray, sigma_rad_per_sqrt_s: float
     return out
 
 
+def loops_of(trk: dict[str, np.ndarray]) -> list:
+    """The verified loops stored by the tracks stage."""
+    from stereopath.host.reprocess.loops import loops_from_array
+
+    return loops_from_array(trk["loops"]) if "loops" in trk else []
+
+
+def end_to_start(T: np.ndarray) -> dict[str, float]:
+    """The path's end relative to its start: distance (m) and rotation (deg)."""
+    from stereopath.device.core.geometry import invert_pose, rotation_angle_deg
+
+    rel = invert_pose(T[0]) @ T[-1]
+    return {"distance_m": float(np.linalg.norm(rel[:3, 3])), "rotation_deg": float(rotation_angle_deg(rel[:3, :3]))}
+
+
 def solver(config: ReprocessPreset):
     """The back-end module of ``config.ba_solver`` (``bundle_adjust``, ``refine_poses_fixed_points``)."""
     if config.ba_solver == "schur":
@@ -72,6 +87,11 @@ def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list)
     bundle_adjust = solver(config).bundle_adjust
     trk = inputs.results["tracks"]
     points = {int(i): x for i, x in zip(trk["point_ids"], trk["point_xyz"])}
+    extra = {}
+    if config.ba_solver == "gtsam":
+        extra["loops"] = loops_of(trk)
+    elif len(loops_of(trk)):
+        log.warning("ba_solver 'schur' has no loop factors: %d loop(s) ignored", len(loops_of(trk)))
     bar = progress_bar(config.ba_max_iterations * (1 + config.ba_outlier_rounds), "bundle adjustment",
                        inputs.progress, "iteration")
     try:
@@ -80,7 +100,7 @@ def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list)
                              outlier_px=config.ba_outlier_px, outlier_rounds=config.ba_outlier_rounds,
                              rotation_priors=priors, estimate_disparity_offset=config.ba_disparity_offset,
                              disparity_offset_min_px=config.ba_disparity_offset_min_px,
-                             on_iteration=None if bar is None else bar.update)
+                             on_iteration=None if bar is None else bar.update, **extra)
     finally:
         if bar is not None:
             bar.close()
@@ -160,7 +180,9 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
              "inlier_fraction": res.inlier_fraction, "rotation_priors": len(priors),
              "disparity_offset_px": res.disparity_offset_px if config.ba_disparity_offset else None,
              "frames_refined": n_refined, "ba_seconds": round(t_ba, 3),
-             "frame_refinement_seconds": round(time.perf_counter() - t1, 3)}
+             "frame_refinement_seconds": round(time.perf_counter() - t1, 3),
+             "loops": [lp.as_dict() for lp in loops_of(trk)] if config.ba_solver == "gtsam" else [],
+             "end_to_start": {"reestimated": end_to_start(est["T_world_cam"]), "bundle_adjusted": end_to_start(T_frames)}}
     ids = np.fromiter(res.points.keys(), np.int64, len(res.points))
     return {
         "T_kf": res.T_world_cam,
