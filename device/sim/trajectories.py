@@ -398,7 +398,8 @@ def make_orbit(duration_s: float = DEFAULT_DURATION_S, seed: int = 0) -> Analyti
 LOOP_TURNS = 2
 
 
-def make_loop(duration_s: float = DEFAULT_DURATION_S, seed: int = 0, turns: int = LOOP_TURNS) -> AnalyticTrajectory:
+def make_loop(duration_s: float = DEFAULT_DURATION_S, seed: int = 0, turns: int = LOOP_TURNS,
+              radius_m: float = 1.1) -> AnalyticTrajectory:
     """``turns`` turns around the table, back to the start pose at ``duration_s`` (module doc)."""
     law = TimeLaw(duration_s)
     G = law.g_end if law.g_end > 0 else 1.0
@@ -410,7 +411,7 @@ def make_loop(duration_s: float = DEFAULT_DURATION_S, seed: int = 0, turns: int 
         Sines(np.radians([9.0, 3.0]), per[[2, 3]], [3.3, 0.2]),   # pan (camera y)
         Sines(np.radians([10.0, 4.0]), per[[0, 3]], [0.9, 2.6]),  # roll (camera z)
     )
-    shape = LookAtOrbitShape(np.radians(-100.0), k, Sines([0.10, 0.03], per[[2, 4]], [0.3, 1.0]), 1.1,
+    shape = LookAtOrbitShape(np.radians(-100.0), k, Sines([0.10, 0.03], per[[2, 4]], [0.3, 1.0]), radius_m,
                              Sines([0.09, 0.03], per[[1, 3]], [1.1, 0.2]), 1.32, exc, sp, sr)
     return AnalyticTrajectory("loop", shape, law, duration_s)
 
