@@ -395,7 +395,7 @@ def make_orbit(duration_s: float = DEFAULT_DURATION_S, seed: int = 0) -> Analyti
     return AnalyticTrajectory("orbit", shape, law, duration_s)
 
 
-LOOP_TURNS = 2
+LOOP_TURNS = 3
 
 
 def make_loop(duration_s: float = DEFAULT_DURATION_S, seed: int = 0, turns: int = LOOP_TURNS,
