@@ -5,10 +5,11 @@
 1. The default simulated session (`stereopath sim`: 400 frames, written once into a temporary
    folder, not timed): ATE of the on-board `stereo` estimator (run in this process), then
    `host reprocess` end to end (re-estimate, tracks, bundle adjustment, frame refinement, dense
-   model, reports) once; then the `ba` stage again with each back end (`ba_solver` "schur": the
-   hand-written Levenberg-Marquardt, "gtsam": GTSAM), R times each, alternating, on the same
-   stored estimate and tracks: median ATE, median wall and CPU seconds (all threads) of the ba
-   stage, the ratio gtsam / schur.
+   model, reports) once; then the `ba` stage alone (keyframe bundle adjustment and frame
+   refinement, no map) with each back end (`ba_solver` "schur": the hand-written
+   Levenberg-Marquardt, "gtsam": GTSAM), R times each, alternating, on the same stored estimate
+   and tracks: median ATE, median wall and CPU seconds (all threads) of the stage, and the ratios
+   gtsam / schur.
 2. KITTI 06 frames 0-50 (no map): the same comparison.
 3. --loop N: a session on the `loop` trajectory (N frames): on-board ATE and end-to-start error,
    then `host reprocess` (GTSAM with loop closure): the loops accepted, ATE and end-to-start
@@ -51,27 +52,31 @@ def onboard_ate(seq) -> tuple[float, float]:
     return evaluate(seq.groundtruth, run.trajectory)["ate_rmse_m"], time.perf_counter() - t
 
 
-def _ba_stage_cpu(seq, out: Path, preset, do_map: bool):
-    """Reprocess into ``out`` (estimate and tracks stored there are reused): (ATE, ba wall s, ba CPU s, stats)."""
-    seen: dict[str, float] = {}
+def ba_stage(seq, stages: Path, preset):
+    """The ba stage alone on the estimate and tracks stored in ``stages``: (ATE, wall s, CPU s, stats)."""
+    import json
 
-    def mark(name: str) -> None:
-        seen[name] = time.process_time()
+    from stereopath.device.formats.tum import Trajectory
+    from stereopath.host.reprocess import stage_ba
+    from stereopath.host.reprocess.config import StageInputs
+    from stereopath.host.reprocess.store import load_npz
 
-    c0 = time.process_time()
-    res = reprocess_sequence(seq, out, preset=preset, do_map=do_map, progress=False, after_stage=mark)
-    assert res.stages["ba"] == "computed", res.stages
-    return res.report["ate_rmse_m"], res.seconds["ba"], seen["ba"] - c0, res.report["extra"]["bundle_adjustment"]
+    results = {name: load_npz(stages / f"{name}.npz") for name in ("estimate", "tracks")}
+    t, c = time.perf_counter(), time.process_time()  # process time: CPU of all threads
+    out = stage_ba.run(preset, StageInputs(seq, False, results))
+    wall, cpu = time.perf_counter() - t, time.process_time() - c
+    ate = evaluate(seq.groundtruth, Trajectory(results["estimate"]["t_ns"], out["T_frames"]))["ate_rmse_m"]
+    return ate, wall, cpu, json.loads(str(out["stats"]))
 
 
-def compare_solvers(name: str, seq, out: Path, base, runs: int, ate_on: float, do_map: bool, unit: float,
+def compare_solvers(name: str, seq, stages: Path, base, runs: int, ate_on: float, unit: float,
                     unit_name: str) -> None:
-    """Old (schur) vs GTSAM ba stage on the same stored estimate and tracks, ``runs`` times each."""
+    """Old (schur) vs GTSAM ba stage on the same stored estimate and tracks, ``runs`` times each, alternating."""
     fig: dict[str, dict[str, list]] = {s: {"ate": [], "wall": [], "cpu": []} for s in ("schur", "gtsam")}
     stats = {}
     for _ in range(runs):
         for solver in ("schur", "gtsam"):
-            ate, wall, cpu, st = _ba_stage_cpu(seq, out, dataclasses.replace(base, ba_solver=solver), do_map)
+            ate, wall, cpu, st = ba_stage(seq, stages, dataclasses.replace(base, ba_solver=solver))
             fig[solver]["ate"].append(ate)
             fig[solver]["wall"].append(wall)
             fig[solver]["cpu"].append(cpu)
@@ -80,12 +85,13 @@ def compare_solvers(name: str, seq, out: Path, base, runs: int, ate_on: float, d
     for s in ("schur", "gtsam"):
         st = stats[s]
         print(f"  {name} ba_solver={s:5s}: ATE {med[s]['ate'] * unit:.4f} {unit_name} (x{med[s]['ate'] / ate_on:.3f} of "
-              f"on-board), ba stage {med[s]['wall']:.1f} s wall, {med[s]['cpu']:.1f} s CPU; "
+              f"on-board), ba stage {med[s]['wall']:.1f} s wall, {med[s]['cpu']:.1f} s CPU (bundle adjustment "
+              f"{st['ba_seconds']:.1f} s, frame refinement {st['frame_refinement_seconds']:.1f} s); "
               f"{st['poses']} kf, {st['points']} points, {st['observations']} obs, rms "
               f"{st['rms_before_px']:.3f} -> {st['rms_after_px']:.3f} px, {st['iterations']} iterations, "
               f"disparity offset {st['disparity_offset_px']}")
-    print(f"  {name} gtsam / schur: ATE x{med['gtsam']['ate'] / med['schur']['ate']:.3f}, ba CPU "
-          f"x{med['gtsam']['cpu'] / med['schur']['cpu']:.2f}, ba wall x{med['gtsam']['wall'] / med['schur']['wall']:.2f} "
+    print(f"  {name} gtsam / schur: ATE x{med['gtsam']['ate'] / med['schur']['ate']:.3f}, ba stage CPU "
+          f"x{med['gtsam']['cpu'] / med['schur']['cpu']:.2f}, wall x{med['gtsam']['wall'] / med['schur']['wall']:.2f} "
           f"(medians of {runs} run(s) each)")
 
 
@@ -125,6 +131,8 @@ def main() -> int:
     ap.add_argument("--ablations", action="store_true")
     ap.add_argument("--loop", type=int, default=0, metavar="FRAMES", help="also the loop trajectory with this many frames")
     ap.add_argument("--only-loop", action="store_true", help="only the loop figures")
+    ap.add_argument("--reuse", action="store_true",
+                    help="with --keep: compare the solvers on stages already stored there (no end-to-end run)")
     ap.add_argument("--keep", default=None, help="write into this folder instead of a temporary one")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
@@ -147,21 +155,23 @@ def main() -> int:
         print(f"simulated session: {len(seq)} frames, {seq.groundtruth.path_length_m():.2f} m")
         ate_on, t_on = onboard_ate(seq)
         print(f"  on-board stereo ATE {mm(ate_on)} ({t_on:.1f} s)")
-        t = time.perf_counter()
-        res = reprocess_session(session, tmp / "sim", preset=base, progress=False, force=True)
-        st = res.seconds
-        print(f"  reprocess --preset {args.preset} end to end (GTSAM): {time.perf_counter() - t:.1f} s (estimate "
-              f"{st['estimate']:.1f}, tracks {st['tracks']:.1f}, ba {st['ba']:.1f}, map {st['map']:.1f} s), "
-              f"ATE {mm(res.report['ate_rmse_m'])}; target <= 180 s")
-        compare_solvers("sim", seq, tmp / "sim", base, args.runs, ate_on, True, 1000, "mm")
+        if not (args.reuse and (tmp / "sim" / "stages" / "tracks.npz").is_file()):
+            t = time.perf_counter()
+            res = reprocess_session(session, tmp / "sim", preset=base, progress=False, force=True)
+            st = res.seconds
+            print(f"  reprocess --preset {args.preset} end to end (GTSAM): {time.perf_counter() - t:.1f} s (estimate "
+                  f"{st['estimate']:.1f}, tracks {st['tracks']:.1f}, ba {st['ba']:.1f}, map {st['map']:.1f} s), "
+                  f"ATE {mm(res.report['ate_rmse_m'])}; target <= 180 s")
+        compare_solvers("sim", seq, tmp / "sim" / "stages", base, args.runs, ate_on, 1000, "mm")
         sequences = [("sim", seq, ate_on)]
         if not args.skip_kitti:
             if KITTI.is_dir():
                 kseq = open_sequence(f"kitti:{KITTI}")
                 k_on, _ = onboard_ate(kseq)
                 print(f"KITTI 06 frames 0-{len(kseq) - 1}: on-board stereo ATE {k_on:.4f} m")
-                reprocess_sequence(kseq, tmp / "kitti", preset=base, do_map=False, progress=False, force=True)
-                compare_solvers("kitti", kseq, tmp / "kitti", base, args.runs, k_on, False, 1, "m")
+                if not (args.reuse and (tmp / "kitti" / "stages" / "tracks.npz").is_file()):
+                    reprocess_sequence(kseq, tmp / "kitti", preset=base, do_map=False, progress=False, force=True)
+                compare_solvers("kitti", kseq, tmp / "kitti" / "stages", base, args.runs, k_on, 1, "m")
                 sequences.append(("kitti", kseq, k_on))
             else:
                 print(f"KITTI data not found at {KITTI}: skipped")
