@@ -74,6 +74,33 @@ def _ratio(a: dict | None, b: dict | None) -> float | None:
     return float(a["ate_rmse_m"]) / float(b["ate_rmse_m"])
 
 
+def end_to_start_error(gt: Trajectory | None, traj: Trajectory | None) -> float | None:
+    """|end-to-start translation of ``traj`` - that of the ground truth at the same times| (m), or None."""
+    from stereopath.device.core.geometry import invert_pose
+
+    if gt is None or traj is None or len(gt) < 2 or len(traj) < 2:
+        return None
+    t_gt = np.asarray(gt.t_ns, np.int64)
+    ends = []
+    for t in (int(traj.t_ns[0]), int(traj.t_ns[-1])):
+        k = int(np.argmin(np.abs(t_gt - t)))
+        if abs(int(t_gt[k]) - t) > 5_000_000:  # no ground truth within 5 ms
+            return None
+        ends.append(np.asarray(gt.T_world_cam[k]))
+    rel_gt = invert_pose(ends[0]) @ ends[1]
+    rel = invert_pose(np.asarray(traj.T_world_cam[0])) @ np.asarray(traj.T_world_cam[-1])
+    return float(np.linalg.norm(rel[:3, 3] - rel_gt[:3, 3]))
+
+
+def loop_report(s: RunSummary) -> dict[str, Any]:
+    """Accepted loops, the end-to-start gap of each path, and its error against the ground truth."""
+    stats = meta(s.ba, "stats")
+    gt = getattr(s.seq, "groundtruth", None)
+    paths = {"onboard": s.onboard, "reestimated": s.reest, "bundle_adjusted": s.final}
+    return {"accepted": stats.get("loops", []), "end_to_start": stats.get("end_to_start"),
+            "end_to_start_error_m": {k: end_to_start_error(gt, v) for k, v in paths.items()}}
+
+
 def build_report(s: RunSummary) -> dict[str, Any]:
     """The report.json content of a run."""
     from stereopath.host.evaluation.report import make_report
@@ -92,6 +119,7 @@ def build_report(s: RunSummary) -> dict[str, Any]:
                      "keyframes": int(np.sum(s.est["keyframe"]))},
         "tracks": s.trk_stats,
         "bundle_adjustment": meta(s.ba, "stats"),
+        "loops": loop_report(s),
         "stages": {k: {"status": s.status.get(k, "skipped"), "seconds": s.stage_seconds.get(k, 0.0)} for k in STAGES},
         "map": s.map_stats,
     }
