@@ -69,20 +69,52 @@ def load_keyframe(path: str | Path) -> Keyframe:
         raise DatasetError(f"{p}: not a valid keyframe: {exc}") from None
 
 
+def _parse_index(p: Path) -> tuple[list[dict[str, Any]], int | None]:
+    """Rows of the index file ``p`` up to the first malformed one, and that row's line number (None: all good).
+
+    A power cut during an append leaves a torn last line; everything before it is still valid.
+    """
+    rows: list[dict[str, Any]] = []
+    with p.open(newline="", errors="replace") as fh:
+        text = fh.read()
+    lines = text.splitlines(keepends=True)
+    if not lines or lines[0].rstrip("\r\n").split(",") != list(INDEX_FIELDS):
+        return rows, 1
+    for lineno, line in enumerate(lines[1:], start=2):
+        if not line.endswith("\n"):
+            return rows, lineno  # the last append did not finish
+        try:
+            values = next(csv.reader([line]))
+        except csv.Error:
+            return rows, lineno
+        if len(values) != len(INDEX_FIELDS):
+            return rows, lineno
+        out: dict[str, Any] = dict(zip(INDEX_FIELDS, values))
+        try:
+            for k in ("seq", "frame_seq", "t_ns", "bytes"):
+                out[k] = int(out[k])
+            for k in ("tx", "ty", "tz", "qx", "qy", "qz", "qw"):
+                out[k] = float(out[k])
+        except ValueError:
+            return rows, lineno
+        if _KF_RE.match(out["file"]) is None:
+            return rows, lineno
+        rows.append(out)
+    return rows, None
+
+
 def read_index(session_dir: str | Path) -> list[dict[str, Any]]:
-    """Rows of ``<session>/keyframes/index.csv`` with numeric fields converted."""
+    """Rows of ``<session>/keyframes/index.csv`` with numeric fields converted.
+
+    A torn or malformed line (a power cut during an append) ends the index: the valid rows
+    before it are returned and a warning names the file and line.
+    """
     p = Path(session_dir) / "keyframes" / INDEX_NAME
     if not p.is_file():
         return []
-    rows = []
-    with p.open(newline="") as fh:
-        for row in csv.DictReader(fh):
-            out: dict[str, Any] = dict(row)
-            for k in ("seq", "frame_seq", "t_ns", "bytes"):
-                out[k] = int(row[k])
-            for k in ("tx", "ty", "tz", "qx", "qy", "qz", "qw"):
-                out[k] = float(row[k])
-            rows.append(out)
+    rows, bad = _parse_index(p)
+    if bad is not None:
+        log.warning("%s: line %d is torn or malformed; using the %d valid rows before it", p, bad, len(rows))
     return rows
 
 
@@ -138,23 +170,33 @@ class SessionKeyframes:
         return True
 
     def _reconcile_index(self) -> None:
+        """Make ``index.csv`` list exactly the stored files, keeping the valid prefix of a torn index."""
         index = self.dir / INDEX_NAME
-        listed: list[int] = []
-        if index.is_file():
-            try:
-                listed = [int(r["seq"]) for r in read_index(self.dir.parent)]
-            except (ValueError, KeyError, csv.Error):
-                listed = []
-        if index.is_file() and len(listed) == len(set(listed)) and set(listed) == self.seqs:
-            return
         if not index.is_file() and not self.seqs:
             with index.open("w", newline="") as fh:
                 csv.writer(fh).writerow(INDEX_FIELDS)
             return
-        log.warning("session %s: keyframe index out of step with %d files; rebuilding", self.session_id,
-                    len(self.seqs))
-        rows = []
-        for seq in sorted(self.seqs):
+        listed: list[dict[str, Any]] = []
+        bad: int | None = None
+        if index.is_file():
+            listed, bad = _parse_index(index)
+            seqs = [r["seq"] for r in listed]
+            if bad is None and len(seqs) == len(set(seqs)) and set(seqs) == self.seqs:
+                return
+        if bad is not None:
+            log.warning("session %s: %s line %d is torn or malformed (a write cut short); keeping the %d valid "
+                        "rows before it and re-adding the rest from the %d keyframe files", self.session_id,
+                        index, bad, len(listed), len(self.seqs))
+        else:
+            log.warning("session %s: keyframe index out of step with %d files; rebuilding", self.session_id,
+                        len(self.seqs))
+        rows: list[list[Any]] = []
+        kept: set[int] = set()
+        for r in listed:  # the valid prefix, in its order, for rows whose file is still there
+            if r["seq"] in self.seqs and r["seq"] not in kept and r["file"] == keyframe_name(r["seq"]):
+                rows.append([r[k] for k in INDEX_FIELDS])
+                kept.add(r["seq"])
+        for seq in sorted(self.seqs - kept):
             p = self.path(seq)
             try:
                 kf = load_keyframe(p)
@@ -171,7 +213,12 @@ class SessionKeyframes:
             w = csv.writer(fh)
             w.writerow(INDEX_FIELDS)
             w.writerows(rows)
+            fh.flush()
+            if self.fsync:
+                os.fsync(fh.fileno())
         os.replace(tmp, index)
+        if self.fsync:
+            fsync_dir(self.dir)
 
     def close(self) -> None:
         self._index.close()
