@@ -70,5 +70,7 @@ def run(args: argparse.Namespace) -> int:
         elif ba["ate_ratio_vs_reestimated"] is not None:
             line += f" (x{ba['ate_ratio_vs_reestimated']:.2f})"
         print(line)
+    if res.report["extra"].get("groundtruth_error"):
+        print(f"warning: ground truth not used: {res.report['extra']['groundtruth_error']}")
     print(f"wrote {args.out}/" + ", ".join(res.files))
     return 0

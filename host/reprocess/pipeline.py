@@ -648,7 +648,13 @@ def _write_outputs(out: Path, seq: Any, est: dict[str, np.ndarray], trk_stats: d
     from stereopath.host.evaluation.report import make_report, write_report
     from stereopath.host.reprocess.report_html import plot_errors, write_html_report
 
-    gt = getattr(seq, "groundtruth", None)
+    try:
+        gt = getattr(seq, "groundtruth", None)
+    except StereopathError as exc:  # the ground truth is optional: keep the finished work
+        log.warning("ground truth unusable, results written without errors against it: %s", exc)
+        gt, gt_error = None, str(exc)
+    else:
+        gt_error = None
     meta = _meta(est, "meta")
     m_final = _metrics(gt, final)
     m_reest = _metrics(gt, reest)
@@ -677,6 +683,8 @@ def _write_outputs(out: Path, seq: Any, est: dict[str, np.ndarray], trk_stats: d
         "stages": {s: {"status": status.get(s, "skipped"), "seconds": store.seconds(s)} for s in STAGES},
         "map": map_stats,
     }
+    if gt_error is not None:
+        extra["groundtruth_error"] = gt_error
     report = make_report(source=label, estimator="stereo+ba", frames=len(final), frames_tracked=frames_tracked,
                          metrics=m_final if m_final and m_final.get("ate_rmse_m") is not None else None,
                          frame_ms=est["frame_ms"], world_frame=meta.get("world_frame", "first_camera"), extra=extra)
