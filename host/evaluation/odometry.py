@@ -50,6 +50,10 @@ def report_for(run: EstimateRun, seq, source_label: str) -> tuple[dict, Trajecto
         world_frame=run.world_frame,
     )
     report.setdefault("extra", {}).update({"estimator_stats": run.extra})
+    skipped = list(getattr(seq, "skipped_frames", None) or [])
+    report["extra"]["frames_skipped"] = len(skipped)
+    if skipped:
+        report["extra"]["skipped_frame_indexes"] = skipped[:1000]
     return report, gt
 
 

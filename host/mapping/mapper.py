@@ -126,6 +126,7 @@ class MapInput:
     source: str
     frames_total: int
     poses_source: str
+    skipped: list[str] = field(default_factory=list)  # unreadable inputs left out (see build_map's strict)
 
 
 def select_keyframes(T_world_cam: np.ndarray, selection: KeyframeSelection) -> np.ndarray:
@@ -230,7 +231,7 @@ def _keyframe_folder(path: Path) -> Path | None:
 
 
 def keyframes_input(path: str | Path, selection: KeyframeSelection | None = None,
-                    rig: Rig | str | Path | None = None) -> MapInput:
+                    rig: Rig | str | Path | None = None, strict: bool = False) -> MapInput:
     """Keyframes stored by ``host live`` (see :mod:`stereopath.host.live.store`).
 
     The calibration is ``rig`` (a Rig or a rig YAML path) or a ``rig.yaml`` in the keyframes
@@ -247,7 +248,17 @@ def keyframes_input(path: str | Path, selection: KeyframeSelection | None = None
     files = sorted(kdir.glob("kf_*.msgpack"))
     if not files:
         raise DatasetError(f"{kdir}: the keyframe folder is empty")
-    kfs = [load_keyframe(f) for f in files]
+    kfs, skipped = [], []
+    for f in files:
+        try:
+            kfs.append(load_keyframe(f))
+        except DatasetError as exc:
+            if strict:
+                raise
+            log.warning("skipping unreadable keyframe: %s", exc)
+            skipped.append(f.name)
+    if not kfs:
+        raise DatasetError(f"{kdir}: none of the {len(files)} keyframe files is readable")
     kfs.sort(key=lambda k: k.seq)
     refs = {(k.rig_name, k.rig_hash) for k in kfs}
     if len(refs) != 1:
@@ -276,11 +287,11 @@ def keyframes_input(path: str | Path, selection: KeyframeSelection | None = None
 
     out = [MapKeyframe(int(kfs[i].seq), int(kfs[i].t_ns), poses[i], loader(kfs[i])) for i in sel]
     return MapInput(rig=the_rig, keyframes=out, kind="keyframes", source=str(kdir), frames_total=len(kfs),
-                    poses_source="keyframe poses")
+                    poses_source="keyframe poses", skipped=skipped)
 
 
 def open_map_input(path: str | Path, selection: KeyframeSelection, poses: str | Path | None = None,
-                   rig: str | Path | None = None) -> MapInput:
+                   rig: str | Path | None = None, strict: bool = False) -> MapInput:
     """A session folder (``mav0`` inside) or a stored-keyframes folder, whichever ``path`` is."""
     p = Path(path)
     if not p.exists():
@@ -292,7 +303,9 @@ def open_map_input(path: str | Path, selection: KeyframeSelection, poses: str | 
     if _keyframe_folder(p) is not None:
         if poses is not None:
             raise ConfigError("--poses applies to sessions; stored keyframes carry their own poses")
-        return keyframes_input(p, None if selection.stride == 0 else selection, rig)
+        # stored keyframes are already spaced by the device: every one by default, max_keyframes still applies
+        return keyframes_input(p, selection if selection.stride else dataclasses.replace(selection, stride=1), rig,
+                               strict=strict)
     raise DatasetError(f"{p}: neither a session (no mav0/) nor a keyframes folder (no index.csv, kf_*.msgpack)")
 
 
@@ -427,11 +440,12 @@ class DenseMapper:
 
 
 def build_map(inp: MapInput, config: MapConfig, progress: bool | None = None,
-              on_keyframe: Callable[[int, Any], None] | None = None) -> MapResult:
+              on_keyframe: Callable[[int, Any], None] | None = None, strict: bool = False) -> MapResult:
     """Depth and fusion of every keyframe of ``inp``, then mesh, cloud and preview (no file I/O).
 
     ``progress``: tqdm bar on stderr (None = only when stderr is a terminal).  ``on_keyframe(k,
-    depth_map)`` is called after each keyframe is fused (for live views).
+    depth_map)`` is called after each keyframe is fused (for live views).  A keyframe whose
+    images cannot be read is skipped and counted (``stats["keyframes_skipped"]``) unless ``strict``.
     """
     if not inp.keyframes:
         raise DatasetError(f"{inp.source}: no keyframes to map")
@@ -441,7 +455,14 @@ def build_map(inp: MapInput, config: MapConfig, progress: bool | None = None,
     try:
         for k, kf in enumerate(inp.keyframes):
             t0 = time.perf_counter()
-            left, right = kf.load()
+            try:
+                left, right = kf.load()
+            except DatasetError as exc:
+                if strict:
+                    raise
+                log.warning("skipping keyframe %d: %s", kf.index, exc)
+                inp.skipped.append(str(kf.index))
+                continue
             mapper.timings["load"] += time.perf_counter() - t0
             dm = mapper.add(left, right, kf.T_world_cam0, index=kf.index)
             if on_keyframe is not None:
@@ -451,7 +472,8 @@ def build_map(inp: MapInput, config: MapConfig, progress: bool | None = None,
     finally:
         if bar is not None:
             bar.close()
-    result = mapper.finish({"input_kind": inp.kind, "poses": inp.poses_source, "frames_total": inp.frames_total})
+    result = mapper.finish({"input_kind": inp.kind, "poses": inp.poses_source, "frames_total": inp.frames_total,
+                            "keyframes_skipped": len(inp.skipped), "skipped": inp.skipped[:1000]})
     result.stats["timings_s"]["total"] = round(time.perf_counter() - t_start, 4)
     return result
 
@@ -504,9 +526,11 @@ def map_sequence(seq: Any, trajectory: Trajectory, out_dir: str | Path | None, c
 
 
 def map_path(path: str | Path, out_dir: str | Path, config: MapConfig, poses: str | Path | None = None,
-             rig: str | Path | None = None, progress: bool | None = None) -> MapResult:
-    """``stereopath host map``: open a session or keyframes folder, build the model, write it."""
-    inp = open_map_input(path, config.keyframes, poses=poses, rig=rig)
-    result = build_map(inp, config, progress=progress)
+             rig: str | Path | None = None, progress: bool | None = None, strict: bool = False) -> MapResult:
+    """``stereopath host map``: open a session or keyframes folder, build the model, write it.
+
+    Unreadable keyframes or frames are skipped and counted unless ``strict``."""
+    inp = open_map_input(path, config.keyframes, poses=poses, rig=rig, strict=strict)
+    result = build_map(inp, config, progress=progress, strict=strict)
     write_map(result, out_dir)
     return result

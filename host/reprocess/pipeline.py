@@ -685,6 +685,10 @@ def _write_outputs(out: Path, seq: Any, est: dict[str, np.ndarray], trk_stats: d
     }
     if gt_error is not None:
         extra["groundtruth_error"] = gt_error
+    skipped = list(getattr(seq, "skipped_frames", None) or [])
+    extra["frames_skipped"] = len(skipped)
+    if skipped:
+        extra["skipped_frame_indexes"] = skipped[:1000]
     report = make_report(source=label, estimator="stereo+ba", frames=len(final), frames_tracked=frames_tracked,
                          metrics=m_final if m_final and m_final.get("ate_rmse_m") is not None else None,
                          frame_ms=est["frame_ms"], world_frame=meta.get("world_frame", "first_camera"), extra=extra)
@@ -716,7 +720,7 @@ def _write_outputs(out: Path, seq: Any, est: dict[str, np.ndarray], trk_stats: d
 def reprocess_session(session_dir: str | Path, out_dir: str | Path, preset: str | ReprocessPreset = DEFAULT_PRESET,
                       do_map: bool = True, map_preset: str = "object", force: bool = False,
                       progress: bool | None = None, imu_priors: bool = False,
-                      after_stage: Callable[[str], None] | None = None) -> ReprocessResult:
+                      after_stage: Callable[[str], None] | None = None, strict: bool = False) -> ReprocessResult:
     """``stereopath host reprocess``: a recorded session folder -> ``out_dir`` (see the module doc).
 
     The input is checked before anything is written: a missing or empty folder, a folder that is
@@ -724,6 +728,7 @@ def reprocess_session(session_dir: str | Path, out_dir: str | Path, preset: str 
     :class:`stereopath.device.errors.StereopathError` and leave ``out_dir`` untouched.
     """
     seq = open_session_checked(session_dir)
+    seq.strict = strict  # False: unreadable frames are skipped and counted (report extra.frames_skipped)
     onboard = getattr(seq, "trajectory", None)
     return reprocess_sequence(seq, out_dir, preset=preset, do_map=do_map, map_preset=map_preset, force=force,
                               progress=progress, onboard=onboard, source_label=str(session_dir),
