@@ -135,3 +135,59 @@ def test_map_max_keyframes_applies_to_keyframe_folders(session, tmp_path):
     save_rig_yaml(seq.rig, kdir / "rig.yaml")
     assert len(open_map_input(kdir, KeyframeSelection()).keyframes) == 6
     assert len(open_map_input(kdir, KeyframeSelection(max_keyframes=3)).keyframes) == 3
+
+
+# item 7: bad rigs, exchanged images, degenerate evaluations --------------------------------------
+
+def test_rig_with_cam1_left_of_cam0_is_refused(tmp_path):
+    import yaml
+
+    from stereopath.device.core.rig import load_rig_yaml
+    from stereopath.device.errors import CalibrationError
+
+    src = Path(__file__).resolve().parents[1] / "firmware_cfg" / "rig_paper.yaml"
+    data = yaml.safe_load(src.read_text())
+    load_rig_yaml(src)  # the shipped rig is fine
+    flipped = dict(data, T_cam1_cam0_m=[-v for v in data["T_cam1_cam0_m"]])  # a negative baseline
+    (tmp_path / "neg.yaml").write_text(yaml.safe_dump(flipped))
+    with pytest.raises(CalibrationError, match="LEFT of cam0"):
+        load_rig_yaml(tmp_path / "neg.yaml")
+    R = np.array(data["R_cam1_cam0"], float)
+    T = np.array(data["T_cam1_cam0_m"], float)
+    inv = dict(data, R_cam1_cam0=R.T.tolist(), T_cam1_cam0_m=(-R.T @ T).tolist())  # T_cam0_cam1 given instead
+    (tmp_path / "inv.yaml").write_text(yaml.safe_dump(inv))
+    with pytest.raises(CalibrationError, match="exchanged"):
+        load_rig_yaml(tmp_path / "inv.yaml")
+
+
+def test_swapped_image_folders_are_detected(session, tmp_path, capsys):
+    d = _copy(session, tmp_path)
+    m = d / "mav0"
+    (m / "cam0").rename(m / "tmp")
+    (m / "cam1").rename(m / "cam0")
+    (m / "tmp").rename(m / "cam1")
+    for f in ("sensor.yaml",):  # keep each camera's calibration with its folder name
+        a, b = (m / "cam0" / f), (m / "cam1" / f)
+        if a.exists() and b.exists():
+            ta, tb = a.read_bytes(), b.read_bytes()
+            a.write_bytes(tb)
+            b.write_bytes(ta)
+    assert _cli(["odometry", f"session:{d}", "--out", str(tmp_path / "o")]) == 2
+    assert "left and right images look swapped" in capsys.readouterr().err
+    assert _cli(["odometry", f"session:{session}", "--out", str(tmp_path / "ok")]) == 0
+
+
+def test_eval_on_a_path_that_never_moves_is_a_clear_error(session, tmp_path, capsys):
+    from stereopath.device.formats.tum import Trajectory, read_tum, write_tum
+
+    gt = read_tum(session / "groundtruth.tum")
+    still = Trajectory(gt.t_ns, np.repeat(np.eye(4)[None], len(gt), axis=0))
+    write_tum(tmp_path / "still.tum", still)
+    rc = _cli(["eval", "--gt", str(session / "groundtruth.tum"), "--est", str(tmp_path / "still.tum")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "estimated path does not move" in err and "Traceback" not in err
+    line = Trajectory(gt.t_ns, gt.T_world_cam.copy())
+    line.T_world_cam[:, :3, 3] = np.outer(np.linspace(0, 1, len(gt)), [1.0, 0.0, 0.0])  # a straight line
+    write_tum(tmp_path / "line.tum", line)
+    rc = _cli(["eval", "--gt", str(session / "groundtruth.tum"), "--est", str(tmp_path / "line.tum")])
+    assert rc in (0, 2) and "Traceback" not in capsys.readouterr().err

@@ -728,6 +728,9 @@ def reprocess_session(session_dir: str | Path, out_dir: str | Path, preset: str 
     :class:`stereopath.device.errors.StereopathError` and leave ``out_dir`` untouched.
     """
     seq = open_session_checked(session_dir)
+    from stereopath.device.core.stereo_order import check_sequence_order
+
+    check_sequence_order(seq)  # exchanged left/right images: say so before any stage runs
     seq.strict = strict  # False: unreadable frames are skipped and counted (report extra.frames_skipped)
     onboard = getattr(seq, "trajectory", None)
     return reprocess_sequence(seq, out_dir, preset=preset, do_map=do_map, map_preset=map_preset, force=force,
