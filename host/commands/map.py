@@ -32,6 +32,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from stereopath.host.mapping.mapper import map_path, map_preset
 
+    from stereopath.device.formats.fileio import check_out_folder
+
+    check_out_folder(args.out)
     changes = {}
     if args.stride is not None:
         changes["stride"] = args.stride

@@ -61,6 +61,9 @@ def run(args: argparse.Namespace) -> int:
     from stereopath.host.evaluation.odometry import estimate_sequence, write_outputs
     from stereopath.host.evaluation.sequences import open_sequence
 
+    from stereopath.device.formats.fileio import check_out_folder
+
+    check_out_folder(args.out)
     names = [n.strip() for n in args.compare.split(",")] if args.compare else [args.estimator]
     reports = {}
     for name in names:

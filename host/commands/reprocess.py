@@ -45,6 +45,9 @@ def run(args: argparse.Namespace) -> int:
 
     from stereopath.host.reprocess.pipeline import reprocess_session
 
+    from stereopath.device.formats.fileio import check_out_folder
+
+    check_out_folder(args.out)
     start = time.perf_counter()
     try:
         res = reprocess_session(args.session, args.out, preset=args.preset, do_map=not args.no_map,

@@ -42,7 +42,7 @@ from stereopath.device.wire.protocol import KEYFRAME_LIMITS, POSE_LIMITS, Ack, D
 from stereopath.device.wire.security import check_loopback_endpoint, load_host_keys, require_curve
 from stereopath.device.wire.sockets import apply_common_options
 from stereopath.device.formats.tum import ns_to_seconds_str
-from stereopath.host.live.store import KeyframeStore, write_atomic
+from stereopath.host.live.store import KeyframeStore, list_sessions, write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -69,9 +69,11 @@ class ReceiverConfig:
     fsync: bool = True
     stats_interval_s: float = 1.0
     max_keyframe_bytes: int = KEYFRAME_LIMITS.max_message_bytes
+    max_new_sessions: int = 64       # session ids not seen before that one run accepts (each gets a folder)
 
     def __post_init__(self) -> None:
         check_range("window", self.window, 1, 1024)
+        check_range("max_new_sessions", self.max_new_sessions, 1, 1_000_000)
         check_range("stall_timeout_s", self.stall_timeout_s, 0.05, 3600.0)
         check_range("max_keyframe_bytes", self.max_keyframe_bytes, 1024, 2**31 - 1)
         if not self.insecure and not self.keys_dir:
@@ -233,7 +235,8 @@ class Receiver:
         else:
             require_curve()
             curve = load_host_keys(config.keys_dir or "", config.device_key)
-        self.out.mkdir(parents=True, exist_ok=True)
+        self.out.parent.mkdir(parents=True, exist_ok=True)
+        self.out.mkdir(mode=0o700, exist_ok=True)  # private by default (see KeyframeStore)
         self.stats = self._load_stats()
         self.stats.runs += 1
         self.store = KeyframeStore(self.out, fsync=config.fsync)
@@ -248,6 +251,8 @@ class Receiver:
         self._next_stats = time.monotonic()
         self._auth_warned = False
         self._warned: set[str] = set()
+        self._known_sessions: set[str] = set(list_sessions(self.out))
+        self._new_sessions = 0
         self._ctx = zmq.Context()
         common = dict(heartbeat_ivl_ms=config.heartbeat_ivl_ms, heartbeat_timeout_ms=config.heartbeat_timeout_ms,
                       heartbeat_ttl_ms=config.heartbeat_ttl_ms, reconnect_ivl_ms=config.reconnect_ivl_ms,
@@ -386,6 +391,10 @@ class Receiver:
             except DecodeError as exc:
                 self._reject(channel, exc.reason, str(exc))
                 continue
+            if not self._admit_session(msg.session_id):
+                self._reject(channel, "session_limit", f"session {msg.session_id!r}: over the limit of "
+                             f"{self.config.max_new_sessions} new sessions in this run")
+                continue
             if isinstance(msg, Pose):
                 self._handle_pose(msg)
             elif isinstance(msg, Keyframe):
@@ -394,12 +403,27 @@ class Receiver:
                 self._handle_status(msg)
         return n
 
+    def _admit_session(self, sid: str) -> bool:
+        """Known sessions always; a new one only while this run has accepted fewer than the limit.
+
+        A device starts one session per run, so a flood of new ids (from a client holding the
+        device key) cannot fill the disk with folders.
+        """
+        with self.lock:
+            if sid in self._known_sessions:
+                return True
+            if self._new_sessions >= self.config.max_new_sessions:
+                return False
+            self._new_sessions += 1
+            self._known_sessions.add(sid)
+            return True
+
     def _reject(self, channel: str, reason: str, detail: str = "") -> None:
         with self.lock:
             st = self.stats
             st.rejected_by_reason[reason] = st.rejected_by_reason.get(reason, 0) + 1
             st.rejected_by_channel[channel] = st.rejected_by_channel.get(channel, 0) + 1
-            warn = reason == "version" and reason not in self._warned
+            warn = reason in ("version", "session_limit") and reason not in self._warned
         if warn:
             self._warned.add(reason)
             log.warning("%s", detail)

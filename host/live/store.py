@@ -229,7 +229,8 @@ class KeyframeStore:
 
     def __init__(self, out_dir: str | Path, fsync: bool = True, max_open: int = 8) -> None:
         self.root = Path(out_dir)
-        self.root.mkdir(parents=True, exist_ok=True)
+        self.root.parent.mkdir(parents=True, exist_ok=True)
+        self.root.mkdir(mode=0o700, exist_ok=True)  # private by default: the scans are the user's
         self.fsync = fsync
         self.max_open = max_open
         self._sessions: dict[str, SessionKeyframes] = {}

@@ -497,7 +497,9 @@ def write_map(result: MapResult, out_dir: str | Path) -> dict[str, Path]:
         raise StereopathError(f"output {out} exists and is not a folder")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    tmp.chmod(0o755)  # mkdtemp makes 0700; the model folder gets the usual permissions
+    from stereopath.device.formats.fileio import process_umask
+
+    tmp.chmod(0o777 & ~process_umask())  # mkdtemp makes 0700; the model folder gets what mkdir would give
     try:
         write_mesh(result.mesh, tmp / "mesh.ply")
         write_cloud(result.cloud, tmp / "cloud.ply")
