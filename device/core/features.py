@@ -57,6 +57,7 @@ __all__ = [
     "FeatureConfig",
     "PRESETS",
     "get_preset",
+    "gray",
     "detect",
     "earlier_features",
     "earlier_subset",
@@ -269,6 +270,15 @@ def get_preset(name: str) -> FeatureConfig:
         return PRESETS[name]
     except KeyError:
         raise ConfigError(f"unknown feature preset {name!r}; known: {', '.join(PRESETS)}") from None
+
+
+def gray(image: np.ndarray) -> np.ndarray:
+    """A single-channel view of ``image``: BGR colour is converted, grey is returned as is."""
+    if image.ndim == 3 and image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim == 3 and image.shape[2] == 1:
+        return image[:, :, 0]
+    return image
 
 
 # --------------------------------------------------------------------------- view simulation

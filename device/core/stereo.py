@@ -8,6 +8,7 @@ left camera; the right camera is ``T_cam1_cam0 @ T_cam_world``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -163,6 +164,50 @@ def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, X_world: np.ndarray, uv_le
     return RefineResult(T, inl, inr, rms, n_iter)
 
 
+class KltStereoParams(Protocol):
+    """What :func:`stereo_right` reads from a configuration (StereoConfig, TrackConfig, ...)."""
+
+    klt_window: int
+    klt_levels: int
+    fb_max_px: float
+    epipolar_max_dy_px: float
+
+
+KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 0.005)
+
+
+def stereo_right(rig: Rig, left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, guess_right: np.ndarray,
+                 cfg: KltStereoParams, fb_check: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Locate left-image points in the right image; returns right pixels (float32) and the accepted mask.
+
+    Pyramidal KLT from left to right seeded by ``guess_right`` (e.g. a projection at an expected
+    depth).  A point is accepted when KLT converged, the rectified rows agree within
+    ``cfg.epipolar_max_dy_px``, the disparity is positive and the point lies inside the right
+    image; ``fb_check`` adds the right-to-left track back (within ``cfg.fb_max_px``), which new
+    points need and known inliers (refinement) can skip.  Images are grey, as captured (the
+    rectified-row test undistorts and rectifies the two point sets, not the images).
+    """
+    if len(xy_left) == 0:
+        return np.zeros((0, 2), np.float32), np.zeros(0, bool)
+    lk = dict(winSize=(cfg.klt_window, cfg.klt_window), maxLevel=cfg.klt_levels, criteria=KLT_CRITERIA)
+    p0 = np.asarray(xy_left, np.float32).reshape(-1, 1, 2)
+    g = np.asarray(guess_right, np.float32).reshape(-1, 1, 2)
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(left, right, p0, g.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+    ok = st.ravel() == 1
+    if fb_check:
+        pb, stb, _ = cv2.calcOpticalFlowPyrLK(right, left, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+        ok &= (stb.ravel() == 1) & (np.linalg.norm((pb - p0).reshape(-1, 2), axis=1) < cfg.fb_max_px)
+    p1 = p1.reshape(-1, 2)
+    r = rig.rectification()
+    rl = cv2.undistortPoints(p0, rig.cam0.K, rig.cam0.dist, R=r.R0, P=r.P0).reshape(-1, 2)
+    rr = cv2.undistortPoints(p1.reshape(-1, 1, 2), rig.cam1.K, rig.cam1.dist, R=r.R1, P=r.P1).reshape(-1, 2)
+    w, h = rig.cam1.size
+    ok &= np.abs(rl[:, 1] - rr[:, 1]) <= cfg.epipolar_max_dy_px
+    ok &= rl[:, 0] - rr[:, 0] > 0
+    ok &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
+    return p1.astype(np.float32), ok
+
+
 def pose_to_rvec_tvec(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rvec, _ = cv2.Rodrigues(T[:3, :3])
     return rvec.reshape(3, 1), T[:3, 3].reshape(3, 1).copy()
@@ -176,5 +221,5 @@ def rvec_tvec_to_pose(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     return T
 
 
-__all__ = ["undistort_px", "project", "triangulate", "refine_pose_lm", "RefineResult",
+__all__ = ["undistort_px", "project", "triangulate", "refine_pose_lm", "RefineResult", "stereo_right", "KltStereoParams",
            "pose_to_rvec_tvec", "rvec_tvec_to_pose", "skew"]

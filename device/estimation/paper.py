@@ -24,8 +24,8 @@ import cv2
 import numpy as np
 
 from stereopath.device.core.config import check_range
-from stereopath.device.errors import ConfigError
 from stereopath.device.estimation.base import PoseEstimate, WorldFrame
+from stereopath.device.core.features import gray
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.geometry import chordal_mean, make_pose
 from stereopath.device.core.rig import Rig
@@ -52,10 +52,6 @@ class PaperConfig:
         check_range("min_matches", self.min_matches, 8, 100000)
 
 
-def _gray(img: np.ndarray) -> np.ndarray:
-    return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
-
-
 def match_indices(m) -> np.ndarray:
     """Index pairs (M, 2) of a :mod:`stereopath.device.core.matching` result."""
     for name in ("idx", "indices", "pairs"):
@@ -68,13 +64,11 @@ class PaperEstimator:
     name = "paper"
 
     def __init__(self, rig: Rig, config: PaperConfig | None = None) -> None:
-        from stereopath.device.core.features import PRESETS
+        from stereopath.device.core.features import get_preset
 
         self.rig = rig
         self.cfg = config or PaperConfig()
-        if self.cfg.feature_preset not in PRESETS:
-            raise ConfigError(f"feature_preset = {self.cfg.feature_preset!r}; known: {sorted(PRESETS)}")
-        self._fcfg = PRESETS[self.cfg.feature_preset]
+        self._fcfg = get_preset(self.cfg.feature_preset)
         self.world_frame: WorldFrame = "first_camera"
         self._rect = rig.rectification()
         self._prev = None  # (feats_left, feats_right)
@@ -135,7 +129,7 @@ class PaperEstimator:
         self._count += 1
         if (self._count - 1) % self.cfg.frame_step:
             return None
-        left, right = _gray(frame.left), _gray(frame.right)
+        left, right = gray(frame.left), gray(frame.right)
         fl, fr = detect(left, self._fcfg), detect(right, self._fcfg)
         if self._prev is None:
             self._prev = (fl, fr)

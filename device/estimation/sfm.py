@@ -15,6 +15,7 @@ import numpy as np
 from stereopath.device.core.config import check_range
 from stereopath.device.estimation.base import PoseEstimate, WorldFrame
 from stereopath.device.estimation.paper import match_indices
+from stereopath.device.core.features import gray
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.geometry import make_pose
 from stereopath.device.core.rig import Rig
@@ -39,11 +40,11 @@ class SfmEstimator:
     oracle_scale = True
 
     def __init__(self, rig: Rig, groundtruth: Trajectory, config: SfmConfig | None = None) -> None:
-        from stereopath.device.core.features import PRESETS
+        from stereopath.device.core.features import get_preset
 
         self.rig = rig
         self.cfg = config or SfmConfig()
-        self._fcfg = PRESETS[self.cfg.feature_preset]
+        self._fcfg = get_preset(self.cfg.feature_preset)
         self._gt = groundtruth
         self.world_frame: WorldFrame = "first_camera"
         self._prev = None
@@ -69,7 +70,7 @@ class SfmEstimator:
         self._count += 1
         if (self._count - 1) % self.cfg.frame_step:
             return None
-        img = cv2.cvtColor(frame.left, cv2.COLOR_BGR2GRAY) if frame.left.ndim == 3 else frame.left
+        img = gray(frame.left)
         f = detect(img, self._fcfg)
         if self._prev is None:
             self._prev, self._prev_t = f, frame.t_ns

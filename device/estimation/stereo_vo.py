@@ -1,26 +1,46 @@
 """The default ``stereo`` estimator: metric stereo visual-inertial odometry.
 
-Per frame (see docs/architecture.md, "Estimators"):
+Per frame (see docs/architecture.md, "Estimators"), a bounded amount of work:
 
 1. gyro integration since the previous frame gives the rotation prior (and the
    fallback when vision fails: the frame is flagged ``imu_only``);
 2. map points (3D, world frame, triangulated from a stereo pair) are tracked
    into the new left image by pyramidal KLT seeded with the predicted pose,
-   checked forward-backward, and located in the new right image the same way;
+   checked forward-backward; when that fails (fast motion the prediction
+   missed) the track is retried with a deeper pyramid from the last positions,
+   and then the frame is relocalised against the last keyframe's features;
 3. PnP RANSAC on the 2D-3D matches, then Levenberg-Marquardt on the
-   reprojection error in both cameras;
-4. at keyframes (chosen by tracked-point count, parallax and age) the new left
-   image gets modified-ASIFT features that are matched against the previous
-   keyframe's SIFT (original-view) features with known 3D: these matches join
-   the tracked points in the keyframe's PnP, so keyframe poses come from the
-   (modified-)ASIFT matching.  New map points are added where the image has
-   none: left/right correspondence by KLT, accepted only when the rectified
-   rows agree (|dy| <= 1 px) and the disparity is positive, then triangulated.
+   reprojection error in both cameras (the right-image observations found by
+   KLT on the rectified rows);
+4. keyframes are chosen by what the path needs: too few tracked points left
+   (absolute, or a share of the map at the last keyframe), a rotation since the
+   last keyframe that the next modified-ASIFT match must bridge, or age - not
+   by pixel flow, which driving produces on every frame.  At a keyframe the
+   map is topped up with new stereo points (corners away from the tracks,
+   left/right by KLT, accepted when the rectified rows agree and the disparity
+   is positive) - that is all the frame loop does.
+
+The modified-ASIFT work of a keyframe runs on a worker thread with a queue of
+one (a keyframe arriving while the worker is busy is not queued): the
+keyframe's affine views are detected, its original-view SIFT is matched
+against the previous keyframe library (all views, each with a stereo 3D point)
+around the positions predicted by the tracked pose, and the keyframe pose is
+solved jointly from those matches and the tracked map points; then the
+keyframe's own library is built.  The frame loop joins the result at the first
+frame after it is ready and never waits for it: the correction of the keyframe
+pose is applied to the live state (current pose and map) as one rigid motion,
+so tracking continues without a jump against its own map.
+
+A stereo disparity offset (a calibration error of the baseline or principal
+points shows as a constant disparity bias) is estimated on line from the
+tracked points that have a stereo observation at two keyframes, and removed
+from new triangulations (``disparity_offset`` in the stats).
 
 Works without an IMU (KITTI): the prior is then a constant-velocity model.
 At start-up a still IMU block before the first frame gives the gyro bias and
 gravity; the world frame is then gravity aligned (z up), else camera 1 at the
-first frame.
+first frame.  A frame that cannot be tracked is flagged (``imu_only`` with a
+gyro prior, else ``lost``) with the predicted pose; it is never reported ``ok``.
 """
 
 from __future__ import annotations
@@ -32,13 +52,14 @@ import cv2
 import numpy as np
 
 from stereopath.device.core.config import check_range
-from stereopath.device.errors import ConfigError
 from stereopath.device.estimation.base import PoseEstimate, WorldFrame
 from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still, gravity_aligned_rotation
+from stereopath.device.core.features import gray
 from stereopath.device.core.stereo import (
     pose_to_rvec_tvec,
     refine_pose_lm,
     rvec_tvec_to_pose,
+    stereo_right,
     triangulate,
     undistort_px,
 )
@@ -56,35 +77,50 @@ class StereoConfig:
     max_points: int = 500  # map points kept for tracking
     new_corner_spacing_px: int = 14
     min_tracked: int = 120  # fewer tracked inliers -> keyframe
-    kf_parallax_px: float = 45.0  # median flow since the keyframe -> keyframe
+    kf_track_ratio: float = 0.6  # tracked inliers below this share of the map at the last keyframe -> keyframe
+    kf_rotation_deg: float = 15.0  # rotation since the last keyframe -> keyframe (the view change ASIFT bridges)
+    kf_parallax_px: float = 0.0  # median flow since the keyframe -> keyframe (0 = off)
     kf_max_frames: int = 20
     klt_window: int = 21
     klt_levels: int = 3
+    retry_klt_levels: int = 5  # deeper pyramid of the retry when tracking from the prediction fails
+    relocalise: bool = True  # match SIFT against the last keyframe library when tracking fails
     fb_max_px: float = 0.6  # forward-backward KLT disagreement
     epipolar_max_dy_px: float = 1.0
     triangulation_max_px: float = 1.0
     min_depth_m: float = 0.1
-    max_depth_m: float = 20.0
+    max_depth_m: float = 1000.0
+    min_disparity_px: float = 2.0  # farther points (depth > f * baseline / this) are not mapped
     pnp_reproj_px: float = 2.0
     min_pnp_inliers: int = 12
     use_imu: bool = True
     huber_px: float = 1.0
     max_failures_keep_map: int = 10  # failed frames in a row before the map restarts
-    background_keyframes: bool = True  # affine views of a keyframe computed off the frame loop
+    background_keyframes: bool = True  # keyframe ASIFT work on a worker thread (False: at the keyframe itself)
     record_observations: bool = False  # keep a keyframe observation log (memory grows with the session)
     guided_radius_px: float = 24.0  # keyframe matching around the predicted positions (0 = global)
     refine_points: bool = True  # average each tracked point's stereo triangulations at keyframes
     kf_library_max: int = 6000  # keypoints (all views) kept with 3D per keyframe for the next match
+    max_correction_deg: float = 2.0  # larger keyframe corrections from the ASIFT solve are rejected
+    estimate_disparity_offset: bool = False  # on-line stereo disparity bias, removed from new points
+    disparity_offset_max_px: float = 1.0  # bound of the estimate
+    disparity_offset_px: float = 0.0  # known offset (calibration); the on-line estimate starts from it
 
     def __post_init__(self) -> None:
         check_range("max_points", self.max_points, 20, 20000)
         check_range("min_tracked", self.min_tracked, 8, self.max_points)
+        check_range("kf_track_ratio", self.kf_track_ratio, 0.0, 1.0)
+        check_range("kf_rotation_deg", self.kf_rotation_deg, 0.5, 180.0)
+        check_range("kf_parallax_px", self.kf_parallax_px, 0.0, 10000.0)
         check_range("kf_max_frames", self.kf_max_frames, 1, 1000)
         check_range("klt_window", self.klt_window, 5, 61)
         check_range("klt_levels", self.klt_levels, 0, 6)
+        check_range("retry_klt_levels", self.retry_klt_levels, 0, 8)
         check_range("epipolar_max_dy_px", self.epipolar_max_dy_px, 0.1, 5.0)
         check_range("min_depth_m", self.min_depth_m, 0.01, self.max_depth_m)
         check_range("min_pnp_inliers", self.min_pnp_inliers, 6, 10000)
+        check_range("max_correction_deg", self.max_correction_deg, 0.0, 180.0)
+        check_range("disparity_offset_max_px", self.disparity_offset_max_px, 0.0, 10.0)
 
 
 @dataclass
@@ -94,19 +130,50 @@ class _Map:
     uv_kf: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))  # at keyframe
     ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # stable point ids
     nobs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float64))  # stereo observations averaged
+    disp: np.ndarray = field(default_factory=lambda: np.zeros(0))  # rectified disparity at the last stereo observation
+    X_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # camera-frame point at that observation
+    kf: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # keyframe of that observation
 
     def keep(self, mask: np.ndarray) -> None:
         self.X, self.uv, self.uv_kf, self.ids = self.X[mask], self.uv[mask], self.uv_kf[mask], self.ids[mask]
-        self.nobs = self.nobs[mask]
+        self.nobs, self.disp, self.X_cam, self.kf = self.nobs[mask], self.disp[mask], self.X_cam[mask], self.kf[mask]
+
+    def move(self, G: np.ndarray) -> None:
+        self.X = self.X @ G[:3, :3].T + G[:3, 3]
 
     def __len__(self) -> int:
         return len(self.X)
 
 
-def _gray(img: np.ndarray) -> np.ndarray:
-    if img.ndim == 3:
-        return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    return img
+@dataclass
+class _Library:
+    """A keyframe's features of all views, each with a stereo 3D point (world frame)."""
+
+    seq: int
+    feats: object  # stereopath.device.core.features.Features
+    X: np.ndarray
+
+
+@dataclass
+class _KeyframeResult:
+    seq: int
+    T_tracked: np.ndarray  # the keyframe pose the frame loop used
+    T_refined: np.ndarray | None  # from the ASIFT matches and the tracked map, None if not solved
+    n_asift: int
+    library: _Library | None
+
+
+class _Ready:
+    """A finished result with the Future interface (the synchronous mode)."""
+
+    def __init__(self, value) -> None:
+        self._value = value
+
+    def done(self) -> bool:
+        return True
+
+    def result(self):
+        return self._value
 
 
 class StereoEstimator:
@@ -119,13 +186,14 @@ class StereoEstimator:
         self._rect = rig.rectification()
         self._T_world_cam: np.ndarray | None = None
         self._T_prev_prev: np.ndarray | None = None
+        self._T_kf: np.ndarray | None = None
+        self._n_at_kf = 0
         self._t_prev: int | None = None
         self._dt_prev: float | None = None
         self._prev_left: np.ndarray | None = None
         self._map = _Map()
-        # the last keyframe's all-view features with 3D points: a Future while the background
-        # thread computes them (or the plain result when run synchronously)
-        self._kf_future = None
+        self._job = None  # the keyframe job in flight (a Future, or _Ready when synchronous)
+        self._library: _Library | None = None  # the newest keyframe library joined
         self._executor = None
         if self.cfg.use_asift_keyframes and self.cfg.background_keyframes:
             from concurrent.futures import ThreadPoolExecutor
@@ -133,13 +201,20 @@ class StereoEstimator:
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keyframe-features")
         self._since_kf = 0
         self._failures = 0
-        self._pending_feats = None
         self._gyro: GyroIntegrator | None = None
         self._R_body_cam = None if rig.T_body_cam0 is None else rig.T_body_cam0[:3, :3]
         self._klt = dict(winSize=(self.cfg.klt_window, self.cfg.klt_window), maxLevel=self.cfg.klt_levels,
                          criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
         self._feature_cfg = None
         self._match_cfg = None
+        # on-line disparity offset: running sums of the normal equations (information-weighted)
+        self._doff = float(self.cfg.disparity_offset_px)
+        fb = self._rect.f * self._rect.baseline_m
+        self._max_depth = min(self.cfg.max_depth_m, fb / self.cfg.min_disparity_px) if self.cfg.min_disparity_px > 0 \
+            else self.cfg.max_depth_m
+        self._doff_info = np.zeros(2)  # (information, information * estimate) summed over keyframe pairs
+        self._kf_poses: dict[int, np.ndarray] = {}  # poses of the keyframes the map's stereo observations come from
+        self._kf_count = 0
         # keyframe log for offline bundle adjustment: poses, observations (kf, point id, cam, u, v)
         self.record_observations = self.cfg.record_observations
         self.keyframe_poses: list[tuple[int, np.ndarray]] = []
@@ -147,12 +222,13 @@ class StereoEstimator:
         self.landmarks: dict[int, np.ndarray] = {}
         self._next_id = 0
         self._cur_seq = 0
-        self.counters = {"keyframes": 0, "imu_only": 0, "lost": 0, "asift_matches": 0}
+        self.counters = {"keyframes": 0, "imu_only": 0, "lost": 0, "asift_matches": 0, "kf_jobs": 0,
+                         "kf_jobs_skipped": 0, "kf_corrections": 0, "retracked": 0, "relocalised": 0}
 
     # ------------------------------------------------------------------ public
 
     def stats(self) -> dict:
-        return dict(self.counters)
+        return {**self.counters, "disparity_offset_px": round(self._doff, 4)}
 
     def close(self) -> None:
         """Stop the background keyframe worker (idempotent)."""
@@ -167,11 +243,11 @@ class StereoEstimator:
             pass
 
     def process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate:
-        left, right = _gray(frame.left), _gray(frame.right)
+        left, right = gray(frame.left), gray(frame.right)
         self._cur_seq = frame.seq
         if self._T_world_cam is None:
             return self._initialise(frame, left, right, imu)
-
+        self._join_keyframe_job()
         dt = (frame.t_ns - self._t_prev) * 1e-9
         T_pred, have_rot_prior = self._predict(frame.t_ns, dt, imu)
         est = self._track(frame, left, right, T_pred, have_rot_prior)
@@ -202,7 +278,7 @@ class StereoEstimator:
         self._T_world_cam = T
         self._t_prev = frame.t_ns
         self._prev_left = left
-        n = self._new_keyframe(left, right, T, tracked=None)
+        n = self._new_keyframe(left, right, T)
         status = "ok" if n >= self.cfg.min_pnp_inliers else "lost"
         return PoseEstimate(frame.seq, frame.t_ns, T.copy(), status, inliers=n, keyframe=True,
                             note="" if status == "ok" else "no_stereo_points")
@@ -232,63 +308,97 @@ class StereoEstimator:
         T_est = None
         n_inl = 0
         note = ""
+        relocalised = False
         if len(m) >= cfg.min_pnp_inliers and self._prev_left is not None:
-            uv_new, good = self._klt_track(left, T_pred)
-            if good.sum() >= cfg.min_pnp_inliers:
+            # first from the predicted pose; then a deeper pyramid from the last positions (a motion
+            # the prediction missed: the first frames without a velocity, a jolt, dropped frames)
+            attempts = [(T_pred, cfg.klt_levels)]
+            if cfg.retry_klt_levels > cfg.klt_levels:
+                attempts.append((None, cfg.retry_klt_levels))
+            for k, (T_guess, levels) in enumerate(attempts):
+                uv_new, good = self._klt_track(left, T_guess, levels)
+                if good.sum() < cfg.min_pnp_inliers:
+                    note = "too_few_tracked"
+                    continue
                 T_est, n_inl, inl = self._solve_pose(left, right, m.X[good], uv_new[good], T_pred)
-                if T_est is not None:
-                    m.uv = uv_new.astype(np.float32)
-                    m.keep(good)
-                    m.keep(inl)
-                else:
+                if T_est is None:
                     note = "pose_failed"
-            else:
-                note = "too_few_tracked"
+                    continue
+                m.uv = uv_new.astype(np.float32)
+                m.keep(good)
+                m.keep(inl)
+                if k:
+                    self.counters["retracked"] += 1
+                break
         else:
             note = "no_map"
+        if T_est is None and cfg.relocalise:
+            T_est, n_inl = self._relocalise(left, right, T_pred)
+            relocalised = T_est is not None
         self._since_kf += 1
         if T_est is not None:
             self._failures = 0
             self._prev_left = left
-            is_kf = False
-            parallax = float(np.median(np.linalg.norm(m.uv - m.uv_kf, axis=1))) if len(m) else 0.0
-            if n_inl < cfg.min_tracked or parallax > cfg.kf_parallax_px or self._since_kf >= cfg.kf_max_frames:
-                T_est, n_inl = self._keyframe_pose(left, right, T_est, n_inl)
-                self._new_keyframe(left, right, T_est, tracked=True)
-                is_kf = True
+            if relocalised:
+                self.counters["relocalised"] += 1
+                self._map = _Map()
+                self._new_keyframe(left, right, T_est)
+                return PoseEstimate(frame.seq, frame.t_ns, T_est, "ok", inliers=n_inl, keyframe=True,
+                                    note="relocalised")
+            is_kf = self._need_keyframe(T_est, n_inl)
+            if is_kf:
+                self._new_keyframe(left, right, T_est)
             return PoseEstimate(frame.seq, frame.t_ns, T_est, "ok", inliers=n_inl, keyframe=is_kf)
         # Vision failed (black frame, lens cap, no overlap, blur): fall back to the IMU rotation (or
-        # constant velocity).  The map and the last good image are kept so the next good frame can
-        # be tracked against them; after several failures in a row the map restarts here.
+        # constant velocity), flagged.  The map and the last good image are kept so the next good
+        # frame can be tracked against them; after several failures in a row the map restarts here.
         status = "imu_only" if have_rot else "lost"
         self.counters[status] += 1
         self._failures += 1
         is_kf = False
         if self._failures > cfg.max_failures_keep_map or len(m) < cfg.min_pnp_inliers:
             self._map = _Map()
-            n = self._new_keyframe(left, right, T_pred, tracked=None)
+            n = self._new_keyframe(left, right, T_pred)
             if n >= cfg.min_pnp_inliers:
                 self._prev_left = left
                 is_kf = True
         return PoseEstimate(frame.seq, frame.t_ns, T_pred, status, inliers=0, keyframe=is_kf, note=note)
 
-    def _klt_track(self, left: np.ndarray, T_pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Track the map into ``left``; returns new pixels and the good mask (the map is not changed)."""
+    def _need_keyframe(self, T_est: np.ndarray, n_inl: int) -> bool:
+        """What the path needs: points to track, a view change ASIFT can still bridge, or age."""
+        cfg = self.cfg
+        if n_inl < cfg.min_tracked or n_inl < cfg.kf_track_ratio * self._n_at_kf:
+            return True
+        if self._since_kf >= cfg.kf_max_frames:
+            return True
+        if self._T_kf is not None and rotation_angle_deg(self._T_kf[:3, :3].T @ T_est[:3, :3]) > cfg.kf_rotation_deg:
+            return True
         m = self._map
-        T_cw = invert_pose(T_pred)
-        Xc = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
+        if cfg.kf_parallax_px > 0 and len(m):
+            return float(np.median(np.linalg.norm(m.uv - m.uv_kf, axis=1))) > cfg.kf_parallax_px
+        return False
+
+    def _klt_track(self, left: np.ndarray, T_pred: np.ndarray | None, levels: int) -> tuple[np.ndarray, np.ndarray]:
+        """Track the map into ``left``; returns new pixels and the good mask (the map is not changed).
+
+        ``T_pred`` seeds each point at its projection; ``None`` starts from the last positions."""
+        m = self._map
         guess = m.uv.copy()
-        front = Xc[:, 2] > 1e-3
-        if np.any(front):
-            pts = cv2.projectPoints(Xc[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
-                                    self.rig.cam0.K, self.rig.cam0.dist)[0].reshape(-1, 2)
-            guess[front] = pts
+        if T_pred is not None:
+            T_cw = invert_pose(T_pred)
+            Xc = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
+            front = Xc[:, 2] > 1e-3
+            if np.any(front):
+                pts = cv2.projectPoints(Xc[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
+                                        self.rig.cam0.K, self.rig.cam0.dist)[0].reshape(-1, 2)
+                guess[front] = pts
+        klt = dict(self._klt, maxLevel=levels)
         p0 = m.uv.reshape(-1, 1, 2).astype(np.float32)
         g = guess.reshape(-1, 1, 2).astype(np.float32)
         p1, st, _ = cv2.calcOpticalFlowPyrLK(self._prev_left, left, p0, g.copy(),
-                                             flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._klt)
+                                             flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **klt)
         pb, stb, _ = cv2.calcOpticalFlowPyrLK(left, self._prev_left, p1, p0.copy(),
-                                              flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._klt)
+                                              flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **klt)
         fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
         w, h = self.rig.cam0.size
         p1 = p1.reshape(-1, 2)
@@ -296,54 +406,54 @@ class StereoEstimator:
         good &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
         return p1.astype(np.float32), good
 
-    def _stereo_right(self, left: np.ndarray, right: np.ndarray, uv_left: np.ndarray,
-                      guess_right: np.ndarray, fb_check: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        """Locate left points in the right image (KLT seeded by ``guess_right``), checked on rectified rows.
-
-        ``fb_check`` adds the right-to-left track back (new points); the rectified-row check
-        alone is enough where the points are already known inliers (refinement)."""
-        if len(uv_left) == 0:
-            return np.zeros((0, 2), np.float32), np.zeros(0, bool)
-        p0 = uv_left.reshape(-1, 1, 2).astype(np.float32)
-        g = guess_right.reshape(-1, 1, 2).astype(np.float32)
-        p1, st, _ = cv2.calcOpticalFlowPyrLK(left, right, p0, g.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-                                             **self._klt)
-        if fb_check:
-            pb, stb, _ = cv2.calcOpticalFlowPyrLK(right, left, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-                                                  **self._klt)
-            fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
-        else:
-            stb, fb = st, np.zeros(len(p0))
-        p1 = p1.reshape(-1, 2)
-        r = self._rect
-        rl = cv2.undistortPoints(p0, self.rig.cam0.K, self.rig.cam0.dist, R=r.R0, P=r.P0).reshape(-1, 2)
-        rr = cv2.undistortPoints(p1.reshape(-1, 1, 2), self.rig.cam1.K, self.rig.cam1.dist, R=r.R1,
-                                 P=r.P1).reshape(-1, 2)
-        disp = rl[:, 0] - rr[:, 0]
-        w, h = self.rig.cam1.size
-        ok = (st.ravel() == 1) & (stb.ravel() == 1) & (fb < self.cfg.fb_max_px)
-        ok &= np.abs(rl[:, 1] - rr[:, 1]) <= self.cfg.epipolar_max_dy_px
-        ok &= disp > 0
-        ok &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
-        return p1.astype(np.float32), ok
-
     def _right_guess(self, X_cam0: np.ndarray) -> np.ndarray:
         Xr = X_cam0 @ self.rig.R.T + self.rig.T
         Xr[:, 2] = np.maximum(Xr[:, 2], 1e-3)
         return cv2.projectPoints(Xr.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.rig.cam1.K,
                                  self.rig.cam1.dist)[0].reshape(-1, 2)
 
-    def _solve_pose(self, left, right, X: np.ndarray, uv: np.ndarray, T_guess: np.ndarray):
-        """PnP RANSAC from the guess, then LM in both cameras.  Returns (T_world_cam, n_inliers, mask)."""
+    def _rectified_disparity(self, uv_left: np.ndarray, uv_right: np.ndarray) -> np.ndarray:
+        r = self._rect
+        rl = cv2.undistortPoints(uv_left.reshape(-1, 1, 2).astype(np.float64), self.rig.cam0.K, self.rig.cam0.dist,
+                                 R=r.R0, P=r.P0).reshape(-1, 2)
+        rr = cv2.undistortPoints(uv_right.reshape(-1, 1, 2).astype(np.float64), self.rig.cam1.K, self.rig.cam1.dist,
+                                 R=r.R1, P=r.P1).reshape(-1, 2)
+        return rl[:, 0] - rr[:, 0]
+
+    def _triangulate(self, uv_left: np.ndarray, uv_right: np.ndarray, offset: float = 0.0):
+        """Stereo points (camera 1 frame) and their reprojection error, the disparity offset removed.
+
+        Removing an offset ``d0`` from the rectified disparity is moving the right point by ``+d0``
+        along its rectified row (done through the rectification, so it holds for distorted images)."""
+        uvl = undistort_px(uv_left, self.rig.cam0.K, self.rig.cam0.dist)
+        if offset != 0.0 and len(uv_right):
+            r = self._rect
+            rr = cv2.undistortPoints(uv_right.reshape(-1, 1, 2).astype(np.float64), self.rig.cam1.K,
+                                     self.rig.cam1.dist, R=r.R1, P=r.P1).reshape(-1, 2)
+            rr[:, 0] += offset
+            # back from the rectified right image to ideal pixels of camera 2 (K1, no distortion)
+            Pinv = np.linalg.inv(r.P1[:, :3])
+            rays = np.column_stack([rr, np.ones(len(rr))]) @ Pinv.T
+            rays = rays @ r.R1  # R1^T applied to each row
+            uvr = (rays / rays[:, 2:3]) @ self.rig.cam1.K.T
+            uvr = uvr[:, :2]
+        else:
+            uvr = undistort_px(uv_right, self.rig.cam1.K, self.rig.cam1.dist)
+        return triangulate(self.rig, uvl, uvr)
+
+    def _solve_pose(self, left, right, X: np.ndarray, uv: np.ndarray, T_guess: np.ndarray,
+                    seed: int | None = None, use_guess: bool = True):
+        """PnP RANSAC (from the guess), then LM in both cameras.  Returns (T_world_cam, n_inliers, mask)."""
         cfg = self.cfg
         K0, d0 = self.rig.cam0.K, self.rig.cam0.dist
         uv_u = undistort_px(uv, K0, d0)
         T_cw = invert_pose(T_guess)
         rvec, tvec = pose_to_rvec_tvec(T_cw)
-        cv2.setRNGSeed(self._cur_seq)  # RANSAC draws do not depend on what ran before in the process
+        # RANSAC draws do not depend on what ran before (OpenCV's RNG is per thread)
+        cv2.setRNGSeed(self._cur_seq if seed is None else seed)
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            X.reshape(-1, 1, 3), uv_u.reshape(-1, 1, 2), K0, None, rvec, tvec, useExtrinsicGuess=True,
-            iterationsCount=200, reprojectionError=cfg.pnp_reproj_px, confidence=0.999,
+            X.reshape(-1, 1, 3), uv_u.reshape(-1, 1, 2), K0, None, rvec, tvec, useExtrinsicGuess=use_guess,
+            iterationsCount=200 if use_guess else 500, reprojectionError=cfg.pnp_reproj_px, confidence=0.999,
             flags=cv2.SOLVEPNP_ITERATIVE)
         if not ok or inl is None or len(inl) < cfg.min_pnp_inliers:
             return None, 0, None
@@ -353,7 +463,7 @@ class StereoEstimator:
         # right-image observations of the inliers for the two-camera refinement
         Xc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
         idx = np.flatnonzero(mask & (Xc[:, 2] > cfg.min_depth_m))
-        uvr, okr = self._stereo_right(left, right, uv[idx], self._right_guess(Xc[idx]), fb_check=False)
+        uvr, okr = stereo_right(self.rig, left, right, uv[idx], self._right_guess(Xc[idx]), cfg, fb_check=False)
         ridx = idx[okr]
         uvr_u = undistort_px(uvr[okr], self.rig.cam1.K, self.rig.cam1.dist)
         res = refine_pose_lm(self.rig, T_cw, X[mask], uv_u[mask], X[ridx], uvr_u, huber_px=cfg.huber_px,
@@ -364,76 +474,103 @@ class StereoEstimator:
             return None, 0, None
         return invert_pose(res.T_cam_world), int(final.sum()), final
 
+    def _relocalise(self, left, right, T_pred: np.ndarray) -> tuple[np.ndarray | None, int]:
+        """The pose from SIFT matches against the newest keyframe library (no trust in the prediction)."""
+        lib = self._library
+        if lib is None or not self.cfg.use_asift_keyframes:
+            return None, 0
+        from stereopath.device.core.matching import MatchConfig, match
+
+        feats0 = self._features(left, views=[0])
+        mt = match(feats0, lib.feats, self._match_cfg or MatchConfig())
+        idx = np.asarray(mt.idx).reshape(-1, 2)
+        if len(idx) < self.cfg.min_pnp_inliers:
+            return None, 0
+        T, n, _ = self._solve_pose(left, right, lib.X[idx[:, 1]], feats0.xy[idx[:, 0]].astype(np.float64), T_pred,
+                                   use_guess=False)
+        if T is None:
+            return None, 0
+        log.info("frame %d relocalised against keyframe %d (%d inliers)", self._cur_seq, lib.seq, n)
+        return T, n
+
     # ------------------------------------------------------------------ keyframes
 
     def _features(self, img: np.ndarray, views: list[int] | None = None):
-        from stereopath.device.core.features import PRESETS, detect
+        from stereopath.device.core.features import detect, get_preset
 
         if self._feature_cfg is None:
-            if self.cfg.feature_preset not in PRESETS:
-                raise ConfigError(f"feature_preset = {self.cfg.feature_preset!r}; known: {sorted(PRESETS)}")
-            self._feature_cfg = PRESETS[self.cfg.feature_preset]
+            self._feature_cfg = get_preset(self.cfg.feature_preset)
         return detect(img, self._feature_cfg, views=views)
 
-    def _keyframe_pose(self, left, right, T_est: np.ndarray, n_inl: int) -> tuple[np.ndarray, int]:
-        """Add modified-ASIFT matches against the previous keyframe's 3D features to the pose solve.
+    def _join_keyframe_job(self) -> None:
+        """Take the finished keyframe job's result, if any (never waits)."""
+        job = self._job
+        if job is None or not job.done():
+            return
+        self._job = None
+        try:
+            res: _KeyframeResult | None = job.result()
+        except Exception:  # a failed job costs one keyframe's ASIFT, never the session
+            log.exception("keyframe feature job failed")
+            return
+        if res is None:
+            return
+        if res.T_refined is not None:
+            G = res.T_refined @ invert_pose(res.T_tracked)
+            ang = rotation_angle_deg(G[:3, :3])
+            if ang <= self.cfg.max_correction_deg:
+                # one rigid motion of the live state keeps the map and the current pose consistent
+                self._map.move(G)
+                for name in ("_T_world_cam", "_T_prev_prev", "_T_kf"):
+                    T = getattr(self, name)
+                    if T is not None:
+                        setattr(self, name, G @ T)
+                self._kf_poses = {k: G @ T for k, T in self._kf_poses.items()}
+                self.counters["kf_corrections"] += 1
+                self.counters["asift_matches"] += res.n_asift
+            else:
+                log.info("keyframe %d: ASIFT correction of %.2f deg rejected", res.seq, ang)
+        if res.library is not None:
+            self._library = res.library
 
-        The new keyframe's original-view SIFT features are matched against the previous
-        keyframe's features from all affine views (computed in the background since that
-        keyframe was created, each with a stereo 3D point).
-        """
-        self._pending_feats = None
-        if not self.cfg.use_asift_keyframes:
-            return T_est, n_inl
+    def _keyframe_job(self, seq: int, left, right, T_tracked: np.ndarray, z0: float, X_map: np.ndarray,
+                      uv_map: np.ndarray, prev: _Library | None) -> _KeyframeResult:
+        """Modified-ASIFT work of one keyframe (on the worker thread): the joint pose, then the library.
+
+        The keyframe's original-view SIFT is matched against the previous library (all views of
+        the previous keyframe, each with a 3D point) around the positions the tracked pose
+        predicts; those matches and the tracked map points give the keyframe pose."""
         from stereopath.device.core.matching import MatchConfig, match, match_guided
 
-        feats0 = self._features(left, views=[0])
-        self._pending_feats = feats0
-        prev = self._kf_result()
-        if prev is None:
-            return T_est, n_inl
-        prev_feats, prev_X = prev
-        if self.cfg.guided_radius_px > 0:
-            # the previous keyframe's 3D features projected with the tracked pose: match only nearby
-            T_cw = invert_pose(T_est)
-            Xc = prev_X @ T_cw[:3, :3].T + T_cw[:3, 3]
-            pred = np.full((len(Xc), 2), np.nan)
-            front = Xc[:, 2] > self.cfg.min_depth_m
-            if np.any(front):
-                pred[front] = cv2.projectPoints(Xc[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
-                                                self.rig.cam0.K, self.rig.cam0.dist)[0].reshape(-1, 2)
-            mt = match_guided(prev_feats, feats0, pred, self.cfg.guided_radius_px, self._match_cfg or MatchConfig())
-            idx = np.asarray(mt.idx).reshape(-1, 2)[:, ::-1]  # (current, previous)
-        else:
-            mt = match(feats0, prev_feats, self._match_cfg or MatchConfig())
-            idx = np.asarray(mt.idx).reshape(-1, 2)
-        if len(idx) < self.cfg.min_pnp_inliers:
-            return T_est, n_inl
-        X = np.vstack([prev_X[idx[:, 1]], self._map.X])
-        uv = np.vstack([feats0.xy[idx[:, 0]].astype(np.float64), self._map.uv])
-        T_new, n_new, mask = self._solve_pose(left, right, X, uv, T_est)
-        if T_new is None:
-            return T_est, n_inl
-        self.counters["asift_matches"] += int(mask[: len(idx)].sum())
-        self._map.keep(mask[len(idx):])
-        return T_new, n_new
+        feats = self._features(left)
+        T_ref, n_asift = None, 0
+        if prev is not None and len(feats):
+            feats0 = feats.original_view()
+            if self.cfg.guided_radius_px > 0:
+                T_cw = invert_pose(T_tracked)
+                Xc = prev.X @ T_cw[:3, :3].T + T_cw[:3, 3]
+                pred = np.full((len(Xc), 2), np.nan)
+                front = Xc[:, 2] > self.cfg.min_depth_m
+                if np.any(front):
+                    pred[front] = cv2.projectPoints(Xc[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
+                                                    self.rig.cam0.K, self.rig.cam0.dist)[0].reshape(-1, 2)
+                mt = match_guided(prev.feats, feats0, pred, self.cfg.guided_radius_px,
+                                  self._match_cfg or MatchConfig())
+                idx = np.asarray(mt.idx).reshape(-1, 2)[:, ::-1]  # (current, previous)
+            else:
+                mt = match(feats0, prev.feats, self._match_cfg or MatchConfig())
+                idx = np.asarray(mt.idx).reshape(-1, 2)
+            if len(idx) >= self.cfg.min_pnp_inliers:
+                X = np.vstack([prev.X[idx[:, 1]], X_map])
+                uv = np.vstack([feats0.xy[idx[:, 0]].astype(np.float64), uv_map])
+                T_new, _, mask = self._solve_pose(left, right, X, uv, T_tracked, seed=seq)
+                if T_new is not None:
+                    T_ref, n_asift = T_new, int(mask[: len(idx)].sum())
+        library = self._library_of(seq, left, right, feats, T_tracked if T_ref is None else T_ref, z0)
+        return _KeyframeResult(seq, T_tracked, T_ref, n_asift, library)
 
-    def _kf_result(self):
-        """The previous keyframe's (features, world points), waiting for the background job if needed."""
-        fut = self._kf_future
-        if fut is None:
-            return None
-        return fut.result() if hasattr(fut, "result") else fut
-
-    def _keyframe_features(self, left, right, feats0, T_world_cam: np.ndarray, z0: float):
-        """All-view features of a keyframe with stereo 3D points (runs in the background thread)."""
-        from stereopath.device.core.features import Features
-
-        n_views = len(self._feature_cfg.views) if getattr(self._feature_cfg, "views", None) else 1
-        parts = [feats0]
-        if n_views > 1 and getattr(self._feature_cfg, "backend", "ours") != "cv2_affine":
-            parts.append(self._features(left, views=list(range(1, n_views))))
-        feats = Features.concat(parts) if len(parts) > 1 else feats0
+    def _library_of(self, seq: int, left, right, feats, T_world_cam: np.ndarray, z0: float) -> _Library | None:
+        """The keyframe's features with stereo 3D points (world frame)."""
         if len(feats) == 0:
             return None
         if len(feats) > self.cfg.kf_library_max:  # the strongest keypoints of all views
@@ -443,20 +580,99 @@ class StereoEstimator:
         uvu = undistort_px(xy, self.rig.cam0.K, self.rig.cam0.dist)
         rays = np.column_stack([(uvu[:, 0] - self.rig.cam0.cx) / self.rig.cam0.fx,
                                 (uvu[:, 1] - self.rig.cam0.cy) / self.rig.cam0.fy, np.ones(len(uvu))])
-        uvr, ok = self._stereo_right(left, right, xy, self._right_guess(rays * z0))
-        Xc, err = triangulate(self.rig, uvu, undistort_px(uvr, self.rig.cam1.K, self.rig.cam1.dist))
-        ok &= (err < self.cfg.triangulation_max_px) & (Xc[:, 2] > self.cfg.min_depth_m) & (Xc[:, 2] < self.cfg.max_depth_m)
+        uvr, ok = stereo_right(self.rig, left, right, xy, self._right_guess(rays * z0), self.cfg)
+        Xc, err = self._triangulate(xy, uvr, self._doff)
+        ok &= (err < self.cfg.triangulation_max_px) & (Xc[:, 2] > self.cfg.min_depth_m) & (Xc[:, 2] < self._max_depth)
         if ok.sum() < self.cfg.min_pnp_inliers:
             return None
         Xw = Xc[ok] @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
-        return feats.subset(ok), Xw
+        return _Library(seq, feats.subset(ok), Xw)
 
-    def _new_keyframe(self, left, right, T_world_cam: np.ndarray, tracked) -> int:
-        """Top up the map with new stereo points; start this keyframe's affine-view features in the background."""
+    def _submit_keyframe_job(self, left, right, T_world_cam: np.ndarray, z0: float) -> None:
+        if not self.cfg.use_asift_keyframes:
+            return
+        if self._job is not None and not self._job.done():
+            self.counters["kf_jobs_skipped"] += 1  # a queue of one: never wait, never pile up
+            return
+        self._join_keyframe_job()
+        m = self._map
+        args = (self._cur_seq, left, right, T_world_cam.copy(), z0, m.X.copy(), m.uv.astype(np.float64), self._library)
+        self.counters["kf_jobs"] += 1
+        if self._executor is not None:
+            self._job = self._executor.submit(self._keyframe_job, *args)
+        else:
+            self._job = _Ready(self._keyframe_job(*args))
+
+    def _update_disparity_offset(self, X_a: np.ndarray, d_a: np.ndarray, X_b: np.ndarray, d_b: np.ndarray,
+                                 T_b_a: np.ndarray) -> None:
+        """Evidence on a constant stereo disparity offset ``d0`` from points seen in stereo at two keyframes.
+
+        With measured disparities ``d = d_true + d0`` a stereo point is ``X(d0) = X * d / (d - d0)``,
+        to first order ``X + d0 * X / d``.  Rigid motion between the keyframes a and b,
+        ``X_b(d0) = R X_a(d0) + t``, is linear in ``(t, d0)`` once ``R`` is taken from tracking:
+        ``t - d0 (X_b / d_b - R X_a / d_a) = X_b - R X_a``.  The offset column differs from point to
+        point only when the camera moved along the rays, so ``d0`` is observable in forward motion
+        and left at its prior otherwise.  Rows are weighted by each point's stereo depth noise
+        (``z^2 / fb`` per pixel of disparity) and re-weighted (Huber at 2 sigma) for outliers; the
+        information on ``d0`` (``t`` profiled out) is accumulated over keyframe pairs with a weak prior at 0.
+        """
+        n = len(X_a)
+        if n < 20:
+            return
+        fb = self._rect.f * self._rect.baseline_m
+        R, t0 = T_b_a[:3, :3], T_b_a[:3, 3]
+        RXa = X_a @ R.T
+        col = X_b / d_b[:, None] - RXa / d_a[:, None]  # (n, 3)
+        y = X_b - RXa  # (n, 3)
+        sig = (X_b[:, 2] ** 2 + X_a[:, 2] ** 2) / fb + 1e-3  # metres per pixel of disparity, per point
+        w = 1.0 / sig
+        A = np.zeros((3 * n, 4))
+        A[:, :3] = np.tile(np.eye(3), (n, 1))
+        A[:, 3] = -col.reshape(-1)
+        yy = y.reshape(-1)
+        ww = np.repeat(w, 3)
+        sol = np.concatenate([t0, [0.0]])
+        for _ in range(3):
+            r = (A @ sol - yy) * ww
+            hub = np.where(np.abs(r) <= 2.0, 1.0, 2.0 / np.maximum(np.abs(r), 1e-12))
+            Aw = A * (ww * np.sqrt(hub))[:, None]
+            yw = yy * ww * np.sqrt(hub)
+            H = Aw.T @ Aw
+            try:
+                sol = np.linalg.solve(H + 1e-9 * np.eye(4), Aw.T @ yw)
+            except np.linalg.LinAlgError:
+                return
+        try:
+            info = 1.0 / float(np.linalg.inv(H + 1e-9 * np.eye(4))[3, 3])  # t profiled out
+        except np.linalg.LinAlgError:
+            return
+        if not np.isfinite(info) or info <= 0 or not np.isfinite(sol[3]):
+            return
+        d0 = float(np.clip(sol[3], -self.cfg.disparity_offset_max_px, self.cfg.disparity_offset_max_px))
+        self._doff_info += np.array([info, info * d0])
+        prior = 4.0  # information of a prior sigma of 0.5 px at zero
+        self._doff = float(np.clip((self._doff_info[1] + prior * self.cfg.disparity_offset_px) / (self._doff_info[0] + prior),
+                                   -self.cfg.disparity_offset_max_px, self.cfg.disparity_offset_max_px))
+
+    def _offset_evidence(self, idx: np.ndarray, X_b: np.ndarray, err_b: np.ndarray, d_b: np.ndarray,
+                         T_world_b: np.ndarray) -> None:
+        """Hand the points with a stereo observation at an earlier keyframe to the offset estimate."""
+        m = self._map
+        ok = (err_b < self.cfg.triangulation_max_px) & (X_b[:, 2] > self.cfg.min_depth_m) & \
+            (X_b[:, 2] < self._max_depth) & (m.kf[idx] >= 0) & (m.disp[idx] > 0)
+        T_b_world = invert_pose(T_world_b)
+        for k_a in np.unique(m.kf[idx[ok]]):
+            T_world_a = self._kf_poses.get(int(k_a))
+            if T_world_a is None:
+                continue
+            sel = ok & (m.kf[idx] == k_a)
+            j = idx[sel]
+            self._update_disparity_offset(m.X_cam[j], m.disp[j], X_b[sel], d_b[sel], T_b_world @ T_world_a)
+
+    def _new_keyframe(self, left, right, T_world_cam: np.ndarray) -> int:
+        """Top up the map with new stereo points; hand the keyframe's ASIFT work to the worker."""
         cfg = self.cfg
         m = self._map
-        feats0 = self._pending_feats if tracked else None
-        self._pending_feats = None
         T_cw = invert_pose(T_world_cam)
         # right-image guess from the median depth of the current map (or a middle depth)
         z0 = self._default_depth()
@@ -464,14 +680,7 @@ class StereoEstimator:
             Xc_m = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
             if np.any(Xc_m[:, 2] > 0):
                 z0 = float(np.median(Xc_m[Xc_m[:, 2] > 0, 2]))
-        if cfg.use_asift_keyframes:
-            if feats0 is None:
-                feats0 = self._features(left, views=[0])
-            args = (left, right, feats0, T_world_cam.copy(), z0)
-            if self._executor is not None:
-                self._kf_future = self._executor.submit(self._keyframe_features, *args)
-            else:
-                self._kf_future = self._keyframe_features(*args)
+        self._submit_keyframe_job(left, right, T_world_cam, z0)
         # candidate new map points: corners away from the existing tracks
         need = cfg.max_points - len(m)
         mask = np.full(left.shape[:2], 255, np.uint8)
@@ -483,40 +692,52 @@ class StereoEstimator:
                                         minDistance=cfg.new_corner_spacing_px, mask=mask, blockSize=5)
             if c is not None:
                 cands_all = c.reshape(-1, 2).astype(np.float32)
-        if len(cands_all) == 0:
-            self._since_kf = 0
-            return len(m)
-        uvu = undistort_px(cands_all, self.rig.cam0.K, self.rig.cam0.dist)
-        rays = np.column_stack([(uvu[:, 0] - self.rig.cam0.cx) / self.rig.cam0.fx,
-                                (uvu[:, 1] - self.rig.cam0.cy) / self.rig.cam0.fy, np.ones(len(uvu))])
-        uvr, ok = self._stereo_right(left, right, cands_all, self._right_guess(rays * z0))
-        uvr_u = undistort_px(uvr, self.rig.cam1.K, self.rig.cam1.dist)
-        Xc, err = triangulate(self.rig, uvu, uvr_u)
-        ok &= (err < cfg.triangulation_max_px) & (Xc[:, 2] > cfg.min_depth_m) & (Xc[:, 2] < cfg.max_depth_m)
-        Xw = Xc @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
-        # corners (not SIFT keypoints) become tracked map points, up to max_points
-        sel = np.flatnonzero(ok)
-        sel = sel[: max(0, need)]
-        # observations of the existing points at this keyframe (for offline bundle adjustment)
+        # observations of the existing points at this keyframe (refinement, disparity offset, bundle adjustment)
         k = len(self.keyframe_poses)
         if self.record_observations:
             self.keyframe_poses.append((self._cur_seq, T_world_cam.copy()))
-        if (self.record_observations or cfg.refine_points) and len(m):
+        if len(m):
             Xc_old = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
-            uvr_old, ok_old = self._stereo_right(left, right, m.uv, self._right_guess(Xc_old), fb_check=False)
+            uvr_old, ok_old = stereo_right(self.rig, left, right, m.uv, self._right_guess(Xc_old), cfg, fb_check=False)
             if self.record_observations:
                 self._record(k, m.ids, m.uv, uvr_old, ok_old)
-            if cfg.refine_points and ok_old.any():
-                # running mean of each tracked point over its stereo observations at keyframes
-                Xc_new, err_new = triangulate(self.rig, undistort_px(m.uv[ok_old], self.rig.cam0.K, self.rig.cam0.dist),
-                                              undistort_px(uvr_old[ok_old], self.rig.cam1.K, self.rig.cam1.dist))
+            if ok_old.any():
+                idx_o = np.flatnonzero(ok_old)
+                d_new = self._rectified_disparity(m.uv[idx_o], uvr_old[idx_o])
+                X_raw, err_raw = self._triangulate(m.uv[idx_o], uvr_old[idx_o])
+                if cfg.estimate_disparity_offset:
+                    self._offset_evidence(idx_o, X_raw, err_raw, d_new, T_world_cam)
+                Xc_new, err_new = (X_raw, err_raw) if self._doff == 0.0 else \
+                    self._triangulate(m.uv[idx_o], uvr_old[idx_o], self._doff)
                 good = (err_new < cfg.triangulation_max_px) & (Xc_new[:, 2] > cfg.min_depth_m) & \
-                    (Xc_new[:, 2] < cfg.max_depth_m)
-                idx = np.flatnonzero(ok_old)[good]
-                Xw_new = Xc_new[good] @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
-                n = m.nobs[idx][:, None]
-                m.X[idx] = (m.X[idx] * n + Xw_new) / (n + 1)
-                m.nobs[idx] += 1
+                    (Xc_new[:, 2] < self._max_depth)
+                idx = idx_o[good]
+                m.disp[idx] = d_new[good]
+                m.X_cam[idx] = X_raw[good]
+                m.kf[idx] = self._kf_count
+                if cfg.refine_points:
+                    # running mean of each tracked point over its stereo observations at keyframes
+                    Xw_new = Xc_new[good] @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+                    n = m.nobs[idx][:, None]
+                    m.X[idx] = (m.X[idx] * n + Xw_new) / (n + 1)
+                    m.nobs[idx] += 1
+        sel = np.zeros(0, np.int64)
+        uvr = np.zeros((0, 2), np.float32)
+        Xw = np.zeros((0, 3))
+        d_sel = np.zeros(0)
+        Xc_raw = np.zeros((0, 3))
+        if len(cands_all):
+            uvu = undistort_px(cands_all, self.rig.cam0.K, self.rig.cam0.dist)
+            rays = np.column_stack([(uvu[:, 0] - self.rig.cam0.cx) / self.rig.cam0.fx,
+                                    (uvu[:, 1] - self.rig.cam0.cy) / self.rig.cam0.fy, np.ones(len(uvu))])
+            uvr, ok = stereo_right(self.rig, left, right, cands_all, self._right_guess(rays * z0), cfg)
+            Xc_raw, err = self._triangulate(cands_all, uvr)
+            Xc = Xc_raw if self._doff == 0.0 else self._triangulate(cands_all, uvr, self._doff)[0]
+            ok &= (err < cfg.triangulation_max_px) & (Xc[:, 2] > cfg.min_depth_m) & (Xc[:, 2] < self._max_depth)
+            Xw = Xc @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+            # corners (not SIFT keypoints) become tracked map points, up to max_points
+            sel = np.flatnonzero(ok)[: max(0, need)]
+            d_sel = self._rectified_disparity(cands_all[sel], uvr[sel]) if len(sel) else np.zeros(0)
         new_ids = np.arange(self._next_id, self._next_id + len(sel), dtype=np.int64)
         self._next_id += len(sel)
         if self.record_observations and len(sel):
@@ -526,8 +747,18 @@ class StereoEstimator:
         m.uv = np.vstack([m.uv, cands_all[sel]]).astype(np.float32)
         m.ids = np.concatenate([m.ids, new_ids])
         m.nobs = np.concatenate([m.nobs, np.ones(len(sel))])
+        m.disp = np.concatenate([m.disp, d_sel])
+        m.X_cam = np.vstack([m.X_cam, Xc_raw[sel]])
+        m.kf = np.concatenate([m.kf, np.full(len(sel), self._kf_count, np.int64)])
         m.uv_kf = m.uv.copy()
         self._since_kf = 0
+        self._T_kf = T_world_cam.copy()
+        self._kf_poses[self._kf_count] = T_world_cam.copy()
+        used = set(m.kf.tolist())
+        for old_k in [k_ for k_ in self._kf_poses if k_ not in used and k_ != self._kf_count]:
+            del self._kf_poses[old_k]
+        self._kf_count += 1
+        self._n_at_kf = len(m)
         self.counters["keyframes"] += 1
         return len(m)
 

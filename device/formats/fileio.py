@@ -1,9 +1,17 @@
-"""Crash-safe file writes shared by the recorder and the host's keyframe store."""
+"""Crash-safe file writes: the one temporary-file-and-rename helper of the tree.
+
+Every file that must never be seen half written (manifests, status files, spooled keyframes,
+stored keyframes, models, reports, key files) goes through :func:`write_atomic` or one of its
+text/JSON forms, so there is one temporary-name pattern (``.NAME.PID.tmp`` in the same folder,
+hidden from image and CSV globs) and one durability rule.
+"""
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
+from typing import Any
 
 
 def fsync_dir(path: str | Path) -> None:
@@ -15,23 +23,35 @@ def fsync_dir(path: str | Path) -> None:
         os.close(fd)
 
 
-def write_atomic(path: str | Path, data: bytes, fsync: bool = True, tmp_name: str | None = None) -> None:
+def temp_path(path: str | Path) -> Path:
+    """The temporary name a write of ``path`` goes through (same folder, hidden, per process)."""
+    p = Path(path)
+    return p.with_name(f".{p.name}.{os.getpid()}.tmp")
+
+
+def write_atomic(path: str | Path, data: bytes, fsync: bool = True, mode: int | None = None) -> None:
     """Write ``data`` through a temporary file in the same folder and a rename.
 
-    A crash leaves either the old file or the new one, never half of one.  ``tmp_name``
-    names the temporary file (default: ``.NAME.tmp``, hidden from image and CSV globs).
+    A crash leaves either the old file or the new one, never half of one.  ``mode`` sets the
+    permissions exactly (whatever the process umask), e.g. ``0o644`` for a file other users
+    read, ``0o600`` for a secret; by default the umask applies to ``0o644``.
     """
     p = Path(path)
-    tmp = p.with_name(tmp_name or f".{p.name}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    tmp = temp_path(p)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644 if mode is None else mode)
     try:
+        if mode is not None:
+            os.fchmod(fd, mode)
         view = memoryview(data)
         while view:
             view = view[os.write(fd, view):]
         if fsync:
             os.fsync(fd)
-    finally:
+    except BaseException:
         os.close(fd)
+        tmp.unlink(missing_ok=True)
+        raise
+    os.close(fd)
     os.replace(tmp, p)
     if fsync:
         fsync_dir(p.parent)
@@ -57,3 +77,14 @@ def process_umask() -> int:
     mask = os.umask(0o022)  # no /proc: set and restore (not thread-safe, so only as a fallback)
     os.umask(mask)
     return mask
+
+
+def write_text_atomic(path: str | Path, text: str, fsync: bool = True, mode: int | None = None) -> None:
+    """:func:`write_atomic` of UTF-8 text."""
+    write_atomic(path, text.encode("utf-8"), fsync=fsync, mode=mode)
+
+
+def write_json_atomic(path: str | Path, data: Any, indent: int | None = 2, fsync: bool = True,
+                      mode: int | None = None) -> None:
+    """:func:`write_atomic` of ``data`` as JSON (a trailing newline; unknown types as ``str``)."""
+    write_text_atomic(path, json.dumps(data, indent=indent, default=str) + "\n", fsync=fsync, mode=mode)

@@ -41,7 +41,7 @@ import numpy as np
 
 from stereopath.device.formats import layout
 from stereopath.device.errors import CaptureError, ConfigError
-from stereopath.device.formats.fileio import fsync_dir, write_atomic
+from stereopath.device.formats.fileio import fsync_dir, write_text_atomic
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.rig import Rig, save_rig_yaml
 from stereopath.device.formats.tum import Trajectory, format_tum_line, write_tum
@@ -78,10 +78,6 @@ def _write_all(fd: int, data: bytes) -> None:
     while view:
         n = os.write(fd, view)
         view = view[n:]
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    write_atomic(path, text.encode())
 
 
 def _yaml_list(values: Any) -> str:
@@ -206,10 +202,10 @@ class SessionRecorder:
         (m / layout.IMU).mkdir(parents=True, exist_ok=True)
         T_body_cam0 = self.rig.T_body_cam0 if self.rig.T_body_cam0 is not None else np.eye(4)
         T_body_cam1 = T_body_cam0 @ self.rig.T_cam0_cam1
-        _write_atomic(m / "cam0" / "sensor.yaml", camera_sensor_yaml(self.rig.cam0, "cam0", T_body_cam0, cam_rate_hz))
-        _write_atomic(m / "cam1" / "sensor.yaml", camera_sensor_yaml(self.rig.cam1, "cam1", T_body_cam1, cam_rate_hz))
-        _write_atomic(m / layout.IMU / "sensor.yaml", imu_sensor_yaml(imu_rate_hz, imu_noise))
-        _write_atomic(m / "body.yaml", "%YAML:1.0\ncomment: stereopath handheld rig (body frame = IMU frame)\n")
+        write_text_atomic(m / "cam0" / "sensor.yaml", camera_sensor_yaml(self.rig.cam0, "cam0", T_body_cam0, cam_rate_hz))
+        write_text_atomic(m / "cam1" / "sensor.yaml", camera_sensor_yaml(self.rig.cam1, "cam1", T_body_cam1, cam_rate_hz))
+        write_text_atomic(m / layout.IMU / "sensor.yaml", imu_sensor_yaml(imu_rate_hz, imu_noise))
+        write_text_atomic(m / "body.yaml", "%YAML:1.0\ncomment: stereopath handheld rig (body frame = IMU frame)\n")
         save_rig_yaml(self.rig, m / layout.RIG_YAML,
                       comment=f"stereopath rig calibration of session {self.session_id}")
         self._open_csv("cam0", m / "cam0" / "data.csv", layout.CAM_CSV_HEADER)
@@ -506,7 +502,7 @@ class SessionRecorder:
         data = self.manifest()
         if extra:
             data.update(extra)
-        _write_atomic(self.dir / layout.MANIFEST, json.dumps(data, indent=2, default=str) + "\n")
+        write_text_atomic(self.dir / layout.MANIFEST, json.dumps(data, indent=2, default=str) + "\n")
 
     def _finish_manifest(self) -> None:
         try:

@@ -11,7 +11,7 @@ Sections (TOML tables):
                   ``[source.replay]``, ``[source.sim]``);
 ``[imu]``         the inertial sensor (MPU-6050 on I2C, its emulator, the source's own, or none);
 ``[timealign]``   camera-IMU time offset and how long a frame may wait for IMU samples;
-``[estimator]``   the motion estimator preset (filled in by the estimation stage);
+``[estimator]``   which motion estimator runs (``name``; the old key ``preset`` is still read);
 ``[stream]``      ZeroMQ endpoints, security and keyframe encoding;
 ``[keys]``        CURVE key locations;
 ``[recorder]``    session directory and free-disk reserve;
@@ -137,6 +137,11 @@ class SourceSettings:
     def frame_duration_us(self) -> int:
         return int(round(1e6 / self.fps))
 
+    @property
+    def recorded(self) -> bool:
+        """Frames on a recorded clock (simulator, replay) rather than live cameras."""
+        return self.backend in ("sim", "replay")
+
 
 @dataclass(frozen=True)
 class EmulatedImuSettings:
@@ -201,6 +206,11 @@ class ImuSettings:
                 f"{fill_ms:.0f} ms at {self.rate_hz:g} Hz; poll at most every {0.8 * fill_ms:.0f} ms")
 
     @property
+    def polled(self) -> bool:
+        """A chip (or its emulator) read on its own thread on this machine's clock."""
+        return self.backend in ("mpu6050", "emulated")
+
+    @property
     def output_rate_hz(self) -> float:
         """Gyro output rate before the divider: 8 kHz with the DLPF off, 1 kHz with it on."""
         return 8000.0 if self.dlpf_cfg == 0 else 1000.0
@@ -228,7 +238,7 @@ class TimeAlignSettings:
 class EstimatorSettings:
     """Motion estimator (its own stage fills in the details)."""
 
-    preset: str = "stereo"        # named preset: paper | stereo | sfm
+    name: str = "stereo"          # which estimator: paper | stereo | sfm (its feature preset is its own business)
 
 
 @dataclass(frozen=True)
@@ -323,14 +333,25 @@ class DeviceConfig:
     selftest: SelftestSettings = field(default_factory=SelftestSettings)
 
 
+def _upgrade(raw: dict[str, Any]) -> dict[str, Any]:
+    """Read files written before ``[estimator] preset`` was renamed ``name`` (it names an estimator)."""
+    est = raw.get("estimator")
+    if isinstance(est, Mapping) and "preset" in est:
+        if "name" in est:
+            raise ConfigError("[estimator]: both 'name' and its old spelling 'preset' are set; keep 'name'")
+        est = {("name" if k == "preset" else k): v for k, v in est.items()}
+        raw = {**raw, "estimator": est}
+    return raw
+
+
 def device_config_from_mapping(data: Mapping[str, Any]) -> DeviceConfig:
-    return from_mapping(DeviceConfig, data)
+    return from_mapping(DeviceConfig, _upgrade(dict(data)))
 
 
 def load_device_config(path: str | Path | None = None) -> DeviceConfig:
     """Defaults, overridden by the TOML file at ``path`` when given."""
     if path is None:
         return DeviceConfig()
-    cfg = from_mapping(DeviceConfig, load_toml(path))
+    cfg = device_config_from_mapping(load_toml(path))
     log.debug("device configuration from %s", path)
     return cfg

@@ -31,13 +31,13 @@ import os
 import queue
 import threading
 import time
-from dataclasses import dataclass
+import dataclasses
 from typing import Any
 
 import numpy as np
 
 from stereopath.device.errors import ConfigError, DatasetError, ProtocolError
-from stereopath.device.wire.protocol import Status, check_session_id, encode_keyframe, encode_pose, encode_status, make_keyframe, \
+from stereopath.device.wire.protocol import HEALTH_FIELDS, DeviceHealth, Status, check_session_id, encode_keyframe, encode_pose, encode_status, make_keyframe, \
     pose_from_matrix, rig_reference
 from stereopath.device.streaming import health
 from stereopath.device.streaming.config import StreamConfig
@@ -50,18 +50,6 @@ from stereopath.device.streaming.spool import KeyframeSpool
 log = logging.getLogger(__name__)
 
 UNKNOWN_RIG = ("unknown", "0000000000000000")
-
-
-@dataclass
-class _DeviceHealth:
-    frame_rate_hz: float = 0.0
-    imu_rate_hz: float = 0.0
-    dropped_frames: int = 0
-    imu_gaps: int = 0
-    cpu_load_pct: float | None = None
-    temperature_c: float | None = None
-    disk_free_bytes: int | None = None
-    recorder_state: str = "idle"
 
 
 class DeviceStreamer:
@@ -109,7 +97,7 @@ class DeviceStreamer:
             raise
         self._lock = threading.Lock()
         self._keyframes: queue.Queue[Any] = queue.Queue(maxsize=config.max_pending_keyframes)
-        self._health = _DeviceHealth()
+        self._health = DeviceHealth()
         self._status_due = threading.Event()
         self._stop = threading.Event()
         self._wake_r, self._wake_w = os.pipe()
@@ -182,24 +170,19 @@ class DeviceStreamer:
         self._note_call(t0)
         return accepted
 
-    def publish_status(self, *, frame_rate_hz: float | None = None, imu_rate_hz: float | None = None,
-                       dropped_frames: int | None = None, imu_gaps: int | None = None,
-                       cpu_load_pct: float | None = None, temperature_c: float | None = None,
-                       disk_free_bytes: int | None = None, recorder_state: str | None = None) -> None:
-        """Update the device health fields and send a status message soon.
+    def publish_status(self, **health: Any) -> None:
+        """Update device health fields (keyword names from :class:`DeviceHealth`) and send a status soon.
 
-        The status is also sent every ``status_interval_s`` with the latest values; CPU load,
-        temperature and free disk are probed when not given.
+        ``None`` leaves a field as it was.  The status is also sent every ``status_interval_s`` with
+        the latest values; CPU load, temperature and free disk are probed when never given.
         """
         t0 = time.perf_counter()
+        unknown = set(health) - set(HEALTH_FIELDS)
+        if unknown:
+            raise TypeError(f"publish_status: unknown health field(s) {sorted(unknown)}; known: {HEALTH_FIELDS}")
+        changes = {k: v for k, v in health.items() if v is not None}
         with self._lock:
-            h = self._health
-            for name, value in (("frame_rate_hz", frame_rate_hz), ("imu_rate_hz", imu_rate_hz),
-                                ("dropped_frames", dropped_frames), ("imu_gaps", imu_gaps),
-                                ("cpu_load_pct", cpu_load_pct), ("temperature_c", temperature_c),
-                                ("disk_free_bytes", disk_free_bytes), ("recorder_state", recorder_state)):
-                if value is not None:
-                    setattr(h, name, value)
+            self._health = dataclasses.replace(self._health, **changes)
         self._status_due.set()
         self._wake()
         self._note_call(t0)
@@ -276,16 +259,15 @@ class DeviceStreamer:
 
     def _status_bytes(self) -> bytes:
         with self._lock:
-            h = _DeviceHealth(**vars(self._health))
+            h = self._health
         pub = self._pub
-        status = Status(
-            session_id=self.session_id, t_ns=time.monotonic_ns(),
-            frame_rate_hz=float(h.frame_rate_hz), imu_rate_hz=float(h.imu_rate_hz),
-            dropped_frames=int(h.dropped_frames), imu_gaps=int(h.imu_gaps),
-            cpu_load_pct=h.cpu_load_pct if h.cpu_load_pct is not None else health.cpu_load_pct(),
+        probed = dataclasses.replace(
+            h, cpu_load_pct=h.cpu_load_pct if h.cpu_load_pct is not None else health.cpu_load_pct(),
             temperature_c=h.temperature_c if h.temperature_c is not None else health.cpu_temperature_c(),
-            disk_free_bytes=h.disk_free_bytes if h.disk_free_bytes is not None else health.disk_free_bytes(self.spool.dir),
-            recorder_state=h.recorder_state,
+            disk_free_bytes=h.disk_free_bytes if h.disk_free_bytes is not None else
+            health.disk_free_bytes(self.spool.dir))
+        status = Status(
+            self.session_id, time.monotonic_ns(), **dataclasses.asdict(probed),
             poses_sent=pub.sent if pub else 0,
             poses_dropped=pub.dropped if pub else 0,
             keyframes_spooled=self.spool.count, keyframes_pending=self._keyframes.qsize(),

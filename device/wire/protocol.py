@@ -27,6 +27,7 @@ Session ids become directory names on the host, so they are restricted to
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -137,11 +138,18 @@ class Keyframe:
 
 
 @dataclass(frozen=True)
-class Status:
-    """Device health and streaming counters (``None`` = not measured)."""
-
+class _StatusHeader:
     session_id: str
     t_ns: int
+
+
+@dataclass(frozen=True)
+class DeviceHealth:
+    """The device health fields, declared once: the service measures them, the status message carries them.
+
+    ``None`` = not measured (the streamer probes CPU, temperature and disk itself then).
+    """
+
     frame_rate_hz: float = 0.0
     imu_rate_hz: float = 0.0
     dropped_frames: int = 0
@@ -150,10 +158,27 @@ class Status:
     temperature_c: float | None = None
     disk_free_bytes: int | None = None
     recorder_state: str = "idle"
+
+
+HEALTH_FIELDS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(DeviceHealth))
+
+
+@dataclass(frozen=True)
+class _StreamCounters:
     poses_sent: int = 0
     poses_dropped: int = 0
     keyframes_spooled: int = 0
     keyframes_pending: int = 0
+
+
+@dataclass(frozen=True)
+class Status(_StreamCounters, DeviceHealth, _StatusHeader):
+    """Device health and streaming counters: ``session_id, t_ns``, the :class:`DeviceHealth` fields,
+    then the streamer's counters (``poses_sent, poses_dropped, keyframes_spooled, keyframes_pending``)."""
+
+    @property
+    def health(self) -> DeviceHealth:
+        return DeviceHealth(**{k: getattr(self, k) for k in HEALTH_FIELDS})
 
 
 @dataclass(frozen=True)

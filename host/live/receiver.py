@@ -42,7 +42,8 @@ from stereopath.device.wire.protocol import KEYFRAME_LIMITS, POSE_LIMITS, Ack, D
 from stereopath.device.wire.security import check_loopback_endpoint, load_host_keys, require_curve
 from stereopath.device.wire.sockets import apply_common_options
 from stereopath.device.formats.tum import ns_to_seconds_str
-from stereopath.host.live.store import KeyframeStore, list_sessions, write_atomic
+from stereopath.device.formats.fileio import write_json_atomic
+from stereopath.host.live.store import KeyframeStore, list_sessions
 
 log = logging.getLogger(__name__)
 
@@ -613,6 +614,6 @@ class Receiver:
             data = self.stats.to_json()
             data["current_session"] = self.live.session_id
         data["updated_unix"] = time.time()
-        write_atomic(self.out / RECEIVER_JSON, (json.dumps(data, indent=1) + "\n").encode(), fsync=False)
+        write_json_atomic(self.out / RECEIVER_JSON, data, indent=1, fsync=False)
         if self.store.last_session:
             self.store.save_state()

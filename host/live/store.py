@@ -29,7 +29,7 @@ from typing import Any
 
 from stereopath.device.errors import DatasetError, ProtocolError
 from stereopath.device.formats.fileio import fsync_dir
-from stereopath.device.formats.fileio import write_atomic as _write_atomic
+from stereopath.device.formats.fileio import write_atomic
 from stereopath.device.wire.protocol import SESSION_ID_RE, Keyframe, decode_keyframe
 
 log = logging.getLogger(__name__)
@@ -43,11 +43,6 @@ _KF_RE = re.compile(r"^kf_(\d{8,10})\.msgpack$")
 
 def keyframe_name(seq: int) -> str:
     return f"kf_{int(seq):08d}.msgpack"
-
-
-def write_atomic(path: Path, data: bytes, fsync: bool) -> None:
-    """Write ``data`` to ``path`` through ``NAME.tmp`` and a rename (leftovers are swept at open)."""
-    _write_atomic(path, data, fsync=fsync, tmp_name=path.name + ".tmp")
 
 
 def _index_row(kf: Keyframe, nbytes: int) -> list[Any]:

@@ -1,0 +1,246 @@
+"""Our `stereo` estimator side by side with ORB-SLAM3 on the same frames (issue 10).  Prints figures.
+
+    .venv/bin/python benchmarks/bench_peers.py [--runs 3] [--cases kitti06,kitti06_s2,kitti06_s3,sim]
+        [--peer-venv DIR] [--vocab FILE] [--sim-frames N] [--threads N]
+
+Installs nothing.  ORB-SLAM3 runs only when its own environment exists (a virtual environment
+with `pyorbslam3`, default `../peer-venv` or `../../peer-venv` beside the repository, or
+$PEER_VENV) and the vocabulary (default ~/.cache/orbslam3-peer/vocab_generic.txt or
+$PYORBSLAM3_VOCAB); `../shared/tools/peers/README.md` sets both up.  Without them only our rows
+are printed.
+
+Cases (all on the same frames for both systems, one process at a time):
+
+* ``kitti06``: KITTI 06 frames 0-50 at full rate;
+* ``kitti06_s2`` / ``kitti06_s3``: the same frames taken every 2nd / 3rd frame (fast motion),
+  as a KITTI folder of links written to a temporary directory;
+* ``sim``: the default simulated scan written by ``stereopath sim --out`` (an ASL session; ORB-SLAM3
+  rectifies it with OpenCV, ours reads it as recorded, with its IMU).
+
+Per system and case the medians over ``--runs`` runs of: end error (% of path), ATE RMSE (SE(3)
+alignment, ``stereopath eval``), median and p95 wall ms per frame (the estimator's call only),
+CPU ms per frame (process CPU time of all threads over the frame loop, image decoding included for
+both systems, divided by the frames) and frames tracked.  Ratios ours / ORB-SLAM3 come from the
+same run.  For one-core figures run it under ``taskset -c 0`` with ``--threads 1`` (OpenCV at one
+thread in our process; ORB-SLAM3 inherits the affinity).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+CASES = ("kitti06", "kitti06_s2", "kitti06_s3", "sim")
+
+
+def data_dir() -> Path:
+    env = os.environ.get("STEREOPATH_DATA")
+    return Path(env) if env else ROOT.parent / "shared" / "data"
+
+
+def find_peer_python(arg: str | None) -> Path | None:
+    cands = [Path(arg)] if arg else []
+    if os.environ.get("PEER_VENV"):
+        cands.append(Path(os.environ["PEER_VENV"]))
+    cands += [ROOT.parent / "peer-venv", ROOT.parent.parent / "peer-venv"]
+    for c in cands:
+        py = c / "bin" / "python"
+        if py.exists():
+            r = subprocess.run([str(py), "-c", "import pyorbslam3"], capture_output=True)
+            if r.returncode == 0:
+                return py
+    return None
+
+
+def subsampled_kitti(src: Path, step: int, out: Path) -> Path:
+    """A KITTI odometry folder (sequences/NN + poses/NN.txt) with every ``step``-th frame, as links."""
+    name = src.name
+    seq = out / "sequences" / name
+    for cam in ("image_0", "image_1"):
+        (seq / cam).mkdir(parents=True, exist_ok=True)
+    times = (src / "times.txt").read_text().split()
+    poses = (src.parent.parent / "poses" / f"{name}.txt").read_text().splitlines()
+    n = min(len(times), len(list((src / "image_0").glob("*.png"))))
+    keep = list(range(0, n, step))
+    for j, i in enumerate(keep):
+        for cam in ("image_0", "image_1"):
+            dst = seq / cam / f"{j:06d}.png"
+            if not dst.exists():
+                os.symlink(src / cam / f"{i:06d}.png", dst)
+    (seq / "times.txt").write_text("\n".join(times[i] for i in keep) + "\n")
+    shutil.copy(src / "calib.txt", seq / "calib.txt")
+    (out / "poses").mkdir(exist_ok=True)
+    (out / "poses" / f"{name}.txt").write_text("\n".join(poses[i] for i in keep) + "\n")
+    return seq
+
+
+# ------------------------------------------------------------------------------------ systems
+
+
+def run_ours(spec: str, options: dict | None = None) -> dict:
+    """One run of our `stereo` on ``spec``; CPU time of the whole process over the frame loop."""
+    from stereopath.device.estimation.base import run_estimator
+    from stereopath.device.estimation.registry import make_estimator
+    from stereopath.host.evaluation.evaluate import evaluate
+    from stereopath.host.evaluation.sequences import open_sequence
+
+    seq = open_sequence(spec)
+    est = make_estimator("stereo", seq.rig, options=options)
+    cpu0 = time.process_time()
+    run = run_estimator(est, seq.frames(), seq.imu)  # joins the keyframe worker before returning
+    cpu = time.process_time() - cpu0
+    m = evaluate(seq.groundtruth, run.trajectory)
+    ms = sorted(run.frame_ms)
+    return dict(end_pct=m["end_error_pct"], ate_m=m["ate_rmse_m"], median_ms=statistics.median(ms),
+                p95_ms=ms[int(0.95 * (len(ms) - 1))], cpu_ms=1e3 * cpu / len(ms), tracked=run.frames_tracked,
+                frames=len(ms), keyframes=run.extra.get("keyframes"))
+
+
+def run_orb(py: Path, runner: Path, source: str, out: Path, vocab: str | None, gt: tuple[str, str] | None) -> dict:
+    cmd = [str(py), str(runner), source, "--out", str(out)]
+    if vocab:
+        cmd += ["--vocab", vocab]
+    if gt:
+        cmd += ["--gt", gt[0]] + (["--gt-times", gt[1]] if gt[1] else [])
+    env = dict(os.environ, STEREOPATH=str(Path(sys.executable).parent / "stereopath"))
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if r.returncode != 0:
+        raise RuntimeError(f"ORB-SLAM3 run failed ({r.returncode}): {r.stderr[-1500:]}")
+    s = json.loads((out / "summary.json").read_text())
+    ev = s.get("eval") or {}
+    return dict(end_pct=ev.get("end_error_pct"), ate_m=ev.get("ate_rmse_m"), median_ms=s["median_frame_ms"],
+                p95_ms=s["p95_frame_ms"], cpu_ms=s["process_cpu_ms_per_frame"], tracked=s["frames_ok"],
+                frames=s["frames"], keyframes=None)
+
+
+def med(rows: list[dict], key: str):
+    v = [r[key] for r in rows if r.get(key) is not None]
+    return statistics.median(v) if v else None
+
+
+def fmt(v, spec):
+    return "-" if v is None else format(v, spec)
+
+
+def print_table(results: dict) -> None:
+    print()
+    print("| data | system | end error | ATE RMSE | median ms/frame | p95 ms | CPU ms/frame (all threads) | tracked |")
+    print("|---|---|---|---|---|---|---|---|")
+    for case, systems in results.items():
+        for name, rows in systems.items():
+            if not rows:
+                continue
+            ate = med(rows, "ate_m")
+            ate_s = "-" if ate is None else (f"{ate * 1000:.2f} mm" if ate < 0.01 else f"{ate:.3f} m")
+            tracked = min(r["tracked"] for r in rows)
+            print(f"| {case} | {name} | {fmt(med(rows, 'end_pct'), '.3f')} % | {ate_s} | "
+                  f"{fmt(med(rows, 'median_ms'), '.1f')} | {fmt(med(rows, 'p95_ms'), '.1f')} | "
+                  f"{fmt(med(rows, 'cpu_ms'), '.1f')} | {tracked}/{rows[0]['frames']} |")
+    print()
+    for case, systems in results.items():
+        ours, orb = systems.get("stereo"), systems.get("ORB-SLAM3 stereo")
+        if not ours or not orb:
+            continue
+        parts = []
+        for key, label in (("end_pct", "end error"), ("ate_m", "ATE"), ("median_ms", "median ms"),
+                           ("cpu_ms", "CPU ms")):
+            a, b = med(ours, key), med(orb, key)
+            parts.append(f"{label} {a / b:.2f}x" if a is not None and b else f"{label} -")
+        print(f"{case}: ours / ORB-SLAM3: " + ", ".join(parts))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--peer-venv", default=None)
+    ap.add_argument("--vocab", default=None)
+    ap.add_argument("--sim-frames", type=int, default=None, help="frames of the simulated scan (default: its own)")
+    ap.add_argument("--threads", type=int, default=None, help="cv2.setNumThreads in our process (1 = one core)")
+    ap.add_argument("--no-peer", action="store_true", help="our rows only")
+    ap.add_argument("--option", action="append", default=[], help="stereo config KEY=VALUE (ours)")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    import cv2
+
+    if args.threads is not None:
+        cv2.setNumThreads(args.threads)
+    options = {}
+    for kv in args.option:
+        k, _, v = kv.partition("=")
+        try:
+            options[k] = json.loads(v)  # numbers, true/false
+        except json.JSONDecodeError:
+            options[k] = v
+    cases = [c for c in args.cases.split(",") if c]
+    for c in cases:
+        if c not in CASES:
+            raise SystemExit(f"unknown case {c!r}; known: {', '.join(CASES)}")
+
+    D = data_dir()
+    runner = D.parent / "tools" / "peers" / "run_orbslam3.py"
+    vocab = args.vocab or os.environ.get("PYORBSLAM3_VOCAB") or str(Path.home() / ".cache/orbslam3-peer/vocab_generic.txt")
+    py = None if args.no_peer else find_peer_python(args.peer_venv)
+    if py is None and not args.no_peer:
+        print("ORB-SLAM3 peer: no environment with pyorbslam3 found (see ../shared/tools/peers/README.md); ours only")
+    elif py is not None and (not Path(vocab).exists() or not runner.exists()):
+        print(f"ORB-SLAM3 peer: missing {'vocabulary ' + vocab if not Path(vocab).exists() else runner}; ours only")
+        py = None
+    try:
+        load = os.getloadavg()
+        print(f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} CPUs; "
+              f"affinity {sorted(os.sched_getaffinity(0))}; OpenCV threads {cv2.getNumThreads()}; runs {args.runs}")
+    except (AttributeError, OSError):
+        pass
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench_peers_"))
+    results: dict[str, dict[str, list]] = {}
+    try:
+        kitti = D / "kitti_odometry" / "sequences" / "06"
+        for case in cases:
+            if case.startswith("kitti06"):
+                if not kitti.is_dir():
+                    print(f"{case}: no KITTI 06 under {D}; skipped")
+                    continue
+                step = 1 if case == "kitti06" else int(case[-1])
+                seq_dir = kitti if step == 1 else subsampled_kitti(kitti, step, tmp / case)
+                gt = (str(seq_dir.parent.parent / "poses" / f"{seq_dir.name}.txt"), str(seq_dir / "times.txt"))
+                ours_spec, orb_source = f"kitti:{seq_dir}", f"kitti:{seq_dir}"
+            else:
+                sess = tmp / "sim0"
+                cmd = [str(Path(sys.executable).parent / "stereopath"), "sim", "--out", str(sess)]
+                if args.sim_frames:
+                    cmd += ["--frames", str(args.sim_frames)]
+                subprocess.run(cmd, check=True, capture_output=True)
+                gt = (str(sess / "groundtruth.tum"), "")
+                ours_spec, orb_source = f"session:{sess}", f"session:{sess}"
+            results[case] = {"ORB-SLAM3 stereo": [], "stereo": []}
+            for r in range(args.runs):
+                if py is not None:
+                    row = run_orb(py, runner, orb_source, tmp / f"orb_{case}_{r}", vocab, gt)
+                    results[case]["ORB-SLAM3 stereo"].append(row)
+                    print(f"{case} run {r}: ORB-SLAM3 {json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()})}", flush=True)
+                row = run_ours(ours_spec, options)
+                results[case]["stereo"].append(row)
+                print(f"{case} run {r}: stereo    {json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()})}", flush=True)
+        print_table(results)
+        print("targets: CPU ms <= 1.0x ORB-SLAM3, ATE <= ORB-SLAM3's, end error <= 1 % (KITTI 06, sim); "
+              "every 2nd/3rd frame: 0 lost, end error <= 2 %; sim median <= 25 ms, p95 <= 50 ms")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
