@@ -92,6 +92,7 @@ class CaptureService:
         self.pipeline: FramePipeline | None = None
         self.session_id = ""
         self.session_dir: Path | None = None
+        self._session_dir_existed = True  # set in _setup; a failed start removes only a folder it created
         self.state = "starting"
         self.exit_code = EXIT_OK
         self.stop_reason = ""
@@ -188,6 +189,10 @@ class CaptureService:
         self.notifier.notify(STATUS=f"{what}: {exc}")
         self._teardown()
         self._write_status(final=True)
+        if self.session_dir is not None and not self._session_dir_existed:
+            from stereopath.device.formats.session_cleanup import discard_unused_session
+
+            discard_unused_session(self.session_dir)
 
     # ------------------------------------------------------------------ set-up
 
@@ -200,6 +205,7 @@ class CaptureService:
                  json.dumps(as_dict(cfg), separators=(",", ":"), default=str))
         self.session_id = new_session_id()
         self.session_dir = Path(self.options.out) if self.options.out else Path(cfg.recorder.dir) / self.session_id
+        self._session_dir_existed = self.session_dir.exists()
         if self.session_dir.exists() and (not self.session_dir.is_dir() or any(self.session_dir.iterdir())):
             raise ConfigError(f"--out {self.session_dir}: exists and is not empty (a session is never overwritten)")
         p = open_components(cfg, self.session_dir, self.session_id, environ=self.environ, parts=self.parts,

@@ -39,7 +39,11 @@ class PosePublisher:
         if curve_keys is not None:
             self.sock.curve_publickey, self.sock.curve_secretkey = curve_keys
             self.sock.curve_server = True
-        self.sock.bind(config.pose_endpoint)
+        try:
+            self.sock.bind(config.pose_endpoint)
+        except zmq.ZMQError:
+            self.sock.close(linger=0)  # an open socket would hang the context's term() for good
+            raise
         self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.sent = 0
         self.dropped = 0
