@@ -52,3 +52,53 @@ def test_index_with_garbage_line_keeps_prefix(tmp_path):
     assert store.session("s").acked_seq == 1
     store.close()
     assert [r["seq"] for r in read_index(tmp_path / "s")] == [0, 1]
+
+
+# item 3: host disk full ---------------------------------------------------------------------------
+
+def test_host_disk_full_keeps_keyframes_unacked_until_space_returns(tmp_path, monkeypatch, caplog):
+    import numpy as np
+
+    from stereopath.host.live import receiver as receiver_mod
+    from stereopath.host.live import store as store_mod
+    from stereopath.device.wire.security import make_demo_keys
+    from tests.test_streaming_integration import _receiver
+    from tests.test_streaming_support import assert_exactly_once, make_device, small_images, wait_for
+
+    full = {"on": True}
+    real_write, real_json = store_mod.write_atomic, receiver_mod.write_json_atomic
+
+    def write_or_enospc(real):
+        def write(path, *a, **k):
+            if full["on"]:
+                raise OSError(errno.ENOSPC, "No space left on device", str(path))
+            return real(path, *a, **k)
+        return write
+
+    monkeypatch.setattr(store_mod, "write_atomic", write_or_enospc(real_write))
+    monkeypatch.setattr(receiver_mod, "write_json_atomic", write_or_enospc(real_json))
+    keys = make_demo_keys(tmp_path / "keys")
+    dev = make_device(tmp_path, keys, "sessF")
+    out = tmp_path / "out"
+    rx = _receiver(dev, keys, out, stats_interval_s=0.1)
+    caplog.set_level(logging.INFO)
+    try:
+        for i in range(6):
+            assert dev.offer_keyframe(i, i * 50_000_000, np.eye(4), *small_images(i))
+        assert dev.wait_spooled(6, 10)
+        assert wait_for(lambda: rx.stats.link["store_failures"] >= 2, 10, between=lambda: rx.poll(0.02))
+        for _ in range(20):
+            rx.poll(0.02)
+        assert not list(out.rglob("kf_*"))
+        assert not [p for p in out.rglob("*") if p.name.endswith(".tmp")]
+        assert rx.storage_error is not None and "No space left" in rx.storage_error
+        errors = [r for r in caplog.records if r.levelno >= logging.ERROR and "cannot store" in r.getMessage()]
+        assert len(errors) == 1  # one clear line, not one per keyframe
+        assert dev.stats()["acks"] == 0  # nothing stored, nothing acknowledged
+        full["on"] = False  # space returns: the stall check says hello again and the device resends
+        assert wait_for(lambda: rx.store.session("sessF").acked_seq == 5, 15, between=lambda: rx.poll(0.02))
+        assert rx.storage_error is None
+    finally:
+        rx.close()
+        dev.close()
+    assert_exactly_once(out, "sessF", dev.spool)

@@ -101,6 +101,11 @@ def run(args: argparse.Namespace) -> int:
     log.info("received %d poses, %d keyframes (%d duplicates), %d pose seq gaps, %d rejected; sessions: %s",
              st.received["pose"], st.received["keyframe"], st.duplicates, st.pose_seq_gaps, st.rejected,
              ", ".join(st.sessions) or "none")
+    if receiver.storage_error is not None:
+        print(f"stereopath: error: keyframes could not be stored on this host ({receiver.storage_error}); the "
+              f"device keeps every keyframe not acknowledged and sends it to the next `host live` with space",
+              file=sys.stderr)
+        return 1
     got = st.received["pose"] + st.received["keyframe"] + st.received["status"]
     if got == 0 and st.link["auth_failures"]:
         print("stereopath: error: the device refused this host's key: nothing received (add this host's public "

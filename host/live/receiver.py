@@ -144,7 +144,7 @@ class ReceiverStats:
     rejected_by_channel: dict[str, int] = field(default_factory=lambda: {"pose": 0, "keyframe": 0})
     link: dict[str, int] = field(default_factory=lambda: {
         "connects": 0, "disconnects": 0, "auth_failures": 0, "handshake_failures": 0, "hellos": 0,
-        "rehellos_after_stall": 0, "acks_unsent": 0})
+        "rehellos_after_stall": 0, "acks_unsent": 0, "store_failures": 0, "poses_unsaved": 0})
     sessions: dict[str, SessionStats] = field(default_factory=dict)
     runs: int = 0
 
@@ -253,6 +253,7 @@ class Receiver:
         self._auth_warned = False
         self._warned: set[str] = set()
         self._known_sessions: set[str] = set(list_sessions(self.out))
+        self.storage_error: str | None = None  # set while keyframes cannot be stored (disk full)
         self._new_sessions = 0
         self._ctx = zmq.Context()
         common = dict(heartbeat_ivl_ms=config.heartbeat_ivl_ms, heartbeat_timeout_ms=config.heartbeat_timeout_ms,
@@ -340,7 +341,10 @@ class Receiver:
         self._pose_thread.join(5.0)
         self.write_stats()
         for fh in self._tum.values():
-            fh.close()
+            try:
+                fh.close()
+            except OSError as exc:
+                log.error("closing a poses.tum: %s", exc.strerror or exc)
         self._tum.clear()
         self.store.close()
         try:
@@ -467,11 +471,30 @@ class Receiver:
             self._pose_window.append((now, pose.seq))
         if self.on_pose is not None:  # before the file write: the live view first
             self.on_pose(pose)
-        fh = self._tum_file(pose.session_id)
         p, q = pose.position_m, pose.quat_xyzw
-        fh.write(f"{ns_to_seconds_str(pose.t_ns)} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} "
-                 f"{q[0]:.7f} {q[1]:.7f} {q[2]:.7f} {q[3]:.7f}\n")
-        fh.flush()
+        line = (f"{ns_to_seconds_str(pose.t_ns)} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} "
+                f"{q[0]:.7f} {q[1]:.7f} {q[2]:.7f} {q[3]:.7f}\n")
+        try:
+            fh = self._tum_file(pose.session_id)
+            fh.write(line)
+            fh.flush()
+        except OSError as exc:  # disk full: the live pose is shown, only its host copy is lost
+            self._pose_write_failed(pose.session_id, exc)
+
+    def _pose_write_failed(self, sid: str, exc: OSError) -> None:
+        fh = self._tum.pop(sid, None)
+        if fh is not None:
+            try:
+                fh.close()
+            except OSError:
+                pass  # what the buffer held is lost with the write that failed
+        with self.lock:
+            self.stats.link["poses_unsaved"] += 1
+            first = self.stats.link["poses_unsaved"] == 1 or "poses" not in self._warned
+            self._warned.add("poses")
+        if first:
+            log.error("cannot append to %s: %s; live poses are shown but not saved on this host (the device "
+                      "records its own trajectory.tum)", self.out / sid / "poses.tum", exc.strerror or exc)
 
     def _tum_file(self, sid: str) -> TextIO:
         fh = self._tum.get(sid)
@@ -484,8 +507,15 @@ class Receiver:
         return fh
 
     def _handle_keyframe(self, kf: Keyframe, data: bytes) -> None:
-        new = self.store.put(kf, data)  # written (and fsynced) before the ack
-        self.store.set_last_session(kf.session_id)
+        try:
+            new = self.store.put(kf, data)  # written (and fsynced) before the ack
+            self.store.set_last_session(kf.session_id)
+        except OSError as exc:  # disk full, read-only, ...: not acknowledged, so the device keeps it
+            self._storage_failed(f"keyframe {kf.seq} of session {kf.session_id}", exc)
+            return
+        if self.storage_error is not None:
+            log.info("storing keyframes again (after: %s)", self.storage_error)
+            self.storage_error = None
         now = time.monotonic()
         with self.lock:
             self.stats.received["keyframe"] += 1
@@ -505,6 +535,18 @@ class Receiver:
                 self.stats.link["acks_unsent"] += 1  # not connected: the next hello resynchronises
         if self.on_keyframe is not None:
             self.on_keyframe(kf, new)
+
+    def _storage_failed(self, what: str, exc: OSError) -> None:
+        """Log a storage failure once per streak; the device resends what was not acknowledged."""
+        with self.lock:
+            self.stats.link["store_failures"] += 1
+            first = self.storage_error is None
+            self.storage_error = f"{exc.strerror or exc} ({self.out})"
+        if first:
+            log.error("cannot store %s: %s; not acknowledged: the device keeps it and sends it again once "
+                      "there is space", what, self.storage_error)
+        else:
+            log.debug("cannot store %s: %s", what, exc)
 
     def _handle_status(self, st: Status) -> None:
         with self.lock:
@@ -561,7 +603,12 @@ class Receiver:
         st = self.live.status
         if not self.live.connected or st is None or now - self._last_progress < self.config.stall_timeout_s:
             return
-        have = self.store.session(st.session_id).acked_seq if st.session_id == self.store.last_session else -1
+        try:
+            have = self.store.session(st.session_id).acked_seq if st.session_id == self.store.last_session else -1
+        except OSError as exc:
+            self._storage_failed(f"session {st.session_id}", exc)
+            self._last_progress = now
+            return
         if st.keyframes_spooled - 1 > have:
             self.stats.link["rehellos_after_stall"] += 1
             log.info("keyframes stalled (device has %d, host holds up to %d): hello again",
@@ -614,6 +661,12 @@ class Receiver:
             data = self.stats.to_json()
             data["current_session"] = self.live.session_id
         data["updated_unix"] = time.time()
-        write_json_atomic(self.out / RECEIVER_JSON, data, indent=1, fsync=False)
-        if self.store.last_session:
-            self.store.save_state()
+        try:
+            write_json_atomic(self.out / RECEIVER_JSON, data, indent=1, fsync=False)
+            if self.store.last_session:
+                self.store.save_state()
+        except OSError as exc:  # disk full: the counters are rewritten on the next period
+            if "stats" not in self._warned:
+                self._warned.add("stats")
+                log.warning("cannot write %s: %s (retried every %g s)", self.out / RECEIVER_JSON,
+                            exc.strerror or exc, self.config.stats_interval_s)

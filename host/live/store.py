@@ -19,6 +19,7 @@ Read keyframes back with :func:`load_keyframe` (a :class:`stereopath.device.wire
 from __future__ import annotations
 
 import csv
+import io
 import json
 import logging
 import os
@@ -135,8 +136,8 @@ class SessionKeyframes:
         self._acked = -1
         self._advance()
         self._reconcile_index()
-        self._index = (self.dir / INDEX_NAME).open("a", newline="")
-        self._writer = csv.writer(self._index)
+        self._index_fd = os.open(self.dir / INDEX_NAME, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        self._index_ok = True  # False after a failed append: the index is rebuilt from the files on reopen
 
     def _advance(self) -> None:
         while self._acked + 1 in self.seqs:
@@ -157,12 +158,31 @@ class SessionKeyframes:
         """Store ``kf`` (its wire bytes ``data``); False if it is already stored (a duplicate)."""
         if kf.seq in self.seqs:
             return False
-        write_atomic(self.path(kf.seq), data, self.fsync)
-        self._writer.writerow(_index_row(kf, len(data)))
-        self._index.flush()
+        write_atomic(self.path(kf.seq), data, self.fsync)  # OSError (disk full): nothing stored, nothing changed
         self.seqs.add(kf.seq)
+        self._append_index(_index_row(kf, len(data)))
         self._advance()
         return True
+
+    def _append_index(self, row: list[Any]) -> None:
+        """One index line in one ``write`` (a cut leaves a torn last line, recovered on reopen).
+
+        The keyframe file is already stored: a failed append (disk full) is logged and the index
+        is rebuilt from the files when the session is next opened.
+        """
+        if not self._index_ok:
+            return
+        buf = io.StringIO()
+        csv.writer(buf).writerow(row)
+        data = buf.getvalue().encode()
+        try:
+            n = os.write(self._index_fd, data)
+            if n != len(data):
+                raise OSError(f"short write ({n} of {len(data)} bytes)")
+        except OSError as exc:
+            self._index_ok = False
+            log.error("session %s: cannot append to %s (%s); the keyframe files are stored and the index is "
+                      "rebuilt from them on the next start", self.session_id, self.dir / INDEX_NAME, exc)
 
     def _reconcile_index(self) -> None:
         """Make ``index.csv`` list exactly the stored files, keeping the valid prefix of a torn index."""
@@ -216,7 +236,9 @@ class SessionKeyframes:
             fsync_dir(self.dir)
 
     def close(self) -> None:
-        self._index.close()
+        if self._index_fd >= 0:
+            os.close(self._index_fd)
+            self._index_fd = -1
 
 
 class KeyframeStore:
