@@ -144,7 +144,8 @@ class ReceiverStats:
     rejected_by_channel: dict[str, int] = field(default_factory=lambda: {"pose": 0, "keyframe": 0})
     link: dict[str, int] = field(default_factory=lambda: {
         "connects": 0, "disconnects": 0, "auth_failures": 0, "handshake_failures": 0, "hellos": 0,
-        "rehellos_after_stall": 0, "acks_unsent": 0, "store_failures": 0, "poses_unsaved": 0})
+        "rehellos_after_stall": 0, "acks_unsent": 0, "store_failures": 0, "poses_unsaved": 0,
+        "rehellos_silent": 0})
     sessions: dict[str, SessionStats] = field(default_factory=dict)
     runs: int = 0
 
@@ -254,6 +255,7 @@ class Receiver:
         self._warned: set[str] = set()
         self._known_sessions: set[str] = set(list_sessions(self.out))
         self.storage_error: str | None = None  # set while keyframes cannot be stored (disk full)
+        self._last_dealer_rx = self._last_hello_at = time.monotonic()
         self._new_sessions = 0
         self._ctx = zmq.Context()
         common = dict(heartbeat_ivl_ms=config.heartbeat_ivl_ms, heartbeat_timeout_ms=config.heartbeat_timeout_ms,
@@ -385,6 +387,9 @@ class Receiver:
                 break
             n += 1
             self.live.last_rx = time.monotonic()
+            if channel == "keyframe":
+                self._last_dealer_rx = time.monotonic()
+                self._warned.discard("silent")
             if len(frames) != 1:
                 self._reject(channel, "frames")
                 continue
@@ -595,11 +600,28 @@ class Receiver:
             self._hello_pending = True  # pipe not attached yet: retry on the next poll
             return
         self._hello_pending = False
+        self._last_hello_at = time.monotonic()
         self.stats.link["hellos"] += 1
         self._last_progress = time.monotonic()
         log.debug("hello: session %s, acked %d, window %d", sid, acked, self.config.window)
 
+    def _check_silence(self, now: float) -> None:
+        """Connected, yet neither status nor keyframes for a while: the device has lost track of this
+        connection (or the stream died); say hello again instead of showing a good link forever."""
+        if not self.live.connected or self._hello_pending:
+            return
+        quiet = now - max(self._last_dealer_rx, self._last_hello_at)
+        if quiet < max(self.config.stall_timeout_s, 2.0 * self.config.heartbeat_ivl_ms / 1000.0):
+            return
+        self.stats.link["rehellos_silent"] += 1
+        if "silent" not in self._warned:
+            self._warned.add("silent")
+            log.warning("no status or keyframes from the device for %.1f s although connected: hello again", quiet)
+        self.live.link_quality = "lost"
+        self._send_hello()
+
     def _check_stall(self, now: float) -> None:
+        self._check_silence(now)
         st = self.live.status
         if not self.live.connected or st is None or now - self._last_progress < self.config.stall_timeout_s:
             return
@@ -639,8 +661,8 @@ class Receiver:
             live.link_quality = "waiting"
         elif age > 3.0 or not live.connected:
             live.link_quality = "lost"
-        elif age > 0.5 or live.pose_window_ratio < 0.9:
-            live.link_quality = "poor"
+        elif age > 0.5 or live.pose_window_ratio < 0.9 or now - self._last_dealer_rx > self.config.stall_timeout_s:
+            live.link_quality = "poor"  # (the last: poses flow but no status or keyframes on the keyframe link)
         else:
             live.link_quality = "good"
 
