@@ -117,7 +117,7 @@ def open_streaming(cfg: DeviceConfig, session_dir: Path, session_id: str, rig: A
         return NoStreaming()
     from stereopath.device.streaming import DeviceStreamer, KeyframeSpool, StreamConfig
 
-    spool = KeyframeSpool(session_dir / "keyframes")
+    spool = KeyframeSpool(session_dir / "keyframes", reserve_bytes=int(cfg.recorder.reserve_mb * 1e6))
     scfg = StreamConfig(pose_endpoint=cfg.stream.pose_endpoint, keyframe_endpoint=cfg.stream.keyframe_endpoint,
                         insecure=cfg.stream.insecure, server_secret=str(secret_key_path(cfg, environ)),
                         clients_dir=cfg.keys.clients_dir, image_encoding=cfg.stream.image_encoding,

@@ -183,6 +183,7 @@ class KeyframeServer:
             self.stats["acks"] += 1
             if msg.session_id == self.session_id and msg.seq <= peer.max_sent:
                 peer.acked = max(peer.acked, msg.seq)
+                self.spool.release(peer.acked)  # stored on a host: what a full disk kept in memory can go
             peer.credit = min(peer.credit + msg.credit, self.config.max_credit)
         else:
             self.stats["credits"] += 1
