@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 from stereopath.host.evaluation.evaluate import evaluate  # noqa: E402
 from stereopath.host.evaluation.odometry import estimate_sequence  # noqa: E402
 from stereopath.host.reprocess.pipeline import REPROCESS_PRESETS, reprocess_sequence, reprocess_session  # noqa: E402
-from stereopath.host.evaluation.sequences import open_sequence  # noqa: E402
+from stereopath.device.formats.source import open_source  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 KITTI = DATA / "kitti_odometry" / "sequences" / "06"
@@ -65,10 +65,10 @@ def main() -> int:
             from stereopath.device.sim.session import SimConfig, open_sim
 
             record_sequence(open_sim(SimConfig()), session, config_dict={"source": "sim"})
-        seq = open_sequence(f"session:{session}")
+        seq = open_source(f"session:{session}")
         print(f"simulated session: {len(seq)} frames, {seq.groundtruth.path_length_m():.2f} m")
         ate_on, t_on = onboard_ate(seq)
-        ate_sim0, _ = onboard_ate(open_sequence("sim:0"))
+        ate_sim0, _ = onboard_ate(open_source("sim:0"))
         print(f"  on-board stereo ATE {mm(ate_on)} on the session ({t_on:.1f} s), {mm(ate_sim0)} on sim:0 directly")
         times, ates = [], []
         res = None
@@ -91,7 +91,7 @@ def main() -> int:
         sequences = [("sim", seq, ate_on, True)]
         if not args.skip_kitti:
             if KITTI.is_dir():
-                kseq = open_sequence(f"kitti:{KITTI}")
+                kseq = open_source(f"kitti:{KITTI}")
                 k_on, _ = onboard_ate(kseq)
                 t = time.perf_counter()
                 kres = reprocess_sequence(kseq, tmp / "kitti", preset=args.preset, do_map=False, progress=False,

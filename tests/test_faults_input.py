@@ -116,7 +116,7 @@ def test_replay_skips_a_bad_frame(session, tmp_path):
 # item 11: map --max-keyframes on stored keyframes -------------------------------------------------
 
 def test_map_max_keyframes_applies_to_keyframe_folders(session, tmp_path):
-    from stereopath.device.core.rig import save_rig_yaml
+    from stereopath.device.formats.rig_files import save_rig_yaml
     from stereopath.device.formats import open_source
     from stereopath.device.wire.protocol import encode_keyframe, make_keyframe, rig_reference
     from stereopath.host.live.store import KeyframeStore
@@ -142,7 +142,7 @@ def test_map_max_keyframes_applies_to_keyframe_folders(session, tmp_path):
 def test_rig_with_cam1_left_of_cam0_is_refused(tmp_path):
     import yaml
 
-    from stereopath.device.core.rig import load_rig_yaml
+    from stereopath.device.formats.rig_files import load_rig_yaml
     from stereopath.device.errors import CalibrationError
 
     src = Path(__file__).resolve().parents[1] / "firmware_cfg" / "rig_paper.yaml"

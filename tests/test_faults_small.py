@@ -52,7 +52,6 @@ def keys(tmp_path_factory):
 def test_live_exits_nonzero_when_the_device_refuses_its_key_and_device_logs_it(tmp_path, keys, caplog):
     import shutil
 
-    from stereopath.host.commands import live
     from tests.test_streaming_support import make_device, port_of
 
     stranger = tmp_path / "stranger"
@@ -61,7 +60,7 @@ def test_live_exits_nonzero_when_the_device_refuses_its_key_and_device_logs_it(t
     dev = make_device(tmp_path, keys, "sessK")
     caplog.set_level(logging.WARNING)
     try:
-        rc = live.main(["--device", f"127.0.0.1:{port_of(dev.pose_endpoint)}",
+        rc = _cli(["host", "live", "--device", f"127.0.0.1:{port_of(dev.pose_endpoint)}",
                         "--keyframe-port", str(port_of(dev.keyframe_endpoint)), "--keys", str(stranger),
                         "--out", str(tmp_path / "out"), "--duration", "1.5", "--no-fsync"])
     finally:

@@ -47,7 +47,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import signal
 import threading
 import time
 from pathlib import Path
@@ -198,7 +197,7 @@ class CaptureService:
     # ------------------------------------------------------------------ set-up
 
     def _setup(self) -> None:
-        from stereopath.device.formats.recorder import new_session_id
+        from stereopath.device.wire.protocol import new_session_id
 
         cfg = self.cfg
         check_config(cfg, self.environ)
@@ -500,37 +499,3 @@ class CaptureService:
                                 path, exc)
                     self._status_warned = True
         return data
-
-
-# ---------------------------------------------------------------------------------------- entry point
-
-
-def run_service(config_path: str | Path | None, options: RunOptions | None = None, **inject: Any) -> int:
-    """Load the configuration, handle signals (in the main thread) and run one capture session.
-
-    Returns the exit status (0, 1, or 78 for a bad configuration, reported on one log line).
-    """
-    options = options or RunOptions()
-    try:
-        cfg = load_config(config_path, options)
-    except ConfigError as exc:
-        log.error("configuration error: %s", exc)
-        Notifier.from_env(inject.get("environ")).notify(STATUS=f"configuration error: {exc}")
-        return EXIT_CONFIG
-    service = CaptureService(cfg, options, config_path, **inject)
-    in_main = threading.current_thread() is threading.main_thread()
-    previous: dict[int, Any] = {}
-    if in_main:
-        def on_stop(signum: int, _frame: Any) -> None:
-            service.request_stop(f"signal {signal.Signals(signum).name}")
-
-        def on_hup(_signum: int, _frame: Any) -> None:
-            service.request_reload()
-
-        for sig, handler in ((signal.SIGTERM, on_stop), (signal.SIGINT, on_stop), (signal.SIGHUP, on_hup)):
-            previous[sig] = signal.signal(sig, handler)
-    try:
-        return service.run()
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)

@@ -32,8 +32,8 @@ from typing import Any, Callable
 
 from stereopath.device.errors import DatasetError
 from stereopath.device.wire.protocol import Ack, Credit, DecodeError, Hello, decode_control
-from stereopath.device.streaming.config import StreamConfig
-from stereopath.device.wire.sockets import apply_common_options
+from stereopath.device.service.settings import StreamSettings
+from stereopath.device.wire.sockets import CurveKeys, open_socket
 from stereopath.device.streaming.spool import KeyframeSpool
 
 log = logging.getLogger(__name__)
@@ -66,8 +66,8 @@ class _Peer:
 class KeyframeServer:
     """ROUTER socket bound to ``config.keyframe_endpoint``; driven by the streamer's I/O thread."""
 
-    def __init__(self, ctx: Any, config: StreamConfig, spool: KeyframeSpool, session_id: str,
-                 curve_keys: tuple[bytes, bytes] | None, status_fn: Callable[[], bytes]) -> None:
+    def __init__(self, ctx: Any, config: StreamSettings, spool: KeyframeSpool, session_id: str,
+                 curve_keys: CurveKeys | None, status_fn: Callable[[], bytes]) -> None:
         import zmq
 
         self._zmq = zmq
@@ -76,17 +76,12 @@ class KeyframeServer:
         self.session_id = session_id
         self.secure = curve_keys is not None
         self._status_fn = status_fn
-        self.sock = ctx.socket(zmq.ROUTER)
-        apply_common_options(self.sock, heartbeat_ivl_ms=config.heartbeat_ivl_ms,
-                             heartbeat_timeout_ms=config.heartbeat_timeout_ms,
-                             heartbeat_ttl_ms=config.heartbeat_ttl_ms,
-                             maxmsgsize=SOCKET_MAX_BYTES)
-        self.sock.setsockopt(zmq.ROUTER_MANDATORY, 1)
-        self.sock.setsockopt(zmq.SNDHWM, config.keyframe_sndhwm)
-        self.sock.setsockopt(zmq.RCVHWM, config.control_rcvhwm)
-        if curve_keys is not None:
-            self.sock.curve_publickey, self.sock.curve_secretkey = curve_keys
-            self.sock.curve_server = True
+        self.sock = open_socket(ctx, zmq.ROUTER, curve_keys,
+                                options={zmq.ROUTER_MANDATORY: 1, zmq.SNDHWM: config.keyframe_sndhwm,
+                                         zmq.RCVHWM: config.control_rcvhwm},
+                                heartbeat_ivl_ms=config.heartbeat_ivl_ms,
+                                heartbeat_timeout_ms=config.heartbeat_timeout_ms,
+                                heartbeat_ttl_ms=config.heartbeat_ttl_ms, maxmsgsize=SOCKET_MAX_BYTES)
         try:
             self.sock.bind(config.keyframe_endpoint)
         except zmq.ZMQError:

@@ -28,6 +28,7 @@ from pathlib import Path
 
 from stereopath.device.errors import DatasetError
 from stereopath.device.formats import fileio
+from stereopath.device.formats.fileio import is_temp
 
 log = logging.getLogger(__name__)
 
@@ -56,8 +57,9 @@ class KeyframeSpool:
         self.memory_bytes = 0
         self.held_in_memory = 0  # keyframes that ever went to memory
         self.dir.mkdir(parents=True, exist_ok=True)
-        for tmp in self.dir.glob("*.tmp"):
-            tmp.unlink(missing_ok=True)
+        for tmp in self.dir.iterdir():
+            if is_temp(tmp):
+                tmp.unlink(missing_ok=True)
         seqs = sorted(int(m.group(1)) for p in self.dir.iterdir() if (m := _NAME_RE.match(p.name)))
         if seqs and seqs != list(range(len(seqs))):
             raise DatasetError(f"keyframe spool {self.dir} is not contiguous from 0 "

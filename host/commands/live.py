@@ -42,7 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from stereopath.device.errors import ConfigError
     from stereopath.host.live.view import RerunView, TerminalView
-    from stereopath.host.live.receiver import Receiver, ReceiverConfig, endpoints_from_address
+    from stereopath.host.live.receiver import Receiver
+    from stereopath.host.live.receiver_config import ReceiverConfig, endpoints_from_address
 
     from stereopath.device.formats.fileio import check_out_folder
 
@@ -55,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
                             fsync=not args.no_fsync)
     rig = None
     if args.rig:
-        from stereopath.device.core.rig import load_rig_yaml
+        from stereopath.device.formats.rig_files import load_rig_yaml
 
         rig = load_rig_yaml(args.rig)
     rerun_view = None
@@ -116,25 +117,3 @@ def run(args: argparse.Namespace) -> int:
               "on one side only?)", file=sys.stderr)
         return 2
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Run this command alone (``python -m stereopath.host.commands.live ...``), e.g. as a test subprocess."""
-    import sys
-
-    from stereopath.device.errors import StereopathError
-    from stereopath.host.cli import setup_logging
-
-    parser = argparse.ArgumentParser(prog="stereopath host live", description=__doc__)
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    setup_logging(0, False)
-    try:
-        return run(args)
-    except StereopathError as exc:
-        print(f"stereopath: error: {exc}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

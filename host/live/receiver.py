@@ -31,190 +31,21 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, TextIO
 
-from stereopath.device.core.config import check_range
 from stereopath.device.errors import ConfigError
 from stereopath.device.wire.protocol import KEYFRAME_LIMITS, POSE_LIMITS, Ack, DecodeError, Hello, Keyframe, Limits, Pose, Status, \
     decode_message, encode_ack, encode_hello
-from stereopath.device.wire.security import check_loopback_endpoint, load_host_keys, require_curve
-from stereopath.device.wire.sockets import apply_common_options
+from stereopath.device.wire.security import load_host_keys
+from stereopath.device.wire.sockets import CurveKeys, open_socket, secure_channel
 from stereopath.device.formats.tum import ns_to_seconds_str
 from stereopath.device.formats.fileio import write_json_atomic
+from stereopath.host.live.receiver_config import RECEIVER_JSON, ReceiverConfig
+from stereopath.host.live.receiver_stats import EventRate, LiveState, ReceiverStats, SessionStats
 from stereopath.host.live.store import KeyframeStore, list_sessions
 
 log = logging.getLogger(__name__)
-
-RECEIVER_JSON = "receiver.json"
-DEFAULT_POSE_PORT = 5555
-
-
-@dataclass(frozen=True)
-class ReceiverConfig:
-    """Where the device is, how to authenticate, and the flow-control window."""
-
-    pose_endpoint: str
-    keyframe_endpoint: str
-    insecure: bool = False
-    keys_dir: str | None = None      # the host's key pair (*.key_secret) and device.key
-    device_key: str | None = None    # the device's public key, if not KEYS/device.key
-    window: int = 8                  # keyframes in flight (credit)
-    heartbeat_ivl_ms: int = 1000
-    heartbeat_timeout_ms: int = 5000
-    heartbeat_ttl_ms: int = 10000
-    reconnect_ivl_ms: int = 100
-    reconnect_ivl_max_ms: int = 5000
-    stall_timeout_s: float = 3.0
-    fsync: bool = True
-    stats_interval_s: float = 1.0
-    max_keyframe_bytes: int = KEYFRAME_LIMITS.max_message_bytes
-    max_new_sessions: int = 64       # session ids not seen before that one run accepts (each gets a folder)
-
-    def __post_init__(self) -> None:
-        check_range("window", self.window, 1, 1024)
-        check_range("max_new_sessions", self.max_new_sessions, 1, 1_000_000)
-        check_range("stall_timeout_s", self.stall_timeout_s, 0.05, 3600.0)
-        check_range("max_keyframe_bytes", self.max_keyframe_bytes, 1024, 2**31 - 1)
-        if not self.insecure and not self.keys_dir:
-            raise ConfigError("a host key directory (--keys DIR) is required unless --insecure is given")
-
-
-def endpoints_from_address(address: str, keyframe_port: int | None = None) -> tuple[str, str]:
-    """``HOST``, ``HOST:PORT``, ``[IPv6]:PORT`` or ``tcp://HOST:PORT`` -> (pose, keyframe) endpoints.
-
-    The pose port defaults to 5555; the keyframe port to the pose port + 1.
-    """
-    a = address.strip()
-    if a.startswith("tcp://"):
-        a = a[len("tcp://"):]
-    port = DEFAULT_POSE_PORT
-    if a.startswith("["):
-        host, sep, rest = a[1:].partition("]")
-        if not sep:
-            raise ConfigError(f"device address {address!r}: unterminated IPv6 address")
-        host_part = f"[{host}]"
-        if rest:
-            if not rest.startswith(":"):
-                raise ConfigError(f"device address {address!r} is not HOST[:PORT]")
-            port_text = rest[1:]
-        else:
-            port_text = ""
-    else:
-        host, sep, port_text = a.partition(":")
-        host_part = host
-        if ":" in port_text:
-            raise ConfigError(f"device address {address!r}: write IPv6 addresses as [ADDR]:PORT")
-    if not host_part or any(c in host_part for c in "/;* "):
-        raise ConfigError(f"device address {address!r} is not HOST[:PORT]")
-    if port_text:
-        if not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
-            raise ConfigError(f"device address {address!r}: bad port {port_text!r}")
-        port = int(port_text)
-    kport = keyframe_port if keyframe_port is not None else port + 1
-    if not 1 <= kport <= 65535:
-        raise ConfigError(f"keyframe port {kport} out of range")
-    return f"tcp://{host_part}:{port}", f"tcp://{host_part}:{kport}"
-
-
-@dataclass
-class SessionStats:
-    poses: int = 0
-    pose_gaps: int = 0            # poses missing between consecutive received seqs
-    pose_out_of_order: int = 0
-    keyframes: int = 0            # new keyframes stored
-    keyframe_duplicates: int = 0
-    last_pose_seq: int = -1
-    first_t_ns: int | None = None
-    last_t_ns: int | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        return dict(vars(self))
-
-
-@dataclass
-class ReceiverStats:
-    """Counters written to ``receiver.json`` (cumulative over receiver restarts)."""
-
-    received: dict[str, int] = field(default_factory=lambda: {"pose": 0, "keyframe": 0, "status": 0})
-    duplicates: int = 0
-    pose_seq_gaps: int = 0
-    rejected_by_reason: dict[str, int] = field(default_factory=dict)
-    rejected_by_channel: dict[str, int] = field(default_factory=lambda: {"pose": 0, "keyframe": 0})
-    link: dict[str, int] = field(default_factory=lambda: {
-        "connects": 0, "disconnects": 0, "auth_failures": 0, "handshake_failures": 0, "hellos": 0,
-        "rehellos_after_stall": 0, "acks_unsent": 0, "store_failures": 0, "poses_unsaved": 0,
-        "rehellos_silent": 0})
-    sessions: dict[str, SessionStats] = field(default_factory=dict)
-    runs: int = 0
-
-    @property
-    def rejected(self) -> int:
-        return sum(self.rejected_by_reason.values())
-
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "received": dict(self.received),
-            "duplicates": self.duplicates,
-            "pose_seq_gaps": self.pose_seq_gaps,
-            "rejected": {"total": self.rejected, "by_reason": dict(self.rejected_by_reason),
-                         "by_channel": dict(self.rejected_by_channel)},
-            "link": dict(self.link),
-            "sessions": {sid: s.to_json() for sid, s in self.sessions.items()},
-            "runs": self.runs,
-        }
-
-    @classmethod
-    def from_json(cls, data: dict[str, Any]) -> "ReceiverStats":
-        st = cls()
-        st.received.update({k: int(v) for k, v in data.get("received", {}).items() if k in st.received})
-        st.duplicates = int(data.get("duplicates", 0))
-        st.pose_seq_gaps = int(data.get("pose_seq_gaps", 0))
-        rej = data.get("rejected", {})
-        st.rejected_by_reason = {str(k): int(v) for k, v in rej.get("by_reason", {}).items()}
-        st.rejected_by_channel.update({k: int(v) for k, v in rej.get("by_channel", {}).items()
-                                       if k in st.rejected_by_channel})
-        st.link.update({k: int(v) for k, v in data.get("link", {}).items() if k in st.link})
-        for sid, s in data.get("sessions", {}).items():
-            known = {k: v for k, v in s.items() if k in SessionStats.__dataclass_fields__}
-            st.sessions[str(sid)] = SessionStats(**known)
-        st.runs = int(data.get("runs", 0))
-        return st
-
-
-class _Rate:
-    """Events per second over a sliding window (bounded memory)."""
-
-    def __init__(self, window_s: float = 2.0, max_events: int = 4096) -> None:
-        self.window_s = window_s
-        self.t: collections.deque[float] = collections.deque(maxlen=max_events)
-
-    def add(self, now: float) -> None:
-        self.t.append(now)
-
-    def rate(self, now: float) -> float:
-        while self.t and now - self.t[0] > self.window_s:
-            self.t.popleft()
-        return len(self.t) / self.window_s
-
-
-@dataclass
-class LiveState:
-    """What the live view shows (updated by the receiver as messages arrive)."""
-
-    session_id: str | None = None
-    pose: Pose | None = None
-    speed_m_s: float = 0.0
-    pose_rate_hz: float = 0.0
-    keyframe_rate_hz: float = 0.0
-    acked_seq: int = -1
-    status: Status | None = None
-    connected: bool = False
-    last_rx: float | None = None           # monotonic time of the last message of any kind
-    link_quality: str = "waiting"
-    pose_window_ratio: float = 0.0          # poses received / poses sent over the last window
-
 
 class Receiver:
     """Receives from one device into ``out_dir``; drive it with :meth:`poll` or :meth:`run`."""
@@ -229,16 +60,10 @@ class Receiver:
         self.config = config
         self.out = Path(out_dir)
         self.on_pose, self.on_keyframe, self.on_status = on_pose, on_keyframe, on_status
-        curve: tuple[bytes, bytes, bytes] | None = None
-        if config.insecure:
-            check_loopback_endpoint(config.pose_endpoint)
-            check_loopback_endpoint(config.keyframe_endpoint)
-            log.warning("receiving WITHOUT CURVE (insecure, loopback only)")
-        else:
-            require_curve()
-            curve = load_host_keys(config.keys_dir or "", config.device_key)
-        self.out.parent.mkdir(parents=True, exist_ok=True)
-        self.out.mkdir(mode=0o700, exist_ok=True)  # private by default (see KeyframeStore)
+        curve = secure_channel(config.insecure, (config.pose_endpoint, config.keyframe_endpoint),
+                               lambda: CurveKeys(*load_host_keys(config.keys_dir or "", config.device_key)),
+                               "receiving")
+        self.out.mkdir(parents=True, exist_ok=True)
         self.stats = self._load_stats()
         self.stats.runs += 1
         self.store = KeyframeStore(self.out, fsync=config.fsync)
@@ -246,7 +71,7 @@ class Receiver:
         self._kf_limits = Limits(max_message_bytes=config.max_keyframe_bytes,
                                  max_bin_len=min(KEYFRAME_LIMITS.max_bin_len, config.max_keyframe_bytes))
         self._tum: dict[str, TextIO] = {}
-        self._pose_rate, self._kf_rate = _Rate(), _Rate()
+        self._pose_rate, self._kf_rate = EventRate(), EventRate()
         self._pose_window: collections.deque[tuple[float, int]] = collections.deque(maxlen=4096)
         self._hello_pending = False
         self._last_progress = time.monotonic()
@@ -261,19 +86,13 @@ class Receiver:
         common = dict(heartbeat_ivl_ms=config.heartbeat_ivl_ms, heartbeat_timeout_ms=config.heartbeat_timeout_ms,
                       heartbeat_ttl_ms=config.heartbeat_ttl_ms, reconnect_ivl_ms=config.reconnect_ivl_ms,
                       reconnect_ivl_max_ms=config.reconnect_ivl_max_ms)
-        self.sub = self._ctx.socket(zmq.SUB)
-        apply_common_options(self.sub, maxmsgsize=max(4096, 4 * POSE_LIMITS.max_message_bytes), **common)
-        self.sub.setsockopt(zmq.CONFLATE, 1)
+        self.sub = open_socket(self._ctx, zmq.SUB, curve, options={zmq.CONFLATE: 1},
+                               maxmsgsize=max(4096, 4 * POSE_LIMITS.max_message_bytes), **common)
         self.sub.setsockopt(zmq.SUBSCRIBE, b"")
-        self.dealer = self._ctx.socket(zmq.DEALER)
-        apply_common_options(self.dealer, maxmsgsize=config.max_keyframe_bytes, **common)
-        self.dealer.setsockopt(zmq.IMMEDIATE, 1)
-        self.dealer.setsockopt(zmq.RCVHWM, 4 * config.window + 64)
-        self.dealer.setsockopt(zmq.SNDHWM, 4 * config.window + 64)
-        if curve is not None:
-            pub, sec, server = curve
-            for s in (self.sub, self.dealer):
-                s.curve_publickey, s.curve_secretkey, s.curve_serverkey = pub, sec, server
+        hwm = 4 * config.window + 64
+        self.dealer = open_socket(self._ctx, zmq.DEALER, curve,
+                                  options={zmq.IMMEDIATE: 1, zmq.RCVHWM: hwm, zmq.SNDHWM: hwm},
+                                  maxmsgsize=config.max_keyframe_bytes, **common)
         self.monitor = self.dealer.get_monitor_socket(
             zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_FAILED_AUTH
             | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL)

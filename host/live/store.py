@@ -29,8 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from stereopath.device.errors import DatasetError, ProtocolError
-from stereopath.device.formats.fileio import fsync_dir
-from stereopath.device.formats.fileio import write_atomic
+from stereopath.device.formats.fileio import is_temp, write_atomic, write_text_atomic
 from stereopath.device.wire.protocol import SESSION_ID_RE, Keyframe, decode_keyframe
 
 log = logging.getLogger(__name__)
@@ -130,8 +129,9 @@ class SessionKeyframes:
         self.dir = session_dir / "keyframes"
         self.fsync = fsync
         self.dir.mkdir(parents=True, exist_ok=True)
-        for tmp in self.dir.glob("*.tmp"):
-            tmp.unlink(missing_ok=True)
+        for tmp in self.dir.iterdir():
+            if is_temp(tmp):
+                tmp.unlink(missing_ok=True)
         self.seqs: set[int] = {int(m.group(1)) for p in self.dir.iterdir() if (m := _KF_RE.match(p.name))}
         self._acked = -1
         self._advance()
@@ -223,17 +223,11 @@ class SessionKeyframes:
         self.seqs = {int(r[0]) for r in rows}
         self._acked = -1
         self._advance()
-        tmp = index.with_name(INDEX_NAME + ".tmp")
-        with tmp.open("w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(INDEX_FIELDS)
-            w.writerows(rows)
-            fh.flush()
-            if self.fsync:
-                os.fsync(fh.fileno())
-        os.replace(tmp, index)
-        if self.fsync:
-            fsync_dir(self.dir)
+        buf = io.StringIO(newline="")
+        w = csv.writer(buf)
+        w.writerow(INDEX_FIELDS)
+        w.writerows(rows)
+        write_text_atomic(index, buf.getvalue(), fsync=self.fsync)
 
     def close(self) -> None:
         if self._index_fd >= 0:

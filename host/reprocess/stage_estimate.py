@@ -17,9 +17,20 @@ NAME = "estimate"
 STATUS = ("ok", "imu_only", "lost")
 
 
+# Offline there is no frame deadline: keyframe work runs in line so that a rerun (or a resumed
+# run, or a fleet worker) gives the same path to the last bit.  The on-board service keeps it
+# on its worker thread.
+OFFLINE_OPTIONS = {"background_keyframes": False}
+
+
+def estimator_options(config: ReprocessPreset) -> dict[str, Any]:
+    """The stereo estimator's options for offline re-estimation (the preset's win)."""
+    return {**OFFLINE_OPTIONS, **dict(config.estimator_options)}
+
+
 def settings(config: ReprocessPreset) -> dict[str, Any]:
     """The settings that make up this stage's key."""
-    return {"preset": config.estimator_preset, "options": dict(config.estimator_options)}
+    return {"preset": config.estimator_preset, "options": estimator_options(config)}
 
 
 def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
@@ -27,7 +38,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     from stereopath.device.estimation.registry import make_estimator
 
     seq = inputs.seq
-    est = make_estimator("stereo", seq.rig, preset=config.estimator_preset, options=dict(config.estimator_options))
+    est = make_estimator("stereo", seq.rig, preset=config.estimator_preset, options=estimator_options(config))
     if hasattr(est, "record_observations"):
         est.record_observations = False  # offline tracks replace the on-board observation log
     try:

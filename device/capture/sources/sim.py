@@ -14,7 +14,6 @@ import logging
 import time
 from typing import Any, Callable, Iterator
 
-from stereopath.device.errors import CaptureError
 from stereopath.device.core.frames import StereoFrame
 from stereopath.device.capture.imu.base import OfflineImu
 from stereopath.device.service.settings import SimSettings
@@ -24,11 +23,10 @@ log = logging.getLogger(__name__)
 
 
 def open_sim_session(settings: SimSettings) -> Any:
-    try:
-        from stereopath.device.sim.session import SimConfig, open_sim
-    except ImportError as exc:
-        raise CaptureError(f"sim source: the simulator is not available ({exc})") from None
-    return open_sim(SimConfig(frames=settings.frames, seed=settings.seed))
+    """The simulated session of ``[source.sim]``, through the one source-spec opener."""
+    from stereopath.device.formats.source import open_source
+
+    return open_source("sim", frames=settings.frames, seed=settings.seed)
 
 
 class SimSource(SourceBase):
