@@ -104,7 +104,7 @@ def loop_figures(tmp: Path, frames: int, base) -> None:
     session = tmp / "loop_session"
     if not (session / "mav0").is_dir():
         record_sequence(open_sim(SimConfig(trajectory="loop", frames=frames)), session, config_dict={"source": "sim"})
-    seq = open_sequence(f"session:{session}")
+    seq = open_source(f"session:{session}")
     run = estimate_sequence(seq, "stereo", progress=False)
     ate_on = evaluate(seq.groundtruth, run.trajectory)["ate_rmse_m"]
     gap_on = end_to_start_error(seq.groundtruth, run.trajectory)

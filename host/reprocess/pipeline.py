@@ -227,7 +227,7 @@ def open_session_checked(session_dir: str | Path) -> Any:
 def reprocess_session(session_dir: str | Path, out_dir: str | Path, preset: str | ReprocessPreset = DEFAULT_PRESET,
                       do_map: bool = True, map_preset: str = "object", force: bool = False,
                       progress: bool | None = None, imu_priors: bool = False,
-                      after_stage: Callable[[str], None] | None = None) -> ReprocessResult:
+                      after_stage: Callable[[str], None] | None = None, strict: bool = False) -> ReprocessResult:
     """``stereopath host reprocess``: a recorded session folder -> ``out_dir`` (see the module doc).
 
     The input is checked before anything is written: a missing or empty folder, a folder that is
@@ -235,6 +235,10 @@ def reprocess_session(session_dir: str | Path, out_dir: str | Path, preset: str 
     :class:`stereopath.device.errors.StereopathError` and leave ``out_dir`` untouched.
     """
     seq = open_session_checked(session_dir)
+    from stereopath.device.core.stereo_order import check_sequence_order
+
+    check_sequence_order(seq)  # exchanged left/right images: say so before any stage runs
+    seq.strict = strict  # False: unreadable frames are skipped and counted (report extra.frames_skipped)
     onboard = getattr(seq, "trajectory", None)
     return reprocess_sequence(seq, out_dir, preset=preset, do_map=do_map, map_preset=map_preset, force=force,
                               progress=progress, onboard=onboard, source_label=str(session_dir),
