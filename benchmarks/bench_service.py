@@ -37,12 +37,13 @@ def _cpu() -> float:
 
 
 def run_service_once(frames: int, estimator: str, tmp: Path) -> dict:
-    from stereopath.device.service.service import CaptureService, RunOptions, load_config
+    from stereopath.device.service.options import RunOptions, load_config
+    from stereopath.device.service.service import CaptureService
 
     cfg_path = tmp / "device.toml"
     cfg_path.write_text(
         f'[source]\nbackend = "sim"\n[source.sim]\nframes = {frames}\nseed = 0\n[imu]\nbackend = "source"\n'
-        f'[estimator]\npreset = "{estimator}"\n'
+        f'[estimator]\nname = "{estimator}"\n'
         '[stream]\npose_endpoint = "tcp://127.0.0.1:*"\nkeyframe_endpoint = "tcp://127.0.0.1:*"\ninsecure = true\n'
         'drain_s = 0.0\n'
         f'[recorder]\nreserve_mb = 1.0\n[service]\nstatus_file = "{tmp / "status.json"}"\n')

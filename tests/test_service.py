@@ -14,7 +14,8 @@ import threading
 import pytest
 
 from stereopath.device.formats import open_source
-from stereopath.device.service.service import CaptureService, RunOptions, load_config
+from stereopath.device.service.options import RunOptions, load_config
+from stereopath.device.service.service import CaptureService
 from stereopath.device.formats.tum import read_tum
 from tests.test_service_support import FakeEstimator, HangingSimSource, NotifyListener, sim_tables, wait_until, \
     write_toml

@@ -9,8 +9,9 @@ from dataclasses import replace
 import pytest
 
 from stereopath.device.errors import ConfigError
-from stereopath.device.service.service import RunOptions, apply_options, check_config, load_config, secret_key_path, split_changes, \
-    status_line, write_status_file
+from stereopath.device.service.options import RunOptions, apply_options, check_config, load_config, secret_key_path, \
+    split_changes
+from stereopath.device.service.status import status_line, write_status_file
 from stereopath.device.service.settings import DeviceConfig
 from stereopath.device.wire.security import generate_keypair
 
@@ -98,10 +99,23 @@ def test_status_file_is_atomic_and_world_readable(tmp_path):
 def test_journal_lines_carry_the_syslog_priority_and_stay_on_one_line():
     import logging
 
-    from stereopath.device.service.service import _JournalFormatter
+    from stereopath.device.service.journal import JournalFormatter as _JournalFormatter
 
     fmt = _JournalFormatter("%(levelname)s %(name)s: %(message)s")
     rec = logging.LogRecord("stereopath.device.service.service", logging.ERROR, __file__, 1, "camera lost\nagain", None, None)
     assert fmt.format(rec) == "<3>ERROR stereopath.device.service.service: camera lost | again"
     rec = logging.LogRecord("stereopath.device.service.service", logging.WARNING, __file__, 1, "low disk", None, None)
     assert fmt.format(rec).startswith("<4>WARNING")
+
+
+def test_estimator_name_and_its_old_spelling(tmp_path):
+    new = tmp_path / "new.toml"
+    new.write_text('[estimator]\nname = "sfm"\n')
+    old = tmp_path / "old.toml"
+    old.write_text('[estimator]\npreset = "paper"\n')
+    both = tmp_path / "both.toml"
+    both.write_text('[estimator]\npreset = "paper"\nname = "sfm"\n')
+    assert load_config(new, RunOptions()).estimator.name == "sfm"
+    assert load_config(old, RunOptions()).estimator.name == "paper"
+    with pytest.raises(ConfigError, match="preset"):
+        load_config(both, RunOptions())

@@ -62,7 +62,7 @@ def test_pairs_one_exposure_on_two_threads_and_releases_every_buffer():
     assert world.start_order[:2] == [1, 0]             # sync client (right) first
     c0, c1 = ({k: v for k, v in world.applied_controls[i].items() if k != "SyncMode"} for i in (0, 1))
     assert c0 == c1 and c0["ExposureTime"] == 2000 and c0["FrameDurationLimits"] == (10000, 10000)
-    roles = [cam.camera_config["controls"]["SyncMode"].name for cam in world.instances]
+    roles = [cam.configured["controls"]["SyncMode"].name for cam in world.instances]
     assert roles == ["Server", "Client"]
     assert_all_threads_stopped(world)
 
@@ -98,9 +98,106 @@ def test_missing_or_busy_camera_is_a_capture_error():
         Picamera2Source(settings(), api=world.api()).open()
     world = FakeCameraWorld()
     world.cameras[1].present = False
-    with pytest.raises(CaptureError, match="cannot open camera 1"):
+    busy_id = world.cameras[1].id
+    # picamera2 says only "Camera __init__ sequence did not complete."; the reason is its __cause__
+    with pytest.raises(CaptureError, match=r"cannot open the right camera .*imx296.*did not complete: "
+                                           r"Failed to acquire camera: Device or resource busy") as info:
         Picamera2Source(settings(), api=world.api()).open()
+    assert busy_id in str(info.value)
     assert world.instances[0].closed
+
+
+def _libcamera_order_differs():
+    """libcamera enumerates i2c@80000 first (Num 0); global_camera_info() sorts it second."""
+    a = FakeCameraSpec("/base/axi/pcie@120000/rp1/i2c@80000/imx296@1a")
+    b = FakeCameraSpec("/base/axi/pcie@120000/rp1/i2c@88000/imx296@1a")
+    world = FakeCameraWorld(cameras=[a, b], sync_ready_after=0)
+    info = world.api().Picamera2.global_camera_info()
+    assert [i["Num"] for i in info] == [1, 0]  # position and Num differ
+    return world, a.id, b.id
+
+
+def test_cameras_are_opened_by_position_in_global_camera_info_not_by_num():
+    world, id_num0, id_num1 = _libcamera_order_differs()
+    src = Picamera2Source(settings(picamera2={"left_id": id_num0, "right_id": id_num1}), api=world.api())
+    with src:
+        f = take(src, 3)[-1]
+    # the left frames come from the camera whose Id was configured as left (libcamera Num 0)
+    assert decode_slot(f.left)[1] == 0 and decode_slot(f.right)[1] == 1
+    assert [cam.spec.id for cam in world.instances] == [id_num0, id_num1]
+    # unspecified ids: left is the first camera of global_camera_info(), right the second
+    world, id_num0, id_num1 = _libcamera_order_differs()
+    with Picamera2Source(settings(), api=world.api()) as src:
+        f = take(src, 3)[-1]
+    assert [cam.spec.id for cam in world.instances] == [id_num1, id_num0]
+    assert decode_slot(f.left)[1] == 1 and decode_slot(f.right)[1] == 0
+
+
+def test_fake_mirrors_picamera2_numbering_and_errors():
+    world, id_num0, _ = _libcamera_order_differs()
+    api = world.api()
+    cam = api.Picamera2(world.position_of(id_num0))
+    assert cam.num == 0 and cam.spec.id == id_num0
+    with pytest.raises(RuntimeError, match="No camera number 2 found"):
+        api.Picamera2(2)
+    world.cameras[1].present = False
+    with pytest.raises(RuntimeError, match=r"^Camera __init__ sequence did not complete\.$") as info:
+        api.Picamera2(world.position_of(world.cameras[1].id))
+    assert "Device or resource busy" in str(info.value.__cause__)
+    cam.close()
+
+
+def test_luma_is_cut_at_the_size_libcamera_chose(caplog):
+    # libcamera adjusts 64x48 down to 48x40 (Status.Adjusted); the luma must come from that size,
+    # never from rows of the chroma planes below it
+    world = FakeCameraWorld(sync_ready_after=0, adjust_size=lambda s: (s[0] - 16, s[1] - 8))
+    with caplog.at_level(logging.WARNING, logger="stereopath.device.capture.sources.csi"):
+        with Picamera2Source(settings(), api=world.api()) as src:
+            frames = take(src, 3)
+    assert "adjusted the main stream from 64x48 to 48x40" in caplog.text
+    for f in frames:
+        assert f.left.shape == (40, 48) and f.right.shape == (40, 48)
+        assert not (f.left[1:] == 128).all(axis=1).any()  # no chroma row (all 128) inside the luma
+    assert_all_threads_stopped(world)
+
+
+def test_cameras_configured_at_different_sizes_are_refused():
+    world = FakeCameraWorld(sync_ready_after=0)
+    sizes = iter([(64, 48), (48, 48)])
+    world.adjust_size = lambda s: next(sizes)
+    with pytest.raises(CaptureError, match="left camera at 64x48 and the right one at 48x48"):
+        Picamera2Source(settings(), api=world.api()).open()
+    assert all(cam.closed for cam in world.instances)
+
+
+def test_frames_without_sync_ready_are_not_taken_as_synchronised():
+    world = FakeCameraWorld(sync_ready_after=0)
+    api = world.api()
+    real_process = api.Picamera2._process_request
+
+    def strip_sync_ready(self, req, tid):  # a platform whose metadata lacks SyncReady
+        req._metadata.pop("SyncReady", None)
+        return real_process(self, req, tid)
+
+    api.Picamera2._process_request = strip_sync_ready
+    src = Picamera2Source(settings(), api=api)
+    with pytest.raises(CaptureError, match="never reported SyncReady"):
+        with src:
+            take(src, 2)
+    assert src.stats.delivered == 0 and src.stats.dropped_presync > 0
+
+
+def test_failed_buffers_never_reach_the_callback_and_callbacks_hold_the_camera_lock():
+    world = FakeCameraWorld(sync_ready_after=0)
+    world.cameras[0].failed = frozenset({3, 4})
+    with Picamera2Source(settings(), api=world.api()) as src:
+        frames = take(src, 8)
+        st = src.stats
+    slots = [decode_slot(f.left)[0] for f in frames]
+    assert not {3, 4} & set(slots) and world.failed_released[0] == 2
+    assert st.dropped_sensor >= 2 and st.dropped_unpaired >= 2
+    assert world.callback_lock_held == {0: True, 1: True}
+    assert_all_threads_stopped(world)
 
 
 def test_camera_disappearing_mid_run_raises_without_hanging():
@@ -128,7 +225,7 @@ def test_free_running_cameras_out_of_tolerance_are_reported():
             take(src, 5)
     st = src.stats
     assert st.paired == 0 and st.dropped_unpaired > 0
-    assert all("SyncMode" not in cam.camera_config["controls"] for cam in world.instances)
+    assert all("SyncMode" not in cam.configured["controls"] for cam in world.instances)
     assert_all_threads_stopped(world)
 
 

@@ -11,7 +11,7 @@ Sections (TOML tables):
                   ``[source.replay]``, ``[source.sim]``);
 ``[imu]``         the inertial sensor (MPU-6050 on I2C, its emulator, the source's own, or none);
 ``[timealign]``   camera-IMU time offset and how long a frame may wait for IMU samples;
-``[estimator]``   the motion estimator preset (filled in by the estimation stage);
+``[estimator]``   which motion estimator runs (``name``; the old key ``preset`` is still read);
 ``[stream]``      ZeroMQ endpoints, security and keyframe encoding;
 ``[keys]``        CURVE key locations;
 ``[recorder]``    session directory and free-disk reserve;
@@ -137,6 +137,11 @@ class SourceSettings:
     def frame_duration_us(self) -> int:
         return int(round(1e6 / self.fps))
 
+    @property
+    def recorded(self) -> bool:
+        """Frames on a recorded clock (simulator, replay) rather than live cameras."""
+        return self.backend in ("sim", "replay")
+
 
 @dataclass(frozen=True)
 class EmulatedImuSettings:
@@ -201,6 +206,11 @@ class ImuSettings:
                 f"{fill_ms:.0f} ms at {self.rate_hz:g} Hz; poll at most every {0.8 * fill_ms:.0f} ms")
 
     @property
+    def polled(self) -> bool:
+        """A chip (or its emulator) read on its own thread on this machine's clock."""
+        return self.backend in ("mpu6050", "emulated")
+
+    @property
     def output_rate_hz(self) -> float:
         """Gyro output rate before the divider: 8 kHz with the DLPF off, 1 kHz with it on."""
         return 8000.0 if self.dlpf_cfg == 0 else 1000.0
@@ -228,25 +238,52 @@ class TimeAlignSettings:
 class EstimatorSettings:
     """Motion estimator (its own stage fills in the details)."""
 
-    preset: str = "stereo"        # named preset: paper | stereo | sfm
+    name: str = "stereo"          # which estimator: paper | stereo | sfm (its feature preset is its own business)
 
 
 @dataclass(frozen=True)
 class StreamSettings:
-    """ZeroMQ endpoints of the device."""
+    """The ``[stream]`` section: endpoints, security and bounds of the device's streamer.
 
-    pose_endpoint: str = "tcp://*:5555"       # PUB, lossy live poses
-    keyframe_endpoint: str = "tcp://*:5556"   # ROUTER, loss-free keyframes
+    The one type of these settings, from device.toml to
+    :class:`stereopath.device.streaming.DeviceStreamer` (which takes the ``[keys]`` section beside it).
+    Every in-memory queue is bounded by one of these numbers, so the device's memory does not
+    depend on what the host does.  Times are milliseconds unless the name says otherwise.
+    """
+
+    pose_endpoint: str = "tcp://*:5555"       # PUB, lossy live poses (bound by the device)
+    keyframe_endpoint: str = "tcp://*:5556"   # ROUTER, loss-free keyframes, status, control
     enabled: bool = True                      # stream at all (``device run --no-stream`` overrides)
     insecure: bool = False                    # plain TCP without CURVE; only loopback endpoints allowed
     image_encoding: Literal["jpg", "png", "raw"] = "jpg"  # keyframe images on the wire
     jpeg_quality: int = 90                    # 1..100 (image_encoding = "jpg")
+    png_compression: int = 1                  # 0..9 (image_encoding = "png")
     drain_s: float = 3.0                      # at the end of a run, wait up to this long (s) for a
     #                                           connected host to acknowledge every keyframe
+    max_credit: int = 16                # keyframes in flight per host, whatever credit it asks for
+    max_peers: int = 8                  # hosts tracked at once (least recently heard is evicted)
+    pose_sndhwm: int = 16               # PUB high-water mark (per subscriber, then dropped)
+    keyframe_sndhwm: int = 64           # ROUTER outbound messages per host
+    control_rcvhwm: int = 64            # ROUTER inbound messages per host
+    max_pending_keyframes: int = 16     # keyframes waiting to be encoded and spooled
+    heartbeat_ivl_ms: int = 1000        # ZMTP heartbeats (PING every ivl, drop after timeout)
+    heartbeat_timeout_ms: int = 5000
+    heartbeat_ttl_ms: int = 10000
+    spool_fsync: bool = True            # fsync each spooled keyframe before offering it
 
     def __post_init__(self) -> None:
         check_range("stream.jpeg_quality", self.jpeg_quality, 1, 100)
+        check_range("stream.png_compression", self.png_compression, 0, 9)
         check_range("stream.drain_s", self.drain_s, 0.0, 600.0)
+        check_range("stream.max_credit", self.max_credit, 1, 1024)
+        check_range("stream.max_peers", self.max_peers, 1, 256)
+        check_range("stream.pose_sndhwm", self.pose_sndhwm, 1, 100000)
+        check_range("stream.keyframe_sndhwm", self.keyframe_sndhwm, self.max_credit + 2, 100000)
+        check_range("stream.control_rcvhwm", self.control_rcvhwm, 1, 100000)
+        check_range("stream.max_pending_keyframes", self.max_pending_keyframes, 1, 1024)
+        check_range("stream.heartbeat_ivl_ms", self.heartbeat_ivl_ms, 0, 3_600_000)
+        check_range("stream.heartbeat_timeout_ms", self.heartbeat_timeout_ms, 0, 3_600_000)
+        check_range("stream.heartbeat_ttl_ms", self.heartbeat_ttl_ms, 0, 6_553_500)
 
 
 @dataclass(frozen=True)
@@ -323,14 +360,25 @@ class DeviceConfig:
     selftest: SelftestSettings = field(default_factory=SelftestSettings)
 
 
+def _upgrade(raw: dict[str, Any]) -> dict[str, Any]:
+    """Read files written before ``[estimator] preset`` was renamed ``name`` (it names an estimator)."""
+    est = raw.get("estimator")
+    if isinstance(est, Mapping) and "preset" in est:
+        if "name" in est:
+            raise ConfigError("[estimator]: both 'name' and its old spelling 'preset' are set; keep 'name'")
+        est = {("name" if k == "preset" else k): v for k, v in est.items()}
+        raw = {**raw, "estimator": est}
+    return raw
+
+
 def device_config_from_mapping(data: Mapping[str, Any]) -> DeviceConfig:
-    return from_mapping(DeviceConfig, data)
+    return from_mapping(DeviceConfig, _upgrade(dict(data)))
 
 
 def load_device_config(path: str | Path | None = None) -> DeviceConfig:
     """Defaults, overridden by the TOML file at ``path`` when given."""
     if path is None:
         return DeviceConfig()
-    cfg = from_mapping(DeviceConfig, load_toml(path))
+    cfg = device_config_from_mapping(load_toml(path))
     log.debug("device configuration from %s", path)
     return cfg

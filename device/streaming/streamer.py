@@ -18,7 +18,7 @@ keyframe is refused (``False``) and counted.
 Example::
 
     spool = KeyframeSpool(session_dir / "keyframes")
-    with DeviceStreamer(StreamConfig(...), spool, session_id, rig=rig) as streamer:
+    with DeviceStreamer(cfg.stream, spool, session_id, rig=rig, keys=cfg.keys) as streamer:
         streamer.publish_pose(seq, t_ns, T_world_cam, tracking="ok", inliers=120)
         streamer.offer_keyframe(seq, t_ns, T_world_cam, left, right)
         streamer.publish_status(frame_rate_hz=20.0, imu_rate_hz=200.0, recorder_state="recording")
@@ -31,37 +31,25 @@ import os
 import queue
 import threading
 import time
-from dataclasses import dataclass
+import dataclasses
 from typing import Any
 
 import numpy as np
 
 from stereopath.device.errors import ConfigError, DatasetError, ProtocolError
-from stereopath.device.wire.protocol import Status, check_session_id, encode_keyframe, encode_pose, encode_status, make_keyframe, \
+from stereopath.device.wire.protocol import HEALTH_FIELDS, DeviceHealth, Status, check_session_id, encode_keyframe, encode_pose, encode_status, make_keyframe, \
     pose_from_matrix, rig_reference
 from stereopath.device.streaming import health
-from stereopath.device.streaming.config import StreamConfig
+from stereopath.device.service.settings import KeySettings, StreamSettings
 from stereopath.device.streaming.keyframe_server import KeyframeServer
 from stereopath.device.streaming.pose_publisher import PosePublisher
-from stereopath.device.wire.security import check_loopback_endpoint, load_secret_keypair, require_curve, \
-    start_authenticator
+from stereopath.device.wire.security import load_secret_keypair, start_authenticator
+from stereopath.device.wire.sockets import CurveKeys, secure_channel
 from stereopath.device.streaming.spool import KeyframeSpool
 
 log = logging.getLogger(__name__)
 
 UNKNOWN_RIG = ("unknown", "0000000000000000")
-
-
-@dataclass
-class _DeviceHealth:
-    frame_rate_hz: float = 0.0
-    imu_rate_hz: float = 0.0
-    dropped_frames: int = 0
-    imu_gaps: int = 0
-    cpu_load_pct: float | None = None
-    temperature_c: float | None = None
-    disk_free_bytes: int | None = None
-    recorder_state: str = "idle"
 
 
 class DeviceStreamer:
@@ -71,11 +59,13 @@ class DeviceStreamer:
     sent with every keyframe.  Bind errors and key problems raise :class:`ConfigError` here.
     """
 
-    def __init__(self, config: StreamConfig, spool: KeyframeSpool, session_id: str, rig: Any = None,
-                 rig_ref: tuple[str, str] | None = None) -> None:
+    def __init__(self, config: StreamSettings, spool: KeyframeSpool, session_id: str, rig: Any = None,
+                 rig_ref: tuple[str, str] | None = None, *, keys: KeySettings | None = None,
+                 status_interval_s: float = 1.0) -> None:
         import zmq
 
         self.config = config
+        self.status_interval_s = status_interval_s
         self.spool = spool
         try:
             self.session_id = check_session_id(session_id)
@@ -83,21 +73,21 @@ class DeviceStreamer:
             raise ConfigError(f"streaming: {exc}") from None
         self.rig_ref = rig_ref or (rig_reference(rig) if rig is not None else UNKNOWN_RIG)
         self._zmq = zmq
-        curve_keys: tuple[bytes, bytes] | None = None
-        if config.insecure:
-            check_loopback_endpoint(config.pose_endpoint)
-            check_loopback_endpoint(config.keyframe_endpoint)
-            log.warning("streaming WITHOUT CURVE (insecure, loopback only)")
-        else:
-            require_curve()
-            curve_keys = load_secret_keypair(config.server_secret)
+
+        def server_keys() -> CurveKeys:
+            if keys is None:
+                raise ConfigError("streaming with CURVE needs the [keys] section (or stream.insecure on loopback)")
+            return CurveKeys(*load_secret_keypair(keys.server_secret))
+
+        curve_keys = secure_channel(config.insecure, (config.pose_endpoint, config.keyframe_endpoint), server_keys,
+                                    "streaming")
         self._ctx = zmq.Context()
         self._auth = None
         self._pub: PosePublisher | None = None
         self._server: KeyframeServer | None = None
         try:
-            if curve_keys is not None:
-                self._auth = start_authenticator(self._ctx, config.clients_dir)
+            if curve_keys is not None and keys is not None:
+                self._auth = start_authenticator(self._ctx, keys.clients_dir)
             self._pub = PosePublisher(self._ctx, config, curve_keys)
             self._server = KeyframeServer(self._ctx, config, spool, self.session_id, curve_keys, self._status_bytes)
         except zmq.ZMQError as exc:
@@ -109,7 +99,7 @@ class DeviceStreamer:
             raise
         self._lock = threading.Lock()
         self._keyframes: queue.Queue[Any] = queue.Queue(maxsize=config.max_pending_keyframes)
-        self._health = _DeviceHealth()
+        self._health = DeviceHealth()
         self._status_due = threading.Event()
         self._stop = threading.Event()
         self._wake_r, self._wake_w = os.pipe()
@@ -182,24 +172,19 @@ class DeviceStreamer:
         self._note_call(t0)
         return accepted
 
-    def publish_status(self, *, frame_rate_hz: float | None = None, imu_rate_hz: float | None = None,
-                       dropped_frames: int | None = None, imu_gaps: int | None = None,
-                       cpu_load_pct: float | None = None, temperature_c: float | None = None,
-                       disk_free_bytes: int | None = None, recorder_state: str | None = None) -> None:
-        """Update the device health fields and send a status message soon.
+    def publish_status(self, **health: Any) -> None:
+        """Update device health fields (keyword names from :class:`DeviceHealth`) and send a status soon.
 
-        The status is also sent every ``status_interval_s`` with the latest values; CPU load,
-        temperature and free disk are probed when not given.
+        ``None`` leaves a field as it was.  The status is also sent every ``status_interval_s`` with
+        the latest values; CPU load, temperature and free disk are probed when never given.
         """
         t0 = time.perf_counter()
+        unknown = set(health) - set(HEALTH_FIELDS)
+        if unknown:
+            raise TypeError(f"publish_status: unknown health field(s) {sorted(unknown)}; known: {HEALTH_FIELDS}")
+        changes = {k: v for k, v in health.items() if v is not None}
         with self._lock:
-            h = self._health
-            for name, value in (("frame_rate_hz", frame_rate_hz), ("imu_rate_hz", imu_rate_hz),
-                                ("dropped_frames", dropped_frames), ("imu_gaps", imu_gaps),
-                                ("cpu_load_pct", cpu_load_pct), ("temperature_c", temperature_c),
-                                ("disk_free_bytes", disk_free_bytes), ("recorder_state", recorder_state)):
-                if value is not None:
-                    setattr(h, name, value)
+            self._health = dataclasses.replace(self._health, **changes)
         self._status_due.set()
         self._wake()
         self._note_call(t0)
@@ -210,6 +195,9 @@ class DeviceStreamer:
             out = dict(self._counters)
         out["pending_keyframes"] = self._keyframes.qsize()
         out["spool_count"] = self.spool.count
+        out["spool_disk_full"] = self.spool.disk_full
+        out["keyframes_in_memory"] = self.spool.memory_count
+        out["keyframes_held_in_memory"] = self.spool.held_in_memory
         if self._pub is not None:
             out["poses_sent"] = self._pub.sent
             out["poses_dropped_send"] = self._pub.dropped
@@ -276,16 +264,15 @@ class DeviceStreamer:
 
     def _status_bytes(self) -> bytes:
         with self._lock:
-            h = _DeviceHealth(**vars(self._health))
+            h = self._health
         pub = self._pub
-        status = Status(
-            session_id=self.session_id, t_ns=time.monotonic_ns(),
-            frame_rate_hz=float(h.frame_rate_hz), imu_rate_hz=float(h.imu_rate_hz),
-            dropped_frames=int(h.dropped_frames), imu_gaps=int(h.imu_gaps),
-            cpu_load_pct=h.cpu_load_pct if h.cpu_load_pct is not None else health.cpu_load_pct(),
+        probed = dataclasses.replace(
+            h, cpu_load_pct=h.cpu_load_pct if h.cpu_load_pct is not None else health.cpu_load_pct(),
             temperature_c=h.temperature_c if h.temperature_c is not None else health.cpu_temperature_c(),
-            disk_free_bytes=h.disk_free_bytes if h.disk_free_bytes is not None else health.disk_free_bytes(self.spool.dir),
-            recorder_state=h.recorder_state,
+            disk_free_bytes=h.disk_free_bytes if h.disk_free_bytes is not None else
+            health.disk_free_bytes(self.spool.dir))
+        status = Status(
+            self.session_id, time.monotonic_ns(), **dataclasses.asdict(probed),
             poses_sent=pub.sent if pub else 0,
             poses_dropped=pub.dropped if pub else 0,
             keyframes_spooled=self.spool.count, keyframes_pending=self._keyframes.qsize(),
@@ -327,7 +314,7 @@ class DeviceStreamer:
         poller = zmq.Poller()
         poller.register(server.sock, zmq.POLLIN)
         poller.register(self._wake_r, zmq.POLLIN)
-        interval = self.config.status_interval_s
+        interval = self.status_interval_s
         next_status = time.monotonic()
         blocked = False
         try:

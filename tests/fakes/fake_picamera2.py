@@ -1,27 +1,41 @@
-"""A fake of picamera2 + libcamera.controls with the real shapes, threads and failure modes.
+"""A fake of picamera2 + libcamera.controls that behaves like picamera2 0.3.38.
 
-``FakeCameraWorld(...)`` describes the cameras; ``world.api()`` returns the three names
-the backend imports (``Picamera2``, ``MappedArray``, ``controls``).  Like the real
-library:
+picamera2 cannot be imported here (Debian packages no libcamera Python bindings), so this
+fake copies the real library's behaviour, read from its source (the 0.3.38 wheel on PyPI,
+``picamera2/picamera2.py`` and ``picamera2/request.py``).  Each behaviour names the real
+function it copies:
 
-* ``Picamera2.global_camera_info()`` lists dicts with ``Model``, ``Location``,
-  ``Rotation``, ``Id``, ``Num``; ``Picamera2(num)`` indexes that list;
-* ``create_video_configuration`` returns a configuration dict (``sensor`` accepts only
-  ``output_size`` and ``bit_depth``); ``set_controls`` rejects controls not listed in
-  ``camera_controls``;
-* each started camera runs its own thread that calls ``post_callback(request)`` and then
-  ``request.release()``; requests are reference counted (a release below zero raises
-  ``RuntimeError`` like ``CompletedRequest``), and a camera whose ``buffer_count``
-  requests are all held skips frames;
-* metadata has ``SensorTimestamp`` (ns, ``time.monotonic_ns`` clock), ``ExposureTime``,
-  ``FrameDuration``, ``AnalogueGain``, ``SyncReady``, ``FrameWallClock``;
-* ``MappedArray(request, "main")`` maps the YUV420 buffer as ``(h*3//2, stride)``.
+* ``Picamera2.global_camera_info()``: one dict per libcamera camera (``Model``,
+  ``Location``, ``Rotation``, ``Id``, ``Num`` = the libcamera index), **sorted by Id in
+  reverse, USB cameras last** (``Picamera2.global_camera_info``).
+* ``Picamera2(camera_num)`` takes a **position in that sorted list** and looks ``Num`` up
+  itself; a position past the end raises ``RuntimeError("No camera number N found ...")``
+  (``Picamera2.__init__``); a camera that cannot be acquired raises
+  ``RuntimeError("Camera __init__ sequence did not complete.")`` with the libcamera error
+  in ``__cause__`` (``Picamera2.__init__`` around ``_open_camera``).
+* ``create_video_configuration`` rounds the main size down to even
+  (``align_stream(main, optimal=False)``), rejects unknown stream keys
+  (``_make_initial_stream_config``) and merges ``NoiseReductionMode`` /
+  ``FrameDurationLimits`` defaults under the caller's controls.
+* ``configure`` checks the configuration (``check_camera_config``: sensor keys, even
+  sizes), then lets "libcamera" adjust it and writes the adjusted size and stride back into
+  the stream dict (``configure_`` -> ``validate()`` -> ``_update_stream_config``); the
+  dict is a shallow copy, so the caller's ``main`` dict changes too, as in the real one.
+* each started camera has its own event-loop thread; completed requests whose buffer
+  status is not Success are released **before** any callback, and ``post_callback`` runs
+  **under the per-camera ``picam2.lock``**, followed by ``release()``
+  (``Picamera2.process_requests``).  Requests are reference counted like
+  ``CompletedRequest.acquire/release``.
+* ``MappedArray(request, "main")`` maps the YUV420 buffer as ``(h*3//2, stride)``
+  (``MappedArray.__enter__`` -> ``helpers._make_array_shared``).
+* ``set_controls`` rejects controls that are not advertised (``Controls.__setattr__``).
 
 Emulated faults (per camera spec): a timestamp skew, frames that never arrive (``drop``),
-``SyncReady`` false for the first ``sync_ready_after`` frames of the synchronised grid,
-and a camera that disappears after ``disappear_after`` frames (its thread stops calling
-back, as when a cable comes loose).  Each frame's luma encodes its grid slot in the first
-row (``decode_slot``) so tests can check that a pair came from one exposure.
+frames whose buffer failed (``failed``: dropped inside picamera2 before callbacks),
+``SyncReady`` false for the first ``sync_ready_after`` slots of the synchronised grid, and a
+camera that disappears after ``disappear_after`` frames.  Each frame's luma encodes its
+grid slot and the camera's libcamera ``Num`` in the first row (``decode_slot``), so a test
+can tell which physical camera a frame came from.
 """
 
 from __future__ import annotations
@@ -42,15 +56,23 @@ class _SyncModeEnum(enum.Enum):
     Client = 2
 
 
-controls = SimpleNamespace(rpi=SimpleNamespace(SyncModeEnum=_SyncModeEnum))
+class _NoiseReductionModeEnum(enum.Enum):
+    Off = 0
+    Fast = 1
+    HighQuality = 2
 
 
-def encode_slot(img: np.ndarray, slot: int, side: int) -> None:
-    row = np.frombuffer(int(slot).to_bytes(4, "little") + bytes([side]), np.uint8)
+controls = SimpleNamespace(rpi=SimpleNamespace(SyncModeEnum=_SyncModeEnum),
+                           draft=SimpleNamespace(NoiseReductionModeEnum=_NoiseReductionModeEnum))
+
+
+def encode_slot(img: np.ndarray, slot: int, num: int) -> None:
+    row = np.frombuffer(int(slot).to_bytes(4, "little") + bytes([num]), np.uint8)
     img[0, :5] = row
 
 
 def decode_slot(img: np.ndarray) -> tuple[int, int]:
+    """(grid slot, libcamera Num of the camera) written into a frame by the fake."""
     b = bytes(np.asarray(img[0, :5], np.uint8))
     return int.from_bytes(b[:4], "little"), b[4]
 
@@ -64,28 +86,38 @@ class FakeCameraSpec:
     has_sync: bool = True
     skew_ns: int = 0                       # added to this camera's timestamps
     drop: frozenset[int] = frozenset()     # grid slots never delivered by this camera
+    failed: frozenset[int] = frozenset()   # grid slots whose buffer status is not Success
     disappear_after: int | None = None     # stop calling back after this many delivered frames
-    present: bool = True                   # False: Picamera2(num) fails (camera in use / broken)
+    present: bool = True                   # False: the camera cannot be acquired (in use / broken)
     callback_delay_s: float = 0.0          # time the fake's thread spends before the callback
+
+
+def _no_adjust(size: tuple[int, int]) -> tuple[int, int]:
+    return size
 
 
 @dataclass
 class FakeCameraWorld:
+    # libcamera's own camera order (Num = index in this list); global_camera_info() sorts it
     cameras: list[FakeCameraSpec] = field(default_factory=lambda: [
         FakeCameraSpec("/base/axi/pcie@120000/rp1/i2c@88000/imx296@1a", location=2),
         FakeCameraSpec("/base/axi/pcie@120000/rp1/i2c@80000/imx296@1a", location=2),
     ])
     sync_ready_after: int = 5              # SyncReady false for the first N grid slots
-    images: list[tuple[np.ndarray, np.ndarray]] | None = None  # pre-rendered (left, right) luma
+    images: list[tuple[np.ndarray, np.ndarray]] | None = None  # pre-rendered (Num 0, Num 1) luma
     free_run_phase_ns: int = 7_000_000     # phase of the second camera when not synchronised
     max_frames: int | None = None          # stop every camera after this many slots
+    # what libcamera's validate() does to a requested main size (Status.Adjusted when it changes)
+    adjust_size: Callable[[tuple[int, int]], tuple[int, int]] = _no_adjust
 
     def __post_init__(self) -> None:
         self.lock = threading.Lock()
         self.grid_t0: int | None = None
         self.start_order: list[int] = []
         self.callback_threads: dict[int, set[int]] = {}
+        self.callback_lock_held: dict[int, bool] = {}
         self.delivered: dict[int, int] = {}
+        self.failed_released: dict[int, int] = {}
         self.outstanding: dict[int, int] = {}
         self.skipped_no_buffer: dict[int, int] = {}
         self.errors: list[str] = []
@@ -101,32 +133,45 @@ class FakeCameraWorld:
 
         return SimpleNamespace(Picamera2=Picamera2, MappedArray=MappedArray, controls=controls)
 
+    def position_of(self, camera_id: str) -> int:
+        """Where the camera with this Id sits in global_camera_info() (what Picamera2() takes)."""
+        return [c["Id"] for c in _sorted_info(self.cameras)].index(camera_id)
+
     # frame content ----------------------------------------------------------------------
     def yuv_buffer(self, num: int, slot: int, w: int, h: int, stride: int) -> np.ndarray:
-        side = 0 if num == 0 else 1
         if self.images is not None:  # pre-rendered: build each YUV buffer once
             idx = slot % len(self.images)
             key = (num, idx, w, h)
             buf = self._yuv_cache.get(key)
             if buf is None:
                 buf = np.full((h * 3 // 2, stride), 128, np.uint8)
-                buf[:h, :w] = self.images[idx][side][:h, :w]
+                buf[:h, :w] = self.images[idx][min(num, 1)][:h, :w]
                 buf.setflags(write=False)
                 self._yuv_cache[key] = buf
             return buf
-        buf = np.full((h * 3 // 2, stride), 128, np.uint8)
+        buf = np.full((h * 3 // 2, stride), 128, np.uint8)   # chroma planes stay 128
         ramp = ((np.arange(w) + slot * 3) % 256).astype(np.uint8)
         buf[:h, :w] = ramp[None, :]
-        encode_slot(buf, slot, side)
+        encode_slot(buf, slot, num)
         return buf
 
 
+def _sorted_info(cameras: list[FakeCameraSpec]) -> list[dict[str, Any]]:
+    # Picamera2.global_camera_info: sorted(cameras, key=lambda cam: ("/usb" not in cam['Id'], cam['Id']),
+    # reverse=True), "Num" being the libcamera index
+    info = [{"Model": c.model, "Location": c.location, "Rotation": 0, "Id": c.id, "Num": i}
+            for i, c in enumerate(cameras)]
+    return sorted(info, key=lambda cam: ("/usb" not in cam["Id"], cam["Id"]), reverse=True)
+
+
 class _FakeRequest:
-    def __init__(self, cam: "_FakePicamera2", metadata: dict[str, Any], buffer: np.ndarray) -> None:
+    """CompletedRequest: reference counted; a release below zero raises like the real one."""
+
+    def __init__(self, cam: "_FakePicamera2", metadata: dict[str, Any], buffer: np.ndarray, ok: bool = True) -> None:
         self.picam2 = cam
-        self.request: Any = object()
+        self.request: Any = SimpleNamespace(status_ok=ok)
         self.ref_count = 1
-        self.config = cam.camera_config
+        self.config = dict(cam.camera_config)
         self._metadata = metadata
         self._buffer = buffer
         with cam._world.lock:
@@ -194,29 +239,43 @@ class _FakePicamera2:
 
     @classmethod
     def global_camera_info(cls) -> list[dict[str, Any]]:
-        return [{"Model": c.model, "Location": c.location, "Rotation": 0, "Id": c.id, "Num": i}
-                for i, c in enumerate(cls._world.cameras)]
+        return _sorted_info(cls._world.cameras)
 
     def __init__(self, camera_num: int = 0) -> None:
         world = self._world
-        if camera_num >= len(world.cameras):
-            raise IndexError("list index out of range")
-        self.spec = world.cameras[camera_num]
-        if not self.spec.present:
-            raise RuntimeError("Failed to acquire camera: Device or resource busy")
-        self.num = camera_num
+        info = self.global_camera_info()
+        # Picamera2.__init__ (0.3.38): a position past the end of global_camera_info()
+        if camera_num >= len(info):
+            raise RuntimeError(f'No camera number {camera_num} found - use "rpicam-hello --list-cameras" '
+                               "to check connected cameras")
+        num = info[camera_num]["Num"]  # "Get the real libcamera internal number."
+        self.num = num
+        self.spec = world.cameras[num]
+        self.is_open = False
         self.camera_config: dict[str, Any] | None = None
+        self.configured: dict[str, Any] = {}
         self.post_callback: Callable[[Any], None] | None = None
         self.pre_callback = None
+        self.lock = threading.Lock()  # Picamera2.lock: held around pre/post callbacks
         self.started = False
         self.closed = False
         self.controls: dict[str, Any] = {}
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        try:
+            if not self.spec.present:
+                # libcamera src/py/libcamera/py_main.cpp, Camera.acquire: std::system_error(-ret,
+                # "Failed to acquire camera"), which pybind11 raises as RuntimeError (EBUSY here)
+                raise RuntimeError("Failed to acquire camera: Device or resource busy")
+        except Exception as e:
+            # Picamera2.__init__: the real error is chained, the message is generic
+            raise RuntimeError("Camera __init__ sequence did not complete.") from e
+        self.is_open = True
         world.instances.append(self)
         cc: dict[str, Any] = {
             "ExposureTime": (14, 15534385, None), "AnalogueGain": (1.0, 251.1886444091797, None),
             "FrameDurationLimits": (16562, 15534444, None), "AeEnable": (False, True, None),
+            "NoiseReductionMode": (0, 4, 0),
         }
         if self.spec.has_sync:
             cc["SyncMode"] = (0, 2, 0)
@@ -233,23 +292,49 @@ class _FakePicamera2:
                                    controls: dict[str, Any] | None = None, display: Any = "main",
                                    encode: Any = "main", queue: bool = True, sensor: dict[str, Any] | None = None,
                                    use_case: str = "video") -> dict[str, Any]:
-        main = dict(main or {})
-        size = tuple(main.get("size", (1280, 720)))
-        fmt = main.get("format", "XBGR8888")
-        sensor = dict(sensor or {})
-        bad = set(sensor) - {"output_size", "bit_depth"}
-        if bad:
-            raise RuntimeError(f"Unexpected sensor configuration keys {sorted(bad)}")
-        stride = (size[0] + 63) // 64 * 64 if fmt in ("YUV420", "YVU420") else size[0] * 4
-        return {"use_case": use_case, "main": {"size": size, "format": fmt, "stride": stride},
-                "buffer_count": buffer_count, "queue": queue, "controls": dict(controls or {}),
-                "sensor": sensor}
+        if not self.is_open:
+            raise RuntimeError("Camera not opened")
+        # _make_initial_stream_config: defaults, then the caller's keys (unknown keys rejected)
+        stream: dict[str, Any] = {"format": "XBGR8888", "size": (1280, 720), "preserve_ar": True}
+        for key, value in (main or {}).items():
+            if key not in ("format", "size", "stride", "preserve_ar"):
+                raise ValueError(f"Bad key {key!r}: valid stream configuration keys are "
+                                 "('format', 'size', 'stride', 'preserve_ar')")
+            stream[key] = value
+        size = stream["size"]  # align_stream(main, optimal=False): round down to even
+        stream["size"] = (size[0] - size[0] % 2, size[1] - size[1] % 2)
+        ctrl = dict(controls or {})
+        if "NoiseReductionMode" in self.camera_controls and "FrameDurationLimits" in self.camera_controls:
+            ctrl = {"NoiseReductionMode": _NoiseReductionModeEnum.Fast, "FrameDurationLimits": (33333, 33333)} | ctrl
+        return {"use_case": use_case, "transform": transform, "colour_space": colour_space,
+                "buffer_count": buffer_count, "queue": queue, "main": stream, "lores": lores, "raw": raw, "controls": ctrl, "sensor": sensor,
+                "display": display, "encode": encode}
 
     def configure(self, config: dict[str, Any]) -> None:
         if self.started:
             raise RuntimeError("Camera must be stopped before configuring")
+        config = config.copy()  # configure_: a shallow copy, so the stream dicts are shared with the caller
+        self.camera_config = {}
+        sensor = config.get("sensor")
+        if sensor is not None:  # check_camera_config
+            bad = set(sensor) - {"bit_depth", "output_size"}
+            if bad:
+                raise RuntimeError(f"Unexpected keys {bad} in sensor configuration")
+        main = config["main"]  # check_stream_config
+        size = main["size"]
+        if type(size) is not tuple or len(size) != 2:
+            raise RuntimeError("size in main stream should be (width, height)")
+        if size[0] % 2 or size[1] % 2:
+            raise RuntimeError("width and height should be even")
         self._check_controls(config.get("controls", {}))
+        # libcamera validate() may adjust; _update_stream_config writes size and stride back
+        w, h = self._world.adjust_size(tuple(size))
+        main["size"] = (int(w), int(h))
+        fmt = main.get("format")
+        main["stride"] = (w + 63) // 64 * 64 if fmt in ("YUV420", "YVU420") else w * 4
+        main["framesize"] = main["stride"] * h * 3 // 2 if fmt in ("YUV420", "YVU420") else main["stride"] * h
         self.camera_config = config
+        self.configured = config  # kept for tests: close() empties camera_config like the real one
         self.controls = dict(config.get("controls", {}))
 
     def _check_controls(self, ctrl: dict[str, Any]) -> None:
@@ -264,7 +349,7 @@ class _FakePicamera2:
             self._world.applied_controls[self.num] = dict(self.controls)
 
     def start(self) -> None:
-        if self.camera_config is None:
+        if not self.camera_config:
             raise RuntimeError("Camera has not been configured")
         if self.started:
             return
@@ -286,10 +371,34 @@ class _FakePicamera2:
         self.started = False
 
     def close(self) -> None:
+        if not self.is_open:
+            return
         self.stop()
+        self.is_open = False
         self.closed = True
+        self.camera_config = {}
 
-    # the camera thread ----------------------------------------------------------------------
+    # the camera's event loop ------------------------------------------------------------------
+    def _process_request(self, req: _FakeRequest, tid: int) -> bool:
+        """Picamera2.process_requests for one completed request; True if callbacks saw it."""
+        world = self._world
+        if not req.request.status_ok:  # "Discard startup frames, or frames with errors"
+            req.release()
+            with world.lock:
+                world.failed_released[self.num] = world.failed_released.get(self.num, 0) + 1
+            return False
+        with self.lock:
+            with world.lock:
+                world.callback_threads.setdefault(self.num, set()).add(tid)
+            cb = self.post_callback
+            try:
+                if cb is not None:
+                    world.callback_lock_held[self.num] = self.lock.locked()
+                    cb(req)
+            finally:
+                req.release()
+        return True
+
     def _run(self) -> None:
         world, spec, cfg = self._world, self.spec, self.camera_config
         fd = self.controls.get("FrameDurationLimits", (33333, 33333))[0]
@@ -335,15 +444,8 @@ class _FakePicamera2:
             if synced:
                 md["SyncReady"] = this >= world.sync_ready_after
                 md["SyncTimer"] = 0
-            req = _FakeRequest(self, md, world.yuv_buffer(self.num, this, w, h, stride))
-            with world.lock:
-                world.callback_threads.setdefault(self.num, set()).add(tid)
-            cb = self.post_callback
-            try:
-                if cb is not None:
-                    cb(req)
-            finally:
-                req.release()
-            delivered += 1
-            with world.lock:
-                world.delivered[self.num] = world.delivered.get(self.num, 0) + 1
+            req = _FakeRequest(self, md, world.yuv_buffer(self.num, this, w, h, stride), ok=this not in spec.failed)
+            if self._process_request(req, tid):
+                delivered += 1
+                with world.lock:
+                    world.delivered[self.num] = world.delivered.get(self.num, 0) + 1

@@ -6,8 +6,15 @@ non-zero value into manual exposure/gain) and, on colour sensors, fixed ``Colour
 with AWB off.  Where the platform offers libcamera's software sync (``SyncMode`` in
 ``camera_controls``) the left camera is the server and the right one the client; the
 client is started first, and frames before ``SyncReady`` are dropped (counted in
-``dropped_presync``).  Without it the cameras run free and pairing relies on the
+``dropped_presync``; a frame without the key counts as not ready, as in picamera2's own
+``capture_sync_request``).  Without it the cameras run free and pairing relies on the
 timestamp tolerance alone.
+
+Cameras are chosen by libcamera ``Id``: ``Picamera2(n)`` takes the camera's position in
+``Picamera2.global_camera_info()`` (sorted by ``Id`` in reverse, USB cameras last) and looks
+libcamera's ``Num`` up itself, so we pass that position, never ``Num``.  After
+``configure`` the main-stream size is read back from ``camera_config`` (libcamera may adjust
+it) and the luma is cut at that size.
 
 Every frame arrives through ``post_callback`` on that camera's own picamera2 thread.
 The callback copies the luma plane out of the request through ``MappedArray`` and
@@ -70,6 +77,18 @@ def import_picamera2() -> Picamera2Api:
     return Picamera2Api(Picamera2=Picamera2, MappedArray=MappedArray, controls=controls)
 
 
+def _error_chain(exc: BaseException) -> str:
+    """An error with its causes: picamera2 raises a generic "Camera __init__ sequence did not
+    complete." and chains the real reason (camera busy, not found) as ``__cause__``."""
+    parts, seen = [], set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        parts.append((str(cur) or type(cur).__name__).rstrip("."))
+        cur = cur.__cause__ or cur.__context__
+    return ": ".join(parts)
+
+
 class Picamera2Source(SourceBase):
     """Stereo pairs from two picamera2 cameras (see module doc)."""
 
@@ -87,6 +106,7 @@ class Picamera2Source(SourceBase):
         self._error: BaseException | None = None
         self._sync = False
         self._last_ts: list[int | None] = [None, None]
+        self._size: tuple[int, int] = (int(settings.size[0]), int(settings.size[1]))
 
     # ---------------------------------------------------------------------------------
     def _api(self) -> Picamera2Api:
@@ -97,14 +117,16 @@ class Picamera2Source(SourceBase):
         return self._api_arg
 
     def _choose(self, infos: list[dict[str, Any]]) -> tuple[int, int]:
+        """Positions in ``global_camera_info()`` of the left and right cameras.
+
+        ``Picamera2(n)`` takes the position in that list (sorted by ``Id`` in reverse, USB
+        cameras last) and looks libcamera's ``Num`` up itself, so the position is what we
+        pass, never ``Num``: the two differ whenever libcamera enumerates in another order.
+        """
         ps = self.settings.picamera2
         if len(infos) < 2:
             found = [i.get("Id") for i in infos]
             raise CaptureError(f"picamera2: need two cameras, found {len(infos)}: {found}")
-
-        def num_of(i: int) -> int:
-            return int(infos[i].get("Num", i))
-
         ids = [str(i.get("Id", "")) for i in infos]
         chosen: list[int | None] = []
         for wanted in (ps.left_id, ps.right_id):
@@ -120,7 +142,24 @@ class Picamera2Source(SourceBase):
         if chosen[0] == chosen[1]:
             raise CaptureError(f"picamera2: left and right are the same camera ({ids[chosen[0]]!r})")
         self._ids = [ids[chosen[0]], ids[chosen[1]]]
-        return num_of(chosen[0]), num_of(chosen[1])
+        return chosen[0], chosen[1]
+
+    def _configured_size(self) -> tuple[int, int]:
+        """The main-stream size libcamera settled on (``configure`` may adjust what was asked)."""
+        asked = (int(self.settings.size[0]), int(self.settings.size[1]))
+        sizes = []
+        for cam in self._cams:
+            cfg = getattr(cam, "camera_config", None) or {}
+            size = (cfg.get("main") or {}).get("size") or asked
+            sizes.append((int(size[0]), int(size[1])))
+        if sizes[0] != sizes[1]:
+            raise CaptureError(f"picamera2: libcamera configured the left camera at {sizes[0][0]}x{sizes[0][1]} "
+                               f"and the right one at {sizes[1][0]}x{sizes[1][1]} (asked for {asked[0]}x{asked[1]}); "
+                               "choose a source.size both cameras support")
+        if sizes[0] != asked:
+            log.warning("picamera2: libcamera adjusted the main stream from %dx%d to %dx%d; frames are %dx%d "
+                        "(set source.size to match the calibration)", *asked, *sizes[0], *sizes[0])
+        return sizes[0]
 
     def _lock_controls(self, cam: Any) -> dict[str, Any]:
         s, ps = self.settings, self.settings.picamera2
@@ -149,13 +188,14 @@ class Picamera2Source(SourceBase):
             infos = list(api.Picamera2.global_camera_info())
         except Exception as exc:  # libcamera not running, no permission, ...
             raise CaptureError(f"picamera2: cannot list cameras: {exc}") from None
-        left_num, right_num = self._choose(infos)
-        try:
-            for num in (left_num, right_num):
-                self._cams.append(api.Picamera2(num))
-        except Exception as exc:
-            self._close_cameras()
-            raise CaptureError(f"picamera2: cannot open camera {num} ({exc})") from None
+        positions = self._choose(infos)
+        for side, pos in zip((LEFT, RIGHT), positions):
+            try:
+                self._cams.append(api.Picamera2(pos))
+            except Exception as exc:
+                self._close_cameras()
+                raise CaptureError(f"picamera2: cannot open the {SIDE_NAMES[side]} camera {self._ids[side]} "
+                                   f"({_error_chain(exc)})") from None
 
         has_sync = all("SyncMode" in (getattr(c, "camera_controls", {}) or {}) for c in self._cams)
         self._sync = s.picamera2.sync == "software" and has_sync
@@ -190,6 +230,7 @@ class Picamera2Source(SourceBase):
                     kwargs["sensor"] = sensor
                 cam.configure(cam.create_video_configuration(**kwargs))
                 cam.set_controls(lock)  # identical values on both, applied with the next request
+            self._size = self._configured_size()
             for side, cam in ((LEFT, self._cams[0]), (RIGHT, self._cams[1])):
                 cam.post_callback = self._make_callback(side, api.MappedArray)
             # the sync client (right) starts first, then the server (left)
@@ -202,7 +243,7 @@ class Picamera2Source(SourceBase):
             self._close_cameras()
             raise CaptureError(f"picamera2: configuring/starting the cameras failed: {exc}") from None
         log.info("picamera2: left %s, right %s, %dx%d at %.2f fps, exposure %d us, sync %s",
-                 self._ids[0], self._ids[1], s.size[0], s.size[1], s.fps, s.exposure_us,
+                 self._ids[0], self._ids[1], self._size[0], self._size[1], s.fps, s.exposure_us,
                  "software" if self._sync else "off")
         if self._rig_arg is not None:
             self._rig = self._rig_arg
@@ -212,7 +253,7 @@ class Picamera2Source(SourceBase):
                 log.warning("picamera2: no rig calibration configured (source.rig_file)")
 
     def _make_callback(self, side: int, mapped_array: Any) -> Callable[[Any], None]:
-        w, h = (int(v) for v in self.settings.size)
+        w, h = self._size  # the size libcamera chose, not necessarily the one asked for
         frame_ns = self.settings.frame_duration_us * 1000
         counter = "frames_left" if side == LEFT else "frames_right"
         pairer = self._pairer
@@ -220,7 +261,8 @@ class Picamera2Source(SourceBase):
         def on_request(request: Any) -> None:  # runs on this camera's picamera2 thread
             try:
                 md = request.get_metadata()
-                if self._sync and not md.get("SyncReady", True):
+                # as picamera2's own capture_sync_request: no SyncReady means not (yet) synchronised
+                if self._sync and not md.get("SyncReady", False):
                     self._count(dropped_presync=1)
                     return
                 with mapped_array(request, "main", write=False) as m:

@@ -1,0 +1,130 @@
+"""What runs inside a Ray worker: one session through the one-session pipeline.
+
+:func:`reprocess_task` calls :func:`stereopath.host.reprocess.pipeline.reprocess_session` with the
+session's folder and its output folder ``DIR/<session id>/`` (both as the worker sees them), so
+the stages, their resumable store and every output are exactly those of the one-session
+command.  Nothing large crosses Ray: the task reads the images from the session folder, keeps the
+stage arrays in the output folder's store, and returns a small summary dict.  A retried task
+(the worker died) calls the pipeline again, which reuses every stage already stored.
+
+:class:`ProgressBoard` is the actor the tasks tell when they start (process, node, the stages
+already stored) and when a stage is stored; the driver reads it for the progress display.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+STAGE_ORDER = ("estimate", "tracks", "ba", "map")  # the order the pipeline runs its stages in
+
+
+class ProgressBoard:
+    """Per session: attempts, process and node of the latest attempt, stages stored so far."""
+
+    def __init__(self) -> None:
+        self.sessions: dict[str, dict[str, Any]] = {}
+
+    def started(self, sid: str, info: dict[str, Any]) -> int:
+        """Record an attempt; returns its number (1 for the first)."""
+        e = self.sessions.setdefault(sid, {"attempts": 0, "stored": []})
+        e["attempts"] += 1
+        e.update({k: info[k] for k in ("pid", "node") if k in info})
+        e["stored"] = [s for s in STAGE_ORDER if s in info.get("stored", ()) or s in e["stored"]]
+        e["started"] = time.time()
+        return int(e["attempts"])
+
+    def stage_done(self, sid: str, name: str) -> None:
+        e = self.sessions.setdefault(sid, {"attempts": 0, "stored": []})
+        if name not in e["stored"]:
+            e["stored"] = [s for s in STAGE_ORDER if s in e["stored"] or s == name]
+
+    def snapshot(self) -> dict[str, dict[str, Any]]:
+        return self.sessions
+
+
+def stored_stages(out_dir: str | Path) -> list[str]:
+    """Stages listed in ``OUT/stages/manifest.json`` (for the display only; ``[]`` if unreadable)."""
+    try:
+        man = json.loads((Path(out_dir) / "stages" / "manifest.json").read_text())
+        return [s for s in STAGE_ORDER if s in (man.get("stages") or {})]
+    except (OSError, ValueError, AttributeError):
+        return []
+
+
+def _node() -> str:
+    """``IP/node`` of this worker (the first 8 digits of the Ray node id: two nodes may share an IP)."""
+    try:
+        import ray
+
+        return f"{ray.util.get_node_ip_address()}/{ray.get_runtime_context().get_node_id()[:8]}"
+    except Exception:  # noqa: BLE001 - outside Ray (tests of the task body) the host name will do
+        return socket.gethostname()
+
+
+def summarise(res: Any, wall_s: float, cpu_s: float) -> dict[str, Any]:
+    """The figures of one finished session for ``fleet.json`` (from a ``ReprocessResult``)."""
+    rep = res.report or {}
+    extra = rep.get("extra") or {}
+    mp = extra.get("map") or {}
+    ba = extra.get("before_after") or {}
+    mesh = Path(res.out_dir) / "mesh.ply"
+    return {
+        "status": "done",
+        "frames": rep.get("frames"),
+        "keyframes": (extra.get("estimate") or {}).get("keyframes"),
+        "ate_rmse_m": rep.get("ate_rmse_m"),
+        "ate_reestimated_m": (ba.get("reestimated") or {}).get("ate_rmse_m"),
+        "mesh_vertices": mp.get("mesh_vertices"),
+        "mesh_triangles": mp.get("mesh_triangles"),
+        "mesh_bytes": mesh.stat().st_size if mesh.is_file() else None,
+        "map_error": mp.get("error"),
+        "stages": dict(res.stages),
+        "stage_seconds": {k: round(float(v), 3) for k, v in res.seconds.items()},
+        "files": list(res.files),
+        "wall_s": round(wall_s, 3),
+        "cpu_s": round(cpu_s, 3),
+    }
+
+
+def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any], board: Any = None,
+                   after_stage: Callable[[str], None] | None = None, threads: int | None = None) -> dict[str, Any]:
+    """Reprocess one session (paths as this worker sees them); returns :func:`summarise`'s dict.
+
+    ``settings``: keyword arguments of ``reprocess_session`` (preset, do_map, map_preset,
+    imu_priors, force; force applies to the first attempt only).  ``board``: a :class:`ProgressBoard` actor handle or None.
+    ``after_stage(name)`` is called after each stored stage, after the board is told.
+    ``threads``: OpenCV's thread count in this worker (the task's CPUs; None leaves it).
+    A :class:`StereopathError` (bad input) propagates: the driver reports the session failed.
+    """
+    from stereopath.host.reprocess.pipeline import reprocess_session
+
+    if threads is not None:
+        import cv2
+
+        cv2.setNumThreads(max(1, int(threads)))
+    t0, c0 = time.perf_counter(), time.process_time()
+    node = _node()
+    if board is not None:
+        import ray
+
+        attempt = ray.get(board.started.remote(sid, {"pid": os.getpid(), "node": node,
+                                                     "stored": stored_stages(out_dir)}))
+        if attempt > 1:  # a retry (the worker died): resume from the stored stages even with force
+            settings = {**settings, "force": False}
+
+    def hook(name: str) -> None:
+        if board is not None:
+            board.stage_done.remote(sid, name)
+        if after_stage is not None:
+            after_stage(name)
+
+    res = reprocess_session(session, out_dir, progress=False, after_stage=hook, **settings)
+    out = summarise(res, time.perf_counter() - t0, time.process_time() - c0)
+    out.update({"node": node, "pid": os.getpid()})
+    return out

@@ -1,0 +1,98 @@
+"""Settings of ``host reprocess`` (:class:`ReprocessPreset`, the named presets) and what a stage gets.
+
+Each stage module (``stage_estimate``, ``stage_tracks``, ``stage_ba``, ``stage_map``) has
+``run(config, inputs) -> outputs``: ``config`` a :class:`ReprocessPreset`, ``inputs`` a
+:class:`StageInputs` (the sequence and the arrays of the stages it depends on).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from stereopath.host.reprocess.loops import LoopConfig
+from stereopath.host.reprocess.tracks import TrackConfig
+
+BA_SOLVERS = ("gtsam", "schur")
+
+
+@dataclass(frozen=True)
+class ReprocessPreset:
+    """Settings of one reprocessing run (see :data:`REPROCESS_PRESETS`)."""
+
+    description: str
+    estimator_preset: str | None = None  # feature preset of the stereo estimator (None: its on-board default)
+    # offline, each keyframe's ASIFT work is joined at its keyframe (on board it runs on a worker
+    # thread whose result arrives when it is ready): the re-estimate then does not depend on timing,
+    # so two runs (one after another, or as fleet tasks) give the same bytes
+    estimator_options: tuple[tuple[str, Any], ...] = (("background_keyframes", False),)
+    tracks: TrackConfig = field(default_factory=TrackConfig)
+    loops: LoopConfig = field(default_factory=LoopConfig)  # loop closure between keyframes (tracks stage)
+    ba_solver: str = "gtsam"  # "gtsam" (gtsam_ba) or "schur" (the hand-written bundle_adjust, a cross-check)
+    ba_loss: str = "huber"
+    ba_robust_px: float = 1.0
+    ba_max_iterations: int = 30
+    ba_outlier_px: float = 3.0
+    ba_outlier_rounds: int = 1
+    ba_disparity_offset: bool = True  # estimate a constant disparity error (right principal point) in BA
+    ba_disparity_offset_min_px: float = 0.02  # smaller estimates are noise: not applied
+    refine_frames: bool = True  # motion-only refinement of the frames between keyframes
+    frame_points: int = 300  # keypoints per neighbouring keyframe followed into each frame
+    imu_rotation_priors: bool = False  # gyro-integrated relative rotations between keyframes as BA terms
+    gyro_sigma_rad_per_sqrt_s: float = 0.002
+
+    def __post_init__(self) -> None:
+        if self.ba_solver not in BA_SOLVERS:
+            from stereopath.device.errors import ConfigError
+
+            raise ConfigError(f"ba_solver = {self.ba_solver!r}; known: {', '.join(BA_SOLVERS)}")
+
+
+_TRACK_GAPS = (1, 2, 3, 5, 8, 12, 16, 20)
+
+REPROCESS_PRESETS: dict[str, ReprocessPreset] = {
+    "standard": ReprocessPreset(
+        "the on-board estimator again, then modified-ASIFT (preset 'fast': original view + 4 tilted "
+        "views) at every keyframe, tracks over 20 keyframes, bundle adjustment, frame refinement",
+        tracks=TrackConfig(feature_preset="fast", max_features=0, window=20, gaps=_TRACK_GAPS),
+    ),
+    "quick": ReprocessPreset(
+        "plain SIFT tracks (no affine views) over 20 keyframes: about half the time, less accurate",
+        tracks=TrackConfig(feature_preset="fast", original_view_only=True, max_features=0, window=20,
+                           gaps=_TRACK_GAPS),
+    ),
+    "paper": ReprocessPreset(
+        "the paper's modified ASIFT (25 views) in the estimator and at every keyframe: slow",
+        estimator_preset="paper",
+        tracks=TrackConfig(feature_preset="paper", max_features=0, window=20, gaps=_TRACK_GAPS),
+    ),
+    "full": ReprocessPreset(
+        "OpenCV's reference ASIFT (cv2.AffineFeature) in the estimator and at every keyframe: slowest",
+        estimator_preset="full",
+        tracks=TrackConfig(feature_preset="full", max_features=0, window=20, gaps=_TRACK_GAPS),
+    ),
+}
+DEFAULT_PRESET = "standard"
+
+
+def resolve_preset(preset: "str | ReprocessPreset") -> tuple[str, ReprocessPreset]:
+    """``(name, settings)`` of a preset name or a :class:`ReprocessPreset` ("custom")."""
+    if not isinstance(preset, str):
+        return "custom", preset
+    if preset not in REPROCESS_PRESETS:
+        from stereopath.device.errors import ConfigError
+
+        raise ConfigError(f"unknown reprocess preset {preset!r}; known: {', '.join(REPROCESS_PRESETS)}")
+    return preset, REPROCESS_PRESETS[preset]
+
+
+@dataclass
+class StageInputs:
+    """What a stage's ``run`` gets: the sequence, progress-bar setting and earlier stages' arrays."""
+
+    seq: Any
+    progress: bool | None = None
+    results: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)  # e.g. the map stage's folder and settings

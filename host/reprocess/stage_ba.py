@@ -1,0 +1,193 @@
+"""Stage ``ba``: bundle adjustment of the keyframe poses and track points, then every other frame.
+
+The keyframes: :func:`stereopath.host.reprocess.bundle_adjust.bundle_adjust` (reprojection
+error in both cameras, robust loss; the rig's constant disparity error estimated too and applied
+when it exceeds ``ba_disparity_offset_min_px``; optional gyro rotation priors), outlier removal
+and a second solve.  Every other frame: the keyframe corrections interpolated in time, then a
+motion-only refinement on the adjusted points (each frame observes its neighbouring keyframes'
+tracked keypoints by one KLT step each).
+
+Outputs (``ba.npz``): ``T_kf``, ``T_frames`` (every frame), the adjusted ``point_ids`` and
+``point_xyz``, and ``stats``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from typing import Any
+
+import numpy as np
+
+from stereopath.device.errors import EstimationError
+from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
+from stereopath.host.reprocess.store import Bar, json_array, progress_bar
+
+log = logging.getLogger(__name__)
+
+NAME = "ba"
+
+
+def settings(config: ReprocessPreset) -> dict[str, Any]:
+    return {k: v for k, v in dataclasses.asdict(config).items()
+            if k not in ("description", "tracks", "estimator_preset", "estimator_options")}
+
+
+def gyro_rotation_priors(seq: Any, t_kf: np.ndarray, sigma_rad_per_sqrt_s: float) -> list:
+    """Relative rotations between consecutive keyframes from the gyro (bias from the still start)."""
+    from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still
+    from stereopath.host.reprocess.ba_common import RotationPrior
+
+    imu = getattr(seq, "imu", None)
+    rig = seq.rig
+    if imu is None or not len(imu) or rig.T_body_cam0 is None:
+        return []
+    still = estimate_still(imu.between(int(imu.t_ns[0]) - 1, int(seq.t_ns[0])))
+    bias = None if still is None else still.gyro_bias_rad_s
+    Rbc = np.asarray(rig.T_body_cam0)[:3, :3]
+    out = []
+    for i in range(len(t_kf) - 1):
+        g = GyroIntegrator(bias)
+        blk = imu.between(int(t_kf[i]) - 50_000_000, int(t_kf[i + 1]) + 50_000_000)
+        Rb = g.feed_and_integrate(blk, int(t_kf[i]), int(t_kf[i + 1]))
+        if Rb is None:
+            continue
+        dt = (int(t_kf[i + 1]) - int(t_kf[i])) * 1e-9
+        out.append(RotationPrior(i, i + 1, Rbc.T @ Rb @ Rbc, max(sigma_rad_per_sqrt_s * np.sqrt(dt), 1e-6)))
+    return out
+
+
+def loops_of(trk: dict[str, np.ndarray]) -> list:
+    """The verified loops stored by the tracks stage."""
+    from stereopath.host.reprocess.loops import loops_from_array
+
+    return loops_from_array(trk["loops"]) if "loops" in trk else []
+
+
+def end_to_start(T: np.ndarray) -> dict[str, float]:
+    """The path's end relative to its start: distance (m) and rotation (deg)."""
+    from stereopath.device.core.geometry import invert_pose, rotation_angle_deg
+
+    rel = invert_pose(T[0]) @ T[-1]
+    return {"distance_m": float(np.linalg.norm(rel[:3, 3])), "rotation_deg": float(rotation_angle_deg(rel[:3, :3]))}
+
+
+def solver(config: ReprocessPreset):
+    """The back-end module of ``config.ba_solver`` (``bundle_adjust``, ``refine_poses_fixed_points``)."""
+    if config.ba_solver == "schur":
+        from stereopath.host.reprocess import bundle_adjust as mod
+    else:
+        from stereopath.host.reprocess import gtsam_ba as mod
+    return mod
+
+
+def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list):
+    """Bundle adjustment of the keyframes (a ``BAResult``); EstimationError when there is too little."""
+    bundle_adjust = solver(config).bundle_adjust
+    trk = inputs.results["tracks"]
+    points = {int(i): x for i, x in zip(trk["point_ids"], trk["point_xyz"])}
+    extra = {}
+    if config.ba_solver == "gtsam":
+        extra["loops"] = loops_of(trk)
+    elif len(loops_of(trk)):
+        log.warning("ba_solver 'schur' has no loop factors: %d loop(s) ignored", len(loops_of(trk)))
+    bar = progress_bar(config.ba_max_iterations * (1 + config.ba_outlier_rounds), "bundle adjustment",
+                       inputs.progress, "iteration")
+    try:
+        return bundle_adjust(inputs.seq.rig, trk["T_kf"], points, trk["observations"], huber_px=config.ba_robust_px,
+                             loss=config.ba_loss, max_iterations=config.ba_max_iterations,
+                             outlier_px=config.ba_outlier_px, outlier_rounds=config.ba_outlier_rounds,
+                             rotation_priors=priors, estimate_disparity_offset=config.ba_disparity_offset,
+                             disparity_offset_min_px=config.ba_disparity_offset_min_px,
+                             on_iteration=None if bar is None else bar.update, **extra)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.ndarray,
+                is_kf: np.ndarray) -> list[np.ndarray]:
+    """Observations of the adjusted points in every non-keyframe (KLT from its two keyframes)."""
+    from stereopath.host.reprocess.tracks import frame_observations
+
+    seq, est, trk = inputs.seq, inputs.results["estimate"], inputs.results["tracks"]
+    kf, offs = trk["kf_index"], trk["kf_offsets"]
+    kf_img: dict[int, np.ndarray] = {}
+    rows = []
+    todo = np.flatnonzero(~is_kf)
+    with Bar(len(todo), "frame refinement", inputs.progress, "frame") as tick:
+        for i in todo:
+            j = int(np.searchsorted(kf, i))
+            fr = seq.frame(int(est["seq"][i]))
+            for k in (j - 1, j):
+                if not 0 <= k < len(kf):
+                    continue
+                if k not in kf_img:
+                    kf_img = {kk: v for kk, v in kf_img.items() if kk >= k - 1}  # keep the cache small
+                    kf_img[k] = seq.frame(int(est["seq"][kf[k]])).left
+                ids = trk["kf_ids"][offs[k]:offs[k + 1]]
+                xy = trk["kf_xy"][offs[k]:offs[k + 1]]
+                if len(ids) > config.frame_points:
+                    pick = np.linspace(0, len(ids) - 1, config.frame_points).astype(int)
+                    ids, xy = ids[pick], xy[pick]
+                o = frame_observations(seq.rig, kf_img[k], xy, ids, res.points, fr.left, fr.right,
+                                       T_frames[i], config.tracks)
+                o[:, 0] = i
+                rows.append(o)
+            tick(1)
+    return rows
+
+
+def refine_frames(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.ndarray) -> int:
+    """Motion-only refinement of the non-keyframes of ``T_frames`` (in place); the number refined."""
+    refine_poses_fixed_points = solver(config).refine_poses_fixed_points
+    is_kf = np.zeros(len(T_frames), bool)
+    is_kf[inputs.results["tracks"]["kf_index"]] = True
+    rows = _frame_rows(config, inputs, res, T_frames, is_kf)
+    if not rows:
+        return 0
+    T_ref, ok = refine_poses_fixed_points(inputs.seq.rig, T_frames, res.points, np.vstack(rows),
+                                          huber_px=config.ba_robust_px, disparity_offset_px=res.disparity_offset_px)
+    ok &= ~is_kf
+    T_frames[ok] = T_ref[ok]
+    return int(ok.sum())
+
+
+def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
+    from stereopath.host.reprocess.ba_common import interpolate_corrections
+
+    est, trk = inputs.results["estimate"], inputs.results["tracks"]
+    kf, T_kf = trk["kf_index"], trk["T_kf"]
+    priors = []
+    if config.imu_rotation_priors:
+        priors = gyro_rotation_priors(inputs.seq, est["t_ns"][kf], config.gyro_sigma_rad_per_sqrt_s)
+    t0 = time.perf_counter()
+    try:
+        res = adjust_keyframes(config, inputs, priors)
+    except EstimationError as exc:
+        # too little structure to adjust (e.g. a very short or featureless session): keep the re-estimate
+        log.warning("bundle adjustment not possible (%s): the re-estimated path is kept", exc)
+        return {"T_kf": T_kf, "T_frames": est["T_world_cam"].copy(), "point_ids": np.zeros(0, np.int64),
+                "point_xyz": np.zeros((0, 3)), "stats": json_array({"skipped": str(exc), "poses": len(kf)})}
+    t_ba = time.perf_counter() - t0
+    T_frames = interpolate_corrections(est["t_ns"], est["T_world_cam"], est["t_ns"][kf], T_kf, res.T_world_cam)
+    T_frames[kf] = res.T_world_cam
+    t1 = time.perf_counter()
+    n_refined = refine_frames(config, inputs, res, T_frames) if config.refine_frames else 0
+    stats = {"poses": len(kf), "points": res.n_points, "observations": res.n_obs,
+             "rms_before_px": res.rms_before_px, "rms_after_px": res.rms_after_px, "iterations": res.iterations,
+             "inlier_fraction": res.inlier_fraction, "rotation_priors": len(priors),
+             "disparity_offset_px": res.disparity_offset_px if config.ba_disparity_offset else None,
+             "frames_refined": n_refined, "ba_seconds": round(t_ba, 3),
+             "frame_refinement_seconds": round(time.perf_counter() - t1, 3),
+             "loops": [lp.as_dict() for lp in loops_of(trk)] if config.ba_solver == "gtsam" else [],
+             "end_to_start": {"reestimated": end_to_start(est["T_world_cam"]), "bundle_adjusted": end_to_start(T_frames)}}
+    ids = np.fromiter(res.points.keys(), np.int64, len(res.points))
+    return {
+        "T_kf": res.T_world_cam,
+        "T_frames": T_frames,
+        "point_ids": ids,
+        "point_xyz": np.array([res.points[int(i)] for i in ids]).reshape(-1, 3),
+        "stats": json_array(stats),
+    }

@@ -1,0 +1,42 @@
+"""Stage ``map``: the dense model with the refined path (:func:`stereopath.host.mapping.mapper.map_sequence`).
+
+``run(config, inputs)``: ``config`` the mapper's settings (``map_preset(name)``); ``inputs.extra``
+holds ``trajectory`` (the refined path), ``dst`` (the stage folder, rewritten) and ``label``.
+Outputs: the files :data:`MODEL_FILES` in ``dst``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+from stereopath.host.reprocess.config import StageInputs
+
+NAME = "map"
+MODEL_FILES = ("mesh.ply", "cloud.ply", "model.png", "map.json")
+
+
+def settings(config: Any) -> dict[str, Any]:
+    return dataclasses.asdict(config)
+
+
+def run(config: Any, inputs: StageInputs) -> list[str]:
+    from stereopath.host.mapping.mapper import map_sequence
+
+    dst = Path(inputs.extra["dst"])
+    if dst.exists():
+        shutil.rmtree(dst)
+    map_sequence(inputs.seq, inputs.extra["trajectory"], dst, config, progress=inputs.progress,
+                 source=inputs.extra["label"])
+    return [f for f in MODEL_FILES if (dst / f).is_file()]
+
+
+def read_stats(dst: Path) -> dict[str, Any] | None:
+    """The model's ``map.json`` (None when missing or unreadable)."""
+    try:
+        return json.loads((Path(dst) / "map.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return None

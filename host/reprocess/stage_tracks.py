@@ -1,0 +1,82 @@
+"""Stage ``tracks``: modified-ASIFT keypoints with stereo 3D points at every keyframe of the
+estimate, matched between keyframes up to ``window`` apart (guided by the estimated poses) and
+joined into tracks (:mod:`stereopath.host.reprocess.tracks`), and loops between keyframes far
+apart in the sequence found and verified on the same keypoints (:mod:`stereopath.host.reprocess.loops`).
+
+These fresh detections replace the estimator's chained KLT tracks, whose drift grows with track
+age and would bend the path in bundle adjustment.  Outputs (``tracks.npz``): the keyframes'
+frame indices ``kf_index`` and poses ``T_kf``, ``observations`` rows, the tracks' first 3D
+points (``point_ids``, ``point_xyz``) and every keyframe's keypoints (``kf_offsets``,
+``kf_ids``, ``kf_xy``) for the frame refinement, ``loops`` (rows of
+:func:`~stereopath.host.reprocess.loops.loops_to_array`), plus ``stats``.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
+from stereopath.host.reprocess.loops import detect_loops, loops_to_array
+from stereopath.host.reprocess.store import Bar, json_array
+
+log = logging.getLogger(__name__)
+
+NAME = "tracks"
+
+
+def settings(config: ReprocessPreset) -> dict:
+    return {"tracks": config.tracks, "loops": config.loops}
+
+
+def choose_keyframes(est: dict[str, np.ndarray]) -> np.ndarray:
+    """Frame indices used as bundle-adjustment keyframes: the estimator's keyframes that were
+    tracked, plus the first and last tracked frames."""
+    ok = np.flatnonzero(est["status"] == 0)
+    kf = np.flatnonzero(est["keyframe"] & (est["status"] == 0))
+    return np.unique(np.concatenate([ok[:1], kf, ok[-1:]])).astype(np.int64)
+
+
+def _empty(est: dict[str, np.ndarray], kf: np.ndarray, reason: str) -> dict[str, np.ndarray]:
+    log.warning("no tracks: %s", reason)
+    return {"kf_index": kf, "T_kf": est["T_world_cam"][kf], "observations": np.zeros((0, 6)),
+            "point_ids": np.zeros(0, np.int64), "point_xyz": np.zeros((0, 3)),
+            "kf_offsets": np.zeros(len(kf) + 1, np.int64), "kf_ids": np.zeros(0, np.int64),
+            "kf_xy": np.zeros((0, 2), np.float32), "loops": loops_to_array([]),
+            "stats": json_array({"skipped": reason, "keyframes": len(kf)})}
+
+
+def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
+    from stereopath.host.reprocess import tracks as tracks_mod
+
+    seq, est = inputs.seq, inputs.results["estimate"]
+    kf = choose_keyframes(est) if np.any(est["status"] == 0) else np.zeros(0, np.int64)
+    if len(kf) < 2:
+        return _empty(est, kf, f"{len(kf)} tracked keyframe(s) in the re-estimate; bundle adjustment needs two")
+    T_kf = est["T_world_cam"][kf]
+    cfg = config.tracks
+    feats = []
+    with Bar(len(kf), "keyframe features", inputs.progress, "kf") as tick:
+        for i in kf:
+            fr = seq.frame(int(est["seq"][i]))
+            feats.append(tracks_mod.stereo_features(seq.rig, fr.left, fr.right, cfg))
+            tick(1)
+    n_gaps = len([g for g in (cfg.gaps or range(1, cfg.window + 1)) if 1 <= g <= cfg.window])
+    with Bar(n_gaps, "track matching", inputs.progress, "gap") as tick:
+        tr = tracks_mod.build_tracks(seq.rig, feats, T_kf, cfg, progress=tick)
+    loops = detect_loops(seq.rig, feats, T_kf, config.loops)
+    ids = np.fromiter(tr.points.keys(), np.int64, len(tr.points))
+    xyz = np.array([tr.points[int(i)] for i in ids]).reshape(-1, 3)
+    return {
+        "kf_index": kf,
+        "T_kf": T_kf,
+        "observations": tr.observations,
+        "point_ids": ids,
+        "point_xyz": xyz,
+        "kf_offsets": np.concatenate([[0], np.cumsum([len(a) for a in tr.kf_ids])]).astype(np.int64),
+        "kf_ids": np.concatenate(tr.kf_ids) if tr.kf_ids else np.zeros(0, np.int64),
+        "kf_xy": np.concatenate(tr.kf_xy) if tr.kf_xy else np.zeros((0, 2), np.float32),
+        "loops": loops_to_array(loops),
+        "stats": json_array({**tr.stats, "loops": len(loops)}),
+    }

@@ -1,0 +1,181 @@
+"""The stage store of ``host reprocess`` (``OUT/stages/``) and the small file helpers it uses.
+
+Every stage's result is written atomically (a temporary file, then a rename) and recorded in
+``manifest.json`` with a key: a hash of the stage's inputs and settings.  A later run reuses a
+stage whose key and files are still there.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import shutil
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+MANIFEST = "manifest.json"
+PIPELINE_VERSION = 1  # bump when a stage's computation changes (invalidates stored stages)
+
+
+def progress_bar(total: int, desc: str, enabled: bool | None, unit: str = "it"):
+    """A tqdm bar on stderr, or None (``enabled=None``: only when stderr is a terminal)."""
+    if enabled is None:
+        enabled = sys.stderr.isatty()
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit=unit, leave=False, file=sys.stderr)
+
+
+class Bar:
+    """A tqdm bar or nothing, usable as ``with Bar(...) as tick: tick(1)``."""
+
+    def __init__(self, total: int, desc: str, enabled: bool | None, unit: str = "it") -> None:
+        self.bar = progress_bar(total, desc, enabled, unit)
+
+    def __enter__(self) -> Callable[[int], None]:
+        return (lambda n=1: None) if self.bar is None else self.bar.update
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def plain(v: Any) -> Any:
+    """``v`` as JSON-serialisable Python values (dataclasses, arrays and NumPy scalars unpacked)."""
+    if dataclasses.is_dataclass(v) and not isinstance(v, type):
+        return plain(dataclasses.asdict(v))
+    if isinstance(v, dict):
+        return {str(k): plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [plain(x) for x in v]
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def stage_key(*parts: Any) -> str:
+    """A short hash of ``parts`` (the identity of a stage's inputs and settings)."""
+    text = json.dumps(plain(list(parts)), sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    tmp = path.with_name("." + path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def save_npz(path: Path, **arrays: Any) -> None:
+    """``np.savez`` into a temporary file, then rename (a reader never sees half a file)."""
+    tmp = path.with_name("." + path.name + ".tmp.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def load_npz(path: Path) -> dict[str, np.ndarray] | None:
+    """The arrays of ``path``, or None (logged) when it cannot be read."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, KeyError) as exc:
+        log.warning("%s unreadable (%s): recomputing", path, exc)
+        return None
+
+
+def json_array(obj: Any) -> np.ndarray:
+    """``obj`` as a 0-d string array (JSON) for an ``.npz`` file."""
+    return np.array(json.dumps(plain(obj)))
+
+
+def meta(arrs: dict[str, np.ndarray], key: str) -> Any:
+    """The JSON value stored by :func:`json_array` under ``key``."""
+    return json.loads(str(arrs[key]))
+
+
+def stored_stats(path: Path) -> dict[str, Any]:
+    """The ``stats`` entry of a stored stage file ({} when unreadable)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return json.loads(str(z["stats"]))
+    except (OSError, ValueError, KeyError):
+        return {}
+
+
+def copy_atomic(src: Path, dst: Path) -> None:
+    """``dst`` becomes a copy of ``src`` (a hard link when the file system allows) by rename."""
+    if dst.exists() and os.path.samefile(src, dst):
+        return  # already that file (rename would be a no-op and leave the temporary link behind)
+    tmp = dst.with_name("." + dst.name + ".tmp")
+    if tmp.exists():
+        tmp.unlink()
+    try:
+        os.link(src, tmp)
+    except OSError:
+        shutil.copyfile(src, tmp)
+    os.replace(tmp, dst)
+
+
+def sequence_fingerprint(seq: Any) -> dict[str, Any]:
+    """What identifies a sequence's input data cheaply: spec, frame times, rig, IMU extent."""
+    from stereopath.device.core.rig import rig_to_dict
+
+    t = np.asarray(seq.t_ns, np.int64)
+    imu = getattr(seq, "imu", None)
+    return {
+        "spec": str(getattr(seq, "spec", "")),
+        "frames": int(len(t)),
+        "t_ns_sha": hashlib.sha256(t.tobytes()).hexdigest()[:16],
+        "rig": stage_key(rig_to_dict(seq.rig)),
+        "imu": None if imu is None or not len(imu) else [int(len(imu)), int(imu.t_ns[0]), int(imu.t_ns[-1])],
+    }
+
+
+class StageStore:
+    """``OUT/stages/``: stage files plus a manifest of finished stages and their keys."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.path = root / MANIFEST
+        self.data: dict[str, Any] = {"format": "stereopath-reprocess", "version": PIPELINE_VERSION, "stages": {}}
+        if self.path.is_file():
+            try:
+                d = json.loads(self.path.read_text())
+                if isinstance(d, dict) and isinstance(d.get("stages"), dict):
+                    self.data = d
+            except (json.JSONDecodeError, UnicodeDecodeError):
+                log.warning("%s is unreadable; all stages will be recomputed", self.path)
+
+    def done(self, name: str, key: str) -> bool:
+        ent = self.data["stages"].get(name)
+        if not ent or ent.get("key") != key:
+            return False
+        return all((self.root / f).exists() for f in ent.get("files", []))
+
+    def finish(self, name: str, key: str, files: list[str], seconds: float, settings: Any) -> None:
+        self.data["stages"][name] = {
+            "key": key, "files": files, "seconds": round(seconds, 3), "settings": plain(settings),
+            "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
+        self.root.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(self.path, json.dumps(self.data, indent=2) + "\n")
+
+    def forget(self, name: str) -> None:
+        if self.data["stages"].pop(name, None) is not None:
+            atomic_write_text(self.path, json.dumps(self.data, indent=2) + "\n")
+
+    def seconds(self, name: str) -> float:
+        return float(self.data["stages"].get(name, {}).get("seconds", 0.0))
