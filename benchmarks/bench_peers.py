@@ -47,7 +47,12 @@ CASES = ("kitti06", "kitti06_s2", "kitti06_s3", "sim")
 
 def data_dir() -> Path:
     env = os.environ.get("STEREOPATH_DATA")
-    return Path(env) if env else ROOT.parent / "shared" / "data"
+    if env:
+        return Path(env)
+    for cand in (ROOT.parent / "shared" / "data", ROOT.parent.parent / "shared" / "data"):  # repo or work tree
+        if cand.is_dir():
+            return cand
+    return ROOT.parent / "shared" / "data"
 
 
 def find_peer_python(arg: str | None) -> Path | None:
