@@ -99,6 +99,7 @@ class CaptureService:
         self._wake = threading.Event()
         self._thread: threading.Thread | None = None
         self.reporter = StatusReporter(clock)
+        self.last_status: dict[str, Any] = {}  # the latest report written
         self._client_keys_at_start: dict[str, bytes] = {}
 
     # ------------------------------------------------------------------ what tests and the status read
@@ -424,6 +425,7 @@ class CaptureService:
 
     def _write_status(self, final: bool = False) -> dict[str, Any]:
         data = self.status()
+        self.last_status = data
         if not final:
             self.parts.streaming.publish_health(data)
         self.reporter.write(data)
