@@ -1,15 +1,21 @@
-"""Offline reprocessing (issue 5 targets): ATE before/after bundle adjustment, end-to-end time.
+"""Offline reprocessing (issues 5 and 13): ATE after reprocessing, GTSAM back end vs the hand-written one.
 
     .venv/bin/python benchmarks/bench_reprocess.py [--runs R] [--preset NAME] [--skip-kitti] [--ablations]
 
 1. The default simulated session (`stereopath sim`: 400 frames, written once into a temporary
-   folder, not timed): ATE of the on-board `stereo` estimator (run in this process on the same
-   session), then `host reprocess` end to end (re-estimate, tracks, bundle adjustment, frame
-   refinement, dense model, reports) into a fresh folder, R times: median wall time, ATE after,
-   ratio after / on-board (target <= 0.8; time target <= 180 s).
-2. KITTI 06 frames 0-50 (no map): on-board ATE, ATE after reprocessing, ratio.
-3. --ablations: the same bundle adjustment without the disparity offset, without the frame
-   refinement, and the `quick` preset (tracks without affine views), on both sequences.
+   folder, not timed): ATE of the on-board `stereo` estimator (run in this process), then
+   `host reprocess` end to end (re-estimate, tracks, bundle adjustment, frame refinement, dense
+   model, reports) once; then the `ba` stage alone (keyframe bundle adjustment and frame
+   refinement, no map) with each back end (`ba_solver` "schur": the hand-written
+   Levenberg-Marquardt, "gtsam": GTSAM), R times each, alternating, on the same stored estimate
+   and tracks: median ATE, median wall and CPU seconds (all threads) of the stage, and the ratios
+   gtsam / schur.
+2. KITTI 06 frames 0-50 (no map): the same comparison.
+3. --loop N: a session on the `loop` trajectory (N frames): on-board ATE and end-to-start error,
+   then `host reprocess` (GTSAM with loop closure): the loops accepted, ATE and end-to-start
+   error after (targets: end-to-start <= 1 mm, ATE <= 0.5x on-board).
+4. --ablations: GTSAM without the disparity offset, without the frame refinement, and the
+   `quick` preset (tracks without affine views), on both sequences.
 Prints figures; asserts nothing.
 """
 
@@ -46,19 +52,99 @@ def onboard_ate(seq) -> tuple[float, float]:
     return evaluate(seq.groundtruth, run.trajectory)["ate_rmse_m"], time.perf_counter() - t
 
 
+def ba_stage(seq, stages: Path, preset):
+    """The ba stage alone on the estimate and tracks stored in ``stages``: (ATE, wall s, CPU s, stats)."""
+    import json
+
+    from stereopath.device.formats.tum import Trajectory
+    from stereopath.host.reprocess import stage_ba
+    from stereopath.host.reprocess.config import StageInputs
+    from stereopath.host.reprocess.store import load_npz
+
+    results = {name: load_npz(stages / f"{name}.npz") for name in ("estimate", "tracks")}
+    t, c = time.perf_counter(), time.process_time()  # process time: CPU of all threads
+    out = stage_ba.run(preset, StageInputs(seq, False, results))
+    wall, cpu = time.perf_counter() - t, time.process_time() - c
+    ate = evaluate(seq.groundtruth, Trajectory(results["estimate"]["t_ns"], out["T_frames"]))["ate_rmse_m"]
+    return ate, wall, cpu, json.loads(str(out["stats"]))
+
+
+def compare_solvers(name: str, seq, stages: Path, base, runs: int, ate_on: float, unit: float,
+                    unit_name: str) -> None:
+    """Old (schur) vs GTSAM ba stage on the same stored estimate and tracks, ``runs`` times each, alternating."""
+    fig: dict[str, dict[str, list]] = {s: {"ate": [], "wall": [], "cpu": []} for s in ("schur", "gtsam")}
+    stats = {}
+    for _ in range(runs):
+        for solver in ("schur", "gtsam"):
+            ate, wall, cpu, st = ba_stage(seq, stages, dataclasses.replace(base, ba_solver=solver))
+            fig[solver]["ate"].append(ate)
+            fig[solver]["wall"].append(wall)
+            fig[solver]["cpu"].append(cpu)
+            stats[solver] = st
+    med = {s: {k: statistics.median(v) for k, v in f.items()} for s, f in fig.items()}
+    for s in ("schur", "gtsam"):
+        st = stats[s]
+        print(f"  {name} ba_solver={s:5s}: ATE {med[s]['ate'] * unit:.4f} {unit_name} (x{med[s]['ate'] / ate_on:.3f} of "
+              f"on-board), ba stage {med[s]['wall']:.1f} s wall, {med[s]['cpu']:.1f} s CPU (bundle adjustment "
+              f"{st['ba_seconds']:.1f} s, frame refinement {st['frame_refinement_seconds']:.1f} s); "
+              f"{st['poses']} kf, {st['points']} points, {st['observations']} obs, rms "
+              f"{st['rms_before_px']:.3f} -> {st['rms_after_px']:.3f} px, {st['iterations']} iterations, "
+              f"disparity offset {st['disparity_offset_px']}")
+    print(f"  {name} gtsam / schur: ATE x{med['gtsam']['ate'] / med['schur']['ate']:.3f}, ba stage CPU "
+          f"x{med['gtsam']['cpu'] / med['schur']['cpu']:.2f}, wall x{med['gtsam']['wall'] / med['schur']['wall']:.2f} "
+          f"(medians of {runs} run(s) each)")
+
+
+def loop_figures(tmp: Path, frames: int, base) -> None:
+    """Record a loop session, reprocess it with loop closure, print the loop figures."""
+    from stereopath.device.formats.recorder import record_sequence
+    from stereopath.device.sim.session import SimConfig, open_sim
+    from stereopath.host.reprocess.outputs import end_to_start_error
+
+    session = tmp / "loop_session"
+    if not (session / "mav0").is_dir():
+        record_sequence(open_sim(SimConfig(trajectory="loop", frames=frames)), session, config_dict={"source": "sim"})
+    seq = open_source(f"session:{session}")
+    run = estimate_sequence(seq, "stereo", progress=False)
+    ate_on = evaluate(seq.groundtruth, run.trajectory)["ate_rmse_m"]
+    gap_on = end_to_start_error(seq.groundtruth, run.trajectory)
+    print(f"loop session: {len(seq)} frames, {seq.groundtruth.path_length_m():.2f} m; on-board ATE {mm(ate_on)}, "
+          f"end-to-start error {mm(gap_on)} (target: >= 10 mm)")
+    t = time.perf_counter()
+    res = reprocess_sequence(seq, tmp / "loop_out", preset=base, do_map=False, progress=False, onboard=run.trajectory)
+    lp = res.report["extra"]["loops"]
+    after = res.report["ate_rmse_m"]
+    err = lp["end_to_start_error_m"]
+    pairs = ", ".join(f"{a['kf_i']}-{a['kf_j']}/{a['inliers']}" for a in lp["accepted"][:12])
+    more = " ..." if len(lp["accepted"]) > 12 else ""
+    print(f"  reprocess (GTSAM, loop closure) {time.perf_counter() - t:.1f} s: {len(lp['accepted'])} loops accepted "
+          f"(keyframe pairs / inliers: {pairs}{more})")
+    print(f"  ATE after {mm(after)} = x{after / ate_on:.3f} of on-board (target <= 0.5); end-to-start error: "
+          f"re-estimated {mm(err['reestimated'])}, after {mm(err['bundle_adjusted'])} (target <= 1 mm)")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", type=int, default=1, help="end-to-end runs on the simulated session (median)")
+    ap.add_argument("--runs", type=int, default=3, help="ba-stage runs per back end (median)")
     ap.add_argument("--preset", default="standard", choices=list(REPROCESS_PRESETS))
     ap.add_argument("--skip-kitti", action="store_true")
     ap.add_argument("--ablations", action="store_true")
+    ap.add_argument("--loop", type=int, default=0, metavar="FRAMES", help="also the loop trajectory with this many frames")
+    ap.add_argument("--only-loop", action="store_true", help="only the loop figures")
+    ap.add_argument("--reuse", action="store_true",
+                    help="with --keep: compare the solvers on stages already stored there (no end-to-end run)")
     ap.add_argument("--keep", default=None, help="write into this folder instead of a temporary one")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
+    base = REPROCESS_PRESETS[args.preset]
 
     with tempfile.TemporaryDirectory(prefix="bench_reprocess_") as tmp_name:
         tmp = Path(args.keep) if args.keep else Path(tmp_name)
         tmp.mkdir(parents=True, exist_ok=True)
+        if args.loop:
+            loop_figures(tmp, args.loop, base)
+        if args.only_loop:
+            return 0
         session = tmp / "session"
         if not (session / "mav0").is_dir():
             from stereopath.device.formats.recorder import record_sequence
@@ -68,53 +154,36 @@ def main() -> int:
         seq = open_source(f"session:{session}")
         print(f"simulated session: {len(seq)} frames, {seq.groundtruth.path_length_m():.2f} m")
         ate_on, t_on = onboard_ate(seq)
-        ate_sim0, _ = onboard_ate(open_source("sim:0"))
-        print(f"  on-board stereo ATE {mm(ate_on)} on the session ({t_on:.1f} s), {mm(ate_sim0)} on sim:0 directly")
-        times, ates = [], []
-        res = None
-        for r in range(args.runs):
-            out = tmp / f"out{r}"
+        print(f"  on-board stereo ATE {mm(ate_on)} ({t_on:.1f} s)")
+        if not (args.reuse and (tmp / "sim" / "stages" / "tracks.npz").is_file()):
             t = time.perf_counter()
-            res = reprocess_session(session, out, preset=args.preset, progress=False, force=True)
-            times.append(time.perf_counter() - t)
-            ates.append(res.report["ate_rmse_m"])
-        st = res.seconds
-        ba = res.report["extra"]["bundle_adjustment"]
-        print(f"  reprocess --preset {args.preset} end to end: median {statistics.median(times):.1f} s over "
-              f"{args.runs} run(s) (estimate {st['estimate']:.1f}, tracks {st['tracks']:.1f}, ba {st['ba']:.1f}, "
-              f"map {st['map']:.1f} s); target <= 180 s")
-        print(f"  ATE after bundle adjustment {mm(statistics.median(ates))} -> ratio "
-              f"{statistics.median(ates) / ate_on:.3f} of on-board (target <= 0.8); "
-              f"{ba['poses']} keyframes, {ba['points']} points, {ba['observations']} observations, "
-              f"rms {ba['rms_before_px']:.3f} -> {ba['rms_after_px']:.3f} px, disparity offset "
-              f"{ba['disparity_offset_px'] if ba['disparity_offset_px'] is not None else 'off'}")
-        sequences = [("sim", seq, ate_on, True)]
+            res = reprocess_session(session, tmp / "sim", preset=base, progress=False, force=True)
+            st = res.seconds
+            print(f"  reprocess --preset {args.preset} end to end (GTSAM): {time.perf_counter() - t:.1f} s (estimate "
+                  f"{st['estimate']:.1f}, tracks {st['tracks']:.1f}, ba {st['ba']:.1f}, map {st['map']:.1f} s), "
+                  f"ATE {mm(res.report['ate_rmse_m'])}; target <= 180 s")
+        compare_solvers("sim", seq, tmp / "sim" / "stages", base, args.runs, ate_on, 1000, "mm")
+        sequences = [("sim", seq, ate_on)]
         if not args.skip_kitti:
             if KITTI.is_dir():
                 kseq = open_source(f"kitti:{KITTI}")
                 k_on, _ = onboard_ate(kseq)
-                t = time.perf_counter()
-                kres = reprocess_sequence(kseq, tmp / "kitti", preset=args.preset, do_map=False, progress=False,
-                                          force=True)
-                k_after = kres.report["ate_rmse_m"]
-                kb = kres.report["extra"]["bundle_adjustment"]
-                print(f"KITTI 06 frames 0-{len(kseq) - 1}: on-board stereo ATE {k_on:.4f} m, after reprocessing "
-                      f"{k_after:.4f} m -> ratio {k_after / k_on:.3f} (target <= 0.8); "
-                      f"{time.perf_counter() - t:.1f} s, disparity offset {kb['disparity_offset_px']}")
-                sequences.append(("kitti", kseq, k_on, False))
+                print(f"KITTI 06 frames 0-{len(kseq) - 1}: on-board stereo ATE {k_on:.4f} m")
+                if not (args.reuse and (tmp / "kitti" / "stages" / "tracks.npz").is_file()):
+                    reprocess_sequence(kseq, tmp / "kitti", preset=base, do_map=False, progress=False, force=True)
+                compare_solvers("kitti", kseq, tmp / "kitti" / "stages", base, args.runs, k_on, 1, "m")
+                sequences.append(("kitti", kseq, k_on))
             else:
                 print(f"KITTI data not found at {KITTI}: skipped")
         if args.ablations:
-            base = REPROCESS_PRESETS[args.preset]
             variants = {
                 "no disparity offset": dataclasses.replace(base, ba_disparity_offset=False),
                 "no frame refinement": dataclasses.replace(base, refine_frames=False),
                 "quick preset (no affine views)": REPROCESS_PRESETS["quick"],
             }
-            for name, s, ref, _ in sequences:
+            for name, s, ref in sequences:
                 for vname, preset in variants.items():
-                    out = tmp / f"abl_{name}"
-                    r = reprocess_sequence(s, out, preset=preset, do_map=False, progress=False)
+                    r = reprocess_sequence(s, tmp / f"abl_{name}", preset=preset, do_map=False, progress=False)
                     a = r.report["ate_rmse_m"]
                     print(f"  ablation {name:5s} {vname:32s}: ATE {a * 1000:.3f} mm, ratio {a / ref:.3f}")
     return 0

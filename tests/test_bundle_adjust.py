@@ -5,13 +5,17 @@ from stereopath.device.errors import EstimationError
 from stereopath.device.core.stereo import project
 from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp
 from stereopath.device.core.rig import paper_rig
-from stereopath.host.reprocess.bundle_adjust import (
-    RotationPrior,
-    bundle_adjust,
-    interpolate_corrections,
-    propagate_to_frames,
-    refine_poses_fixed_points,
-)
+from stereopath.host.reprocess import bundle_adjust as schur_ba
+from stereopath.host.reprocess import gtsam_ba
+from stereopath.host.reprocess.ba_common import RotationPrior, interpolate_corrections, propagate_to_frames
+
+BACKENDS = {"gtsam": gtsam_ba, "schur": schur_ba}
+
+
+@pytest.fixture(params=list(BACKENDS))
+def ba(request):
+    """Each bundle-adjustment back end (the same tests hold for both)."""
+    return BACKENDS[request.param]
 
 
 def _problem(rng, n_kf=6, n_pts=200):
@@ -30,27 +34,27 @@ def _problem(rng, n_kf=6, n_pts=200):
     return rig, np.array(T_wc), pts, np.array(obs)
 
 
-def test_bundle_adjustment_recovers_perturbed_poses():
+def test_bundle_adjustment_recovers_perturbed_poses(ba):
     rng = np.random.default_rng(0)
     rig, T_true, pts, obs = _problem(rng)
     T_noisy = T_true.copy()
     for k in range(1, len(T_noisy)):
         T_noisy[k] = T_noisy[k] @ make_pose(so3_exp(rng.normal(0, 0.01, 3)), rng.normal(0, 0.02, 3))
     pts_noisy = {i: X + rng.normal(0, 0.02, 3) for i, X in pts.items()}
-    res = bundle_adjust(rig, T_noisy, pts_noisy, obs)
+    res = ba.bundle_adjust(rig, T_noisy, pts_noisy, obs)
     assert res.rms_after_px < 0.5 < res.rms_before_px
     for k in range(len(T_true)):
         assert np.linalg.norm(res.T_world_cam[k][:3, 3] - T_true[k][:3, 3]) < 2e-3
         assert rotation_angle_deg(res.T_world_cam[k][:3, :3].T @ T_true[k][:3, :3]) < 0.05
 
 
-def test_bundle_adjustment_rejects_too_little_data():
+def test_bundle_adjustment_rejects_too_little_data(ba):
     rng = np.random.default_rng(1)
     rig, T_true, pts, obs = _problem(rng, n_kf=2, n_pts=5)
     with pytest.raises(EstimationError):
-        bundle_adjust(rig, T_true, pts, obs)
+        ba.bundle_adjust(rig, T_true, pts, obs)
     with pytest.raises(EstimationError):
-        bundle_adjust(rig, T_true[:1], pts, obs)
+        ba.bundle_adjust(rig, T_true[:1], pts, obs)
 
 
 def test_propagation_moves_frames_with_their_keyframe():
@@ -73,19 +77,19 @@ def test_scipy_solver_still_converges():
     rng = np.random.default_rng(2)
     rig, T_true, pts, obs = _problem(rng, n_kf=4, n_pts=60)
     T_noisy, pts_noisy = _perturbed(rng, T_true, pts, 0.005, 0.01, 0.01)
-    res = bundle_adjust(rig, T_noisy, pts_noisy, obs, solver="scipy", max_nfev=50)
+    res = schur_ba.bundle_adjust(rig, T_noisy, pts_noisy, obs, solver="scipy", max_nfev=50)
     assert res.rms_after_px < 0.5 < res.rms_before_px
     for k in range(len(T_true)):
         assert np.linalg.norm(res.T_world_cam[k][:3, 3] - T_true[k][:3, 3]) < 5e-3
 
 
-def test_disparity_offset_is_estimated_and_removes_the_scale_error():
+def test_disparity_offset_is_estimated_and_removes_the_scale_error(ba):
     rng = np.random.default_rng(3)
     rig, T_true, pts, obs = _problem(rng, n_kf=8, n_pts=300)
     shifted = obs.copy()
     shifted[shifted[:, 2] == 1, 3] += 0.5  # a constant disparity error of 0.5 px
-    plain = bundle_adjust(rig, T_true, pts, shifted)
-    fitted = bundle_adjust(rig, T_true, pts, shifted, estimate_disparity_offset=True)
+    plain = ba.bundle_adjust(rig, T_true, pts, shifted)
+    fitted = ba.bundle_adjust(rig, T_true, pts, shifted, estimate_disparity_offset=True)
     assert fitted.disparity_offset_px == pytest.approx(0.5, abs=0.05)
     assert plain.disparity_offset_px == 0.0
 
@@ -94,37 +98,37 @@ def test_disparity_offset_is_estimated_and_removes_the_scale_error():
 
     assert path_error(fitted) < 2e-3 < path_error(plain)
     # an offset below the threshold is treated as noise and not applied
-    tiny = bundle_adjust(rig, T_true, pts, obs, estimate_disparity_offset=True, disparity_offset_min_px=0.2)
+    tiny = ba.bundle_adjust(rig, T_true, pts, obs, estimate_disparity_offset=True, disparity_offset_min_px=0.2)
     assert tiny.disparity_offset_px == 0.0
 
 
-def test_gross_outliers_are_removed_and_weights_scale_residuals():
+def test_gross_outliers_are_removed_and_weights_scale_residuals(ba):
     rng = np.random.default_rng(4)
     rig, T_true, pts, obs = _problem(rng)
     bad = rng.choice(len(obs), 100, replace=False)
     obs = obs.copy()
     obs[bad, 3:5] += rng.uniform(20, 40, (100, 2))
     T_noisy, pts_noisy = _perturbed(rng, T_true, pts)
-    res = bundle_adjust(rig, T_noisy, pts_noisy, obs, outlier_px=3.0, outlier_rounds=1)
+    res = ba.bundle_adjust(rig, T_noisy, pts_noisy, obs, outlier_px=3.0, outlier_rounds=1)
     assert res.n_obs <= len(obs) - 100
     for k in range(len(T_true)):
         assert np.linalg.norm(res.T_world_cam[k][:3, 3] - T_true[k][:3, 3]) < 2e-3
     # a 6th column scales residuals: halving every weight halves the rms
     w = np.column_stack([obs, np.full(len(obs), 0.5)])
-    r_full = bundle_adjust(rig, T_true, pts, obs, max_iterations=1, outlier_rounds=0)
-    r_half = bundle_adjust(rig, T_true, pts, w, max_iterations=1, outlier_rounds=0)
+    r_full = ba.bundle_adjust(rig, T_true, pts, obs, max_iterations=1, outlier_rounds=0)
+    r_half = ba.bundle_adjust(rig, T_true, pts, w, max_iterations=1, outlier_rounds=0)
     assert r_half.rms_before_px == pytest.approx(0.5 * r_full.rms_before_px, rel=1e-9)
     with pytest.raises(EstimationError, match="rows"):
-        bundle_adjust(rig, T_true, pts, obs[:, :4])
+        ba.bundle_adjust(rig, T_true, pts, obs[:, :4])
 
 
-def test_motion_only_refinement_with_fixed_points():
+def test_motion_only_refinement_with_fixed_points(ba):
     rng = np.random.default_rng(5)
     rig, T_true, pts, obs = _problem(rng, n_kf=5, n_pts=150)
     T_noisy, _ = _perturbed(rng, T_true, pts, 0.01, 0.03, 0.0)
     T_noisy[0] = T_true[0] @ make_pose(so3_exp([0.01, 0, 0]), [0.02, 0, 0])
     few = obs[~((obs[:, 0] == 4) & (obs[:, 1] > 2))]  # pose 4 keeps only 3 points x 2 cameras
-    out, ok = refine_poses_fixed_points(rig, T_noisy, pts, few, min_obs=8)
+    out, ok = ba.refine_poses_fixed_points(rig, T_noisy, pts, few, min_obs=8)
     assert list(ok) == [True, True, True, True, False]
     for k in range(4):
         assert np.linalg.norm(out[k][:3, 3] - T_true[k][:3, 3]) < 2e-3
@@ -132,14 +136,14 @@ def test_motion_only_refinement_with_fixed_points():
     assert np.array_equal(out[4], T_noisy[4])  # too few observations: left as it was
 
 
-def test_rotation_priors_pull_the_relative_rotation():
+def test_rotation_priors_pull_the_relative_rotation(ba):
     rng = np.random.default_rng(6)
     rig, T_true, pts, obs = _problem(rng, n_kf=3, n_pts=40)
     obs = obs[obs[:, 2] == 0]  # one camera only: weaker geometry
     R01_true = invert_pose(T_true[0])[:3, :3] @ invert_pose(T_true[1])[:3, :3].T
     wrong = so3_exp([0.0, 0.0, 0.02]) @ R01_true
-    free = bundle_adjust(rig, T_true, pts, obs, n_fixed=1)
-    pulled = bundle_adjust(rig, T_true, pts, obs, n_fixed=1,
+    free = ba.bundle_adjust(rig, T_true, pts, obs, n_fixed=1)
+    pulled = ba.bundle_adjust(rig, T_true, pts, obs, n_fixed=1,
                            rotation_priors=[RotationPrior(0, 1, wrong, 1e-5)])
 
     def rel(res):
@@ -158,3 +162,70 @@ def test_interpolated_corrections_are_smooth_between_keyframes():
     assert np.allclose(out[2], T_new[1])
     assert np.allclose(out[1][:3, 3], [0.1, 0, 0])
     assert rotation_angle_deg(out[1][:3, :3]) == pytest.approx(np.degrees(0.1), rel=1e-6)
+
+
+def _least_squares_optimum(rig, T0, pts0, obs):
+    """The optimum of the same robust problem by scipy.optimize.least_squares (an independent solver)."""
+    from scipy.optimize import least_squares
+
+    from stereopath.host.reprocess.ba_common import reprojection_residuals
+
+    ids = sorted(pts0)
+    K_n = len(T0)
+
+    def unpack(x):
+        T = T0.copy()
+        for k in range(1, K_n):
+            T[k] = T0[k] @ make_pose(so3_exp(x[6 * (k - 1):6 * k - 3]), x[6 * k - 3:6 * k])
+        X = x[6 * (K_n - 1):].reshape(-1, 3)
+        return T, {i: X[n] for n, i in enumerate(ids)}
+
+    def fun(x):
+        T, P = unpack(x)
+        return reprojection_residuals(rig, T, P, obs)[0].ravel()
+
+    x0 = np.concatenate([np.zeros(6 * (K_n - 1)), np.array([pts0[i] for i in ids]).ravel()])
+    # least squares without a robust loss (scipy's losses act per coordinate, ours on the 2D error)
+    res = least_squares(fun, x0, loss="linear", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    return unpack(res.x)
+
+
+def test_gtsam_and_the_hand_written_solver_reach_the_same_optimum():
+    rng = np.random.default_rng(7)
+    rig, T_true, pts, obs = _problem(rng, n_kf=4, n_pts=40)
+    T_noisy, pts_noisy = _perturbed(rng, T_true, pts, 0.005, 0.01, 0.01)
+    kw = dict(loss="linear", outlier_rounds=0, max_iterations=50)
+    a = gtsam_ba.bundle_adjust(rig, T_noisy, pts_noisy, obs, **kw)
+    b = schur_ba.bundle_adjust(rig, T_noisy, pts_noisy, obs, **kw)
+    T_ref, P_ref = _least_squares_optimum(rig, T_noisy, pts_noisy, obs)
+    for res in (a, b):
+        assert res.rms_after_px == pytest.approx(a.rms_after_px, rel=1e-6)
+        for k in range(len(T_true)):
+            assert np.abs(res.T_world_cam[k] - T_ref[k]).max() < 1e-6
+        assert max(np.abs(res.points[i] - P_ref[i]).max() for i in P_ref) < 1e-5
+    # with the robust loss and outlier removal too (the production settings)
+    a = gtsam_ba.bundle_adjust(rig, T_noisy, pts_noisy, obs, estimate_disparity_offset=True)
+    b = schur_ba.bundle_adjust(rig, T_noisy, pts_noisy, obs, estimate_disparity_offset=True)
+    assert a.disparity_offset_px == pytest.approx(b.disparity_offset_px, abs=1e-4)
+    for k in range(len(T_true)):
+        assert np.abs(a.T_world_cam[k] - b.T_world_cam[k]).max() < 1e-5
+
+
+def test_gtsam_loop_factor_constrains_the_relative_pose():
+    from stereopath.host.reprocess.loops import Loop
+
+    rng = np.random.default_rng(8)
+    rig, T_true, pts, obs = _problem(rng, n_kf=6, n_pts=120)
+    obs = obs[obs[:, 2] == 0]  # left camera only: the path's scale is free, the loop fixes it
+    rel = invert_pose(T_true[0]) @ T_true[5]
+    meas = rel.copy()
+    meas[:3, 3] *= 1.02  # a measured loop 2 % longer than the truth
+    free = gtsam_ba.bundle_adjust(rig, T_true, pts, obs, outlier_rounds=0)
+    loop = Loop(0, 5, meas, 100, 120, 1e-5, 1e-5, 0.0)
+    tied = gtsam_ba.bundle_adjust(rig, T_true, pts, obs, outlier_rounds=0, loops=[loop])
+
+    def length(res):
+        return np.linalg.norm((invert_pose(res.T_world_cam[0]) @ res.T_world_cam[5])[:3, 3])
+
+    assert length(free) == pytest.approx(np.linalg.norm(rel[:3, 3]), rel=0.01)
+    assert length(tied) == pytest.approx(np.linalg.norm(meas[:3, 3]), rel=1e-3)

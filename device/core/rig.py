@@ -212,6 +212,27 @@ def validated_rotation(name: str, R: Any) -> np.ndarray:
     return R
 
 
+def check_baseline_sign(R: np.ndarray, T: np.ndarray) -> None:
+    """Refuse a rig whose right camera (cam1) sits to the LEFT of cam0.
+
+    The baseline is judged in the rectified frame: the centre of cam1 seen from cam0 is
+    ``c1 = -R^T T``; a side-by-side pair has it mostly along +x (cam0 = left).  ``c1`` along -x
+    means the cameras are exchanged (or ``R``, ``T`` were given as ``T_cam0_cam1``, or the sign
+    of ``T`` is flipped), which would make every disparity negative.
+    """
+    c1 = -np.asarray(R, float).T @ np.asarray(T, float)
+    axis = int(np.argmax(np.abs(c1)))
+    if axis == 0 and c1[0] < 0:
+        raise CalibrationError(
+            f"T: cam1 sits {abs(c1[0]) * 1000:.1f} mm to the LEFT of cam0 (T_cam1_cam0 = "
+            f"{np.round(T, 6).tolist()} m has x > 0): the cameras are exchanged, or R/T give T_cam0_cam1 instead "
+            f"of T_cam1_cam0 (invert them), or the sign of T is flipped; for a right camera to the right of the "
+            f"left one T[0] is negative")
+    if axis != 0:
+        log.warning("the baseline (cam1 centre %s m from cam0) is mostly along %s, not x: stereopath expects a "
+                    "side-by-side pair", np.round(c1, 4).tolist(), "xyz"[axis])
+
+
 def make_rig(cam0: CameraModel, cam1: CameraModel, R: Any, T: Any, name: str = "rig",
              T_body_cam0: Any = None) -> Rig:
     """Validated :class:`Rig` from parts (``R``, ``T`` = ``T_cam1_cam0``, metres)."""
@@ -219,6 +240,7 @@ def make_rig(cam0: CameraModel, cam1: CameraModel, R: Any, T: Any, name: str = "
     T = checked_array("T", T, (3,))
     if np.linalg.norm(T) < 1e-6:
         raise CalibrationError("T: zero baseline (the two cameras coincide)")
+    check_baseline_sign(R, T)
     Tb = None if T_body_cam0 is None else checked_array("T_body_cam0", T_body_cam0, (4, 4))
     if Tb is not None:
         Tb = Tb.copy()

@@ -67,6 +67,26 @@ def write_atomic(path: str | Path, data: bytes, fsync: bool = True, mode: int | 
         fsync_dir(p.parent)
 
 
+def check_out_folder(path: str | Path, option: str = "--out") -> None:
+    """Refuse an output folder path that names an existing file (before anything is computed)."""
+    from stereopath.device.errors import ConfigError
+
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ConfigError(f"{option} {p}: exists and is not a folder")
+
+
+def process_umask() -> int:
+    """The process umask, read without changing it where the system allows (Linux /proc)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)  # no /proc: set and restore (not thread-safe, so only as a fallback)
+    os.umask(mask)
+    return mask
 def write_renamed_open(path: str | Path, data: bytes) -> int:
     """Write ``data`` through the temporary name and rename it now, returning the still open descriptor.
 

@@ -111,7 +111,7 @@ def open_streaming(cfg: DeviceConfig, session_dir: Path, session_id: str, rig: A
 
     from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
 
-    spool = KeyframeSpool(session_dir / "keyframes")
+    spool = KeyframeSpool(session_dir / "keyframes", reserve_bytes=int(cfg.recorder.reserve_mb * 1e6))
     keys = dataclasses.replace(cfg.keys, server_secret=str(secret_key_path(cfg, environ)))
     return StreamingSink(DeviceStreamer(cfg.stream, spool, session_id, rig=rig, keys=keys,
                                         status_interval_s=cfg.service.status_interval_s))

@@ -65,6 +65,7 @@ from stereopath.device.service.watchdog import Watchdog
 log = logging.getLogger(__name__)
 
 EXIT_OK, EXIT_FAILURE, EXIT_CONFIG = 0, 1, 78
+EXIT_DISK_FULL = 74  # EX_IOERR: the disk filled up during the run (what reached a host is kept there)
 TICK_S = 0.05                             # supervisor period
 
 
@@ -90,6 +91,7 @@ class CaptureService:
         self.pipeline: FramePipeline | None = None
         self.session_id = ""
         self.session_dir: Path | None = None
+        self._session_dir_existed = True  # set in _setup; a failed start removes only a folder it created
         self.state = "starting"
         self.exit_code = EXIT_OK
         self.stop_reason = ""
@@ -183,6 +185,10 @@ class CaptureService:
         self.notifier.notify(STATUS=f"{what}: {exc}")
         self._teardown()
         self._write_status(final=True)
+        if self.session_dir is not None and not self._session_dir_existed:
+            from stereopath.device.formats.session_cleanup import discard_unused_session
+
+            discard_unused_session(self.session_dir)
 
     # ------------------------------------------------------------------ set-up
 
@@ -195,6 +201,7 @@ class CaptureService:
                  json.dumps(as_dict(cfg), separators=(",", ":"), default=str))
         self.session_id = new_session_id()
         self.session_dir = Path(self.options.out) if self.options.out else Path(cfg.recorder.dir) / self.session_id
+        self._session_dir_existed = self.session_dir.exists()
         if self.session_dir.exists() and (not self.session_dir.is_dir() or any(self.session_dir.iterdir())):
             raise ConfigError(f"--out {self.session_dir}: exists and is not empty (a session is never overwritten)")
         p = open_components(cfg, self.session_dir, self.session_id, environ=self.environ, parts=self.parts,
@@ -352,6 +359,7 @@ class CaptureService:
         if failure is not None and self.exit_code == EXIT_OK:
             self._fail(failure)
         self.parts.streaming.drain(self.cfg.stream.drain_s, self._clock)
+        self._report_disk_full()
         self._teardown()
         if self.state != "failed":
             self.state = "stopped"
@@ -359,6 +367,19 @@ class CaptureService:
         c = self.counters
         log.info("session %s ended (%s): %d frames in, %d estimated, %d keyframes, recorder %s", self.session_id,
                  self.stop_reason, c.frames_in, c.frames_done, c.keyframes, self.parts.recording.state)
+
+    def _report_disk_full(self) -> None:
+        """A disk that filled up during the run is said once at the end, with what it cost, and exits 74."""
+        rec_state = getattr(self.parts.recording, "state", "off")
+        f = self.parts.streaming.status_fields()
+        if rec_state != "stopped_low_disk" and not f.get("spool_disk_full"):
+            return
+        msg = (f"disk full: recording {rec_state}; {f.get('keyframes_in_memory', 0)} keyframe(s) held in memory "
+               f"were not acknowledged by a host (lost now), {f.get('keyframes_failed', 0)} could not be kept")
+        log.error("%s", msg)
+        self.notifier.notify(STATUS=msg)
+        if self.exit_code == EXIT_OK:
+            self.exit_code = EXIT_DISK_FULL
 
     def _say_which_sensor_went_quiet(self) -> None:
         """E.g. after the watchdog's SIGTERM: log which sensor stopped delivering."""

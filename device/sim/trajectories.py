@@ -28,6 +28,11 @@ Trajectories (:data:`TRAJECTORIES`, :func:`get_trajectory`):
   same arc at the same speed (a shorter session is the beginning of the scan, a longer one goes
   on around the table).
 * ``"orbit"``: one full circle (r = 1.1 m, h = 1.35 m) around the objects over the session.
+* ``"loop"``: a hand-held walk of :data:`LOOP_TURNS` turns around the table that returns to its
+  start pose at the end of the session (radius 0.95-1.25 m, height 1.2-1.45 m, camera-frame
+  excursions up to about 10 deg, all periodic over the loop; only the hand shake, about 2 mm and
+  0.3 deg, is not): long enough for the on-board path to drift measurably before it comes back
+  (a test case for loop closure).
 * ``"line"``: a 1 m straight slide past the table with fixed orientation.
 * ``"still"``: the arc's start pose, perfectly still (no shake).
 """
@@ -390,6 +395,27 @@ def make_orbit(duration_s: float = DEFAULT_DURATION_S, seed: int = 0) -> Analyti
     return AnalyticTrajectory("orbit", shape, law, duration_s)
 
 
+LOOP_TURNS = 3
+
+
+def make_loop(duration_s: float = DEFAULT_DURATION_S, seed: int = 0, turns: int = LOOP_TURNS,
+              radius_m: float = 1.1) -> AnalyticTrajectory:
+    """``turns`` turns around the table, back to the start pose at ``duration_s`` (module doc)."""
+    law = TimeLaw(duration_s)
+    G = law.g_end if law.g_end > 0 else 1.0
+    k = 2 * np.pi * turns / G if law.g_end > 0 else 0.0
+    per = np.array([1.0, 2.0, 3.0, 5.0, 7.0]) / G  # whole cycles over the loop: the path closes
+    sp, sr = _shake(seed, 0.002, 0.3)
+    exc = (
+        Sines(np.radians([8.0, 3.0]), per[[1, 4]], [0.2, 3.0]),   # tilt (camera x)
+        Sines(np.radians([9.0, 3.0]), per[[2, 3]], [3.3, 0.2]),   # pan (camera y)
+        Sines(np.radians([10.0, 4.0]), per[[0, 3]], [0.9, 2.6]),  # roll (camera z)
+    )
+    shape = LookAtOrbitShape(np.radians(-100.0), k, Sines([0.10, 0.03], per[[2, 4]], [0.3, 1.0]), radius_m,
+                             Sines([0.09, 0.03], per[[1, 3]], [1.1, 0.2]), 1.32, exc, sp, sr)
+    return AnalyticTrajectory("loop", shape, law, duration_s)
+
+
 def make_line(duration_s: float = DEFAULT_DURATION_S, seed: int = 0, length_m: float = 1.0) -> AnalyticTrajectory:
     law = TimeLaw(duration_s)
     speed = length_m / law.g_end if law.g_end > 0 else 0.0
@@ -409,6 +435,7 @@ def make_still(duration_s: float = DEFAULT_DURATION_S, seed: int = 0) -> Analyti
 TRAJECTORIES: dict[str, Callable[..., AnalyticTrajectory]] = {
     "arc": make_arc,
     "orbit": make_orbit,
+    "loop": make_loop,
     "line": make_line,
     "still": make_still,
 }

@@ -34,7 +34,11 @@ class PosePublisher:
                                 heartbeat_ivl_ms=config.heartbeat_ivl_ms,
                                 heartbeat_timeout_ms=config.heartbeat_timeout_ms,
                                 heartbeat_ttl_ms=config.heartbeat_ttl_ms, maxmsgsize=INBOUND_MAX_BYTES)
-        self.sock.bind(config.pose_endpoint)
+        try:
+            self.sock.bind(config.pose_endpoint)
+        except zmq.ZMQError:
+            self.sock.close(linger=0)  # an open socket would hang the context's term() for good
+            raise
         self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.sent = 0
         self.dropped = 0

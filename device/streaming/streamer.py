@@ -195,6 +195,9 @@ class DeviceStreamer:
             out = dict(self._counters)
         out["pending_keyframes"] = self._keyframes.qsize()
         out["spool_count"] = self.spool.count
+        out["spool_disk_full"] = self.spool.disk_full
+        out["keyframes_in_memory"] = self.spool.memory_count
+        out["keyframes_held_in_memory"] = self.spool.held_in_memory
         if self._pub is not None:
             out["poses_sent"] = self._pub.sent
             out["poses_dropped_send"] = self._pub.dropped

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
+import sys
 import threading
 
 log = logging.getLogger(__name__)
@@ -44,8 +45,11 @@ def run(args: argparse.Namespace) -> int:
     from stereopath.host.live.receiver import Receiver
     from stereopath.host.live.receiver_config import ReceiverConfig, endpoints_from_address
 
+    from stereopath.device.formats.fileio import check_out_folder
+
     if args.duration is not None and args.duration <= 0:
         raise ConfigError(f"--duration must be positive, got {args.duration}")
+    check_out_folder(args.out)
     pose_ep, kf_ep = endpoints_from_address(args.device, args.keyframe_port)
     config = ReceiverConfig(pose_endpoint=pose_ep, keyframe_endpoint=kf_ep, insecure=args.insecure,
                             keys_dir=args.keys, device_key=args.device_key, window=args.window,
@@ -98,4 +102,18 @@ def run(args: argparse.Namespace) -> int:
     log.info("received %d poses, %d keyframes (%d duplicates), %d pose seq gaps, %d rejected; sessions: %s",
              st.received["pose"], st.received["keyframe"], st.duplicates, st.pose_seq_gaps, st.rejected,
              ", ".join(st.sessions) or "none")
+    if receiver.storage_error is not None:
+        print(f"stereopath: error: keyframes could not be stored on this host ({receiver.storage_error}); the "
+              f"device keeps every keyframe not acknowledged and sends it to the next `host live` with space",
+              file=sys.stderr)
+        return 1
+    got = st.received["pose"] + st.received["keyframe"] + st.received["status"]
+    if got == 0 and st.link["auth_failures"]:
+        print("stereopath: error: the device refused this host's key: nothing received (add this host's public "
+              "key to the device's clients folder)", file=sys.stderr)
+        return 2
+    if got == 0 and st.link["handshake_failures"]:
+        print("stereopath: error: no handshake with the device: nothing received (wrong device key, or CURVE "
+              "on one side only?)", file=sys.stderr)
+        return 2
     return 0

@@ -20,6 +20,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", type=int, default=None, help="use only the first N frames")
     p.add_argument("--compare", default=None, help="comma-separated estimators to run and tabulate")
     p.add_argument("--json", action="store_true", help="print the report(s) as JSON")
+    p.add_argument("--strict", action="store_true",
+                   help="stop at the first unreadable frame (default: skip it, counted in the report)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -29,11 +31,16 @@ def run(args: argparse.Namespace) -> int:
     from stereopath.host.evaluation.paper_table import format_table
     from stereopath.device.formats.source import open_source
 
+    from stereopath.device.formats.fileio import check_out_folder
+
+    check_out_folder(args.out)
     names = [n.strip() for n in args.compare.split(",")] if args.compare else [args.estimator]
     reports = {}
     for name in names:
         sim_frames = {"frames": args.frames} if args.frames and args.source.startswith("sim") else {}
         seq = open_source(args.source, **sim_frames)
+        if hasattr(seq, "skipped_frames"):
+            seq.strict = bool(getattr(args, "strict", False))
         run_ = estimate_sequence(seq, name, preset=args.preset, max_frames=args.frames)
         out = Path(args.out) / name if len(names) > 1 else Path(args.out)
         reports[name] = write_outputs(out, run_, seq, args.source)
@@ -44,6 +51,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"{name}: frames {r['frames']} (tracked {r['frames_tracked']}), "
                   f"ATE {r['ate_rmse_m']} m, end error {r['end_error_m']} m, "
                   f"median {r['median_frame_ms']:.1f} ms/frame")
+            if r["extra"].get("frames_skipped"):
+                print(f"{name}: skipped {r['extra']['frames_skipped']} unreadable frame(s) "
+                      f"(indexes in report.json; --strict stops instead)")
         if len(names) > 1:
             print(format_table(reports))
     return 0

@@ -22,6 +22,10 @@ def _frames(seq, limit: int | None):
 
 def estimate_sequence(seq, estimator: str = "stereo", preset: str | None = None, max_frames: int | None = None,
                       options: dict[str, Any] | None = None, progress: bool = True) -> EstimateRun:
+    if callable(getattr(seq, "frame", None)):  # refuse exchanged left/right images before running
+        from stereopath.device.core.stereo_order import check_sequence_order
+
+        check_sequence_order(seq)
     gt = getattr(seq, "groundtruth", None)
     est = make_estimator(estimator, seq.rig, preset=preset, groundtruth=gt, options=options)
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
@@ -41,6 +45,10 @@ def report_for(run: EstimateRun, seq, source_label: str) -> tuple[dict, Trajecto
         world_frame=run.world_frame,
     )
     report.setdefault("extra", {}).update({"estimator_stats": run.extra})
+    skipped = list(getattr(seq, "skipped_frames", None) or [])
+    report["extra"]["frames_skipped"] = len(skipped)
+    if skipped:
+        report["extra"]["skipped_frame_indexes"] = skipped[:1000]
     return report, gt
 
 

@@ -43,7 +43,7 @@ from stereopath.device.formats.tum import ns_to_seconds_str
 from stereopath.device.formats.fileio import write_json_atomic
 from stereopath.host.live.receiver_config import RECEIVER_JSON, ReceiverConfig
 from stereopath.host.live.receiver_stats import EventRate, LiveState, ReceiverStats, SessionStats
-from stereopath.host.live.store import KeyframeStore
+from stereopath.host.live.store import KeyframeStore, list_sessions
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +78,10 @@ class Receiver:
         self._next_stats = time.monotonic()
         self._auth_warned = False
         self._warned: set[str] = set()
+        self._known_sessions: set[str] = set(list_sessions(self.out))
+        self.storage_error: str | None = None  # set while keyframes cannot be stored (disk full)
+        self._last_dealer_rx = self._last_hello_at = time.monotonic()
+        self._new_sessions = 0
         self._ctx = zmq.Context()
         common = dict(heartbeat_ivl_ms=config.heartbeat_ivl_ms, heartbeat_timeout_ms=config.heartbeat_timeout_ms,
                       heartbeat_ttl_ms=config.heartbeat_ttl_ms, reconnect_ivl_ms=config.reconnect_ivl_ms,
@@ -158,7 +162,10 @@ class Receiver:
         self._pose_thread.join(5.0)
         self.write_stats()
         for fh in self._tum.values():
-            fh.close()
+            try:
+                fh.close()
+            except OSError as exc:
+                log.error("closing a poses.tum: %s", exc.strerror or exc)
         self._tum.clear()
         self.store.close()
         try:
@@ -199,6 +206,9 @@ class Receiver:
                 break
             n += 1
             self.live.last_rx = time.monotonic()
+            if channel == "keyframe":
+                self._last_dealer_rx = time.monotonic()
+                self._warned.discard("silent")
             if len(frames) != 1:
                 self._reject(channel, "frames")
                 continue
@@ -210,6 +220,10 @@ class Receiver:
             except DecodeError as exc:
                 self._reject(channel, exc.reason, str(exc))
                 continue
+            if not self._admit_session(msg.session_id):
+                self._reject(channel, "session_limit", f"session {msg.session_id!r}: over the limit of "
+                             f"{self.config.max_new_sessions} new sessions in this run")
+                continue
             if isinstance(msg, Pose):
                 self._handle_pose(msg)
             elif isinstance(msg, Keyframe):
@@ -218,12 +232,27 @@ class Receiver:
                 self._handle_status(msg)
         return n
 
+    def _admit_session(self, sid: str) -> bool:
+        """Known sessions always; a new one only while this run has accepted fewer than the limit.
+
+        A device starts one session per run, so a flood of new ids (from a client holding the
+        device key) cannot fill the disk with folders.
+        """
+        with self.lock:
+            if sid in self._known_sessions:
+                return True
+            if self._new_sessions >= self.config.max_new_sessions:
+                return False
+            self._new_sessions += 1
+            self._known_sessions.add(sid)
+            return True
+
     def _reject(self, channel: str, reason: str, detail: str = "") -> None:
         with self.lock:
             st = self.stats
             st.rejected_by_reason[reason] = st.rejected_by_reason.get(reason, 0) + 1
             st.rejected_by_channel[channel] = st.rejected_by_channel.get(channel, 0) + 1
-            warn = reason == "version" and reason not in self._warned
+            warn = reason in ("version", "session_limit") and reason not in self._warned
         if warn:
             self._warned.add(reason)
             log.warning("%s", detail)
@@ -266,11 +295,30 @@ class Receiver:
             self._pose_window.append((now, pose.seq))
         if self.on_pose is not None:  # before the file write: the live view first
             self.on_pose(pose)
-        fh = self._tum_file(pose.session_id)
         p, q = pose.position_m, pose.quat_xyzw
-        fh.write(f"{ns_to_seconds_str(pose.t_ns)} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} "
-                 f"{q[0]:.7f} {q[1]:.7f} {q[2]:.7f} {q[3]:.7f}\n")
-        fh.flush()
+        line = (f"{ns_to_seconds_str(pose.t_ns)} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} "
+                f"{q[0]:.7f} {q[1]:.7f} {q[2]:.7f} {q[3]:.7f}\n")
+        try:
+            fh = self._tum_file(pose.session_id)
+            fh.write(line)
+            fh.flush()
+        except OSError as exc:  # disk full: the live pose is shown, only its host copy is lost
+            self._pose_write_failed(pose.session_id, exc)
+
+    def _pose_write_failed(self, sid: str, exc: OSError) -> None:
+        fh = self._tum.pop(sid, None)
+        if fh is not None:
+            try:
+                fh.close()
+            except OSError:
+                pass  # what the buffer held is lost with the write that failed
+        with self.lock:
+            self.stats.link["poses_unsaved"] += 1
+            first = self.stats.link["poses_unsaved"] == 1 or "poses" not in self._warned
+            self._warned.add("poses")
+        if first:
+            log.error("cannot append to %s: %s; live poses are shown but not saved on this host (the device "
+                      "records its own trajectory.tum)", self.out / sid / "poses.tum", exc.strerror or exc)
 
     def _tum_file(self, sid: str) -> TextIO:
         fh = self._tum.get(sid)
@@ -283,8 +331,15 @@ class Receiver:
         return fh
 
     def _handle_keyframe(self, kf: Keyframe, data: bytes) -> None:
-        new = self.store.put(kf, data)  # written (and fsynced) before the ack
-        self.store.set_last_session(kf.session_id)
+        try:
+            new = self.store.put(kf, data)  # written (and fsynced) before the ack
+            self.store.set_last_session(kf.session_id)
+        except OSError as exc:  # disk full, read-only, ...: not acknowledged, so the device keeps it
+            self._storage_failed(f"keyframe {kf.seq} of session {kf.session_id}", exc)
+            return
+        if self.storage_error is not None:
+            log.info("storing keyframes again (after: %s)", self.storage_error)
+            self.storage_error = None
         now = time.monotonic()
         with self.lock:
             self.stats.received["keyframe"] += 1
@@ -304,6 +359,18 @@ class Receiver:
                 self.stats.link["acks_unsent"] += 1  # not connected: the next hello resynchronises
         if self.on_keyframe is not None:
             self.on_keyframe(kf, new)
+
+    def _storage_failed(self, what: str, exc: OSError) -> None:
+        """Log a storage failure once per streak; the device resends what was not acknowledged."""
+        with self.lock:
+            self.stats.link["store_failures"] += 1
+            first = self.storage_error is None
+            self.storage_error = f"{exc.strerror or exc} ({self.out})"
+        if first:
+            log.error("cannot store %s: %s; not acknowledged: the device keeps it and sends it again once "
+                      "there is space", what, self.storage_error)
+        else:
+            log.debug("cannot store %s: %s", what, exc)
 
     def _handle_status(self, st: Status) -> None:
         with self.lock:
@@ -352,15 +419,37 @@ class Receiver:
             self._hello_pending = True  # pipe not attached yet: retry on the next poll
             return
         self._hello_pending = False
+        self._last_hello_at = time.monotonic()
         self.stats.link["hellos"] += 1
         self._last_progress = time.monotonic()
         log.debug("hello: session %s, acked %d, window %d", sid, acked, self.config.window)
 
+    def _check_silence(self, now: float) -> None:
+        """Connected, yet neither status nor keyframes for a while: the device has lost track of this
+        connection (or the stream died); say hello again instead of showing a good link forever."""
+        if not self.live.connected or self._hello_pending:
+            return
+        quiet = now - max(self._last_dealer_rx, self._last_hello_at)
+        if quiet < max(self.config.stall_timeout_s, 2.0 * self.config.heartbeat_ivl_ms / 1000.0):
+            return
+        self.stats.link["rehellos_silent"] += 1
+        if "silent" not in self._warned:
+            self._warned.add("silent")
+            log.warning("no status or keyframes from the device for %.1f s although connected: hello again", quiet)
+        self.live.link_quality = "lost"
+        self._send_hello()
+
     def _check_stall(self, now: float) -> None:
+        self._check_silence(now)
         st = self.live.status
         if not self.live.connected or st is None or now - self._last_progress < self.config.stall_timeout_s:
             return
-        have = self.store.session(st.session_id).acked_seq if st.session_id == self.store.last_session else -1
+        try:
+            have = self.store.session(st.session_id).acked_seq if st.session_id == self.store.last_session else -1
+        except OSError as exc:
+            self._storage_failed(f"session {st.session_id}", exc)
+            self._last_progress = now
+            return
         if st.keyframes_spooled - 1 > have:
             self.stats.link["rehellos_after_stall"] += 1
             log.info("keyframes stalled (device has %d, host holds up to %d): hello again",
@@ -391,8 +480,8 @@ class Receiver:
             live.link_quality = "waiting"
         elif age > 3.0 or not live.connected:
             live.link_quality = "lost"
-        elif age > 0.5 or live.pose_window_ratio < 0.9:
-            live.link_quality = "poor"
+        elif age > 0.5 or live.pose_window_ratio < 0.9 or now - self._last_dealer_rx > self.config.stall_timeout_s:
+            live.link_quality = "poor"  # (the last: poses flow but no status or keyframes on the keyframe link)
         else:
             live.link_quality = "good"
 
@@ -413,6 +502,12 @@ class Receiver:
             data = self.stats.to_json()
             data["current_session"] = self.live.session_id
         data["updated_unix"] = time.time()
-        write_json_atomic(self.out / RECEIVER_JSON, data, indent=1, fsync=False)
-        if self.store.last_session:
-            self.store.save_state()
+        try:
+            write_json_atomic(self.out / RECEIVER_JSON, data, indent=1, fsync=False)
+            if self.store.last_session:
+                self.store.save_state()
+        except OSError as exc:  # disk full: the counters are rewritten on the next period
+            if "stats" not in self._warned:
+                self._warned.add("stats")
+                log.warning("cannot write %s: %s (retried every %g s)", self.out / RECEIVER_JSON,
+                            exc.strerror or exc, self.config.stats_interval_s)

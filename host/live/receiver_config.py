@@ -31,9 +31,11 @@ class ReceiverConfig:
     fsync: bool = True
     stats_interval_s: float = 1.0
     max_keyframe_bytes: int = KEYFRAME_LIMITS.max_message_bytes
+    max_new_sessions: int = 64       # session ids not seen before that one run accepts (each gets a folder)
 
     def __post_init__(self) -> None:
         check_range("window", self.window, 1, 1024)
+        check_range("max_new_sessions", self.max_new_sessions, 1, 1_000_000)
         check_range("stall_timeout_s", self.stall_timeout_s, 0.05, 3600.0)
         check_range("max_keyframe_bytes", self.max_keyframe_bytes, 1024, 2**31 - 1)
         if not self.insecure and not self.keys_dir:

@@ -34,7 +34,8 @@ class ReceiverStats:
     rejected_by_channel: dict[str, int] = field(default_factory=lambda: {"pose": 0, "keyframe": 0})
     link: dict[str, int] = field(default_factory=lambda: {
         "connects": 0, "disconnects": 0, "auth_failures": 0, "handshake_failures": 0, "hellos": 0,
-        "rehellos_after_stall": 0, "acks_unsent": 0})
+        "rehellos_after_stall": 0, "acks_unsent": 0,
+        "store_failures": 0, "poses_unsaved": 0, "rehellos_silent": 0})
     sessions: dict[str, SessionStats] = field(default_factory=dict)
     runs: int = 0
 

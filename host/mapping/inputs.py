@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+import dataclasses
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -63,6 +64,7 @@ class MapInput:
     source: str
     frames_total: int
     poses_source: str
+    skipped: list[str] = field(default_factory=list)  # unreadable inputs left out (see build_map's strict)
 
 
 def select_keyframes(T_world_cam: np.ndarray, selection: KeyframeSelection) -> np.ndarray:
@@ -167,7 +169,7 @@ def _keyframe_folder(path: Path) -> Path | None:
 
 
 def keyframes_input(path: str | Path, selection: KeyframeSelection | None = None,
-                    rig: Rig | str | Path | None = None) -> MapInput:
+                    rig: Rig | str | Path | None = None, strict: bool = False) -> MapInput:
     """Keyframes stored by ``host live`` (see :mod:`stereopath.host.live.store`).
 
     The calibration is ``rig`` (a Rig or a rig YAML path) or a ``rig.yaml`` in the keyframes
@@ -184,7 +186,17 @@ def keyframes_input(path: str | Path, selection: KeyframeSelection | None = None
     files = sorted(kdir.glob("kf_*.msgpack"))
     if not files:
         raise DatasetError(f"{kdir}: the keyframe folder is empty")
-    kfs = [load_keyframe(f) for f in files]
+    kfs, skipped = [], []
+    for f in files:
+        try:
+            kfs.append(load_keyframe(f))
+        except DatasetError as exc:
+            if strict:
+                raise
+            log.warning("skipping unreadable keyframe: %s", exc)
+            skipped.append(f.name)
+    if not kfs:
+        raise DatasetError(f"{kdir}: none of the {len(files)} keyframe files is readable")
     kfs.sort(key=lambda k: k.seq)
     refs = {(k.rig_name, k.rig_hash) for k in kfs}
     if len(refs) != 1:
@@ -213,11 +225,11 @@ def keyframes_input(path: str | Path, selection: KeyframeSelection | None = None
 
     out = [MapKeyframe(int(kfs[i].seq), int(kfs[i].t_ns), poses[i], loader(kfs[i])) for i in sel]
     return MapInput(rig=the_rig, keyframes=out, kind="keyframes", source=str(kdir), frames_total=len(kfs),
-                    poses_source="keyframe poses")
+                    poses_source="keyframe poses", skipped=skipped)
 
 
 def open_map_input(path: str | Path, selection: KeyframeSelection, poses: str | Path | None = None,
-                   rig: str | Path | None = None) -> MapInput:
+                   rig: str | Path | None = None, strict: bool = False) -> MapInput:
     """A session folder (``mav0`` inside) or a stored-keyframes folder, whichever ``path`` is."""
     p = Path(path)
     if not p.exists():
@@ -229,5 +241,7 @@ def open_map_input(path: str | Path, selection: KeyframeSelection, poses: str | 
     if _keyframe_folder(p) is not None:
         if poses is not None:
             raise ConfigError("--poses applies to sessions; stored keyframes carry their own poses")
-        return keyframes_input(p, None if selection.stride == 0 else selection, rig)
+        # stored keyframes are already spaced by the device: every one by default, max_keyframes still applies
+        return keyframes_input(p, selection if selection.stride else dataclasses.replace(selection, stride=1), rig,
+                               strict=strict)
     raise DatasetError(f"{p}: neither a session (no mav0/) nor a keyframes folder (no index.csv, kf_*.msgpack)")

@@ -202,11 +202,12 @@ class DenseMapper:
 
 
 def build_map(inp: MapInput, config: MapConfig, progress: bool | None = None,
-              on_keyframe: Callable[[int, Any], None] | None = None) -> MapResult:
+              on_keyframe: Callable[[int, Any], None] | None = None, strict: bool = False) -> MapResult:
     """Depth and fusion of every keyframe of ``inp``, then mesh, cloud and preview (no file I/O).
 
     ``progress``: tqdm bar on stderr (None = only when stderr is a terminal).  ``on_keyframe(k,
-    depth_map)`` is called after each keyframe is fused (for live views).
+    depth_map)`` is called after each keyframe is fused (for live views).  A keyframe whose
+    images cannot be read is skipped and counted (``stats["keyframes_skipped"]``) unless ``strict``.
     """
     if not inp.keyframes:
         raise DatasetError(f"{inp.source}: no keyframes to map")
@@ -216,7 +217,14 @@ def build_map(inp: MapInput, config: MapConfig, progress: bool | None = None,
     try:
         for k, kf in enumerate(inp.keyframes):
             t0 = time.perf_counter()
-            left, right = kf.load()
+            try:
+                left, right = kf.load()
+            except DatasetError as exc:
+                if strict:
+                    raise
+                log.warning("skipping keyframe %d: %s", kf.index, exc)
+                inp.skipped.append(str(kf.index))
+                continue
             mapper.timings["load"] += time.perf_counter() - t0
             dm = mapper.add(left, right, kf.T_world_cam0, index=kf.index)
             if on_keyframe is not None:
@@ -226,7 +234,8 @@ def build_map(inp: MapInput, config: MapConfig, progress: bool | None = None,
     finally:
         if bar is not None:
             bar.close()
-    result = mapper.finish({"input_kind": inp.kind, "poses": inp.poses_source, "frames_total": inp.frames_total})
+    result = mapper.finish({"input_kind": inp.kind, "poses": inp.poses_source, "frames_total": inp.frames_total,
+                            "keyframes_skipped": len(inp.skipped), "skipped": inp.skipped[:1000]})
     result.stats["timings_s"]["total"] = round(time.perf_counter() - t_start, 4)
     return result
 
@@ -250,7 +259,9 @@ def write_map(result: MapResult, out_dir: str | Path) -> dict[str, Path]:
         raise StereopathError(f"output {out} exists and is not a folder")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    tmp.chmod(0o755)  # mkdtemp makes 0700; the model folder gets the usual permissions
+    from stereopath.device.formats.fileio import process_umask
+
+    tmp.chmod(0o777 & ~process_umask())  # mkdtemp makes 0700; the model folder gets what mkdir would give
     try:
         write_mesh(result.mesh, tmp / "mesh.ply")
         write_cloud(result.cloud, tmp / "cloud.ply")
@@ -279,9 +290,11 @@ def map_sequence(seq: Any, trajectory: Trajectory, out_dir: str | Path | None, c
 
 
 def map_path(path: str | Path, out_dir: str | Path, config: MapConfig, poses: str | Path | None = None,
-             rig: str | Path | None = None, progress: bool | None = None) -> MapResult:
-    """``stereopath host map``: open a session or keyframes folder, build the model, write it."""
-    inp = open_map_input(path, config.keyframes, poses=poses, rig=rig)
-    result = build_map(inp, config, progress=progress)
+             rig: str | Path | None = None, progress: bool | None = None, strict: bool = False) -> MapResult:
+    """``stereopath host map``: open a session or keyframes folder, build the model, write it.
+
+    Unreadable keyframes or frames are skipped and counted unless ``strict``."""
+    inp = open_map_input(path, config.keyframes, poses=poses, rig=rig, strict=strict)
+    result = build_map(inp, config, progress=progress, strict=strict)
     write_map(result, out_dir)
     return result

@@ -30,43 +30,24 @@ Pure computation: no I/O.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from stereopath.device.errors import ConfigError, EstimationError
-from stereopath.device.core.geometry import invert_pose, so3_exp, so3_log
+from stereopath.device.core.geometry import invert_pose, so3_log
 from stereopath.device.core.rig import Rig
+from stereopath.host.reprocess.ba_common import (  # noqa: F401  (re-exported)
+    BAResult,
+    RotationPrior,
+    interpolate_corrections,
+    propagate_to_frames,
+    select_observations,
+)
+from stereopath.host.reprocess.ba_common import as_observations as _as_obs
 
 log = logging.getLogger(__name__)
 
 LOSSES = ("huber", "cauchy", "soft_l1", "linear")
-
-
-@dataclass
-class BAResult:
-    T_world_cam: np.ndarray  # (K, 4, 4) refined poses
-    points: dict[int, np.ndarray]
-    rms_before_px: float
-    rms_after_px: float
-    n_obs: int
-    n_points: int
-    iterations: int
-    cost_before: float = float("nan")
-    cost_after: float = float("nan")
-    inlier_fraction: float = float("nan")  # observations with a residual below ``outlier_px``
-    history: list[float] = field(default_factory=list)  # robust cost after each accepted step
-    disparity_offset_px: float = 0.0  # estimated right principal-point offset (0 unless estimated)
-
-
-@dataclass(frozen=True)
-class RotationPrior:
-    """A measured relative rotation ``R_ci_cj`` (camera j to camera i) between poses ``i`` and ``j``."""
-
-    i: int
-    j: int
-    R_ci_cj: np.ndarray
-    sigma_rad: float
 
 
 def _rotvec_to_R(r: np.ndarray) -> np.ndarray:
@@ -99,32 +80,6 @@ def _robust(loss: str, s: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]
     if loss == "cauchy":
         return k2 * np.log1p(s / k2), 1 / (1 + s / k2)
     raise ConfigError(f"loss = {loss!r}; known: {', '.join(LOSSES)}")
-
-
-def _as_obs(observations: np.ndarray) -> np.ndarray:
-    obs = np.asarray(observations, dtype=float)
-    if obs.size == 0:
-        return np.zeros((0, 5))
-    if obs.ndim != 2 or obs.shape[1] not in (5, 6):
-        raise EstimationError(f"observations must be (N, 5) or (N, 6) rows, got shape {obs.shape}")
-    return obs
-
-
-def select_observations(observations: np.ndarray, points: dict[int, np.ndarray],
-                        min_poses_per_point: int = 2) -> np.ndarray:
-    """The observation rows of known points seen from at least ``min_poses_per_point`` poses."""
-    obs = _as_obs(observations)
-    if len(obs) == 0:
-        return obs
-    pid = obs[:, 1].astype(np.int64)
-    known = np.isin(pid, np.fromiter(points.keys(), dtype=np.int64, count=len(points)))
-    obs, pid = obs[known], pid[known]
-    if len(obs) == 0:
-        return obs
-    pairs = np.unique(np.column_stack([pid, obs[:, 0].astype(np.int64)]), axis=0)
-    ids, counts = np.unique(pairs[:, 0], return_counts=True)
-    good = ids[counts >= min_poses_per_point]
-    return obs[np.isin(pid, good)]
 
 
 class _Problem:
@@ -621,36 +576,3 @@ def _bundle_adjust_scipy(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np
     rms0 = float(np.sqrt(np.mean(r0**2)))
     rms1 = float(np.sqrt(np.mean(res.fun**2)))
     return BAResult(out, {int(p): pts[i] for i, p in enumerate(uniq)}, rms0, rms1, n_obs, P, int(res.nfev))
-
-
-def propagate_to_frames(T_frames: np.ndarray, frame_kf: np.ndarray, T_kf_old: np.ndarray,
-                        T_kf_new: np.ndarray) -> np.ndarray:
-    """Move every frame with the correction of its keyframe: ``T_new = T_kf_new inv(T_kf_old) T_old``."""
-    out = np.empty_like(T_frames)
-    for i, (T, k) in enumerate(zip(T_frames, frame_kf)):
-        out[i] = T_kf_new[k] @ invert_pose(T_kf_old[k]) @ T
-    return out
-
-
-def interpolate_corrections(t_frames: np.ndarray, T_frames: np.ndarray, t_kf: np.ndarray, T_kf_old: np.ndarray,
-                            T_kf_new: np.ndarray) -> np.ndarray:
-    """Move every frame by the correction ``C = T_new inv(T_old)`` interpolated in time between the two
-    keyframes around it (rotation by SLERP on the log, translation linearly); constant outside."""
-    t_frames = np.asarray(t_frames, dtype=float)
-    t_kf = np.asarray(t_kf, dtype=float)
-    C = np.array([Tn @ invert_pose(To) for Tn, To in zip(T_kf_new, T_kf_old)])
-    out = np.empty_like(T_frames)
-    for i, (t, T) in enumerate(zip(t_frames, T_frames)):
-        j = int(np.searchsorted(t_kf, t, side="right")) - 1
-        if j < 0:
-            Ci = C[0]
-        elif j >= len(t_kf) - 1:
-            Ci = C[-1]
-        else:
-            a = (t - t_kf[j]) / max(t_kf[j + 1] - t_kf[j], 1e-12)
-            dR = so3_log(C[j][:3, :3].T @ C[j + 1][:3, :3])
-            Ci = np.eye(4)
-            Ci[:3, :3] = C[j][:3, :3] @ so3_exp(a * dR)
-            Ci[:3, 3] = (1 - a) * C[j][:3, 3] + a * C[j + 1][:3, 3]
-        out[i] = Ci @ T
-    return out

@@ -74,11 +74,48 @@ def _ratio(a: dict | None, b: dict | None) -> float | None:
     return float(a["ate_rmse_m"]) / float(b["ate_rmse_m"])
 
 
+def end_to_start_error(gt: Trajectory | None, traj: Trajectory | None) -> float | None:
+    """|end-to-start translation of ``traj`` - that of the ground truth at the same times| (m), or None."""
+    from stereopath.device.core.geometry import invert_pose
+
+    if gt is None or traj is None or len(gt) < 2 or len(traj) < 2:
+        return None
+    t_gt = np.asarray(gt.t_ns, np.int64)
+    ends = []
+    for t in (int(traj.t_ns[0]), int(traj.t_ns[-1])):
+        k = int(np.argmin(np.abs(t_gt - t)))
+        if abs(int(t_gt[k]) - t) > 5_000_000:  # no ground truth within 5 ms
+            return None
+        ends.append(np.asarray(gt.T_world_cam[k]))
+    rel_gt = invert_pose(ends[0]) @ ends[1]
+    rel = invert_pose(np.asarray(traj.T_world_cam[0])) @ np.asarray(traj.T_world_cam[-1])
+    return float(np.linalg.norm(rel[:3, 3] - rel_gt[:3, 3]))
+
+
+def loop_report(s: RunSummary) -> dict[str, Any]:
+    """Accepted loops, the end-to-start gap of each path, and its error against the ground truth."""
+    stats = meta(s.ba, "stats")
+    gt = getattr(s.seq, "groundtruth", None)
+    paths = {"onboard": s.onboard, "reestimated": s.reest, "bundle_adjusted": s.final}
+    return {"accepted": stats.get("loops", []), "end_to_start": stats.get("end_to_start"),
+            "end_to_start_error_m": {k: end_to_start_error(gt, v) for k, v in paths.items()}}
+
+
+def groundtruth(seq: Any) -> tuple[Any, str | None]:
+    """(ground truth or None, why it is unusable): a bad optional ground truth never costs the results."""
+    try:
+        return getattr(seq, "groundtruth", None), None
+    except StereopathError as exc:
+        return None, str(exc)
+
+
 def build_report(s: RunSummary) -> dict[str, Any]:
     """The report.json content of a run."""
     from stereopath.host.evaluation.report import make_report
 
-    gt = getattr(s.seq, "groundtruth", None)
+    gt, gt_error = groundtruth(s.seq)
+    if gt_error is not None:
+        log.warning("ground truth unusable, results written without errors against it: %s", gt_error)
     info = meta(s.est, "meta")
     m_final, m_reest = metrics(gt, s.final), metrics(gt, s.reest)
     m_onboard = metrics(gt, s.onboard) if s.onboard is not None and len(s.onboard) else None
@@ -92,9 +129,16 @@ def build_report(s: RunSummary) -> dict[str, Any]:
                      "keyframes": int(np.sum(s.est["keyframe"]))},
         "tracks": s.trk_stats,
         "bundle_adjustment": meta(s.ba, "stats"),
+        "loops": loop_report(s),
         "stages": {k: {"status": s.status.get(k, "skipped"), "seconds": s.stage_seconds.get(k, 0.0)} for k in STAGES},
         "map": s.map_stats,
     }
+    if gt_error is not None:
+        extra["groundtruth_error"] = gt_error
+    skipped = list(getattr(s.seq, "skipped_frames", None) or [])
+    extra["frames_skipped"] = len(skipped)
+    if skipped:
+        extra["skipped_frame_indexes"] = skipped[:1000]
     return make_report(source=s.label, estimator="stereo+ba", frames=len(s.final),
                        frames_tracked=int(np.sum(s.est["status"] == 0)),
                        metrics=m_final if m_final and m_final.get("ate_rmse_m") is not None else None,
@@ -105,7 +149,7 @@ def _plots(s: RunSummary, report: dict[str, Any]) -> list[str]:
     from stereopath.host.evaluation.plots import plot_path
     from stereopath.host.reprocess.report_html import plot_errors
 
-    gt = getattr(s.seq, "groundtruth", None)
+    gt, _ = groundtruth(s.seq)
     m_final = report["extra"]["before_after"]["bundle_adjusted"]
     m_onboard = report["extra"]["before_after"]["onboard"]
     gt_usable = gt is not None and m_final is not None and m_final.get("ate_rmse_m") is not None

@@ -37,7 +37,7 @@ def settings(config: ReprocessPreset) -> dict[str, Any]:
 def gyro_rotation_priors(seq: Any, t_kf: np.ndarray, sigma_rad_per_sqrt_s: float) -> list:
     """Relative rotations between consecutive keyframes from the gyro (bias from the still start)."""
     from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still
-    from stereopath.host.reprocess.bundle_adjust import RotationPrior
+    from stereopath.host.reprocess.ba_common import RotationPrior
 
     imu = getattr(seq, "imu", None)
     rig = seq.rig
@@ -58,12 +58,40 @@ def gyro_rotation_priors(seq: Any, t_kf: np.ndarray, sigma_rad_per_sqrt_s: float
     return out
 
 
+def loops_of(trk: dict[str, np.ndarray]) -> list:
+    """The verified loops stored by the tracks stage."""
+    from stereopath.host.reprocess.loops import loops_from_array
+
+    return loops_from_array(trk["loops"]) if "loops" in trk else []
+
+
+def end_to_start(T: np.ndarray) -> dict[str, float]:
+    """The path's end relative to its start: distance (m) and rotation (deg)."""
+    from stereopath.device.core.geometry import invert_pose, rotation_angle_deg
+
+    rel = invert_pose(T[0]) @ T[-1]
+    return {"distance_m": float(np.linalg.norm(rel[:3, 3])), "rotation_deg": float(rotation_angle_deg(rel[:3, :3]))}
+
+
+def solver(config: ReprocessPreset):
+    """The back-end module of ``config.ba_solver`` (``bundle_adjust``, ``refine_poses_fixed_points``)."""
+    if config.ba_solver == "schur":
+        from stereopath.host.reprocess import bundle_adjust as mod
+    else:
+        from stereopath.host.reprocess import gtsam_ba as mod
+    return mod
+
+
 def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list):
     """Bundle adjustment of the keyframes (a ``BAResult``); EstimationError when there is too little."""
-    from stereopath.host.reprocess.bundle_adjust import bundle_adjust
-
+    bundle_adjust = solver(config).bundle_adjust
     trk = inputs.results["tracks"]
     points = {int(i): x for i, x in zip(trk["point_ids"], trk["point_xyz"])}
+    extra = {}
+    if config.ba_solver == "gtsam":
+        extra["loops"] = loops_of(trk)
+    elif len(loops_of(trk)):
+        log.warning("ba_solver 'schur' has no loop factors: %d loop(s) ignored", len(loops_of(trk)))
     bar = progress_bar(config.ba_max_iterations * (1 + config.ba_outlier_rounds), "bundle adjustment",
                        inputs.progress, "iteration")
     try:
@@ -72,7 +100,7 @@ def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list)
                              outlier_px=config.ba_outlier_px, outlier_rounds=config.ba_outlier_rounds,
                              rotation_priors=priors, estimate_disparity_offset=config.ba_disparity_offset,
                              disparity_offset_min_px=config.ba_disparity_offset_min_px,
-                             on_iteration=None if bar is None else bar.update)
+                             on_iteration=None if bar is None else bar.update, **extra)
     finally:
         if bar is not None:
             bar.close()
@@ -113,8 +141,7 @@ def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.
 
 def refine_frames(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.ndarray) -> int:
     """Motion-only refinement of the non-keyframes of ``T_frames`` (in place); the number refined."""
-    from stereopath.host.reprocess.bundle_adjust import refine_poses_fixed_points
-
+    refine_poses_fixed_points = solver(config).refine_poses_fixed_points
     is_kf = np.zeros(len(T_frames), bool)
     is_kf[inputs.results["tracks"]["kf_index"]] = True
     rows = _frame_rows(config, inputs, res, T_frames, is_kf)
@@ -128,7 +155,7 @@ def refine_frames(config: ReprocessPreset, inputs: StageInputs, res, T_frames: n
 
 
 def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
-    from stereopath.host.reprocess.bundle_adjust import interpolate_corrections
+    from stereopath.host.reprocess.ba_common import interpolate_corrections
 
     est, trk = inputs.results["estimate"], inputs.results["tracks"]
     kf, T_kf = trk["kf_index"], trk["T_kf"]
@@ -153,7 +180,9 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
              "inlier_fraction": res.inlier_fraction, "rotation_priors": len(priors),
              "disparity_offset_px": res.disparity_offset_px if config.ba_disparity_offset else None,
              "frames_refined": n_refined, "ba_seconds": round(t_ba, 3),
-             "frame_refinement_seconds": round(time.perf_counter() - t1, 3)}
+             "frame_refinement_seconds": round(time.perf_counter() - t1, 3),
+             "loops": [lp.as_dict() for lp in loops_of(trk)] if config.ba_solver == "gtsam" else [],
+             "end_to_start": {"reestimated": end_to_start(est["T_world_cam"]), "bundle_adjusted": end_to_start(T_frames)}}
     ids = np.fromiter(res.points.keys(), np.int64, len(res.points))
     return {
         "T_kf": res.T_world_cam,

@@ -1,12 +1,14 @@
 """Stage ``tracks``: modified-ASIFT keypoints with stereo 3D points at every keyframe of the
 estimate, matched between keyframes up to ``window`` apart (guided by the estimated poses) and
-joined into tracks (:mod:`stereopath.host.reprocess.tracks`).
+joined into tracks (:mod:`stereopath.host.reprocess.tracks`), and loops between keyframes far
+apart in the sequence found and verified on the same keypoints (:mod:`stereopath.host.reprocess.loops`).
 
 These fresh detections replace the estimator's chained KLT tracks, whose drift grows with track
 age and would bend the path in bundle adjustment.  Outputs (``tracks.npz``): the keyframes'
 frame indices ``kf_index`` and poses ``T_kf``, ``observations`` rows, the tracks' first 3D
 points (``point_ids``, ``point_xyz``) and every keyframe's keypoints (``kf_offsets``,
-``kf_ids``, ``kf_xy``) for the frame refinement, plus ``stats``.
+``kf_ids``, ``kf_xy``) for the frame refinement, ``loops`` (rows of
+:func:`~stereopath.host.reprocess.loops.loops_to_array`), plus ``stats``.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import logging
 import numpy as np
 
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
+from stereopath.host.reprocess.loops import detect_loops, loops_to_array
 from stereopath.host.reprocess.store import Bar, json_array
 
 log = logging.getLogger(__name__)
@@ -23,8 +26,8 @@ log = logging.getLogger(__name__)
 NAME = "tracks"
 
 
-def settings(config: ReprocessPreset):
-    return config.tracks
+def settings(config: ReprocessPreset) -> dict:
+    return {"tracks": config.tracks, "loops": config.loops}
 
 
 def choose_keyframes(est: dict[str, np.ndarray]) -> np.ndarray:
@@ -40,7 +43,8 @@ def _empty(est: dict[str, np.ndarray], kf: np.ndarray, reason: str) -> dict[str,
     return {"kf_index": kf, "T_kf": est["T_world_cam"][kf], "observations": np.zeros((0, 6)),
             "point_ids": np.zeros(0, np.int64), "point_xyz": np.zeros((0, 3)),
             "kf_offsets": np.zeros(len(kf) + 1, np.int64), "kf_ids": np.zeros(0, np.int64),
-            "kf_xy": np.zeros((0, 2), np.float32), "stats": json_array({"skipped": reason, "keyframes": len(kf)})}
+            "kf_xy": np.zeros((0, 2), np.float32), "loops": loops_to_array([]),
+            "stats": json_array({"skipped": reason, "keyframes": len(kf)})}
 
 
 def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
@@ -61,6 +65,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     n_gaps = len([g for g in (cfg.gaps or range(1, cfg.window + 1)) if 1 <= g <= cfg.window])
     with Bar(n_gaps, "track matching", inputs.progress, "gap") as tick:
         tr = tracks_mod.build_tracks(seq.rig, feats, T_kf, cfg, progress=tick)
+    loops = detect_loops(seq.rig, feats, T_kf, config.loops)
     ids = np.fromiter(tr.points.keys(), np.int64, len(tr.points))
     xyz = np.array([tr.points[int(i)] for i in ids]).reshape(-1, 3)
     return {
@@ -72,5 +77,6 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
         "kf_offsets": np.concatenate([[0], np.cumsum([len(a) for a in tr.kf_ids])]).astype(np.int64),
         "kf_ids": np.concatenate(tr.kf_ids) if tr.kf_ids else np.zeros(0, np.int64),
         "kf_xy": np.concatenate(tr.kf_xy) if tr.kf_xy else np.zeros((0, 2), np.float32),
-        "stats": json_array(tr.stats),
+        "loops": loops_to_array(loops),
+        "stats": json_array({**tr.stats, "loops": len(loops)}),
     }

@@ -88,7 +88,14 @@ class SequenceSource(SourceBase):
             t = int(seq.t_ns[i])
             if wait is not None:
                 wait(i, t)
-            frame = seq.frame(i)
+            try:
+                frame = seq.frame(i)
+            except DatasetError as exc:
+                if getattr(seq, "strict", False):
+                    raise CaptureError(f"replay source: {exc}") from None
+                log.warning("replay: skipping unreadable frame %d: %s", i, exc)
+                self._count(dropped_sensor=1)  # a frame the recording lost, as a sensor gap would be
+                continue
             self._count(frames_left=1, frames_right=1, paired=1, delivered=1)
             if self._imu is not None:
                 self._imu.advance(t)

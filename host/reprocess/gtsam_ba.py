@@ -1,0 +1,288 @@
+"""Bundle adjustment on GTSAM: keyframe poses and points on the reprojection error in both cameras.
+
+One ``GenericProjectionFactorCal3_S2`` per observation row ``(pose, point id, cam, u, v[, weight])``
+(the right camera through ``body_P_sensor`` = the rig's ``T_cam0_cam1``, so any calibrated rig
+works, rectified or not), each with a robust noise model (Huber or Cauchy on the pixel error,
+sigma = 1 px / weight); the first ``n_fixed`` poses held by a tight prior (the gauge; scale comes
+from the right camera through the calibrated baseline); Levenberg-Marquardt over the whole batch
+(GTSAM's sparse multifrontal Cholesky).  Options:
+
+- rotation priors (gyro integration between keyframes): a ``BetweenFactorPose3`` whose
+  translation part is free (sigma 1 km);
+- the disparity offset (a horizontal offset of the right principal point, a constant disparity
+  error that scales the whole path): the right camera's calibration becomes one shared
+  ``Cal3_S2`` unknown with only ``u0`` free (tight priors on the rest); each keyframe then has a
+  right-camera pose unknown tied to its left pose by the rig (a tight ``BetweenFactorPose3``), and
+  the right observations are ``GeneralSFMFactor2Cal3_S2`` factors.  An estimate smaller than
+  ``disparity_offset_min_px`` is not applied (the problem is solved again without it).
+
+:func:`refine_poses_fixed_points` is the motion-only variant (points held by tight priors, poses
+independent).  GTSAM is imported when a function runs (``pip install 'stereopath[host]'``).
+Pure computation: no I/O.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from stereopath.device.core.rig import Rig
+from stereopath.device.errors import ConfigError
+from stereopath.host.reprocess.ba_common import (
+    BAResult,
+    RotationPrior,
+    as_observations,
+    check_problem,
+    reprojection_residuals,
+    rms_px,
+    select_observations,
+)
+
+log = logging.getLogger(__name__)
+
+LOSSES = ("huber", "cauchy", "linear")
+GAUGE_SIGMA = 1e-6  # rad and m: the held poses (and points of the motion-only refinement)
+RIG_SIGMA = 1e-6  # rad and m: right-camera pose = left pose x rig extrinsics (disparity offset only)
+FREE_SIGMA = 1e3  # an unconstrained direction of a prior
+
+
+def import_gtsam() -> Any:
+    """The ``gtsam`` module, or a ConfigError saying how to install it."""
+    try:
+        import gtsam
+    except ImportError as exc:  # pragma: no cover - depends on the installation
+        raise ConfigError("the offline back end needs GTSAM: pip install 'stereopath[host]' (gtsam>=4.3)") from exc
+    return gtsam
+
+
+class _Graph:
+    """Builds the factor graph and initial values of one problem."""
+
+    def __init__(self, rig: Rig, loss: str, k_px: float, offset_px: float, estimate_offset: bool) -> None:
+        g = self.g = import_gtsam()
+        if loss not in LOSSES:
+            raise ConfigError(f"loss = {loss!r}; known: {', '.join(LOSSES)}")
+        self.loss, self.k = loss, float(k_px)
+        self.graph = g.NonlinearFactorGraph()
+        self.values = g.Values()
+        self.X, self.L = g.symbol_shorthand.X, g.symbol_shorthand.L
+        self.R_, self.C = g.symbol_shorthand.R, g.symbol_shorthand.C
+        K0, K1 = rig.cam0.K, rig.cam1.K
+        self.cal0 = g.Cal3_S2(K0[0, 0], K0[1, 1], K0[0, 1], K0[0, 2], K0[1, 2])
+        self.cal1 = g.Cal3_S2(K1[0, 0], K1[1, 1], K1[0, 1], K1[0, 2] + offset_px, K1[1, 2])
+        self.cx1 = float(K1[0, 2])
+        self.T01 = self.pose(np.asarray(rig.T_cam0_cam1, float))
+        self.est_offset = estimate_offset
+        self._noise: dict[float, Any] = {}
+        if estimate_offset:
+            self.values.insert(self.C(0), self.cal1)
+            sig = np.array([RIG_SIGMA, RIG_SIGMA, RIG_SIGMA, FREE_SIGMA, RIG_SIGMA])  # fx fy s u0 v0
+            self.graph.add(g.PriorFactorCal3_S2(self.C(0), self.cal1, g.noiseModel.Diagonal.Sigmas(sig)))
+
+    def pose(self, T: np.ndarray) -> Any:
+        g = self.g
+        return g.Pose3(g.Rot3.ClosestTo(np.asarray(T[:3, :3], float)), np.asarray(T[:3, 3], float))
+
+    def noise(self, weight: float) -> Any:
+        """Robust isotropic 2D noise with sigma ``1 / weight`` px (cached by weight)."""
+        m = self._noise.get(weight)
+        if m is None:
+            nm = self.g.noiseModel
+            m = nm.Isotropic.Sigma(2, 1.0 / max(weight, 1e-9))
+            if self.loss != "linear":
+                est = nm.mEstimator.Huber if self.loss == "huber" else nm.mEstimator.Cauchy
+                m = nm.Robust.Create(est.Create(self.k), m)
+            self._noise[weight] = m
+        return m
+
+    def add_poses(self, T_world_cam: np.ndarray, held: np.ndarray) -> None:
+        g = self.g
+        tight = g.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA)
+        rig_noise = g.noiseModel.Isotropic.Sigma(6, RIG_SIGMA)
+        for k, T in enumerate(T_world_cam):
+            P = self.pose(T)
+            self.values.insert(self.X(k), P)
+            if held[k]:
+                self.graph.add(g.PriorFactorPose3(self.X(k), P, tight))
+            if self.est_offset:
+                self.values.insert(self.R_(k), P.compose(self.T01))
+                self.graph.add(g.BetweenFactorPose3(self.X(k), self.R_(k), self.T01, rig_noise))
+
+    def add_points(self, ids: np.ndarray, xyz: np.ndarray, held: bool = False) -> None:
+        g = self.g
+        tight = g.noiseModel.Isotropic.Sigma(3, GAUGE_SIGMA)
+        for i, x in zip(ids, xyz):
+            self.values.insert(self.L(int(i)), np.asarray(x, float))
+            if held:
+                self.graph.add(g.PriorFactorPoint3(self.L(int(i)), np.asarray(x, float), tight))
+
+    def add_observations(self, obs: np.ndarray) -> None:
+        g, graph = self.g, self.graph
+        w = obs[:, 5] if obs.shape[1] > 5 else np.ones(len(obs))
+        for (k, p, cam, u, v), wi in zip(obs[:, :5], w):
+            uv = np.array([u, v])
+            if cam == 0:
+                graph.add(g.GenericProjectionFactorCal3_S2(uv, self.noise(float(wi)), self.X(int(k)), self.L(int(p)),
+                                                           self.cal0))
+            elif self.est_offset:
+                graph.add(g.GeneralSFMFactor2Cal3_S2(uv, self.noise(float(wi)), self.R_(int(k)), self.L(int(p)),
+                                                     self.C(0)))
+            else:
+                graph.add(g.GenericProjectionFactorCal3_S2(uv, self.noise(float(wi)), self.X(int(k)), self.L(int(p)),
+                                                           self.cal1, False, False, self.T01))
+
+    def add_rotation_priors(self, priors: list[RotationPrior]) -> None:
+        g = self.g
+        for pr in priors:
+            sig = np.array([pr.sigma_rad] * 3 + [FREE_SIGMA] * 3)
+            rel = g.Pose3(g.Rot3.ClosestTo(np.asarray(pr.R_ci_cj, float)), np.zeros(3))
+            # the translation of the measured relative pose is unknown: its sigma leaves it free
+            self.graph.add(g.BetweenFactorPose3(self.X(pr.i), self.X(pr.j), rel, g.noiseModel.Diagonal.Sigmas(sig)))
+
+
+    def add_loops(self, loops: list, k_sigma: float = 3.0) -> None:
+        """Relative-pose constraints of verified loops (Huber at ``k_sigma`` standard deviations)."""
+        g = self.g
+        nm = g.noiseModel
+        for lp in loops:
+            sig = np.array([lp.sigma_rot_rad] * 3 + [lp.sigma_trans_m] * 3)
+            noise = nm.Robust.Create(nm.mEstimator.Huber.Create(k_sigma), nm.Diagonal.Sigmas(sig))
+            self.graph.add(g.BetweenFactorPose3(self.X(lp.i), self.X(lp.j), self.pose(lp.T_ci_cj), noise))
+
+
+def _optimize(gr: _Graph, max_iterations: int, on_iteration=None) -> tuple[Any, int, list[float]]:
+    """Levenberg-Marquardt from ``gr.values``; (values, iterations, error after each iteration)."""
+    g = gr.g
+    params = g.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(1e-5)
+    params.setAbsoluteErrorTol(1e-9)
+    opt = g.LevenbergMarquardtOptimizer(gr.graph, gr.values, params)
+    history = [opt.error()]
+    it = 0
+    for it in range(1, max_iterations + 1):
+        prev = opt.error()
+        opt.iterate()
+        history.append(opt.error())
+        if on_iteration is not None:
+            on_iteration(1)
+        if g.checkConvergence(params.getRelativeErrorTol(), params.getAbsoluteErrorTol(), params.getErrorTol(),
+                              prev, opt.error()):
+            break
+    return opt.values(), it, history
+
+
+def _read(gr: _Graph, values: Any, n_poses: int, ids: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray], float]:
+    T = np.array([values.atPose3(gr.X(k)).matrix() for k in range(n_poses)])
+    pts = {int(i): np.asarray(values.atPoint3(gr.L(int(i))), float).copy() for i in ids}
+    offset = values.atCal3_S2(gr.C(0)).px() - gr.cx1 if gr.est_offset else float(gr.cal1.px() - gr.cx1)
+    return T, pts, float(offset)
+
+
+def _solve(rig: Rig, T: np.ndarray, points: dict[int, np.ndarray], obs: np.ndarray, held: np.ndarray,
+           priors: list[RotationPrior], opts: dict[str, Any], offset_px: float, estimate_offset: bool,
+           on_iteration=None):
+    # opts: loss, huber_px, max_iterations, loops
+    """One batch solve: (poses, points, offset, iterations, history)."""
+    gr = _Graph(rig, opts["loss"], opts["huber_px"], offset_px, estimate_offset)
+    ids = np.unique(obs[:, 1].astype(np.int64))
+    gr.add_poses(T, held)
+    gr.add_points(ids, np.array([points[int(i)] for i in ids]))
+    gr.add_observations(obs)
+    gr.add_rotation_priors(priors)
+    gr.add_loops(opts.get("loops") or [])
+    values, iters, history = _optimize(gr, opts["max_iterations"], on_iteration)
+    T_new, pts_new, offset = _read(gr, values, len(T), ids)
+    return T_new, pts_new, offset, iters, history
+
+
+def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarray], observations: np.ndarray,
+                  huber_px: float = 1.0, loss: str = "huber", min_keyframes_per_point: int = 2,
+                  max_iterations: int = 50, n_fixed: int = 1, rotation_priors: list[RotationPrior] | None = None,
+                  outlier_px: float = 3.0, outlier_rounds: int = 1, estimate_disparity_offset: bool = False,
+                  disparity_offset_px: float = 0.0, disparity_offset_min_px: float = 0.0,
+                  on_iteration=None, loops: list | None = None) -> BAResult:
+    """Refine ``T_world_cam`` (K, 4, 4) and ``points`` {id: XYZ world} on ``observations`` (N, 5|6).
+
+    ``huber_px`` is the scale of the robust ``loss`` (pixels).  With ``outlier_rounds > 0`` the
+    problem is solved, observations with a residual above ``outlier_px`` are dropped, and solved
+    again (that many times).  ``on_iteration(1)`` is called after every LM iteration.  ``loops``:
+    verified loop closures (:class:`stereopath.host.reprocess.loops.Loop`, pose indices ``i``,
+    ``j``) added as relative-pose factors.
+    """
+    if loss not in LOSSES:
+        raise ConfigError(f"loss = {loss!r}; known: {', '.join(LOSSES)}")
+    T, obs = check_problem(T_world_cam, observations, points, min_keyframes_per_point)
+    held = np.arange(len(T)) < max(n_fixed, 0)
+    priors = list(rotation_priors or [])
+    opts = {"loss": loss, "huber_px": huber_px, "max_iterations": max_iterations, "loops": list(loops or [])}
+    rms0 = rms_px(*reprojection_residuals(rig, T, points, obs, disparity_offset_px))
+    offset, est = float(disparity_offset_px), bool(estimate_disparity_offset) and bool(np.any(obs[:, 2] == 1))
+    T, pts, new_offset, iters, history = _solve(rig, T, points, obs, held, priors, opts, offset, est, on_iteration)
+    resolve = False
+    if est and abs(new_offset - offset) < disparity_offset_min_px:
+        log.info("disparity offset %+.4f px below %.3f px: not applied", new_offset - offset, disparity_offset_min_px)
+        est, resolve = False, True
+    else:
+        offset = new_offset
+    for _ in range(max(outlier_rounds, 0)):
+        r, front = reprojection_residuals(rig, T, pts, obs, offset)
+        bad = ~front | (np.linalg.norm(r, axis=1) > outlier_px)
+        keep = select_observations(obs[~bad], pts, min_keyframes_per_point)
+        if not bad.any() or len(np.unique(keep[:, 1])) < 10:
+            break
+        obs, resolve = keep, True
+        T, pts, new_offset, it2, h2 = _solve(rig, T, pts, obs, held, priors, opts, offset, est, on_iteration)
+        offset = new_offset if est else offset
+        iters, history, resolve = iters + it2, history + h2, False
+    if resolve:  # the offset was dropped and no outlier round solved again without it
+        T, pts, _, it2, h2 = _solve(rig, T, pts, obs, held, priors, opts, offset, False, on_iteration)
+        iters, history = iters + it2, history + h2
+    return _result(rig, T, pts, obs, offset, rms0, iters, history, outlier_px)
+
+
+def _result(rig, T, pts, obs, offset, rms0, iters, history, outlier_px) -> BAResult:
+    pts = {int(i): pts[int(i)] for i in np.unique(obs[:, 1].astype(np.int64))}
+    r, front = reprojection_residuals(rig, T, pts, obs, offset)
+    rn = np.linalg.norm(r[front], axis=1)
+    rms1 = rms_px(r, front)
+    log.info("bundle adjustment (GTSAM): %d poses, %d points, %d observations, rms %.3f -> %.3f px, %d iterations, "
+             "disparity offset %+.3f px", len(T), len(pts), len(obs), rms0, rms1, iters, offset)
+    return BAResult(T, pts, rms0, rms1, len(obs), len(pts), iters, history[0], history[-1],
+                    float(np.mean(rn <= outlier_px)) if len(rn) else float("nan"), history, offset)
+
+
+def refine_poses_fixed_points(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarray],
+                              observations: np.ndarray, huber_px: float = 1.0, loss: str = "huber",
+                              max_iterations: int = 10, min_obs: int = 6,
+                              disparity_offset_px: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Motion-only refinement: each pose moved to fit fixed ``points``; returns (poses, refined mask).
+
+    Poses with fewer than ``min_obs`` observations of known points keep their input value.
+    """
+    T_world_cam = np.asarray(T_world_cam, dtype=float).reshape(-1, 4, 4)
+    obs = as_observations(observations)
+    if len(obs):
+        obs = obs[np.isin(obs[:, 1].astype(np.int64), np.fromiter(points.keys(), np.int64, len(points)))]
+    counts = np.bincount(obs[:, 0].astype(np.int64), minlength=len(T_world_cam))
+    ok = counts >= min_obs
+    out = T_world_cam.copy()
+    if not ok.any():
+        return out, ok
+    obs = obs[ok[obs[:, 0].astype(np.int64)]]
+    gr = _Graph(rig, loss, huber_px, disparity_offset_px, False)
+    idx = np.flatnonzero(ok)
+    slot = np.full(len(T_world_cam), -1)
+    slot[idx] = np.arange(len(idx))
+    gr.add_poses(T_world_cam[idx], np.zeros(len(idx), bool))
+    ids = np.unique(obs[:, 1].astype(np.int64))
+    gr.add_points(ids, np.array([points[int(i)] for i in ids]), held=True)
+    local = obs.copy()
+    local[:, 0] = slot[obs[:, 0].astype(np.int64)]
+    gr.add_observations(local)
+    values, _, _ = _optimize(gr, max_iterations)
+    for a, k in enumerate(idx):
+        out[k] = values.atPose3(gr.X(a)).matrix()
+    return out, ok
