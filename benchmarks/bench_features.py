@@ -32,7 +32,7 @@ def main() -> int:
 
     import cv2
 
-    from stereopath.host.commands.features import compare_pair, load_homography
+    from stereopath.host.evaluation.features import compare_pair, load_homography
 
     if not DATA.is_dir():
         print(f"graffiti data not found at {DATA}")

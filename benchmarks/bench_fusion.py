@@ -36,7 +36,8 @@ from stereopath.device.sim.session import SimConfig, open_sim  # noqa: E402
 from stereopath.device.sim.scene import point_to_scene_distance, sample_surface_points  # noqa: E402
 from stereopath.host.mapping.depth import StereoDepth  # noqa: E402
 from stereopath.host.mapping.fusion import TsdfVolume  # noqa: E402
-from stereopath.host.mapping.mapper import build_map, keyframes_from_sequence, map_preset  # noqa: E402
+from stereopath.host.mapping.inputs import keyframes_from_sequence  # noqa: E402
+from stereopath.host.mapping.mapper import build_map, map_preset  # noqa: E402
 
 RANGE_M = (0.4, 1.5)
 

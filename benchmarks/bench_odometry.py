@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 from stereopath.device.estimation.base import run_estimator  # noqa: E402
 from stereopath.device.estimation.registry import make_estimator  # noqa: E402
 from stereopath.host.evaluation.evaluate import evaluate  # noqa: E402
-from stereopath.host.evaluation.sequences import open_sequence  # noqa: E402
+from stereopath.device.formats.source import open_source  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 
@@ -75,7 +75,7 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING)
 
     t = time.perf_counter()
-    sim = Cached(open_sequence("sim:0", frames=args.frames))
+    sim = Cached(open_source("sim:0", **({"frames": args.frames} if args.frames else {})))
     print(f"simulated scan: {len(sim)} frames, path {sim.groundtruth.path_length_m():.3f} m "
           f"(rendered in {time.perf_counter() - t:.1f} s)")
     stereo = [run_once(sim, "stereo") for _ in range(args.runs)]
@@ -88,13 +88,13 @@ def main() -> None:
 
     kdir = DATA / "kitti_odometry/sequences/06"
     if kdir.is_dir():
-        kitti = Cached(open_sequence(f"kitti:{kdir}"))
+        kitti = Cached(open_source(f"kitti:{kdir}"))
         k = [run_once(kitti, "stereo") for _ in range(max(1, args.runs - 2))]
         _, mk = summary("KITTI 06 0-50 stereo", k)
         print(f"targets: end <= 1 % -> {mk['end_error_pct']:.3f} %; ATE <= 0.3 m -> {mk['ate_rmse_m']:.3f} m")
 
     if not args.skip_paper:
-        from stereopath.host.commands.odometry import format_table
+        from stereopath.host.evaluation.paper_table import format_table
 
         reports = {}
         variants = (("paper", "paper", args.paper_preset, None),

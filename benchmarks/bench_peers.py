@@ -94,9 +94,9 @@ def run_ours(spec: str, options: dict | None = None) -> dict:
     from stereopath.device.estimation.base import run_estimator
     from stereopath.device.estimation.registry import make_estimator
     from stereopath.host.evaluation.evaluate import evaluate
-    from stereopath.host.evaluation.sequences import open_sequence
+    from stereopath.device.formats.source import open_source
 
-    seq = open_sequence(spec)
+    seq = open_source(spec)
     est = make_estimator("stereo", seq.rig, options=options)
     cpu0 = time.process_time()
     run = run_estimator(est, seq.frames(), seq.imu)  # joins the keyframe worker before returning

@@ -37,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 from stereopath.host.evaluation.evaluate import evaluate  # noqa: E402
 from stereopath.host.evaluation.odometry import estimate_sequence  # noqa: E402
 from stereopath.host.reprocess.pipeline import REPROCESS_PRESETS, reprocess_sequence, reprocess_session  # noqa: E402
-from stereopath.host.evaluation.sequences import open_sequence  # noqa: E402
+from stereopath.device.formats.source import open_source  # noqa: E402
 
 DATA = Path(os.environ.get("STEREOPATH_DATA", ROOT.parent / "shared" / "data"))
 KITTI = DATA / "kitti_odometry" / "sequences" / "06"
@@ -105,7 +105,7 @@ def loop_figures(tmp: Path, frames: int, base) -> None:
     session = tmp / "loop_session"
     if not (session / "mav0").is_dir():
         record_sequence(open_sim(SimConfig(trajectory="loop", frames=frames)), session, config_dict={"source": "sim"})
-    seq = open_sequence(f"session:{session}")
+    seq = open_source(f"session:{session}")
     run = estimate_sequence(seq, "stereo", progress=False)
     ate_on = evaluate(seq.groundtruth, run.trajectory)["ate_rmse_m"]
     gap_on = end_to_start_error(seq.groundtruth, run.trajectory)
@@ -152,7 +152,7 @@ def main() -> int:
             sequences.append(sim_figures(tmp, args, base))
         if not args.skip_kitti:
             if KITTI.is_dir():
-                kseq = open_sequence(f"kitti:{KITTI}")
+                kseq = open_source(f"kitti:{KITTI}")
                 k_on, _ = onboard_ate(kseq)
                 print(f"KITTI 06 frames 0-{len(kseq) - 1}: on-board stereo ATE {k_on:.4f} m")
                 if not (args.reuse and (tmp / "kitti" / "stages" / "tracks.npz").is_file()):
@@ -174,7 +174,7 @@ def sim_figures(tmp: Path, args, base):
         from stereopath.device.sim.session import SimConfig, open_sim
 
         record_sequence(open_sim(SimConfig()), session, config_dict={"source": "sim"})
-    seq = open_sequence(f"session:{session}")
+    seq = open_source(f"session:{session}")
     print(f"simulated session: {len(seq)} frames, {seq.groundtruth.path_length_m():.2f} m")
     ate_on, t_on = onboard_ate(seq)
     print(f"  on-board stereo ATE {mm(ate_on)} ({t_on:.1f} s)")

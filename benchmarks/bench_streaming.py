@@ -1,7 +1,7 @@
 """Streaming benchmark: pose size and latency, keyframe throughput, device CPU, full-size fault runs.
 
 The device runs as a separate process (this script with ``--role device``); the host is this
-process (``Receiver``) or, for the fault runs, ``python -m stereopath.host.commands.live``.  Everything is on
+process (``Receiver``) or, for the fault runs, ``python -m stereopath.host host live``.  Everything is on
 loopback with CURVE on.  Keyframes are 640x480 stereo pairs cut from the EuRoC V1_01 head
 (synthetic texture if the data is absent), JPEG quality 90 unless said otherwise.
 
@@ -99,7 +99,7 @@ def stop_device(proc: subprocess.Popen, work: Path, name: str, result: Path) -> 
 
 
 def receiver_config(ready: dict, keys_root: Path, **kw):
-    from stereopath.host.live.receiver import ReceiverConfig
+    from stereopath.host.live.receiver_config import ReceiverConfig
 
     return ReceiverConfig(ready["pose_endpoint"], ready["keyframe_endpoint"], keys_dir=str(keys_root / "host"), **kw)
 
@@ -113,16 +113,17 @@ def kf_count(out: Path, session: str) -> int:
 
 
 def device_role(args: argparse.Namespace) -> int:
-    from stereopath.device.streaming import DeviceStreamer, KeyframeSpool, StreamConfig
+    from stereopath.device.service.settings import KeySettings, StreamSettings
+    from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
 
     pairs, _ = load_pairs()
     keys = Path(args.keys_root)
-    cfg = StreamConfig(pose_endpoint="tcp://127.0.0.1:*", keyframe_endpoint="tcp://127.0.0.1:*",
-                       server_secret=str(keys / "device" / "device.key_secret"),
-                       clients_dir=str(keys / "device" / "clients"), image_encoding=args.encoding,
-                       spool_fsync=True)
+    cfg = StreamSettings(pose_endpoint="tcp://127.0.0.1:*", keyframe_endpoint="tcp://127.0.0.1:*",
+                         image_encoding=args.encoding, spool_fsync=True)
+    key_files = KeySettings(server_secret=str(keys / "device" / "device.key_secret"),
+                            clients_dir=str(keys / "device" / "clients"))
     spool = KeyframeSpool(args.spool)
-    streamer = None if (args.no_stream or args.bare) else DeviceStreamer(cfg, spool, args.session)
+    streamer = None if (args.no_stream or args.bare) else DeviceStreamer(cfg, spool, args.session, keys=key_files)
     bare = None
     if args.bare:  # reference: a plain CURVE PUB socket sending the same bytes from the capture loop
         import zmq
@@ -131,10 +132,10 @@ def device_role(args: argparse.Namespace) -> int:
         from stereopath.device.wire.security import load_secret_keypair, start_authenticator
 
         bare_ctx = zmq.Context()
-        bare_auth = start_authenticator(bare_ctx, cfg.clients_dir)
+        bare_auth = start_authenticator(bare_ctx, key_files.clients_dir)
         bare = bare_ctx.socket(zmq.PUB)
         bare.linger = 0
-        bare.curve_publickey, bare.curve_secretkey = load_secret_keypair(cfg.server_secret)
+        bare.curve_publickey, bare.curve_secretkey = load_secret_keypair(key_files.server_secret)
         bare.curve_server = True
         bare.bind("tcp://127.0.0.1:*")
     if streamer is not None and args.prefill:
@@ -324,7 +325,7 @@ def bench_throughput(work: Path, keys_root: Path, runs: int, n: int) -> None:
 def _live_host(ready: dict, keys_root: Path, out: Path, log: Path) -> subprocess.Popen:
     host, port = ready["pose_endpoint"].rsplit(":", 1)
     kport = ready["keyframe_endpoint"].rsplit(":", 1)[1]
-    cmd = [sys.executable, "-m", "stereopath.host.commands.live", "--device", f"127.0.0.1:{port}", "--keyframe-port", kport,
+    cmd = [sys.executable, "-m", "stereopath.host", "host", "live", "--device", f"127.0.0.1:{port}", "--keyframe-port", kport,
            "--keys", str(keys_root / "host"), "--out", str(out), "--duration", "600"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL,

@@ -100,7 +100,7 @@ def run_demo(out: str | Path, frames: int | None = None, seed: int = 0, timeout_
         if d.exists():
             shutil.rmtree(d)
     logs.mkdir(exist_ok=True)
-    n_frames = frames or SimConfig().frames
+    n_frames = SimConfig().frames if frames is None else frames
     py = [sys.executable, "-m", "stereopath.host"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     timings: dict[str, float] = {}

@@ -56,7 +56,7 @@ def test_too_few_views():
 
 @pytest.mark.realdata
 def test_calibrate_stereo_cli_on_the_opencv_chessboards(data_dir, tmp_path, capsys):
-    from stereopath.device.core.rig import load_rig_yaml
+    from stereopath.device.formats.rig_files import load_rig_yaml
     from stereopath.host.cli import main
 
     out = tmp_path / "rig.yaml"

@@ -6,7 +6,7 @@ import pytest
 from stereopath.device.estimation.base import run_estimator
 from stereopath.device.estimation.registry import make_estimator
 from stereopath.device.core.frames import StereoFrame
-from stereopath.device.core.rig import load_kitti_calib
+from stereopath.device.formats.rig_files import load_kitti_calib
 
 
 def _kitti(data_dir, n):
@@ -21,9 +21,9 @@ def _kitti(data_dir, n):
 
 def test_stereo_on_kitti06_end_error_below_2_percent(data_dir):
     from stereopath.host.evaluation.evaluate import evaluate
-    from stereopath.host.evaluation.sequences import open_sequence
+    from stereopath.device.formats.source import open_source
 
-    seq = open_sequence(f"kitti:{data_dir / 'kitti_odometry/sequences/06'}")
+    seq = open_source(f"kitti:{data_dir / 'kitti_odometry/sequences/06'}")
     run = run_estimator(make_estimator("stereo", seq.rig), seq.frames(), None)
     m = evaluate(seq.groundtruth, run.trajectory)
     assert run.frames_tracked == len(seq) == 51

@@ -7,14 +7,14 @@ import pytest
 from stereopath.device.estimation.base import run_estimator
 from stereopath.device.estimation.registry import make_estimator
 from stereopath.host.evaluation.evaluate import evaluate
-from stereopath.host.evaluation.sequences import open_sequence
+from stereopath.device.formats.source import open_source
 
 N = 100  # 5 s: 1.25 s still, then the start of the arc
 
 
 @pytest.fixture(scope="module")
 def sim():
-    seq = open_sequence("sim:1", frames=N)
+    seq = open_source("sim:1", frames=N)
     frames = list(seq.frames())
     return seq, frames
 

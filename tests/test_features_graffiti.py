@@ -10,7 +10,7 @@ import pytest
 
 from stereopath.device.errors import DatasetError
 from stereopath.host.cli import main
-from stereopath.host.commands.features import compare_pair, correct_mask, load_homography
+from stereopath.host.evaluation.features import compare_pair, correct_mask, load_homography
 
 pytestmark = pytest.mark.realdata
 

@@ -7,7 +7,7 @@ from stereopath.device.core.geometry import matrix_to_quat_xyzw
 from stereopath.device.wire.protocol import Keyframe, decode_keyframe, encode_image, encode_keyframe, rig_reference
 from stereopath.device.core.rig import paper_rig
 from stereopath.host.live.live_map import LiveMapper
-from stereopath.host.evaluation.sequences import open_sequence
+from stereopath.device.formats.source import open_source
 
 
 def _keyframes(seq, rig, step=4, n=6, session="s1"):
@@ -23,7 +23,7 @@ def _keyframes(seq, rig, step=4, n=6, session="s1"):
 
 
 def test_live_mapper_fuses_refreshes_and_writes_the_model(tmp_path):
-    seq = open_sequence("sim:0", frames=60)
+    seq = open_source("sim:0", frames=60)
     kfs = _keyframes(seq, seq.rig)
     refreshed = []
     m = LiveMapper(seq.rig, tmp_path, every=2, on_mesh=lambda s, mesh: refreshed.append(len(mesh.vertices)))
@@ -40,7 +40,7 @@ def test_live_mapper_fuses_refreshes_and_writes_the_model(tmp_path):
 
 
 def test_live_mapper_rejects_keyframes_of_another_rig(tmp_path):
-    seq = open_sequence("sim:0", frames=40)
+    seq = open_source("sim:0", frames=40)
     kfs = _keyframes(seq, paper_rig(), n=2)  # the rig without the IMU extrinsics: another hash
     m = LiveMapper(seq.rig, tmp_path, every=1)
     for kf in kfs:

@@ -13,17 +13,8 @@ import pytest
 from stereopath.device.errors import CalibrationError, ConfigError, DatasetError, StereopathError
 from stereopath.device.formats.tum import Trajectory
 from stereopath.host.cli import main as cli_main
-from stereopath.host.mapping.mapper import (
-    MAP_FILES,
-    KeyframeSelection,
-    associate_poses,
-    build_map,
-    keyframes_input,
-    map_path,
-    map_preset,
-    select_keyframes,
-    write_map,
-)
+from stereopath.host.mapping.inputs import KeyframeSelection, associate_poses, keyframes_input, select_keyframes
+from stereopath.host.mapping.mapper import MAP_FILES, build_map, map_path, map_preset, write_map
 
 FAST = dict(max_keyframes=6)
 
@@ -192,7 +183,8 @@ def test_keyframes_without_calibration_raise(keyframe_dir, tmp_path):
 
 
 def test_keyframes_with_the_wrong_rig_raise(keyframe_dir, tmp_path):
-    from stereopath.device.core.rig import paper_rig, save_rig_yaml
+    from stereopath.device.core.rig import paper_rig
+    from stereopath.device.formats.rig_files import save_rig_yaml
 
     other = tmp_path / "other.yaml"
     save_rig_yaml(paper_rig(), other)  # no T_body_cam0: a different calibration hash
@@ -220,7 +212,7 @@ def test_map_from_stored_keyframes(keyframe_dir, session, tmp_path):
 
 def test_write_map_replaces_model_files_only(session, tmp_path):
     from stereopath.device.formats import open_source
-    from stereopath.host.mapping.mapper import keyframes_from_sequence
+    from stereopath.host.mapping.inputs import keyframes_from_sequence
 
     seq = open_source(f"session:{session}")
     inp = keyframes_from_sequence(seq, seq.groundtruth, KeyframeSelection(stride=8, max_keyframes=6))

@@ -22,7 +22,8 @@ from stereopath.device.errors import CaptureError
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.geometry import make_pose, rot_x, rot_z
 from stereopath.device.formats.recorder import SessionRecorder, record_sequence
-from stereopath.device.core.rig import load_euroc_rig, make_camera, make_rig, paper_rig
+from stereopath.device.core.rig import make_camera, make_rig, paper_rig
+from stereopath.device.formats.rig_files import load_euroc_rig
 from stereopath.device.formats.tum import Trajectory
 
 Usage = namedtuple("Usage", "total used free")

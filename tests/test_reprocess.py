@@ -35,11 +35,11 @@ def session_with_onboard(session, tmp_path_factory) -> Path:
     """The same session with an on-board path in trajectory.tum (a coarse one: every other frame)."""
     from stereopath.device.formats.tum import write_tum
     from stereopath.host.evaluation.odometry import estimate_sequence
-    from stereopath.host.evaluation.sequences import open_sequence
+    from stereopath.device.formats.source import open_source
 
     d = tmp_path_factory.mktemp("reprocess") / "with_onboard"
     shutil.copytree(session, d)
-    run = estimate_sequence(open_sequence(f"session:{d}"), "stereo", options={"use_asift_keyframes": False},
+    run = estimate_sequence(open_source(f"session:{d}"), "stereo", options={"use_asift_keyframes": False},
                             progress=False)
     write_tum(d / "trajectory.tum", run.trajectory)
     return d

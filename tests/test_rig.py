@@ -4,9 +4,8 @@ import numpy as np
 import pytest
 
 from stereopath.device.errors import CalibrationError
-from stereopath.device.core.rig import (
-    load_euroc_rig, load_kitti_calib, load_rig_yaml, paper_rig, rig_from_dict, rig_to_dict, save_rig_yaml,
-)
+from stereopath.device.core.rig import paper_rig, rig_from_dict, rig_to_dict
+from stereopath.device.formats.rig_files import load_euroc_rig, load_kitti_calib, load_rig_yaml, save_rig_yaml
 
 
 def test_paper_yaml_equals_builtin_rig(repo_root, caplog):

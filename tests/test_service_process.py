@@ -15,7 +15,8 @@ import pytest
 from stereopath.device.formats import open_source
 from stereopath.device.wire.security import make_demo_keys
 from stereopath.device.formats.tum import read_tum
-from stereopath.host.live.receiver import Receiver, ReceiverConfig
+from stereopath.host.live.receiver import Receiver
+from stereopath.host.live.receiver_config import ReceiverConfig
 from tests.test_service_support import NotifyListener, device_run, sim_tables, wait_until, write_toml
 
 pytestmark = pytest.mark.timeout(90)

@@ -1,4 +1,4 @@
-"""Fault tests with the host as a real subprocess (``python -m stereopath.host.commands.live``): kill -9 and SIGSTOP.
+"""Fault tests with the host as a real subprocess (``python -m stereopath.host host live``): kill -9 and SIGSTOP.
 
 The device runs in this process (its own threads), on random loopback ports, with CURVE.  Counts
 are scaled down from the issue's 300-keyframe / 10-second scenarios (small images, a 3 s pause);
@@ -32,7 +32,7 @@ def keys(tmp_path_factory):
 
 
 def _start_host(dev, keys, out: Path, log: Path) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "stereopath.host.commands.live", "--device", f"127.0.0.1:{port_of(dev.pose_endpoint)}",
+    cmd = [sys.executable, "-m", "stereopath.host", "host", "live", "--device", f"127.0.0.1:{port_of(dev.pose_endpoint)}",
            "--keyframe-port", str(port_of(dev.keyframe_endpoint)), "--keys", str(keys.host_keys_dir),
            "--out", str(out), "--duration", "80", "--window", "4"]
     return subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=log.open("ab"))

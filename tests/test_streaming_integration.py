@@ -18,7 +18,8 @@ from stereopath.device.wire.protocol import Hello, Keyframe, Status, decode_mess
     encode_status, make_keyframe, KEYFRAME_LIMITS
 from stereopath.device.wire.security import generate_keypair, load_public_key, load_secret_keypair, make_demo_keys
 from stereopath.device.formats.tum import read_tum
-from stereopath.host.live.receiver import Receiver, ReceiverConfig
+from stereopath.host.live.receiver import Receiver
+from stereopath.host.live.receiver_config import ReceiverConfig
 from tests.test_streaming_support import assert_exactly_once, make_device, port_of, small_images, stored_seqs, \
     wait_for
 
@@ -322,7 +323,7 @@ def test_host_rejects_malformed_device_messages_and_carries_on(tmp_path, keys):
 
 def test_live_command_writes_rerun_recording(tmp_path, keys):
     pytest.importorskip("rerun")
-    from stereopath.host.commands import live
+    from stereopath.host.cli import main as stereopath_cli
 
     dev = make_device(tmp_path, keys, "sessR")
     stop = threading.Event()
@@ -340,7 +341,7 @@ def test_live_command_writes_rerun_recording(tmp_path, keys):
     th.start()
     rrd = tmp_path / "live.rrd"
     try:
-        rc = live.main(["--device", f"127.0.0.1:{port_of(dev.pose_endpoint)}",
+        rc = stereopath_cli(["host", "live", "--device", f"127.0.0.1:{port_of(dev.pose_endpoint)}",
                         "--keyframe-port", str(port_of(dev.keyframe_endpoint)), "--keys", str(keys.host_keys_dir),
                         "--out", str(tmp_path / "out"), "--rerun-save", str(rrd), "--duration", "2", "--no-fsync"])
     finally:

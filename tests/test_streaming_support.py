@@ -8,7 +8,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from stereopath.device.streaming import DeviceStreamer, KeyframeSpool, StreamConfig
+from stereopath.device.service.settings import KeySettings, StreamSettings
+from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
 from stereopath.device.wire.security import DemoKeys
 from stereopath.host.live.store import read_index
 
@@ -24,21 +25,25 @@ def small_images(seed: int, h: int = 96, w: int = 128) -> tuple[np.ndarray, np.n
 
 
 def device_config(keys: DemoKeys | None, pose_endpoint: str = LOOPBACK_ANY, keyframe_endpoint: str = LOOPBACK_ANY,
-                  **overrides: Any) -> StreamConfig:
+                  **overrides: Any) -> StreamSettings:
     base: dict[str, Any] = dict(pose_endpoint=pose_endpoint, keyframe_endpoint=keyframe_endpoint,
                                 heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, heartbeat_ttl_ms=3000,
-                                status_interval_s=0.2, spool_fsync=False)
+                                spool_fsync=False)
     if keys is None:
         base["insecure"] = True
-    else:
-        base.update(server_secret=str(keys.device_secret), clients_dir=str(keys.clients_dir))
     base.update(overrides)
-    return StreamConfig(**base)
+    return StreamSettings(**base)
+
+
+def key_settings(keys: DemoKeys | None) -> KeySettings | None:
+    return None if keys is None else KeySettings(server_secret=str(keys.device_secret),
+                                                 clients_dir=str(keys.clients_dir))
 
 
 def make_device(tmp: Path, keys: DemoKeys | None, session: str, **overrides: Any) -> DeviceStreamer:
     spool = KeyframeSpool(tmp / f"spool_{session}", fsync=False)
-    return DeviceStreamer(device_config(keys, **overrides), spool, session, rig_ref=("testrig", "0123456789abcdef"))
+    return DeviceStreamer(device_config(keys, **overrides), spool, session, rig_ref=("testrig", "0123456789abcdef"),
+                          keys=key_settings(keys), status_interval_s=0.2)
 
 
 def port_of(endpoint: str) -> int:

@@ -14,12 +14,15 @@ import pytest
 from stereopath.device.core.config import from_mapping
 from stereopath.device.errors import ConfigError, DatasetError
 from stereopath.device.wire.protocol import Status, encode_keyframe, make_keyframe
-from stereopath.device.streaming import KeyframeSpool, StreamConfig
+from stereopath.device.service.settings import StreamSettings
+from stereopath.device.streaming import KeyframeSpool
 from stereopath.device.wire.security import (
     authorized_keys, check_loopback_endpoint, generate_keypair, load_host_keys, load_secret_keypair, make_demo_keys)
 from stereopath.host.live.store import KeyframeStore, list_sessions, load_keyframe, read_index
 from stereopath.host.live.view import TerminalView, summary_lines
-from stereopath.host.live.receiver import LiveState, Receiver, ReceiverConfig, ReceiverStats, endpoints_from_address
+from stereopath.host.live.receiver import Receiver
+from stereopath.host.live.receiver_config import ReceiverConfig, endpoints_from_address
+from stereopath.host.live.receiver_stats import LiveState, ReceiverStats
 from tests.test_streaming_support import make_device, small_images
 
 
@@ -35,14 +38,14 @@ def _kf(session: str, seq: int):
 
 
 def test_stream_config_from_mapping_rejects_unknown_and_out_of_range():
-    cfg = from_mapping(StreamConfig, {"pose_endpoint": "tcp://*:6000", "max_credit": 4})
+    cfg = from_mapping(StreamSettings, {"pose_endpoint": "tcp://*:6000", "max_credit": 4})
     assert cfg.max_credit == 4 and cfg.keyframe_endpoint == "tcp://*:5556"
     with pytest.raises(ConfigError, match="bogus"):
-        from_mapping(StreamConfig, {"bogus": 1})
+        from_mapping(StreamSettings, {"bogus": 1})
     with pytest.raises(ConfigError, match="max_credit"):
-        StreamConfig(max_credit=0)
+        StreamSettings(max_credit=0)
     with pytest.raises(ConfigError, match="image_encoding"):
-        from_mapping(StreamConfig, {"image_encoding": "bmp"})
+        from_mapping(StreamSettings, {"image_encoding": "bmp"})
 
 
 @pytest.mark.parametrize("ep", ["tcp://127.0.0.1:5555", "tcp://127.0.0.1:*", "tcp://127.8.9.10:1", "tcp://[::1]:5",

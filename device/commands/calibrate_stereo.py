@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
 
     from stereopath.device.core.calibration import calibrate_stereo, find_corners, parse_board
     from stereopath.device.errors import CalibrationError
-    from stereopath.device.core.rig import save_rig_yaml
+    from stereopath.device.formats.rig_files import save_rig_yaml
 
     board = parse_board(args.board)
     if args.square_mm <= 0:

@@ -47,7 +47,8 @@ def run(args: argparse.Namespace) -> int:
     from stereopath.device.errors import ConfigError
     from stereopath.device.service.journal import use_journal_format
     from stereopath.device.service.options import RunOptions
-    from stereopath.device.service.service import EXIT_CONFIG, run_service
+    from stereopath.device.service.main import run_service
+    from stereopath.device.service.service import EXIT_CONFIG
 
     use_journal_format()
     try:

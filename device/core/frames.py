@@ -77,3 +77,12 @@ class ImuSamples:
             np.concatenate([b.accel_m_s2 for b in blocks]),
             temps,
         )
+
+
+def median_rate_hz(t_ns: Any) -> float | None:
+    """Samples per second from the median step of increasing timestamps (ns); None with too few."""
+    if t_ns is None or len(t_ns) < 2:
+        return None
+    d = np.diff(np.asarray(t_ns, dtype=np.int64))
+    d = d[d > 0]
+    return float(round(1e9 / float(np.median(d)), 3)) if d.size else None

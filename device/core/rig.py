@@ -6,15 +6,15 @@ coordinates, ``x_cam1 = R @ x_cam0 + T``, i.e. they form ``T_cam1_cam0``.  A
 right camera to the right of the left one therefore has ``T[0] < 0`` (the
 reference paper's Table 1: T = [-47.917, -0.142, -13.373] mm).
 
-Loaders for our YAML, KITTI ``calib.txt`` and EuRoC ``sensor.yaml`` live here
-too: they only parse text into the model and validate it.
+Pure: no files.  :func:`rig_from_dict`/:func:`rig_to_dict` are the schema of our rig YAML;
+the files themselves (our YAML, KITTI ``calib.txt``, EuRoC ``sensor.yaml``) are read and
+written by :mod:`stereopath.device.formats.rig_files`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -158,7 +158,7 @@ def _compute_rectification(rig: Rig, alpha: float) -> Rectification:
 # construction and validation
 
 
-def _array(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
+def checked_array(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
     try:
         a = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
@@ -174,7 +174,7 @@ def _array(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
 
 def make_camera(name: str, K: Any, dist: Any, size: Any) -> CameraModel:
     """Validated :class:`CameraModel`; errors name the field (e.g. ``cam0.K``)."""
-    K = _array(f"{name}.K", K, (3, 3))
+    K = checked_array(f"{name}.K", K, (3, 3))
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise CalibrationError(f"{name}.K: focal length must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
     if abs(K[2, 2] - 1.0) > 1e-9 or abs(K[1, 0]) > 1e-9 or abs(K[2, 0]) > 1e-9 or abs(K[2, 1]) > 1e-9:
@@ -195,7 +195,7 @@ def make_camera(name: str, K: Any, dist: Any, size: Any) -> CameraModel:
 
 def validated_rotation(name: str, R: Any) -> np.ndarray:
     """Check that ``R`` is (nearly) a rotation; project a nearly orthonormal one onto SO(3)."""
-    R = _array(name, R, (3, 3))
+    R = checked_array(name, R, (3, 3))
     err = float(np.max(np.abs(R.T @ R - np.eye(3))))
     det = float(np.linalg.det(R))
     if det <= 0:
@@ -212,14 +212,36 @@ def validated_rotation(name: str, R: Any) -> np.ndarray:
     return R
 
 
+def check_baseline_sign(R: np.ndarray, T: np.ndarray) -> None:
+    """Refuse a rig whose right camera (cam1) sits to the LEFT of cam0.
+
+    The baseline is judged in the rectified frame: the centre of cam1 seen from cam0 is
+    ``c1 = -R^T T``; a side-by-side pair has it mostly along +x (cam0 = left).  ``c1`` along -x
+    means the cameras are exchanged (or ``R``, ``T`` were given as ``T_cam0_cam1``, or the sign
+    of ``T`` is flipped), which would make every disparity negative.
+    """
+    c1 = -np.asarray(R, float).T @ np.asarray(T, float)
+    axis = int(np.argmax(np.abs(c1)))
+    if axis == 0 and c1[0] < 0:
+        raise CalibrationError(
+            f"T: cam1 sits {abs(c1[0]) * 1000:.1f} mm to the LEFT of cam0 (T_cam1_cam0 = "
+            f"{np.round(T, 6).tolist()} m has x > 0): the cameras are exchanged, or R/T give T_cam0_cam1 instead "
+            f"of T_cam1_cam0 (invert them), or the sign of T is flipped; for a right camera to the right of the "
+            f"left one T[0] is negative")
+    if axis != 0:
+        log.warning("the baseline (cam1 centre %s m from cam0) is mostly along %s, not x: stereopath expects a "
+                    "side-by-side pair", np.round(c1, 4).tolist(), "xyz"[axis])
+
+
 def make_rig(cam0: CameraModel, cam1: CameraModel, R: Any, T: Any, name: str = "rig",
              T_body_cam0: Any = None) -> Rig:
     """Validated :class:`Rig` from parts (``R``, ``T`` = ``T_cam1_cam0``, metres)."""
     R = validated_rotation("R", R)
-    T = _array("T", T, (3,))
+    T = checked_array("T", T, (3,))
     if np.linalg.norm(T) < 1e-6:
         raise CalibrationError("T: zero baseline (the two cameras coincide)")
-    Tb = None if T_body_cam0 is None else _array("T_body_cam0", T_body_cam0, (4, 4))
+    check_baseline_sign(R, T)
+    Tb = None if T_body_cam0 is None else checked_array("T_body_cam0", T_body_cam0, (4, 4))
     if Tb is not None:
         Tb = Tb.copy()
         Tb[:3, :3] = validated_rotation("T_body_cam0 rotation", Tb[:3, :3])
@@ -279,116 +301,6 @@ def rig_to_dict(rig: Rig) -> dict[str, Any]:
     if rig.T_body_cam0 is not None:
         out["T_body_cam0"] = [[float(v) for v in row] for row in rig.T_body_cam0]
     return out
-
-
-def load_rig_yaml(path: str | Path) -> Rig:
-    """Load our rig YAML; any problem raises :class:`CalibrationError` naming the file and field."""
-    import yaml
-
-    p = Path(path)
-    try:
-        text = p.read_text()
-    except FileNotFoundError:
-        raise CalibrationError(f"calibration file not found: {p}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise CalibrationError(f"{p}: invalid YAML: {exc}") from None
-    try:
-        return rig_from_dict(data, source=str(p))
-    except CalibrationError as exc:
-        msg = str(exc)
-        raise CalibrationError(msg if msg.startswith(str(p)) else f"{p}: {msg}") from None
-
-
-def save_rig_yaml(rig: Rig, path: str | Path, comment: str | None = None) -> None:
-    import yaml
-
-    text = yaml.safe_dump(rig_to_dict(rig), sort_keys=False, default_flow_style=None)
-    header = "".join(f"# {line}\n" for line in (comment or "").splitlines())
-    Path(path).write_text(header + text)
-
-
-# ---------------------------------------------------------------------------------------------
-# KITTI and EuRoC
-
-
-def load_kitti_calib(path: str | Path, image_size: tuple[int, int]) -> Rig:
-    """KITTI odometry ``calib.txt``: ``P0``, ``P1`` (rectified, so R = I, T = [-B, 0, 0])."""
-    p = Path(path)
-    try:
-        lines = p.read_text().splitlines()
-    except FileNotFoundError:
-        raise CalibrationError(f"KITTI calibration not found: {p}") from None
-    mats: dict[str, np.ndarray] = {}
-    for i, line in enumerate(lines, 1):
-        if not line.strip():
-            continue
-        key, _, rest = line.partition(":")
-        try:
-            vals = np.array([float(v) for v in rest.split()])
-        except ValueError:
-            raise CalibrationError(f"{p}:{i}: {key.strip()}: non-numeric value") from None
-        mats[key.strip()] = vals
-    for key in ("P0", "P1"):
-        if key not in mats:
-            raise CalibrationError(f"{p}: missing {key}")
-        if mats[key].size != 12:
-            raise CalibrationError(f"{p}: {key} must have 12 values, got {mats[key].size}")
-    P0 = mats["P0"].reshape(3, 4)
-    P1 = mats["P1"].reshape(3, 4)
-    if P1[0, 0] <= 0:
-        raise CalibrationError(f"{p}: P1: focal length must be positive")
-    baseline = -P1[0, 3] / P1[0, 0]
-    cam0 = make_camera("cam0", P0[:, :3], np.zeros(5), image_size)
-    cam1 = make_camera("cam1", P1[:, :3], np.zeros(5), image_size)
-    return make_rig(cam0, cam1, np.eye(3), [-baseline, 0.0, 0.0], name="kitti")
-
-
-def _euroc_sensor(path: Path) -> dict[str, Any]:
-    import yaml
-
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise CalibrationError(f"EuRoC sensor file not found: {path}") from None
-    text = re.sub(r"^%YAML.*$", "", text, count=1, flags=re.MULTILINE)  # OpenCV-style header
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise CalibrationError(f"{path}: invalid YAML: {exc}") from None
-    if not isinstance(data, dict):
-        raise CalibrationError(f"{path}: expected a mapping")
-    return data
-
-
-def _euroc_camera(name: str, path: Path) -> tuple[CameraModel, np.ndarray]:
-    d = _euroc_sensor(path)
-    for key in ("T_BS", "intrinsics", "resolution", "distortion_coefficients"):
-        if key not in d:
-            raise CalibrationError(f"{path}: missing {key}")
-    model = d.get("distortion_model", "radial-tangential")
-    if model not in ("radial-tangential", "radtan"):
-        raise CalibrationError(f"{path}: distortion_model {model!r} is not supported (radial-tangential only)")
-    tbs = d["T_BS"]
-    data = tbs.get("data") if isinstance(tbs, dict) else tbs
-    T_BS = _array(f"{name}.T_BS", data, (4, 4))
-    intr = d["intrinsics"]
-    if not isinstance(intr, list) or len(intr) != 4:
-        raise CalibrationError(f"{path}: intrinsics must be [fu, fv, cu, cv]")
-    fu, fv, cu, cv = (float(v) for v in intr)
-    K = np.array([[fu, 0, cu], [0, fv, cv], [0, 0, 1.0]])
-    cam = make_camera(name, K, d["distortion_coefficients"], d["resolution"])
-    return cam, T_BS
-
-
-def load_euroc_rig(mav0: str | Path) -> Rig:
-    """EuRoC/ASL rig from ``mav0/cam0/sensor.yaml`` and ``mav0/cam1/sensor.yaml``."""
-    m = Path(mav0)
-    cam0, T_B_C0 = _euroc_camera("cam0", m / "cam0" / "sensor.yaml")
-    cam1, T_B_C1 = _euroc_camera("cam1", m / "cam1" / "sensor.yaml")
-    T_C1_C0 = invert_pose(T_B_C1) @ T_B_C0
-    return make_rig(cam0, cam1, T_C1_C0[:3, :3], T_C1_C0[:3, 3], name="euroc", T_body_cam0=T_B_C0)
 
 
 def with_name(rig: Rig, name: str) -> Rig:

@@ -24,13 +24,13 @@ import numpy as np
 
 from stereopath.device.formats import layout
 from stereopath.device.formats.sequence import SequenceBase
-from stereopath.device.formats.csvrows import parse_float, parse_int, read_lines, read_rows
+from stereopath.device.formats.csvrows import parse_float, parse_int, read_rows
 from stereopath.device.formats.images import read_gray
 from stereopath.device.errors import DatasetError
 from stereopath.device.core.frames import ImuSamples, StereoFrame
-from stereopath.device.core.geometry import quat_xyzw_to_matrix
-from stereopath.device.core.rig import Rig, load_euroc_rig, load_rig_yaml
-from stereopath.device.formats.tum import Trajectory, read_tum, seconds_to_ns
+from stereopath.device.core.rig import Rig
+from stereopath.device.formats.rig_files import load_euroc_rig, load_rig_yaml
+from stereopath.device.formats.tum import Trajectory, read_tum, read_tum_poses
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +80,7 @@ class AslSequence(SequenceBase):
         if self.session_dir is None:
             return None
         p = self.session_dir / layout.TRAJECTORY
-        return read_appended_tum(p) if p.is_file() else None
+        return read_tum_poses(p, torn_tail_ok=True) if p.is_file() else None
 
 
 def open_asl(mav0_dir: str | Path, spec: str | None = None) -> AslSequence:
@@ -213,38 +213,11 @@ def _read_euroc_state_csv(path: Path) -> Trajectory:
     for line, f in rows:
         t = parse_int(path, line, f[0])
         v = [parse_float(path, line, x) for x in f[1:8]]
-        q = np.array([v[4], v[5], v[6], v[3]])  # -> x, y, z, w
-        if np.linalg.norm(q) < 1e-9:
+        row = [*v[:3], v[4], v[5], v[6], v[3]]  # q w, x, y, z -> x, y, z, w
+        if np.linalg.norm(row[3:]) < 1e-9:
             raise DatasetError(f"{path}:{line}: zero quaternion")
-        T = np.eye(4)
-        T[:3, :3] = quat_xyzw_to_matrix(q)
-        T[:3, 3] = v[:3]
         ts.append(t)
-        Ts.append(T)
+        Ts.append(row)
     if not ts:
         raise DatasetError(f"{path}: no poses")
-    return Trajectory(np.array(ts, dtype=np.int64), np.array(Ts))
-
-
-def read_appended_tum(path: Path) -> Trajectory | None:
-    """A TUM file that may have been cut mid-line by a crash (final partial line ignored)."""
-    ts, Ts = [], []
-    for line, s in read_lines(path):
-        parts = s.split()
-        if len(parts) != 8:
-            raise DatasetError(f"{path}:{line}: expected 8 values (t tx ty tz qx qy qz qw), got {len(parts)}")
-        try:
-            t = seconds_to_ns(parts[0])
-        except ArithmeticError:
-            raise DatasetError(f"{path}:{line}: timestamp is not a number: {parts[0]!r}") from None
-        v = [parse_float(path, line, x) for x in parts[1:]]
-        if np.linalg.norm(v[3:]) < 1e-9:
-            raise DatasetError(f"{path}:{line}: zero quaternion")
-        T = np.eye(4)
-        T[:3, :3] = quat_xyzw_to_matrix(np.array(v[3:]))
-        T[:3, 3] = v[:3]
-        ts.append(t)
-        Ts.append(T)
-    if not ts:
-        return None
-    return Trajectory(np.array(ts, dtype=np.int64), np.array(Ts))
+    return Trajectory.from_pose_rows(ts, Ts)

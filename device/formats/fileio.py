@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import json
 import os
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 
 def fsync_dir(path: str | Path) -> None:
@@ -23,10 +24,19 @@ def fsync_dir(path: str | Path) -> None:
         os.close(fd)
 
 
-def temp_path(path: str | Path) -> Path:
-    """The temporary name a write of ``path`` goes through (same folder, hidden, per process)."""
+def temp_path(path: str | Path, keep_suffix: bool = False) -> Path:
+    """The temporary name a write of ``path`` goes through (same folder, hidden, per process).
+
+    ``keep_suffix`` repeats the file's suffix at the end, for writers that pick the format from it.
+    """
     p = Path(path)
-    return p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    return p.with_name(f".{p.name}.{os.getpid()}.tmp" + (p.suffix if keep_suffix else ""))
+
+
+def is_temp(path: str | Path) -> bool:
+    """A left-over temporary file of an interrupted write (to sweep when a folder is reopened)."""
+    name = Path(path).name
+    return name.endswith(".tmp") or ".tmp." in name
 
 
 def write_atomic(path: str | Path, data: bytes, fsync: bool = True, mode: int | None = None) -> None:
@@ -53,6 +63,74 @@ def write_atomic(path: str | Path, data: bytes, fsync: bool = True, mode: int | 
         raise
     os.close(fd)
     os.replace(tmp, p)
+    if fsync:
+        fsync_dir(p.parent)
+
+
+def check_out_folder(path: str | Path, option: str = "--out") -> None:
+    """Refuse an output folder path that names an existing file (before anything is computed)."""
+    from stereopath.device.errors import ConfigError
+
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ConfigError(f"{option} {p}: exists and is not a folder")
+
+
+def process_umask() -> int:
+    """The process umask, read without changing it where the system allows (Linux /proc)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)  # no /proc: set and restore (not thread-safe, so only as a fallback)
+    os.umask(mask)
+    return mask
+def write_renamed_open(path: str | Path, data: bytes) -> int:
+    """Write ``data`` through the temporary name and rename it now, returning the still open descriptor.
+
+    For writers that make many files durable in batches: the caller fsyncs (and closes) the
+    descriptors and the folder later, at its own pace.
+    """
+    p = Path(path)
+    tmp = temp_path(p)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    try:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view):]
+        os.replace(tmp, p)
+    except BaseException:
+        os.close(fd)
+        tmp.unlink(missing_ok=True)
+        raise
+    return fd
+
+
+@contextmanager
+def replacing(path: str | Path, fsync: bool = False, mode: int | None = None) -> Iterator[Path]:
+    """For writers that need a file name (Open3D, matplotlib): ``with replacing(p) as tmp: write(tmp)``.
+
+    The temporary path ends with ``path``'s suffix; when the block succeeds it replaces ``path``,
+    when it raises the temporary file is removed and ``path`` is left as it was.
+    """
+    p = Path(path)
+    tmp = temp_path(p, keep_suffix=True)
+    try:
+        yield tmp
+        if mode is not None:
+            os.chmod(tmp, mode)
+        if fsync:
+            fd = os.open(tmp, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        os.replace(tmp, p)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     if fsync:
         fsync_dir(p.parent)
 

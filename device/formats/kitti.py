@@ -21,7 +21,8 @@ from stereopath.device.formats.csvrows import read_lines
 from stereopath.device.formats.images import read_gray
 from stereopath.device.errors import DatasetError
 from stereopath.device.core.frames import StereoFrame
-from stereopath.device.core.rig import Rig, load_kitti_calib
+from stereopath.device.core.rig import Rig
+from stereopath.device.formats.rig_files import load_kitti_calib
 from stereopath.device.formats.tum import Trajectory, read_kitti_poses, seconds_to_ns
 
 log = logging.getLogger(__name__)

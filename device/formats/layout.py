@@ -7,7 +7,7 @@ A stereopath session is a directory::
       groundtruth.tum      T_world_cam0 ground truth (simulated sessions; written atomically)
       trajectory.tum       the estimated T_world_cam0 path, appended while recording
       mav0/                EuRoC/ASL layout, readable by ORB-SLAM3, OpenVINS, Basalt and Kalibr
-        rig.yaml           our full rig calibration (stereopath.device.core.rig.save_rig_yaml; wins over sensor.yaml)
+        rig.yaml           our full rig calibration (stereopath.device.formats.rig_files.save_rig_yaml; wins over sensor.yaml)
         body.yaml
         cam0/sensor.yaml   EuRoC camera sensor file (T_BS = T_body_cam0, pinhole, radial-tangential)
         cam0/data.csv      "#timestamp [ns],filename"

@@ -29,7 +29,6 @@ import errno
 import json
 import logging
 import os
-import secrets
 import shutil
 import threading
 import time
@@ -41,9 +40,11 @@ import numpy as np
 
 from stereopath.device.formats import layout
 from stereopath.device.errors import CaptureError, ConfigError
-from stereopath.device.formats.fileio import fsync_dir, write_text_atomic
-from stereopath.device.core.frames import ImuSamples, StereoFrame
-from stereopath.device.core.rig import Rig, save_rig_yaml
+from stereopath.device.formats.fileio import fsync_dir, write_renamed_open, write_text_atomic
+from stereopath.device.wire.protocol import new_session_id
+from stereopath.device.core.frames import ImuSamples, StereoFrame, median_rate_hz
+from stereopath.device.core.rig import Rig
+from stereopath.device.formats.rig_files import MPU6050_NOISE, camera_sensor_yaml, imu_sensor_yaml, save_rig_yaml
 from stereopath.device.formats.tum import Trajectory, format_tum_line, write_tum
 
 log = logging.getLogger(__name__)
@@ -51,22 +52,9 @@ log = logging.getLogger(__name__)
 DEFAULT_RESERVE_BYTES = 256 * 1024 * 1024
 MAX_PENDING_IMAGES = 64  # flush sooner than chunk_s when this many image files wait for fsync
 
-# MPU-6050 nominal noise (datasheet densities; random walks are typical values) for imu0/sensor.yaml
-MPU6050_NOISE = {
-    "gyroscope_noise_density": 8.7266e-05,  # rad/s/sqrt(Hz)   (0.005 deg/s/sqrt(Hz))
-    "gyroscope_random_walk": 2.0e-05,  # rad/s^2/sqrt(Hz)
-    "accelerometer_noise_density": 3.9227e-03,  # m/s^2/sqrt(Hz)  (400 ug/sqrt(Hz))
-    "accelerometer_random_walk": 3.0e-04,  # m/s^3/sqrt(Hz)
-}
-
 FLUSH_ORDER = ("imu", "temp", "cam0", "cam1", "traj")
 
 RECORDING, CLOSED, STOPPED_LOW_DISK, ERROR = "recording", "closed", "stopped_low_disk", "error"
-
-
-def new_session_id() -> str:
-    """``YYYYmmddTHHMMSSZ-xxxxxx`` (UTC time plus 6 random hex digits)."""
-    return time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + secrets.token_hex(3)
 
 
 def _utc_now() -> str:
@@ -78,55 +66,6 @@ def _write_all(fd: int, data: bytes) -> None:
     while view:
         n = os.write(fd, view)
         view = view[n:]
-
-
-def _yaml_list(values: Any) -> str:
-    return "[" + ", ".join(repr(float(v)) for v in values) + "]"
-
-
-def _t_bs_block(T: np.ndarray) -> str:
-    rows = [", ".join(repr(float(v)) for v in row) for row in np.asarray(T, dtype=float)]
-    data = ",\n         ".join(rows)
-    return f"T_BS:\n  cols: 4\n  rows: 4\n  data: [{data}]\n"
-
-
-def camera_sensor_yaml(cam: Any, name: str, T_body_cam: np.ndarray, rate_hz: float) -> str:
-    """EuRoC ``camN/sensor.yaml`` text (pinhole, radial-tangential k1 k2 p1 p2)."""
-    dist = np.asarray(cam.dist, dtype=float).reshape(-1)
-    if dist.size > 4 and np.any(dist[4:] != 0):
-        log.warning("%s: sensor.yaml keeps only k1 k2 p1 p2 (EuRoC radial-tangential); the further "
-                    "coefficients %s are only in rig.yaml", name, dist[4:].tolist())
-    d4 = np.zeros(4)
-    d4[: min(4, dist.size)] = dist[:4]
-    return (
-        "%YAML:1.0\n"
-        "# General sensor definitions.\n"
-        "sensor_type: camera\n"
-        f"comment: stereopath {name}\n\n"
-        "# Sensor extrinsics wrt. the body-frame (the IMU frame).\n"
-        + _t_bs_block(T_body_cam)
-        + "\n# Camera specific definitions.\n"
-        f"rate_hz: {float(rate_hz)!r}\n"
-        f"resolution: [{int(cam.size[0])}, {int(cam.size[1])}]\n"
-        "camera_model: pinhole\n"
-        f"intrinsics: {_yaml_list([cam.fx, cam.fy, cam.cx, cam.cy])} #fu, fv, cu, cv\n"
-        "distortion_model: radial-tangential\n"
-        f"distortion_coefficients: {_yaml_list(d4)}\n"
-    )
-
-
-def imu_sensor_yaml(rate_hz: float, noise: dict[str, float]) -> str:
-    """EuRoC ``imu0/sensor.yaml`` text (the body frame is the IMU frame)."""
-    lines = "".join(f"{k}: {float(v)!r}\n" for k, v in noise.items())
-    return (
-        "%YAML:1.0\n"
-        "sensor_type: imu\n"
-        "comment: stereopath IMU (MPU-6050 class)\n\n"
-        + _t_bs_block(np.eye(4))
-        + f"rate_hz: {float(rate_hz)!r}\n\n"
-        "# inertial sensor noise model parameters (static)\n"
-        + lines
-    )
 
 
 class SessionRecorder:
@@ -340,10 +279,7 @@ class SessionRecorder:
         """Make everything queued durable now (images first, then their rows)."""
         with self._lock:
             if self._fds:
-                try:
-                    self._flush()
-                except OSError as exc:
-                    self._io_failed(exc)
+                self._flush_or_fail()
 
     def close(self) -> None:
         """Flush, close the files and rewrite the manifest.  Safe to call more than once."""
@@ -424,26 +360,17 @@ class SessionRecorder:
     @staticmethod
     def _write_image(path: Path, blob: bytes) -> int:
         """Write ``blob`` under a temporary name and rename it; the open fd is fsynced at flush."""
-        tmp = path.with_name("." + path.name + ".tmp")
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-        try:
-            _write_all(fd, blob)
-            os.replace(tmp, path)
-        except OSError:
-            os.close(fd)
-            try:
-                tmp.unlink()
-            except OSError:
-                pass
-            raise
-        return fd
+        return write_renamed_open(path, blob)
 
     def _maybe_flush(self) -> None:
         if (self._clock() - self._last_flush >= self.chunk_s) or len(self._pending_images) >= 2 * MAX_PENDING_IMAGES:
-            try:
-                self._flush()
-            except OSError as exc:
-                self._io_failed(exc)
+            self._flush_or_fail()
+
+    def _flush_or_fail(self) -> None:
+        try:
+            self._flush()
+        except OSError as exc:
+            self._io_failed(exc)
 
     def _flush(self) -> None:
         if self._pending_images:
@@ -511,12 +438,6 @@ class SessionRecorder:
             log.error("session %s: cannot write %s: %s", self.session_id, layout.MANIFEST, exc)
 
 
-def _rate_hz(t_ns: np.ndarray, default: float) -> float:
-    d = np.diff(np.asarray(t_ns, dtype=np.int64))
-    d = d[d > 0]
-    return float(round(1e9 / float(np.median(d)), 3)) if d.size else default
-
-
 def record_sequence(seq: Any, out_dir: str | Path, config_dict: dict[str, Any] | None = None,
                     max_frames: int | None = None, **recorder_kwargs: Any) -> dict[str, Any]:
     """Write any sequence (``rig``, ``t_ns``, ``frames()``, ``imu``, ``groundtruth``) as a session.
@@ -526,9 +447,9 @@ def record_sequence(seq: Any, out_dir: str | Path, config_dict: dict[str, Any] |
     """
     imu = seq.imu
     t_frames = np.asarray(seq.t_ns, dtype=np.int64)
-    recorder_kwargs.setdefault("cam_rate_hz", _rate_hz(t_frames, 20.0))
+    recorder_kwargs.setdefault("cam_rate_hz", median_rate_hz(t_frames) or 20.0)
     if imu is not None and len(imu):
-        recorder_kwargs.setdefault("imu_rate_hz", _rate_hz(imu.t_ns, 200.0))
+        recorder_kwargs.setdefault("imu_rate_hz", median_rate_hz(imu.t_ns) or 200.0)
     with SessionRecorder(out_dir, seq.rig, config_dict, **recorder_kwargs) as rec:
         prev = None
         for k, frame in enumerate(seq.frames()):

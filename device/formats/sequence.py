@@ -9,17 +9,26 @@ A sequence (:class:`SequenceBase` subclasses, or anything with the same attribut
 * ``imu``: :class:`stereopath.device.core.frames.ImuSamples` or ``None`` when the sequence has no IMU;
 * ``groundtruth``: :class:`stereopath.device.formats.tum.Trajectory` of ``T_world_cam0`` or ``None``;
 * ``name`` (short, for logs) and ``spec`` (the ``open_source`` string that reopens it).
+
+An unreadable frame (a corrupt or truncated image file) is skipped by ``frames()`` with a warning
+and its index recorded in ``skipped_frames`` (reports count them); set ``strict = True`` to stop
+at the first one with its :class:`stereopath.device.errors.DatasetError` instead.  ``frame(i)``
+always raises.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 
 import numpy as np
 
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.rig import Rig
+from stereopath.device.errors import DatasetError
 from stereopath.device.formats.tum import Trajectory
+
+log = logging.getLogger(__name__)
 
 
 class SequenceBase:
@@ -27,10 +36,12 @@ class SequenceBase:
 
     name: str = "sequence"
     spec: str = ""
+    strict: bool = False  # True: an unreadable frame stops frames() instead of being skipped
 
     def __init__(self, rig: Rig, t_ns: np.ndarray) -> None:
         self.rig = rig
         self.t_ns = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+        self.skipped_frames: list[int] = []
 
     def __len__(self) -> int:
         return len(self.t_ns)
@@ -46,7 +57,16 @@ class SequenceBase:
 
     def frames(self, start: int = 0, stop: int | None = None, step: int = 1) -> Iterator[StereoFrame]:
         for i in range(*slice(start, stop, step).indices(len(self))):
-            yield self._load(i)
+            try:
+                frame = self._load(i)
+            except DatasetError as exc:
+                if self.strict:
+                    raise DatasetError(f"{exc} (frame {i}; drop --strict to skip unreadable frames)") from None
+                if i not in self.skipped_frames:
+                    self.skipped_frames.append(i)
+                log.warning("%s: skipping unreadable frame %d: %s", self.name, i, exc)
+                continue
+            yield frame
 
     def __iter__(self) -> Iterator[StereoFrame]:
         return self.frames()

@@ -1,10 +1,12 @@
-"""``open_source(spec)``: one string names any recorded sequence.
+"""``open_source(spec)``: the one grammar and opener of a source spec, for every caller.
 
 Specs: ``kitti:DIR`` (a KITTI odometry sequence folder), ``euroc:DIR`` (an ASL ``mav0`` folder or
-the folder containing it), ``session:DIR`` (one of our recordings), ``sim[:SEED]`` (the simulator,
-see :mod:`stereopath.device.sim.source`).  Other schemes plug in through :func:`register_source`: an opener
-receives the text after the colon (``""`` when there is none) and returns an object with the
-sequence interface of :mod:`stereopath.device.formats.sequence`.
+the folder containing it), ``session:DIR`` (one of our recordings), ``sim[:SEED or key=value,...]``
+(the simulator, see :mod:`stereopath.device.sim.source`).  The replay source, the evaluation
+commands, the mapper and the reprocessor all open sequences here.  Other schemes plug in through an
+explicit :func:`register_source` call (never at import): an opener receives the text after the
+colon (``""`` when there is none) plus any settings, and returns an object with the sequence
+interface of :mod:`stereopath.device.formats.sequence`.
 """
 
 from __future__ import annotations
@@ -13,31 +15,39 @@ from typing import Any, Callable
 
 from stereopath.device.errors import DatasetError
 
-Opener = Callable[[str], Any]
+Opener = Callable[..., Any]
 
 
-def _kitti(arg: str) -> Any:
+def _no_settings(scheme: str, settings: dict[str, Any]) -> None:
+    if settings:
+        raise DatasetError(f"source {scheme}: takes no settings (got {', '.join(sorted(settings))})")
+
+
+def _kitti(arg: str, **settings: Any) -> Any:
     from stereopath.device.formats.kitti import open_kitti
 
+    _no_settings("kitti", settings)
     return open_kitti(arg, spec=f"kitti:{arg}")
 
 
-def _euroc(arg: str) -> Any:
+def _euroc(arg: str, **settings: Any) -> Any:
     from stereopath.device.formats.asl import open_asl
 
+    _no_settings("euroc", settings)
     return open_asl(arg, spec=f"euroc:{arg}")
 
 
-def _session(arg: str) -> Any:
+def _session(arg: str, **settings: Any) -> Any:
     from stereopath.device.formats.asl import open_session
 
+    _no_settings("session", settings)
     return open_session(arg)
 
 
-def _sim(arg: str) -> Any:
+def _sim(arg: str, **settings: Any) -> Any:
     from stereopath.device.sim.source import open_sim_spec  # sim[:SEED or key=value,...]
 
-    return open_sim_spec(arg)
+    return open_sim_spec(arg, **settings)
 
 
 # scheme -> opener(ARG); more sources plug in here or through register_source (imports inside the
@@ -63,12 +73,16 @@ def parse_spec(spec: str) -> tuple[str, str]:
     return scheme, arg
 
 
-def open_source(spec: str) -> Any:
-    """Open the sequence named by ``spec`` (see the module doc)."""
+def open_source(spec: str, **settings: Any) -> Any:
+    """Open the sequence named by ``spec`` (see the module doc).
+
+    ``settings`` go to the opener: the simulator takes :class:`~stereopath.device.sim.session.SimConfig`
+    fields (``open_source("sim:3", frames=40)``); the recorded formats take none.
+    """
     scheme, arg = parse_spec(spec)
     opener = _OPENERS.get(scheme)
     if opener is None:
         raise DatasetError(f"source {spec!r}: unknown scheme {scheme!r} (known: {', '.join(source_schemes())})")
     if scheme in ("kitti", "euroc", "session") and not arg:
         raise DatasetError(f"source {spec!r}: {scheme} needs a folder, e.g. {scheme}:/path/to/it")
-    return opener(arg)
+    return opener(arg, **settings)

@@ -1,44 +1,22 @@
 """Trajectory files: TUM (``t tx ty tz qx qy qz qw``, seconds) and KITTI (3x4 row-major poses).
 
-A :class:`Trajectory` holds ``t_ns`` (N,) int64 and ``T_world_cam`` (N, 4, 4).
+A :class:`~stereopath.device.core.trajectory.Trajectory` holds ``t_ns`` (N,) int64 and ``T_world_cam`` (N, 4, 4).
 Malformed files raise :class:`DatasetError` with the line number.
 """
 
 from __future__ import annotations
 
 import io
-import os
-from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
 
 from stereopath.device.errors import DatasetError
-from stereopath.device.core.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix
-
-
-@dataclass
-class Trajectory:
-    t_ns: np.ndarray
-    T_world_cam: np.ndarray
-
-    def __post_init__(self) -> None:
-        self.t_ns = np.asarray(self.t_ns, dtype=np.int64).reshape(-1)
-        self.T_world_cam = np.asarray(self.T_world_cam, dtype=float).reshape(-1, 4, 4)
-        if len(self.t_ns) != len(self.T_world_cam):
-            raise ValueError("Trajectory: t_ns and T_world_cam lengths differ")
-
-    def __len__(self) -> int:
-        return len(self.t_ns)
-
-    @property
-    def positions(self) -> np.ndarray:
-        return self.T_world_cam[:, :3, 3]
-
-    def path_length_m(self) -> float:
-        p = self.positions
-        return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1))) if len(p) > 1 else 0.0
+from stereopath.device.formats.csvrows import read_lines
+from stereopath.device.formats.fileio import write_text_atomic
+from stereopath.device.core.geometry import matrix_to_quat_xyzw
+from stereopath.device.core.trajectory import Trajectory
 
 
 def seconds_to_ns(text: str) -> int:
@@ -67,24 +45,18 @@ def write_tum(path: str | Path, traj: Trajectory) -> None:
     buf.write("# timestamp tx ty tz qx qy qz qw (T_world_cam, metres, seconds)\n")
     for t, T in zip(traj.t_ns, traj.T_world_cam):
         buf.write(format_tum_line(int(t), T))
-    tmp = p.with_suffix(p.suffix + ".tmp")
-    tmp.write_text(buf.getvalue())
-    os.replace(tmp, p)
+    write_text_atomic(p, buf.getvalue(), fsync=False)
 
 
-def read_tum(path: str | Path) -> Trajectory:
+def read_tum_poses(path: str | Path, torn_tail_ok: bool = False) -> Trajectory | None:
+    """Every pose of a TUM file, None when it has none (commas are accepted as separators).
+
+    With ``torn_tail_ok`` a final line without its newline (a file cut by a crash while being
+    appended to, e.g. a session's ``trajectory.tum``) is logged and ignored.
+    """
     p = Path(path)
-    try:
-        lines = p.read_text().splitlines()
-    except FileNotFoundError:
-        raise DatasetError(f"trajectory file not found: {p}") from None
-    except UnicodeDecodeError:
-        raise DatasetError(f"{p}: not a text file") from None
-    ts, Ts = [], []
-    for i, line in enumerate(lines, 1):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
+    ts, rows = [], []
+    for i, s in read_lines(p, torn_tail_ok=torn_tail_ok):
         parts = s.replace(",", " ").split()
         if len(parts) != 8:
             raise DatasetError(f"{p}:{i}: expected 8 values (t tx ty tz qx qy qz qw), got {len(parts)}")
@@ -95,14 +67,17 @@ def read_tum(path: str | Path) -> Trajectory:
             raise DatasetError(f"{p}:{i}: non-numeric value") from None
         if not np.all(np.isfinite(v)) or np.linalg.norm(v[3:]) < 1e-9:
             raise DatasetError(f"{p}:{i}: non-finite value or zero quaternion")
-        T = np.eye(4)
-        T[:3, :3] = quat_xyzw_to_matrix(v[3:])
-        T[:3, 3] = v[:3]
         ts.append(t)
-        Ts.append(T)
-    if not ts:
-        raise DatasetError(f"{p}: no poses")
-    return Trajectory(np.array(ts, dtype=np.int64), np.array(Ts))
+        rows.append(v)
+    return Trajectory.from_pose_rows(ts, rows) if ts else None
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """A complete TUM trajectory file (at least one pose)."""
+    traj = read_tum_poses(path)
+    if traj is None:
+        raise DatasetError(f"{path}: no poses")
+    return traj
 
 
 def read_kitti_poses(path: str | Path, t_ns: np.ndarray | None = None) -> Trajectory:

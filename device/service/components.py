@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from stereopath.device.core.config import as_dict
+from stereopath.device.core.frames import median_rate_hz
 from stereopath.device.errors import ConfigError
 from stereopath.device.service.options import secret_key_path
 from stereopath.device.service.settings import DeviceConfig
@@ -67,29 +68,20 @@ def open_imu(cfg: DeviceConfig, source: Any, inject: Mapping[str, Any]) -> Any:
     return imu
 
 
-def _median_rate_hz(t_ns: Any) -> float | None:
-    import numpy as np
-
-    if t_ns is None or len(t_ns) <= 2:
-        return None
-    d = np.diff(np.asarray(t_ns, dtype=np.int64))
-    d = d[d > 0]
-    return round(1e9 / float(np.median(d)), 3) if d.size else None
-
-
 def nominal_rates(cfg: DeviceConfig, source: Any) -> tuple[float, float | None]:
     """(camera Hz, IMU Hz) for the session's sensor files and the rate monitor."""
     cam_hz: float = float(cfg.source.fps)
     if cfg.source.recorded:
         seq = getattr(source, "session", None) or getattr(source, "sequence", None)
-        cam_hz = _median_rate_hz(getattr(seq, "t_ns", None)) or cam_hz
+        t_ns = getattr(seq, "t_ns", None)
+        cam_hz = (median_rate_hz(t_ns) if t_ns is not None and len(t_ns) > 2 else None) or cam_hz
     imu_hz: float | None = None
     if cfg.imu.polled:
         imu_hz = float(cfg.imu.rate_hz)
     elif cfg.imu.backend == "source":
         samples = getattr(getattr(source, "imu", None), "samples", None)
         if samples is not None and len(samples) > 2:
-            imu_hz = _median_rate_hz(samples.t_ns)
+            imu_hz = median_rate_hz(samples.t_ns)
         elif cfg.source.backend == "depthai":
             imu_hz = float(cfg.source.depthai.imu_rate_hz)
     return cam_hz, imu_hz
@@ -115,15 +107,14 @@ def open_streaming(cfg: DeviceConfig, session_dir: Path, session_id: str, rig: A
     if not cfg.stream.enabled:
         log.info("streaming disabled")
         return NoStreaming()
-    from stereopath.device.streaming import DeviceStreamer, KeyframeSpool, StreamConfig
+    import dataclasses
 
-    spool = KeyframeSpool(session_dir / "keyframes")
-    scfg = StreamConfig(pose_endpoint=cfg.stream.pose_endpoint, keyframe_endpoint=cfg.stream.keyframe_endpoint,
-                        insecure=cfg.stream.insecure, server_secret=str(secret_key_path(cfg, environ)),
-                        clients_dir=cfg.keys.clients_dir, image_encoding=cfg.stream.image_encoding,
-                        jpeg_quality=cfg.stream.jpeg_quality,
-                        status_interval_s=cfg.service.status_interval_s)
-    return StreamingSink(DeviceStreamer(scfg, spool, session_id, rig=rig))
+    from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
+
+    spool = KeyframeSpool(session_dir / "keyframes", reserve_bytes=int(cfg.recorder.reserve_mb * 1e6))
+    keys = dataclasses.replace(cfg.keys, server_secret=str(secret_key_path(cfg, environ)))
+    return StreamingSink(DeviceStreamer(cfg.stream, spool, session_id, rig=rig, keys=keys,
+                                        status_interval_s=cfg.service.status_interval_s))
 
 
 def open_components(cfg: DeviceConfig, session_dir: Path, session_id: str, *, source: Any = None,

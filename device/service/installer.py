@@ -11,8 +11,17 @@
 ``var/lib/stereopath/sessions/``                           0750   recordings (owner stereopath)
 ``etc/modules-load.d/stereopath.conf``                     0644   loads i2c-dev at boot
 ``etc/systemd/system/stereopath-capture.service``          0644   the unit
+``etc/systemd/system/stereopath-capture.service.d/``       0644   ``backend.conf``: the devices the configured
+``backend.conf``                                                  ``source.backend`` needs (``systemd/backend-*.conf``)
+``etc/udev/rules.d/80-stereopath-oak.rules``               0644   depthai only: the OAK's USB node for the user
 ``etc/systemd/system/multi-user.target.wants/...``         link   enabled at boot
 ========================================================  =====  =============================
+
+The unit itself allows only the IMU's I2C bus (``DevicePolicy=closed``); the drop-in adds
+exactly what the camera backend in ``/etc/stereopath/device.toml`` opens: libcamera's V4L2,
+media-controller and DMA-heap nodes for ``picamera2``, USB device nodes
+(``char-usb_device``) for ``depthai``, nothing for ``replay`` and ``sim``.  Run the
+installer again after changing ``source.backend``.
 
 Every step first looks at what is there and only changes what differs, so running it again
 gives the same tree (and reports every step as ``keep``).  With ``root == "/"`` the user and
@@ -35,10 +44,15 @@ from pathlib import Path
 from typing import Callable, Protocol, Sequence
 
 from stereopath.device.errors import ConfigError, StereopathError
+from stereopath.device.formats.fileio import write_atomic
 
 log = logging.getLogger(__name__)
 
 UNIT_NAME = "stereopath-capture.service"
+# source.backend -> the drop-in (in systemd/) that allows that backend's devices
+BACKEND_DROPINS = {"picamera2": "backend-picamera2.conf", "depthai": "backend-depthai.conf",
+                   "replay": "backend-none.conf", "sim": "backend-none.conf"}
+OAK_USB_VENDOR = "03e7"  # Intel Movidius: the OAK before and after its firmware boots
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -57,6 +71,7 @@ class Layout:
     state_dir: str = "/var/lib/stereopath"
     unit_dir: str = "/etc/systemd/system"
     modules_load: str = "/etc/modules-load.d/stereopath.conf"
+    udev_rules: str = "/etc/udev/rules.d/80-stereopath-oak.rules"
     nologin: str = "/usr/sbin/nologin"
 
     @property
@@ -128,7 +143,8 @@ class Installer:
 
     def __init__(self, root: str | Path = "/", *, layout: Layout | None = None, venv: VenvBuilder | None = None,
                  runner: Runner | None = None, project_dir: str | Path | None = None, dry_run: bool = False,
-                 python: str = "/usr/bin/python3", host_keys: Sequence[str | Path] = ()) -> None:
+                 python: str = "/usr/bin/python3", host_keys: Sequence[str | Path] = (),
+                 backend: str | None = None) -> None:
         self.root = Path(root).resolve()
         self.live = self.root == Path("/")
         self.layout = layout or Layout()
@@ -137,6 +153,7 @@ class Installer:
         self.project_dir = Path(project_dir) if project_dir else REPO_ROOT
         self.dry_run = dry_run
         self.host_keys = [Path(k) for k in host_keys]
+        self.backend = backend  # None: source.backend of the installed device.toml
         self.report = InstallReport(self.root)
 
     # ------------------------------------------------------------------ helpers
@@ -183,10 +200,7 @@ class Installer:
         if self.dry_run:
             return
         p.parent.mkdir(parents=True, exist_ok=True)
-        tmp = p.with_name(f".{p.name}.tmp")
-        tmp.write_bytes(content)
-        os.chmod(tmp, mode)
-        os.replace(tmp, p)
+        write_atomic(p, content, fsync=False, mode=mode)
 
     def _symlink(self, absolute: str, target: str) -> None:
         p = self.path(absolute)
@@ -342,9 +356,39 @@ class Installer:
             raise InstallError(f"{src} not found: run the installer from a stereopath source checkout")
         unit_path = f"{self.layout.unit_dir}/{UNIT_NAME}"
         self._file(unit_path, src.read_bytes(), 0o644)
+        backend = self.configured_backend()
+        dropin = self.project_dir / "systemd" / BACKEND_DROPINS[backend]
+        if not dropin.is_file():
+            raise InstallError(f"{dropin} not found: run the installer from a stereopath source checkout")
+        self._file(f"{self.layout.unit_dir}/{UNIT_NAME}.d/backend.conf", dropin.read_bytes(), 0o644)
+        if backend == "depthai":
+            rule = (f"# stereopath: the service user opens the OAK (USB vendor {OAK_USB_VENDOR}) through libusb\n"
+                    f'SUBSYSTEM=="usb", ATTRS{{idVendor}}=="{OAK_USB_VENDOR}", MODE="0660", '
+                    f'GROUP="{self.layout.user}"\n')
+            before = list(self.report.changed)
+            self._file(self.layout.udev_rules, rule.encode(), 0o644)
+            if self.live and self.report.changed != before and Path("/run/udev/control").exists():
+                self._run(["udevadm", "control", "--reload-rules"])
+                self._run(["udevadm", "trigger", "--subsystem-match=usb", f"--attr-match=idVendor={OAK_USB_VENDOR}"])
         self._symlink(f"{self.layout.unit_dir}/multi-user.target.wants/{UNIT_NAME}", unit_path)
         if self.live and Path("/run/systemd/system").is_dir():
             self._run(["systemctl", "daemon-reload"])
+
+    def configured_backend(self) -> str:
+        """``source.backend`` the drop-in is written for (the installed device.toml, validated)."""
+        if self.backend is not None:
+            backend = self.backend
+        else:
+            from stereopath.device.service.settings import load_device_config
+
+            cfg = self.path(f"{self.layout.etc_dir}/device.toml")
+            if not cfg.is_file():  # dry run on a fresh root: the file that would be installed
+                cfg = self.project_dir / "firmware_cfg" / "device.toml"
+            backend = load_device_config(cfg).source.backend
+        if backend not in BACKEND_DROPINS:
+            raise InstallError(f"source.backend = {backend!r}: no device drop-in for it "
+                               f"(known: {', '.join(BACKEND_DROPINS)})")
+        return backend
 
 
 def _read_db(path: Path) -> dict[str, list[str]]:

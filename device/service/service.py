@@ -47,7 +47,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import signal
 import threading
 import time
 from pathlib import Path
@@ -67,6 +66,7 @@ from stereopath.device.service.watchdog import Watchdog
 log = logging.getLogger(__name__)
 
 EXIT_OK, EXIT_FAILURE, EXIT_CONFIG = 0, 1, 78
+EXIT_DISK_FULL = 74  # EX_IOERR: the disk filled up during the run (what reached a host is kept there)
 TICK_S = 0.05                             # supervisor period
 
 
@@ -92,6 +92,7 @@ class CaptureService:
         self.pipeline: FramePipeline | None = None
         self.session_id = ""
         self.session_dir: Path | None = None
+        self._session_dir_existed = True  # set in _setup; a failed start removes only a folder it created
         self.state = "starting"
         self.exit_code = EXIT_OK
         self.stop_reason = ""
@@ -188,11 +189,15 @@ class CaptureService:
         self.notifier.notify(STATUS=f"{what}: {exc}")
         self._teardown()
         self._write_status(final=True)
+        if self.session_dir is not None and not self._session_dir_existed:
+            from stereopath.device.formats.session_cleanup import discard_unused_session
+
+            discard_unused_session(self.session_dir)
 
     # ------------------------------------------------------------------ set-up
 
     def _setup(self) -> None:
-        from stereopath.device.formats.recorder import new_session_id
+        from stereopath.device.wire.protocol import new_session_id
 
         cfg = self.cfg
         check_config(cfg, self.environ)
@@ -200,6 +205,7 @@ class CaptureService:
                  json.dumps(as_dict(cfg), separators=(",", ":"), default=str))
         self.session_id = new_session_id()
         self.session_dir = Path(self.options.out) if self.options.out else Path(cfg.recorder.dir) / self.session_id
+        self._session_dir_existed = self.session_dir.exists()
         if self.session_dir.exists() and (not self.session_dir.is_dir() or any(self.session_dir.iterdir())):
             raise ConfigError(f"--out {self.session_dir}: exists and is not empty (a session is never overwritten)")
         p = open_components(cfg, self.session_dir, self.session_id, environ=self.environ, parts=self.parts,
@@ -357,6 +363,7 @@ class CaptureService:
         if failure is not None and self.exit_code == EXIT_OK:
             self._fail(failure)
         self.parts.streaming.drain(self.cfg.stream.drain_s, self._clock)
+        self._report_disk_full()
         self._teardown()
         if self.state != "failed":
             self.state = "stopped"
@@ -364,6 +371,19 @@ class CaptureService:
         c = self.counters
         log.info("session %s ended (%s): %d frames in, %d estimated, %d keyframes, recorder %s", self.session_id,
                  self.stop_reason, c.frames_in, c.frames_done, c.keyframes, self.parts.recording.state)
+
+    def _report_disk_full(self) -> None:
+        """A disk that filled up during the run is said once at the end, with what it cost, and exits 74."""
+        rec_state = getattr(self.parts.recording, "state", "off")
+        f = self.parts.streaming.status_fields()
+        if rec_state != "stopped_low_disk" and not f.get("spool_disk_full"):
+            return
+        msg = (f"disk full: recording {rec_state}; {f.get('keyframes_in_memory', 0)} keyframe(s) held in memory "
+               f"were not acknowledged by a host (lost now), {f.get('keyframes_failed', 0)} could not be kept")
+        log.error("%s", msg)
+        self.notifier.notify(STATUS=msg)
+        if self.exit_code == EXIT_OK:
+            self.exit_code = EXIT_DISK_FULL
 
     def _say_which_sensor_went_quiet(self) -> None:
         """E.g. after the watchdog's SIGTERM: log which sensor stopped delivering."""
@@ -479,37 +499,3 @@ class CaptureService:
                                 path, exc)
                     self._status_warned = True
         return data
-
-
-# ---------------------------------------------------------------------------------------- entry point
-
-
-def run_service(config_path: str | Path | None, options: RunOptions | None = None, **inject: Any) -> int:
-    """Load the configuration, handle signals (in the main thread) and run one capture session.
-
-    Returns the exit status (0, 1, or 78 for a bad configuration, reported on one log line).
-    """
-    options = options or RunOptions()
-    try:
-        cfg = load_config(config_path, options)
-    except ConfigError as exc:
-        log.error("configuration error: %s", exc)
-        Notifier.from_env(inject.get("environ")).notify(STATUS=f"configuration error: {exc}")
-        return EXIT_CONFIG
-    service = CaptureService(cfg, options, config_path, **inject)
-    in_main = threading.current_thread() is threading.main_thread()
-    previous: dict[int, Any] = {}
-    if in_main:
-        def on_stop(signum: int, _frame: Any) -> None:
-            service.request_stop(f"signal {signal.Signals(signum).name}")
-
-        def on_hup(_signum: int, _frame: Any) -> None:
-            service.request_reload()
-
-        for sig, handler in ((signal.SIGTERM, on_stop), (signal.SIGINT, on_stop), (signal.SIGHUP, on_hup)):
-            previous[sig] = signal.signal(sig, handler)
-    try:
-        return service.run()
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)

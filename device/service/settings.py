@@ -243,20 +243,47 @@ class EstimatorSettings:
 
 @dataclass(frozen=True)
 class StreamSettings:
-    """ZeroMQ endpoints of the device."""
+    """The ``[stream]`` section: endpoints, security and bounds of the device's streamer.
 
-    pose_endpoint: str = "tcp://*:5555"       # PUB, lossy live poses
-    keyframe_endpoint: str = "tcp://*:5556"   # ROUTER, loss-free keyframes
+    The one type of these settings, from device.toml to
+    :class:`stereopath.device.streaming.DeviceStreamer` (which takes the ``[keys]`` section beside it).
+    Every in-memory queue is bounded by one of these numbers, so the device's memory does not
+    depend on what the host does.  Times are milliseconds unless the name says otherwise.
+    """
+
+    pose_endpoint: str = "tcp://*:5555"       # PUB, lossy live poses (bound by the device)
+    keyframe_endpoint: str = "tcp://*:5556"   # ROUTER, loss-free keyframes, status, control
     enabled: bool = True                      # stream at all (``device run --no-stream`` overrides)
     insecure: bool = False                    # plain TCP without CURVE; only loopback endpoints allowed
     image_encoding: Literal["jpg", "png", "raw"] = "jpg"  # keyframe images on the wire
     jpeg_quality: int = 90                    # 1..100 (image_encoding = "jpg")
+    png_compression: int = 1                  # 0..9 (image_encoding = "png")
     drain_s: float = 3.0                      # at the end of a run, wait up to this long (s) for a
     #                                           connected host to acknowledge every keyframe
+    max_credit: int = 16                # keyframes in flight per host, whatever credit it asks for
+    max_peers: int = 8                  # hosts tracked at once (least recently heard is evicted)
+    pose_sndhwm: int = 16               # PUB high-water mark (per subscriber, then dropped)
+    keyframe_sndhwm: int = 64           # ROUTER outbound messages per host
+    control_rcvhwm: int = 64            # ROUTER inbound messages per host
+    max_pending_keyframes: int = 16     # keyframes waiting to be encoded and spooled
+    heartbeat_ivl_ms: int = 1000        # ZMTP heartbeats (PING every ivl, drop after timeout)
+    heartbeat_timeout_ms: int = 5000
+    heartbeat_ttl_ms: int = 10000
+    spool_fsync: bool = True            # fsync each spooled keyframe before offering it
 
     def __post_init__(self) -> None:
         check_range("stream.jpeg_quality", self.jpeg_quality, 1, 100)
+        check_range("stream.png_compression", self.png_compression, 0, 9)
         check_range("stream.drain_s", self.drain_s, 0.0, 600.0)
+        check_range("stream.max_credit", self.max_credit, 1, 1024)
+        check_range("stream.max_peers", self.max_peers, 1, 256)
+        check_range("stream.pose_sndhwm", self.pose_sndhwm, 1, 100000)
+        check_range("stream.keyframe_sndhwm", self.keyframe_sndhwm, self.max_credit + 2, 100000)
+        check_range("stream.control_rcvhwm", self.control_rcvhwm, 1, 100000)
+        check_range("stream.max_pending_keyframes", self.max_pending_keyframes, 1, 1024)
+        check_range("stream.heartbeat_ivl_ms", self.heartbeat_ivl_ms, 0, 3_600_000)
+        check_range("stream.heartbeat_timeout_ms", self.heartbeat_timeout_ms, 0, 3_600_000)
+        check_range("stream.heartbeat_ttl_ms", self.heartbeat_ttl_ms, 0, 6_553_500)
 
 
 @dataclass(frozen=True)

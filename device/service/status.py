@@ -89,6 +89,9 @@ def status_line(s: Mapping[str, Any]) -> str:
         f"{temp:.1f} C" if isinstance(temp, (int, float)) else "temp ?",
         _bytes_text(s.get("disk_free_bytes")),
         f"recorder {s.get('recorder_state', '-')}",
+        *(["DISK FULL: keyframes in memory until a host has them "
+           f"({s.get('keyframes_in_memory', 0)} waiting, {s.get('keyframes_failed', 0)} lost)"]
+          if s.get("spool_disk_full") or s.get("recorder_state") == "stopped_low_disk" else []),
         f"{s.get('hosts', 0)} host(s)",
     ]
     head = f"{s.get('state', '?')} {s.get('session_id', '')}".strip()

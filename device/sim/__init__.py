@@ -6,7 +6,7 @@
 * :mod:`stereopath.device.sim.trajectories` analytic trajectories with exact derivatives (default: the 5.12 m arc);
 * :mod:`stereopath.device.sim.imu`          IMU truth and the MPU-6050-like measurement model;
 * :mod:`stereopath.device.sim.session`      ``open_sim(SimConfig(...)) -> SimSession`` ties them together;
-* :mod:`stereopath.device.sim.source`       registers ``sim[:SEED]`` with :func:`stereopath.device.formats.open_source`.
+* :mod:`stereopath.device.sim.source`       parses ``sim[:SEED or key=value,...]`` for :func:`stereopath.device.formats.open_source`.
 
 Nothing is imported until used: ``from stereopath.device.sim import open_sim, SimConfig`` loads the session module.
 """

@@ -50,10 +50,17 @@ TEMP_OFFSET_C = 36.53
 # cam0 -> body: body x = cam z, body y = -cam x, body z = -cam y; IMU origin at (24, 15, -10) mm in cam0
 _R_BODY_CAM0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 IMU_POSITION_CAM0_M = np.array([0.024, 0.015, -0.010])
-T_BODY_CAM0 = np.eye(4)
-T_BODY_CAM0[:3, :3] = _R_BODY_CAM0
-T_BODY_CAM0[:3, 3] = -_R_BODY_CAM0 @ IMU_POSITION_CAM0_M
-T_BODY_CAM0.setflags(write=False)
+
+
+def _body_from_cam0() -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = _R_BODY_CAM0
+    T[:3, 3] = -_R_BODY_CAM0 @ IMU_POSITION_CAM0_M
+    T.setflags(write=False)
+    return T
+
+
+T_BODY_CAM0 = _body_from_cam0()
 
 
 @dataclass(frozen=True)

@@ -247,6 +247,75 @@ class Renderer:
             self._grids[size] = (np.arange(size[0], dtype=np.float32), np.arange(size[1], dtype=np.float32))
         return self._grids[size]
 
+    def _cull(self, K: np.ndarray, size: tuple[int, int], R: np.ndarray, t: np.ndarray,
+              C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Tiles facing the camera and not wholly outside the view frustum: (indices, corners in camera frame)."""
+        w, h = size
+        tl = self.tiles
+        fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+        facing = np.einsum("ij,ij->i", tl.normal, C - tl.origin) > 1e-9
+        idx = np.nonzero(facing)[0]
+        if len(idx) == 0:
+            return idx, np.zeros((0, 4, 3))
+        Xc = tl.corners[idx] @ R.T + t  # (n, 4, 3)
+        m = 2.0
+        planes = np.array([
+            [0.0, 0.0, 1.0, -self.near_m],
+            [fx, 0.0, cx + 0.5 + m, 0.0],
+            [-fx, 0.0, w - 0.5 + m - cx, 0.0],
+            [0.0, fy, cy + 0.5 + m, 0.0],
+            [0.0, -fy, h - 0.5 + m - cy, 0.0],
+        ])
+        dist = Xc @ planes[:, :3].T + planes[:, 3]  # (n, 4, 5)
+        keep = ~np.any(np.all(dist < 0, axis=1), axis=1)
+        return idx[keep], Xc[keep]
+
+    def _tile_window(self, K: np.ndarray, size: tuple[int, int], Xc: np.ndarray, crosses: bool,
+                     box: np.ndarray, zmin: float) -> tuple[int, int, int, int, float] | None:
+        """Pixel window ``(x0, x1, y0, y1)`` of a tile and its largest inverse depth (None: nothing to draw)."""
+        w, h = size
+        fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+        if crosses:
+            poly = _clip_near(Xc, self.near_m)
+            if len(poly) < 3:
+                return None
+            u = fx * poly[:, 0] / poly[:, 2] + cx
+            v = fy * poly[:, 1] / poly[:, 2] + cy
+            bx = (np.floor(u.min()) - 1, np.ceil(u.max()) + 2, np.floor(v.min()) - 1, np.ceil(v.max()) + 2)
+            w_max = 1.0 / float(poly[:, 2].min())
+        else:
+            bx = box
+            w_max = 1.0 / float(zmin)
+        x0, x1 = max(0, int(bx[0])), min(w, int(bx[1]))
+        y0, y1 = max(0, int(bx[2])), min(h, int(bx[3]))
+        if x1 <= x0 or y1 <= y0:
+            return None
+        return x0, x1, y0, y1, w_max
+
+    def _draw_tile(self, img: np.ndarray, zbuf: np.ndarray, window: tuple[int, int, int, int], H: np.ndarray,
+                   r: np.ndarray, src: np.ndarray, grid: tuple[np.ndarray, np.ndarray], clip_near: bool) -> None:
+        """Warp one tile's texture into ``window`` and keep its pixels that are nearer than the z-buffer."""
+        x0, x1, y0, y1 = window
+        xs, ys = grid
+        Hk = H.copy()
+        Hk[0] -= x0 * Hk[2]
+        Hk[1] -= y0 * Hk[2]
+        bw, bh = x1 - x0, y1 - y0
+        warped = cv2.warpPerspective(src, Hk, (bw, bh), flags=cv2.INTER_LINEAR,
+                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        wz = self._scratch[:bh, :bw]
+        col = (r[1] * ys[y0:y1] + r[2]).astype(np.float32)
+        row = (r[0] * xs[x0:x1]).astype(np.float32)
+        np.add(col[:, None], row[None, :], out=wz)
+        zb = zbuf[y0:y1, x0:x1]
+        cond = warped[:, :, 1] >= _COVERAGE_MIN
+        cond &= warped[:, :, 2] >= _COVERAGE_MIN
+        cond &= wz > zb
+        if clip_near:
+            cond &= wz < 1.0 / self.near_m
+        np.copyto(img[y0:y1, x0:x1], warped[:, :, 0], where=cond)
+        np.copyto(zb, wz, where=cond)
+
     def _rasterize(self, K: np.ndarray, size: tuple[int, int], T_world_cam: np.ndarray,
                    levels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Noise-free image (uint8) and inverse depth (float32, 0 = nothing) of an ideal pinhole camera."""
@@ -255,45 +324,23 @@ class Renderer:
         T_wc = np.asarray(T_world_cam, float)
         T_cw = invert_pose(T_wc)
         R, t = T_cw[:3, :3], T_cw[:3, 3]
-        C = T_wc[:3, 3]
         fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
-        near = self.near_m
         img = np.full((h, w), self.background, np.uint8)
         zbuf = np.zeros((h, w), np.float32)
         if self._scratch.shape[0] < h or self._scratch.shape[1] < w:
             self._scratch = np.empty((max(h, self._scratch.shape[0]), max(w, self._scratch.shape[1])), np.float32)
-        xs, ys = self._grid(size)
-
-        facing = np.einsum("ij,ij->i", tl.normal, C - tl.origin) > 1e-9
-        idx = np.nonzero(facing)[0]
+        idx, Xc = self._cull(K, size, R, t, T_wc[:3, 3])
         if len(idx) == 0:
             return img, zbuf
-        Xc = tl.corners[idx] @ R.T + t  # (n, 4, 3)
-        m = 2.0
-        planes = np.array([
-            [0.0, 0.0, 1.0, -near],
-            [fx, 0.0, cx + 0.5 + m, 0.0],
-            [-fx, 0.0, w - 0.5 + m - cx, 0.0],
-            [0.0, fy, cy + 0.5 + m, 0.0],
-            [0.0, -fy, h - 0.5 + m - cy, 0.0],
-        ])
-        dist = Xc @ planes[:, :3].T + planes[:, 3]  # (n, 4, 5)
-        outside = np.any(np.all(dist < 0, axis=1), axis=1)
-        keep = ~outside
-        idx, Xc = idx[keep], Xc[keep]
-        if len(idx) == 0:
-            return img, zbuf
-        crosses = np.any(Xc[:, :, 2] < near, axis=1)
+        crosses = np.any(Xc[:, :, 2] < self.near_m, axis=1)
 
         # plane of each tile in camera coordinates -> inverse depth 1/z = r . (x, y, 1)
         n_c = tl.normal[idx] @ R.T
         d_c = np.einsum("ij,ij->i", n_c, tl.origin[idx] @ R.T + t)
-        Kinv = np.linalg.inv(K)
-        r = (n_c @ Kinv) / d_c[:, None]  # (n, 3)
+        r = (n_c @ np.linalg.inv(K)) / d_c[:, None]  # (n, 3)
         # homographies source pixel -> image pixel
         lev = levels[idx]
-        M = tl.M[idx, lev]  # (n, 3, 3)
-        G = np.einsum("ij,njk->nik", R, M)
+        G = np.einsum("ij,njk->nik", R, tl.M[idx, lev])
         G[:, :, 2] += t
         H = np.einsum("ij,njk->nik", K, G)
 
@@ -303,46 +350,16 @@ class Renderer:
             V = fy * Xc[:, :, 1] / Xc[:, :, 2] + cy
         zmin = Xc[:, :, 2].min(axis=1)
         boxes = np.stack([np.floor(U.min(1)) - 1, np.ceil(U.max(1)) + 2, np.floor(V.min(1)) - 1, np.ceil(V.max(1)) + 2], 1)
+        grid = self._grid(size)
         # nearest first, so that fully hidden tiles can be skipped by a cheap z-buffer test
         for k in np.argsort(zmin):
-            ti = idx[k]
-            if crosses[k]:
-                poly = _clip_near(Xc[k], near)
-                if len(poly) < 3:
-                    continue
-                u = fx * poly[:, 0] / poly[:, 2] + cx
-                v = fy * poly[:, 1] / poly[:, 2] + cy
-                bx = (np.floor(u.min()) - 1, np.ceil(u.max()) + 2, np.floor(v.min()) - 1, np.ceil(v.max()) + 2)
-                w_max = 1.0 / float(poly[:, 2].min())
-            else:
-                bx = boxes[k]
-                w_max = 1.0 / float(zmin[k])
-            x0, x1 = max(0, int(bx[0])), min(w, int(bx[1]))
-            y0, y1 = max(0, int(bx[2])), min(h, int(bx[3]))
-            if x1 <= x0 or y1 <= y0:
+            win = self._tile_window(K, size, Xc[k], bool(crosses[k]), boxes[k], zmin[k])
+            if win is None:
                 continue
+            x0, x1, y0, y1, w_max = win
             if w_max < float(zbuf[y0:y1, x0:x1].min()):  # every pixel already has a nearer surface
                 continue
-            Hk = H[k].copy()
-            Hk[0] -= x0 * Hk[2]
-            Hk[1] -= y0 * Hk[2]
-            src = tl.src[ti][lev[k]]
-            bw, bh = x1 - x0, y1 - y0
-            warped = cv2.warpPerspective(src, Hk, (bw, bh), flags=cv2.INTER_LINEAR,
-                                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-            rk = r[k]
-            wz = self._scratch[:bh, :bw]
-            col = (rk[1] * ys[y0:y1] + rk[2]).astype(np.float32)
-            row = (rk[0] * xs[x0:x1]).astype(np.float32)
-            np.add(col[:, None], row[None, :], out=wz)
-            zb = zbuf[y0:y1, x0:x1]
-            cond = warped[:, :, 1] >= _COVERAGE_MIN
-            cond &= warped[:, :, 2] >= _COVERAGE_MIN
-            cond &= wz > zb
-            if crosses[k]:
-                cond &= wz < 1.0 / near
-            np.copyto(img[y0:y1, x0:x1], warped[:, :, 0], where=cond)
-            np.copyto(zb, wz, where=cond)
+            self._draw_tile(img, zbuf, (x0, x1, y0, y1), H[k], r[k], tl.src[idx[k]][lev[k]], grid, bool(crosses[k]))
         return img, zbuf
 
     def render_view(self, K: np.ndarray, size: tuple[int, int], T_world_cam: np.ndarray,

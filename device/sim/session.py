@@ -33,7 +33,7 @@ from stereopath.device.core.rig import Rig, paper_rig
 from stereopath.device.sim.imu import ACCEL_LSB_PER_G, GYRO_LSB_PER_DPS, T_BODY_CAM0, ImuNoiseModel, simulate_imu
 from stereopath.device.sim.scene import GRAVITY_WORLD
 from stereopath.device.sim.trajectories import FIRST_FRAME_S, TRAJECTORIES, get_trajectory
-from stereopath.device.formats.tum import Trajectory
+from stereopath.device.core.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 

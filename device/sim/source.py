@@ -1,8 +1,8 @@
 """``open_source("sim[:ARG]")``: the simulator as a recorded-sequence source.
 
 ``ARG`` is empty (defaults), a seed (``sim:3``) or comma-separated ``key=value`` settings of
-:class:`stereopath.device.sim.session.SimConfig` (``sim:seed=3,frames=100,trajectory=orbit``).  Importing
-this module registers the ``sim`` scheme with :mod:`stereopath.device.formats.source`.
+:class:`stereopath.device.sim.session.SimConfig` (``sim:seed=3,frames=100,trajectory=orbit``).  The opener of
+:mod:`stereopath.device.formats.source` calls :func:`open_sim_spec` for the ``sim`` scheme.
 """
 
 from __future__ import annotations
@@ -52,18 +52,10 @@ def parse_sim_spec(arg: str) -> dict[str, Any]:
     return out
 
 
-def open_sim_spec(arg: str):
+def open_sim_spec(arg: str, **settings: Any):
+    """The simulated session named by ``arg``; ``settings`` (SimConfig fields) override the spec's."""
     from stereopath.device.sim.session import open_sim
 
-    sess = open_sim(**parse_sim_spec(arg))
+    sess = open_sim(**{**parse_sim_spec(arg), **settings})
     sess.spec = f"sim:{arg}" if arg else "sim"
     return sess
-
-
-def _register() -> None:
-    from stereopath.device.formats.source import register_source
-
-    register_source("sim", open_sim_spec)
-
-
-_register()

@@ -10,9 +10,12 @@ Protocol (ZeroMQ Guide ch.7 "credit-based flow control" + ch.4 "disconnected rel
 * after a reconnect the host says hello again and receives everything newer than what it holds,
   so it gets every keyframe exactly once (it deduplicates by (session, seq)).
 
-Hosts are keyed by their CURVE public key (the ``User-Id`` ZAP sets on each message), not by
-the ROUTER routing id, which changes on every reconnection.  Without CURVE (insecure loopback)
-the routing id is the key.  Memory is bounded: at most ``max_peers`` hosts, at most
+Each host connection is a peer of its own, acknowledged on its own: two hosts holding the same
+key (two laptops, or ``host live`` started twice) each receive every keyframe and the status,
+and neither starves the other.  A peer is identified by its CURVE public key (the ``User-Id``
+ZAP sets on each message; the routing id without CURVE) and its connection (the ROUTER routing
+id, new on every reconnection, which always starts with a hello); a connection that became
+unreachable is forgotten.  Memory is bounded: at most ``max_peers`` connections, at most
 ``max_credit`` keyframes in flight per host (the bytes are read from the spool on demand), and
 the ROUTER's high-water marks bound what ZeroMQ queues.
 
@@ -29,8 +32,8 @@ from typing import Any, Callable
 
 from stereopath.device.errors import DatasetError
 from stereopath.device.wire.protocol import Ack, Credit, DecodeError, Hello, decode_control
-from stereopath.device.streaming.config import StreamConfig
-from stereopath.device.wire.sockets import apply_common_options
+from stereopath.device.service.settings import StreamSettings
+from stereopath.device.wire.sockets import CurveKeys, open_socket
 from stereopath.device.streaming.spool import KeyframeSpool
 
 log = logging.getLogger(__name__)
@@ -40,11 +43,17 @@ log = logging.getLogger(__name__)
 SOCKET_MAX_BYTES = 4096
 
 
+def _conn_id(key: str, routing_id: bytes) -> str:
+    return f"{key}@{routing_id.hex()}"
+
+
 class _Peer:
-    __slots__ = ("key", "routing_id", "next_seq", "credit", "acked", "max_sent", "connected", "last_heard")
+    __slots__ = ("key", "conn", "routing_id", "next_seq", "credit", "acked", "max_sent", "connected",
+                 "last_heard")
 
     def __init__(self, key: str, routing_id: bytes) -> None:
         self.key = key
+        self.conn = _conn_id(key, routing_id)
         self.routing_id = routing_id
         self.next_seq = 0
         self.credit = 0
@@ -57,8 +66,8 @@ class _Peer:
 class KeyframeServer:
     """ROUTER socket bound to ``config.keyframe_endpoint``; driven by the streamer's I/O thread."""
 
-    def __init__(self, ctx: Any, config: StreamConfig, spool: KeyframeSpool, session_id: str,
-                 curve_keys: tuple[bytes, bytes] | None, status_fn: Callable[[], bytes]) -> None:
+    def __init__(self, ctx: Any, config: StreamSettings, spool: KeyframeSpool, session_id: str,
+                 curve_keys: CurveKeys | None, status_fn: Callable[[], bytes]) -> None:
         import zmq
 
         self._zmq = zmq
@@ -67,20 +76,20 @@ class KeyframeServer:
         self.session_id = session_id
         self.secure = curve_keys is not None
         self._status_fn = status_fn
-        self.sock = ctx.socket(zmq.ROUTER)
-        apply_common_options(self.sock, heartbeat_ivl_ms=config.heartbeat_ivl_ms,
-                             heartbeat_timeout_ms=config.heartbeat_timeout_ms,
-                             heartbeat_ttl_ms=config.heartbeat_ttl_ms,
-                             maxmsgsize=SOCKET_MAX_BYTES)
-        self.sock.setsockopt(zmq.ROUTER_MANDATORY, 1)
-        self.sock.setsockopt(zmq.SNDHWM, config.keyframe_sndhwm)
-        self.sock.setsockopt(zmq.RCVHWM, config.control_rcvhwm)
-        if curve_keys is not None:
-            self.sock.curve_publickey, self.sock.curve_secretkey = curve_keys
-            self.sock.curve_server = True
-        self.sock.bind(config.keyframe_endpoint)
+        self.sock = open_socket(ctx, zmq.ROUTER, curve_keys,
+                                options={zmq.ROUTER_MANDATORY: 1, zmq.SNDHWM: config.keyframe_sndhwm,
+                                         zmq.RCVHWM: config.control_rcvhwm},
+                                heartbeat_ivl_ms=config.heartbeat_ivl_ms,
+                                heartbeat_timeout_ms=config.heartbeat_timeout_ms,
+                                heartbeat_ttl_ms=config.heartbeat_ttl_ms, maxmsgsize=SOCKET_MAX_BYTES)
+        try:
+            self.sock.bind(config.keyframe_endpoint)
+        except zmq.ZMQError:
+            self.sock.close(linger=0)  # an open socket would hang the context's term() for good
+            raise
         self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self._peers: dict[str, _Peer] = {}
+        self._sent_by_key: dict[str, int] = {}  # highest seq sent to any connection of a key (bounded)
         self.stats: dict[str, int] = {
             "control_received": 0, "control_rejected": 0, "hellos": 0, "acks": 0, "credits": 0,
             "keyframes_sent": 0, "keyframes_resent": 0, "status_sent": 0, "status_dropped": 0,
@@ -138,12 +147,15 @@ class KeyframeServer:
         log.debug("rejected control message (%s): %s", reason, detail[:200])
 
     def _handle(self, key: str, rid: bytes, msg: Hello | Ack | Credit) -> None:
-        peer = self._peers.get(key)
+        peer = self._peers.get(_conn_id(key, rid))
         if isinstance(msg, Hello):
             self.stats["hellos"] += 1
             if peer is None:
+                same_key = sum(1 for p in self._peers.values() if p.key == key and p.connected)
+                if same_key:
+                    log.info("host %s: another connection with the same key (%d already connected); each gets "
+                             "every keyframe", key[:20], same_key)
                 peer = self._add_peer(key, rid)
-            peer.routing_id = rid
             peer.connected = True
             peer.last_heard = time.monotonic()
             acked = msg.acked_seq if msg.session_id == self.session_id else -1
@@ -158,15 +170,15 @@ class KeyframeServer:
             self._reject("no_hello", f"{type(msg).__name__} from {key[:20]} before hello")
             return
         peer.last_heard = time.monotonic()
-        if rid != peer.routing_id or not peer.connected:
-            # the host reconnected without saying hello: whatever was in flight is lost (go back)
-            peer.routing_id = rid
+        if not peer.connected:
+            # reachable again without a hello: whatever was in flight is lost (go back)
             peer.connected = True
             peer.next_seq = peer.acked + 1
         if isinstance(msg, Ack):
             self.stats["acks"] += 1
             if msg.session_id == self.session_id and msg.seq <= peer.max_sent:
                 peer.acked = max(peer.acked, msg.seq)
+                self.spool.release(peer.acked)  # stored on a host: what a full disk kept in memory can go
             peer.credit = min(peer.credit + msg.credit, self.config.max_credit)
         else:
             self.stats["credits"] += 1
@@ -174,12 +186,13 @@ class KeyframeServer:
 
     def _add_peer(self, key: str, rid: bytes) -> _Peer:
         if len(self._peers) >= self.config.max_peers:
-            oldest = min(self._peers.values(), key=lambda p: p.last_heard)
-            del self._peers[oldest.key]
+            oldest = min(self._peers.values(), key=lambda p: (p.connected, p.last_heard))
+            del self._peers[oldest.conn]
             self.stats["peers_evicted"] += 1
             log.warning("too many hosts (max %d): forgetting %s", self.config.max_peers, oldest.key[:20])
         peer = _Peer(key, rid)
-        self._peers[key] = peer
+        peer.max_sent = self._sent_by_key.get(key, -1)  # what this key had: later sends count as resends
+        self._peers[peer.conn] = peer
         return peer
 
     # ------------------------------------------------------------------ outgoing
@@ -229,6 +242,11 @@ class KeyframeServer:
                 if seq <= peer.max_sent:
                     self.stats["keyframes_resent"] += 1
                 peer.max_sent = max(peer.max_sent, seq)
+                if self._sent_by_key.get(peer.key, -1) < seq:
+                    self._sent_by_key.pop(peer.key, None)
+                    self._sent_by_key[peer.key] = seq
+                    while len(self._sent_by_key) > 4 * self.config.max_peers:
+                        self._sent_by_key.pop(next(iter(self._sent_by_key)))
                 peer.next_seq = seq + 1
                 peer.credit -= 1
         return blocked
@@ -237,6 +255,8 @@ class KeyframeServer:
         for peer in list(self._peers.values()):
             if peer.connected:
                 self._send_to(peer, data, status=True)
+            if not peer.connected:  # unreachable: that connection is gone (a reconnection says hello)
+                del self._peers[peer.conn]
 
     def peers(self) -> list[dict[str, Any]]:
         return [{"key": p.key, "connected": p.connected, "acked": p.acked, "next_seq": p.next_seq,

@@ -14,8 +14,8 @@ import logging
 import threading
 from typing import Any
 
-from stereopath.device.streaming.config import StreamConfig
-from stereopath.device.wire.sockets import apply_common_options
+from stereopath.device.service.settings import StreamSettings
+from stereopath.device.wire.sockets import CurveKeys, open_socket
 
 log = logging.getLogger(__name__)
 
@@ -26,20 +26,19 @@ INBOUND_MAX_BYTES = 4096
 class PosePublisher:
     """PUB socket bound to ``config.pose_endpoint`` (CURVE server unless insecure)."""
 
-    def __init__(self, ctx: Any, config: StreamConfig, curve_keys: tuple[bytes, bytes] | None) -> None:
+    def __init__(self, ctx: Any, config: StreamSettings, curve_keys: CurveKeys | None) -> None:
         import zmq
 
         self._zmq = zmq
-        self.sock = ctx.socket(zmq.PUB)
-        apply_common_options(self.sock, heartbeat_ivl_ms=config.heartbeat_ivl_ms,
-                             heartbeat_timeout_ms=config.heartbeat_timeout_ms,
-                             heartbeat_ttl_ms=config.heartbeat_ttl_ms,
-                             maxmsgsize=INBOUND_MAX_BYTES)
-        self.sock.setsockopt(zmq.SNDHWM, config.pose_sndhwm)
-        if curve_keys is not None:
-            self.sock.curve_publickey, self.sock.curve_secretkey = curve_keys
-            self.sock.curve_server = True
-        self.sock.bind(config.pose_endpoint)
+        self.sock = open_socket(ctx, zmq.PUB, curve_keys, options={zmq.SNDHWM: config.pose_sndhwm},
+                                heartbeat_ivl_ms=config.heartbeat_ivl_ms,
+                                heartbeat_timeout_ms=config.heartbeat_timeout_ms,
+                                heartbeat_ttl_ms=config.heartbeat_ttl_ms, maxmsgsize=INBOUND_MAX_BYTES)
+        try:
+            self.sock.bind(config.pose_endpoint)
+        except zmq.ZMQError:
+            self.sock.close(linger=0)  # an open socket would hang the context's term() for good
+            raise
         self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.sent = 0
         self.dropped = 0

@@ -8,16 +8,27 @@ session.  Files are never deleted by the streamer (they are part of the recordin
 
 Thread model: one writer (:meth:`append`), any number of readers (:meth:`read`) of seqs below
 :attr:`count`.
+
+Full disk: the spool keeps ``reserve_bytes`` free (the recorder's reserve) and treats ``ENOSPC``
+the same way.  From then on (:attr:`disk_full`) keyframes are held in memory, up to
+``max_memory_bytes``, until a host acknowledges them (:meth:`release`): keyframes that reach a
+host need no spool space.  Only when that memory is full too is a keyframe refused (counted by
+the streamer); :attr:`memory_count` keyframes not yet acknowledged are lost if the device stops.
 """
 
 from __future__ import annotations
 
+import errno
 import logging
-import os
 import re
+import shutil
+import threading
+from collections.abc import Callable
 from pathlib import Path
 
 from stereopath.device.errors import DatasetError
+from stereopath.device.formats import fileio
+from stereopath.device.formats.fileio import is_temp
 
 log = logging.getLogger(__name__)
 
@@ -32,12 +43,23 @@ class KeyframeSpool:
     temporary files of an interrupted write are removed).
     """
 
-    def __init__(self, directory: str | Path, fsync: bool = True) -> None:
+    def __init__(self, directory: str | Path, fsync: bool = True, reserve_bytes: int = 0,
+                 max_memory_bytes: int = 64 * 2**20, disk_free: Callable[[Path], int] | None = None) -> None:
         self.dir = Path(directory)
         self.fsync = fsync
+        self.reserve_bytes = max(0, int(reserve_bytes))
+        self.max_memory_bytes = max(0, int(max_memory_bytes))
+        self._disk_free = disk_free or (lambda p: int(shutil.disk_usage(p).free))
+        self.disk_full: str | None = None  # why the spool went to memory (None: writing to disk)
+        self._memory: dict[int, bytes] = {}
+        self._released: set[int] = set()  # delivered from memory, never on disk (bounded by what was held)
+        self._mem_lock = threading.Lock()
+        self.memory_bytes = 0
+        self.held_in_memory = 0  # keyframes that ever went to memory
         self.dir.mkdir(parents=True, exist_ok=True)
-        for tmp in self.dir.glob("*.tmp"):
-            tmp.unlink(missing_ok=True)
+        for tmp in self.dir.iterdir():
+            if is_temp(tmp):
+                tmp.unlink(missing_ok=True)
         seqs = sorted(int(m.group(1)) for p in self.dir.iterdir() if (m := _NAME_RE.match(p.name)))
         if seqs and seqs != list(range(len(seqs))):
             raise DatasetError(f"keyframe spool {self.dir} is not contiguous from 0 "
@@ -59,35 +81,70 @@ class KeyframeSpool:
         return self.dir / f"{int(seq):08d}{SUFFIX}"
 
     def append(self, seq: int, data: bytes) -> None:
-        """Write keyframe ``seq`` (must be :attr:`count`) atomically; it is readable when this returns."""
+        """Store keyframe ``seq`` (must be :attr:`count`); it is readable when this returns.
+
+        On disk (atomically) while the disk has room above the reserve, else in memory (see the
+        module doc); raises :class:`DatasetError` when neither can take it.
+        """
         if seq != self._count:
             raise DatasetError(f"keyframe spool {self.dir}: expected seq {self._count}, got {seq}")
-        final = self.path(seq)
-        tmp = final.with_name(final.name + ".tmp")
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-        try:
-            view = memoryview(data)
-            while view:
-                n = os.write(fd, view)
-                view = view[n:]
-            if self.fsync:
-                os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, final)
-        if self.fsync:
-            dfd = os.open(self.dir, os.O_RDONLY)
+        if self.disk_full is None:
             try:
-                os.fsync(dfd)
-            finally:
-                os.close(dfd)
-        self.bytes_written += len(data)
+                free = self._disk_free(self.dir)
+            except OSError:
+                free = None
+            if free is not None and free - len(data) < self.reserve_bytes:
+                self._go_to_memory(f"{free / 2**20:.0f} MiB free, the reserve is {self.reserve_bytes / 2**20:.0f} MiB")
+            else:
+                try:
+                    fileio.write_atomic(self.path(seq), data, fsync=self.fsync)
+                except OSError as exc:
+                    if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+                        raise
+                    self._go_to_memory(exc.strerror or str(exc))
+                else:
+                    self.bytes_written += len(data)
+                    self._count = seq + 1
+                    return
+        with self._mem_lock:
+            if self.memory_bytes + len(data) > self.max_memory_bytes:
+                raise DatasetError(f"keyframe spool {self.dir}: disk full ({self.disk_full}) and "
+                                   f"{len(self._memory)} keyframes ({self.memory_bytes / 2**20:.1f} MiB) already wait "
+                                   f"in memory for a host; keyframe {seq} dropped")
+            self._memory[seq] = data
+            self.memory_bytes += len(data)
+            self.held_in_memory += 1
         self._count = seq + 1
+
+    def _go_to_memory(self, why: str) -> None:
+        self.disk_full = why
+        log.error("keyframe spool %s: disk full (%s): keyframes are held in memory until a host acknowledges "
+                  "them (up to %.0f MiB), the reserve is kept", self.dir, why, self.max_memory_bytes / 2**20)
+
+    def release(self, acked_seq: int) -> None:
+        """A host acknowledged every keyframe up to ``acked_seq``: free the ones held in memory."""
+        if not self._memory:
+            return
+        with self._mem_lock:
+            for s in [s for s in self._memory if s <= acked_seq]:
+                self.memory_bytes -= len(self._memory.pop(s))
+                self._released.add(s)
+
+    @property
+    def memory_count(self) -> int:
+        """Keyframes held only in memory (not yet acknowledged by any host)."""
+        return len(self._memory)
 
     def read(self, seq: int) -> bytes:
         """The bytes of keyframe ``seq`` (raises :class:`DatasetError` if it is not spooled)."""
         if not 0 <= seq < self._count:
             raise DatasetError(f"keyframe {seq} is not in spool {self.dir} (0..{self._count - 1})")
+        data = self._memory.get(seq)
+        if data is not None:
+            return data
+        if seq in self._released:
+            raise DatasetError(f"keyframe spool {self.dir}: seq {seq} was delivered from memory (disk full) and "
+                               f"is not on disk")
         try:
             return self.path(seq).read_bytes()
         except OSError as exc:

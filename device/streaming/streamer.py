@@ -18,7 +18,7 @@ keyframe is refused (``False``) and counted.
 Example::
 
     spool = KeyframeSpool(session_dir / "keyframes")
-    with DeviceStreamer(StreamConfig(...), spool, session_id, rig=rig) as streamer:
+    with DeviceStreamer(cfg.stream, spool, session_id, rig=rig, keys=cfg.keys) as streamer:
         streamer.publish_pose(seq, t_ns, T_world_cam, tracking="ok", inliers=120)
         streamer.offer_keyframe(seq, t_ns, T_world_cam, left, right)
         streamer.publish_status(frame_rate_hz=20.0, imu_rate_hz=200.0, recorder_state="recording")
@@ -40,11 +40,11 @@ from stereopath.device.errors import ConfigError, DatasetError, ProtocolError
 from stereopath.device.wire.protocol import HEALTH_FIELDS, DeviceHealth, Status, check_session_id, encode_keyframe, encode_pose, encode_status, make_keyframe, \
     pose_from_matrix, rig_reference
 from stereopath.device.streaming import health
-from stereopath.device.streaming.config import StreamConfig
+from stereopath.device.service.settings import KeySettings, StreamSettings
 from stereopath.device.streaming.keyframe_server import KeyframeServer
 from stereopath.device.streaming.pose_publisher import PosePublisher
-from stereopath.device.wire.security import check_loopback_endpoint, load_secret_keypair, require_curve, \
-    start_authenticator
+from stereopath.device.wire.security import load_secret_keypair, start_authenticator
+from stereopath.device.wire.sockets import CurveKeys, secure_channel
 from stereopath.device.streaming.spool import KeyframeSpool
 
 log = logging.getLogger(__name__)
@@ -59,11 +59,13 @@ class DeviceStreamer:
     sent with every keyframe.  Bind errors and key problems raise :class:`ConfigError` here.
     """
 
-    def __init__(self, config: StreamConfig, spool: KeyframeSpool, session_id: str, rig: Any = None,
-                 rig_ref: tuple[str, str] | None = None) -> None:
+    def __init__(self, config: StreamSettings, spool: KeyframeSpool, session_id: str, rig: Any = None,
+                 rig_ref: tuple[str, str] | None = None, *, keys: KeySettings | None = None,
+                 status_interval_s: float = 1.0) -> None:
         import zmq
 
         self.config = config
+        self.status_interval_s = status_interval_s
         self.spool = spool
         try:
             self.session_id = check_session_id(session_id)
@@ -71,21 +73,21 @@ class DeviceStreamer:
             raise ConfigError(f"streaming: {exc}") from None
         self.rig_ref = rig_ref or (rig_reference(rig) if rig is not None else UNKNOWN_RIG)
         self._zmq = zmq
-        curve_keys: tuple[bytes, bytes] | None = None
-        if config.insecure:
-            check_loopback_endpoint(config.pose_endpoint)
-            check_loopback_endpoint(config.keyframe_endpoint)
-            log.warning("streaming WITHOUT CURVE (insecure, loopback only)")
-        else:
-            require_curve()
-            curve_keys = load_secret_keypair(config.server_secret)
+
+        def server_keys() -> CurveKeys:
+            if keys is None:
+                raise ConfigError("streaming with CURVE needs the [keys] section (or stream.insecure on loopback)")
+            return CurveKeys(*load_secret_keypair(keys.server_secret))
+
+        curve_keys = secure_channel(config.insecure, (config.pose_endpoint, config.keyframe_endpoint), server_keys,
+                                    "streaming")
         self._ctx = zmq.Context()
         self._auth = None
         self._pub: PosePublisher | None = None
         self._server: KeyframeServer | None = None
         try:
-            if curve_keys is not None:
-                self._auth = start_authenticator(self._ctx, config.clients_dir)
+            if curve_keys is not None and keys is not None:
+                self._auth = start_authenticator(self._ctx, keys.clients_dir)
             self._pub = PosePublisher(self._ctx, config, curve_keys)
             self._server = KeyframeServer(self._ctx, config, spool, self.session_id, curve_keys, self._status_bytes)
         except zmq.ZMQError as exc:
@@ -193,6 +195,9 @@ class DeviceStreamer:
             out = dict(self._counters)
         out["pending_keyframes"] = self._keyframes.qsize()
         out["spool_count"] = self.spool.count
+        out["spool_disk_full"] = self.spool.disk_full
+        out["keyframes_in_memory"] = self.spool.memory_count
+        out["keyframes_held_in_memory"] = self.spool.held_in_memory
         if self._pub is not None:
             out["poses_sent"] = self._pub.sent
             out["poses_dropped_send"] = self._pub.dropped
@@ -309,7 +314,7 @@ class DeviceStreamer:
         poller = zmq.Poller()
         poller.register(server.sock, zmq.POLLIN)
         poller.register(self._wake_r, zmq.POLLIN)
-        interval = self.config.status_interval_s
+        interval = self.status_interval_s
         next_status = time.monotonic()
         blocked = False
         try:

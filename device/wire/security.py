@@ -53,22 +53,42 @@ def generate_keypair(directory: str | Path, name: str, overwrite: bool = False) 
     public, secret = d / f"{name}.key", d / f"{name}.key_secret"
     if not overwrite and (public.exists() or secret.exists()):
         raise ConfigError(f"key files for {name!r} already exist in {d} (refusing to overwrite)")
-    pub_path, sec_path = zmq.auth.create_certificates(str(d), name)
-    os.chmod(sec_path, 0o600)
-    return Path(pub_path), Path(sec_path)
+    import tempfile
+
+    # the library writes with the process umask: let it write into a private (0700) folder, then
+    # create the final secret file with mode 0600 from the start (never readable by others)
+    with tempfile.TemporaryDirectory(prefix=".keys-", dir=d) as tmp:
+        pub_tmp, sec_tmp = zmq.auth.create_certificates(tmp, name)
+        for src, dst, mode in ((sec_tmp, secret, 0o600), (pub_tmp, public, 0o644)):
+            data = Path(src).read_bytes()
+            if overwrite:
+                dst.unlink(missing_ok=True)
+            fd = os.open(dst, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
+            try:
+                view = memoryview(data)
+                while view:
+                    view = view[os.write(fd, view):]
+            finally:
+                os.close(fd)
+    return public, secret
+
+
+def _load_certificate(p: Path, what: str) -> tuple[bytes, bytes | None]:
+    """``(public, secret or None)`` from a ZeroMQ certificate file; ConfigError names the file."""
+    import zmq.auth
+
+    if not p.is_file():
+        raise ConfigError(f"CURVE {what} key file not found: {p}")
+    try:
+        return zmq.auth.load_certificate(str(p))
+    except (ValueError, OSError) as exc:
+        raise ConfigError(f"{p}: not a ZeroMQ certificate: {exc}") from None
 
 
 def load_secret_keypair(path: str | Path) -> tuple[bytes, bytes]:
     """``(public, secret)`` Z85 keys from a ``*.key_secret`` file."""
-    import zmq.auth
-
     p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"CURVE secret key file not found: {p}")
-    try:
-        public, secret = zmq.auth.load_certificate(str(p))
-    except (ValueError, OSError) as exc:
-        raise ConfigError(f"{p}: not a ZeroMQ certificate: {exc}") from None
+    public, secret = _load_certificate(p, "secret")
     if not secret:
         raise ConfigError(f"{p} holds no secret key (is it the public .key file?)")
     mode = p.stat().st_mode
@@ -79,16 +99,7 @@ def load_secret_keypair(path: str | Path) -> tuple[bytes, bytes]:
 
 def load_public_key(path: str | Path) -> bytes:
     """Z85 public key from a ``*.key`` (or ``*.key_secret``) file."""
-    import zmq.auth
-
-    p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"CURVE public key file not found: {p}")
-    try:
-        public, _ = zmq.auth.load_certificate(str(p))
-    except (ValueError, OSError) as exc:
-        raise ConfigError(f"{p}: not a ZeroMQ certificate: {exc}") from None
-    return public
+    return _load_certificate(Path(path), "public")[0]
 
 
 def authorized_keys(clients_dir: str | Path) -> list[Path]:
@@ -104,12 +115,50 @@ def authorized_keys(clients_dir: str | Path) -> list[Path]:
     return keys
 
 
+class _ZapLog:
+    """The authenticator's logger, with refused clients raised to a warning (once per key and address).
+
+    pyzmq's authenticator reports a refused key only at debug level; a device that silently turns
+    hosts away is hard to diagnose.  Later refusals of the same key are logged at debug level and
+    counted in :attr:`refused`.
+    """
+
+    MAX_REMEMBERED = 256
+
+    def __init__(self, logger: logging.Logger) -> None:
+        self._log = logger
+        self._address = ""
+        self._warned: set[tuple[str, str]] = set()
+        self.refused = 0
+
+    def debug(self, msg: str, *args: Any, **kw: Any) -> None:
+        if msg.startswith("version:") and len(args) >= 4:
+            self._address = str(args[3])
+        elif "CURVE" in msg and (msg.startswith("DENIED") or (args and args[0] == "DENIED")):
+            self.refused += 1
+            key = str(args[-1]) if args else "?"
+            if key.startswith("b'"):
+                key = key[2:-1]
+            ident = (key, self._address)
+            if ident not in self._warned and len(self._warned) < self.MAX_REMEMBERED:
+                self._warned.add(ident)
+                self._log.warning("refused a client from %s: CURVE key %s is not in the authorised hosts "
+                                  "folder", self._address or "?", key)
+                return
+        self._log.debug(msg, *args, **kw)
+
+    def __getattr__(self, name: str) -> Any:  # info, warning, error, ...
+        return getattr(self._log, name)
+
+
 def start_authenticator(ctx: Any, clients_dir: str | Path) -> Any:
-    """Start a ZAP authenticator on ``ctx`` admitting only the CURVE keys in ``clients_dir``."""
+    """Start a ZAP authenticator on ``ctx`` admitting only the CURVE keys in ``clients_dir``.
+
+    Refused clients are logged as warnings (see :class:`_ZapLog`)."""
     from zmq.auth.thread import ThreadAuthenticator
 
     keys = authorized_keys(clients_dir)
-    auth = ThreadAuthenticator(ctx, log=logging.getLogger(__name__ + ".zap"))
+    auth = ThreadAuthenticator(ctx, log=_ZapLog(logging.getLogger(__name__ + ".zap")))
     auth.start()
     auth.configure_curve(domain="*", location=str(Path(clients_dir)))
     log.info("CURVE: %d authorised host key(s) in %s", len(keys), clients_dir)

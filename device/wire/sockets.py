@@ -1,8 +1,11 @@
-"""Socket options shared by the device and the host: linger 0, ZMTP heartbeats, size bounds, backoff."""
+"""Sockets as both sides open them: linger 0, ZMTP heartbeats, size bounds, backoff, and CURVE (or loopback)."""
 
 from __future__ import annotations
 
-from typing import Any
+import logging
+from typing import Any, Callable, Mapping, Sequence
+
+log = logging.getLogger(__name__)
 
 
 def apply_common_options(sock: Any, *, heartbeat_ivl_ms: int, heartbeat_timeout_ms: int, heartbeat_ttl_ms: int,
@@ -23,3 +26,47 @@ def apply_common_options(sock: Any, *, heartbeat_ivl_ms: int, heartbeat_timeout_
     sock.setsockopt(zmq.MAXMSGSIZE, int(maxmsgsize))
     sock.setsockopt(zmq.RECONNECT_IVL, int(reconnect_ivl_ms))
     sock.setsockopt(zmq.RECONNECT_IVL_MAX, int(reconnect_ivl_max_ms))
+
+
+class CurveKeys:
+    """One side's CURVE keys: the device serves (``server_key`` None), a host connects to ``server_key``."""
+
+    def __init__(self, public: bytes, secret: bytes, server_key: bytes | None = None) -> None:
+        self.public, self.secret, self.server_key = public, secret, server_key
+
+    def apply(self, sock: Any) -> None:
+        """Make ``sock`` a CURVE server or client (before bind/connect)."""
+        sock.curve_publickey, sock.curve_secretkey = self.public, self.secret
+        if self.server_key is None:
+            sock.curve_server = True
+        else:
+            sock.curve_serverkey = self.server_key
+
+
+def secure_channel(insecure: bool, endpoints: Sequence[str], load_keys: Callable[[], CurveKeys],
+                   what: str) -> CurveKeys | None:
+    """The CURVE keys of a channel, or None for plain TCP, which only loopback endpoints may use.
+
+    The one set-up of security for both sides: the device's streamer and the host's receiver.
+    """
+    from stereopath.device.wire.security import check_loopback_endpoint, require_curve
+
+    if insecure:
+        for endpoint in endpoints:
+            check_loopback_endpoint(endpoint)
+        log.warning("%s WITHOUT CURVE (insecure, loopback only)", what)
+        return None
+    require_curve()
+    return load_keys()
+
+
+def open_socket(ctx: Any, kind: int, keys: CurveKeys | None, *, options: Mapping[int, int] | None = None,
+                **common: int) -> Any:
+    """A socket of ``kind`` with the common options (:func:`apply_common_options`), ``options`` and CURVE."""
+    sock = ctx.socket(kind)
+    apply_common_options(sock, **common)
+    for opt, value in (options or {}).items():
+        sock.setsockopt(opt, value)
+    if keys is not None:
+        keys.apply(sock)
+    return sock

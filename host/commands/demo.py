@@ -20,8 +20,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from stereopath.device.errors import ConfigError
+    from stereopath.device.formats.fileio import check_out_folder
     from stereopath.host.demo import run_demo
 
+    if args.frames is not None and args.frames < 2:
+        raise ConfigError(f"--frames must be at least 2 (a path needs two frames), got {args.frames}")
+    check_out_folder(args.out)
     res = run_demo(args.out, frames=args.frames, seed=args.seed, with_model=not args.no_model)
     r = res.report
     x = r.get("extra", {})

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
+import sys
 import threading
 
 log = logging.getLogger(__name__)
@@ -41,17 +42,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from stereopath.device.errors import ConfigError
     from stereopath.host.live.view import RerunView, TerminalView
-    from stereopath.host.live.receiver import Receiver, ReceiverConfig, endpoints_from_address
+    from stereopath.host.live.receiver import Receiver
+    from stereopath.host.live.receiver_config import ReceiverConfig, endpoints_from_address
+
+    from stereopath.device.formats.fileio import check_out_folder
 
     if args.duration is not None and args.duration <= 0:
         raise ConfigError(f"--duration must be positive, got {args.duration}")
+    check_out_folder(args.out)
     pose_ep, kf_ep = endpoints_from_address(args.device, args.keyframe_port)
     config = ReceiverConfig(pose_endpoint=pose_ep, keyframe_endpoint=kf_ep, insecure=args.insecure,
                             keys_dir=args.keys, device_key=args.device_key, window=args.window,
                             fsync=not args.no_fsync)
     rig = None
     if args.rig:
-        from stereopath.device.core.rig import load_rig_yaml
+        from stereopath.device.formats.rig_files import load_rig_yaml
 
         rig = load_rig_yaml(args.rig)
     rerun_view = None
@@ -97,26 +102,18 @@ def run(args: argparse.Namespace) -> int:
     log.info("received %d poses, %d keyframes (%d duplicates), %d pose seq gaps, %d rejected; sessions: %s",
              st.received["pose"], st.received["keyframe"], st.duplicates, st.pose_seq_gaps, st.rejected,
              ", ".join(st.sessions) or "none")
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Run this command alone (``python -m stereopath.host.commands.live ...``), e.g. as a test subprocess."""
-    import sys
-
-    from stereopath.device.errors import StereopathError
-    from stereopath.host.cli import setup_logging
-
-    parser = argparse.ArgumentParser(prog="stereopath host live", description=__doc__)
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    setup_logging(0, False)
-    try:
-        return run(args)
-    except StereopathError as exc:
-        print(f"stereopath: error: {exc}", file=sys.stderr)
+    if receiver.storage_error is not None:
+        print(f"stereopath: error: keyframes could not be stored on this host ({receiver.storage_error}); the "
+              f"device keeps every keyframe not acknowledged and sends it to the next `host live` with space",
+              file=sys.stderr)
+        return 1
+    got = st.received["pose"] + st.received["keyframe"] + st.received["status"]
+    if got == 0 and st.link["auth_failures"]:
+        print("stereopath: error: the device refused this host's key: nothing received (add this host's public "
+              "key to the device's clients folder)", file=sys.stderr)
         return 2
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    if got == 0 and st.link["handshake_failures"]:
+        print("stereopath: error: no handshake with the device: nothing received (wrong device key, or CURVE "
+              "on one side only?)", file=sys.stderr)
+        return 2
+    return 0

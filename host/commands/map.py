@@ -25,11 +25,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="every N-th posed frame is a keyframe (default: by pose change)")
     p.add_argument("--max-keyframes", type=int, default=None, help="use at most this many keyframes (evenly)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--strict", action="store_true",
+                   help="stop at the first unreadable frame or keyframe (default: skip it, counted in map.json)")
 
 
 def run(args: argparse.Namespace) -> int:
     from stereopath.host.mapping.mapper import map_path, map_preset
 
+    from stereopath.device.formats.fileio import check_out_folder
+
+    check_out_folder(args.out)
     changes = {}
     if args.stride is not None:
         changes["stride"] = args.stride
@@ -37,11 +42,14 @@ def run(args: argparse.Namespace) -> int:
         changes["max_keyframes"] = args.max_keyframes
     config = map_preset(args.preset, voxel_mm=args.voxel_mm, **changes)
     result = map_path(args.input, args.out, config, poses=args.poses, rig=args.rig,
-                      progress=False if args.no_progress else None)
+                      progress=False if args.no_progress else None, strict=bool(getattr(args, "strict", False)))
     s = result.stats
     t = s["timings_s"]
     print(f"{s['keyframes']} keyframes ({s['frames_total']} frames), voxel {s['voxel_mm']:.1f} mm: "
           f"mesh {s['mesh_vertices']} vertices / {s['mesh_triangles']} triangles, cloud {s['cloud_points']} points")
     print(f"depth {t['depth']:.1f} s ({s['depth_ms_per_keyframe']:.0f} ms/keyframe), fusion {t['fusion']:.1f} s, "
           f"total {t['total']:.1f} s -> {args.out}/mesh.ply, cloud.ply, model.png, map.json")
+    if s.get("keyframes_skipped"):
+        print(f"warning: skipped {s['keyframes_skipped']} unreadable keyframe(s) (listed in map.json; "
+              f"--strict stops instead)")
     return 0

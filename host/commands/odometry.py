@@ -20,49 +20,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", type=int, default=None, help="use only the first N frames")
     p.add_argument("--compare", default=None, help="comma-separated estimators to run and tabulate")
     p.add_argument("--json", action="store_true", help="print the report(s) as JSON")
-
-
-PAPER_TABLE = {"proposed": (4.2, 3.054, 99.92), "SFM": (108.99, 60.717, 97.89), "NRSFM": (93.69, 49.589, 98.19)}
-
-
-def format_table(reports: dict[str, dict]) -> str:
-    def mm(v):
-        return "n/a" if v is None else f"{v * 1000:.2f}"
-
-    def pct(v):
-        return "n/a" if v is None else f"{v:.2f}"
-
-    names = list(reports)
-    head = ["Parameters"] + [f"{n} (ours)" for n in names] + ["paper proposed", "paper SFM"]
-    rows = [
-        ["Total error (mm)"] + [mm(reports[n].get("end_error_m")) for n in names]
-        + [str(PAPER_TABLE["proposed"][0]), str(PAPER_TABLE["SFM"][0])],
-        ["RMSE (mm)"] + [mm(reports[n].get("ate_rmse_m")) for n in names]
-        + [str(PAPER_TABLE["proposed"][1]), str(PAPER_TABLE["SFM"][1])],
-        ["Accuracy (%)"] + [pct(reports[n].get("accuracy_pct")) for n in names]
-        + [str(PAPER_TABLE["proposed"][2]), str(PAPER_TABLE["SFM"][2])],
-        ["Path length (m)"] + [pct(reports[n].get("path_length_m")) for n in names] + ["5.12", "5.12"],
-    ]
-    widths = [max(len(r[i]) for r in [head] + rows) for i in range(len(head))]
-    line = "+" + "+".join("-" * (w + 2) for w in widths) + "+"
-    out = [line, "| " + " | ".join(h.ljust(w) for h, w in zip(head, widths)) + " |", line]
-    out += ["| " + " | ".join(c.ljust(w) for c, w in zip(r, widths)) + " |" for r in rows]
-    out.append(line)
-    if "sfm" in reports:
-        out.append("sfm uses the ground-truth step length (oracle scale).")
-    return "\n".join(out)
+    p.add_argument("--strict", action="store_true",
+                   help="stop at the first unreadable frame (default: skip it, counted in the report)")
 
 
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from stereopath.host.evaluation.odometry import estimate_sequence, write_outputs
-    from stereopath.host.evaluation.sequences import open_sequence
+    from stereopath.host.evaluation.paper_table import format_table
+    from stereopath.device.formats.source import open_source
 
+    from stereopath.device.formats.fileio import check_out_folder
+
+    check_out_folder(args.out)
     names = [n.strip() for n in args.compare.split(",")] if args.compare else [args.estimator]
     reports = {}
     for name in names:
-        seq = open_sequence(args.source, frames=args.frames if args.source.startswith("sim") else None)
+        sim_frames = {"frames": args.frames} if args.frames and args.source.startswith("sim") else {}
+        seq = open_source(args.source, **sim_frames)
+        if hasattr(seq, "skipped_frames"):
+            seq.strict = bool(getattr(args, "strict", False))
         run_ = estimate_sequence(seq, name, preset=args.preset, max_frames=args.frames)
         out = Path(args.out) / name if len(names) > 1 else Path(args.out)
         reports[name] = write_outputs(out, run_, seq, args.source)
@@ -73,6 +51,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"{name}: frames {r['frames']} (tracked {r['frames_tracked']}), "
                   f"ATE {r['ate_rmse_m']} m, end error {r['end_error_m']} m, "
                   f"median {r['median_frame_ms']:.1f} ms/frame")
+            if r["extra"].get("frames_skipped"):
+                print(f"{name}: skipped {r['extra']['frames_skipped']} unreadable frame(s) "
+                      f"(indexes in report.json; --strict stops instead)")
         if len(names) > 1:
             print(format_table(reports))
     return 0

@@ -46,6 +46,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="add gyro-integrated rotations between keyframes to the bundle adjustment")
     p.add_argument("--force", action="store_true", help="recompute every stage even when stored ones match")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--strict", action="store_true",
+                   help="stop at the first unreadable frame (default: skip it, counted in the report)")
     f = p.add_argument_group("fleet (several sessions, on Ray)")
     f.add_argument("--ray", default=None, metavar="auto|ADDRESS",
                    help="'auto' starts a local Ray (the default with several sessions); HOST:PORT joins a cluster")
@@ -127,11 +129,15 @@ def run_one(args: argparse.Namespace) -> int:
 
     from stereopath.host.reprocess.pipeline import reprocess_session
 
+    from stereopath.device.formats.fileio import check_out_folder
+
+    check_out_folder(args.out)
     start = time.perf_counter()
     try:
         res = reprocess_session(args.session, args.out, preset=args.preset, do_map=not args.no_map,
                                 map_preset=args.map_preset, force=args.force, imu_priors=args.imu_priors,
-                                progress=False if args.no_progress else None)
+                                progress=False if args.no_progress else None,
+                                strict=bool(getattr(args, "strict", False)))
     except KeyboardInterrupt:
         print(f"interrupted: finished stages are kept in {args.out}/stages; run the same command again to resume")
         return 130
@@ -154,5 +160,10 @@ def run_one(args: argparse.Namespace) -> int:
         elif ba["ate_ratio_vs_reestimated"] is not None:
             line += f" (x{ba['ate_ratio_vs_reestimated']:.2f})"
         print(line)
+    if res.report["extra"].get("frames_skipped"):
+        print(f"warning: skipped {res.report['extra']['frames_skipped']} unreadable frame(s) "
+              f"(indexes in report.json; --strict stops instead)")
+    if res.report["extra"].get("groundtruth_error"):
+        print(f"warning: ground truth not used: {res.report['extra']['groundtruth_error']}")
     print(f"wrote {args.out}/" + ", ".join(res.files))
     return 0

@@ -105,12 +105,34 @@ def associate_and_align(gt: Trajectory, est: Trajectory, max_diff_s: float = 0.0
     gt_a = Trajectory(gt.t_ns[i_gt], gt.T_world_cam[i_gt])
     est_raw = Trajectory(est.t_ns[i_est], est.T_world_cam[i_est])
     aligned: PoseTrajectory3D = copy.deepcopy(est_a)
-    r, t, _ = aligned.align(ref_a, correct_scale=False, correct_only_scale=False)
+    _check_moves(gt_a, "ground-truth")
+    _check_moves(est_raw, "estimated")
+    from evo.core.geometry import GeometryException
+
+    try:
+        r, t, _ = aligned.align(ref_a, correct_scale=False, correct_only_scale=False)
+    except GeometryException as exc:  # e.g. all positions on one line or one point
+        raise DatasetError(f"cannot align the estimated path onto the ground truth ({exc}): one of the paths "
+                           f"has no spatial extent (a straight line or a point)") from None
     T = np.eye(4)
     T[:3, :3] = r
     T[:3, 3] = t
     est_al = Trajectory(est_raw.t_ns, np.array(aligned.poses_se3))
     return Association(gt_a, est_raw, est_al, T, ref_a, aligned)
+
+
+MIN_EXTENT_M = 1e-6
+
+
+def _check_moves(traj: Trajectory, what: str) -> None:
+    """A path whose positions all coincide cannot be aligned: say so instead of evo's rank error."""
+    p = traj.positions
+    extent = float(np.max(np.linalg.norm(p - p.mean(axis=0), axis=1))) if len(p) else 0.0
+    if extent < MIN_EXTENT_M:
+        hint = (" (the estimator never moved: tracking lost from the start, a wrong rig, or left and right "
+                "images swapped?)" if what == "estimated" else "")
+        raise DatasetError(f"the {what} path does not move: its {len(p)} associated positions all lie within "
+                           f"{extent * 1000:.3f} mm of each other; nothing to evaluate{hint}")
 
 
 def end_point_error(gt: Trajectory, est: Trajectory) -> float:

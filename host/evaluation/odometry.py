@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import itertools
 import logging
-import sys
 from pathlib import Path
 from typing import Any
 
 from stereopath.device.estimation.base import EstimateRun, run_estimator
 from stereopath.device.estimation.registry import make_estimator
 from stereopath.device.formats.tum import Trajectory, write_tum
+from stereopath.host.progress import Bar
 
 log = logging.getLogger(__name__)
 
@@ -22,20 +22,15 @@ def _frames(seq, limit: int | None):
 
 def estimate_sequence(seq, estimator: str = "stereo", preset: str | None = None, max_frames: int | None = None,
                       options: dict[str, Any] | None = None, progress: bool = True) -> EstimateRun:
+    if callable(getattr(seq, "frame", None)):  # refuse exchanged left/right images before running
+        from stereopath.device.core.stereo_order import check_sequence_order
+
+        check_sequence_order(seq)
     gt = getattr(seq, "groundtruth", None)
     est = make_estimator(estimator, seq.rig, preset=preset, groundtruth=gt, options=options)
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
-    bar = None
-    if progress and sys.stderr.isatty():
-        from tqdm import tqdm
-
-        bar = tqdm(total=total, desc=f"{estimator} odometry", unit="frame", leave=False)
-    try:
-        return run_estimator(est, _frames(seq, max_frames), getattr(seq, "imu", None),
-                             progress=None if bar is None else bar.update)
-    finally:
-        if bar is not None:
-            bar.close()
+    with Bar(total, f"{estimator} odometry", None if progress else False, unit="frame") as tick:
+        return run_estimator(est, _frames(seq, max_frames), getattr(seq, "imu", None), progress=tick)
 
 
 def report_for(run: EstimateRun, seq, source_label: str) -> tuple[dict, Trajectory | None]:
@@ -50,6 +45,10 @@ def report_for(run: EstimateRun, seq, source_label: str) -> tuple[dict, Trajecto
         world_frame=run.world_frame,
     )
     report.setdefault("extra", {}).update({"estimator_stats": run.extra})
+    skipped = list(getattr(seq, "skipped_frames", None) or [])
+    report["extra"]["frames_skipped"] = len(skipped)
+    if skipped:
+        report["extra"]["skipped_frame_indexes"] = skipped[:1000]
     return report, gt
 
 

@@ -8,11 +8,11 @@ canvas directly, so no display and no global matplotlib backend are needed.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
+from stereopath.device.formats.fileio import replacing
 from stereopath.device.formats.tum import Trajectory
 
 
@@ -80,6 +80,5 @@ def plot_path(path_png: str | Path, gt: Trajectory | None, est: Trajectory, worl
         fig.suptitle(title)
     fig.tight_layout()
     p = Path(path_png)
-    tmp = p.with_name("." + p.name + ".tmp")
-    fig.savefig(tmp, format="png")
-    os.replace(tmp, p)
+    with replacing(p) as tmp:
+        fig.savefig(tmp, format="png")

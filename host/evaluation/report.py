@@ -15,11 +15,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from stereopath.device.formats.fileio import write_text_atomic
 
 REPORT_KEYS = (
     "source",
@@ -97,9 +98,7 @@ def write_report(path: str | Path, report: dict[str, Any]) -> None:
         raise ValueError(f"report lacks key(s) {', '.join(missing)}")
     p = Path(path)
     text = json.dumps(_plain(report), indent=2, allow_nan=False) + "\n"
-    tmp = p.with_name("." + p.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, p)
+    write_text_atomic(p, text, fsync=False)
 
 
 def read_report(path: str | Path) -> dict[str, Any]:

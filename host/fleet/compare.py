@@ -12,19 +12,21 @@ import json
 from pathlib import Path
 from typing import Any
 
-BYTE_FILES = ("trajectory.tum", "mesh.ply", "cloud.ply")
+BYTE_FILES = ("trajectory.tum",)
+PLY_FILES = ("mesh.ply", "cloud.ply")
 _UNTIMED_ARRAYS = ("stats", "meta", "frame_ms")  # JSON records with timings, per-frame times
 
 
 def _timing(key: str) -> bool:
-    return key.endswith(("_s", "_ms")) or "seconds" in key or "timings" in key or key == "finished_utc"
+    return (key.endswith(("_s", "_ms")) or "_ms_" in key or "seconds" in key or "timings" in key
+            or key in ("finished_utc", "stages"))
 
 
-def _untimed(v: Any) -> Any:
+def _untimed(v: Any, drop: tuple[str, ...] = ()) -> Any:
     if isinstance(v, dict):
-        return {k: _untimed(x) for k, x in v.items() if not _timing(str(k))}
+        return {k: _untimed(x, drop) for k, x in v.items() if not _timing(str(k)) and k not in drop}
     if isinstance(v, list):
-        return [_untimed(x) for x in v]
+        return [_untimed(x, drop) for x in v]
     return v
 
 
@@ -35,8 +37,51 @@ def _npz_arrays(path: Path) -> dict[str, Any]:
         return {k: z[k] for k in z.files if k not in _UNTIMED_ARRAYS}
 
 
-def differences(a: str | Path, b: str | Path) -> list[str]:
-    """What differs between output folders ``a`` and ``b`` (``[]``: the same results)."""
+def _rows(*arrays: Any) -> Any:
+    import numpy as np
+
+    cols = [np.asarray(x, np.float64).reshape(len(arrays[0]), -1) for x in arrays if len(x)]
+    return np.hstack(cols) if cols else np.zeros((0, 0))
+
+
+def ply_canonical(path: Path) -> tuple[Any, Any]:
+    """A PLY's elements in a canonical order: (vertex rows, triangle rows) as float arrays.
+
+    Vertex rows are position, normal, colour, sorted; triangles are rewritten with the sorted
+    vertex ranks, rotated to start at their smallest rank (orientation kept), and sorted.
+    """
+    import numpy as np
+    import open3d as o3d
+
+    with open(path, "rb") as f:
+        header = f.read(4096).split(b"end_header")[0]
+    mesh = o3d.io.read_triangle_mesh(str(path)) if b"element face" in header else None
+    if mesh is not None and len(mesh.triangles):
+        v = _rows(np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals), np.asarray(mesh.vertex_colors))
+        tri = np.asarray(mesh.triangles)
+    else:
+        pc = o3d.io.read_point_cloud(str(path))
+        v = _rows(np.asarray(pc.points), np.asarray(pc.normals), np.asarray(pc.colors))
+        tri = np.zeros((0, 3), np.int64)
+    order = np.lexsort(v.T[::-1]) if len(v) else np.zeros(0, np.int64)
+    rank = np.empty(len(v), np.int64)
+    rank[order] = np.arange(len(v))
+    t = rank[tri] if len(tri) else tri
+    if len(t):
+        shift = np.argmin(t, axis=1)
+        idx = (np.arange(3)[None, :] + shift[:, None]) % 3
+        t = np.take_along_axis(t, idx, axis=1)
+        t = t[np.lexsort(t.T[::-1])]
+    return v[order], t
+
+
+def differences(a: str | Path, b: str | Path, ignore_source: bool = False) -> list[str]:
+    """What differs between output folders ``a`` and ``b`` (``[]``: the same results).
+
+    ``ignore_source``: leave out the ``source`` labels (the session path as the process that
+    reprocessed it saw it: another path on a cluster worker that sees the data elsewhere).
+    """
+    drop = ("source",) if ignore_source else ()
     a, b = Path(a), Path(b)
     diffs: list[str] = []
     for name in BYTE_FILES:
@@ -45,6 +90,15 @@ def differences(a: str | Path, b: str | Path) -> list[str]:
             diffs.append(f"{name}: only in {'the first' if fa.is_file() else 'the second'}")
         elif fa.is_file() and fa.read_bytes() != fb.read_bytes():
             diffs.append(f"{name}: bytes differ")
+    for name in PLY_FILES:
+        fa, fb = a / name, b / name
+        if fa.is_file() != fb.is_file():
+            diffs.append(f"{name}: only in {'the first' if fa.is_file() else 'the second'}")
+        elif fa.is_file() and fa.read_bytes() != fb.read_bytes():
+            (va, ta), (vb, tb) = ply_canonical(fa), ply_canonical(fb)
+            if va.shape != vb.shape or va.tobytes() != vb.tobytes() or ta.shape != tb.shape \
+                    or ta.tobytes() != tb.tobytes():
+                diffs.append(f"{name}: elements differ")
     na = sorted(p.name for p in (a / "stages").glob("*.npz"))
     nb = sorted(p.name for p in (b / "stages").glob("*.npz"))
     if na != nb:
@@ -62,7 +116,7 @@ def differences(a: str | Path, b: str | Path) -> list[str]:
         if fa.is_file() != fb.is_file():
             diffs.append(f"{name}: only in {'the first' if fa.is_file() else 'the second'}")
         elif fa.is_file():
-            ja, jb = _untimed(json.loads(fa.read_text())), _untimed(json.loads(fb.read_text()))
+            ja, jb = _untimed(json.loads(fa.read_text()), drop), _untimed(json.loads(fb.read_text()), drop)
             if ja != jb:
                 keys = sorted(k for k in set(ja) | set(jb) if ja.get(k) != jb.get(k))
                 diffs.append(f"{name}: differs in {', '.join(keys)}")

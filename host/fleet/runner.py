@@ -84,6 +84,7 @@ class SessionState:
     stored: list[str] = field(default_factory=list)
     attempts: int = 0
     node: str | None = None
+    pid: int | None = None  # worker process of the latest attempt
     error: str | None = None
     result: dict[str, Any] | None = None
     started: float | None = None
@@ -266,6 +267,7 @@ def _poll(ray: Any, board: Any, states: list[SessionState], settings: ReprocessS
         e = snap.get(st.session.id)
         if not e:
             continue
+        st.pid = e.get("pid", st.pid)
         new = (e.get("attempts", 0), e.get("node"), list(e.get("stored", [])))
         if new != (st.attempts, st.node, st.stored):
             st.attempts, st.node, st.stored = new

@@ -58,10 +58,11 @@ def stored_stages(out_dir: str | Path) -> list[str]:
 
 
 def _node() -> str:
+    """``IP/node`` of this worker (the first 8 digits of the Ray node id: two nodes may share an IP)."""
     try:
         import ray
 
-        return str(ray.util.get_node_ip_address())
+        return f"{ray.util.get_node_ip_address()}/{ray.get_runtime_context().get_node_id()[:8]}"
     except Exception:  # noqa: BLE001 - outside Ray (tests of the task body) the host name will do
         return socket.gethostname()
 

@@ -31,187 +31,21 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, TextIO
 
-from stereopath.device.core.config import check_range
 from stereopath.device.errors import ConfigError
 from stereopath.device.wire.protocol import KEYFRAME_LIMITS, POSE_LIMITS, Ack, DecodeError, Hello, Keyframe, Limits, Pose, Status, \
     decode_message, encode_ack, encode_hello
-from stereopath.device.wire.security import check_loopback_endpoint, load_host_keys, require_curve
-from stereopath.device.wire.sockets import apply_common_options
+from stereopath.device.wire.security import load_host_keys
+from stereopath.device.wire.sockets import CurveKeys, open_socket, secure_channel
 from stereopath.device.formats.tum import ns_to_seconds_str
 from stereopath.device.formats.fileio import write_json_atomic
-from stereopath.host.live.store import KeyframeStore
+from stereopath.host.live.receiver_config import RECEIVER_JSON, ReceiverConfig
+from stereopath.host.live.receiver_stats import EventRate, LiveState, ReceiverStats, SessionStats
+from stereopath.host.live.store import KeyframeStore, list_sessions
 
 log = logging.getLogger(__name__)
-
-RECEIVER_JSON = "receiver.json"
-DEFAULT_POSE_PORT = 5555
-
-
-@dataclass(frozen=True)
-class ReceiverConfig:
-    """Where the device is, how to authenticate, and the flow-control window."""
-
-    pose_endpoint: str
-    keyframe_endpoint: str
-    insecure: bool = False
-    keys_dir: str | None = None      # the host's key pair (*.key_secret) and device.key
-    device_key: str | None = None    # the device's public key, if not KEYS/device.key
-    window: int = 8                  # keyframes in flight (credit)
-    heartbeat_ivl_ms: int = 1000
-    heartbeat_timeout_ms: int = 5000
-    heartbeat_ttl_ms: int = 10000
-    reconnect_ivl_ms: int = 100
-    reconnect_ivl_max_ms: int = 5000
-    stall_timeout_s: float = 3.0
-    fsync: bool = True
-    stats_interval_s: float = 1.0
-    max_keyframe_bytes: int = KEYFRAME_LIMITS.max_message_bytes
-
-    def __post_init__(self) -> None:
-        check_range("window", self.window, 1, 1024)
-        check_range("stall_timeout_s", self.stall_timeout_s, 0.05, 3600.0)
-        check_range("max_keyframe_bytes", self.max_keyframe_bytes, 1024, 2**31 - 1)
-        if not self.insecure and not self.keys_dir:
-            raise ConfigError("a host key directory (--keys DIR) is required unless --insecure is given")
-
-
-def endpoints_from_address(address: str, keyframe_port: int | None = None) -> tuple[str, str]:
-    """``HOST``, ``HOST:PORT``, ``[IPv6]:PORT`` or ``tcp://HOST:PORT`` -> (pose, keyframe) endpoints.
-
-    The pose port defaults to 5555; the keyframe port to the pose port + 1.
-    """
-    a = address.strip()
-    if a.startswith("tcp://"):
-        a = a[len("tcp://"):]
-    port = DEFAULT_POSE_PORT
-    if a.startswith("["):
-        host, sep, rest = a[1:].partition("]")
-        if not sep:
-            raise ConfigError(f"device address {address!r}: unterminated IPv6 address")
-        host_part = f"[{host}]"
-        if rest:
-            if not rest.startswith(":"):
-                raise ConfigError(f"device address {address!r} is not HOST[:PORT]")
-            port_text = rest[1:]
-        else:
-            port_text = ""
-    else:
-        host, sep, port_text = a.partition(":")
-        host_part = host
-        if ":" in port_text:
-            raise ConfigError(f"device address {address!r}: write IPv6 addresses as [ADDR]:PORT")
-    if not host_part or any(c in host_part for c in "/;* "):
-        raise ConfigError(f"device address {address!r} is not HOST[:PORT]")
-    if port_text:
-        if not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
-            raise ConfigError(f"device address {address!r}: bad port {port_text!r}")
-        port = int(port_text)
-    kport = keyframe_port if keyframe_port is not None else port + 1
-    if not 1 <= kport <= 65535:
-        raise ConfigError(f"keyframe port {kport} out of range")
-    return f"tcp://{host_part}:{port}", f"tcp://{host_part}:{kport}"
-
-
-@dataclass
-class SessionStats:
-    poses: int = 0
-    pose_gaps: int = 0            # poses missing between consecutive received seqs
-    pose_out_of_order: int = 0
-    keyframes: int = 0            # new keyframes stored
-    keyframe_duplicates: int = 0
-    last_pose_seq: int = -1
-    first_t_ns: int | None = None
-    last_t_ns: int | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        return dict(vars(self))
-
-
-@dataclass
-class ReceiverStats:
-    """Counters written to ``receiver.json`` (cumulative over receiver restarts)."""
-
-    received: dict[str, int] = field(default_factory=lambda: {"pose": 0, "keyframe": 0, "status": 0})
-    duplicates: int = 0
-    pose_seq_gaps: int = 0
-    rejected_by_reason: dict[str, int] = field(default_factory=dict)
-    rejected_by_channel: dict[str, int] = field(default_factory=lambda: {"pose": 0, "keyframe": 0})
-    link: dict[str, int] = field(default_factory=lambda: {
-        "connects": 0, "disconnects": 0, "auth_failures": 0, "handshake_failures": 0, "hellos": 0,
-        "rehellos_after_stall": 0, "acks_unsent": 0})
-    sessions: dict[str, SessionStats] = field(default_factory=dict)
-    runs: int = 0
-
-    @property
-    def rejected(self) -> int:
-        return sum(self.rejected_by_reason.values())
-
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "received": dict(self.received),
-            "duplicates": self.duplicates,
-            "pose_seq_gaps": self.pose_seq_gaps,
-            "rejected": {"total": self.rejected, "by_reason": dict(self.rejected_by_reason),
-                         "by_channel": dict(self.rejected_by_channel)},
-            "link": dict(self.link),
-            "sessions": {sid: s.to_json() for sid, s in self.sessions.items()},
-            "runs": self.runs,
-        }
-
-    @classmethod
-    def from_json(cls, data: dict[str, Any]) -> "ReceiverStats":
-        st = cls()
-        st.received.update({k: int(v) for k, v in data.get("received", {}).items() if k in st.received})
-        st.duplicates = int(data.get("duplicates", 0))
-        st.pose_seq_gaps = int(data.get("pose_seq_gaps", 0))
-        rej = data.get("rejected", {})
-        st.rejected_by_reason = {str(k): int(v) for k, v in rej.get("by_reason", {}).items()}
-        st.rejected_by_channel.update({k: int(v) for k, v in rej.get("by_channel", {}).items()
-                                       if k in st.rejected_by_channel})
-        st.link.update({k: int(v) for k, v in data.get("link", {}).items() if k in st.link})
-        for sid, s in data.get("sessions", {}).items():
-            known = {k: v for k, v in s.items() if k in SessionStats.__dataclass_fields__}
-            st.sessions[str(sid)] = SessionStats(**known)
-        st.runs = int(data.get("runs", 0))
-        return st
-
-
-class _Rate:
-    """Events per second over a sliding window (bounded memory)."""
-
-    def __init__(self, window_s: float = 2.0, max_events: int = 4096) -> None:
-        self.window_s = window_s
-        self.t: collections.deque[float] = collections.deque(maxlen=max_events)
-
-    def add(self, now: float) -> None:
-        self.t.append(now)
-
-    def rate(self, now: float) -> float:
-        while self.t and now - self.t[0] > self.window_s:
-            self.t.popleft()
-        return len(self.t) / self.window_s
-
-
-@dataclass
-class LiveState:
-    """What the live view shows (updated by the receiver as messages arrive)."""
-
-    session_id: str | None = None
-    pose: Pose | None = None
-    speed_m_s: float = 0.0
-    pose_rate_hz: float = 0.0
-    keyframe_rate_hz: float = 0.0
-    acked_seq: int = -1
-    status: Status | None = None
-    connected: bool = False
-    last_rx: float | None = None           # monotonic time of the last message of any kind
-    link_quality: str = "waiting"
-    pose_window_ratio: float = 0.0          # poses received / poses sent over the last window
-
 
 class Receiver:
     """Receives from one device into ``out_dir``; drive it with :meth:`poll` or :meth:`run`."""
@@ -226,14 +60,9 @@ class Receiver:
         self.config = config
         self.out = Path(out_dir)
         self.on_pose, self.on_keyframe, self.on_status = on_pose, on_keyframe, on_status
-        curve: tuple[bytes, bytes, bytes] | None = None
-        if config.insecure:
-            check_loopback_endpoint(config.pose_endpoint)
-            check_loopback_endpoint(config.keyframe_endpoint)
-            log.warning("receiving WITHOUT CURVE (insecure, loopback only)")
-        else:
-            require_curve()
-            curve = load_host_keys(config.keys_dir or "", config.device_key)
+        curve = secure_channel(config.insecure, (config.pose_endpoint, config.keyframe_endpoint),
+                               lambda: CurveKeys(*load_host_keys(config.keys_dir or "", config.device_key)),
+                               "receiving")
         self.out.mkdir(parents=True, exist_ok=True)
         self.stats = self._load_stats()
         self.stats.runs += 1
@@ -242,30 +71,28 @@ class Receiver:
         self._kf_limits = Limits(max_message_bytes=config.max_keyframe_bytes,
                                  max_bin_len=min(KEYFRAME_LIMITS.max_bin_len, config.max_keyframe_bytes))
         self._tum: dict[str, TextIO] = {}
-        self._pose_rate, self._kf_rate = _Rate(), _Rate()
+        self._pose_rate, self._kf_rate = EventRate(), EventRate()
         self._pose_window: collections.deque[tuple[float, int]] = collections.deque(maxlen=4096)
         self._hello_pending = False
         self._last_progress = time.monotonic()
         self._next_stats = time.monotonic()
         self._auth_warned = False
         self._warned: set[str] = set()
+        self._known_sessions: set[str] = set(list_sessions(self.out))
+        self.storage_error: str | None = None  # set while keyframes cannot be stored (disk full)
+        self._last_dealer_rx = self._last_hello_at = time.monotonic()
+        self._new_sessions = 0
         self._ctx = zmq.Context()
         common = dict(heartbeat_ivl_ms=config.heartbeat_ivl_ms, heartbeat_timeout_ms=config.heartbeat_timeout_ms,
                       heartbeat_ttl_ms=config.heartbeat_ttl_ms, reconnect_ivl_ms=config.reconnect_ivl_ms,
                       reconnect_ivl_max_ms=config.reconnect_ivl_max_ms)
-        self.sub = self._ctx.socket(zmq.SUB)
-        apply_common_options(self.sub, maxmsgsize=max(4096, 4 * POSE_LIMITS.max_message_bytes), **common)
-        self.sub.setsockopt(zmq.CONFLATE, 1)
+        self.sub = open_socket(self._ctx, zmq.SUB, curve, options={zmq.CONFLATE: 1},
+                               maxmsgsize=max(4096, 4 * POSE_LIMITS.max_message_bytes), **common)
         self.sub.setsockopt(zmq.SUBSCRIBE, b"")
-        self.dealer = self._ctx.socket(zmq.DEALER)
-        apply_common_options(self.dealer, maxmsgsize=config.max_keyframe_bytes, **common)
-        self.dealer.setsockopt(zmq.IMMEDIATE, 1)
-        self.dealer.setsockopt(zmq.RCVHWM, 4 * config.window + 64)
-        self.dealer.setsockopt(zmq.SNDHWM, 4 * config.window + 64)
-        if curve is not None:
-            pub, sec, server = curve
-            for s in (self.sub, self.dealer):
-                s.curve_publickey, s.curve_secretkey, s.curve_serverkey = pub, sec, server
+        hwm = 4 * config.window + 64
+        self.dealer = open_socket(self._ctx, zmq.DEALER, curve,
+                                  options={zmq.IMMEDIATE: 1, zmq.RCVHWM: hwm, zmq.SNDHWM: hwm},
+                                  maxmsgsize=config.max_keyframe_bytes, **common)
         self.monitor = self.dealer.get_monitor_socket(
             zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_FAILED_AUTH
             | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL)
@@ -335,7 +162,10 @@ class Receiver:
         self._pose_thread.join(5.0)
         self.write_stats()
         for fh in self._tum.values():
-            fh.close()
+            try:
+                fh.close()
+            except OSError as exc:
+                log.error("closing a poses.tum: %s", exc.strerror or exc)
         self._tum.clear()
         self.store.close()
         try:
@@ -376,6 +206,9 @@ class Receiver:
                 break
             n += 1
             self.live.last_rx = time.monotonic()
+            if channel == "keyframe":
+                self._last_dealer_rx = time.monotonic()
+                self._warned.discard("silent")
             if len(frames) != 1:
                 self._reject(channel, "frames")
                 continue
@@ -387,6 +220,10 @@ class Receiver:
             except DecodeError as exc:
                 self._reject(channel, exc.reason, str(exc))
                 continue
+            if not self._admit_session(msg.session_id):
+                self._reject(channel, "session_limit", f"session {msg.session_id!r}: over the limit of "
+                             f"{self.config.max_new_sessions} new sessions in this run")
+                continue
             if isinstance(msg, Pose):
                 self._handle_pose(msg)
             elif isinstance(msg, Keyframe):
@@ -395,12 +232,27 @@ class Receiver:
                 self._handle_status(msg)
         return n
 
+    def _admit_session(self, sid: str) -> bool:
+        """Known sessions always; a new one only while this run has accepted fewer than the limit.
+
+        A device starts one session per run, so a flood of new ids (from a client holding the
+        device key) cannot fill the disk with folders.
+        """
+        with self.lock:
+            if sid in self._known_sessions:
+                return True
+            if self._new_sessions >= self.config.max_new_sessions:
+                return False
+            self._new_sessions += 1
+            self._known_sessions.add(sid)
+            return True
+
     def _reject(self, channel: str, reason: str, detail: str = "") -> None:
         with self.lock:
             st = self.stats
             st.rejected_by_reason[reason] = st.rejected_by_reason.get(reason, 0) + 1
             st.rejected_by_channel[channel] = st.rejected_by_channel.get(channel, 0) + 1
-            warn = reason == "version" and reason not in self._warned
+            warn = reason in ("version", "session_limit") and reason not in self._warned
         if warn:
             self._warned.add(reason)
             log.warning("%s", detail)
@@ -443,11 +295,30 @@ class Receiver:
             self._pose_window.append((now, pose.seq))
         if self.on_pose is not None:  # before the file write: the live view first
             self.on_pose(pose)
-        fh = self._tum_file(pose.session_id)
         p, q = pose.position_m, pose.quat_xyzw
-        fh.write(f"{ns_to_seconds_str(pose.t_ns)} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} "
-                 f"{q[0]:.7f} {q[1]:.7f} {q[2]:.7f} {q[3]:.7f}\n")
-        fh.flush()
+        line = (f"{ns_to_seconds_str(pose.t_ns)} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} "
+                f"{q[0]:.7f} {q[1]:.7f} {q[2]:.7f} {q[3]:.7f}\n")
+        try:
+            fh = self._tum_file(pose.session_id)
+            fh.write(line)
+            fh.flush()
+        except OSError as exc:  # disk full: the live pose is shown, only its host copy is lost
+            self._pose_write_failed(pose.session_id, exc)
+
+    def _pose_write_failed(self, sid: str, exc: OSError) -> None:
+        fh = self._tum.pop(sid, None)
+        if fh is not None:
+            try:
+                fh.close()
+            except OSError:
+                pass  # what the buffer held is lost with the write that failed
+        with self.lock:
+            self.stats.link["poses_unsaved"] += 1
+            first = self.stats.link["poses_unsaved"] == 1 or "poses" not in self._warned
+            self._warned.add("poses")
+        if first:
+            log.error("cannot append to %s: %s; live poses are shown but not saved on this host (the device "
+                      "records its own trajectory.tum)", self.out / sid / "poses.tum", exc.strerror or exc)
 
     def _tum_file(self, sid: str) -> TextIO:
         fh = self._tum.get(sid)
@@ -460,8 +331,15 @@ class Receiver:
         return fh
 
     def _handle_keyframe(self, kf: Keyframe, data: bytes) -> None:
-        new = self.store.put(kf, data)  # written (and fsynced) before the ack
-        self.store.set_last_session(kf.session_id)
+        try:
+            new = self.store.put(kf, data)  # written (and fsynced) before the ack
+            self.store.set_last_session(kf.session_id)
+        except OSError as exc:  # disk full, read-only, ...: not acknowledged, so the device keeps it
+            self._storage_failed(f"keyframe {kf.seq} of session {kf.session_id}", exc)
+            return
+        if self.storage_error is not None:
+            log.info("storing keyframes again (after: %s)", self.storage_error)
+            self.storage_error = None
         now = time.monotonic()
         with self.lock:
             self.stats.received["keyframe"] += 1
@@ -481,6 +359,18 @@ class Receiver:
                 self.stats.link["acks_unsent"] += 1  # not connected: the next hello resynchronises
         if self.on_keyframe is not None:
             self.on_keyframe(kf, new)
+
+    def _storage_failed(self, what: str, exc: OSError) -> None:
+        """Log a storage failure once per streak; the device resends what was not acknowledged."""
+        with self.lock:
+            self.stats.link["store_failures"] += 1
+            first = self.storage_error is None
+            self.storage_error = f"{exc.strerror or exc} ({self.out})"
+        if first:
+            log.error("cannot store %s: %s; not acknowledged: the device keeps it and sends it again once "
+                      "there is space", what, self.storage_error)
+        else:
+            log.debug("cannot store %s: %s", what, exc)
 
     def _handle_status(self, st: Status) -> None:
         with self.lock:
@@ -529,15 +419,37 @@ class Receiver:
             self._hello_pending = True  # pipe not attached yet: retry on the next poll
             return
         self._hello_pending = False
+        self._last_hello_at = time.monotonic()
         self.stats.link["hellos"] += 1
         self._last_progress = time.monotonic()
         log.debug("hello: session %s, acked %d, window %d", sid, acked, self.config.window)
 
+    def _check_silence(self, now: float) -> None:
+        """Connected, yet neither status nor keyframes for a while: the device has lost track of this
+        connection (or the stream died); say hello again instead of showing a good link forever."""
+        if not self.live.connected or self._hello_pending:
+            return
+        quiet = now - max(self._last_dealer_rx, self._last_hello_at)
+        if quiet < max(self.config.stall_timeout_s, 2.0 * self.config.heartbeat_ivl_ms / 1000.0):
+            return
+        self.stats.link["rehellos_silent"] += 1
+        if "silent" not in self._warned:
+            self._warned.add("silent")
+            log.warning("no status or keyframes from the device for %.1f s although connected: hello again", quiet)
+        self.live.link_quality = "lost"
+        self._send_hello()
+
     def _check_stall(self, now: float) -> None:
+        self._check_silence(now)
         st = self.live.status
         if not self.live.connected or st is None or now - self._last_progress < self.config.stall_timeout_s:
             return
-        have = self.store.session(st.session_id).acked_seq if st.session_id == self.store.last_session else -1
+        try:
+            have = self.store.session(st.session_id).acked_seq if st.session_id == self.store.last_session else -1
+        except OSError as exc:
+            self._storage_failed(f"session {st.session_id}", exc)
+            self._last_progress = now
+            return
         if st.keyframes_spooled - 1 > have:
             self.stats.link["rehellos_after_stall"] += 1
             log.info("keyframes stalled (device has %d, host holds up to %d): hello again",
@@ -568,8 +480,8 @@ class Receiver:
             live.link_quality = "waiting"
         elif age > 3.0 or not live.connected:
             live.link_quality = "lost"
-        elif age > 0.5 or live.pose_window_ratio < 0.9:
-            live.link_quality = "poor"
+        elif age > 0.5 or live.pose_window_ratio < 0.9 or now - self._last_dealer_rx > self.config.stall_timeout_s:
+            live.link_quality = "poor"  # (the last: poses flow but no status or keyframes on the keyframe link)
         else:
             live.link_quality = "good"
 
@@ -590,6 +502,12 @@ class Receiver:
             data = self.stats.to_json()
             data["current_session"] = self.live.session_id
         data["updated_unix"] = time.time()
-        write_json_atomic(self.out / RECEIVER_JSON, data, indent=1, fsync=False)
-        if self.store.last_session:
-            self.store.save_state()
+        try:
+            write_json_atomic(self.out / RECEIVER_JSON, data, indent=1, fsync=False)
+            if self.store.last_session:
+                self.store.save_state()
+        except OSError as exc:  # disk full: the counters are rewritten on the next period
+            if "stats" not in self._warned:
+                self._warned.add("stats")
+                log.warning("cannot write %s: %s (retried every %g s)", self.out / RECEIVER_JSON,
+                            exc.strerror or exc, self.config.stats_interval_s)

@@ -19,6 +19,7 @@ Read keyframes back with :func:`load_keyframe` (a :class:`stereopath.device.wire
 from __future__ import annotations
 
 import csv
+import io
 import json
 import logging
 import os
@@ -28,8 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from stereopath.device.errors import DatasetError, ProtocolError
-from stereopath.device.formats.fileio import fsync_dir
-from stereopath.device.formats.fileio import write_atomic
+from stereopath.device.formats.fileio import is_temp, write_atomic, write_text_atomic
 from stereopath.device.wire.protocol import SESSION_ID_RE, Keyframe, decode_keyframe
 
 log = logging.getLogger(__name__)
@@ -64,20 +64,52 @@ def load_keyframe(path: str | Path) -> Keyframe:
         raise DatasetError(f"{p}: not a valid keyframe: {exc}") from None
 
 
+def _parse_index(p: Path) -> tuple[list[dict[str, Any]], int | None]:
+    """Rows of the index file ``p`` up to the first malformed one, and that row's line number (None: all good).
+
+    A power cut during an append leaves a torn last line; everything before it is still valid.
+    """
+    rows: list[dict[str, Any]] = []
+    with p.open(newline="", errors="replace") as fh:
+        text = fh.read()
+    lines = text.splitlines(keepends=True)
+    if not lines or lines[0].rstrip("\r\n").split(",") != list(INDEX_FIELDS):
+        return rows, 1
+    for lineno, line in enumerate(lines[1:], start=2):
+        if not line.endswith("\n"):
+            return rows, lineno  # the last append did not finish
+        try:
+            values = next(csv.reader([line]))
+        except csv.Error:
+            return rows, lineno
+        if len(values) != len(INDEX_FIELDS):
+            return rows, lineno
+        out: dict[str, Any] = dict(zip(INDEX_FIELDS, values))
+        try:
+            for k in ("seq", "frame_seq", "t_ns", "bytes"):
+                out[k] = int(out[k])
+            for k in ("tx", "ty", "tz", "qx", "qy", "qz", "qw"):
+                out[k] = float(out[k])
+        except ValueError:
+            return rows, lineno
+        if _KF_RE.match(out["file"]) is None:
+            return rows, lineno
+        rows.append(out)
+    return rows, None
+
+
 def read_index(session_dir: str | Path) -> list[dict[str, Any]]:
-    """Rows of ``<session>/keyframes/index.csv`` with numeric fields converted."""
+    """Rows of ``<session>/keyframes/index.csv`` with numeric fields converted.
+
+    A torn or malformed line (a power cut during an append) ends the index: the valid rows
+    before it are returned and a warning names the file and line.
+    """
     p = Path(session_dir) / "keyframes" / INDEX_NAME
     if not p.is_file():
         return []
-    rows = []
-    with p.open(newline="") as fh:
-        for row in csv.DictReader(fh):
-            out: dict[str, Any] = dict(row)
-            for k in ("seq", "frame_seq", "t_ns", "bytes"):
-                out[k] = int(row[k])
-            for k in ("tx", "ty", "tz", "qx", "qy", "qz", "qw"):
-                out[k] = float(row[k])
-            rows.append(out)
+    rows, bad = _parse_index(p)
+    if bad is not None:
+        log.warning("%s: line %d is torn or malformed; using the %d valid rows before it", p, bad, len(rows))
     return rows
 
 
@@ -97,14 +129,15 @@ class SessionKeyframes:
         self.dir = session_dir / "keyframes"
         self.fsync = fsync
         self.dir.mkdir(parents=True, exist_ok=True)
-        for tmp in self.dir.glob("*.tmp"):
-            tmp.unlink(missing_ok=True)
+        for tmp in self.dir.iterdir():
+            if is_temp(tmp):
+                tmp.unlink(missing_ok=True)
         self.seqs: set[int] = {int(m.group(1)) for p in self.dir.iterdir() if (m := _KF_RE.match(p.name))}
         self._acked = -1
         self._advance()
         self._reconcile_index()
-        self._index = (self.dir / INDEX_NAME).open("a", newline="")
-        self._writer = csv.writer(self._index)
+        self._index_fd = os.open(self.dir / INDEX_NAME, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        self._index_ok = True  # False after a failed append: the index is rebuilt from the files on reopen
 
     def _advance(self) -> None:
         while self._acked + 1 in self.seqs:
@@ -125,31 +158,60 @@ class SessionKeyframes:
         """Store ``kf`` (its wire bytes ``data``); False if it is already stored (a duplicate)."""
         if kf.seq in self.seqs:
             return False
-        write_atomic(self.path(kf.seq), data, self.fsync)
-        self._writer.writerow(_index_row(kf, len(data)))
-        self._index.flush()
+        write_atomic(self.path(kf.seq), data, self.fsync)  # OSError (disk full): nothing stored, nothing changed
         self.seqs.add(kf.seq)
+        self._append_index(_index_row(kf, len(data)))
         self._advance()
         return True
 
-    def _reconcile_index(self) -> None:
-        index = self.dir / INDEX_NAME
-        listed: list[int] = []
-        if index.is_file():
-            try:
-                listed = [int(r["seq"]) for r in read_index(self.dir.parent)]
-            except (ValueError, KeyError, csv.Error):
-                listed = []
-        if index.is_file() and len(listed) == len(set(listed)) and set(listed) == self.seqs:
+    def _append_index(self, row: list[Any]) -> None:
+        """One index line in one ``write`` (a cut leaves a torn last line, recovered on reopen).
+
+        The keyframe file is already stored: a failed append (disk full) is logged and the index
+        is rebuilt from the files when the session is next opened.
+        """
+        if not self._index_ok:
             return
+        buf = io.StringIO()
+        csv.writer(buf).writerow(row)
+        data = buf.getvalue().encode()
+        try:
+            n = os.write(self._index_fd, data)
+            if n != len(data):
+                raise OSError(f"short write ({n} of {len(data)} bytes)")
+        except OSError as exc:
+            self._index_ok = False
+            log.error("session %s: cannot append to %s (%s); the keyframe files are stored and the index is "
+                      "rebuilt from them on the next start", self.session_id, self.dir / INDEX_NAME, exc)
+
+    def _reconcile_index(self) -> None:
+        """Make ``index.csv`` list exactly the stored files, keeping the valid prefix of a torn index."""
+        index = self.dir / INDEX_NAME
         if not index.is_file() and not self.seqs:
             with index.open("w", newline="") as fh:
                 csv.writer(fh).writerow(INDEX_FIELDS)
             return
-        log.warning("session %s: keyframe index out of step with %d files; rebuilding", self.session_id,
-                    len(self.seqs))
-        rows = []
-        for seq in sorted(self.seqs):
+        listed: list[dict[str, Any]] = []
+        bad: int | None = None
+        if index.is_file():
+            listed, bad = _parse_index(index)
+            seqs = [r["seq"] for r in listed]
+            if bad is None and len(seqs) == len(set(seqs)) and set(seqs) == self.seqs:
+                return
+        if bad is not None:
+            log.warning("session %s: %s line %d is torn or malformed (a write cut short); keeping the %d valid "
+                        "rows before it and re-adding the rest from the %d keyframe files", self.session_id,
+                        index, bad, len(listed), len(self.seqs))
+        else:
+            log.warning("session %s: keyframe index out of step with %d files; rebuilding", self.session_id,
+                        len(self.seqs))
+        rows: list[list[Any]] = []
+        kept: set[int] = set()
+        for r in listed:  # the valid prefix, in its order, for rows whose file is still there
+            if r["seq"] in self.seqs and r["seq"] not in kept and r["file"] == keyframe_name(r["seq"]):
+                rows.append([r[k] for k in INDEX_FIELDS])
+                kept.add(r["seq"])
+        for seq in sorted(self.seqs - kept):
             p = self.path(seq)
             try:
                 kf = load_keyframe(p)
@@ -161,15 +223,16 @@ class SessionKeyframes:
         self.seqs = {int(r[0]) for r in rows}
         self._acked = -1
         self._advance()
-        tmp = index.with_name(INDEX_NAME + ".tmp")
-        with tmp.open("w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(INDEX_FIELDS)
-            w.writerows(rows)
-        os.replace(tmp, index)
+        buf = io.StringIO(newline="")
+        w = csv.writer(buf)
+        w.writerow(INDEX_FIELDS)
+        w.writerows(rows)
+        write_text_atomic(index, buf.getvalue(), fsync=self.fsync)
 
     def close(self) -> None:
-        self._index.close()
+        if self._index_fd >= 0:
+            os.close(self._index_fd)
+            self._index_fd = -1
 
 
 class KeyframeStore:
@@ -177,7 +240,8 @@ class KeyframeStore:
 
     def __init__(self, out_dir: str | Path, fsync: bool = True, max_open: int = 8) -> None:
         self.root = Path(out_dir)
-        self.root.mkdir(parents=True, exist_ok=True)
+        self.root.parent.mkdir(parents=True, exist_ok=True)
+        self.root.mkdir(mode=0o700, exist_ok=True)  # private by default: the scans are the user's
         self.fsync = fsync
         self.max_open = max_open
         self._sessions: dict[str, SessionKeyframes] = {}

@@ -18,7 +18,6 @@ Open3D is imported inside the functions that need it.
 from __future__ import annotations
 
 import logging
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,6 +26,7 @@ import numpy as np
 
 from stereopath.device.core.config import check_range
 from stereopath.device.errors import ConfigError, StereopathError
+from stereopath.device.formats.fileio import replacing
 
 log = logging.getLogger(__name__)
 
@@ -160,22 +160,14 @@ class TsdfVolume:
 # writing
 
 
-def _tmp_sibling(path: Path) -> Path:
-    # Open3D picks the format from the extension, so the temporary name keeps it.
-    return path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
-
-
 def _write_ply(path: str | Path, count: int, what: str, write) -> Path:
     """Atomic PLY write (temporary file, then rename) through Open3D's ``write(tmp_path)``."""
     p = Path(path)
     if count == 0:
         raise StereopathError(f"refusing to write an empty {what} to {p}")
-    tmp = _tmp_sibling(p)
-    ok = write(str(tmp))
-    if not ok or not tmp.is_file():
-        tmp.unlink(missing_ok=True)
-        raise StereopathError(f"could not write {what} {p}")
-    os.replace(tmp, p)
+    with replacing(p) as tmp:  # Open3D picks the format from the extension, so the temporary name keeps it
+        if not write(str(tmp)) or not tmp.is_file():
+            raise StereopathError(f"could not write {what} {p}")
     return p
 
 

@@ -13,12 +13,12 @@ Camera convention as everywhere: ``T_world_cam`` camera-to-world, x right, y dow
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 
 import numpy as np
 
 from stereopath.device.errors import StereopathError
+from stereopath.device.formats.fileio import write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -234,7 +234,5 @@ def write_png(image_rgb: np.ndarray, path: str | Path) -> Path:
     ok, buf = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2BGR))
     if not ok:
         raise StereopathError(f"could not encode {p}")
-    tmp = p.with_name(f".{p.stem}.tmp{os.getpid()}{p.suffix}")
-    tmp.write_bytes(buf.tobytes())
-    os.replace(tmp, p)
+    write_atomic(p, buf.tobytes(), fsync=False)
     return p

@@ -24,7 +24,10 @@ class ReprocessPreset:
 
     description: str
     estimator_preset: str | None = None  # feature preset of the stereo estimator (None: its on-board default)
-    estimator_options: tuple[tuple[str, Any], ...] = ()
+    # offline, each keyframe's ASIFT work is joined at its keyframe (on board it runs on a worker
+    # thread whose result arrives when it is ready): the re-estimate then does not depend on timing,
+    # so two runs (one after another, or as fleet tasks) give the same bytes
+    estimator_options: tuple[tuple[str, Any], ...] = (("background_keyframes", False),)
     tracks: TrackConfig = field(default_factory=TrackConfig)
     loops: LoopConfig = field(default_factory=LoopConfig)  # loop closure between keyframes (tracks stage)
     ba_solver: str = "gtsam"  # "gtsam" (gtsam_ba) or "schur" (the hand-written bundle_adjust, a cross-check)

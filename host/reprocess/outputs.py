@@ -101,11 +101,21 @@ def loop_report(s: RunSummary) -> dict[str, Any]:
             "end_to_start_error_m": {k: end_to_start_error(gt, v) for k, v in paths.items()}}
 
 
+def groundtruth(seq: Any) -> tuple[Any, str | None]:
+    """(ground truth or None, why it is unusable): a bad optional ground truth never costs the results."""
+    try:
+        return getattr(seq, "groundtruth", None), None
+    except StereopathError as exc:
+        return None, str(exc)
+
+
 def build_report(s: RunSummary) -> dict[str, Any]:
     """The report.json content of a run."""
     from stereopath.host.evaluation.report import make_report
 
-    gt = getattr(s.seq, "groundtruth", None)
+    gt, gt_error = groundtruth(s.seq)
+    if gt_error is not None:
+        log.warning("ground truth unusable, results written without errors against it: %s", gt_error)
     info = meta(s.est, "meta")
     m_final, m_reest = metrics(gt, s.final), metrics(gt, s.reest)
     m_onboard = metrics(gt, s.onboard) if s.onboard is not None and len(s.onboard) else None
@@ -123,6 +133,12 @@ def build_report(s: RunSummary) -> dict[str, Any]:
         "stages": {k: {"status": s.status.get(k, "skipped"), "seconds": s.stage_seconds.get(k, 0.0)} for k in STAGES},
         "map": s.map_stats,
     }
+    if gt_error is not None:
+        extra["groundtruth_error"] = gt_error
+    skipped = list(getattr(s.seq, "skipped_frames", None) or [])
+    extra["frames_skipped"] = len(skipped)
+    if skipped:
+        extra["skipped_frame_indexes"] = skipped[:1000]
     return make_report(source=s.label, estimator="stereo+ba", frames=len(s.final),
                        frames_tracked=int(np.sum(s.est["status"] == 0)),
                        metrics=m_final if m_final and m_final.get("ate_rmse_m") is not None else None,
@@ -133,7 +149,7 @@ def _plots(s: RunSummary, report: dict[str, Any]) -> list[str]:
     from stereopath.host.evaluation.plots import plot_path
     from stereopath.host.reprocess.report_html import plot_errors
 
-    gt = getattr(s.seq, "groundtruth", None)
+    gt, _ = groundtruth(s.seq)
     m_final = report["extra"]["before_after"]["bundle_adjusted"]
     m_onboard = report["extra"]["before_after"]["onboard"]
     gt_usable = gt is not None and m_final is not None and m_final.get("ate_rmse_m") is not None

@@ -71,6 +71,15 @@ class ReprocessResult:
     files: list[str]
 
 
+def _one_blas_thread() -> Any:
+    """A context with every BLAS (NumPy's, SciPy's and OpenCV's OpenBLAS) limited to one thread."""
+    import cv2  # noqa: F401 - each library brings its own BLAS, which must be loaded to be limited
+    import scipy.linalg  # noqa: F401
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
+
+
 class _Runner:
     """Runs or reuses the stages of one reprocessing (keys, stored arrays, status)."""
 
@@ -92,7 +101,11 @@ class _Runner:
     def run_stage(self, name: str, files: list[str], compute: Callable[[], Any]) -> Any:
         self.store.forget(name)
         t0 = time.perf_counter()
-        result = compute()
+        # one BLAS thread: a multi-threaded BLAS sums long dot products in an order that depends on
+        # its thread count, so the adjusted poses would change in the last bits from a 2-core
+        # laptop to a 16-core one or a Ray worker (OMP_NUM_THREADS=1); pinned, they do not
+        with _one_blas_thread():
+            result = compute()
         self.store.finish(name, self.keys[name], files, time.perf_counter() - t0, self.settings.get(name))
         self.status[name] = "computed"
         log.info("stage %s: computed in %.1f s", name, time.perf_counter() - t0)
@@ -214,7 +227,7 @@ def open_session_checked(session_dir: str | Path) -> Any:
 def reprocess_session(session_dir: str | Path, out_dir: str | Path, preset: str | ReprocessPreset = DEFAULT_PRESET,
                       do_map: bool = True, map_preset: str = "object", force: bool = False,
                       progress: bool | None = None, imu_priors: bool = False,
-                      after_stage: Callable[[str], None] | None = None) -> ReprocessResult:
+                      after_stage: Callable[[str], None] | None = None, strict: bool = False) -> ReprocessResult:
     """``stereopath host reprocess``: a recorded session folder -> ``out_dir`` (see the module doc).
 
     The input is checked before anything is written: a missing or empty folder, a folder that is
@@ -222,6 +235,10 @@ def reprocess_session(session_dir: str | Path, out_dir: str | Path, preset: str 
     :class:`stereopath.device.errors.StereopathError` and leave ``out_dir`` untouched.
     """
     seq = open_session_checked(session_dir)
+    from stereopath.device.core.stereo_order import check_sequence_order
+
+    check_sequence_order(seq)  # exchanged left/right images: say so before any stage runs
+    seq.strict = strict  # False: unreadable frames are skipped and counted (report extra.frames_skipped)
     onboard = getattr(seq, "trajectory", None)
     return reprocess_sequence(seq, out_dir, preset=preset, do_map=do_map, map_preset=map_preset, force=force,
                               progress=progress, onboard=onboard, source_label=str(session_dir),

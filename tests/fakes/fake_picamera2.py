@@ -264,7 +264,8 @@ class _FakePicamera2:
         self._stop = threading.Event()
         try:
             if not self.spec.present:
-                # libcamera's Camera.acquire() -> std::system_error -> RuntimeError in Python
+                # libcamera src/py/libcamera/py_main.cpp, Camera.acquire: std::system_error(-ret,
+                # "Failed to acquire camera"), which pybind11 raises as RuntimeError (EBUSY here)
                 raise RuntimeError("Failed to acquire camera: Device or resource busy")
         except Exception as e:
             # Picamera2.__init__: the real error is chained, the message is generic
@@ -305,8 +306,8 @@ class _FakePicamera2:
         ctrl = dict(controls or {})
         if "NoiseReductionMode" in self.camera_controls and "FrameDurationLimits" in self.camera_controls:
             ctrl = {"NoiseReductionMode": _NoiseReductionModeEnum.Fast, "FrameDurationLimits": (33333, 33333)} | ctrl
-        return {"use_case": use_case, "transform": transform, "colour_space": colour_space, "buffer_count": buffer_count,
-                "queue": queue, "main": stream, "lores": lores, "raw": raw, "controls": ctrl, "sensor": sensor,
+        return {"use_case": use_case, "transform": transform, "colour_space": colour_space,
+                "buffer_count": buffer_count, "queue": queue, "main": stream, "lores": lores, "raw": raw, "controls": ctrl, "sensor": sensor,
                 "display": display, "encode": encode}
 
     def configure(self, config: dict[str, Any]) -> None:

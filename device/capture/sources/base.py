@@ -146,6 +146,6 @@ def load_rig_override(path: str) -> Rig | None:
     """The configured rig YAML, or None when ``path`` is empty."""
     if not path:
         return None
-    from stereopath.device.core.rig import load_rig_yaml
+    from stereopath.device.formats.rig_files import load_rig_yaml
 
     return load_rig_yaml(path)

@@ -7,16 +7,30 @@ frames within ``sync_threshold_ms`` and emits only synchronised groups.  Frame t
 whose two mid-exposure times differ by more than ``source.pair_tolerance_us`` is dropped
 (``dropped_unpaired``); gaps in the left sequence numbers count as ``dropped_sensor``.
 
-Factory calibration is read from the EEPROM into our :class:`~stereopath.device.core.rig.Rig`:
-intrinsics scaled to the output size, the 14 OpenCV distortion coefficients, and the
-extrinsics with ``unit=LengthUnit.METER`` (depthai's default is centimetres).
+Intrinsics: ``Camera.requestOutput(size)`` resizes with ``ImgResizeMode.CROP`` (its
+default): the sensor image is cropped, centred, to the output's aspect ratio and then
+scaled.  ``CalibrationHandler.getCameraIntrinsics(sock, w, h)`` does not describe that (it
+scales by the width only: fx 400 instead of 480 at 640x480 from 1280x800), so K is taken
+from the first frames' own ``ImgFrame.getTransformation().getIntrinsicMatrix()``, which
+the device fills in for exactly the crop and scale it applied; where a frame carries no
+valid transformation, the calibration's ``getDefaultIntrinsics`` is cropped and scaled the
+same way (:func:`crop_scale_intrinsics`).  ``open()`` therefore waits for the first
+synchronised pair (that pair is delivered as the first frame).
+
+The rest of the factory calibration comes from the EEPROM: the 14 OpenCV distortion
+coefficients (unchanged by a crop and a uniform scale) and the extrinsics with
+``unit=LengthUnit.METER`` (depthai's default is centimetres).
 ``getCameraExtrinsics(src, dst)`` returns the transform that carries points from the
 source camera's coordinates into the destination camera's (Luxonis stores OpenCV's
 ``stereoCalibrate`` R, T of left -> right), so ``(CAM_B, CAM_C)`` is exactly our
 ``T_cam1_cam0``, with ``T[0] < 0`` for a right camera on the right.  A positive ``T[0]``
 means the other direction: it is inverted with a warning.
 
-The OAK's own IMU (when enabled) is exposed as ``source.imu`` (:class:`DepthaiImu`).
+The OAK's own IMU (when enabled) is exposed as ``source.imu`` (:class:`DepthaiImu`).  It
+streams ``ACCELEROMETER_CALIBRATED`` and ``GYROSCOPE_CALIBRATED``: reports in the DepthAI
+IMU frame, the frame ``getCameraToImuExtrinsics`` refers to (the ``*_RAW`` reports are in
+the chip's native axes).  Accelerometer and gyroscope reports carry their own timestamps;
+the accelerometer is interpolated to the gyroscope's.
 """
 
 from __future__ import annotations
@@ -37,6 +51,11 @@ from stereopath.device.capture.sources.base import SourceBase, load_rig_override
 
 log = logging.getLogger(__name__)
 
+# an OAK pipeline needs a moment after start() before its first frames; open() waits this long
+FIRST_PAIR_TIMEOUT_S = 5.0
+# gyroscope samples kept while waiting for an accelerometer report to interpolate from
+MAX_PENDING_IMU = 4096
+
 DEPTHAI_NAMES = (
     "Pipeline", "Pipeline.create", "Pipeline.start", "Pipeline.stop", "Pipeline.isRunning",
     "Pipeline.getDefaultDevice", "node.Camera", "node.Camera.build", "node.Camera.requestOutput",
@@ -44,9 +63,12 @@ DEPTHAI_NAMES = (
     "node.IMU.setBatchReportThreshold", "node.IMU.setMaxBatchReports",
     "CameraBoardSocket.CAM_B", "CameraBoardSocket.CAM_C", "ImgFrame.Type.GRAY8", "ImgFrame.getTimestamp",
     "ImgFrame.getFrame", "ImgFrame.getSequenceNum", "CameraExposureOffset.MIDDLE", "LengthUnit.METER",
-    "IMUSensor.ACCELEROMETER_RAW", "IMUSensor.GYROSCOPE_RAW", "MessageGroup", "MessageQueue",
-    "CalibrationHandler.getCameraIntrinsics", "CalibrationHandler.getDistortionCoefficients",
-    "CalibrationHandler.getCameraExtrinsics",
+    "IMUSensor.ACCELEROMETER_CALIBRATED", "IMUSensor.GYROSCOPE_CALIBRATED", "MessageGroup",
+    "MessageGroup.getMessageNames", "MessageQueue",
+    "CalibrationHandler.getDefaultIntrinsics", "CalibrationHandler.getDistortionCoefficients",
+    "CalibrationHandler.getCameraExtrinsics", "CalibrationHandler.getCameraToImuExtrinsics",
+    "ImgFrame.getTransformation", "ImgTransformation.getIntrinsicMatrix", "ImgTransformation.isValid",
+    "ImgTransformation.getSize", "Pipeline.wait",
 )
 
 
@@ -63,8 +85,50 @@ def timedelta_to_ns(td: dt.timedelta) -> int:
     return ((td.days * 86400 + td.seconds) * 1_000_000 + td.microseconds) * 1000
 
 
-def rig_from_calibration(cal: Any, dai: Any, size: tuple[int, int], name: str = "oak-d") -> Rig:
-    """Our rig from a depthai ``CalibrationHandler`` (metres, ``T_cam1_cam0``)."""
+def crop_scale_intrinsics(K: Any, src_size: tuple[int, int], dst_size: tuple[int, int]) -> np.ndarray:
+    """K of a ``dst_size`` image made with ``ImgResizeMode.CROP`` from a ``src_size`` one.
+
+    CROP cuts the largest centred window of the output's aspect ratio out of the source and
+    scales it to the output size, so focal lengths scale by that one factor and the
+    principal point moves with the crop.
+    """
+    K = np.asarray(K, float)
+    sw, sh = (float(v) for v in src_size)
+    w, h = (float(v) for v in dst_size)
+    if sw * h > sh * w:         # source wider than the output: columns are cut
+        cw, ch = sh * w / h, sh
+    else:                       # source taller (or the same shape): rows are cut
+        cw, ch = sw, sw * h / w
+    x0, y0 = (sw - cw) / 2.0, (sh - ch) / 2.0
+    sx, sy = w / cw, h / ch
+    out = K.copy()
+    out[0, 0], out[0, 1], out[0, 2] = K[0, 0] * sx, K[0, 1] * sx, (K[0, 2] - x0) * sx
+    out[1, 1], out[1, 2] = K[1, 1] * sy, (K[1, 2] - y0) * sy
+    return out
+
+
+def frame_intrinsics(frame: Any, size: tuple[int, int]) -> np.ndarray | None:
+    """K from an ``ImgFrame``'s own transformation, or None when it carries none for ``size``."""
+    try:
+        tr = frame.getTransformation()
+        if not tr.isValid():
+            return None
+        w, h = tr.getSize()
+        if (int(w), int(h)) != (int(size[0]), int(size[1])):
+            return None
+        return np.asarray(tr.getIntrinsicMatrix(), float)
+    except (AttributeError, RuntimeError):
+        return None
+
+
+def rig_from_calibration(cal: Any, dai: Any, size: tuple[int, int], name: str = "oak-d",
+                         intrinsics: dict[str, Any] | None = None) -> Rig:
+    """Our rig from a depthai ``CalibrationHandler`` (metres, ``T_cam1_cam0``).
+
+    ``intrinsics`` maps ``"CAM_B"``/``"CAM_C"`` to K at ``size`` (from the frames'
+    transformations); a camera missing there gets its calibrated K cropped and scaled as
+    ``ImgResizeMode.CROP`` does.
+    """
     w, h = (int(v) for v in size)
     socks = (dai.CameraBoardSocket.CAM_B, dai.CameraBoardSocket.CAM_C)
     cams = []
@@ -74,9 +138,12 @@ def rig_from_calibration(cal: Any, dai: Any, size: tuple[int, int], name: str = 
             m = model(sock)
             if m != dai.CameraModel.Perspective:
                 raise CaptureError(f"depthai: {cname} uses the {m} lens model; only Perspective is supported")
-        K = np.asarray(cal.getCameraIntrinsics(sock, w, h), float)
+        K = None if intrinsics is None else intrinsics.get(sock.name)
+        if K is None:
+            K_cal, cw, ch = cal.getDefaultIntrinsics(sock)
+            K = crop_scale_intrinsics(K_cal, (int(cw), int(ch)), (w, h))
         d = np.asarray(cal.getDistortionCoefficients(sock), float).reshape(-1)
-        cams.append(make_camera(cname, K, d, (w, h)))
+        cams.append(make_camera(cname, np.asarray(K, float), d, (w, h)))
     T = np.asarray(cal.getCameraExtrinsics(socks[0], socks[1], unit=dai.LengthUnit.METER), float)
     if T.shape != (4, 4):
         raise CaptureError(f"depthai: CAM_B -> CAM_C extrinsics have shape {T.shape}, expected 4x4")
@@ -91,7 +158,7 @@ def rig_from_calibration(cal: Any, dai: Any, size: tuple[int, int], name: str = 
     T_body_cam0 = None
     getter = getattr(cal, "getCameraToImuExtrinsics", None)
     if getter is not None:
-        try:
+        try:  # camera -> IMU: carries cam0 points into the (calibrated) IMU frame = T_body_cam0
             T_body_cam0 = np.asarray(getter(socks[0], unit=dai.LengthUnit.METER), float)
         except Exception as exc:  # older boards carry no IMU extrinsics
             log.info("depthai: no camera-IMU extrinsics in the calibration (%s)", exc)
@@ -99,7 +166,12 @@ def rig_from_calibration(cal: Any, dai: Any, size: tuple[int, int], name: str = 
 
 
 class DepthaiImu:
-    """The OAK's IMU as an :class:`stereopath.device.capture.imu.ImuSource` (host-synchronised timestamps)."""
+    """The OAK's IMU as an :class:`stereopath.device.capture.imu.ImuSource` (host-synchronised timestamps).
+
+    Samples are stamped with the gyroscope reports' times; the accelerometer, whose reports
+    carry their own timestamps, is interpolated linearly to those times.  A gyroscope sample
+    newer than the latest accelerometer report waits for the next :meth:`read`.
+    """
 
     name = "depthai-imu"
 
@@ -108,7 +180,11 @@ class DepthaiImu:
         self.rate_hz = float(rate_hz)
         self.gaps: list[tuple[int, int]] = []
         self.samples = 0
-        self._last_t: int | None = None
+        self._last_t: int | None = None       # last gyroscope time handed out
+        self._last_g: int | None = None       # last gyroscope report seen
+        self._last_a: int | None = None       # last accelerometer report seen
+        self._gyro: list[tuple[int, float, float, float]] = []   # waiting for accelerometer cover
+        self._acc: list[tuple[int, float, float, float]] = []    # for interpolation
 
     def open(self) -> None:
         pass
@@ -117,8 +193,7 @@ class DepthaiImu:
         pass
 
     def read(self) -> ImuSamples:
-        """All packets received since the last call (timestamps of the gyro reports)."""
-        t, g, a = [], [], []
+        """All samples received since the last call that the accelerometer already covers."""
         try:
             msgs = self._q.tryGetAll()
         except Exception as exc:
@@ -126,19 +201,42 @@ class DepthaiImu:
         for msg in msgs:
             for pk in msg.packets:
                 gy, ac = pk.gyroscope, pk.acceleroMeter
-                ts = timedelta_to_ns(gy.getTimestamp())
-                if self._last_t is not None and ts <= self._last_t:
-                    continue
-                if self._last_t is not None and ts - self._last_t > 2.5e9 / self.rate_hz:
-                    self.gaps.append((self._last_t, ts))
-                self._last_t = ts
-                t.append(ts)
-                g.append((gy.x, gy.y, gy.z))
-                a.append((ac.x, ac.y, ac.z))
-        self.samples += len(t)
-        if not t:
+                tg = timedelta_to_ns(gy.getTimestamp())
+                if tg > 0 and (self._last_g is None or tg > self._last_g):
+                    self._last_g = tg
+                    self._gyro.append((tg, gy.x, gy.y, gy.z))
+                ta = timedelta_to_ns(ac.getTimestamp())
+                if ta > 0 and (self._last_a is None or ta > self._last_a):
+                    self._last_a = ta
+                    self._acc.append((ta, ac.x, ac.y, ac.z))
+        if len(self._gyro) > MAX_PENDING_IMU:  # the accelerometer stopped reporting: do not hoard
+            self._gyro = self._gyro[-MAX_PENDING_IMU:]
+        if not self._gyro or not self._acc:
+            self._acc = self._acc[-1:]
             return ImuSamples.empty()
-        return ImuSamples(np.array(t, np.int64), np.array(g, float), np.array(a, float))
+        g = np.array(self._gyro, float)
+        a = np.array(self._acc, float)
+        tg = np.array([x[0] for x in self._gyro], np.int64)
+        ta = np.array([x[0] for x in self._acc], np.int64)
+        ready = tg <= ta[-1]
+        usable = ready & (tg >= ta[0])   # before the first accelerometer report: nothing to interpolate
+        self._gyro = [x for x, r in zip(self._gyro, ready) if not r]
+        keep_from = max(0, int(np.searchsorted(ta, tg[ready][-1], side="right")) - 1) if ready.any() else 0
+        self._acc = self._acc[keep_from:]
+        t = tg[usable]
+        if t.size == 0:
+            return ImuSamples.empty()
+        rel = (t - ta[0]).astype(float)
+        rel_a = (ta - ta[0]).astype(float)
+        accel = np.stack([np.interp(rel, rel_a, a[:, k]) for k in (1, 2, 3)], axis=1)
+        gyro = g[usable][:, 1:4]
+        if self._last_t is not None and t[0] - self._last_t > 2.5e9 / self.rate_hz:
+            self.gaps.append((self._last_t, int(t[0])))
+        big = np.nonzero(np.diff(t) > 2.5e9 / self.rate_hz)[0]
+        self.gaps.extend((int(t[i]), int(t[i + 1])) for i in big)
+        self._last_t = int(t[-1])
+        self.samples += int(t.size)
+        return ImuSamples(t, gyro, accel)
 
 
 class DepthaiSource(SourceBase):
@@ -155,6 +253,7 @@ class DepthaiSource(SourceBase):
         self._pipeline: Any = None
         self._queue: Any = None
         self._dai: Any = None
+        self._first: Any = None
 
     def _module(self) -> Any:
         if self._dai_arg is None:
@@ -186,18 +285,32 @@ class DepthaiSource(SourceBase):
             self._queue = sync.out.createOutputQueue(maxSize=ds.queue_size, blocking=False)
             if ds.imu:
                 imu = p.create(dai.node.IMU)
-                imu.enableIMUSensor([dai.IMUSensor.ACCELEROMETER_RAW, dai.IMUSensor.GYROSCOPE_RAW], ds.imu_rate_hz)
+                # the calibrated reports are in the IMU frame getCameraToImuExtrinsics refers to
+                imu.enableIMUSensor([dai.IMUSensor.ACCELEROMETER_CALIBRATED, dai.IMUSensor.GYROSCOPE_CALIBRATED],
+                                    ds.imu_rate_hz)
                 imu.setBatchReportThreshold(5)
                 imu.setMaxBatchReports(20)
                 self._imu = DepthaiImu(imu.out.createOutputQueue(maxSize=50, blocking=False), ds.imu_rate_hz)
+            cal = None
             if self._rig_arg is not None:
                 self._rig = self._rig_arg
             else:
                 self._rig = load_rig_override(s.rig_file)
                 if self._rig is None:
                     cal = p.getDefaultDevice().readCalibration()
-                    self._rig = rig_from_calibration(cal, dai, size)
+                    rig_from_calibration(cal, dai, size)  # fail early on a calibration we cannot use
             p.start()
+            self._first = self._first_group(max(float(s.timeout_s), FIRST_PAIR_TIMEOUT_S))
+            if cal is not None:
+                K = {}
+                for key, sock in (("left", dai.CameraBoardSocket.CAM_B), ("right", dai.CameraBoardSocket.CAM_C)):
+                    K_frame = frame_intrinsics(self._first[key], size)
+                    if K_frame is None:
+                        log.warning("depthai: %s frames carry no image transformation; K is the calibration "
+                                    "cropped and scaled as ImgResizeMode.CROP does", key)
+                    else:
+                        K[sock.name] = K_frame
+                self._rig = rig_from_calibration(cal, dai, size, intrinsics=K)
         except CaptureError:
             self._stop_pipeline()
             raise
@@ -215,19 +328,25 @@ class DepthaiSource(SourceBase):
         last_seq: int | None = None
         last_progress = time.monotonic()
         while self._opened:
-            try:
-                running = self._pipeline.isRunning()
-                group = self._queue.get(timeout=dt.timedelta(seconds=min(0.1, s.timeout_s))) if running else None
-            except Exception as exc:  # QueueException when the device went away, XLink errors
-                raise CaptureError(f"depthai: lost the device: {exc}") from None
-            if not running:
-                raise CaptureError("depthai: the pipeline stopped (device disconnected?)")
+            group, self._first = self._first, None
+            if group is None:
+                try:
+                    running = self._pipeline.isRunning()
+                    group = self._queue.get(timeout=dt.timedelta(seconds=min(0.1, s.timeout_s))) if running else None
+                except Exception as exc:  # QueueException when the device went away, XLink errors
+                    raise CaptureError(f"depthai: lost the device: {exc}") from None
+                if not running:
+                    raise CaptureError("depthai: the pipeline stopped (device disconnected?)")
             if group is None:
                 if time.monotonic() - last_progress > s.timeout_s:
                     raise CaptureError(f"depthai: no synchronised frame pair for {s.timeout_s:.1f} s")
                 continue
             last_progress = time.monotonic()
-            lf, rf = group["left"], group["right"]
+            try:
+                lf, rf = group["left"], group["right"]
+            except (IndexError, KeyError):  # MessageGroup raises IndexError("map::at") for a missing name
+                self._count(dropped_unpaired=int(group.getNumMessages()))
+                continue
             tl = timedelta_to_ns(lf.getTimestamp(mid))
             tr = timedelta_to_ns(rf.getTimestamp(mid))
             sn = int(lf.getSequenceNum())
@@ -254,12 +373,32 @@ class DepthaiSource(SourceBase):
             yield StereoFrame(seq=seq, t_ns=(tl + tr) // 2, left=left, right=right, meta=meta)
             seq += 1
 
+    def _first_group(self, timeout_s: float) -> Any:
+        """The first complete synchronised group (its frames carry the transformation K is read from)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                if not self._pipeline.isRunning():
+                    raise CaptureError("depthai: the pipeline stopped before the first frame pair "
+                                       "(device disconnected?)")
+                group = self._queue.get(timeout=dt.timedelta(seconds=0.1))
+            except CaptureError:
+                raise
+            except Exception as exc:
+                raise CaptureError(f"depthai: lost the device before the first frame pair: {exc}") from None
+            if group is not None and {"left", "right"} <= set(group.getMessageNames()):
+                return group
+            if time.monotonic() > deadline:
+                raise CaptureError(f"depthai: no synchronised frame pair within {timeout_s:.1f} s of starting")
+
     def _stop_pipeline(self) -> None:
         p, self._pipeline = self._pipeline, None
+        self._first = None
         if p is None:
             return
-        try:
+        try:  # what Pipeline.__exit__ does: stop, then wait for the pipeline's threads
             p.stop()
+            p.wait()
         except Exception as exc:
             log.warning("depthai: stopping the pipeline failed: %s", exc)
 

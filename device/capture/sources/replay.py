@@ -41,16 +41,19 @@ def paced(times_ns: list[int] | Any, clock_ns: Callable[[], int], sleep: Callabl
     return wait_for
 
 
-class ReplaySource(SourceBase):
-    """Frames of a recorded sequence (see module doc)."""
+class SequenceSource(SourceBase):
+    """A sequence (``rig``, ``t_ns``, ``len()``, ``frame(i)``, ``imu``) played as a stereo source.
 
-    name = "replay"
+    The one frame loop of the replay and simulator sources: subclasses say where the sequence
+    comes from (:meth:`_load`), which frames to play (:meth:`_span`) and how to pace them (:meth:`_pacer`).
+    """
 
-    def __init__(self, settings: ReplaySettings, sequence: Any = None, rig_file: str = "",
+    name = "sequence"
+
+    def __init__(self, sequence: Any = None, rig_file: str = "",
                  clock_ns: Callable[[], int] = time.monotonic_ns, sleep: Callable[[float], None] = time.sleep,
                  imu_lookahead_ns: int = 100_000_000) -> None:
         super().__init__()
-        self.settings = settings
         self._seq_arg = sequence
         self._rig_file = rig_file
         self._clock_ns = clock_ns
@@ -58,39 +61,41 @@ class ReplaySource(SourceBase):
         self._lookahead = imu_lookahead_ns
         self.sequence: Any = None
 
-    def _open(self) -> None:
-        seq = self._seq_arg
-        if seq is None:
-            if not self.settings.path:
-                raise CaptureError("replay source: no sequence configured (source.replay.path, e.g. 'euroc:DIR')")
-            from stereopath.device.formats import open_source
+    def _load(self) -> Any:
+        raise NotImplementedError
 
-            try:
-                seq = open_source(self.settings.path)
-            except DatasetError as exc:
-                raise CaptureError(f"replay source: {exc}") from None
+    def _span(self) -> tuple[int, int]:
+        return 0, len(self.sequence)
+
+    def _pacer(self) -> Callable[[int, int], None] | None:
+        """``wait(i, t_ns)`` before frame ``i`` is delivered, or None for as fast as read."""
+        return None
+
+    def _open(self) -> None:
+        seq = self._seq_arg if self._seq_arg is not None else self._load()
         self.sequence = seq
-        n = len(seq)
-        if n == 0:
-            raise CaptureError(f"replay source: {getattr(seq, 'name', 'sequence')} has no frames")
-        if self.settings.start >= n:
-            raise CaptureError(f"replay source: start frame {self.settings.start} beyond the last frame ({n - 1})")
         self._rig = load_rig_override(self._rig_file) or seq.rig
         imu = getattr(seq, "imu", None)
         self._imu = OfflineImu(imu, self._lookahead) if imu is not None and len(imu) else None
-        self.name = f"replay:{getattr(seq, 'name', 'sequence')}"
 
     def _frames(self) -> Iterator[StereoFrame]:
-        s, seq = self.settings, self.sequence
-        stop = len(seq) if s.count == 0 else min(len(seq), s.start + s.count)
-        wait = paced([], self._clock_ns, self._sleep) if s.speed == "recorded" else None
-        for out_seq, i in enumerate(range(s.start, stop)):
+        seq = self.sequence
+        start, stop = self._span()
+        wait = self._pacer()
+        for out_seq, i in enumerate(range(start, stop)):
             if not self._opened:
                 return
             t = int(seq.t_ns[i])
             if wait is not None:
-                wait(t)
-            frame = seq.frame(i)
+                wait(i, t)
+            try:
+                frame = seq.frame(i)
+            except DatasetError as exc:
+                if getattr(seq, "strict", False):
+                    raise CaptureError(f"replay source: {exc}") from None
+                log.warning("replay: skipping unreadable frame %d: %s", i, exc)
+                self._count(dropped_sensor=1)  # a frame the recording lost, as a sensor gap would be
+                continue
             self._count(frames_left=1, frames_right=1, paired=1, delivered=1)
             if self._imu is not None:
                 self._imu.advance(t)
@@ -105,3 +110,45 @@ class ReplaySource(SourceBase):
         close = getattr(self.sequence, "close", None)
         if callable(close) and self._seq_arg is None:
             close()
+
+
+class ReplaySource(SequenceSource):
+    """Frames of a recorded sequence (see module doc)."""
+
+    name = "replay"
+
+    def __init__(self, settings: ReplaySettings, sequence: Any = None, rig_file: str = "",
+                 clock_ns: Callable[[], int] = time.monotonic_ns, sleep: Callable[[float], None] = time.sleep,
+                 imu_lookahead_ns: int = 100_000_000) -> None:
+        super().__init__(sequence, rig_file, clock_ns, sleep, imu_lookahead_ns)
+        self.settings = settings
+
+    def _load(self) -> Any:
+        if not self.settings.path:
+            raise CaptureError("replay source: no sequence configured (source.replay.path, e.g. 'euroc:DIR')")
+        from stereopath.device.formats import open_source
+
+        try:
+            return open_source(self.settings.path)
+        except DatasetError as exc:
+            raise CaptureError(f"replay source: {exc}") from None
+
+    def _open(self) -> None:
+        super()._open()
+        seq = self.sequence
+        n = len(seq)
+        if n == 0:
+            raise CaptureError(f"replay source: {getattr(seq, 'name', 'sequence')} has no frames")
+        if self.settings.start >= n:
+            raise CaptureError(f"replay source: start frame {self.settings.start} beyond the last frame ({n - 1})")
+        self.name = f"replay:{getattr(seq, 'name', 'sequence')}"
+
+    def _span(self) -> tuple[int, int]:
+        s, n = self.settings, len(self.sequence)
+        return s.start, n if s.count == 0 else min(n, s.start + s.count)
+
+    def _pacer(self) -> Callable[[int, int], None] | None:
+        if self.settings.speed != "recorded":
+            return None
+        wait = paced([], self._clock_ns, self._sleep)
+        return lambda _i, t_ns: wait(t_ns)

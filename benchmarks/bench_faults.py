@@ -1,0 +1,434 @@
+"""Fault benchmark (issue 15): every scenario on loopback, bounded in time, and what it cost.
+
+Per scenario it prints keyframes (and poses where they matter) sent / stored / lost, the exit
+code and the message a user saw.  "lost" counts keyframes the device produced that are on no
+host disk at the end (a keyframe still only on the device's disk is counted as "device only").
+Full disks are real size-limited tmpfs mounts when this runs as root (``mount -t tmpfs -o
+size=...``); otherwise an injected ``ENOSPC`` at the write helper.
+
+    .venv/bin/python benchmarks/bench_faults.py [--only NAME,NAME] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+os.environ.setdefault("STEREOPATH_DATA", str(ROOT.parent / "shared" / "data"))
+
+from tests.test_streaming_support import make_device, small_images, stored_seqs, wait_for  # noqa: E402
+
+TIME_LIMIT_S = 90.0  # per scenario: a scenario that takes longer counts as a hang
+
+
+def _free_ports(n: int) -> list[int]:
+    out = []
+    for _ in range(n):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            out.append(s.getsockname()[1])
+    return out
+
+
+def _cli(argv: list[str], timeout: float = TIME_LIMIT_S) -> tuple[int | str, str]:
+    """``python -m stereopath.host ARGV``: (exit code or 'HANG', the last error/warning line)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    try:
+        p = subprocess.run([sys.executable, "-m", "stereopath.host", *argv], cwd=ROOT, env=env,
+                           capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return "HANG", ""
+    return p.returncode, _user_line(p.stderr + p.stdout)
+
+
+def _user_line(text: str) -> str:
+    if "Traceback" in text:
+        return "TRACEBACK: " + text.strip().splitlines()[-1][:160]
+    keys = ("stereopath: error", "warning:", "ERROR", "skipped")
+    lines = [ln for ln in text.splitlines() if any(k in ln for k in keys)]
+    return (lines[-1] if lines else (text.strip().splitlines() or [""])[-1])[:200]
+
+
+def _can_mount() -> bool:
+    if os.geteuid() != 0:
+        return False
+    d = tempfile.mkdtemp(prefix="bench-faults-probe-")
+    try:
+        ok = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", d], capture_output=True).returncode == 0
+        if ok:
+            subprocess.run(["umount", d], capture_output=True)
+        return ok
+    finally:
+        os.rmdir(d)
+
+
+@contextmanager
+def _small_fs(size: str):
+    """A size-limited tmpfs (root) yielding (path, grow) where grow(size) makes room again."""
+    d = Path(tempfile.mkdtemp(prefix="bench-faults-fs-"))
+    subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(d)], check=True)
+
+    def grow(new_size: str) -> None:
+        subprocess.run(["mount", "-o", f"remount,size={new_size}", str(d)], check=True)
+    try:
+        yield d, grow
+    finally:
+        subprocess.run(["umount", "-l", str(d)], capture_output=True)
+        shutil.rmtree(d, ignore_errors=True)
+
+
+def _receiver(dev, out: Path, **kw):
+    from stereopath.host.live.receiver import Receiver, ReceiverConfig
+
+    cfg = ReceiverConfig(dev.pose_endpoint, dev.keyframe_endpoint, insecure=True, fsync=False,
+                         heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
+                         reconnect_ivl_max_ms=400, stall_timeout_s=1.0, **kw)
+    return Receiver(cfg, out)
+
+
+def _row(name: str, **kw) -> dict:
+    base = {"scenario": name, "kf_sent": "-", "kf_stored": "-", "kf_lost": "-", "poses_sent": "-",
+            "poses_stored": "-", "rc": "-", "message": ""}
+    base.update(kw)
+    return base
+
+
+# ------------------------------------------------------------------------------------------ scenarios
+
+def sc_torn_index(tmp: Path, mount: bool) -> dict:
+    """Host restarted after a power cut tore index.csv mid-append; the device then sends more."""
+    import logging
+
+    from stereopath.host.live.store import read_index
+
+    msgs: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda r: msgs.append(r.getMessage()) if r.levelno >= logging.WARNING else None
+    logging.getLogger("stereopath.host.live.store").addHandler(handler)
+    logging.getLogger("stereopath.host.live.store").setLevel(logging.WARNING)
+    try:
+        dev = make_device(tmp, None, "sessI")
+        out = tmp / "host"
+        rx = _receiver(dev, out)
+        for i in range(5):
+            dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
+        wait_for(lambda: len(stored_seqs(out, "sessI")) == 5, 20, between=lambda: rx.poll(0.02))
+        rx.close()
+        idx = out / "sessI" / "keyframes" / "index.csv"
+        idx.write_bytes(idx.read_bytes()[:-25])  # the power cut
+        rx = _receiver(dev, out)
+        for i in range(5, 10):
+            dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
+        wait_for(lambda: len(stored_seqs(out, "sessI")) == 10, 20, between=lambda: rx.poll(0.02))
+        rx.close()
+        dev.close()
+        rows = sorted(r["seq"] for r in read_index(out / "sessI"))
+        stored = len(stored_seqs(out, "sessI"))
+        return _row("4 torn index.csv", kf_sent=10, kf_stored=stored, kf_lost=10 - stored, rc="n/a (restarted)",
+                    message=(msgs[0][:150] if msgs else "") + f" | index rows {len(rows)}")
+    finally:
+        logging.getLogger("stereopath.host.live.store").removeHandler(handler)
+
+
+def sc_host_disk_full(tmp: Path, mount: bool) -> dict:
+    """The host's disk fills while keyframes arrive; space returns later (same host process)."""
+    import logging
+
+    from stereopath.host.live import store as store_mod
+
+    msgs: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda r: msgs.append(r.getMessage()) if r.levelno >= logging.ERROR else None
+    logging.getLogger("stereopath.host.live").addHandler(handler)
+    logging.getLogger("stereopath.host.live").setLevel(logging.WARNING)
+    n = 20
+    try:
+        dev = make_device(tmp, None, "sessH")
+        if mount:
+            ctx = _small_fs("48k")
+            out_root, grow = ctx.__enter__()
+        else:
+            ctx, out_root = None, tmp
+            full = {"on": False}
+            real = store_mod.write_atomic
+
+            def write(path, *a, **k):
+                if full["on"]:
+                    raise OSError(errno.ENOSPC, "No space left on device", str(path))
+                return real(path, *a, **k)
+            store_mod.write_atomic = write
+        try:
+            out = out_root / "host"
+            rx = _receiver(dev, out)
+            if not mount:
+                full["on"] = True
+            for i in range(n):
+                dev.offer_keyframe(i, i, np.eye(4), *small_images(i, h=192, w=256))
+            dev.wait_spooled(n, 20)
+            t_end = time.monotonic() + 4
+            while time.monotonic() < t_end:
+                rx.poll(0.02)
+            during = len(stored_seqs(out, "sessH"))
+            failures = rx.stats.link["store_failures"]
+            if mount:
+                grow("8m")
+            else:
+                full["on"] = False
+            wait_for(lambda: len(stored_seqs(out, "sessH")) == n, 30, between=lambda: rx.poll(0.02))
+            stored = len(stored_seqs(out, "sessH"))
+            leftovers = [p.name for p in out.rglob("*") if p.name.endswith(".tmp")]
+            rx.close()
+        finally:
+            if ctx is not None:
+                ctx.__exit__(None, None, None)
+            else:
+                store_mod.write_atomic = real
+        dev.close()
+        how = "tmpfs 48k -> 8m" if mount else "injected ENOSPC"
+        return _row("3 host disk full", kf_sent=n, kf_stored=stored, kf_lost=n - stored, rc="n/a (kept running)",
+                    message=f"[{how}] stored {during} while full, {failures} store failures, "
+                            f"{len(leftovers)} temp files; " + (msgs[0][:110] if msgs else ""))
+    finally:
+        logging.getLogger("stereopath.host.live").removeHandler(handler)
+
+
+def sc_device_disk_full(tmp: Path, mount: bool) -> dict:
+    """The device's disk fills mid-scan (recorder + spool) with a host connected."""
+    from stereopath.device.service.options import RunOptions, load_config
+    from stereopath.device.service.service import CaptureService
+    from stereopath.host.live.receiver import Receiver, ReceiverConfig
+    from tests.test_service_support import FakeEstimator, sim_tables, write_toml
+
+    ports = _free_ports(2)
+    stream = {"insecure": True, "pose_endpoint": f"tcp://127.0.0.1:{ports[0]}",
+              "keyframe_endpoint": f"tcp://127.0.0.1:{ports[1]}", "drain_s": 5.0}
+    if not mount:
+        return _row("2 device disk full", message="skipped: needs root for a size-limited tmpfs (the test injects it)")
+    with _small_fs("6m") as (dev_root, _grow):
+        tables = sim_tables(dev_root, frames=60, rate_hz=20.0, stream=stream)
+        tables["recorder"]["reserve_mb"] = 1.0
+        cfg_path = write_toml(tmp / "device.toml", tables)
+        opts = RunOptions(out=str(dev_root / "s"), wait_for_host_s=10.0)
+        service = CaptureService(load_config(cfg_path, opts), opts, cfg_path, environ={},
+                                 estimator=FakeEstimator(kf_every=2))
+        rx = Receiver(ReceiverConfig(stream["pose_endpoint"], stream["keyframe_endpoint"], insecure=True,
+                                     fsync=False, stall_timeout_s=0.5), tmp / "host")
+        res: dict = {}
+        th = threading.Thread(target=lambda: res.setdefault("code", service.run()), daemon=True)
+        th.start()
+        t_end = time.monotonic() + TIME_LIMIT_S
+        while th.is_alive() and time.monotonic() < t_end:
+            rx.poll(0.02)
+        for _ in range(25):
+            rx.poll(0.02)
+        hung = th.is_alive()
+        poses_stored = sum(s.poses for s in rx.stats.sessions.values())
+        rx.close()
+        th.join(10)
+        status = json.loads((dev_root / "status.json").read_text())
+        spooled = status.get("keyframes_spooled", 0)
+        stored = len(stored_seqs(tmp / "host", service.session_id))
+        on_device = len(list((dev_root / "s" / "keyframes").glob("*.kf")))
+    return _row("2 device disk full", kf_sent=spooled, kf_stored=stored, kf_lost=spooled - stored,
+                poses_sent=status.get("poses_sent", "-"), poses_stored=poses_stored,
+                rc="HANG" if hung else res.get("code"),
+                message=f"[tmpfs 6m, reserve 1 MB] recorder {status.get('recorder_state')}, {on_device} keyframes on "
+                        f"device disk, {status.get('keyframes_failed')} refused; STATUS: "
+                        + service.stop_reason[:40] + " / " + ("DISK FULL" if status.get("spool_disk_full") else "?"))
+
+
+def sc_two_hosts(tmp: Path, mount: bool) -> dict:
+    """`host live` twice with one key (here: two receivers, CURVE, the same key pair)."""
+    from stereopath.device.wire.security import make_demo_keys
+    from stereopath.host.live.receiver import Receiver, ReceiverConfig
+
+    keys = make_demo_keys(tmp / "keys")
+    dev = make_device(tmp, keys, "sessT")
+
+    def rx(out):
+        return Receiver(ReceiverConfig(dev.pose_endpoint, dev.keyframe_endpoint, keys_dir=str(keys.host_keys_dir),
+                                       fsync=False, stall_timeout_s=1.0, reconnect_ivl_ms=50), out)
+    a = rx(tmp / "a")
+    for i in range(5):
+        dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
+    wait_for(lambda: len(stored_seqs(tmp / "a", "sessT")) == 5, 20, between=lambda: a.poll(0.02))
+    b = rx(tmp / "b")
+    for i in range(5, 15):
+        dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
+        a.poll(0.01)
+        b.poll(0.01)
+    wait_for(lambda: all(len(stored_seqs(tmp / d, "sessT")) == 15 for d in "ab"), 20,
+             between=lambda: (a.poll(0.01), b.poll(0.01)))
+    sa, sb = len(stored_seqs(tmp / "a", "sessT")), len(stored_seqs(tmp / "b", "sessT"))
+    a.close()
+    b.close()
+    peers = dev.stats()["peers"]
+    dev.close()
+    return _row("1 two hosts, one key", kf_sent=15, kf_stored=f"{sa} + {sb}", kf_lost=(15 - sa) + (15 - sb),
+                rc="n/a", message=f"device peers: {len(peers)}, acked {[p['acked'] for p in peers]}")
+
+
+def sc_port_taken(tmp: Path, mount: bool) -> dict:
+    from tests.test_service_support import sim_tables, write_toml
+
+    blocker = socket.socket()
+    blocker.bind(("127.0.0.1", 0))
+    blocker.listen()
+    free = _free_ports(1)[0]
+    stream = {"insecure": True, "pose_endpoint": f"tcp://127.0.0.1:{blocker.getsockname()[1]}",
+              "keyframe_endpoint": f"tcp://127.0.0.1:{free}"}
+    cfg = write_toml(tmp / "device.toml", sim_tables(tmp, frames=20, stream=stream))
+    t0 = time.monotonic()
+    rc, msg = _cli(["device", "run", "--config", str(cfg)])
+    blocker.close()
+    left = list((tmp / "sessions").iterdir()) if (tmp / "sessions").exists() else []
+    return _row("5 port taken", rc=rc, message=f"{time.monotonic() - t0:.1f} s, {len(left)} folders left; {msg}")
+
+
+def _session(tmp: Path, frames: int = 12) -> Path:
+    from stereopath.device.formats.recorder import record_sequence
+    from stereopath.device.sim.session import SimConfig, open_sim
+
+    d = tmp / "session"
+    record_sequence(open_sim(SimConfig(frames=frames)), d, config_dict={"source": "sim"})
+    return d
+
+
+def sc_bad_groundtruth(tmp: Path, mount: bool) -> dict:
+    d = _session(tmp)
+    (d / "groundtruth.tum").write_text("1 2 3\n")
+    rc, msg = _cli(["host", "reprocess", str(d), "--out", str(tmp / "out"), "--preset", "quick", "--no-map",
+                    "--no-progress"])
+    ok = (tmp / "out" / "trajectory.tum").is_file()
+    return _row("9 reprocess, bad ground truth", rc=rc, message=f"trajectory written: {ok}; {msg}")
+
+
+def sc_bad_frame(tmp: Path, mount: bool) -> dict:
+    d = _session(tmp)
+    img = sorted((d / "mav0" / "cam0" / "data").glob("*.png"))[5]
+    img.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 40)
+    rc, msg = _cli(["odometry", f"session:{d}", "--out", str(tmp / "o")])
+    rc2, msg2 = _cli(["odometry", f"session:{d}", "--out", str(tmp / "o2"), "--strict"])
+    rep = json.loads((tmp / "o" / "report.json").read_text()) if (tmp / "o" / "report.json").is_file() else {}
+    return _row("10 one bad frame (odometry)", rc=f"{rc} / --strict {rc2}",
+                message=f"frames {rep.get('frames')} skipped {rep.get('extra', {}).get('frames_skipped')}; {msg} | "
+                        f"strict: {msg2[:90]}")
+
+
+def sc_bad_rigs(tmp: Path, mount: bool) -> dict:
+    import yaml
+
+    data = yaml.safe_load((ROOT / "firmware_cfg" / "rig_paper.yaml").read_text())
+    data["T_cam1_cam0_m"] = [-v for v in data["T_cam1_cam0_m"]]
+    (tmp / "neg.yaml").write_text(yaml.safe_dump(data))
+    d = _session(tmp)
+    rc1, m1 = _cli(["device", "run", "--source", f"replay:session:{d}", "--insecure", "--no-stream", "--frames", "3",
+                    "--status-file", "", "--out", str(tmp / "r"), "--config", str(_rig_cfg(tmp, tmp / "neg.yaml"))])
+    m = d / "mav0"
+    (m / "cam0").rename(m / "x")
+    (m / "cam1").rename(m / "cam0")
+    (m / "x").rename(m / "cam1")
+    rc2, m2 = _cli(["odometry", f"session:{d}", "--out", str(tmp / "o")])
+    from stereopath.device.formats.tum import Trajectory, read_tum, write_tum
+
+    gt = read_tum(d / "groundtruth.tum")
+    write_tum(tmp / "still.tum", Trajectory(gt.t_ns, np.repeat(np.eye(4)[None], len(gt), 0)))
+    rc3, m3 = _cli(["eval", "--gt", str(d / "groundtruth.tum"), "--est", str(tmp / "still.tum")])
+    return _row("7 bad rig / swapped / still", rc=f"{rc1} / {rc2} / {rc3}",
+                message=f"neg. baseline: {m1[-70:]} | swapped: {m2[-60:]} | still: {m3[-60:]}")
+
+
+def _rig_cfg(tmp: Path, rig: Path) -> Path:
+    from tests.test_service_support import write_toml
+
+    return write_toml(tmp / "rigdev.toml", {"source": {"rig_file": str(rig)}, "recorder": {"dir": str(tmp / "rec")},
+                                            "service": {"status_file": ""}})
+
+
+def sc_killed_device_spool(tmp: Path, mount: bool) -> dict:
+    """Device killed with keyframes no host acknowledged; a new session starts; a host connects."""
+    dev = make_device(tmp, None, "sessOld")
+    for i in range(6):
+        dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
+    dev.wait_spooled(6, 10)
+    dev.close(timeout_s=1)  # stands in for kill -9: nothing was delivered
+    new = make_device(tmp, None, "sessNew")
+    out = tmp / "host"
+    rx = _receiver(new, out)
+    for i in range(3):
+        new.offer_keyframe(i, i, np.eye(4), *small_images(i))
+    wait_for(lambda: len(stored_seqs(out, "sessNew")) == 3, 20, between=lambda: rx.poll(0.02))
+    for _ in range(50):
+        rx.poll(0.02)
+    rx.close()
+    new.close()
+    old = len(stored_seqs(out, "sessOld"))
+    return _row("6 killed device's spool", kf_sent=9, kf_stored=old + len(stored_seqs(out, "sessNew")),
+                kf_lost=f"{6 - old} (device only)", rc="n/a",
+                message="NOT FIXED: the earlier session's spool is not offered again; it stays on the device disk")
+
+
+SCENARIOS = {
+    "torn_index": sc_torn_index, "host_disk_full": sc_host_disk_full, "device_disk_full": sc_device_disk_full,
+    "two_hosts": sc_two_hosts, "port_taken": sc_port_taken, "bad_groundtruth": sc_bad_groundtruth,
+    "bad_frame": sc_bad_frame, "bad_rigs": sc_bad_rigs, "killed_device_spool": sc_killed_device_spool,
+}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--only", default=None, help="comma-separated scenario names: " + ", ".join(SCENARIOS))
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    import logging
+
+    logging.basicConfig(level=logging.CRITICAL)
+    mount = _can_mount()
+    names = args.only.split(",") if args.only else list(SCENARIOS)
+    rows = []
+    for name in names:
+        tmp = Path(tempfile.mkdtemp(prefix=f"bench-faults-{name}-"))
+        t0 = time.monotonic()
+        try:
+            row = SCENARIOS[name](tmp, mount)
+        except Exception as exc:  # a benchmark row, not a crash: say what failed
+            row = _row(name, rc="ERROR", message=f"{type(exc).__name__}: {exc}"[:200])
+        row["seconds"] = round(time.monotonic() - t0, 1)
+        if row["seconds"] > TIME_LIMIT_S:
+            row["rc"] = f"HANG? {row['rc']}"
+        rows.append(row)
+        shutil.rmtree(tmp, ignore_errors=True)
+        print(f"... {name}: {row['seconds']} s", file=sys.stderr, flush=True)
+    if args.json:
+        print(json.dumps(rows, indent=1, default=str))
+        return 0
+    print(f"full disks: {'size-limited tmpfs (root)' if mount else 'injected ENOSPC'}")
+    cols = ("scenario", "kf_sent", "kf_stored", "kf_lost", "poses_sent", "poses_stored", "rc", "seconds")
+    widths = [max(len(c), *(len(str(r[c])) for r in rows)) for c in cols]
+    print(" | ".join(c.ljust(w) for c, w in zip(cols, widths)))
+    print("-+-".join("-" * w for w in widths))
+    for r in rows:
+        print(" | ".join(str(r[c]).ljust(w) for c, w in zip(cols, widths)))
+    print()
+    for r in rows:
+        print(f"{r['scenario']}: {r['message']}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,306 @@
+"""Fleet reprocessing on Ray (issue 14 targets): local Ray vs one after another, a two-node
+cluster on loopback, and a worker killed with SIGKILL during a session's `ba` stage.
+
+    .venv/bin/python benchmarks/bench_fleet.py [--frames N] [--runs R] [--preset NAME]
+                                               [--skip-cluster] [--skip-fault] [--keep DIR]
+
+Four simulated sessions (`stereopath sim`: seeds 1-4, trajectories arc/line/orbit/arc, N frames
+each; written once, not timed), then:
+
+1. sequential: the four through the one-session entry point (`reprocess_session`, the code of
+   `stereopath host reprocess SESSION`) one after another in this process; and fleet: the same
+   four with `run_fleet` on a local Ray of 2 CPUs, Ray's start and shutdown included in its wall
+   time.  R alternating repetitions, medians.  Ratio fleet / sequential (target <= 0.65).
+   The machine is shared with other jobs, so each phase also reports its own CPU time (all
+   threads of all our processes: this one, Ray's daemons and workers) and the CPU time the rest of
+   the machine used meanwhile (/proc/stat minus ours), and a CPU-normalised ratio: each wall time
+   scaled by the share of the 2 cores the other jobs left free during that phase.
+   Every fleet output is checked against the sequential one (`stereopath.host.fleet.compare`).
+2. two-node cluster on loopback: `ray start --head` (1 CPU) and a second `ray start --address`
+   (1 CPU, its own --temp-dir), the four sessions through `run_fleet(ray=ADDRESS)` with a path
+   map (the workers see the sessions through another path, a symbolic link); which node ran each
+   session; same results.  The Ray processes started here are stopped by their process ids.
+3. fault: local Ray, the four sessions, the worker of the second session killed with SIGKILL
+   once its `ba` stage has started; every session must end done, the killed one retried with
+   `estimate` and `tracks` reused, and the same results.
+Prints figures; asserts nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from stereopath.host.fleet.compare import differences  # noqa: E402
+from stereopath.host.fleet.runner import FleetOptions, ReprocessSettings, run_fleet  # noqa: E402
+from stereopath.host.fleet.sessions import PathMap, expand_sessions  # noqa: E402
+from stereopath.host.reprocess.pipeline import reprocess_session  # noqa: E402
+
+TRAJECTORIES = ("arc", "line", "orbit", "arc")
+CORES = os.cpu_count() or 2
+
+
+def machine_busy_s() -> float:
+    """CPU seconds the whole machine has spent busy (all cores), from /proc/stat."""
+    with open("/proc/stat") as f:
+        vals = [int(x) for x in f.readline().split()[1:]]
+    idle = vals[3] + (vals[4] if len(vals) > 4 else 0)
+    return (sum(vals[:8]) - idle) / os.sysconf("SC_CLK_TCK")
+
+
+def tree_cpu_s(pids: list[int] | None = None) -> float:
+    """CPU seconds (user + system, all threads) of this process and its live descendants."""
+    import psutil
+
+    roots = [psutil.Process(p) for p in (pids or [os.getpid()])]
+    total = 0.0
+    seen = set()
+    for r in roots:
+        for p in [r, *r.children(recursive=True)]:
+            if p.pid in seen:
+                continue
+            seen.add(p.pid)
+            try:
+                t = p.cpu_times()
+                total += t.user + t.system
+                if p.pid == os.getpid():
+                    total += t.children_user + t.children_system  # finished children
+            except psutil.NoSuchProcess:
+                pass
+    return total
+
+
+class Phase:
+    """Wall time, our CPU and the rest of the machine's CPU over a block."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def __enter__(self) -> "Phase":
+        self.t0, self.busy0, self.own0 = time.perf_counter(), machine_busy_s(), tree_cpu_s()
+        self.extra_cpu = 0.0  # CPU of processes that end inside the block (added by the caller)
+        return self
+
+    def stop(self, own_now: float | None = None) -> None:
+        self.wall = time.perf_counter() - self.t0
+        self.busy = machine_busy_s() - self.busy0
+        self.own = (tree_cpu_s() if own_now is None else own_now) - self.own0 + self.extra_cpu
+        self.others = max(0.0, self.busy - self.own)
+        self.free_share = max(0.05, 1.0 - self.others / (CORES * self.wall))
+
+    def __exit__(self, *exc) -> None:
+        if not hasattr(self, "wall"):
+            self.stop()
+
+    def line(self) -> str:
+        return (f"{self.name}: wall {self.wall:.1f} s, own CPU {self.own:.1f} s, other jobs' CPU {self.others:.1f} s "
+                f"({self.others / self.wall:.2f} of {CORES} cores busy with them), wall x free share "
+                f"{self.wall * self.free_share:.1f} s")
+
+
+def make_sessions(root: Path, frames: int) -> list[Path]:
+    from stereopath.device.formats.recorder import record_sequence
+    from stereopath.device.sim.session import SimConfig, open_sim
+
+    out = []
+    for i, traj in enumerate(TRAJECTORIES, start=1):
+        d = root / f"s{i}_{traj}"
+        if not (d / "mav0").is_dir():
+            record_sequence(open_sim(SimConfig(frames=frames, seed=i, trajectory=traj)), d,
+                            config_dict={"source": "sim"})
+        out.append(d)
+    return out
+
+
+def sequential(sessions, out: Path, settings: ReprocessSettings) -> Phase:
+    with Phase("sequential") as ph:
+        for s in sessions:
+            reprocess_session(s.path, out / s.id, preset=settings.preset, do_map=settings.do_map,
+                              map_preset=settings.map_preset, progress=False, force=True)
+        ph.stop()
+    return ph
+
+
+def fleet_local(sessions, out: Path, settings: ReprocessSettings, on_update=None) -> tuple[Phase, object]:
+    import ray
+
+    with Phase("fleet (local Ray, 2 CPUs)") as ph:
+        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
+                 logging_level=logging.WARNING)
+        res = run_fleet(sessions, out, settings, FleetOptions(poll_s=0.25), on_update=on_update)
+        own = tree_cpu_s()  # Ray's processes are still alive: count them now
+        ray.shutdown()
+        ph.stop(own_now=own)
+    return ph, res
+
+
+def check(ref: Path, out: Path, sessions) -> str:
+    bad = {s.id: d for s in sessions if (d := differences(ref / s.id, out / s.id))}
+    return "identical to the sequential outputs" if not bad else f"DIFFERENT: {bad}"
+
+
+def ray_bin() -> str:
+    return str(Path(sys.executable).with_name("ray"))
+
+
+def start_node(args: list[str], tmp: Path, name: str) -> subprocess.Popen:
+    log = open(tmp / f"{name}.log", "w")
+    return subprocess.Popen([ray_bin(), "start", "--block", "--disable-usage-stats", *args],
+                            stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def stop_nodes(procs: list[subprocess.Popen]) -> None:
+    """Stop the `ray start --block` processes started here and everything they started, by pid."""
+    import psutil
+
+    victims = []
+    for p in procs:
+        try:
+            victims += [psutil.Process(p.pid), *psutil.Process(p.pid).children(recursive=True)]
+        except psutil.NoSuchProcess:
+            pass
+    for v in victims:
+        try:
+            v.terminate()
+        except psutil.NoSuchProcess:
+            pass
+    _, alive = psutil.wait_procs(victims, timeout=15)
+    for v in alive:
+        try:
+            v.kill()
+        except psutil.NoSuchProcess:
+            pass
+
+
+def two_node_cluster(sessions, ref: Path, tmp: Path, settings: ReprocessSettings) -> None:
+    import ray
+
+    port = 6400 + os.getpid() % 500
+    addr = f"127.0.0.1:{port}"
+    head_tmp, worker_tmp = Path(tempfile.mkdtemp(prefix="rh_")), Path(tempfile.mkdtemp(prefix="rw_"))
+    procs = [start_node(["--head", f"--port={port}", "--node-ip-address=127.0.0.1", "--num-cpus=1",
+                         "--include-dashboard=false", f"--temp-dir={head_tmp}"], tmp, "head")]
+    try:
+        t0 = time.perf_counter()
+        while time.perf_counter() - t0 < 60:
+            if subprocess.run([ray_bin(), "status", f"--address={addr}"], capture_output=True).returncode == 0:
+                break
+            time.sleep(1)
+        procs.append(start_node([f"--address={addr}", "--node-ip-address=127.0.0.1", "--num-cpus=1",
+                                 f"--temp-dir={worker_tmp}"], tmp, "worker"))
+        ray.init(address=addr, log_to_driver=False, logging_level=logging.WARNING)
+        t0 = time.perf_counter()
+        while len([n for n in ray.nodes() if n.get("Alive")]) < 2 and time.perf_counter() - t0 < 60:
+            time.sleep(0.5)
+        nodes = [n for n in ray.nodes() if n.get("Alive")]
+        print(f"  cluster {addr}: {len(nodes)} nodes, "
+              + ", ".join(f"{n['NodeID'][:8]} ({n['Resources'].get('CPU', 0):g} CPU)" for n in nodes))
+        # the workers see the sessions through another path (a link): --path-map HERE=WORKER
+        view = tmp / "worker_view"
+        if not view.exists():
+            view.symlink_to(sessions[0].path.parent, target_is_directory=True)
+        out = tmp / "cluster_out"
+        pm = PathMap.parse([f"{sessions[0].path.parent}={view}"])
+        t = time.perf_counter()
+        res = run_fleet(sessions, out, settings, FleetOptions(ray=addr, path_map=pm, poll_s=0.25))
+        wall = time.perf_counter() - t
+        ray.shutdown()
+        for st in res.sessions:
+            print(f"    {st.session.id}: {st.status} on node {st.node}, {st.result and st.result['wall_s']} s")
+        import json
+
+        srcs = {json.loads((out / s.id / "report.json").read_text())["source"] for s in sessions}
+        print(f"  two-node wall {wall:.1f} s (Ray already running); {len({s.node for s in res.sessions})} nodes "
+              f"used; workers read {sorted(srcs)[0].rsplit('/', 1)[0]}/...; results (labels aside) "
+              f"{check_labels(ref, out, sessions)}")
+    finally:
+        if ray.is_initialized():
+            ray.shutdown()
+        stop_nodes(procs)
+
+
+def check_labels(ref: Path, out: Path, sessions) -> str:
+    """As :func:`check`, but the report's and model's ``source`` label names the worker's path."""
+    bad = {s.id: d for s in sessions if (d := differences(ref / s.id, out / s.id, ignore_source=True))}
+    return "identical to the sequential outputs" if not bad else f"DIFFERENT: {bad}"
+
+
+def fault_run(sessions, ref: Path, tmp: Path, settings: ReprocessSettings) -> None:
+    victim = sessions[1].id
+    killed: dict[str, object] = {}
+
+    def on_update(states):
+        for st in states:
+            if st.session.id == victim and st.status == "running" and st.stage == "ba" and not killed and st.pid:
+                time.sleep(0.3)  # well inside the stage
+                os.kill(st.pid, signal.SIGKILL)
+                killed.update(pid=st.pid, stored=list(st.stored), at=time.perf_counter())
+
+    out = tmp / "fault_out"
+    ph, res = fleet_local(sessions, out, settings, on_update=on_update)
+    st = next(s for s in res.sessions if s.session.id == victim)
+    print(f"  killed worker pid {killed.get('pid')} of {victim} during ba (stored then: {killed.get('stored')})")
+    print(f"  {ph.line()}")
+    print(f"  statuses: {[s.status for s in res.sessions]}; {victim}: attempts {st.attempts}, stages "
+          f"{st.result and st.result['stages']}")
+    print(f"  results {check(ref, out, sessions)}")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=100, help="frames per simulated session (default 100)")
+    ap.add_argument("--runs", type=int, default=1, help="alternating sequential/fleet repetitions (medians)")
+    ap.add_argument("--preset", default="standard")
+    ap.add_argument("--skip-cluster", action="store_true")
+    ap.add_argument("--skip-fault", action="store_true")
+    ap.add_argument("--keep", default=None, help="work in this folder instead of a temporary one")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    settings = ReprocessSettings(preset=args.preset)
+
+    with tempfile.TemporaryDirectory(prefix="bench_fleet_") as tmp_name:
+        tmp = Path(args.keep) if args.keep else Path(tmp_name)
+        tmp.mkdir(parents=True, exist_ok=True)
+        paths = make_sessions(tmp / "sessions", args.frames)
+        sessions = expand_sessions(paths)
+        print(f"{len(sessions)} simulated sessions of {args.frames} frames ({', '.join(TRAJECTORIES)}; seeds 1-4), "
+              f"preset {args.preset}, {CORES} cores")
+        seq_ph, fl_ph = [], []
+        for r in range(args.runs):
+            ph = sequential(sessions, tmp / f"seq{r}", settings)
+            print(f"  run {r + 1}: {ph.line()}")
+            seq_ph.append(ph)
+            ph, res = fleet_local(sessions, tmp / f"fleet{r}", settings)
+            print(f"  run {r + 1}: {ph.line()}; {res.counts()['done']} done; {check(tmp / f'seq{r}', tmp / f'fleet{r}', sessions)}")
+            fl_ph.append(ph)
+        med = statistics.median
+        sw, fw = med(p.wall for p in seq_ph), med(p.wall for p in fl_ph)
+        sn, fn = med(p.wall * p.free_share for p in seq_ph), med(p.wall * p.free_share for p in fl_ph)
+        sc, fc = med(p.own for p in seq_ph), med(p.own for p in fl_ph)
+        print(f"wall: sequential {sw:.1f} s, fleet {fw:.1f} s: ratio {fw / sw:.2f} (target <= 0.65)")
+        print(f"CPU-normalised (wall x share of the cores other jobs left free): sequential {sn:.1f} s, "
+              f"fleet {fn:.1f} s: ratio {fn / sn:.2f}")
+        print(f"own CPU: sequential {sc:.1f} s, fleet {fc:.1f} s (x{fc / sc:.2f}: Ray's overhead and thread effects)")
+        ref = tmp / "seq0"
+        if not args.skip_cluster:
+            print("two-node cluster on loopback:")
+            two_node_cluster(sessions, ref, tmp, settings)
+        if not args.skip_fault:
+            print("fault run (SIGKILL during ba):")
+            fault_run(sessions, ref, tmp, settings)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,31 @@
+"""Progress bars on stderr (tqdm), shown only where someone watches: the one helper of the host."""
+
+from __future__ import annotations
+
+import sys
+from typing import Any, Callable
+
+
+def progress_bar(total: int, desc: str, enabled: bool | None, unit: str = "it") -> Any:
+    """A tqdm bar on stderr, or None (``enabled=None``: only when stderr is a terminal)."""
+    if enabled is None:
+        enabled = sys.stderr.isatty()
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit=unit, leave=False, file=sys.stderr)
+
+
+class Bar:
+    """A tqdm bar or nothing, usable as ``with Bar(...) as tick: tick(1)``."""
+
+    def __init__(self, total: int, desc: str, enabled: bool | None, unit: str = "it") -> None:
+        self.bar = progress_bar(total, desc, enabled, unit)
+
+    def __enter__(self) -> Callable[[int], None]:
+        return (lambda n=1: None) if self.bar is None else self.bar.update
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.bar is not None:
+            self.bar.close()

@@ -1,0 +1,145 @@
+"""Issue 15 item 11: the smaller faults (files for folders, zero frames, refused keys, permissions, bogus sessions)."""
+
+from __future__ import annotations
+
+import logging
+import os
+import stat
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from stereopath.device.wire.security import generate_keypair, make_demo_keys
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def _cli(argv):
+    from stereopath.host.cli import main
+
+    return main(argv)
+
+
+@pytest.mark.parametrize("argv", [
+    ["odometry", "sim", "--frames", "3"],
+    ["demo", "--frames", "3"],
+    ["host", "live", "--device", "127.0.0.1:5999", "--insecure", "--duration", "0.1"],
+    ["host", "map", "."],
+    ["host", "reprocess", "."],
+])
+def test_out_naming_a_file_is_a_clear_error(tmp_path, capsys, argv):
+    f = tmp_path / "a_file"
+    f.write_text("x")
+    assert _cli(argv + ["--out", str(f)]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "stereopath: error" in err
+    assert f.read_text() == "x"
+
+
+def test_demo_with_zero_frames_is_refused(tmp_path, capsys):
+    assert _cli(["demo", "--frames", "0", "--out", str(tmp_path / "d")]) == 2
+    assert "--frames" in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()
+
+
+@pytest.fixture(scope="module")
+def keys(tmp_path_factory):
+    return make_demo_keys(tmp_path_factory.mktemp("keys"))
+
+
+def test_live_exits_nonzero_when_the_device_refuses_its_key_and_device_logs_it(tmp_path, keys, caplog):
+    import shutil
+
+    from tests.test_streaming_support import make_device, port_of
+
+    stranger = tmp_path / "stranger"
+    generate_keypair(stranger, "laptop2")
+    shutil.copy(keys.device_public, stranger / "device.key")
+    dev = make_device(tmp_path, keys, "sessK")
+    caplog.set_level(logging.WARNING)
+    try:
+        rc = _cli(["host", "live", "--device", f"127.0.0.1:{port_of(dev.pose_endpoint)}",
+                        "--keyframe-port", str(port_of(dev.keyframe_endpoint)), "--keys", str(stranger),
+                        "--out", str(tmp_path / "out"), "--duration", "1.5", "--no-fsync"])
+    finally:
+        dev.close()
+    assert rc == 2
+    refused = [r for r in caplog.records if "refused a client" in r.getMessage()]
+    assert refused and refused[0].levelno == logging.WARNING
+    assert len(refused) <= 2  # once per key and address, not once per reconnect attempt
+
+
+def test_secret_key_is_created_private(tmp_path, monkeypatch):
+    def no_chmod(*a, **k):
+        raise AssertionError("the secret key must not need a chmod")
+
+    old = os.umask(0o000)
+    try:
+        monkeypatch.setattr(os, "chmod", no_chmod)
+        pub, sec = generate_keypair(tmp_path / "k", "me")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(sec.stat().st_mode) == 0o600
+    assert stat.S_IMODE(pub.stat().st_mode) == 0o644
+    assert not [p for p in (tmp_path / "k").iterdir() if p.name.startswith(".keys-")]
+    pub2, sec2 = generate_keypair(tmp_path / "k", "me", overwrite=True)  # overwrite still works
+    assert stat.S_IMODE(sec2.stat().st_mode) == 0o600
+
+
+def test_model_folder_respects_the_umask(tmp_path, monkeypatch):
+    from stereopath.host.mapping import fusion, mapper, preview
+
+    for mod, name in ((fusion, "write_mesh"), (fusion, "write_cloud"), (preview, "write_png")):
+        monkeypatch.setattr(mod, name, lambda obj, path: path.write_bytes(b"x"))
+    result = mapper.MapResult(mesh=None, cloud=None, preview=None, stats={"k": 1})
+    old = os.umask(0o077)
+    try:
+        mapper.write_map(result, tmp_path / "model")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "model").stat().st_mode) == 0o700
+
+
+def test_bogus_session_ids_are_bounded(tmp_path):
+    import zmq
+
+    from stereopath.device.wire.protocol import Pose, encode_pose
+    from stereopath.host.live.receiver import Receiver, ReceiverConfig
+
+    ctx = zmq.Context()
+    pub = ctx.socket(zmq.PUB)
+    port = pub.bind_to_random_port("tcp://127.0.0.1")
+    router = ctx.socket(zmq.ROUTER)
+    kport = router.bind_to_random_port("tcp://127.0.0.1")
+    cfg = ReceiverConfig(f"tcp://127.0.0.1:{port}", f"tcp://127.0.0.1:{kport}", insecure=True, fsync=False,
+                         max_new_sessions=3)
+    rx = Receiver(cfg, tmp_path / "out")
+    try:
+        deadline = time.monotonic() + 10
+        sent = 0
+        while time.monotonic() < deadline and rx.stats.received["pose"] + rx.stats.rejected < 20:
+            pub.send(encode_pose(Pose(f"bogus{sent % 40:03d}", sent, sent + 1, (0.0, 0.0, 0.0),
+                                      (0.0, 0.0, 0.0, 1.0))))
+            sent += 1
+            rx.poll(0.02)
+    finally:
+        rx.close()
+        pub.close(linger=0)
+        router.close(linger=0)
+        ctx.term()
+    folders = [p for p in (tmp_path / "out").iterdir() if p.is_dir()]
+    assert len(folders) == 3
+    assert rx.stats.rejected_by_reason.get("session_limit", 0) > 0
+
+
+def test_host_store_is_private_by_default(tmp_path):
+    from stereopath.host.live.store import KeyframeStore
+
+    old = os.umask(0o022)
+    try:
+        KeyframeStore(tmp_path / "live", fsync=False).close()
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "live").stat().st_mode) == 0o700

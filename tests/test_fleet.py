@@ -1,0 +1,237 @@
+"""Fleet reprocessing on Ray (`stereopath host reprocess S1 S2 ... --out DIR`): the same results
+as the one-session command, a failing session reported, a killed worker resumed from its stored
+stages, Ctrl-C and a rerun that recomputes nothing finished.  Ray runs locally with 2 CPUs."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+from stereopath.device.errors import ConfigError, DatasetError
+from stereopath.host.fleet.compare import differences
+from stereopath.host.fleet.runner import FleetOptions, ReprocessSettings, run_fleet
+from stereopath.host.fleet.sessions import expand_sessions
+
+ray = pytest.importorskip("ray")
+
+SETTINGS = ReprocessSettings(preset="quick")
+
+
+def _record(d: Path, frames: int, seed: int, trajectory: str = "arc") -> Path:
+    from stereopath.device.formats.recorder import record_sequence
+    from stereopath.device.sim.session import SimConfig, open_sim
+
+    man = record_sequence(open_sim(SimConfig(frames=frames, seed=seed, trajectory=trajectory)), d,
+                          config_dict={"source": "sim"})
+    assert man["status"] == "closed"
+    return d
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    if ray.is_initialized():
+        ray.shutdown()
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory) -> Path:
+    """A folder of three sessions: two simulated ones (different seeds and trajectories) and a
+    corrupt one (its images are gone)."""
+    root = tmp_path_factory.mktemp("fleet") / "sessions"
+    _record(root / "a", 30, seed=1)
+    _record(root / "b", 14, seed=2, trajectory="line")
+    bad = _record(root / "c", 4, seed=3)
+    shutil.rmtree(bad / "mav0" / "cam1")
+    return root
+
+
+def _ids(root: Path) -> dict[str, str]:
+    return {s.path.name: s.id for s in expand_sessions([root])}
+
+
+@pytest.fixture(scope="module")
+def fleet_run(local_ray, sessions, tmp_path_factory):
+    out = tmp_path_factory.mktemp("fleet") / "out"
+    updates: list[str] = []
+
+    def on_update(states):
+        from stereopath.host.fleet.progress import status_line
+
+        updates.append(status_line(states))
+
+    res = run_fleet(expand_sessions([sessions]), out, SETTINGS, FleetOptions(poll_s=0.2), on_update=on_update)
+    return out, res, updates
+
+
+def test_sessions_from_folder_glob_and_ids(sessions, tmp_path):
+    from_folder = expand_sessions([sessions])
+    assert [s.path.name for s in from_folder] == ["a", "b", "c"]
+    man = json.loads((sessions / "a" / "manifest.json").read_text())
+    assert from_folder[0].id == man["session_id"]
+    assert expand_sessions([str(sessions / "[ab]")]) == from_folder[:2]
+    assert expand_sessions([sessions / "a", sessions / "a"]) == from_folder[:1]
+    with pytest.raises(DatasetError, match="not found"):
+        expand_sessions([sessions / "nope"])
+    with pytest.raises(DatasetError, match="no session matches"):
+        expand_sessions([str(sessions / "z*")])
+    shutil.copytree(sessions / "a", tmp_path / "copy_of_a")
+    with pytest.raises(ConfigError, match="two sessions have the id"):
+        expand_sessions([sessions / "a", tmp_path / "copy_of_a"])
+
+
+def test_fleet_results_equal_the_one_session_command(fleet_run, sessions, tmp_path):
+    from stereopath.host.reprocess.pipeline import reprocess_session
+
+    out, res, updates = fleet_run
+    ids = _ids(sessions)
+    for name in ("a", "b"):
+        one = tmp_path / name
+        reprocess_session(sessions.absolute() / name, one, preset=SETTINGS.preset, progress=False)
+        assert differences(one, out / ids[name]) == []
+        assert (out / ids[name] / "report.html").is_file()
+    assert (out / ids["a"] / "mesh.ply").is_file()
+    # the comparison does see a change
+    (tmp_path / "a" / "trajectory.tum").write_text("0 0 0 0 0 0 0 1\n")
+    assert differences(tmp_path / "a", out / ids["a"]) == ["trajectory.tum: bytes differ"]
+
+
+def test_a_failing_session_is_reported_and_the_others_finish(fleet_run, sessions):
+    out, res, updates = fleet_run
+    ids = _ids(sessions)
+    by_name = {s.session.path.name: s for s in res.sessions}
+    assert [by_name[n].status for n in ("a", "b", "c")] == ["done", "done", "failed"]
+    assert "DatasetError" in by_name["c"].error and "cam1" in by_name["c"].error
+    assert res.counts() == {"done": 2, "running": 0, "failed": 1, "pending": 0, "interrupted": 0}
+    summary = json.loads((out / "fleet.json").read_text())
+    rows = {r["id"]: r for r in summary["sessions"]}
+    a = rows[ids["a"]]
+    assert a["status"] == "done" and a["attempts"] == 1
+    assert a["ate_rmse_m"] > 0 and a["keyframes"] >= 1 and a["mesh_vertices"] > 0 and a["mesh_bytes"] > 0
+    assert set(a["stages"]) == {"estimate", "tracks", "ba", "map"} and a["cpu_s"] > 0
+    assert rows[ids["c"]]["status"] == "failed"
+    assert summary["cluster"]["max_in_flight"] == 2 and summary["cluster"]["cpus"] == 2
+    page = (out / "fleet.html").read_text()
+    assert f"{ids['a']}/report.html" in page and "failed" in page
+    assert any("running" in u and ": " in u for u in updates)  # the display saw sessions at a stage
+    assert updates[-1].startswith("2/3 done, 0 running, 1 failed")
+
+
+def test_rerun_recomputes_nothing_finished(fleet_run, sessions):
+    out, _, _ = fleet_run
+    ids = _ids(sessions)
+    before = {p: p.stat().st_mtime_ns for p in out.glob("*/stages/*.npz")}
+    res = run_fleet(expand_sessions([sessions / "a", sessions / "b"]), out, SETTINGS)
+    assert [s.status for s in res.sessions] == ["done", "done"]
+    for s in res.sessions:
+        assert set(s.result["stages"].values()) == {"reused"}
+    assert {p: p.stat().st_mtime_ns for p in out.glob("*/stages/*.npz")} == before
+    assert (out / ids["c"]).exists() is False or not (out / ids["c"] / "stages" / "estimate.npz").exists()
+
+
+def test_worker_killed_during_ba_resumes_from_the_stored_stages(local_ray, fleet_run, sessions, tmp_path):
+    ref_out, _, _ = fleet_run
+    sid = _ids(sessions)["b"]
+    out = tmp_path / "out"
+    marker = tmp_path / "killed.json"
+
+    def kill_once_after_tracks(name: str) -> None:  # runs in the worker: SIGKILL itself as ba starts
+        import json as _json
+        import os as _os
+        import signal as _signal
+        from pathlib import Path as _Path
+
+        if name == "tracks" and not marker.exists():
+            stages = out / sid / "stages"
+            marker.write_text(_json.dumps({p.name: p.stat().st_mtime_ns for p in stages.glob("*.npz")}))
+            _os.kill(_os.getpid(), _signal.SIGKILL)
+        del _Path
+
+    res = run_fleet(expand_sessions([sessions / "b"]), out, SETTINGS, after_stage=kill_once_after_tracks)
+    st = res.sessions[0]
+    assert marker.exists() and st.status == "done" and st.attempts == 2
+    # the retry reused the two stages stored before the kill and computed the rest
+    assert st.result["stages"] == {"estimate": "reused", "tracks": "reused", "ba": "computed", "map": "computed"}
+    stored = json.loads(marker.read_text())
+    assert sorted(stored) == ["estimate.npz", "tracks.npz"]
+    for name, mt in stored.items():
+        assert (out / sid / "stages" / name).stat().st_mtime_ns == mt
+    assert differences(ref_out / sid, out / sid) == []
+
+
+def test_ctrl_c_stops_cleanly_and_a_rerun_resumes(local_ray, fleet_run, sessions, tmp_path):
+    ref_out, _, _ = fleet_run
+    sid = _ids(sessions)["b"]
+    out = tmp_path / "out"
+
+    def interrupt_after_first_stage(states):
+        if any(s.stored for s in states):
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_fleet(expand_sessions([sessions / "b"]), out, SETTINGS, FleetOptions(poll_s=0.1),
+                  on_update=interrupt_after_first_stage)
+    summary = json.loads((out / "fleet.json").read_text())
+    assert summary["interrupted"] is True and summary["sessions"][0]["status"] == "interrupted"
+    assert "interrupted" in (out / "fleet.html").read_text()
+    stored = {p.name: p.stat().st_mtime_ns for p in (out / sid / "stages").glob("*.npz")}
+    assert "estimate.npz" in stored and not (out / sid / "trajectory.tum").exists()
+    res = run_fleet(expand_sessions([sessions / "b"]), out, SETTINGS)
+    st = res.sessions[0]
+    assert st.status == "done"
+    for name, mt in stored.items():  # finished stages were not recomputed
+        assert st.result["stages"][name[:-4]] == "reused"
+        assert (out / sid / "stages" / name).stat().st_mtime_ns == mt
+    assert differences(ref_out / sid, out / sid) == []
+
+
+def test_cli_fleet(local_ray, fleet_run, sessions, capsys):
+    from stereopath.host.cli import main
+
+    out, _, _ = fleet_run
+    code = main(["-q", "host", "reprocess", str(sessions / "a"), str(sessions / "c"), "--out", str(out),
+                 "--preset", "quick", "--no-progress"])
+    text = capsys.readouterr().out
+    assert code == 1  # one session failed
+    assert "1 of 2 session(s) done, 1 failed" in text and "DatasetError" in text and "fleet.html" in text
+    assert main(["-q", "host", "reprocess", str(sessions / "a"), "--ray", "auto", "--out", str(out),
+                 "--preset", "quick", "--no-progress", "--task-cpus", "4"]) == 2  # cannot hold one task
+    assert "cannot hold one task" in capsys.readouterr().err
+
+
+def test_options_and_path_map_check_their_input():
+    from stereopath.host.fleet.runner import capacity
+    from stereopath.host.fleet.sessions import PathMap
+
+    pm = PathMap.parse(["/data/scans=/mnt/scans", "/data=/srv/data"])
+    assert pm.to_worker("/data/scans/s1") == "/mnt/scans/s1"
+    assert pm.to_worker("/data/other") == "/srv/data/other"
+    assert pm.to_worker("/data/scansX") == "/srv/data/scansX"  # whole components only
+    assert pm.to_worker("/elsewhere/s") == "/elsewhere/s"
+    for bad in ("nodelimiter", "relative=/x", "/x="):
+        with pytest.raises(ConfigError):
+            PathMap.parse([bad])
+    with pytest.raises(ConfigError):
+        FleetOptions(task_cpus=0)
+    with pytest.raises(ConfigError):
+        FleetOptions(max_in_flight=0)
+    gb = 1024**3
+    assert capacity({"CPU": 8.0, "memory": 3.5 * gb}, FleetOptions()) == 3  # memory bound
+    assert capacity({"CPU": 2.0, "memory": 16 * gb}, FleetOptions()) == 2  # CPU bound
+    assert capacity({"CPU": 8.0, "memory": 16 * gb}, FleetOptions(max_in_flight=5)) == 5
+    with pytest.raises(ConfigError, match="cannot hold one task"):
+        capacity({"CPU": 2.0, "memory": 16 * gb}, FleetOptions(task_cpus=3))
+
+
+def test_fleet_html_escapes_names():
+    from stereopath.host.fleet.summary import render_html
+
+    page = render_html({"counts": {"done": 0, "failed": 1}, "wall_s": 1.0, "written_utc": "now",
+                        "sessions": [{"id": "<x>", "status": "failed", "error": "DatasetError: <bad> & worse"}]})
+    assert "<x>" not in page and "&lt;bad&gt; &amp; worse" in page
