@@ -22,6 +22,7 @@ Prints figures; asserts nothing.
 from __future__ import annotations
 
 import argparse
+import os
 import dataclasses
 import logging
 import statistics
@@ -38,7 +39,7 @@ from stereopath.host.evaluation.odometry import estimate_sequence  # noqa: E402
 from stereopath.host.reprocess.pipeline import REPROCESS_PRESETS, reprocess_sequence, reprocess_session  # noqa: E402
 from stereopath.device.formats.source import open_source  # noqa: E402
 
-DATA = ROOT.parent / "shared" / "data"
+DATA = Path(os.environ.get("STEREOPATH_DATA", ROOT.parent / "shared" / "data"))
 KITTI = DATA / "kitti_odometry" / "sequences" / "06"
 
 
@@ -128,6 +129,7 @@ def main() -> int:
     ap.add_argument("--runs", type=int, default=3, help="ba-stage runs per back end (median)")
     ap.add_argument("--preset", default="standard", choices=list(REPROCESS_PRESETS))
     ap.add_argument("--skip-kitti", action="store_true")
+    ap.add_argument("--skip-sim", action="store_true")
     ap.add_argument("--ablations", action="store_true")
     ap.add_argument("--loop", type=int, default=0, metavar="FRAMES", help="also the loop trajectory with this many frames")
     ap.add_argument("--only-loop", action="store_true", help="only the loop figures")
@@ -145,25 +147,9 @@ def main() -> int:
             loop_figures(tmp, args.loop, base)
         if args.only_loop:
             return 0
-        session = tmp / "session"
-        if not (session / "mav0").is_dir():
-            from stereopath.device.formats.recorder import record_sequence
-            from stereopath.device.sim.session import SimConfig, open_sim
-
-            record_sequence(open_sim(SimConfig()), session, config_dict={"source": "sim"})
-        seq = open_source(f"session:{session}")
-        print(f"simulated session: {len(seq)} frames, {seq.groundtruth.path_length_m():.2f} m")
-        ate_on, t_on = onboard_ate(seq)
-        print(f"  on-board stereo ATE {mm(ate_on)} ({t_on:.1f} s)")
-        if not (args.reuse and (tmp / "sim" / "stages" / "tracks.npz").is_file()):
-            t = time.perf_counter()
-            res = reprocess_session(session, tmp / "sim", preset=base, progress=False, force=True)
-            st = res.seconds
-            print(f"  reprocess --preset {args.preset} end to end (GTSAM): {time.perf_counter() - t:.1f} s (estimate "
-                  f"{st['estimate']:.1f}, tracks {st['tracks']:.1f}, ba {st['ba']:.1f}, map {st['map']:.1f} s), "
-                  f"ATE {mm(res.report['ate_rmse_m'])}; target <= 180 s")
-        compare_solvers("sim", seq, tmp / "sim" / "stages", base, args.runs, ate_on, 1000, "mm")
-        sequences = [("sim", seq, ate_on)]
+        sequences = []
+        if not args.skip_sim:
+            sequences.append(sim_figures(tmp, args, base))
         if not args.skip_kitti:
             if KITTI.is_dir():
                 kseq = open_source(f"kitti:{KITTI}")
@@ -176,17 +162,44 @@ def main() -> int:
             else:
                 print(f"KITTI data not found at {KITTI}: skipped")
         if args.ablations:
-            variants = {
-                "no disparity offset": dataclasses.replace(base, ba_disparity_offset=False),
-                "no frame refinement": dataclasses.replace(base, refine_frames=False),
-                "quick preset (no affine views)": REPROCESS_PRESETS["quick"],
-            }
-            for name, s, ref in sequences:
-                for vname, preset in variants.items():
-                    r = reprocess_sequence(s, tmp / f"abl_{name}", preset=preset, do_map=False, progress=False)
-                    a = r.report["ate_rmse_m"]
-                    print(f"  ablation {name:5s} {vname:32s}: ATE {a * 1000:.3f} mm, ratio {a / ref:.3f}")
+            ablations(tmp, base, sequences)
     return 0
+
+
+def sim_figures(tmp: Path, args, base):
+    """The default simulated session: on-board ATE, end-to-end reprocessing, the solver comparison."""
+    session = tmp / "session"
+    if not (session / "mav0").is_dir():
+        from stereopath.device.formats.recorder import record_sequence
+        from stereopath.device.sim.session import SimConfig, open_sim
+
+        record_sequence(open_sim(SimConfig()), session, config_dict={"source": "sim"})
+    seq = open_source(f"session:{session}")
+    print(f"simulated session: {len(seq)} frames, {seq.groundtruth.path_length_m():.2f} m")
+    ate_on, t_on = onboard_ate(seq)
+    print(f"  on-board stereo ATE {mm(ate_on)} ({t_on:.1f} s)")
+    if not (args.reuse and (tmp / "sim" / "stages" / "tracks.npz").is_file()):
+        t = time.perf_counter()
+        res = reprocess_session(session, tmp / "sim", preset=base, progress=False, force=True)
+        st = res.seconds
+        print(f"  reprocess --preset {args.preset} end to end (GTSAM): {time.perf_counter() - t:.1f} s (estimate "
+              f"{st['estimate']:.1f}, tracks {st['tracks']:.1f}, ba {st['ba']:.1f}, map {st['map']:.1f} s), "
+              f"ATE {mm(res.report['ate_rmse_m'])}; target <= 180 s")
+    compare_solvers("sim", seq, tmp / "sim" / "stages", base, args.runs, ate_on, 1000, "mm")
+    return ("sim", seq, ate_on)
+
+
+def ablations(tmp: Path, base, sequences) -> None:
+    variants = {
+        "no disparity offset": dataclasses.replace(base, ba_disparity_offset=False),
+        "no frame refinement": dataclasses.replace(base, refine_frames=False),
+        "quick preset (no affine views)": REPROCESS_PRESETS["quick"],
+    }
+    for name, s, ref in sequences:
+        for vname, preset in variants.items():
+            r = reprocess_sequence(s, tmp / f"abl_{name}", preset=preset, do_map=False, progress=False)
+            a = r.report["ate_rmse_m"]
+            print(f"  ablation {name:5s} {vname:32s}: ATE {a * 1000:.3f} mm, ratio {a / ref:.3f}")
 
 
 if __name__ == "__main__":

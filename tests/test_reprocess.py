@@ -80,6 +80,11 @@ def test_reprocess_writes_every_output_and_improves_the_path(full_run):
     assert after <= before  # bundle adjustment improves (or keeps) the path
     assert ba["ate_ratio_vs_reestimated"] == pytest.approx(after / before)
     assert rep["extra"]["bundle_adjustment"]["rms_after_px"] < rep["extra"]["bundle_adjustment"]["rms_before_px"]
+    # a 60-frame arc never comes back: no loop, but the loop entry says so with the end-to-start figures
+    loops = rep["extra"]["loops"]
+    assert loops["accepted"] == []
+    gap = loops["end_to_start"]["bundle_adjusted"]["distance_m"]
+    assert gap > 0.1 and loops["end_to_start_error_m"]["bundle_adjusted"] < 0.01
     from stereopath.device.formats.tum import read_tum
 
     traj = read_tum(out / "trajectory.tum")

@@ -5,7 +5,7 @@ One ``GenericProjectionFactorCal3_S2`` per observation row ``(pose, point id, ca
 works, rectified or not), each with a robust noise model (Huber or Cauchy on the pixel error,
 sigma = 1 px / weight); the first ``n_fixed`` poses held by a tight prior (the gauge; scale comes
 from the right camera through the calibrated baseline); Levenberg-Marquardt over the whole batch
-(GTSAM's sparse multifrontal Cholesky).  Options:
+(GTSAM's sparse multifrontal Cholesky, METIS ordering).  Options:
 
 - rotation priors (gyro integration between keyframes): a ``BetweenFactorPose3`` whose
   translation part is free (sigma 1 km);
@@ -44,7 +44,7 @@ log = logging.getLogger(__name__)
 
 LOSSES = ("huber", "cauchy", "linear")
 GAUGE_SIGMA = 1e-6  # rad and m: the held poses (and points of the motion-only refinement)
-RIG_SIGMA = 1e-6  # rad and m: right-camera pose = left pose x rig extrinsics (disparity offset only)
+RIG_SIGMA = 1e-5  # rad and m: right-camera pose = left pose x rig extrinsics (disparity offset only)
 FREE_SIGMA = 1e3  # an unconstrained direction of a prior
 
 
@@ -159,6 +159,9 @@ def _optimize(gr: _Graph, max_iterations: int, on_iteration=None) -> tuple[Any, 
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(1e-5)
     params.setAbsoluteErrorTol(1e-9)
+    # METIS nested dissection: on the simulated scan's 57 keyframes / 58k points / 447k observations
+    # an iteration costs a quarter of the default COLAMD ordering's (8.7 vs 37.8 s CPU for three)
+    params.setOrderingType("METIS")
     opt = g.LevenbergMarquardtOptimizer(gr.graph, gr.values, params)
     history = [opt.error()]
     it = 0
