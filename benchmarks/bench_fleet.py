@@ -264,6 +264,8 @@ def main() -> int:
     ap.add_argument("--preset", default="standard")
     ap.add_argument("--skip-cluster", action="store_true")
     ap.add_argument("--skip-fault", action="store_true")
+    ap.add_argument("--skip-ratio", action="store_true",
+                    help="no fleet timing: one sequential run as the reference of the cluster and fault runs")
     ap.add_argument("--keep", default=None, help="work in this folder instead of a temporary one")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
@@ -277,21 +279,18 @@ def main() -> int:
         print(f"{len(sessions)} simulated sessions of {args.frames} frames ({', '.join(TRAJECTORIES)}; seeds 1-4), "
               f"preset {args.preset}, {CORES} cores")
         seq_ph, fl_ph = [], []
-        for r in range(args.runs):
+        if args.skip_ratio:
+            ph = sequential(sessions, tmp / "seq0", settings)
+            print(f"  reference: {ph.line()}")
+        for r in range(0 if args.skip_ratio else args.runs):
             ph = sequential(sessions, tmp / f"seq{r}", settings)
             print(f"  run {r + 1}: {ph.line()}")
             seq_ph.append(ph)
             ph, res = fleet_local(sessions, tmp / f"fleet{r}", settings)
             print(f"  run {r + 1}: {ph.line()}; {res.counts()['done']} done; {check(tmp / f'seq{r}', tmp / f'fleet{r}', sessions)}")
             fl_ph.append(ph)
-        med = statistics.median
-        sw, fw = med(p.wall for p in seq_ph), med(p.wall for p in fl_ph)
-        sn, fn = med(p.wall * p.free_share for p in seq_ph), med(p.wall * p.free_share for p in fl_ph)
-        sc, fc = med(p.own for p in seq_ph), med(p.own for p in fl_ph)
-        print(f"wall: sequential {sw:.1f} s, fleet {fw:.1f} s: ratio {fw / sw:.2f} (target <= 0.65)")
-        print(f"CPU-normalised (wall x share of the cores other jobs left free): sequential {sn:.1f} s, "
-              f"fleet {fn:.1f} s: ratio {fn / sn:.2f}")
-        print(f"own CPU: sequential {sc:.1f} s, fleet {fc:.1f} s (x{fc / sc:.2f}: Ray's overhead and thread effects)")
+        if seq_ph:
+            report_ratio(seq_ph, fl_ph)
         ref = tmp / "seq0"
         if not args.skip_cluster:
             print("two-node cluster on loopback:")
@@ -300,6 +299,17 @@ def main() -> int:
             print("fault run (SIGKILL during ba):")
             fault_run(sessions, ref, tmp, settings)
     return 0
+
+
+def report_ratio(seq_ph, fl_ph) -> None:
+    med = statistics.median
+    sw, fw = med(p.wall for p in seq_ph), med(p.wall for p in fl_ph)
+    sn, fn = med(p.wall * p.free_share for p in seq_ph), med(p.wall * p.free_share for p in fl_ph)
+    sc, fc = med(p.own for p in seq_ph), med(p.own for p in fl_ph)
+    print(f"wall: sequential {sw:.1f} s, fleet {fw:.1f} s: ratio {fw / sw:.2f} (target <= 0.65)")
+    print(f"CPU-normalised (wall x share of the cores other jobs left free): sequential {sn:.1f} s, "
+          f"fleet {fn:.1f} s: ratio {fn / sn:.2f}")
+    print(f"own CPU: sequential {sc:.1f} s, fleet {fc:.1f} s (x{fc / sc:.2f}: Ray's overhead and thread effects)")
 
 
 if __name__ == "__main__":

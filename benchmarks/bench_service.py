@@ -52,7 +52,7 @@ def run_service_once(frames: int, estimator: str, tmp: Path) -> dict:
     cpu0, t0 = _cpu(), time.perf_counter()
     code = service.run()
     cpu, wall = _cpu() - cpu0, time.perf_counter() - t0
-    status = service._last_status
+    status = service.last_status
     run_s = status["uptime_s"] or wall
     return {"code": code, "frames": service.frames_in, "fps": service.frames_in / run_s if run_s else 0.0,
             "cpu_s_per_frame": cpu / max(service.frames_in, 1), "cpu_pct": 100.0 * cpu / wall,

@@ -39,8 +39,9 @@ def test_two_hosts_with_the_same_key_each_get_every_keyframe(tmp_path, keys):
                             between=lambda: _poll_all(a, b))
             assert wait_for(lambda: a.live.status is not None and b.live.status is not None, 5,
                             between=lambda: _poll_all(a, b))
-            peers = dev.stats()["peers"]
-            assert len(peers) == 2 and all(p["acked"] == 7 for p in peers)
+            # an acknowledgement is sent after the keyframe is stored: wait for it to reach the device
+            assert wait_for(lambda: [p["acked"] for p in dev.stats()["peers"]] == [7, 7], 5,
+                            between=lambda: _poll_all(a, b)), dev.stats()["peers"]
         finally:
             b.close()
     finally:

@@ -31,10 +31,9 @@ frame after it is ready and never waits for it: the correction of the keyframe
 pose is applied to the live state (current pose and map) as one rigid motion,
 so tracking continues without a jump against its own map.
 
-A stereo disparity offset (a calibration error of the baseline or principal
-points shows as a constant disparity bias) is estimated on line from the
-tracked points that have a stereo observation at two keyframes, and removed
-from new triangulations (``disparity_offset`` in the stats).
+A known stereo disparity offset (``disparity_offset_px``: a calibration error of
+the principal points shows as a constant disparity bias) is removed from every
+triangulation; it is not estimated on line.
 
 Works without an IMU (KITTI): the prior is then a constant-velocity model.
 At start-up a still IMU block before the first frame gives the gyro bias and
@@ -102,9 +101,8 @@ class StereoConfig:
     refine_points: bool = True  # average each tracked point's stereo triangulations at keyframes
     kf_library_max: int = 6000  # keypoints (all views) kept with 3D per keyframe for the next match
     max_correction_deg: float = 2.0  # larger keyframe corrections from the ASIFT solve are rejected
-    estimate_disparity_offset: bool = False  # on-line stereo disparity bias, removed from new points
-    disparity_offset_max_px: float = 1.0  # bound of the estimate
-    disparity_offset_px: float = 0.0  # known offset (calibration); the on-line estimate starts from it
+    kf_map_agreement: float = 0.8  # share of the tracked map that must stay inlier in the keyframe's ASIFT solve
+    disparity_offset_px: float = 0.0  # a known stereo disparity offset (calibration), removed from new points
 
     def __post_init__(self) -> None:
         check_range("max_points", self.max_points, 20, 20000)
@@ -119,8 +117,9 @@ class StereoConfig:
         check_range("epipolar_max_dy_px", self.epipolar_max_dy_px, 0.1, 5.0)
         check_range("min_depth_m", self.min_depth_m, 0.01, self.max_depth_m)
         check_range("min_pnp_inliers", self.min_pnp_inliers, 6, 10000)
+        check_range("kf_map_agreement", self.kf_map_agreement, 0.0, 1.0)
         check_range("max_correction_deg", self.max_correction_deg, 0.0, 180.0)
-        check_range("disparity_offset_max_px", self.disparity_offset_max_px, 0.0, 10.0)
+        check_range("disparity_offset_px", self.disparity_offset_px, -10.0, 10.0)
 
 
 @dataclass
@@ -130,13 +129,10 @@ class _Map:
     uv_kf: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))  # at keyframe
     ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # stable point ids
     nobs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float64))  # stereo observations averaged
-    disp: np.ndarray = field(default_factory=lambda: np.zeros(0))  # rectified disparity at the last stereo observation
-    X_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # camera-frame point at that observation
-    kf: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # keyframe of that observation
 
     def keep(self, mask: np.ndarray) -> None:
         self.X, self.uv, self.uv_kf, self.ids = self.X[mask], self.uv[mask], self.uv_kf[mask], self.ids[mask]
-        self.nobs, self.disp, self.X_cam, self.kf = self.nobs[mask], self.disp[mask], self.X_cam[mask], self.kf[mask]
+        self.nobs = self.nobs[mask]
 
     def move(self, G: np.ndarray) -> None:
         self.X = self.X @ G[:3, :3].T + G[:3, 3]
@@ -147,20 +143,31 @@ class _Map:
 
 @dataclass
 class _Library:
-    """A keyframe's features of all views, each with a stereo 3D point (world frame)."""
+    """A keyframe's features of all views, each with a stereo 3D point in that keyframe's camera frame."""
 
     seq: int
     feats: object  # stereopath.device.core.features.Features
-    X: np.ndarray
+    X_cam: np.ndarray
+
+
+@dataclass
+class _Job:
+    """A keyframe job in flight: its future and the world it was submitted in."""
+
+    future: object  # concurrent.futures.Future or _Ready
+    C_sub: np.ndarray  # the cumulative live-state correction when it was submitted
+    prev: object  # what it matches against: a (_Library, T_world_kf) pair, or the previous job's future
 
 
 @dataclass
 class _KeyframeResult:
     seq: int
-    T_tracked: np.ndarray  # the keyframe pose the frame loop used
+    T_tracked: np.ndarray  # the keyframe pose the frame loop used (world at submission)
     T_refined: np.ndarray | None  # from the ASIFT matches and the tracked map, None if not solved
     n_asift: int
-    library: _Library | None
+    library: _Library | None  # this keyframe's library, or the one it matched against when it has none
+    T_library: np.ndarray | None  # pose of that library's keyframe (world at submission, corrected)
+    T_library_pre: np.ndarray | None = None  # the same without this job's own correction
 
 
 class _Ready:
@@ -174,6 +181,17 @@ class _Ready:
 
     def result(self):
         return self._value
+
+
+def _rigid(T: np.ndarray) -> np.ndarray:
+    """``T`` with its rotation projected onto SO(3): products of corrections stay rigid."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    out = T.copy()
+    out[:3, :3] = R
+    return out
 
 
 class StereoEstimator:
@@ -192,8 +210,10 @@ class StereoEstimator:
         self._dt_prev: float | None = None
         self._prev_left: np.ndarray | None = None
         self._map = _Map()
-        self._job = None  # the keyframe job in flight (a Future, or _Ready when synchronous)
+        self._jobs: list[_Job] = []  # keyframe jobs in flight, oldest first: at most one running, one waiting
+        self._C = np.eye(4)  # product of the corrections applied to the live state so far
         self._library: _Library | None = None  # the newest keyframe library joined
+        self._T_library: np.ndarray | None = None  # its keyframe's pose in the live world
         self._executor = None
         if self.cfg.use_asift_keyframes and self.cfg.background_keyframes:
             from concurrent.futures import ThreadPoolExecutor
@@ -207,14 +227,10 @@ class StereoEstimator:
                          criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
         self._feature_cfg = None
         self._match_cfg = None
-        # on-line disparity offset: running sums of the normal equations (information-weighted)
         self._doff = float(self.cfg.disparity_offset_px)
         fb = self._rect.f * self._rect.baseline_m
         self._max_depth = min(self.cfg.max_depth_m, fb / self.cfg.min_disparity_px) if self.cfg.min_disparity_px > 0 \
             else self.cfg.max_depth_m
-        self._doff_info = np.zeros(2)  # (information, information * estimate) summed over keyframe pairs
-        self._kf_poses: dict[int, np.ndarray] = {}  # poses of the keyframes the map's stereo observations come from
-        self._kf_count = 0
         # keyframe log for offline bundle adjustment: poses, observations (kf, point id, cam, u, v)
         self.record_observations = self.cfg.record_observations
         self.keyframe_poses: list[tuple[int, np.ndarray]] = []
@@ -228,7 +244,7 @@ class StereoEstimator:
     # ------------------------------------------------------------------ public
 
     def stats(self) -> dict:
-        return {**self.counters, "disparity_offset_px": round(self._doff, 4)}
+        return dict(self.counters)
 
     def close(self) -> None:
         """Stop the background keyframe worker (idempotent)."""
@@ -407,18 +423,12 @@ class StereoEstimator:
         return p1.astype(np.float32), good
 
     def _right_guess(self, X_cam0: np.ndarray) -> np.ndarray:
+        if len(X_cam0) == 0:
+            return np.zeros((0, 2))
         Xr = X_cam0 @ self.rig.R.T + self.rig.T
         Xr[:, 2] = np.maximum(Xr[:, 2], 1e-3)
         return cv2.projectPoints(Xr.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.rig.cam1.K,
                                  self.rig.cam1.dist)[0].reshape(-1, 2)
-
-    def _rectified_disparity(self, uv_left: np.ndarray, uv_right: np.ndarray) -> np.ndarray:
-        r = self._rect
-        rl = cv2.undistortPoints(uv_left.reshape(-1, 1, 2).astype(np.float64), self.rig.cam0.K, self.rig.cam0.dist,
-                                 R=r.R0, P=r.P0).reshape(-1, 2)
-        rr = cv2.undistortPoints(uv_right.reshape(-1, 1, 2).astype(np.float64), self.rig.cam1.K, self.rig.cam1.dist,
-                                 R=r.R1, P=r.P1).reshape(-1, 2)
-        return rl[:, 0] - rr[:, 0]
 
     def _triangulate(self, uv_left: np.ndarray, uv_right: np.ndarray, offset: float = 0.0):
         """Stereo points (camera 1 frame) and their reprojection error, the disparity offset removed.
@@ -486,8 +496,9 @@ class StereoEstimator:
         idx = np.asarray(mt.idx).reshape(-1, 2)
         if len(idx) < self.cfg.min_pnp_inliers:
             return None, 0
-        T, n, _ = self._solve_pose(left, right, lib.X[idx[:, 1]], feats0.xy[idx[:, 0]].astype(np.float64), T_pred,
-                                   use_guess=False)
+        T_l = self._T_library
+        X = lib.X_cam[idx[:, 1]] @ T_l[:3, :3].T + T_l[:3, 3]
+        T, n, _ = self._solve_pose(left, right, X, feats0.xy[idx[:, 0]].astype(np.float64), T_pred, use_guess=False)
         if T is None:
             return None, 0
         log.info("frame %d relocalised against keyframe %d (%d inliers)", self._cur_seq, lib.seq, n)
@@ -503,38 +514,41 @@ class StereoEstimator:
         return detect(img, self._feature_cfg, views=views)
 
     def _join_keyframe_job(self) -> None:
-        """Take the finished keyframe job's result, if any (never waits)."""
-        job = self._job
-        if job is None or not job.done():
-            return
-        self._job = None
-        try:
-            res: _KeyframeResult | None = job.result()
-        except Exception:  # a failed job costs one keyframe's ASIFT, never the session
-            log.exception("keyframe feature job failed")
-            return
-        if res is None:
-            return
-        if res.T_refined is not None:
-            G = res.T_refined @ invert_pose(res.T_tracked)
-            ang = rotation_angle_deg(G[:3, :3])
-            if ang <= self.cfg.max_correction_deg:
-                # one rigid motion of the live state keeps the map and the current pose consistent
-                self._map.move(G)
-                for name in ("_T_world_cam", "_T_prev_prev", "_T_kf"):
-                    T = getattr(self, name)
-                    if T is not None:
-                        setattr(self, name, G @ T)
-                self._kf_poses = {k: G @ T for k, T in self._kf_poses.items()}
-                self.counters["kf_corrections"] += 1
-                self.counters["asift_matches"] += res.n_asift
-            else:
-                log.info("keyframe %d: ASIFT correction of %.2f deg rejected", res.seq, ang)
-        if res.library is not None:
-            self._library = res.library
+        """Take the finished keyframe jobs' results, oldest first (never waits)."""
+        while self._jobs and self._jobs[0].future.done():
+            job = self._jobs.pop(0)
+            try:
+                res: _KeyframeResult | None = job.future.result()
+            except Exception:  # a failed job costs one keyframe's ASIFT, never the session
+                log.exception("keyframe feature job failed")
+                continue
+            if res is None:
+                continue
+            # the job worked in the world of its submission; corrections applied since map it to the live one
+            C_since = self._C @ invert_pose(job.C_sub)
+            if res.T_refined is not None:
+                G = _rigid(C_since @ res.T_refined @ invert_pose(res.T_tracked) @ invert_pose(C_since))
+                ang = rotation_angle_deg(G[:3, :3])
+                log.debug("keyframe %d: correction %.3f deg, %.4f m", res.seq, ang, float(np.linalg.norm(G[:3, 3])))
+                if ang <= self.cfg.max_correction_deg:
+                    # one rigid motion of the live state keeps the map and the current pose consistent
+                    self._map.move(G)
+                    for name in ("_T_world_cam", "_T_prev_prev", "_T_kf", "_T_library"):
+                        T = getattr(self, name)
+                        if T is not None:
+                            setattr(self, name, G @ T)
+                    self._C = _rigid(G @ self._C)
+                    self.counters["kf_corrections"] += 1
+                    self.counters["asift_matches"] += res.n_asift
+                else:
+                    log.info("keyframe %d: ASIFT correction of %.2f deg rejected", res.seq, ang)
+            if res.library is not None and res.T_library is not None:
+                # the job's belief of its keyframe (refined) in the live world, before its own correction
+                self._library = res.library
+                self._T_library = C_since @ res.T_library
 
     def _keyframe_job(self, seq: int, left, right, T_tracked: np.ndarray, z0: float, X_map: np.ndarray,
-                      uv_map: np.ndarray, prev: _Library | None) -> _KeyframeResult:
+                      uv_map: np.ndarray, prev_source, C_sub: np.ndarray) -> _KeyframeResult:
         """Modified-ASIFT work of one keyframe (on the worker thread): the joint pose, then the library.
 
         The keyframe's original-view SIFT is matched against the previous library (all views of
@@ -542,13 +556,15 @@ class StereoEstimator:
         predicts; those matches and the tracked map points give the keyframe pose."""
         from stereopath.device.core.matching import MatchConfig, match, match_guided
 
+        prev, T_prev = self._resolve_previous(prev_source, C_sub)
         feats = self._features(left)
         T_ref, n_asift = None, 0
         if prev is not None and len(feats):
+            prev_X = prev.X_cam @ T_prev[:3, :3].T + T_prev[:3, 3]
             feats0 = feats.original_view()
             if self.cfg.guided_radius_px > 0:
                 T_cw = invert_pose(T_tracked)
-                Xc = prev.X @ T_cw[:3, :3].T + T_cw[:3, 3]
+                Xc = prev_X @ T_cw[:3, :3].T + T_cw[:3, 3]
                 pred = np.full((len(Xc), 2), np.nan)
                 front = Xc[:, 2] > self.cfg.min_depth_m
                 if np.any(front):
@@ -561,16 +577,43 @@ class StereoEstimator:
                 mt = match(feats0, prev.feats, self._match_cfg or MatchConfig())
                 idx = np.asarray(mt.idx).reshape(-1, 2)
             if len(idx) >= self.cfg.min_pnp_inliers:
-                X = np.vstack([prev.X[idx[:, 1]], X_map])
+                X = np.vstack([prev_X[idx[:, 1]], X_map])
                 uv = np.vstack([feats0.xy[idx[:, 0]].astype(np.float64), uv_map])
                 T_new, _, mask = self._solve_pose(left, right, X, uv, T_tracked, seed=seq)
-                if T_new is not None:
+                # the tracked map must still fit the joint pose: ASIFT matches that pull the pose away
+                # from it (repeated texture, a wrong 3D point) would turn its points into outliers
+                if T_new is not None and mask[len(idx):].sum() >= self.cfg.kf_map_agreement * len(X_map):
                     T_ref, n_asift = T_new, int(mask[: len(idx)].sum())
-        library = self._library_of(seq, left, right, feats, T_tracked if T_ref is None else T_ref, z0)
-        return _KeyframeResult(seq, T_tracked, T_ref, n_asift, library)
+        library = self._library_of(seq, left, right, feats, z0)
+        if library is None:  # the next keyframe matches against the one before
+            return _KeyframeResult(seq, T_tracked, T_ref, n_asift, prev, T_prev, T_prev)
+        return _KeyframeResult(seq, T_tracked, T_ref, n_asift, library, T_tracked if T_ref is None else T_ref,
+                               T_tracked)
 
-    def _library_of(self, seq: int, left, right, feats, T_world_cam: np.ndarray, z0: float) -> _Library | None:
-        """The keyframe's features with stereo 3D points (world frame)."""
+    @staticmethod
+    def _resolve_previous(source, C_sub: np.ndarray):
+        """The library a job matches against and its keyframe pose, in the world of the job's submission.
+
+        ``source`` is a ``(library, T_world_kf, C)`` triple, or the previous job (already finished:
+        the worker runs jobs in order), whose result is mapped through the corrections between the
+        two submissions."""
+        if source is None:
+            return None, None
+        if isinstance(source, _Job):
+            try:
+                res = source.future.result()
+            except Exception:
+                return None, None
+            if res is None or res.library is None or res.T_library is None:
+                return None, None
+            # not joined before this job was submitted: this job's world lacks the previous job's own
+            # correction, so the library sits where the tracked state put it
+            return res.library, _rigid(C_sub @ invert_pose(source.C_sub)) @ res.T_library_pre
+        lib, T, C = source
+        return lib, _rigid(C_sub @ invert_pose(C)) @ T
+
+    def _library_of(self, seq: int, left, right, feats, z0: float) -> _Library | None:
+        """The keyframe's features with stereo 3D points (camera frame)."""
         if len(feats) == 0:
             return None
         if len(feats) > self.cfg.kf_library_max:  # the strongest keypoints of all views
@@ -585,89 +628,32 @@ class StereoEstimator:
         ok &= (err < self.cfg.triangulation_max_px) & (Xc[:, 2] > self.cfg.min_depth_m) & (Xc[:, 2] < self._max_depth)
         if ok.sum() < self.cfg.min_pnp_inliers:
             return None
-        Xw = Xc[ok] @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
-        return _Library(seq, feats.subset(ok), Xw)
+        return _Library(seq, feats.subset(ok), Xc[ok])
 
     def _submit_keyframe_job(self, left, right, T_world_cam: np.ndarray, z0: float) -> None:
+        """Queue this keyframe's ASIFT work: one job running and one waiting at most (the newest wins)."""
         if not self.cfg.use_asift_keyframes:
             return
-        if self._job is not None and not self._job.done():
-            self.counters["kf_jobs_skipped"] += 1  # a queue of one: never wait, never pile up
-            return
         self._join_keyframe_job()
+        prev = self._jobs[-1] if self._jobs else (
+            None if self._library is None else (self._library, self._T_library.copy(), self._C.copy()))
+        if len(self._jobs) >= 2 and self._jobs[-1].future.cancel():
+            # the waiting job never started: this newer keyframe takes its place and its source
+            dropped = self._jobs.pop()
+            prev = dropped.prev
+            self.counters["kf_jobs_skipped"] += 1
+        elif len(self._jobs) >= 2:
+            self.counters["kf_jobs_skipped"] += 1
+            return
         m = self._map
-        args = (self._cur_seq, left, right, T_world_cam.copy(), z0, m.X.copy(), m.uv.astype(np.float64), self._library)
+        C_sub = self._C.copy()
+        args = (self._cur_seq, left, right, T_world_cam.copy(), z0, m.X.copy(), m.uv.astype(np.float64), prev, C_sub)
         self.counters["kf_jobs"] += 1
         if self._executor is not None:
-            self._job = self._executor.submit(self._keyframe_job, *args)
+            fut = self._executor.submit(self._keyframe_job, *args)
         else:
-            self._job = _Ready(self._keyframe_job(*args))
-
-    def _update_disparity_offset(self, X_a: np.ndarray, d_a: np.ndarray, X_b: np.ndarray, d_b: np.ndarray,
-                                 T_b_a: np.ndarray) -> None:
-        """Evidence on a constant stereo disparity offset ``d0`` from points seen in stereo at two keyframes.
-
-        With measured disparities ``d = d_true + d0`` a stereo point is ``X(d0) = X * d / (d - d0)``,
-        to first order ``X + d0 * X / d``.  Rigid motion between the keyframes a and b,
-        ``X_b(d0) = R X_a(d0) + t``, is linear in ``(t, d0)`` once ``R`` is taken from tracking:
-        ``t - d0 (X_b / d_b - R X_a / d_a) = X_b - R X_a``.  The offset column differs from point to
-        point only when the camera moved along the rays, so ``d0`` is observable in forward motion
-        and left at its prior otherwise.  Rows are weighted by each point's stereo depth noise
-        (``z^2 / fb`` per pixel of disparity) and re-weighted (Huber at 2 sigma) for outliers; the
-        information on ``d0`` (``t`` profiled out) is accumulated over keyframe pairs with a weak prior at 0.
-        """
-        n = len(X_a)
-        if n < 20:
-            return
-        fb = self._rect.f * self._rect.baseline_m
-        R, t0 = T_b_a[:3, :3], T_b_a[:3, 3]
-        RXa = X_a @ R.T
-        col = X_b / d_b[:, None] - RXa / d_a[:, None]  # (n, 3)
-        y = X_b - RXa  # (n, 3)
-        sig = (X_b[:, 2] ** 2 + X_a[:, 2] ** 2) / fb + 1e-3  # metres per pixel of disparity, per point
-        w = 1.0 / sig
-        A = np.zeros((3 * n, 4))
-        A[:, :3] = np.tile(np.eye(3), (n, 1))
-        A[:, 3] = -col.reshape(-1)
-        yy = y.reshape(-1)
-        ww = np.repeat(w, 3)
-        sol = np.concatenate([t0, [0.0]])
-        for _ in range(3):
-            r = (A @ sol - yy) * ww
-            hub = np.where(np.abs(r) <= 2.0, 1.0, 2.0 / np.maximum(np.abs(r), 1e-12))
-            Aw = A * (ww * np.sqrt(hub))[:, None]
-            yw = yy * ww * np.sqrt(hub)
-            H = Aw.T @ Aw
-            try:
-                sol = np.linalg.solve(H + 1e-9 * np.eye(4), Aw.T @ yw)
-            except np.linalg.LinAlgError:
-                return
-        try:
-            info = 1.0 / float(np.linalg.inv(H + 1e-9 * np.eye(4))[3, 3])  # t profiled out
-        except np.linalg.LinAlgError:
-            return
-        if not np.isfinite(info) or info <= 0 or not np.isfinite(sol[3]):
-            return
-        d0 = float(np.clip(sol[3], -self.cfg.disparity_offset_max_px, self.cfg.disparity_offset_max_px))
-        self._doff_info += np.array([info, info * d0])
-        prior = 4.0  # information of a prior sigma of 0.5 px at zero
-        self._doff = float(np.clip((self._doff_info[1] + prior * self.cfg.disparity_offset_px) / (self._doff_info[0] + prior),
-                                   -self.cfg.disparity_offset_max_px, self.cfg.disparity_offset_max_px))
-
-    def _offset_evidence(self, idx: np.ndarray, X_b: np.ndarray, err_b: np.ndarray, d_b: np.ndarray,
-                         T_world_b: np.ndarray) -> None:
-        """Hand the points with a stereo observation at an earlier keyframe to the offset estimate."""
-        m = self._map
-        ok = (err_b < self.cfg.triangulation_max_px) & (X_b[:, 2] > self.cfg.min_depth_m) & \
-            (X_b[:, 2] < self._max_depth) & (m.kf[idx] >= 0) & (m.disp[idx] > 0)
-        T_b_world = invert_pose(T_world_b)
-        for k_a in np.unique(m.kf[idx[ok]]):
-            T_world_a = self._kf_poses.get(int(k_a))
-            if T_world_a is None:
-                continue
-            sel = ok & (m.kf[idx] == k_a)
-            j = idx[sel]
-            self._update_disparity_offset(m.X_cam[j], m.disp[j], X_b[sel], d_b[sel], T_b_world @ T_world_a)
+            fut = _Ready(self._keyframe_job(*args))
+        self._jobs.append(_Job(fut, C_sub, prev))
 
     def _new_keyframe(self, left, right, T_world_cam: np.ndarray) -> int:
         """Top up the map with new stereo points; hand the keyframe's ASIFT work to the worker."""
@@ -696,25 +682,17 @@ class StereoEstimator:
         k = len(self.keyframe_poses)
         if self.record_observations:
             self.keyframe_poses.append((self._cur_seq, T_world_cam.copy()))
-        if len(m):
+        if (self.record_observations or cfg.refine_points) and len(m):
             Xc_old = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
             uvr_old, ok_old = stereo_right(self.rig, left, right, m.uv, self._right_guess(Xc_old), cfg, fb_check=False)
             if self.record_observations:
                 self._record(k, m.ids, m.uv, uvr_old, ok_old)
             if ok_old.any():
                 idx_o = np.flatnonzero(ok_old)
-                d_new = self._rectified_disparity(m.uv[idx_o], uvr_old[idx_o])
-                X_raw, err_raw = self._triangulate(m.uv[idx_o], uvr_old[idx_o])
-                if cfg.estimate_disparity_offset:
-                    self._offset_evidence(idx_o, X_raw, err_raw, d_new, T_world_cam)
-                Xc_new, err_new = (X_raw, err_raw) if self._doff == 0.0 else \
-                    self._triangulate(m.uv[idx_o], uvr_old[idx_o], self._doff)
+                Xc_new, err_new = self._triangulate(m.uv[idx_o], uvr_old[idx_o], self._doff)
                 good = (err_new < cfg.triangulation_max_px) & (Xc_new[:, 2] > cfg.min_depth_m) & \
                     (Xc_new[:, 2] < self._max_depth)
                 idx = idx_o[good]
-                m.disp[idx] = d_new[good]
-                m.X_cam[idx] = X_raw[good]
-                m.kf[idx] = self._kf_count
                 if cfg.refine_points:
                     # running mean of each tracked point over its stereo observations at keyframes
                     Xw_new = Xc_new[good] @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
@@ -724,20 +702,16 @@ class StereoEstimator:
         sel = np.zeros(0, np.int64)
         uvr = np.zeros((0, 2), np.float32)
         Xw = np.zeros((0, 3))
-        d_sel = np.zeros(0)
-        Xc_raw = np.zeros((0, 3))
         if len(cands_all):
             uvu = undistort_px(cands_all, self.rig.cam0.K, self.rig.cam0.dist)
             rays = np.column_stack([(uvu[:, 0] - self.rig.cam0.cx) / self.rig.cam0.fx,
                                     (uvu[:, 1] - self.rig.cam0.cy) / self.rig.cam0.fy, np.ones(len(uvu))])
             uvr, ok = stereo_right(self.rig, left, right, cands_all, self._right_guess(rays * z0), cfg)
-            Xc_raw, err = self._triangulate(cands_all, uvr)
-            Xc = Xc_raw if self._doff == 0.0 else self._triangulate(cands_all, uvr, self._doff)[0]
+            Xc, err = self._triangulate(cands_all, uvr, self._doff)
             ok &= (err < cfg.triangulation_max_px) & (Xc[:, 2] > cfg.min_depth_m) & (Xc[:, 2] < self._max_depth)
             Xw = Xc @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
             # corners (not SIFT keypoints) become tracked map points, up to max_points
             sel = np.flatnonzero(ok)[: max(0, need)]
-            d_sel = self._rectified_disparity(cands_all[sel], uvr[sel]) if len(sel) else np.zeros(0)
         new_ids = np.arange(self._next_id, self._next_id + len(sel), dtype=np.int64)
         self._next_id += len(sel)
         if self.record_observations and len(sel):
@@ -747,17 +721,9 @@ class StereoEstimator:
         m.uv = np.vstack([m.uv, cands_all[sel]]).astype(np.float32)
         m.ids = np.concatenate([m.ids, new_ids])
         m.nobs = np.concatenate([m.nobs, np.ones(len(sel))])
-        m.disp = np.concatenate([m.disp, d_sel])
-        m.X_cam = np.vstack([m.X_cam, Xc_raw[sel]])
-        m.kf = np.concatenate([m.kf, np.full(len(sel), self._kf_count, np.int64)])
         m.uv_kf = m.uv.copy()
         self._since_kf = 0
         self._T_kf = T_world_cam.copy()
-        self._kf_poses[self._kf_count] = T_world_cam.copy()
-        used = set(m.kf.tolist())
-        for old_k in [k_ for k_ in self._kf_poses if k_ not in used and k_ != self._kf_count]:
-            del self._kf_poses[old_k]
-        self._kf_count += 1
         self._n_at_kf = len(m)
         self.counters["keyframes"] += 1
         return len(m)

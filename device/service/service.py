@@ -59,8 +59,7 @@ from stereopath.device.service.options import RunOptions, apply_live, check_conf
 from stereopath.device.service.pipeline import FramePipeline, PipelineCounters
 from stereopath.device.service.sdnotify import Notifier
 from stereopath.device.service.settings import DeviceConfig
-from stereopath.device.service.status import STATUS_FORMAT_VERSION, CpuMeter, LastProblem, RateWindow, \
-    existing_parent, status_line, write_status_file
+from stereopath.device.service.status import StatusReporter, status_line
 from stereopath.device.service.watchdog import Watchdog
 
 log = logging.getLogger(__name__)
@@ -101,11 +100,8 @@ class CaptureService:
         self._reload = threading.Event()
         self._wake = threading.Event()
         self._thread: threading.Thread | None = None
-        self._problem = LastProblem()
-        self._cpu = CpuMeter(clock)
-        self._fps_window, self._imu_window = RateWindow(), RateWindow()
-        self._status_path: Path | None = None
-        self._status_warned = False
+        self.reporter = StatusReporter(clock)
+        self.last_status: dict[str, Any] = {}  # the latest report written
         self._client_keys_at_start: dict[str, bytes] = {}
 
     # ------------------------------------------------------------------ what tests and the status read
@@ -149,15 +145,15 @@ class CaptureService:
     # ------------------------------------------------------------------ run
 
     def run(self) -> int:
-        logging.getLogger().addHandler(self._problem)
+        logging.getLogger().addHandler(self.reporter.problem)
         try:
             return self._run()
         finally:
-            logging.getLogger().removeHandler(self._problem)
+            logging.getLogger().removeHandler(self.reporter.problem)
             self.notifier.close()
 
     def _run(self) -> int:
-        self._status_path = Path(self.cfg.service.status_file) if self.cfg.service.status_file else None
+        self.reporter.path = Path(self.cfg.service.status_file) if self.cfg.service.status_file else None
         self.notifier.notify(STATUS="starting: opening the cameras, the IMU and the recorder")
         try:
             self._setup()
@@ -305,7 +301,7 @@ class CaptureService:
 
     def _become_ready(self, now: float) -> None:
         self.ready_at = now
-        self._cpu.restart()
+        self.reporter.cpu.restart()
         self.state = "running"
         status = self._write_status()
         self.notifier.notify(READY=1, STATUS=status_line(status))
@@ -446,56 +442,12 @@ class CaptureService:
 
     def status(self) -> dict[str, Any]:
         """The health report (written to the status file each period)."""
-        from stereopath.device.streaming import health
-
-        now = self._clock()
-        p, c = self.parts, self.counters
-        mon = p.monitor.report() if p.monitor is not None else None
-        est = c.last_estimate
-        src_stats = p.source.stats.as_dict() if p.source is not None and hasattr(p.source, "stats") else {}
-        disk_path = existing_parent(self.session_dir if self.session_dir is not None and self.session_dir.exists()
-                                    else Path(self.cfg.recorder.dir))
-        data: dict[str, Any] = {
-            "v": STATUS_FORMAT_VERSION, "state": self.state, "pid": os.getpid(), "updated_unix": time.time(),
-            "status_interval_s": self.cfg.service.status_interval_s,
-            "session_id": self.session_id, "session_dir": str(self.session_dir) if self.session_dir else None,
-            "source": self.cfg.source.backend, "imu": self.cfg.imu.backend,
-            "uptime_s": round(now - self.ready_at, 3) if self.ready_at is not None else 0.0,
-            "frames": c.frames_in, "frames_estimated": c.frames_done, "imu_samples": c.imu_samples_in,
-            "frame_rate_hz": round(self._fps_window.rate(now, c.frames_in), 3),
-            "imu_rate_hz": round(self._imu_window.rate(now, c.imu_samples_in), 3),
-            "camera_fps_timestamps": round(mon.camera_fps, 3) if mon else 0.0,
-            "dropped_frames": mon.dropped_frames if mon else 0,
-            "source_drops": {k: v for k, v in src_stats.items() if k.startswith("dropped")},
-            "imu_gaps": (mon.imu_gaps if mon else 0) + len(getattr(p.imu, "gaps", []) or []),
-            "tracking": est.status if est is not None else None,
-            "inliers": int(est.inliers) if est is not None else 0,
-            "keyframes": c.keyframes, "estimation_errors": c.estimation_errors,
-            "stage_ms": {k: round(v, 2) for k, v in c.stage_ms.items()},
-            "cpu_process_pct": round(self._cpu.pct(), 1), "cpu_process_avg_pct": round(self._cpu.average_pct(), 1),
-            "cpu_load_pct": health.cpu_load_pct(), "temperature_c": health.cpu_temperature_c(),
-            "disk_free_bytes": health.disk_free_bytes(disk_path),
-            **p.recording.status_fields(),
-            **p.streaming.status_fields(),
-            "watchdog_s": self.watchdog.interval_s, "watchdog_pings": self.watchdog.pings,
-            "data_fresh": self.data_fresh(now) if self.ready else False,
-            "stop_reason": self.stop_reason or None,
-            "last_error": self._problem.text, "last_error_unix": self._problem.t_unix,
-        }
-        data["summary"] = status_line(data)
-        return data
+        return self.reporter.report(self)
 
     def _write_status(self, final: bool = False) -> dict[str, Any]:
         data = self.status()
+        self.last_status = data
         if not final:
             self.parts.streaming.publish_health(data)
-        path = self._status_path
-        if path is not None:
-            try:
-                write_status_file(path, data)
-            except OSError as exc:
-                if not self._status_warned:
-                    log.warning("cannot write the status file %s (%s); `device status` will not see this run",
-                                path, exc)
-                    self._status_warned = True
+        self.reporter.write(data)
         return data

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from stereopath.device.formats.fileio import write_json_atomic
 
 STATUS_FORMAT_VERSION = 1
+
+log = logging.getLogger(__name__)
 
 
 class RateWindow:
@@ -108,3 +111,68 @@ def existing_parent(path: Path) -> Path:
     while not path.exists() and path != path.parent:
         path = path.parent
     return path
+
+
+class StatusReporter:
+    """The service's health report: rates, CPU, the last problem logged; written to the status file."""
+
+    def __init__(self, clock: Callable[[], float], path: Path | None = None) -> None:
+        self._clock = clock
+        self.path = path
+        self.cpu = CpuMeter(clock)
+        self.fps, self.imu = RateWindow(), RateWindow()
+        self.problem = LastProblem()
+        self._warned = False
+
+    def report(self, svc: Any) -> dict[str, Any]:
+        """The health report of a :class:`~stereopath.device.service.service.CaptureService` now."""
+        from stereopath.device.streaming import health
+
+        now = self._clock()
+        p, c = svc.parts, svc.counters
+        mon = p.monitor.report() if p.monitor is not None else None
+        est = c.last_estimate
+        src_stats = p.source.stats.as_dict() if p.source is not None and hasattr(p.source, "stats") else {}
+        disk_path = existing_parent(svc.session_dir if svc.session_dir is not None and svc.session_dir.exists()
+                                    else Path(svc.cfg.recorder.dir))
+        data: dict[str, Any] = {
+            "v": STATUS_FORMAT_VERSION, "state": svc.state, "pid": os.getpid(), "updated_unix": time.time(),
+            "status_interval_s": svc.cfg.service.status_interval_s,
+            "session_id": svc.session_id, "session_dir": str(svc.session_dir) if svc.session_dir else None,
+            "source": svc.cfg.source.backend, "imu": svc.cfg.imu.backend,
+            "uptime_s": round(now - svc.ready_at, 3) if svc.ready_at is not None else 0.0,
+            "frames": c.frames_in, "frames_estimated": c.frames_done, "imu_samples": c.imu_samples_in,
+            "frame_rate_hz": round(self.fps.rate(now, c.frames_in), 3),
+            "imu_rate_hz": round(self.imu.rate(now, c.imu_samples_in), 3),
+            "camera_fps_timestamps": round(mon.camera_fps, 3) if mon else 0.0,
+            "dropped_frames": mon.dropped_frames if mon else 0,
+            "source_drops": {k: v for k, v in src_stats.items() if k.startswith("dropped")},
+            "imu_gaps": (mon.imu_gaps if mon else 0) + len(getattr(p.imu, "gaps", []) or []),
+            "tracking": est.status if est is not None else None,
+            "inliers": int(est.inliers) if est is not None else 0,
+            "keyframes": c.keyframes, "estimation_errors": c.estimation_errors,
+            "stage_ms": {k: round(v, 2) for k, v in c.stage_ms.items()},
+            "cpu_process_pct": round(self.cpu.pct(), 1), "cpu_process_avg_pct": round(self.cpu.average_pct(), 1),
+            "cpu_load_pct": health.cpu_load_pct(), "temperature_c": health.cpu_temperature_c(),
+            "disk_free_bytes": health.disk_free_bytes(disk_path),
+            **p.recording.status_fields(),
+            **p.streaming.status_fields(),
+            "watchdog_s": svc.watchdog.interval_s, "watchdog_pings": svc.watchdog.pings,
+            "data_fresh": svc.data_fresh(now) if svc.ready else False,
+            "stop_reason": svc.stop_reason or None,
+            "last_error": self.problem.text, "last_error_unix": self.problem.t_unix,
+        }
+        data["summary"] = status_line(data)
+        return data
+
+    def write(self, data: Mapping[str, Any]) -> None:
+        """The status file (when configured); a failure is logged once and the run carries on."""
+        if self.path is None:
+            return
+        try:
+            write_status_file(self.path, data)
+        except OSError as exc:
+            if not self._warned:
+                log.warning("cannot write the status file %s (%s); `device status` will not see this run",
+                            self.path, exc)
+                self._warned = True

@@ -89,9 +89,13 @@ def run_fleet_command(args: argparse.Namespace) -> int:
     from stereopath.host.fleet.runner import FleetOptions, ReprocessSettings, run_fleet
     from stereopath.host.fleet.sessions import PathMap, expand_sessions
 
+    from stereopath.device.formats.fileio import check_out_folder
+
+    check_out_folder(args.out)
     sessions = expand_sessions(args.session)
     settings = ReprocessSettings(preset=args.preset, do_map=not args.no_map, map_preset=args.map_preset,
-                                 imu_priors=args.imu_priors, force=args.force)
+                                 imu_priors=args.imu_priors, force=args.force,
+                                 strict=bool(getattr(args, "strict", False)))
     memory = args.task_memory_gb if args.task_memory_gb is not None else (1.0 if settings.do_map else 0.6)
     options = FleetOptions(ray=args.ray or "auto", num_cpus=args.cpus, task_cpus=args.task_cpus,
                            task_memory_gb=memory, max_in_flight=args.max_in_flight, retries=args.retries,

@@ -73,6 +73,7 @@ class ReprocessSettings:
     map_preset: str = "object"
     imu_priors: bool = False
     force: bool = False  # recompute every stored stage (first attempt of each task only)
+    strict: bool = False  # stop a session at its first unreadable frame (default: skip it, counted)
 
 
 @dataclass

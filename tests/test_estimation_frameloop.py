@@ -1,0 +1,96 @@
+"""The stereo estimator's frame loop: keyframe work off the loop, bounded; fast motion; the shared stereo step."""
+
+import threading
+
+import cv2
+import numpy as np
+import pytest
+
+from stereopath.device.core.features import gray
+from stereopath.device.core.frames import StereoFrame
+from stereopath.device.formats.rig_files import load_kitti_calib
+from stereopath.device.core.stereo import stereo_right
+from stereopath.device.estimation.base import run_estimator
+from stereopath.device.estimation.registry import make_estimator
+from stereopath.device.estimation.stereo_vo import StereoConfig, StereoEstimator
+
+
+def _kitti_frames(data_dir, idx):
+    seq = data_dir / "kitti_odometry/sequences/06"
+    rig = load_kitti_calib(seq / "calib.txt", (1226, 370))
+    frames = [StereoFrame(j, int(i * 103_000_000), cv2.imread(str(seq / f"image_0/{i:06d}.png"), 0),
+                          cv2.imread(str(seq / f"image_1/{i:06d}.png"), 0)) for j, i in enumerate(idx)]
+    return rig, frames
+
+
+def test_stereo_right_recovers_a_subpixel_disparity_and_rejects_row_mismatch(data_dir):
+    seq = data_dir / "kitti_odometry/sequences/06"
+    rig = load_kitti_calib(seq / "calib.txt", (1226, 370))
+    rng = np.random.default_rng(0)
+    left = cv2.GaussianBlur(rng.integers(0, 255, (370, 1226)).astype(np.uint8), (0, 0), 2.0)
+    left = cv2.normalize(left, None, 0, 255, cv2.NORM_MINMAX)
+    d = 7.3
+    shift = np.float32([[1, 0, -d], [0, 1, 0]])  # right(x) = left(x + d): disparity d
+    right = cv2.warpAffine(left, shift, (1226, 370), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    pts = cv2.goodFeaturesToTrack(left, 200, 0.01, 10).reshape(-1, 2)
+    pts = pts[(pts[:, 0] > 40) & (pts[:, 0] < 1180) & (pts[:, 1] > 40) & (pts[:, 1] < 330)]
+    cfg = StereoConfig()
+    xr, ok = stereo_right(rig, left, right, pts, pts - [4.0, 0.0], cfg)
+    assert ok.mean() > 0.9
+    assert np.median(np.abs(pts[ok, 0] - xr[ok, 0] - d)) < 0.05
+    assert np.all(np.abs(xr[ok, 1] - pts[ok, 1]) < 0.2)
+    # the same points 3 px lower in the right image: not on the rectified row, rejected
+    down = cv2.warpAffine(right, np.float32([[1, 0, 0], [0, 1, 3]]), (1226, 370), borderMode=cv2.BORDER_REFLECT)
+    _, ok2 = stereo_right(rig, left, down, pts, pts - [4.0, 0.0], cfg)
+    assert ok2.mean() < 0.1
+    assert stereo_right(rig, left, right, np.zeros((0, 2)), np.zeros((0, 2)), cfg)[0].shape == (0, 2)
+
+
+def test_gray_accepts_colour_and_single_channel():
+    img = np.zeros((4, 5, 3), np.uint8)
+    img[..., 2] = 200
+    assert gray(img).shape == (4, 5) and gray(img)[0, 0] > 0
+    g = np.full((4, 5), 7, np.uint8)
+    assert gray(g) is g
+    assert gray(g[:, :, None]).shape == (4, 5)
+
+
+def test_keyframe_work_never_stalls_the_frame_loop_and_its_queue_is_bounded(data_dir):
+    rig, frames = _kitti_frames(data_dir, range(12))
+    est = StereoEstimator(rig, StereoConfig(kf_max_frames=1))  # a keyframe at every frame
+    release = threading.Event()
+    started = []
+    real_job = est._keyframe_job
+
+    def slow_job(*args):
+        started.append(args[0])
+        release.wait(30)  # the worker is stuck until the test lets it go
+        return real_job(*args)
+
+    est._keyframe_job = slow_job
+    try:
+        out = [est.process(f, None) for f in frames]  # must return although no job can finish
+        assert all(e.status == "ok" for e in out)
+        assert sum(e.keyframe for e in out) >= 10
+        assert len(est._jobs) <= 2  # one running, one waiting: never a pile-up
+        assert est.counters["kf_jobs_skipped"] >= 8
+        assert started == [0]  # only the first job started; the waiting one was replaced
+    finally:
+        release.set()
+        est.close()
+    est2 = StereoEstimator(rig, StereoConfig())
+    run = run_estimator(est2, iter(frames), None)
+    assert run.frames_tracked == len(frames)
+
+
+@pytest.mark.parametrize("step", [2, 3])
+def test_fast_motion_every_nth_kitti_frame_is_tracked(data_dir, step):
+    from stereopath.host.evaluation.evaluate import evaluate
+    from stereopath.device.formats.source import open_source
+
+    seq = open_source(f"kitti:{data_dir / 'kitti_odometry/sequences/06'}")
+    frames = list(seq.frames(step=step))
+    run = run_estimator(make_estimator("stereo", seq.rig), iter(frames), None)
+    assert run.frames_tracked == len(frames)  # 0 lost
+    m = evaluate(seq.groundtruth, run.trajectory)
+    assert m["end_error_m"] / m["path_length_m"] < 0.02
