@@ -10,9 +10,10 @@ from __future__ import annotations
 import dataclasses
 import html
 import json
-import os
 import time
 from pathlib import Path
+
+from stereopath.device.formats.fileio import write_text_atomic
 from typing import Any
 
 FORMAT = "stereopath-fleet"
@@ -47,9 +48,7 @@ def summary_dict(result: Any, settings: Any) -> dict[str, Any]:
 
 
 def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name("." + path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    write_text_atomic(path, text, fsync=False)
 
 
 def _cell(v: Any, scale: float = 1.0, digits: int = 3) -> str:

@@ -9,12 +9,12 @@ relative paths (they sit beside the page).  No scripts, no external resources.
 from __future__ import annotations
 
 import html
-import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from stereopath.device.formats.fileio import replacing, write_text_atomic
 from stereopath.device.formats.tum import Trajectory
 
 _CSS = """
@@ -109,10 +109,7 @@ def render_html(report: dict[str, Any], images: list[str], title: str = "stereop
 def write_html_report(path: str | Path, report: dict[str, Any], images: list[str],
                       title: str = "stereopath reprocessing report") -> None:
     """Write :func:`render_html` to ``path`` atomically."""
-    p = Path(path)
-    tmp = p.with_name("." + p.name + ".tmp")
-    tmp.write_text(render_html(report, images, title), encoding="utf-8")
-    os.replace(tmp, p)
+    write_text_atomic(path, render_html(report, images, title), fsync=False)
 
 
 def plot_errors(path_png: str | Path, gt: Trajectory, paths: dict[str, Trajectory], max_diff_s: float = 0.01) -> bool:
@@ -145,8 +142,6 @@ def plot_errors(path_png: str | Path, gt: Trajectory, paths: dict[str, Trajector
     ax.grid(True, alpha=0.3)
     ax.legend(loc="upper left")
     fig.tight_layout()
-    p = Path(path_png)
-    tmp = p.with_name("." + p.stem + ".tmp.png")
-    fig.savefig(tmp)
-    os.replace(tmp, p)
+    with replacing(path_png) as tmp:
+        fig.savefig(tmp)
     return True

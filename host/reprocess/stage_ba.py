@@ -22,7 +22,8 @@ import numpy as np
 
 from stereopath.device.errors import EstimationError
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
-from stereopath.host.reprocess.store import Bar, json_array, progress_bar
+from stereopath.host.progress import Bar, progress_bar
+from stereopath.host.reprocess.store import json_array
 
 log = logging.getLogger(__name__)
 

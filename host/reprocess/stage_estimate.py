@@ -11,7 +11,8 @@ from typing import Any
 import numpy as np
 
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
-from stereopath.host.reprocess.store import Bar, json_array
+from stereopath.host.progress import Bar
+from stereopath.host.reprocess.store import json_array
 
 NAME = "estimate"
 STATUS = ("ok", "imu_only", "lost")

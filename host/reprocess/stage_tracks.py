@@ -19,7 +19,8 @@ import numpy as np
 
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
 from stereopath.host.reprocess.loops import detect_loops, loops_to_array
-from stereopath.host.reprocess.store import Bar, json_array
+from stereopath.host.progress import Bar
+from stereopath.host.reprocess.store import json_array
 
 log = logging.getLogger(__name__)
 

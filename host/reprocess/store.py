@@ -13,43 +13,18 @@ import json
 import logging
 import os
 import shutil
-import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from stereopath.device.formats.fileio import replacing, write_text_atomic
+
 log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.json"
 PIPELINE_VERSION = 1  # bump when a stage's computation changes (invalidates stored stages)
-
-
-def progress_bar(total: int, desc: str, enabled: bool | None, unit: str = "it"):
-    """A tqdm bar on stderr, or None (``enabled=None``: only when stderr is a terminal)."""
-    if enabled is None:
-        enabled = sys.stderr.isatty()
-    if not enabled:
-        return None
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc=desc, unit=unit, leave=False, file=sys.stderr)
-
-
-class Bar:
-    """A tqdm bar or nothing, usable as ``with Bar(...) as tick: tick(1)``."""
-
-    def __init__(self, total: int, desc: str, enabled: bool | None, unit: str = "it") -> None:
-        self.bar = progress_bar(total, desc, enabled, unit)
-
-    def __enter__(self) -> Callable[[int], None]:
-        return (lambda n=1: None) if self.bar is None else self.bar.update
-
-    def __exit__(self, *exc: Any) -> None:
-        if self.bar is not None:
-            self.bar.close()
 
 
 def plain(v: Any) -> Any:
@@ -74,16 +49,13 @@ def stage_key(*parts: Any) -> str:
 
 
 def atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name("." + path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    write_text_atomic(path, text, fsync=False)
 
 
 def save_npz(path: Path, **arrays: Any) -> None:
     """``np.savez`` into a temporary file, then rename (a reader never sees half a file)."""
-    tmp = path.with_name("." + path.name + ".tmp.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
+    with replacing(path) as tmp:
+        np.savez(tmp, **arrays)
 
 
 def load_npz(path: Path) -> dict[str, np.ndarray] | None:
@@ -119,14 +91,13 @@ def copy_atomic(src: Path, dst: Path) -> None:
     """``dst`` becomes a copy of ``src`` (a hard link when the file system allows) by rename."""
     if dst.exists() and os.path.samefile(src, dst):
         return  # already that file (rename would be a no-op and leave the temporary link behind)
-    tmp = dst.with_name("." + dst.name + ".tmp")
-    if tmp.exists():
-        tmp.unlink()
-    try:
-        os.link(src, tmp)
-    except OSError:
-        shutil.copyfile(src, tmp)
-    os.replace(tmp, dst)
+    with replacing(dst) as tmp:
+        if tmp.exists():
+            tmp.unlink()
+        try:
+            os.link(src, tmp)
+        except OSError:
+            shutil.copyfile(src, tmp)
 
 
 def sequence_fingerprint(seq: Any) -> dict[str, Any]:
