@@ -33,7 +33,7 @@ from typing import Any, Callable
 from stereopath.device.errors import DatasetError
 from stereopath.device.wire.protocol import Ack, Credit, DecodeError, Hello, decode_control
 from stereopath.device.service.settings import StreamSettings
-from stereopath.device.wire.sockets import CurveKeys, open_socket
+from stereopath.device.wire.sockets import CurveKeys, bind_or_close, open_socket
 from stereopath.device.streaming.spool import KeyframeSpool
 
 log = logging.getLogger(__name__)
@@ -82,12 +82,7 @@ class KeyframeServer:
                                 heartbeat_ivl_ms=config.heartbeat_ivl_ms,
                                 heartbeat_timeout_ms=config.heartbeat_timeout_ms,
                                 heartbeat_ttl_ms=config.heartbeat_ttl_ms, maxmsgsize=SOCKET_MAX_BYTES)
-        try:
-            self.sock.bind(config.keyframe_endpoint)
-        except zmq.ZMQError:
-            self.sock.close(linger=0)  # an open socket would hang the context's term() for good
-            raise
-        self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.endpoint = bind_or_close(self.sock, config.keyframe_endpoint)
         self._peers: dict[str, _Peer] = {}
         self._sent_by_key: dict[str, int] = {}  # highest seq sent to any connection of a key (bounded)
         self.stats: dict[str, int] = {

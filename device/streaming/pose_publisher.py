@@ -15,7 +15,7 @@ import threading
 from typing import Any
 
 from stereopath.device.service.settings import StreamSettings
-from stereopath.device.wire.sockets import CurveKeys, open_socket
+from stereopath.device.wire.sockets import CurveKeys, bind_or_close, open_socket
 
 log = logging.getLogger(__name__)
 
@@ -34,12 +34,7 @@ class PosePublisher:
                                 heartbeat_ivl_ms=config.heartbeat_ivl_ms,
                                 heartbeat_timeout_ms=config.heartbeat_timeout_ms,
                                 heartbeat_ttl_ms=config.heartbeat_ttl_ms, maxmsgsize=INBOUND_MAX_BYTES)
-        try:
-            self.sock.bind(config.pose_endpoint)
-        except zmq.ZMQError:
-            self.sock.close(linger=0)  # an open socket would hang the context's term() for good
-            raise
-        self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.endpoint = bind_or_close(self.sock, config.pose_endpoint)
         self.sent = 0
         self.dropped = 0
         self._lock = threading.Lock()

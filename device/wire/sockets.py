@@ -70,3 +70,18 @@ def open_socket(ctx: Any, kind: int, keys: CurveKeys | None, *, options: Mapping
     if keys is not None:
         keys.apply(sock)
     return sock
+
+
+def bind_or_close(sock: Any, endpoint: str) -> str:
+    """Bind ``sock`` and return the endpoint it got; on failure close it (linger 0) and re-raise.
+
+    A socket left open after a failed bind would hang the context's ``term()`` for good.
+    """
+    import zmq
+
+    try:
+        sock.bind(endpoint)
+    except zmq.ZMQError:
+        sock.close(linger=0)
+        raise
+    return sock.getsockopt_string(zmq.LAST_ENDPOINT)
