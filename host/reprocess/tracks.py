@@ -27,7 +27,8 @@ import cv2
 import numpy as np
 
 from stereopath.device.core.config import check_range
-from stereopath.device.core.stereo import triangulate, undistort_px
+from stereopath.device.core.features import gray
+from stereopath.device.core.stereo import stereo_right, triangulate, undistort_px
 from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import Rig
 
@@ -92,40 +93,12 @@ class KeyframeFeatures:
         return KeyframeFeatures(f, a["uv0"], a["uv1"], a["X_cam"])
 
 
-def _gray(img: np.ndarray) -> np.ndarray:
-    return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
-
-
-def stereo_right(rig: Rig, left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, guess_right: np.ndarray,
-                 cfg: TrackConfig) -> tuple[np.ndarray, np.ndarray]:
-    """KLT from left to right seeded by ``guess_right``; returns right pixels and the accepted mask."""
-    if len(xy_left) == 0:
-        return np.zeros((0, 2), np.float32), np.zeros(0, bool)
-    lk = dict(winSize=(cfg.klt_window, cfg.klt_window), maxLevel=cfg.klt_levels,
-              criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 0.005))
-    p0 = xy_left.reshape(-1, 1, 2).astype(np.float32)
-    g = guess_right.reshape(-1, 1, 2).astype(np.float32)
-    p1, st, _ = cv2.calcOpticalFlowPyrLK(left, right, p0, g.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-    pb, stb, _ = cv2.calcOpticalFlowPyrLK(right, left, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-    fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
-    p1 = p1.reshape(-1, 2)
-    r = rig.rectification()
-    rl = cv2.undistortPoints(p0, rig.cam0.K, rig.cam0.dist, R=r.R0, P=r.P0).reshape(-1, 2)
-    rr = cv2.undistortPoints(p1.reshape(-1, 1, 2), rig.cam1.K, rig.cam1.dist, R=r.R1, P=r.P1).reshape(-1, 2)
-    w, h = rig.cam1.size
-    ok = (st.ravel() == 1) & (stb.ravel() == 1) & (fb < cfg.fb_max_px)
-    ok &= np.abs(rl[:, 1] - rr[:, 1]) <= cfg.epipolar_max_dy_px
-    ok &= rl[:, 0] - rr[:, 0] > 0
-    ok &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
-    return p1.astype(np.float32), ok
-
-
 def stereo_features(rig: Rig, left: np.ndarray, right: np.ndarray, cfg: TrackConfig,
                     depth_guess_m: float | None = None) -> KeyframeFeatures:
     """Keypoints of the left image with a stereo 3D point (see the module doc)."""
     from stereopath.device.core.features import detect
 
-    left, right = _gray(left), _gray(right)
+    left, right = gray(left), gray(right)
     feats = detect(left, cfg.feature_preset, views=[0] if cfg.original_view_only else None)
     if cfg.max_features and len(feats) > cfg.max_features:
         feats = feats.subset(np.argsort(-feats.response, kind="stable")[: cfg.max_features])
@@ -341,7 +314,7 @@ def frame_observations(rig: Rig, kf_left: np.ndarray, kf_xy: np.ndarray, kf_ids:
     located in ``right`` the same way as at keyframes.  Rows ``(0, point id, cam, u, v, 1)``
     in undistorted pixels (the caller sets the pose index).
     """
-    kf_left, left, right = _gray(kf_left), _gray(left), _gray(right)
+    kf_left, left, right = gray(kf_left), gray(left), gray(right)
     known = np.array([int(i) in points for i in kf_ids], dtype=bool) if len(kf_ids) else np.zeros(0, bool)
     if not known.any():
         return np.zeros((0, 6))
