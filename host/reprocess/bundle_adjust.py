@@ -44,6 +44,7 @@ from stereopath.host.reprocess.ba_common import (  # noqa: F401  (re-exported)
     select_observations,
 )
 from stereopath.host.reprocess.ba_common import as_observations as _as_obs
+from stereopath.host.reprocess.ba_common import motion_only_selection
 
 log = logging.getLogger(__name__)
 
@@ -140,15 +141,19 @@ class _Problem:
         Xk[self.right] = Xc[self.right] @ self.R10.T + self.t10
         return Xc, Xk
 
-    def residuals(self) -> tuple[np.ndarray, np.ndarray]:
-        """(N, 2) pixel residuals and the mask of observations in front of their camera."""
-        _, Xk = self._camera_points()
+    def _projection(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(Xc, Xk, in-front mask, safe depths, weighted pixel residuals) of every observation."""
+        Xc, Xk = self._camera_points()
         z = Xk[:, 2]
         front = z > 1e-6
         zs = np.where(front, z, 1.0)
         p = self.f * Xk[:, :2] / zs[:, None] + self.c
         p[self.right, 0] += self.delta
-        r = (p - self.uv) * self.sw[:, None]
+        return Xc, Xk, front, zs, (p - self.uv) * self.sw[:, None]
+
+    def residuals(self) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 2) pixel residuals and the mask of observations in front of their camera."""
+        _, _, front, _, r = self._projection()
         r[~front] = 0.0
         return r, front
 
@@ -201,13 +206,7 @@ class _Problem:
 
     def normal_equations(self, loss: str, k: float):
         agg = self._structure()
-        Xc, Xk = self._camera_points()
-        z = Xk[:, 2]
-        front = z > 1e-6
-        zs = np.where(front, z, 1.0)
-        p = self.f * Xk[:, :2] / zs[:, None] + self.c
-        p[self.right, 0] += self.delta
-        r = (p - self.uv) * self.sw[:, None]
+        Xc, Xk, front, zs, r = self._projection()
         _, w = _robust(loss, np.sum(r * r, axis=1), k)
         w = np.where(front, w, 0.0)
         n = len(r)
@@ -491,17 +490,10 @@ def refine_poses_fixed_points(rig: Rig, T_world_cam: np.ndarray, points: dict[in
 
     Poses with fewer than ``min_obs`` observations of known points keep their input value.
     """
-    T_world_cam = np.asarray(T_world_cam, dtype=float).reshape(-1, 4, 4)
-    obs = _as_obs(observations)
-    if len(obs):
-        known = np.isin(obs[:, 1].astype(np.int64), np.fromiter(points.keys(), np.int64, len(points)))
-        obs = obs[known]
-    counts = np.bincount(obs[:, 0].astype(np.int64), minlength=len(T_world_cam))
-    ok = counts >= min_obs
+    T_world_cam, sel, ok = motion_only_selection(T_world_cam, points, observations, min_obs)
     out = T_world_cam.copy()
     if not ok.any():
         return out, ok
-    sel = obs[ok[obs[:, 0].astype(np.int64)]]
     prob = _Problem(rig, T_world_cam, points, sel, [], np.flatnonzero(~ok), fix_points=True,
                     offset_px=disparity_offset_px)
     _levenberg_marquardt(prob, loss, huber_px, max_iterations)

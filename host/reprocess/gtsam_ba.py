@@ -33,8 +33,8 @@ from stereopath.device.errors import ConfigError
 from stereopath.host.reprocess.ba_common import (
     BAResult,
     RotationPrior,
-    as_observations,
     check_problem,
+    motion_only_selection,
     reprojection_residuals,
     rms_px,
     select_observations,
@@ -265,16 +265,10 @@ def refine_poses_fixed_points(rig: Rig, T_world_cam: np.ndarray, points: dict[in
 
     Poses with fewer than ``min_obs`` observations of known points keep their input value.
     """
-    T_world_cam = np.asarray(T_world_cam, dtype=float).reshape(-1, 4, 4)
-    obs = as_observations(observations)
-    if len(obs):
-        obs = obs[np.isin(obs[:, 1].astype(np.int64), np.fromiter(points.keys(), np.int64, len(points)))]
-    counts = np.bincount(obs[:, 0].astype(np.int64), minlength=len(T_world_cam))
-    ok = counts >= min_obs
+    T_world_cam, obs, ok = motion_only_selection(T_world_cam, points, observations, min_obs)
     out = T_world_cam.copy()
     if not ok.any():
         return out, ok
-    obs = obs[ok[obs[:, 0].astype(np.int64)]]
     gr = _Graph(rig, loss, huber_px, disparity_offset_px, False)
     idx = np.flatnonzero(ok)
     slot = np.full(len(T_world_cam), -1)
