@@ -101,6 +101,35 @@ def _receiver(dev, out: Path, **kw):
     return Receiver(cfg, out)
 
 
+def _offer(dev, i: int, **image_size) -> None:
+    """Offer keyframe ``i``, waiting while the device's spool queue is full (a burst faster than its
+    writer is refused by design; these scenarios measure what happens after the device took it)."""
+    t_end = time.monotonic() + 10
+    while not dev.offer_keyframe(i, i, np.eye(4), *small_images(i, **image_size)):
+        if time.monotonic() > t_end:
+            raise RuntimeError(f"the device refused keyframe {i} for 10 s")
+        time.sleep(0.01)
+
+
+@contextmanager
+def _log_messages(logger: str, level: int):
+    """The messages ``logger`` (and its children) emit at ``level`` or above while the block runs."""
+    import logging
+
+    msgs: list[str] = []
+    handler = logging.Handler(level)
+    handler.emit = lambda r: msgs.append(r.getMessage())
+    log = logging.getLogger(logger)
+    old_level = log.level
+    log.addHandler(handler)
+    log.setLevel(min(level, logging.WARNING))
+    try:
+        yield msgs
+    finally:
+        log.removeHandler(handler)
+        log.setLevel(old_level)
+
+
 def _row(name: str, **kw) -> dict:
     base = {"scenario": name, "kf_sent": "-", "kf_stored": "-", "kf_lost": "-", "poses_sent": "-",
             "poses_stored": "-", "rc": "-", "message": ""}
@@ -116,24 +145,19 @@ def sc_torn_index(tmp: Path, mount: bool) -> dict:
 
     from stereopath.host.live.store import read_index
 
-    msgs: list[str] = []
-    handler = logging.Handler()
-    handler.emit = lambda r: msgs.append(r.getMessage()) if r.levelno >= logging.WARNING else None
-    logging.getLogger("stereopath.host.live.store").addHandler(handler)
-    logging.getLogger("stereopath.host.live.store").setLevel(logging.WARNING)
-    try:
+    with _log_messages("stereopath.host.live.store", logging.WARNING) as msgs:
         dev = make_device(tmp, None, "sessI")
         out = tmp / "host"
         rx = _receiver(dev, out)
         for i in range(5):
-            dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
+            _offer(dev, i)
         wait_for(lambda: len(stored_seqs(out, "sessI")) == 5, 20, between=lambda: rx.poll(0.02))
         rx.close()
         idx = out / "sessI" / "keyframes" / "index.csv"
         idx.write_bytes(idx.read_bytes()[:-25])  # the power cut
         rx = _receiver(dev, out)
         for i in range(5, 10):
-            dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
+            _offer(dev, i)
         wait_for(lambda: len(stored_seqs(out, "sessI")) == 10, 20, between=lambda: rx.poll(0.02))
         rx.close()
         dev.close()
@@ -141,8 +165,6 @@ def sc_torn_index(tmp: Path, mount: bool) -> dict:
         stored = len(stored_seqs(out, "sessI"))
         return _row("4 torn index.csv", kf_sent=10, kf_stored=stored, kf_lost=10 - stored, rc="n/a (restarted)",
                     message=(msgs[0][:150] if msgs else "") + f" | index rows {len(rows)}")
-    finally:
-        logging.getLogger("stereopath.host.live.store").removeHandler(handler)
 
 
 def sc_host_disk_full(tmp: Path, mount: bool) -> dict:
@@ -151,13 +173,8 @@ def sc_host_disk_full(tmp: Path, mount: bool) -> dict:
 
     from stereopath.host.live import store as store_mod
 
-    msgs: list[str] = []
-    handler = logging.Handler()
-    handler.emit = lambda r: msgs.append(r.getMessage()) if r.levelno >= logging.ERROR else None
-    logging.getLogger("stereopath.host.live").addHandler(handler)
-    logging.getLogger("stereopath.host.live").setLevel(logging.WARNING)
     n = 20
-    try:
+    with _log_messages("stereopath.host.live", logging.ERROR) as msgs:
         dev = make_device(tmp, None, "sessH")
         if mount:
             ctx = _small_fs("48k")
@@ -178,7 +195,7 @@ def sc_host_disk_full(tmp: Path, mount: bool) -> dict:
             if not mount:
                 full["on"] = True
             for i in range(n):
-                dev.offer_keyframe(i, i, np.eye(4), *small_images(i, h=192, w=256))
+                _offer(dev, i, h=192, w=256)
             dev.wait_spooled(n, 20)
             t_end = time.monotonic() + 4
             while time.monotonic() < t_end:
@@ -203,8 +220,6 @@ def sc_host_disk_full(tmp: Path, mount: bool) -> dict:
         return _row("3 host disk full", kf_sent=n, kf_stored=stored, kf_lost=n - stored, rc="n/a (kept running)",
                     message=f"[{how}] stored {during} while full, {failures} store failures, "
                             f"{len(leftovers)} temp files; " + (msgs[0][:110] if msgs else ""))
-    finally:
-        logging.getLogger("stereopath.host.live").removeHandler(handler)
 
 
 def sc_device_disk_full(tmp: Path, mount: bool) -> dict:
@@ -265,11 +280,11 @@ def sc_two_hosts(tmp: Path, mount: bool) -> dict:
                                        fsync=False, stall_timeout_s=1.0, reconnect_ivl_ms=50), out)
     a = rx(tmp / "a")
     for i in range(5):
-        dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
+        _offer(dev, i)
     wait_for(lambda: len(stored_seqs(tmp / "a", "sessT")) == 5, 20, between=lambda: a.poll(0.02))
     b = rx(tmp / "b")
     for i in range(5, 15):
-        dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
+        _offer(dev, i)
         a.poll(0.01)
         b.poll(0.01)
     wait_for(lambda: all(len(stored_seqs(tmp / d, "sessT")) == 15 for d in "ab"), 20,
@@ -364,14 +379,14 @@ def sc_killed_device_spool(tmp: Path, mount: bool) -> dict:
     """Device killed with keyframes no host acknowledged; a new session starts; a host connects."""
     dev = make_device(tmp, None, "sessOld")
     for i in range(6):
-        dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
+        _offer(dev, i)
     dev.wait_spooled(6, 10)
     dev.close(timeout_s=1)  # stands in for kill -9: nothing was delivered
     new = make_device(tmp, None, "sessNew")
     out = tmp / "host"
     rx = _receiver(new, out)
     for i in range(3):
-        new.offer_keyframe(i, i, np.eye(4), *small_images(i))
+        _offer(new, i)
     wait_for(lambda: len(stored_seqs(out, "sessNew")) == 3, 20, between=lambda: rx.poll(0.02))
     for _ in range(50):
         rx.poll(0.02)
