@@ -46,6 +46,7 @@ LOSSES = ("huber", "cauchy", "linear")
 GAUGE_SIGMA = 1e-6  # rad and m: the held poses (and points of the motion-only refinement)
 RIG_SIGMA = 1e-5  # rad and m: right-camera pose = left pose x rig extrinsics (disparity offset only)
 FREE_SIGMA = 1e3  # an unconstrained direction of a prior
+TILT_SIGMA = 0.1  # rad: the held pose's tilt when the IMU's gravity can fix it
 
 
 def import_gtsam() -> Any:
@@ -97,15 +98,28 @@ class _Graph:
             self._noise[weight] = m
         return m
 
-    def add_poses(self, T_world_cam: np.ndarray, held: np.ndarray) -> None:
+    def gauge_noise(self, T: np.ndarray, gravity_world: np.ndarray | None) -> Any:
+        """The held pose's prior: tight, or (with the IMU) free to tilt, i.e. to rotate about the
+        horizontal axes, which only gravity can fix (the visual problem is the same in any rotation)."""
+        nm = self.g.noiseModel
+        if gravity_world is None:
+            return nm.Isotropic.Sigma(6, GAUGE_SIGMA)
+        u = np.asarray(gravity_world, float) / np.linalg.norm(gravity_world)
+        cov_world = GAUGE_SIGMA ** 2 * np.outer(u, u) + TILT_SIGMA ** 2 * (np.eye(3) - np.outer(u, u))
+        R = np.asarray(T[:3, :3], float)
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = R.T @ cov_world @ R  # Pose3's rotation tangent is in the pose's own frame
+        cov[3:, 3:] = GAUGE_SIGMA ** 2 * np.eye(3)
+        return nm.Gaussian.Covariance(cov)
+
+    def add_poses(self, T_world_cam: np.ndarray, held: np.ndarray, gravity_world: np.ndarray | None = None) -> None:
         g = self.g
-        tight = g.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA)
         rig_noise = g.noiseModel.Isotropic.Sigma(6, RIG_SIGMA)
         for k, T in enumerate(T_world_cam):
             P = self.pose(T)
             self.values.insert(self.X(k), P)
             if held[k]:
-                self.graph.add(g.PriorFactorPose3(self.X(k), P, tight))
+                self.graph.add(g.PriorFactorPose3(self.X(k), P, self.gauge_noise(T, gravity_world)))
             if self.est_offset:
                 self.values.insert(self.R_(k), P.compose(self.T01))
                 self.graph.add(g.BetweenFactorPose3(self.X(k), self.R_(k), self.T01, rig_noise))
@@ -152,6 +166,24 @@ class _Graph:
             self.graph.add(g.BetweenFactorPose3(self.X(lp.i), self.X(lp.j), self.pose(lp.T_ci_cj), noise))
 
 
+    def add_imu(self, terms: Any) -> None:
+        """Velocity and bias unknowns, CombinedImuFactors between keyframes, a prior on each chain's first bias."""
+        g = self.g
+        self.V, self.B = g.symbol_shorthand.V, g.symbol_shorthand.B
+        linked = sorted({k for i, j, _ in terms.pims for k in (i, j)})
+        starts = {i for i, _, _ in terms.pims} - {j for _, j, _ in terms.pims}
+        n = terms.noise
+        bias_prior = g.noiseModel.Diagonal.Sigmas(np.array([n.accel_bias_prior] * 3 + [n.gyro_bias_prior] * 3))
+        for k in linked:
+            self.values.insert(self.V(k), np.asarray(terms.velocities[k], float))
+            self.values.insert(self.B(k), terms.bias0)
+            if k in starts:
+                self.graph.add(g.PriorFactorConstantBias(self.B(k), terms.bias0, bias_prior))
+        for i, j, pim in terms.pims:
+            self.graph.add(g.CombinedImuFactor(self.X(i), self.V(i), self.X(j), self.V(j), self.B(i), self.B(j), pim))
+        self.imu_keys = linked
+
+
 def _optimize(gr: _Graph, max_iterations: int, on_iteration=None) -> tuple[Any, int, list[float]]:
     """Levenberg-Marquardt from ``gr.values``; (values, iterations, error after each iteration)."""
     g = gr.g
@@ -191,13 +223,26 @@ def _solve(rig: Rig, T: np.ndarray, points: dict[int, np.ndarray], obs: np.ndarr
     """One batch solve: (poses, points, offset, iterations, history)."""
     gr = _Graph(rig, opts["loss"], opts["huber_px"], offset_px, estimate_offset)
     ids = np.unique(obs[:, 1].astype(np.int64))
-    gr.add_poses(T, held)
+    imu = opts.get("imu")
+    gr.add_poses(T, held, None if imu is None else imu.gravity_world)
     gr.add_points(ids, np.array([points[int(i)] for i in ids]))
     gr.add_observations(obs)
     gr.add_rotation_priors(priors)
     gr.add_loops(opts.get("loops") or [])
+    if imu is not None:
+        gr.add_imu(imu)
     values, iters, history = _optimize(gr, opts["max_iterations"], on_iteration)
     T_new, pts_new, offset = _read(gr, values, len(T), ids)
+    if imu is not None:
+        # the held pose tilted to agree with gravity: move the whole solution back onto it (a rigid
+        # motion, which changes neither the path's shape nor any residual) so the world stays put
+        A = T[0] @ np.linalg.inv(T_new[0])
+        T_new = np.einsum("ij,njk->nik", A, T_new)
+        pts_new = {i: A[:3, :3] @ x + A[:3, 3] for i, x in pts_new.items()}
+        biases = np.full((len(T), 6), np.nan)
+        for k in gr.imu_keys:
+            biases[k] = values.atConstantBias(gr.B(k)).vector()
+        opts["imu_biases"] = biases
     return T_new, pts_new, offset, iters, history
 
 
@@ -206,21 +251,24 @@ def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarra
                   max_iterations: int = 50, n_fixed: int = 1, rotation_priors: list[RotationPrior] | None = None,
                   outlier_px: float = 3.0, outlier_rounds: int = 1, estimate_disparity_offset: bool = False,
                   disparity_offset_px: float = 0.0, disparity_offset_min_px: float = 0.0,
-                  on_iteration=None, loops: list | None = None) -> BAResult:
+                  on_iteration=None, loops: list | None = None, imu: Any = None) -> BAResult:
     """Refine ``T_world_cam`` (K, 4, 4) and ``points`` {id: XYZ world} on ``observations`` (N, 5|6).
 
     ``huber_px`` is the scale of the robust ``loss`` (pixels).  With ``outlier_rounds > 0`` the
     problem is solved, observations with a residual above ``outlier_px`` are dropped, and solved
     again (that many times).  ``on_iteration(1)`` is called after every LM iteration.  ``loops``:
     verified loop closures (:class:`stereopath.host.reprocess.loops.Loop`, pose indices ``i``,
-    ``j``) added as relative-pose factors.
+    ``j``) added as relative-pose factors.  ``imu``: preintegrated IMU between consecutive poses
+    (:class:`stereopath.host.reprocess.imu_factors.ImuTerms`); the biases come back in
+    ``imu_biases``.
     """
     if loss not in LOSSES:
         raise ConfigError(f"loss = {loss!r}; known: {', '.join(LOSSES)}")
     T, obs = check_problem(T_world_cam, observations, points, min_keyframes_per_point)
     held = np.arange(len(T)) < max(n_fixed, 0)
     priors = list(rotation_priors or [])
-    opts = {"loss": loss, "huber_px": huber_px, "max_iterations": max_iterations, "loops": list(loops or [])}
+    opts = {"loss": loss, "huber_px": huber_px, "max_iterations": max_iterations, "loops": list(loops or []),
+            "imu": imu}
     rms0 = rms_px(*reprojection_residuals(rig, T, points, obs, disparity_offset_px))
     offset, est = float(disparity_offset_px), bool(estimate_disparity_offset) and bool(np.any(obs[:, 2] == 1))
     T, pts, new_offset, iters, history = _solve(rig, T, points, obs, held, priors, opts, offset, est, on_iteration)
@@ -243,7 +291,9 @@ def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarra
     if resolve:  # the offset was dropped and no outlier round solved again without it
         T, pts, _, it2, h2 = _solve(rig, T, pts, obs, held, priors, opts, offset, False, on_iteration)
         iters, history = iters + it2, history + h2
-    return _result(rig, T, pts, obs, offset, rms0, iters, history, outlier_px)
+    res = _result(rig, T, pts, obs, offset, rms0, iters, history, outlier_px)
+    res.imu_biases = opts.get("imu_biases")
+    return res
 
 
 def _result(rig, T, pts, obs, offset, rms0, iters, history, outlier_px) -> BAResult:
