@@ -63,6 +63,19 @@ def _keys(symbol: str, index: np.ndarray) -> list[int]:
     return ((ord(symbol) << 56) + np.asarray(index).astype(np.int64)).tolist()
 
 
+def _pose(g: Any, T: np.ndarray) -> Any:
+    return g.Pose3(g.Rot3.ClosestTo(np.asarray(T[:3, :3], float)), np.asarray(T[:3, 3], float))
+
+
+def _add_loop_factors(g: Any, graph: Any, X: Any, loops: list, k_sigma: float = 3.0) -> None:
+    """Relative-pose constraints of verified loops (Huber at ``k_sigma`` standard deviations)."""
+    nm = g.noiseModel
+    for lp in loops:
+        sig = np.array([lp.sigma_rot_rad] * 3 + [lp.sigma_trans_m] * 3)
+        noise = nm.Robust.Create(nm.mEstimator.Huber.Create(k_sigma), nm.Diagonal.Sigmas(sig))
+        graph.add(g.BetweenFactorPose3(X(lp.i), X(lp.j), _pose(g, lp.T_ci_cj), noise))
+
+
 class _Graph:
     """Builds the factor graph and initial values of one problem."""
 
@@ -88,8 +101,7 @@ class _Graph:
             self.graph.add(g.PriorFactorCal3_S2(self.C(0), self.cal1, g.noiseModel.Diagonal.Sigmas(sig)))
 
     def pose(self, T: np.ndarray) -> Any:
-        g = self.g
-        return g.Pose3(g.Rot3.ClosestTo(np.asarray(T[:3, :3], float)), np.asarray(T[:3, 3], float))
+        return _pose(self.g, T)
 
     def noise(self, weight: float) -> Any:
         """Robust isotropic 2D noise with sigma ``1 / weight`` px (cached by weight)."""
@@ -166,15 +178,8 @@ class _Graph:
             self.graph.add(g.BetweenFactorPose3(self.X(pr.i), self.X(pr.j), rel, g.noiseModel.Diagonal.Sigmas(sig)))
 
 
-    def add_loops(self, loops: list, k_sigma: float = 3.0) -> None:
-        """Relative-pose constraints of verified loops (Huber at ``k_sigma`` standard deviations)."""
-        g = self.g
-        nm = g.noiseModel
-        for lp in loops:
-            sig = np.array([lp.sigma_rot_rad] * 3 + [lp.sigma_trans_m] * 3)
-            noise = nm.Robust.Create(nm.mEstimator.Huber.Create(k_sigma), nm.Diagonal.Sigmas(sig))
-            self.graph.add(g.BetweenFactorPose3(self.X(lp.i), self.X(lp.j), self.pose(lp.T_ci_cj), noise))
-
+    def add_loops(self, loops: list) -> None:
+        _add_loop_factors(self.g, self.graph, self.X, loops)
 
     def add_imu(self, terms: Any) -> None:
         """Velocity and bias unknowns, CombinedImuFactors between keyframes, a prior on each chain's first bias."""
@@ -371,3 +376,29 @@ def refine_poses_fixed_points(rig: Rig, T_world_cam: np.ndarray, points: dict[in
     for a, k in enumerate(idx):
         out[k] = values.atPose3(gr.X(a)).matrix()
     return out, ok
+
+
+def pose_graph(T_world_cam: np.ndarray, loops: list, odometry_sigma_per_m: float = 0.01,
+               odometry_rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4) -> np.ndarray:
+    """Poses (K, 4, 4) re-estimated from their own relative motion and verified ``loops``.
+
+    Consecutive poses are tied by their current relative pose with a standard deviation growing
+    with the distance between them (drift per metre, at least ``min_sigma``: m and rad); each loop
+    adds its measured relative pose (:meth:`_Graph.add_loops`); the first pose is held.  A loop
+    therefore spreads its correction over the path in proportion to the distance travelled."""
+    T = np.asarray(T_world_cam, float)
+    g = import_gtsam()
+    graph, values, X, nm = g.NonlinearFactorGraph(), g.Values(), g.symbol_shorthand.X, g.noiseModel
+    for k, Tk in enumerate(T):
+        values.insert(X(k), _pose(g, Tk))
+    graph.add(g.PriorFactorPose3(X(0), _pose(g, T[0]), nm.Isotropic.Sigma(6, GAUGE_SIGMA)))
+    for k in range(len(T) - 1):
+        rel = np.linalg.inv(T[k]) @ T[k + 1]
+        d = float(np.linalg.norm(rel[:3, 3]))
+        sig = [max(odometry_rot_sigma_per_m * d, min_sigma)] * 3 + [max(odometry_sigma_per_m * d, min_sigma)] * 3
+        graph.add(g.BetweenFactorPose3(X(k), X(k + 1), _pose(g, rel), nm.Diagonal.Sigmas(np.array(sig))))
+    _add_loop_factors(g, graph, X, loops)
+    params = g.LevenbergMarquardtParams()
+    params.setMaxIterations(50)
+    out = g.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    return np.array([out.atPose3(X(k)).matrix() for k in range(len(T))])
