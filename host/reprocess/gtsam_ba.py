@@ -214,7 +214,7 @@ def _points_first(gr: _Graph) -> Any:
 # last such steps move the keyframes by micrometres); a solve that is followed by an outlier
 # round only has to bring the residuals to where the 3 px selection is settled
 RELATIVE_TOL = 1e-4
-RELATIVE_TOL_BEFORE_OUTLIERS = 1e-3
+RELATIVE_TOL_BEFORE_OUTLIERS = 1e-2
 
 
 def _optimize(gr: _Graph, max_iterations: int, on_iteration=None, relative_tol: float = RELATIVE_TOL
