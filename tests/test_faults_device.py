@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import socket
 import subprocess
+from pathlib import Path
 
 import pytest
 
@@ -37,6 +38,32 @@ def test_port_taken_exits_with_config_code_and_leaves_no_folder(tmp_path, which)
         blocker.close()
     assert proc.returncode == 78, err[-2000:]
     assert "Address already in use" in err and "Traceback" not in err
+    sessions = tmp_path / "sessions"
+    assert not sessions.exists() or list(sessions.iterdir()) == []
+
+
+# item 7 (the service side): a bad rig is a configuration error ------------------------------------
+
+def test_device_run_with_a_bad_rig_exits_with_the_config_code(tmp_path):
+    import yaml
+
+    data = yaml.safe_load((Path(__file__).resolve().parents[1] / "firmware_cfg" / "rig_paper.yaml").read_text())
+    data["T_cam1_cam0_m"] = [-v for v in data["T_cam1_cam0_m"]]  # cam1 to the left of cam0
+    rig = tmp_path / "neg.yaml"
+    rig.write_text(yaml.safe_dump(data))
+    tables = sim_tables(tmp_path, frames=5)
+    tables["source"]["rig_file"] = str(rig)
+    cfg = write_toml(tmp_path / "device.toml", tables)
+    proc = device_run(["--config", str(cfg)])
+    try:
+        _, err = proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        _, err = proc.communicate()
+        pytest.fail("device run hung with a bad rig:\n" + err[-2000:])
+    assert proc.returncode == 78, err[-2000:]
+    assert "configuration error: unusable rig calibration (source.rig_file" in err, err[-2000:]
+    assert "to the LEFT of cam0" in err and "Traceback" not in err
     sessions = tmp_path / "sessions"
     assert not sessions.exists() or list(sessions.iterdir()) == []
 

@@ -14,7 +14,7 @@ from typing import Any, Mapping
 
 from stereopath.device.core.config import as_dict
 from stereopath.device.core.frames import median_rate_hz
-from stereopath.device.errors import ConfigError
+from stereopath.device.errors import CalibrationError, ConfigError
 from stereopath.device.service.options import secret_key_path
 from stereopath.device.service.settings import DeviceConfig
 from stereopath.device.service.sinks import NoRecording, NoStreaming, RecordingSink, StreamingSink
@@ -37,9 +37,14 @@ def open_source(cfg: DeviceConfig, source: Any, inject: Mapping[str, Any]) -> An
     """The configured (or injected, unopened) stereo source, opened; it must carry a rig."""
     from stereopath.device.capture.sources import create_source
 
-    if source is None:
-        source = create_source(cfg.source, **inject)
-    source.open()
+    try:
+        if source is None:
+            source = create_source(cfg.source, **inject)
+        source.open()
+    except CalibrationError as exc:  # a bad rig is a configuration problem: 78, not a runtime failure
+        where = f"source.rig_file = {cfg.source.rig_file!r}" if cfg.source.rig_file else \
+            f"the {cfg.source.backend} source's own calibration"
+        raise ConfigError(f"unusable rig calibration ({where}): {exc}") from None
     if source.rig is None:
         source.close()
         raise ConfigError(f"source.rig_file: the {cfg.source.backend} source has no calibration of its own; "
