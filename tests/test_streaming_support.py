@@ -40,10 +40,11 @@ def key_settings(keys: DemoKeys | None) -> KeySettings | None:
                                                  clients_dir=str(keys.clients_dir))
 
 
-def make_device(tmp: Path, keys: DemoKeys | None, session: str, **overrides: Any) -> DeviceStreamer:
+def make_device(tmp: Path, keys: DemoKeys | None, session: str, backlog_roots: Any = (),
+                **overrides: Any) -> DeviceStreamer:
     spool = KeyframeSpool(tmp / f"spool_{session}", fsync=False)
     return DeviceStreamer(device_config(keys, **overrides), spool, session, rig_ref=("testrig", "0123456789abcdef"),
-                          keys=key_settings(keys), status_interval_s=0.2)
+                          keys=key_settings(keys), status_interval_s=0.2, backlog_roots=backlog_roots)
 
 
 def port_of(endpoint: str) -> int:

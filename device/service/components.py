@@ -116,10 +116,13 @@ def open_streaming(cfg: DeviceConfig, session_dir: Path, session_id: str, rig: A
 
     from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
 
-    spool = KeyframeSpool(session_dir / "keyframes", reserve_bytes=int(cfg.recorder.reserve_mb * 1e6))
+    spool = KeyframeSpool(session_dir / "keyframes", fsync=cfg.stream.spool_fsync,
+                          reserve_bytes=int(cfg.recorder.reserve_mb * 1e6))
     keys = dataclasses.replace(cfg.keys, server_secret=str(secret_key_path(cfg, environ)))
+    # earlier sessions' spools: beside this session's folder (its --out parent) and in recorder.dir
+    roots = [session_dir.parent, Path(cfg.recorder.dir)]
     return StreamingSink(DeviceStreamer(cfg.stream, spool, session_id, rig=rig, keys=keys,
-                                        status_interval_s=cfg.service.status_interval_s))
+                                        status_interval_s=cfg.service.status_interval_s, backlog_roots=roots))
 
 
 def open_components(cfg: DeviceConfig, session_dir: Path, session_id: str, *, source: Any = None,

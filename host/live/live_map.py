@@ -5,6 +5,10 @@ take about 0.1 s per keyframe), so receiving never waits on mapping.  Every ``ev
 keyframes the current mesh is written to ``OUT/<session>/model/mesh.ply`` (atomically) and
 shown in rerun when a view is open; at the end the whole model (mesh, cloud, preview,
 map.json) is written for each session.
+
+Each session is mapped with the rig its keyframes were taken with: the device's own (``rig_for``,
+the rig the receiver stored from the device's session message), else the given ``rig`` when its
+hash matches the keyframes'.  A given rig that differs from the device's is named in one warning.
 """
 
 from __future__ import annotations
@@ -13,7 +17,7 @@ import logging
 import queue
 import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from stereopath.device.errors import CalibrationError, StereopathError
 from stereopath.device.core.rig import Rig
@@ -22,16 +26,18 @@ log = logging.getLogger(__name__)
 
 
 class LiveMapper:
-    def __init__(self, rig: Rig, out_dir: str | Path, every: int = 10, preset: str = "object",
-                 on_mesh: Any = None) -> None:
+    def __init__(self, rig: Rig | None, out_dir: str | Path, every: int = 10, preset: str = "object",
+                 on_mesh: Any = None, rig_for: Callable[[str], Rig | None] | None = None) -> None:
         from stereopath.device.wire.protocol import rig_reference
 
         self.rig = rig
+        self.rig_for = rig_for
+        self._session_rigs: dict[str, Rig] = {}
         self.out = Path(out_dir)
         self.every = max(1, int(every))
         self.preset = preset
         self.on_mesh = on_mesh
-        self._ref = rig_reference(rig)
+        self._ref = rig_reference(rig) if rig is not None else None
         self._mappers: dict[str, Any] = {}
         self._q: queue.Queue = queue.Queue()
         self._thread = threading.Thread(target=self._work, name="live-map", daemon=True)
@@ -44,11 +50,36 @@ class LiveMapper:
         if new:
             self._q.put(kf)
 
-    def _mapper(self, session: str):
+    def _rig_of(self, kf: Any) -> Rig:
+        """The rig ``kf`` was taken with: the device's (stored from its session message), else ``rig``."""
+        from stereopath.device.wire.protocol import rig_reference
+
+        rig = self._session_rigs.get(kf.session_id)
+        if rig is None:
+            device = self.rig_for(kf.session_id) if self.rig_for is not None else None
+            if device is not None and rig_reference(device)[1] == kf.rig_hash:
+                if self._ref is not None and self._ref[1] != kf.rig_hash:
+                    log.warning("live map: --rig %s (%s) is not the rig session %s was taken with; mapping with "
+                                "the device's rig %s (%s)", self._ref[0], self._ref[1], kf.session_id,
+                                kf.rig_name, kf.rig_hash)
+                rig = device
+            elif self.rig is not None and self._ref is not None and self._ref[1] == kf.rig_hash:
+                rig = self.rig
+            else:
+                given = f"; --rig is {self._ref[0]} ({self._ref[1]})" if self._ref is not None else ""
+                raise CalibrationError(f"keyframe {kf.seq} of session {kf.session_id} was taken with rig "
+                                       f"{kf.rig_name} ({kf.rig_hash}) and the device sent no calibration for it{given}")
+            self._session_rigs[kf.session_id] = rig
+        elif rig_reference(rig)[1] != kf.rig_hash:
+            raise CalibrationError(f"keyframe {kf.seq} of session {kf.session_id} names rig {kf.rig_name} "
+                                   f"({kf.rig_hash}), not the session's")
+        return rig
+
+    def _mapper(self, session: str, rig: Rig):
         from stereopath.host.mapping.mapper import DenseMapper, map_preset
 
         if session not in self._mappers:
-            self._mappers[session] = DenseMapper(self.rig, map_preset(self.preset), source=f"live:{session}")
+            self._mappers[session] = DenseMapper(rig, map_preset(self.preset), source=f"live:{session}")
         return self._mappers[session]
 
     def _work(self) -> None:
@@ -60,10 +91,7 @@ class LiveMapper:
             if kf is None:
                 return
             try:
-                if (kf.rig_name, kf.rig_hash) != self._ref:
-                    raise CalibrationError(f"keyframe {kf.seq} of session {kf.session_id} was taken with rig "
-                                           f"{kf.rig_name} ({kf.rig_hash}); --rig is {self._ref[0]} ({self._ref[1]})")
-                m = self._mapper(kf.session_id)
+                m = self._mapper(kf.session_id, self._rig_of(kf))
                 m.add(decode_image(kf.left), decode_image(kf.right), kf.T_world_cam, kf.seq)
                 self.fused += 1
             except StereopathError as exc:
