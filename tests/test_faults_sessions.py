@@ -261,3 +261,28 @@ def test_kill_9_device_then_restart_delivers_the_unacknowledged_keyframes(tmp_pa
     states = {s.session_id: s for s in session_states(out)}
     assert states[first.name].state == "complete" and states[first.name].stored == len(killed)
     assert len(list(sessions.iterdir())) == 2
+
+
+def test_host_sessions_lists_incomplete_sessions(tmp_path, capsys):
+    import json
+
+    from stereopath.host.cli import main
+
+    out = tmp_path / "host"
+    for sid, stored, on_device in (("sessDone", 3, 3), ("sessCut", 2, 5), ("sessOld", 2, None)):
+        d = out / sid / "keyframes"
+        d.mkdir(parents=True)
+        for seq in range(stored):
+            (d / f"kf_{seq:08d}.msgpack").write_bytes(b"x")
+        if on_device is not None:
+            (out / sid / "session.json").write_text(json.dumps({"session_id": sid, "keyframes_on_device": on_device}))
+    (out / "sessDone" / "rig.yaml").write_text("name: x\n")
+    assert main(["host", "sessions", str(out)]) == 1
+    text = capsys.readouterr().out
+    lines = {ln.split()[0]: ln.split() for ln in text.splitlines()[1:]}
+    assert lines["sessCut"][1:5] == ["incomplete", "2", "5", "3"]
+    assert lines["sessDone"][1:5] == ["complete", "3", "3", "0"] and lines["sessDone"][5] == "rig.yaml"
+    assert lines["sessOld"][1:5] == ["unknown", "2", "?", "0"]
+    assert main(["host", "sessions", str(out), "--incomplete"]) == 1
+    assert [ln.split()[0] for ln in capsys.readouterr().out.splitlines()[1:]] == ["sessCut"]
+    assert main(["host", "sessions", str(tmp_path / "nope")]) == 2
