@@ -376,32 +376,95 @@ def _rig_cfg(tmp: Path, rig: Path) -> Path:
 
 
 def sc_killed_device_spool(tmp: Path, mount: bool) -> dict:
-    """Device killed with keyframes no host acknowledged; a new session starts; a host connects."""
-    dev = make_device(tmp, None, "sessOld")
-    for i in range(6):
-        _offer(dev, i)
-    dev.wait_spooled(6, 10)
-    dev.close(timeout_s=1)  # stands in for kill -9: nothing was delivered
-    new = make_device(tmp, None, "sessNew")
+    """`device run` killed (-9) mid-session before any host acknowledged its keyframes; a new run
+    (waiting for a host) and a host: the earlier session's keyframes reach the host, the device deletes them."""
+    from stereopath.host.live.receiver import Receiver, ReceiverConfig
+    from stereopath.host.live.receiver_sessions import session_states
+    from tests.test_service_support import device_run, sim_tables, write_toml
+
+    ports = _free_ports(2)
+    stream = {"insecure": True, "pose_endpoint": f"tcp://127.0.0.1:{ports[0]}",
+              "keyframe_endpoint": f"tcp://127.0.0.1:{ports[1]}", "spool_fsync": False}
+
+    def run(frames: int, *args: str) -> subprocess.Popen:
+        cfg = write_toml(tmp / "device.toml", sim_tables(tmp, frames=frames, rate_hz=20.0, stream=stream))
+        return device_run(["--config", str(cfg), *args])
+    sessions = tmp / "sessions"
+    first = run(400)
+    try:
+        wait_for(lambda: sessions.is_dir() and any(len(list(d.glob("keyframes/*.kf"))) >= 8
+                                                   for d in sessions.iterdir()), 60, step_s=0.1)
+        os.kill(first.pid, 9)
+        first.communicate(timeout=20)
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.communicate()
+    (old,) = list(sessions.iterdir())
+    killed = len(list((old / "keyframes").glob("*.kf")))
+    second = run(40, "--wait-for-host", "60")
     out = tmp / "host"
-    rx = _receiver(new, out)
-    for i in range(3):
-        _offer(new, i)
-    wait_for(lambda: len(stored_seqs(out, "sessNew")) == 3, 20, between=lambda: rx.poll(0.02))
-    for _ in range(50):
-        rx.poll(0.02)
-    rx.close()
-    new.close()
-    old = len(stored_seqs(out, "sessOld"))
-    return _row("6 killed device's spool", kf_sent=9, kf_stored=old + len(stored_seqs(out, "sessNew")),
-                kf_lost=f"{6 - old} (device only)", rc="n/a",
-                message="NOT FIXED: the earlier session's spool is not offered again; it stays on the device disk")
+    rx = Receiver(ReceiverConfig(stream["pose_endpoint"], stream["keyframe_endpoint"], insecure=True, fsync=False,
+                                 stall_timeout_s=1.0, reconnect_ivl_ms=50), out)
+    try:
+        wait_for(lambda: second.poll() is not None, TIME_LIMIT_S - 10, between=lambda: rx.poll(0.05))
+        for _ in range(20):
+            rx.poll(0.02)
+    finally:
+        rx.close()
+        if second.poll() is None:
+            second.kill()
+    _, err = second.communicate()
+    stored = len(stored_seqs(out, old.name))
+    left = len(list((old / "keyframes").glob("*.kf")))
+    states = {st.session_id: st.state for st in session_states(out)}
+    offer = next((ln for ln in err.splitlines() if "no host acknowledged" in ln), "")
+    return _row("6 killed device's spool", kf_sent=killed, kf_stored=stored, kf_lost=killed - stored,
+                rc=f"kill -9 / restart {second.returncode}",
+                message=f"{left} left on the device, earlier session {states.get(old.name)} on the host "
+                        f"(rig.yaml {(out / old.name / 'rig.yaml').is_file()}); device: {offer.split(': ', 1)[-1][:110]}")
+
+
+def sc_live_map_shipped_rig(tmp: Path, mount: bool) -> dict:
+    """`host live --map --rig firmware_cfg/rig_paper.yaml` against a device on another rig (the simulator's)."""
+    from stereopath.device.formats.source import open_source
+    from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
+    from tests.test_streaming_support import device_config, port_of
+
+    seq = open_source("sim:0", frames=60)
+    dev = DeviceStreamer(device_config(None), KeyframeSpool(tmp / "spool", fsync=False), "sessM", rig=seq.rig,
+                         status_interval_s=0.2)
+    n = 6
+    for i in range(30, 30 + 4 * n, 4):
+        f = seq.render(i)
+        _offer_frame(dev, i, f)
+    dev.wait_spooled(n, 20)
+    out = tmp / "host"
+    rc, msg = _cli(["host", "live", "--device", f"127.0.0.1:{port_of(dev.pose_endpoint)}", "--keyframe-port",
+                    str(port_of(dev.keyframe_endpoint)), "--insecure", "--out", str(out), "--no-fsync", "--map",
+                    "--map-every", "2", "--rig", str(ROOT / "firmware_cfg" / "rig_paper.yaml"), "--duration", "5"])
+    dev.close()
+    mesh = out / "sessM" / "model" / "mesh.ply"
+    rc2, msg2 = _cli(["host", "map", str(out / "sessM"), "--out", str(tmp / "map")])
+    return _row("8 live map, shipped rig", kf_sent=n, kf_stored=len(stored_seqs(out, "sessM")),
+                kf_lost=n - len(stored_seqs(out, "sessM")), rc=f"{rc} / host map {rc2}",
+                message=f"mesh {mesh.stat().st_size if mesh.is_file() else 0} bytes, rig.yaml "
+                        f"{(out / 'sessM' / 'rig.yaml').is_file()}; {msg[:120]} | host map: {msg2[:80]}")
+
+
+def _offer_frame(dev, i: int, f) -> None:
+    t_end = time.monotonic() + 10
+    while not dev.offer_keyframe(i, f.t_ns, f.meta["T_world_cam0"], f.left, f.right):
+        if time.monotonic() > t_end:
+            raise RuntimeError(f"the device refused keyframe {i} for 10 s")
+        time.sleep(0.01)
 
 
 SCENARIOS = {
     "torn_index": sc_torn_index, "host_disk_full": sc_host_disk_full, "device_disk_full": sc_device_disk_full,
     "two_hosts": sc_two_hosts, "port_taken": sc_port_taken, "bad_groundtruth": sc_bad_groundtruth,
     "bad_frame": sc_bad_frame, "bad_rigs": sc_bad_rigs, "killed_device_spool": sc_killed_device_spool,
+    "live_map_shipped_rig": sc_live_map_shipped_rig,
 }
 
 
