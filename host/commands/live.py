@@ -106,6 +106,11 @@ def run(args: argparse.Namespace) -> int:
             rerun_view.close()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+    return _exit_status(receiver, mapper, models)
+
+
+def _exit_status(receiver, mapper, models) -> int:
+    """Log the totals; 1 if keyframes could not be stored or mapped, 2 if the device let nothing through."""
     st = receiver.stats
     log.info("received %d poses, %d keyframes (%d duplicates), %d pose seq gaps, %d rejected; sessions: %s",
              st.received["pose"], st.received["keyframe"], st.duplicates, st.pose_seq_gaps, st.rejected,
