@@ -358,6 +358,7 @@ class Receiver(LinkControl):
         if self.storage_error is not None:
             log.info("storing keyframes again (after: %s)", self.storage_error)
             self.storage_error = None
+        self.sessions.on_count(kf.session_id, kf.seq + 1)  # the device holds at least this many
         now = time.monotonic()
         with self.lock:
             self.stats.received["keyframe"] += 1
