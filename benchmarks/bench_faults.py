@@ -31,18 +31,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault("STEREOPATH_DATA", str(ROOT.parent / "shared" / "data"))
 
-from tests.test_streaming_support import make_device, small_images, stored_seqs, wait_for  # noqa: E402
+from tests.test_streaming_support import free_ports, loopback_stream, make_device, small_images, stored_seqs, \
+    wait_for  # noqa: E402
 
 TIME_LIMIT_S = 90.0  # per scenario: a scenario that takes longer counts as a hang
-
-
-def _free_ports(n: int) -> list[int]:
-    out = []
-    for _ in range(n):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            out.append(s.getsockname()[1])
-    return out
 
 
 def _cli(argv: list[str], timeout: float = TIME_LIMIT_S) -> tuple[int | str, str]:
@@ -93,9 +85,13 @@ def _small_fs(size: str):
 
 
 def _receiver(dev, out: Path, **kw):
+    return _receiver_at(dev.pose_endpoint, dev.keyframe_endpoint, out, **kw)
+
+
+def _receiver_at(pose_endpoint: str, keyframe_endpoint: str, out: Path, **kw):
     from stereopath.host.live.receiver import Receiver, ReceiverConfig
 
-    cfg = ReceiverConfig(dev.pose_endpoint, dev.keyframe_endpoint, insecure=True, fsync=False,
+    cfg = ReceiverConfig(pose_endpoint, keyframe_endpoint, insecure=True, fsync=False,
                          heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
                          reconnect_ivl_max_ms=400, stall_timeout_s=1.0, **kw)
     return Receiver(cfg, out)
@@ -229,9 +225,7 @@ def sc_device_disk_full(tmp: Path, mount: bool) -> dict:
     from stereopath.host.live.receiver import Receiver, ReceiverConfig
     from tests.test_service_support import FakeEstimator, sim_tables, write_toml
 
-    ports = _free_ports(2)
-    stream = {"insecure": True, "pose_endpoint": f"tcp://127.0.0.1:{ports[0]}",
-              "keyframe_endpoint": f"tcp://127.0.0.1:{ports[1]}", "drain_s": 5.0}
+    stream = loopback_stream(drain_s=5.0)
     if not mount:
         return _row("2 device disk full", message="skipped: needs root for a size-limited tmpfs (the test injects it)")
     with _small_fs("6m") as (dev_root, _grow):
@@ -304,7 +298,7 @@ def sc_port_taken(tmp: Path, mount: bool) -> dict:
     blocker = socket.socket()
     blocker.bind(("127.0.0.1", 0))
     blocker.listen()
-    free = _free_ports(1)[0]
+    free = free_ports(1)[0]
     stream = {"insecure": True, "pose_endpoint": f"tcp://127.0.0.1:{blocker.getsockname()[1]}",
               "keyframe_endpoint": f"tcp://127.0.0.1:{free}"}
     cfg = write_toml(tmp / "device.toml", sim_tables(tmp, frames=20, stream=stream))
@@ -378,13 +372,10 @@ def _rig_cfg(tmp: Path, rig: Path) -> Path:
 def sc_killed_device_spool(tmp: Path, mount: bool) -> dict:
     """`device run` killed (-9) mid-session before any host acknowledged its keyframes; a new run
     (waiting for a host) and a host: the earlier session's keyframes reach the host, the device deletes them."""
-    from stereopath.host.live.receiver import Receiver, ReceiverConfig
     from stereopath.host.live.receiver_sessions import session_states
     from tests.test_service_support import device_run, sim_tables, write_toml
 
-    ports = _free_ports(2)
-    stream = {"insecure": True, "pose_endpoint": f"tcp://127.0.0.1:{ports[0]}",
-              "keyframe_endpoint": f"tcp://127.0.0.1:{ports[1]}", "spool_fsync": False}
+    stream = loopback_stream(spool_fsync=False)
 
     def run(frames: int, *args: str) -> subprocess.Popen:
         cfg = write_toml(tmp / "device.toml", sim_tables(tmp, frames=frames, rate_hz=20.0, stream=stream))
@@ -404,8 +395,7 @@ def sc_killed_device_spool(tmp: Path, mount: bool) -> dict:
     killed = len(list((old / "keyframes").glob("*.kf")))
     second = run(40, "--wait-for-host", "60")
     out = tmp / "host"
-    rx = Receiver(ReceiverConfig(stream["pose_endpoint"], stream["keyframe_endpoint"], insecure=True, fsync=False,
-                                 stall_timeout_s=1.0, reconnect_ivl_ms=50), out)
+    rx = _receiver_at(stream["pose_endpoint"], stream["keyframe_endpoint"], out)
     try:
         wait_for(lambda: second.poll() is not None, TIME_LIMIT_S - 10, between=lambda: rx.poll(0.05))
         for _ in range(20):

@@ -20,12 +20,24 @@ REPO = Path(__file__).resolve().parents[1]
 PAPER_YAML = REPO / "firmware_cfg" / "rig_paper.yaml"
 
 
-def _receiver(dev, out: Path):
+def _receiver(pose_endpoint: str, keyframe_endpoint: str, out: Path, **kw):
     from stereopath.host.live.receiver import Receiver, ReceiverConfig
 
-    return Receiver(ReceiverConfig(dev.pose_endpoint, dev.keyframe_endpoint, insecure=True, fsync=False,
+    return Receiver(ReceiverConfig(pose_endpoint, keyframe_endpoint, insecure=True, fsync=False,
                                    heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
-                                   reconnect_ivl_max_ms=400, stall_timeout_s=1.0), out)
+                                   reconnect_ivl_max_ms=400, stall_timeout_s=1.0), out, **kw)
+
+
+def _deliver(dev, out: Path, session: str, n: int) -> None:
+    """Offer ``n`` keyframes to a connected host and wait until it stored them and the device has the acks."""
+    rx = _receiver(dev.pose_endpoint, dev.keyframe_endpoint, out)
+    try:
+        for i in range(n):
+            assert dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
+        assert wait_for(lambda: len(stored_seqs(out, session)) == n, 20, between=lambda: rx.poll(0.02))
+        assert wait_for(lambda: dev.stats()["keyframes_acked"] == n, 10, between=lambda: rx.poll(0.02))
+    finally:
+        rx.close()
 
 
 def _sim_keyframes(dev, n: int = 6, step: int = 4):
@@ -70,13 +82,9 @@ def test_host_stores_the_device_rig_and_host_map_uses_it(tmp_path):
     dev = DeviceStreamer(device_config(None), KeyframeSpool(tmp_path / "spool", fsync=False), "sessR", rig=rig,
                          status_interval_s=0.2)
     out = tmp_path / "host"
-    rx = _receiver(dev, out)
     try:
-        for i in range(3):
-            assert dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
-        assert wait_for(lambda: len(stored_seqs(out, "sessR")) == 3, 20, between=lambda: rx.poll(0.02))
+        _deliver(dev, out, "sessR", 3)
     finally:
-        rx.close()
         dev.close()
     stored = out / "sessR" / "rig.yaml"
     assert stored.is_file() and not list((out / "sessR").glob("*.tmp"))
@@ -153,11 +161,8 @@ def test_restarted_device_offers_earlier_unacknowledged_keyframes_after_the_live
     assert new.stats()["backlog_keyframes"] == 6
     out = tmp_path / "host"
     order: list[str] = []
-    from stereopath.host.live.receiver import Receiver, ReceiverConfig
-
-    rx = Receiver(ReceiverConfig(new.pose_endpoint, new.keyframe_endpoint, insecure=True, fsync=False,
-                                 stall_timeout_s=1.0, reconnect_ivl_ms=50),
-                  out, on_keyframe=lambda kf, is_new: order.append(kf.session_id))
+    rx = _receiver(new.pose_endpoint, new.keyframe_endpoint, out,
+                   on_keyframe=lambda kf, is_new: order.append(kf.session_id))
     try:
         for i in range(3):
             assert new.offer_keyframe(i, i, np.eye(4), *small_images(10 + i))
@@ -183,15 +188,7 @@ def test_restarted_device_offers_earlier_unacknowledged_keyframes_after_the_live
 
 def test_acknowledged_keyframes_are_not_offered_again(tmp_path):
     dev = make_device(tmp_path, None, "sessA")
-    out = tmp_path / "host"
-    rx = _receiver(dev, out)
-    try:
-        for i in range(4):
-            assert dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
-        assert wait_for(lambda: len(stored_seqs(out, "sessA")) == 4, 20, between=lambda: rx.poll(0.02))
-        assert wait_for(lambda: dev.stats()["keyframes_acked"] == 4, 10, between=lambda: rx.poll(0.02))
-    finally:
-        rx.close()
+    _deliver(dev, tmp_path / "host", "sessA", 4)
     for i in range(4, 6):  # spooled after the host left: never acknowledged
         assert dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
     assert dev.wait_spooled(6, 10)
@@ -215,17 +212,9 @@ def _device_run(tmp: Path, stream: dict, frames: int, *args: str) -> tuple[subpr
 def test_kill_9_device_then_restart_delivers_the_unacknowledged_keyframes(tmp_path):
     """End to end: `device run` killed mid-session with keyframes no host had; restarted; `host live`
     receives the earlier session's keyframes under its own id and the device deletes them."""
-    import socket
+    from tests.test_streaming_support import loopback_stream
 
-    from stereopath.host.live.receiver import Receiver, ReceiverConfig
-
-    ports = []
-    for _ in range(2):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            ports.append(s.getsockname()[1])
-    stream = {"insecure": True, "pose_endpoint": f"tcp://127.0.0.1:{ports[0]}",
-              "keyframe_endpoint": f"tcp://127.0.0.1:{ports[1]}", "spool_fsync": False}
+    stream = loopback_stream(spool_fsync=False)
     proc, sessions = _device_run(tmp_path, stream, 400)
     try:
         assert wait_for(lambda: sessions.is_dir() and any(len(list(d.glob("keyframes/*.kf"))) >= 4
@@ -241,8 +230,7 @@ def test_kill_9_device_then_restart_delivers_the_unacknowledged_keyframes(tmp_pa
     assert len(killed) >= 4
     proc2, _ = _device_run(tmp_path, stream, 40, "--wait-for-host", "60")
     out = tmp_path / "host"
-    rx = Receiver(ReceiverConfig(stream["pose_endpoint"], stream["keyframe_endpoint"], insecure=True, fsync=False,
-                                 stall_timeout_s=1.0, reconnect_ivl_ms=50), out)
+    rx = _receiver(stream["pose_endpoint"], stream["keyframe_endpoint"], out)
     try:
         assert wait_for(lambda: len(stored_seqs(out, first.name)) == len(killed), 60,
                         between=lambda: rx.poll(0.05)), f"host holds {stored_seqs(out, first.name)} of {killed}"

@@ -47,6 +47,25 @@ def make_device(tmp: Path, keys: DemoKeys | None, session: str, backlog_roots: A
                           keys=key_settings(keys), status_interval_s=0.2, backlog_roots=backlog_roots)
 
 
+def free_ports(n: int) -> list[int]:
+    """``n`` loopback TCP ports free right now (for configurations that name their ports)."""
+    import socket
+
+    out = []
+    for _ in range(n):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            out.append(s.getsockname()[1])
+    return out
+
+
+def loopback_stream(**extra: Any) -> dict[str, Any]:
+    """A ``[stream]`` table on two free loopback ports, without CURVE."""
+    pose, keyframe = free_ports(2)
+    return {"insecure": True, "pose_endpoint": f"tcp://127.0.0.1:{pose}",
+            "keyframe_endpoint": f"tcp://127.0.0.1:{keyframe}", **extra}
+
+
 def port_of(endpoint: str) -> int:
     return int(endpoint.rsplit(":", 1)[1])
 

@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 
 MARKER_NAME = "session.msgpack"
 MAX_SCAN_ENTRIES = 10_000   # entries looked at per spool root
-MAX_SESSIONS = 256          # earlier sessions offered in one run (the oldest first)
+MAX_SESSIONS = 32           # earlier sessions offered in one run (the oldest first; a host admits 64 new ids a run)
 _KF_RE = re.compile(r"^(\d{8,10})\.kf$")
 
 
@@ -69,13 +69,9 @@ def _load(d: Path) -> BacklogSession | None:
     """The backlog of the spool ``d`` (None: nothing unacknowledged, or not a usable spool)."""
     try:
         info = decode_session((d / MARKER_NAME).read_bytes())
-    except (OSError, ProtocolError) as exc:
-        log.warning("earlier keyframe spool %s left alone: its %s is unreadable (%s)", d, MARKER_NAME, exc)
-        return None
-    try:
         seqs = _spool_seqs(d)
-    except OSError as exc:
-        log.warning("earlier keyframe spool %s left alone: %s", d, exc)
+    except (OSError, ProtocolError) as exc:
+        log.warning("earlier keyframe spool %s left alone: %s unreadable (%s)", d, MARKER_NAME, exc)
         return None
     acked = read_acked(d)
     pending = [s for s in seqs if s > acked]

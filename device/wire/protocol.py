@@ -148,16 +148,21 @@ def encode_keyframe(msg: Keyframe) -> bytes:
                   "l": pack_image(msg.left), "r": pack_image(msg.right)})
 
 
-def _decode_keyframe(obj: dict[str, Any]) -> Keyframe:
-    exact_keys(obj, _KEYFRAME_KEYS, "keyframe")
+def _rig_ref_field(obj: dict[str, Any]) -> tuple[str, str]:
+    """The ``rig`` field of a keyframe or session message: ``{"name": ..., "hash": ...}``."""
     rig = obj["rig"]
     if not isinstance(rig, dict):
         raise DecodeError("field", "rig must be a map")
     exact_keys(rig, ("name", "hash"), "rig")
+    return field_str(rig, "name", RIG_NAME_RE), field_str(rig, "hash", RIG_HASH_RE)
+
+
+def _decode_keyframe(obj: dict[str, Any]) -> Keyframe:
+    exact_keys(obj, _KEYFRAME_KEYS, "keyframe")
+    rig_name, rig_hash = _rig_ref_field(obj)
     return Keyframe(check_session_id(obj["sid"]), field_int(obj, "seq", 0, U32), field_int(obj, "fseq", 0, U32),
                     field_int(obj, "t", 0, I63), field_vec(obj, "p", 3, MAX_POSITION_M), field_quat(obj, "q"),  # type: ignore[arg-type]
-                    decode_image_field(obj["l"], "l"), decode_image_field(obj["r"], "r"),
-                    field_str(rig, "name", RIG_NAME_RE), field_str(rig, "hash", RIG_HASH_RE))
+                    decode_image_field(obj["l"], "l"), decode_image_field(obj["r"], "r"), rig_name, rig_hash)
 
 
 def decode_keyframe(data: bytes, limits: Limits = KEYFRAME_LIMITS) -> Keyframe:
@@ -264,17 +269,13 @@ def rig_of(msg: SessionInfo) -> Any:
 
 def _decode_session(obj: dict[str, Any]) -> SessionInfo:
     exact_keys(obj, _SESSION_KEYS, "session")
-    rig = obj["rig"]
-    if not isinstance(rig, dict):
-        raise DecodeError("field", "rig must be a map")
-    exact_keys(rig, ("name", "hash"), "rig")
+    rig_name, rig_hash = _rig_ref_field(obj)
     cal, live = obj["cal"], obj["live"]
     if cal is not None and not isinstance(cal, dict):
         raise DecodeError("field", "cal must be a map or nil")
     if not isinstance(live, bool):
         raise DecodeError("field", f"live={live!r} must be a boolean")
-    msg = SessionInfo(check_session_id(obj["sid"]), field_str(rig, "name", RIG_NAME_RE),
-                      field_str(rig, "hash", RIG_HASH_RE), cal, field_int(obj, "kfs", 0, U32), live)
+    msg = SessionInfo(check_session_id(obj["sid"]), rig_name, rig_hash, cal, field_int(obj, "kfs", 0, U32), live)
     rig_of(msg)  # the calibration must be a valid rig with the declared hash
     return msg
 
