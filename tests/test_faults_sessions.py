@@ -274,3 +274,38 @@ def test_host_sessions_lists_incomplete_sessions(tmp_path, capsys):
     assert main(["host", "sessions", str(out), "--incomplete"]) == 1
     assert [ln.split()[0] for ln in capsys.readouterr().out.splitlines()[1:]] == ["sessCut"]
     assert main(["host", "sessions", str(tmp_path / "nope")]) == 2
+
+
+def test_earlier_session_keyframes_wait_for_host_space(tmp_path, monkeypatch):
+    """Host disk full while an earlier session's keyframes arrive: none acknowledged (so none deleted on
+    the device), all delivered once there is space, in the same host process."""
+    import errno
+
+    from stereopath.host.live import store as store_mod
+
+    old = make_device(tmp_path, None, "sessOld")
+    for i in range(4):
+        assert old.offer_keyframe(i, i, np.eye(4), *small_images(i))
+    assert old.wait_spooled(4, 10)
+    old.close(timeout_s=1)
+    full = {"on": True}
+    real = store_mod.write_atomic
+
+    def write(path, *a, **k):
+        if full["on"]:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real(path, *a, **k)
+    monkeypatch.setattr(store_mod, "write_atomic", write)
+    new = make_device(tmp_path, None, "sessNew", backlog_roots=[tmp_path])
+    out = tmp_path / "host"
+    rx = _receiver(new.pose_endpoint, new.keyframe_endpoint, out)
+    try:
+        assert wait_for(lambda: rx.stats.link["store_failures"] >= 2, 20, between=lambda: rx.poll(0.02))
+        assert len(list((tmp_path / "spool_sessOld").glob("*.kf"))) == 4  # nothing acknowledged, nothing deleted
+        full["on"] = False
+        assert wait_for(lambda: len(stored_seqs(out, "sessOld")) == 4, 30, between=lambda: rx.poll(0.02))
+        assert wait_for(lambda: not list((tmp_path / "spool_sessOld").glob("*.kf")), 10,
+                        between=lambda: rx.poll(0.02))
+    finally:
+        rx.close()
+        new.close()

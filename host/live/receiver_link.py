@@ -40,6 +40,7 @@ class LinkControl:
     _kf_rate: Any
     _pose_window: Any
     _storage_failed: Callable[[str, OSError], None]
+    storage_error: str | None
 
     def _handle_monitor(self) -> None:
         from zmq.utils.monitor import recv_monitor_message
@@ -117,6 +118,9 @@ class LinkControl:
                      st.keyframes_spooled, have)
             if st.session_id != self.store.last_session:
                 self.store.set_last_session(st.session_id)
+            self._send_hello()
+        elif self.storage_error is not None:  # e.g. an earlier session's keyframe not stored: resent after a hello
+            self.stats.link["rehellos_after_stall"] += 1
             self._send_hello()
         self._last_progress = now
 
