@@ -37,15 +37,17 @@ from tests.test_streaming_support import free_ports, loopback_stream, make_devic
 TIME_LIMIT_S = 90.0  # per scenario: a scenario that takes longer counts as a hang
 
 
-def _cli(argv: list[str], timeout: float = TIME_LIMIT_S) -> tuple[int | str, str]:
-    """``python -m stereopath.host ARGV``: (exit code or 'HANG', the last error/warning line)."""
+def _cli(argv: list[str], timeout: float = TIME_LIMIT_S, pick: str = "") -> tuple[int | str, str]:
+    """``python -m stereopath.host ARGV``: (exit code or 'HANG', the last error/warning line, or the
+    last line holding ``pick``)."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     try:
         p = subprocess.run([sys.executable, "-m", "stereopath.host", *argv], cwd=ROOT, env=env,
                            capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
         return "HANG", ""
-    return p.returncode, _user_line(p.stderr + p.stdout)
+    picked = [ln for ln in (p.stderr + p.stdout).splitlines() if pick and pick in ln]
+    return p.returncode, picked[-1][:400] if picked else _user_line(p.stderr + p.stdout)
 
 
 def _user_line(text: str) -> str:
@@ -347,7 +349,8 @@ def sc_bad_rigs(tmp: Path, mount: bool) -> dict:
     (tmp / "neg.yaml").write_text(yaml.safe_dump(data))
     d = _session(tmp)
     rc1, m1 = _cli(["device", "run", "--source", f"replay:session:{d}", "--insecure", "--no-stream", "--frames", "3",
-                    "--status-file", "", "--out", str(tmp / "r"), "--config", str(_rig_cfg(tmp, tmp / "neg.yaml"))])
+                    "--status-file", "", "--out", str(tmp / "r"), "--config", str(_rig_cfg(tmp, tmp / "neg.yaml"))],
+                   pick="configuration error")
     m = d / "mav0"
     (m / "cam0").rename(m / "x")
     (m / "cam1").rename(m / "cam0")
@@ -359,7 +362,8 @@ def sc_bad_rigs(tmp: Path, mount: bool) -> dict:
     write_tum(tmp / "still.tum", Trajectory(gt.t_ns, np.repeat(np.eye(4)[None], len(gt), 0)))
     rc3, m3 = _cli(["eval", "--gt", str(d / "groundtruth.tum"), "--est", str(tmp / "still.tum")])
     return _row("7 bad rig / swapped / still", rc=f"{rc1} / {rc2} / {rc3}",
-                message=f"neg. baseline: {m1[-70:]} | swapped: {m2[-60:]} | still: {m3[-60:]}")
+                message=f"neg. baseline: {m1[m1.find('configuration error'):][:50]} ... "
+                        f"{m1[m1.find('cam1 sits'):][:45]} | swapped: {m2[-60:]} | still: {m3[-60:]}")
 
 
 def _rig_cfg(tmp: Path, rig: Path) -> Path:
@@ -432,14 +436,16 @@ def sc_live_map_shipped_rig(tmp: Path, mount: bool) -> dict:
     out = tmp / "host"
     rc, msg = _cli(["host", "live", "--device", f"127.0.0.1:{port_of(dev.pose_endpoint)}", "--keyframe-port",
                     str(port_of(dev.keyframe_endpoint)), "--insecure", "--out", str(out), "--no-fsync", "--map",
-                    "--map-every", "2", "--rig", str(ROOT / "firmware_cfg" / "rig_paper.yaml"), "--duration", "5"])
+                    "--map-every", "2", "--rig", str(ROOT / "firmware_cfg" / "rig_paper.yaml"), "--duration", "5"],
+                   pick="is not the rig")
     dev.close()
     mesh = out / "sessM" / "model" / "mesh.ply"
     rc2, msg2 = _cli(["host", "map", str(out / "sessM"), "--out", str(tmp / "map")])
     return _row("8 live map, shipped rig", kf_sent=n, kf_stored=len(stored_seqs(out, "sessM")),
                 kf_lost=n - len(stored_seqs(out, "sessM")), rc=f"{rc} / host map {rc2}",
                 message=f"mesh {mesh.stat().st_size if mesh.is_file() else 0} bytes, rig.yaml "
-                        f"{(out / 'sessM' / 'rig.yaml').is_file()}; {msg[:120]} | host map: {msg2[:80]}")
+                        f"{(out / 'sessM' / 'rig.yaml').is_file()}; {msg.split(': ', 1)[-1][:150]} | host map "
+                        f"(no --rig): {msg2[:70]}")
 
 
 def _offer_frame(dev, i: int, f) -> None:
