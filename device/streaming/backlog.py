@@ -116,7 +116,10 @@ def find_backlog(roots: Iterable[str | Path], exclude: str | Path) -> list[Backl
             seen.add(real)
             b = _load(cand)
             if b is not None:
-                found.append(((cand / MARKER_NAME).stat().st_mtime_ns, b.session_id, b))
+                try:
+                    found.append(((cand / MARKER_NAME).stat().st_mtime_ns, b.session_id, b))
+                except OSError:
+                    continue  # removed while scanned
     found.sort(key=lambda t: (t[0], t[1]))
     if len(found) > MAX_SESSIONS:
         log.warning("%d earlier sessions hold undelivered keyframes; offering the oldest %d in this run",
@@ -179,7 +182,11 @@ class Backlog:
                 return False
             b.delivered += 1
             done = not b.pending
-        (b.dir / f"{int(seq):08d}{SUFFIX}").unlink(missing_ok=True)
+        try:
+            (b.dir / f"{int(seq):08d}{SUFFIX}").unlink(missing_ok=True)
+        except OSError as exc:  # e.g. a read-only or foreign spool: the host has it, a later run offers it again
+            log.warning("earlier session %s: keyframe %d is on a host but cannot be deleted here: %s",
+                        session_id, seq, exc)
         if done:
             try:
                 save_acked(b.dir, b.total - 1)
