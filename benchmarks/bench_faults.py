@@ -12,7 +12,6 @@ size=...``); otherwise an injected ``ENOSPC`` at the write helper.
 from __future__ import annotations
 
 import argparse
-import errno
 import json
 import os
 import shutil
@@ -31,8 +30,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault("STEREOPATH_DATA", str(ROOT.parent / "shared" / "data"))
 
-from tests.test_streaming_support import free_ports, loopback_stream, make_device, small_images, stored_seqs, \
-    wait_for  # noqa: E402
+from tests.test_streaming_support import free_ports, kill_9_once_spooled, loopback_stream, make_device, small_images, stored_seqs, \
+    wait_for, write_or_enospc  # noqa: E402
 
 TIME_LIMIT_S = 90.0  # per scenario: a scenario that takes longer counts as a hang
 
@@ -181,12 +180,7 @@ def sc_host_disk_full(tmp: Path, mount: bool) -> dict:
             ctx, out_root = None, tmp
             full = {"on": False}
             real = store_mod.write_atomic
-
-            def write(path, *a, **k):
-                if full["on"]:
-                    raise OSError(errno.ENOSPC, "No space left on device", str(path))
-                return real(path, *a, **k)
-            store_mod.write_atomic = write
+            store_mod.write_atomic = write_or_enospc(real, full)
         try:
             out = out_root / "host"
             rx = _receiver(dev, out)
@@ -386,16 +380,7 @@ def sc_killed_device_spool(tmp: Path, mount: bool) -> dict:
         return device_run(["--config", str(cfg), *args])
     sessions = tmp / "sessions"
     first = run(400)
-    try:
-        wait_for(lambda: sessions.is_dir() and any(len(list(d.glob("keyframes/*.kf"))) >= 8
-                                                   for d in sessions.iterdir()), 60, step_s=0.1)
-        os.kill(first.pid, 9)
-        first.communicate(timeout=20)
-    finally:
-        if first.poll() is None:
-            first.kill()
-            first.communicate()
-    (old,) = list(sessions.iterdir())
+    old = kill_9_once_spooled(first, sessions, 8)
     killed = len(list((old / "keyframes").glob("*.kf")))
     second = run(40, "--wait-for-host", "60")
     out = tmp / "host"

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import logging
-import os
-import signal
 import subprocess
 from pathlib import Path
 
@@ -212,20 +210,11 @@ def _device_run(tmp: Path, stream: dict, frames: int, *args: str) -> tuple[subpr
 def test_kill_9_device_then_restart_delivers_the_unacknowledged_keyframes(tmp_path):
     """End to end: `device run` killed mid-session with keyframes no host had; restarted; `host live`
     receives the earlier session's keyframes under its own id and the device deletes them."""
-    from tests.test_streaming_support import loopback_stream
+    from tests.test_streaming_support import kill_9_once_spooled, loopback_stream
 
     stream = loopback_stream(spool_fsync=False)
     proc, sessions = _device_run(tmp_path, stream, 400)
-    try:
-        assert wait_for(lambda: sessions.is_dir() and any(len(list(d.glob("keyframes/*.kf"))) >= 4
-                                                          for d in sessions.iterdir()), 60, step_s=0.1)
-        os.kill(proc.pid, signal.SIGKILL)  # no host ever connected: nothing acknowledged
-        proc.communicate(timeout=20)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-    (first,) = list(sessions.iterdir())
+    first = kill_9_once_spooled(proc, sessions, 4)  # no host ever connected: nothing acknowledged
     killed = sorted(p.name for p in (first / "keyframes").glob("*.kf"))
     assert len(killed) >= 4
     proc2, _ = _device_run(tmp_path, stream, 40, "--wait-for-host", "60")
@@ -279,9 +268,8 @@ def test_host_sessions_lists_incomplete_sessions(tmp_path, capsys):
 def test_earlier_session_keyframes_wait_for_host_space(tmp_path, monkeypatch):
     """Host disk full while an earlier session's keyframes arrive: none acknowledged (so none deleted on
     the device), all delivered once there is space, in the same host process."""
-    import errno
-
     from stereopath.host.live import store as store_mod
+    from tests.test_streaming_support import write_or_enospc
 
     old = make_device(tmp_path, None, "sessOld")
     for i in range(4):
@@ -289,13 +277,7 @@ def test_earlier_session_keyframes_wait_for_host_space(tmp_path, monkeypatch):
     assert old.wait_spooled(4, 10)
     old.close(timeout_s=1)
     full = {"on": True}
-    real = store_mod.write_atomic
-
-    def write(path, *a, **k):
-        if full["on"]:
-            raise OSError(errno.ENOSPC, "No space left on device", str(path))
-        return real(path, *a, **k)
-    monkeypatch.setattr(store_mod, "write_atomic", write)
+    monkeypatch.setattr(store_mod, "write_atomic", write_or_enospc(store_mod.write_atomic, full))
     new = make_device(tmp_path, None, "sessNew", backlog_roots=[tmp_path])
     out = tmp_path / "host"
     rx = _receiver(new.pose_endpoint, new.keyframe_endpoint, out)

@@ -66,6 +66,36 @@ def loopback_stream(**extra: Any) -> dict[str, Any]:
             "keyframe_endpoint": f"tcp://127.0.0.1:{keyframe}", **extra}
 
 
+def write_or_enospc(real: Callable[..., Any], full: dict[str, bool]) -> Callable[..., Any]:
+    """A stand-in for a write helper (``write_atomic``...) that fails with ENOSPC while ``full["on"]``."""
+    import errno
+
+    def write(path: Any, *a: Any, **k: Any) -> Any:
+        if full["on"]:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real(path, *a, **k)
+    return write
+
+
+def kill_9_once_spooled(proc: Any, sessions: Path, n: int) -> Path:
+    """SIGKILL the ``device run`` child ``proc`` once its session under ``sessions`` spooled ``n``
+    keyframes; returns that session folder."""
+    import os
+    import signal
+
+    try:
+        assert wait_for(lambda: sessions.is_dir() and any(len(list(d.glob("keyframes/*.kf"))) >= n
+                                                          for d in sessions.iterdir()), 60, step_s=0.1)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    (session,) = list(sessions.iterdir())
+    return session
+
+
 def port_of(endpoint: str) -> int:
     return int(endpoint.rsplit(":", 1)[1])
 
