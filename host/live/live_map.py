@@ -6,6 +6,12 @@ keyframes the current mesh is written to ``OUT/<session>/model/mesh.ply`` (atomi
 shown in rerun when a view is open; at the end the whole model (mesh, cloud, preview,
 map.json) is written for each session.
 
+Loop closure (``loops``, on by default): each keyframe is also checked for a return to an earlier
+part of the path (:class:`stereopath.host.live.live_loops.LiveLoopCloser`).  When a loop closes,
+every fused keyframe is re-posed on the corrected path and the TSDF is **re-integrated** from the
+kept depth maps (not deformed), and the mesh is refreshed at once, so the closed loop is in the
+very next mesh; later keyframes are fused at their corrected poses.
+
 Each session is mapped with the rig its keyframes were taken with: the device's own (``rig_for``,
 the rig the receiver stored from the device's session message), else the given ``rig`` when its
 hash matches the keyframes'.  A given rig that differs from the device's is named in one warning.
@@ -27,7 +33,7 @@ log = logging.getLogger(__name__)
 
 class LiveMapper:
     def __init__(self, rig: Rig | None, out_dir: str | Path, every: int = 10, preset: str = "object",
-                 on_mesh: Any = None, rig_for: Callable[[str], Rig | None] | None = None) -> None:
+                 on_mesh: Any = None, loops: Any = True, rig_for: Callable[[str], Rig | None] | None = None) -> None:
         from stereopath.device.wire.protocol import rig_reference
 
         self.rig = rig
@@ -39,6 +45,10 @@ class LiveMapper:
         self.on_mesh = on_mesh
         self._ref = rig_reference(rig) if rig is not None else None
         self._mappers: dict[str, Any] = {}
+        # loops: True (default LoopConfig), False/None (off) or a LoopConfig
+        self.loops = loops
+        self._closers: dict[str, Any] = {}
+        self.loops_closed = 0
         self._q: queue.Queue = queue.Queue()
         self._thread = threading.Thread(target=self._work, name="live-map", daemon=True)
         self._thread.start()
@@ -79,11 +89,36 @@ class LiveMapper:
         from stereopath.host.mapping.mapper import DenseMapper, map_preset
 
         if session not in self._mappers:
-            self._mappers[session] = DenseMapper(rig, map_preset(self.preset), source=f"live:{session}")
+            self._mappers[session] = DenseMapper(rig, map_preset(self.preset), source=f"live:{session}",
+                                                 keep_depth=bool(self.loops))
         return self._mappers[session]
 
-    def _work(self) -> None:
+    def _fuse(self, kf: Any, rig: Rig) -> bool:
+        """Fuse one keyframe (at its loop-corrected pose); True when it closed a loop and the map was re-posed."""
         from stereopath.device.wire.protocol import decode_image
+        from stereopath.host.live.live_loops import LiveLoopCloser
+
+        m = self._mapper(kf.session_id, rig)
+        left, right = decode_image(kf.left), decode_image(kf.right)
+        if not self.loops:
+            m.add(left, right, kf.T_world_cam, kf.seq)
+            return False
+        closer = self._closers.get(kf.session_id)
+        if closer is None:
+            closer = self._closers[kf.session_id] = LiveLoopCloser(rig, None if self.loops is True else self.loops)
+        closed = closer.add(left, right, kf.T_world_cam)
+        T = closer.poses()
+        try:
+            m.add(left, right, T[-1], kf.seq)
+        except StereopathError:
+            closer.discard_last()  # the map and the closer keep the same keyframes
+            raise
+        if closed:
+            m.repose(T)
+            self.loops_closed += 1
+        return closed
+
+    def _work(self) -> None:
         from stereopath.host.mapping.fusion import write_mesh
 
         while True:
@@ -91,14 +126,15 @@ class LiveMapper:
             if kf is None:
                 return
             try:
-                m = self._mapper(kf.session_id, self._rig_of(kf))
-                m.add(decode_image(kf.left), decode_image(kf.right), kf.T_world_cam, kf.seq)
+                rig = self._rig_of(kf)
+                closed = self._fuse(kf, rig)
+                m = self._mapper(kf.session_id, rig)
                 self.fused += 1
             except StereopathError as exc:
                 self.rejected += 1
                 log.warning("live map: keyframe %s not fused: %s", getattr(kf, "seq", "?"), exc)
                 continue
-            if m.keyframes % self.every == 0:
+            if m.keyframes % self.every == 0 or closed:  # a closed loop is shown at once
                 mesh = m.mesh()
                 if len(mesh.triangles) == 0:  # too few views of any surface yet
                     continue
