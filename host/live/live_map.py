@@ -33,7 +33,8 @@ log = logging.getLogger(__name__)
 
 class LiveMapper:
     def __init__(self, rig: Rig | None, out_dir: str | Path, every: int = 10, preset: str = "object",
-                 on_mesh: Any = None, loops: Any = True, rig_for: Callable[[str], Rig | None] | None = None) -> None:
+                 on_mesh: Any = None, rig_for: Callable[[str], Rig | None] | None = None,
+                 loops: Any = True) -> None:
         from stereopath.device.wire.protocol import rig_reference
 
         self.rig = rig
