@@ -61,13 +61,20 @@ class LiveLoopCloser:
         from stereopath.host.reprocess.gtsam_ba import pose_graph
         from stereopath.host.reprocess.tracks import stereo_features
 
+        feats = stereo_features(self.rig, left, right, self.track_cfg)
         self.onboard.append(np.asarray(T_world_cam, float))
-        self.feats.append(stereo_features(self.rig, left, right, self.track_cfg))
-        loop = self._check(len(self.onboard) - 1) if self.cfg.enabled else None
+        self.feats.append(feats)
+        try:
+            loop = self._check(len(self.onboard) - 1) if self.cfg.enabled else None
+            corrected = None if loop is None else pose_graph(np.array(self.onboard), self.loops + [loop])
+        except Exception:
+            self.onboard.pop()  # a keyframe that could not be taken leaves no trace
+            self.feats.pop()
+            raise
         if loop is None:
             return False
         self.loops.append(loop)
-        self._corrected = pose_graph(np.array(self.onboard), self.loops)
+        self._corrected = corrected
         log.info("live loop closed: keyframes %d-%d (%d inliers, correction %.1f mm); %d keyframes re-posed",
                  loop.i, loop.j, loop.inliers, 1000 * loop.correction_m, len(self.onboard))
         return True
