@@ -14,12 +14,15 @@ already stored) and when a stage is stored; the driver reads it for the progress
 from __future__ import annotations
 
 import json
+import logging
 import os
 import socket
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 STAGE_ORDER = ("estimate", "tracks", "ba", "map")  # the order the pipeline runs its stages in
 
@@ -101,14 +104,50 @@ class _Stop(Exception):
     """Ends the first part of a split session once its ``estimate`` stage is stored."""
 
 
+_TBB_LIMITS: dict[int, Any] = {}  # oneTBB global_control objects, alive as long as the worker
+
+
+def limit_tbb(n: int) -> bool:
+    """Open3D's TBB pool (the map stage) at ``n`` threads; False when that is not possible.
+
+    Open3D has no Python call for it, so this creates oneTBB's ``global_control(max_allowed_parallelism,
+    n)`` through the entry points of the TBB library Open3D ships (``tbb::detail::r1``, oneTBB's stable
+    binary interface; the object is three words: value, reserved, parameter 0) and checks the
+    active value TBB reports back.
+    """
+    import ctypes
+    import glob
+
+    if n in _TBB_LIMITS:
+        return True
+    try:
+        import open3d
+
+        lib = ctypes.CDLL(sorted(glob.glob(os.path.join(os.path.dirname(open3d.__file__), "libtbb.so*")))[0])
+        create = lib._ZN3tbb6detail2r16createERNS0_2d114global_controlE
+        active = lib._ZN3tbb6detail2r127global_control_active_valueEi
+    except (ImportError, IndexError, OSError, AttributeError) as exc:
+        log.warning("cannot limit Open3D's TBB threads: %s", exc)
+        return False
+    active.restype, active.argtypes = ctypes.c_size_t, [ctypes.c_int]
+    ctl = (ctypes.c_size_t * 3)(n, 0, 0)
+    create(ctypes.byref(ctl))
+    _TBB_LIMITS[n] = ctl
+    return int(active(0)) == n
+
+
 def limit_threads(n: int) -> None:
-    """Every thread pool of this worker process at ``n`` threads (OpenCV, BLAS; the task's CPUs)."""
+    """Every thread pool of this worker process at ``n`` threads, the task's CPUs: OpenCV's, every
+    BLAS (threadpoolctl) and Open3D's TBB, so that the tasks Ray places by their declared CPUs do not
+    oversubscribe the cores.  Results do not depend on it (the stages pin BLAS to one thread; OpenCV
+    and TBB split independent work: only the order of the model's elements changes, not the elements)."""
     import cv2
     import scipy.linalg  # noqa: F401 - each library brings its own BLAS, which must be loaded to be limited
     from threadpoolctl import threadpool_limits
 
     cv2.setNumThreads(n)
     threadpool_limits(limits=n)
+    limit_tbb(n)
 
 
 def first_part(out_dir: str | Path, wall_s: float, cpu_s: float) -> dict[str, Any]:
