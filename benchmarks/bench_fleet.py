@@ -7,6 +7,10 @@ cluster on loopback, and a worker killed with SIGKILL during a session's `ba` st
 Four simulated sessions (`stereopath sim`: seeds 1-4, trajectories arc/line/orbit/arc, N frames
 each; written once, not timed), then:
 
+0. with --profile: the costliest session (orbit) alone through the one-session entry point, per
+   stage: wall, CPU of the process and CPU of each thread, with the default thread pools and
+   with every pool at one thread (as in a fleet task): where the time goes, how parallel a
+   session is by itself, whether threads spin.
 1. sequential: the four through the one-session entry point (`reprocess_session`, the code of
    `stereopath host reprocess SESSION`) one after another in this process; and fleet: the same
    four with `run_fleet` on a local Ray of 2 CPUs, Ray's start and shutdown included in its wall
@@ -22,7 +26,7 @@ each; written once, not timed), then:
    session; same results.  The Ray processes started here are stopped by their process ids.
 3. fault: local Ray, the four sessions, the worker of the second session killed with SIGKILL
    once its `ba` stage has started; every session must end done, the killed one retried with
-   `estimate` and `tracks` reused, and the same results.
+   `tracks` reused (its `estimate` came from its first task), and the same results.
 Prints figures; asserts nothing.
 """
 
@@ -135,8 +139,11 @@ def sequential(sessions, out: Path, settings: ReprocessSettings) -> Phase:
 
 
 def fleet_local(sessions, out: Path, settings: ReprocessSettings, on_update=None) -> tuple[Phase, object]:
+    import shutil
+
     import ray
 
+    shutil.rmtree(out, ignore_errors=True)  # everything computed (a kept folder would be reused)
     with Phase("fleet (local Ray, 2 CPUs)") as ph:
         ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
                  logging_level=logging.WARNING)
