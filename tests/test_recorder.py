@@ -226,10 +226,12 @@ def test_crash_mid_chunk_leaves_parseable_files(tmp_path, repo_root, caplog):
     out = tmp_path / "crash"
     proc = subprocess.Popen([sys.executable, "-c", WRITER, str(out), str(repo_root)], cwd=repo_root)
     try:
-        csv = out / "mav0" / "cam0" / "data.csv"
+        # cam1's rows are flushed after cam0's (FLUSH_ORDER): a kill between the two leaves cam0 ahead,
+        # and a pair is listed only when both rows are durable, so wait on the later file
+        csv = out / "mav0" / "cam1" / "data.csv"
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
-            if csv.is_file() and csv.read_text().count("\n") > 40:
+            if csv.is_file() and csv.read_text().count("\n") > 41:
                 break
             if proc.poll() is not None:
                 pytest.fail(f"writer exited early with {proc.returncode}")

@@ -67,6 +67,44 @@ def _residuals(T: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray, T_ex
     return p - uv, Xc, Xk, z
 
 
+def _camera_system(T: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray, Te: np.ndarray | None,
+                   huber_px: float, outlier_px: float) -> tuple[float, np.ndarray, np.ndarray]:
+    """One camera's Huber-weighted cost and normal equations (H, g) for the left perturbation of ``T``."""
+    r, Xc, Xk, z = _residuals(T, X, uv, K, Te)
+    valid = z > 1e-6
+    e = np.linalg.norm(r, axis=1)
+    w = np.where(e <= huber_px, 1.0, huber_px / np.maximum(e, 1e-12))
+    w = np.where(valid & (e < 10 * outlier_px), w, 0.0)
+    cost = float(np.sum(w * e * e))
+    x, y, zz = Xk[:, 0], Xk[:, 1], np.where(valid, Xk[:, 2], 1.0)
+    fx, fy = K[0, 0], K[1, 1]
+    # d(u,v)/d(Xk)
+    Ju = np.stack([fx / zz, np.zeros_like(zz), -fx * x / zz**2], axis=1)
+    Jv = np.stack([np.zeros_like(zz), fy / zz, -fy * y / zz**2], axis=1)
+    R_e = np.eye(3) if Te is None else Te[:3, :3]
+    # d(Xc)/d(dt, dtheta) = [I, -[Xc]x]; d(Xk) = R_e d(Xc)
+    n = len(Xc)
+    J_xc = np.zeros((n, 3, 6))
+    J_xc[:, :, :3] = np.eye(3)
+    J_xc[:, 0, 4], J_xc[:, 0, 5] = Xc[:, 2], -Xc[:, 1]
+    J_xc[:, 1, 3], J_xc[:, 1, 5] = -Xc[:, 2], Xc[:, 0]
+    J_xc[:, 2, 3], J_xc[:, 2, 4] = Xc[:, 1], -Xc[:, 0]
+    J_xk = np.einsum("ij,njk->nik", R_e, J_xc)
+    Jpu = np.einsum("ni,nik->nk", Ju, J_xk)
+    Jpv = np.einsum("ni,nik->nk", Jv, J_xk)
+    H = (Jpu * w[:, None]).T @ Jpu + (Jpv * w[:, None]).T @ Jpv
+    g = (Jpu * w[:, None]).T @ r[:, 0] + (Jpv * w[:, None]).T @ r[:, 1]
+    return cost, H, g
+
+
+def _inlier_errors(T: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray, Te: np.ndarray | None,
+                   outlier_px: float) -> tuple[np.ndarray, np.ndarray]:
+    r, *_ = _residuals(T, X, uv, K, Te)
+    e = np.linalg.norm(r, axis=1)
+    inl = e < outlier_px
+    return inl, e[inl]
+
+
 def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, X_world: np.ndarray, uv_left: np.ndarray,
                    X_world_r: np.ndarray | None = None, uv_right: np.ndarray | None = None,
                    huber_px: float = 1.0, max_iter: int = 15, outlier_px: float = 3.0,
@@ -81,6 +119,7 @@ def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, X_world: np.ndarray, uv_le
     K0, K1 = rig.cam0.K, rig.cam1.K
     T10 = rig.T_cam1_cam0
     has_r = X_world_r is not None and uv_right is not None and len(uv_right) > 0
+    blocks = [(X_world, uv_left, K0, None)] + ([(X_world_r, uv_right, K1, T10)] if has_r else [])
     lam = 1e-3
     n_iter = 0
 
@@ -88,34 +127,9 @@ def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, X_world: np.ndarray, uv_le
         H = np.zeros((6, 6))
         g = np.zeros(6)
         cost = 0.0
-        blocks = [(X_world, uv_left, K0, None)]
-        if has_r:
-            blocks.append((X_world_r, uv_right, K1, T10))
         for X, uv, K, Te in blocks:
-            r, Xc, Xk, z = _residuals(T, X, uv, K, Te)
-            valid = z > 1e-6
-            e = np.linalg.norm(r, axis=1)
-            w = np.where(e <= huber_px, 1.0, huber_px / np.maximum(e, 1e-12))
-            w = np.where(valid & (e < 10 * outlier_px), w, 0.0)
-            cost += float(np.sum(w * e * e))
-            x, y, zz = Xk[:, 0], Xk[:, 1], np.where(valid, Xk[:, 2], 1.0)
-            fx, fy = K[0, 0], K[1, 1]
-            # d(u,v)/d(Xk)
-            Ju = np.stack([fx / zz, np.zeros_like(zz), -fx * x / zz**2], axis=1)
-            Jv = np.stack([np.zeros_like(zz), fy / zz, -fy * y / zz**2], axis=1)
-            R_e = np.eye(3) if Te is None else Te[:3, :3]
-            # d(Xc)/d(dt, dtheta) = [I, -[Xc]x]; d(Xk) = R_e d(Xc)
-            n = len(Xc)
-            J_xc = np.zeros((n, 3, 6))
-            J_xc[:, :, :3] = np.eye(3)
-            J_xc[:, 0, 4], J_xc[:, 0, 5] = Xc[:, 2], -Xc[:, 1]
-            J_xc[:, 1, 3], J_xc[:, 1, 5] = -Xc[:, 2], Xc[:, 0]
-            J_xc[:, 2, 3], J_xc[:, 2, 4] = Xc[:, 1], -Xc[:, 0]
-            J_xk = np.einsum("ij,njk->nik", R_e, J_xc)
-            Jpu = np.einsum("ni,nik->nk", Ju, J_xk)
-            Jpv = np.einsum("ni,nik->nk", Jv, J_xk)
-            H += (Jpu * w[:, None]).T @ Jpu + (Jpv * w[:, None]).T @ Jpv
-            g += (Jpu * w[:, None]).T @ r[:, 0] + (Jpv * w[:, None]).T @ r[:, 1]
+            c, Hc, gc = _camera_system(T, X, uv, K, Te, huber_px, outlier_px)
+            cost, H, g = cost + c, H + Hc, g + gc
         if prior_R is not None and prior_weight > 0:
             from stereopath.device.core.geometry import so3_log
 
@@ -148,17 +162,12 @@ def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, X_world: np.ndarray, uv_le
             lam *= 10
             if lam > 1e6:
                 break
-    rl, *_ = _residuals(T, X_world, uv_left, K0, None)
-    el = np.linalg.norm(rl, axis=1)
-    inl = el < outlier_px
-    errs = [el[inl]]
+    inl, el = _inlier_errors(T, X_world, uv_left, K0, None, outlier_px)
+    errs = [el]
+    inr = np.zeros(0, bool)
     if has_r:
-        rr, *_ = _residuals(T, X_world_r, uv_right, K1, T10)
-        er = np.linalg.norm(rr, axis=1)
-        inr = er < outlier_px
-        errs.append(er[inr])
-    else:
-        inr = np.zeros(0, bool)
+        inr, er = _inlier_errors(T, X_world_r, uv_right, K1, T10, outlier_px)
+        errs.append(er)
     allerr = np.concatenate(errs)
     rms = float(np.sqrt(np.mean(allerr**2))) if len(allerr) else float("inf")
     return RefineResult(T, inl, inr, rms, n_iter)

@@ -340,6 +340,50 @@ def _homography_pose(H: np.ndarray, K1: np.ndarray, K2: np.ndarray, p1: np.ndarr
     return R, (t / nt if nt > 1e-12 else None)
 
 
+def _degenerate_model(q1: np.ndarray, q2: np.ndarray, K1: np.ndarray, K2: np.ndarray, cfg: TwoViewConfig, n_F: int,
+                      full_mask) -> TwoViewResult | None:
+    """A pure rotation or a plane that explains the matches as well as F does, else None."""
+    # -- no parallax: a rotation explains the matches as well as F does
+    thr2 = cfg.threshold_px * cfg.model_threshold_factor
+    rot = rotation_only(q1, q2, K1, K2, replace(cfg, threshold_px=thr2))
+    n_rot = rot.n_inliers
+    if rot.R is not None and n_rot >= cfg.rotation_ratio * n_F:
+        return TwoViewResult("pure_rotation", R=rot.R, t=None, inliers=full_mask(rot.inliers),
+                             message=f"rotation-only inliers {n_rot} vs F inliers {n_F}")
+    # -- planar scene: a homography explains as much as F
+    try:
+        H, hmask = cv2.findHomography(q1, q2, cv2.RANSAC, thr2, maxIters=min(cfg.max_iters, 5000), confidence=cfg.confidence)
+    except cv2.error:
+        H, hmask = None, None
+    if H is not None and hmask is not None and np.isfinite(H).all():
+        inl_H = hmask.reshape(-1).astype(bool)
+        n_H = int(inl_H.sum())
+        if n_H >= cfg.planar_ratio * n_F:
+            R, t = _homography_pose(H, K1, K2, q1[inl_H], q2[inl_H])
+            if R is not None:
+                return TwoViewResult("planar", R=R, t=t, inliers=full_mask(inl_H), H=H,
+                                     message=f"homography inliers {n_H} vs F inliers {n_F}")
+    return None
+
+
+def _refine_and_reselect(R: np.ndarray, t: np.ndarray, x1: np.ndarray, x2: np.ndarray, inl_F: np.ndarray,
+                         good: np.ndarray, thr: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """LM on the Sampson error of the inliers, then the inliers re-selected with the refined E (4 rounds)."""
+    h1 = np.hstack([x1, np.ones((len(x1), 1))])
+    h2 = np.hstack([x2, np.ones((len(x2), 1))])
+    sel = inl_F & good if (inl_F & good).sum() >= 8 else inl_F
+    for _ in range(4):
+        if sel.sum() < 8:
+            break
+        R, t = _refine_Rt(R, t, h1[sel], h2[sel])
+        new = np.abs(_sampson(skew(t) @ R, h1, h2)) < thr
+        new &= _in_front(R, t, x1, x2)
+        if np.array_equal(new, sel):
+            break
+        sel = new
+    return R, t, sel
+
+
 def relative_pose(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarray | None = None, cfg: TwoViewConfig = TwoViewConfig()) -> TwoViewResult:
     """Relative pose of view 2 w.r.t. view 1 from matched pixels (see module docstring).
 
@@ -374,26 +418,9 @@ def relative_pose(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarr
         return out
 
     if cfg.check_degenerate:
-        # -- no parallax: a rotation explains the matches as well as F does
-        thr2 = cfg.threshold_px * cfg.model_threshold_factor
-        rot = rotation_only(q1, q2, K1, K2, replace(cfg, threshold_px=thr2))
-        n_rot = rot.n_inliers
-        if rot.R is not None and n_rot >= cfg.rotation_ratio * n_F:
-            return TwoViewResult("pure_rotation", R=rot.R, t=None, inliers=full_mask(rot.inliers), n_matches=n_all, F=F,
-                                 message=f"rotation-only inliers {n_rot} vs F inliers {n_F}")
-        # -- planar scene: a homography explains as much as F
-        try:
-            H, hmask = cv2.findHomography(q1, q2, cv2.RANSAC, thr2, maxIters=min(cfg.max_iters, 5000), confidence=cfg.confidence)
-        except cv2.error:
-            H, hmask = None, None
-        if H is not None and hmask is not None and np.isfinite(H).all():
-            inl_H = hmask.reshape(-1).astype(bool)
-            n_H = int(inl_H.sum())
-            if n_H >= cfg.planar_ratio * n_F:
-                R, t = _homography_pose(H, K1, K2, q1[inl_H], q2[inl_H])
-                if R is not None:
-                    return TwoViewResult("planar", R=R, t=t, inliers=full_mask(inl_H), n_matches=n_all, F=F, H=H,
-                                         message=f"homography inliers {n_H} vs F inliers {n_F}")
+        degenerate = _degenerate_model(q1, q2, K1, K2, cfg, n_F, full_mask)
+        if degenerate is not None:
+            return replace(degenerate, n_matches=n_all, F=F)
     # -- essential matrix and pose (the paper's E = K^T F K)
     E = K2.T @ F @ K1
     x1 = _normalize(q1, K1)
@@ -412,19 +439,7 @@ def relative_pose(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarr
         # refined essential matrix (E from F alone is poorly conditioned: F has 7
         # degrees of freedom, a calibrated pose 5).
         thr = cfg.threshold_px / (0.5 * (K2[0, 0] + K2[1, 1]))
-        h1 = np.hstack([x1, np.ones((len(x1), 1))])
-        h2 = np.hstack([x2, np.ones((len(x2), 1))])
-        sel = inl_F & good if (inl_F & good).sum() >= 8 else inl_F
-        for _ in range(4):
-            if sel.sum() < 8:
-                break
-            R, t = _refine_Rt(R, t, h1[sel], h2[sel])
-            new = np.abs(_sampson(skew(t) @ R, h1, h2)) < thr
-            new &= _in_front(R, t, x1, x2)
-            if np.array_equal(new, sel):
-                break
-            sel = new
-        good = sel
+        R, t, good = _refine_and_reselect(R, t, x1, x2, inl_F, good, thr)
         if int(good.sum()) < cfg.min_inliers:
             return TwoViewResult("failed", inliers=full_mask(good), n_matches=n_all, F=F, E=E, message=f"only {int(good.sum())} inliers after refinement")
     return TwoViewResult("ok", R=project_to_so3(R), t=t / np.linalg.norm(t), inliers=full_mask(good), n_matches=n_all, F=F, E=E)

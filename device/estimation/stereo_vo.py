@@ -20,16 +20,8 @@ Per frame (see docs/architecture.md, "Estimators"), a bounded amount of work:
    left/right by KLT, accepted when the rectified rows agree and the disparity
    is positive) - that is all the frame loop does.
 
-The modified-ASIFT work of a keyframe runs on a worker thread with a queue of
-one (a keyframe arriving while the worker is busy is not queued): the
-keyframe's affine views are detected, its original-view SIFT is matched
-against the previous keyframe library (all views, each with a stereo 3D point)
-around the positions predicted by the tracked pose, and the keyframe pose is
-solved jointly from those matches and the tracked map points; then the
-keyframe's own library is built.  The frame loop joins the result at the first
-frame after it is ready and never waits for it: the correction of the keyframe
-pose is applied to the live state (current pose and map) as one rigid motion,
-so tracking continues without a jump against its own map.
+The modified-ASIFT work of a keyframe runs off the frame loop on a worker thread
+(:mod:`stereopath.device.estimation.keyframe_jobs`); the frame loop never waits for it.
 
 A known stereo disparity offset (``disparity_offset_px``: a calibration error of
 the principal points shows as a constant disparity bias) is removed from every
@@ -54,14 +46,9 @@ from stereopath.device.core.config import check_range
 from stereopath.device.estimation.base import PoseEstimate, WorldFrame
 from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still, gravity_aligned_rotation
 from stereopath.device.core.features import gray
-from stereopath.device.core.stereo import (
-    pose_to_rvec_tvec,
-    refine_pose_lm,
-    rvec_tvec_to_pose,
-    stereo_right,
-    triangulate,
-    undistort_px,
-)
+from stereopath.device.core.stereo import stereo_right, undistort_px
+from stereopath.device.estimation.keyframe_jobs import KeyframeJobs
+from stereopath.device.estimation.stereo_measure import StereoMeasure
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, so3_log
 from stereopath.device.core.rig import Rig
@@ -141,67 +128,14 @@ class _Map:
         return len(self.X)
 
 
-@dataclass
-class _Library:
-    """A keyframe's features of all views, each with a stereo 3D point in that keyframe's camera frame."""
-
-    seq: int
-    feats: object  # stereopath.device.core.features.Features
-    X_cam: np.ndarray
-
-
-@dataclass
-class _Job:
-    """A keyframe job in flight: its future and the world it was submitted in."""
-
-    future: object  # concurrent.futures.Future or _Ready
-    C_sub: np.ndarray  # the cumulative live-state correction when it was submitted
-    prev: object  # what it matches against: a (_Library, T_world_kf) pair, or the previous job's future
-
-
-@dataclass
-class _KeyframeResult:
-    seq: int
-    T_tracked: np.ndarray  # the keyframe pose the frame loop used (world at submission)
-    T_refined: np.ndarray | None  # from the ASIFT matches and the tracked map, None if not solved
-    n_asift: int
-    library: _Library | None  # this keyframe's library, or the one it matched against when it has none
-    T_library: np.ndarray | None  # pose of that library's keyframe (world at submission, corrected)
-    T_library_pre: np.ndarray | None = None  # the same without this job's own correction
-
-
-class _Ready:
-    """A finished result with the Future interface (the synchronous mode)."""
-
-    def __init__(self, value) -> None:
-        self._value = value
-
-    def done(self) -> bool:
-        return True
-
-    def result(self):
-        return self._value
-
-
-def _rigid(T: np.ndarray) -> np.ndarray:
-    """``T`` with its rotation projected onto SO(3): products of corrections stay rigid."""
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
-    out = T.copy()
-    out[:3, :3] = R
-    return out
-
-
-class StereoEstimator:
+class StereoEstimator(KeyframeJobs):
     name = "stereo"
 
     def __init__(self, rig: Rig, config: StereoConfig | None = None) -> None:
         self.rig = rig
         self.cfg = config or StereoConfig()
         self.world_frame: WorldFrame = "first_camera"
-        self._rect = rig.rectification()
+        self._geo = StereoMeasure(rig, self.cfg)
         self._T_world_cam: np.ndarray | None = None
         self._T_prev_prev: np.ndarray | None = None
         self._T_kf: np.ndarray | None = None
@@ -210,27 +144,13 @@ class StereoEstimator:
         self._dt_prev: float | None = None
         self._prev_left: np.ndarray | None = None
         self._map = _Map()
-        self._jobs: list[_Job] = []  # keyframe jobs in flight, oldest first: at most one running, one waiting
-        self._C = np.eye(4)  # product of the corrections applied to the live state so far
-        self._library: _Library | None = None  # the newest keyframe library joined
-        self._T_library: np.ndarray | None = None  # its keyframe's pose in the live world
-        self._executor = None
-        if self.cfg.use_asift_keyframes and self.cfg.background_keyframes:
-            from concurrent.futures import ThreadPoolExecutor
-
-            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keyframe-features")
+        self._init_keyframe_jobs()
         self._since_kf = 0
         self._failures = 0
         self._gyro: GyroIntegrator | None = None
         self._R_body_cam = None if rig.T_body_cam0 is None else rig.T_body_cam0[:3, :3]
         self._klt = dict(winSize=(self.cfg.klt_window, self.cfg.klt_window), maxLevel=self.cfg.klt_levels,
                          criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
-        self._feature_cfg = None
-        self._match_cfg = None
-        self._doff = float(self.cfg.disparity_offset_px)
-        fb = self._rect.f * self._rect.baseline_m
-        self._max_depth = min(self.cfg.max_depth_m, fb / self.cfg.min_disparity_px) if self.cfg.min_disparity_px > 0 \
-            else self.cfg.max_depth_m
         # keyframe log for offline bundle adjustment: poses, observations (kf, point id, cam, u, v)
         self.record_observations = self.cfg.record_observations
         self.keyframe_poses: list[tuple[int, np.ndarray]] = []
@@ -245,12 +165,6 @@ class StereoEstimator:
 
     def stats(self) -> dict:
         return dict(self.counters)
-
-    def close(self) -> None:
-        """Stop the background keyframe worker (idempotent)."""
-        if self._executor is not None:
-            self._executor.shutdown(wait=True)
-            self._executor = None
 
     def __del__(self) -> None:  # the worker thread must not outlive the estimator
         try:
@@ -336,7 +250,7 @@ class StereoEstimator:
                 if good.sum() < cfg.min_pnp_inliers:
                     note = "too_few_tracked"
                     continue
-                T_est, n_inl, inl = self._solve_pose(left, right, m.X[good], uv_new[good], T_pred)
+                T_est, n_inl, inl = self._geo.solve_pose(left, right, m.X[good], uv_new[good], T_pred, self._cur_seq)
                 if T_est is None:
                     note = "pose_failed"
                     continue
@@ -422,68 +336,6 @@ class StereoEstimator:
         good &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
         return p1.astype(np.float32), good
 
-    def _right_guess(self, X_cam0: np.ndarray) -> np.ndarray:
-        if len(X_cam0) == 0:
-            return np.zeros((0, 2))
-        Xr = X_cam0 @ self.rig.R.T + self.rig.T
-        Xr[:, 2] = np.maximum(Xr[:, 2], 1e-3)
-        return cv2.projectPoints(Xr.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.rig.cam1.K,
-                                 self.rig.cam1.dist)[0].reshape(-1, 2)
-
-    def _triangulate(self, uv_left: np.ndarray, uv_right: np.ndarray, offset: float = 0.0):
-        """Stereo points (camera 1 frame) and their reprojection error, the disparity offset removed.
-
-        Removing an offset ``d0`` from the rectified disparity is moving the right point by ``+d0``
-        along its rectified row (done through the rectification, so it holds for distorted images)."""
-        uvl = undistort_px(uv_left, self.rig.cam0.K, self.rig.cam0.dist)
-        if offset != 0.0 and len(uv_right):
-            r = self._rect
-            rr = cv2.undistortPoints(uv_right.reshape(-1, 1, 2).astype(np.float64), self.rig.cam1.K,
-                                     self.rig.cam1.dist, R=r.R1, P=r.P1).reshape(-1, 2)
-            rr[:, 0] += offset
-            # back from the rectified right image to ideal pixels of camera 2 (K1, no distortion)
-            Pinv = np.linalg.inv(r.P1[:, :3])
-            rays = np.column_stack([rr, np.ones(len(rr))]) @ Pinv.T
-            rays = rays @ r.R1  # R1^T applied to each row
-            uvr = (rays / rays[:, 2:3]) @ self.rig.cam1.K.T
-            uvr = uvr[:, :2]
-        else:
-            uvr = undistort_px(uv_right, self.rig.cam1.K, self.rig.cam1.dist)
-        return triangulate(self.rig, uvl, uvr)
-
-    def _solve_pose(self, left, right, X: np.ndarray, uv: np.ndarray, T_guess: np.ndarray,
-                    seed: int | None = None, use_guess: bool = True):
-        """PnP RANSAC (from the guess), then LM in both cameras.  Returns (T_world_cam, n_inliers, mask)."""
-        cfg = self.cfg
-        K0, d0 = self.rig.cam0.K, self.rig.cam0.dist
-        uv_u = undistort_px(uv, K0, d0)
-        T_cw = invert_pose(T_guess)
-        rvec, tvec = pose_to_rvec_tvec(T_cw)
-        # RANSAC draws do not depend on what ran before (OpenCV's RNG is per thread)
-        cv2.setRNGSeed(self._cur_seq if seed is None else seed)
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            X.reshape(-1, 1, 3), uv_u.reshape(-1, 1, 2), K0, None, rvec, tvec, useExtrinsicGuess=use_guess,
-            iterationsCount=200 if use_guess else 500, reprojectionError=cfg.pnp_reproj_px, confidence=0.999,
-            flags=cv2.SOLVEPNP_ITERATIVE)
-        if not ok or inl is None or len(inl) < cfg.min_pnp_inliers:
-            return None, 0, None
-        mask = np.zeros(len(X), bool)
-        mask[inl.ravel()] = True
-        T_cw = rvec_tvec_to_pose(rvec, tvec)
-        # right-image observations of the inliers for the two-camera refinement
-        Xc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
-        idx = np.flatnonzero(mask & (Xc[:, 2] > cfg.min_depth_m))
-        uvr, okr = stereo_right(self.rig, left, right, uv[idx], self._right_guess(Xc[idx]), cfg, fb_check=False)
-        ridx = idx[okr]
-        uvr_u = undistort_px(uvr[okr], self.rig.cam1.K, self.rig.cam1.dist)
-        res = refine_pose_lm(self.rig, T_cw, X[mask], uv_u[mask], X[ridx], uvr_u, huber_px=cfg.huber_px,
-                             outlier_px=cfg.pnp_reproj_px)
-        final = np.zeros(len(X), bool)
-        final[np.flatnonzero(mask)[res.inliers_left]] = True
-        if final.sum() < cfg.min_pnp_inliers:
-            return None, 0, None
-        return invert_pose(res.T_cam_world), int(final.sum()), final
-
     def _relocalise(self, left, right, T_pred: np.ndarray) -> tuple[np.ndarray | None, int]:
         """The pose from SIFT matches against the newest keyframe library (no trust in the prediction)."""
         lib = self._library
@@ -498,162 +350,14 @@ class StereoEstimator:
             return None, 0
         T_l = self._T_library
         X = lib.X_cam[idx[:, 1]] @ T_l[:3, :3].T + T_l[:3, 3]
-        T, n, _ = self._solve_pose(left, right, X, feats0.xy[idx[:, 0]].astype(np.float64), T_pred, use_guess=False)
+        T, n, _ = self._geo.solve_pose(left, right, X, feats0.xy[idx[:, 0]].astype(np.float64), T_pred,
+                                       self._cur_seq, use_guess=False)
         if T is None:
             return None, 0
         log.info("frame %d relocalised against keyframe %d (%d inliers)", self._cur_seq, lib.seq, n)
         return T, n
 
     # ------------------------------------------------------------------ keyframes
-
-    def _features(self, img: np.ndarray, views: list[int] | None = None):
-        from stereopath.device.core.features import detect, get_preset
-
-        if self._feature_cfg is None:
-            self._feature_cfg = get_preset(self.cfg.feature_preset)
-        return detect(img, self._feature_cfg, views=views)
-
-    def _join_keyframe_job(self) -> None:
-        """Take the finished keyframe jobs' results, oldest first (never waits)."""
-        while self._jobs and self._jobs[0].future.done():
-            job = self._jobs.pop(0)
-            try:
-                res: _KeyframeResult | None = job.future.result()
-            except Exception:  # a failed job costs one keyframe's ASIFT, never the session
-                log.exception("keyframe feature job failed")
-                continue
-            if res is None:
-                continue
-            # the job worked in the world of its submission; corrections applied since map it to the live one
-            C_since = self._C @ invert_pose(job.C_sub)
-            if res.T_refined is not None:
-                G = _rigid(C_since @ res.T_refined @ invert_pose(res.T_tracked) @ invert_pose(C_since))
-                ang = rotation_angle_deg(G[:3, :3])
-                log.debug("keyframe %d: correction %.3f deg, %.4f m", res.seq, ang, float(np.linalg.norm(G[:3, 3])))
-                if ang <= self.cfg.max_correction_deg:
-                    # one rigid motion of the live state keeps the map and the current pose consistent
-                    self._map.move(G)
-                    for name in ("_T_world_cam", "_T_prev_prev", "_T_kf", "_T_library"):
-                        T = getattr(self, name)
-                        if T is not None:
-                            setattr(self, name, G @ T)
-                    self._C = _rigid(G @ self._C)
-                    self.counters["kf_corrections"] += 1
-                    self.counters["asift_matches"] += res.n_asift
-                else:
-                    log.info("keyframe %d: ASIFT correction of %.2f deg rejected", res.seq, ang)
-            if res.library is not None and res.T_library is not None:
-                # the job's belief of its keyframe (refined) in the live world, before its own correction
-                self._library = res.library
-                self._T_library = C_since @ res.T_library
-
-    def _keyframe_job(self, seq: int, left, right, T_tracked: np.ndarray, z0: float, X_map: np.ndarray,
-                      uv_map: np.ndarray, prev_source, C_sub: np.ndarray) -> _KeyframeResult:
-        """Modified-ASIFT work of one keyframe (on the worker thread): the joint pose, then the library.
-
-        The keyframe's original-view SIFT is matched against the previous library (all views of
-        the previous keyframe, each with a 3D point) around the positions the tracked pose
-        predicts; those matches and the tracked map points give the keyframe pose."""
-        from stereopath.device.core.matching import MatchConfig, match, match_guided
-
-        prev, T_prev = self._resolve_previous(prev_source, C_sub)
-        feats = self._features(left)
-        T_ref, n_asift = None, 0
-        if prev is not None and len(feats):
-            prev_X = prev.X_cam @ T_prev[:3, :3].T + T_prev[:3, 3]
-            feats0 = feats.original_view()
-            if self.cfg.guided_radius_px > 0:
-                T_cw = invert_pose(T_tracked)
-                Xc = prev_X @ T_cw[:3, :3].T + T_cw[:3, 3]
-                pred = np.full((len(Xc), 2), np.nan)
-                front = Xc[:, 2] > self.cfg.min_depth_m
-                if np.any(front):
-                    pred[front] = cv2.projectPoints(Xc[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
-                                                    self.rig.cam0.K, self.rig.cam0.dist)[0].reshape(-1, 2)
-                mt = match_guided(prev.feats, feats0, pred, self.cfg.guided_radius_px,
-                                  self._match_cfg or MatchConfig())
-                idx = np.asarray(mt.idx).reshape(-1, 2)[:, ::-1]  # (current, previous)
-            else:
-                mt = match(feats0, prev.feats, self._match_cfg or MatchConfig())
-                idx = np.asarray(mt.idx).reshape(-1, 2)
-            if len(idx) >= self.cfg.min_pnp_inliers:
-                X = np.vstack([prev_X[idx[:, 1]], X_map])
-                uv = np.vstack([feats0.xy[idx[:, 0]].astype(np.float64), uv_map])
-                T_new, _, mask = self._solve_pose(left, right, X, uv, T_tracked, seed=seq)
-                # the tracked map must still fit the joint pose: ASIFT matches that pull the pose away
-                # from it (repeated texture, a wrong 3D point) would turn its points into outliers
-                if T_new is not None and mask[len(idx):].sum() >= self.cfg.kf_map_agreement * len(X_map):
-                    T_ref, n_asift = T_new, int(mask[: len(idx)].sum())
-        library = self._library_of(seq, left, right, feats, z0)
-        if library is None:  # the next keyframe matches against the one before
-            return _KeyframeResult(seq, T_tracked, T_ref, n_asift, prev, T_prev, T_prev)
-        return _KeyframeResult(seq, T_tracked, T_ref, n_asift, library, T_tracked if T_ref is None else T_ref,
-                               T_tracked)
-
-    @staticmethod
-    def _resolve_previous(source, C_sub: np.ndarray):
-        """The library a job matches against and its keyframe pose, in the world of the job's submission.
-
-        ``source`` is a ``(library, T_world_kf, C)`` triple, or the previous job (already finished:
-        the worker runs jobs in order), whose result is mapped through the corrections between the
-        two submissions."""
-        if source is None:
-            return None, None
-        if isinstance(source, _Job):
-            try:
-                res = source.future.result()
-            except Exception:
-                return None, None
-            if res is None or res.library is None or res.T_library is None:
-                return None, None
-            # not joined before this job was submitted: this job's world lacks the previous job's own
-            # correction, so the library sits where the tracked state put it
-            return res.library, _rigid(C_sub @ invert_pose(source.C_sub)) @ res.T_library_pre
-        lib, T, C = source
-        return lib, _rigid(C_sub @ invert_pose(C)) @ T
-
-    def _library_of(self, seq: int, left, right, feats, z0: float) -> _Library | None:
-        """The keyframe's features with stereo 3D points (camera frame)."""
-        if len(feats) == 0:
-            return None
-        if len(feats) > self.cfg.kf_library_max:  # the strongest keypoints of all views
-            keep = np.argsort(-feats.response, kind="stable")[: self.cfg.kf_library_max]
-            feats = feats.subset(np.sort(keep))
-        xy = feats.xy.astype(np.float32)
-        uvu = undistort_px(xy, self.rig.cam0.K, self.rig.cam0.dist)
-        rays = np.column_stack([(uvu[:, 0] - self.rig.cam0.cx) / self.rig.cam0.fx,
-                                (uvu[:, 1] - self.rig.cam0.cy) / self.rig.cam0.fy, np.ones(len(uvu))])
-        uvr, ok = stereo_right(self.rig, left, right, xy, self._right_guess(rays * z0), self.cfg)
-        Xc, err = self._triangulate(xy, uvr, self._doff)
-        ok &= (err < self.cfg.triangulation_max_px) & (Xc[:, 2] > self.cfg.min_depth_m) & (Xc[:, 2] < self._max_depth)
-        if ok.sum() < self.cfg.min_pnp_inliers:
-            return None
-        return _Library(seq, feats.subset(ok), Xc[ok])
-
-    def _submit_keyframe_job(self, left, right, T_world_cam: np.ndarray, z0: float) -> None:
-        """Queue this keyframe's ASIFT work: one job running and one waiting at most (the newest wins)."""
-        if not self.cfg.use_asift_keyframes:
-            return
-        self._join_keyframe_job()
-        prev = self._jobs[-1] if self._jobs else (
-            None if self._library is None else (self._library, self._T_library.copy(), self._C.copy()))
-        if len(self._jobs) >= 2 and self._jobs[-1].future.cancel():
-            # the waiting job never started: this newer keyframe takes its place and its source
-            dropped = self._jobs.pop()
-            prev = dropped.prev
-            self.counters["kf_jobs_skipped"] += 1
-        elif len(self._jobs) >= 2:
-            self.counters["kf_jobs_skipped"] += 1
-            return
-        m = self._map
-        C_sub = self._C.copy()
-        args = (self._cur_seq, left, right, T_world_cam.copy(), z0, m.X.copy(), m.uv.astype(np.float64), prev, C_sub)
-        self.counters["kf_jobs"] += 1
-        if self._executor is not None:
-            fut = self._executor.submit(self._keyframe_job, *args)
-        else:
-            fut = _Ready(self._keyframe_job(*args))
-        self._jobs.append(_Job(fut, C_sub, prev))
 
     def _new_keyframe(self, left, right, T_world_cam: np.ndarray) -> int:
         """Top up the map with new stereo points; hand the keyframe's ASIFT work to the worker."""
@@ -684,14 +388,13 @@ class StereoEstimator:
             self.keyframe_poses.append((self._cur_seq, T_world_cam.copy()))
         if (self.record_observations or cfg.refine_points) and len(m):
             Xc_old = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
-            uvr_old, ok_old = stereo_right(self.rig, left, right, m.uv, self._right_guess(Xc_old), cfg, fb_check=False)
+            uvr_old, ok_old = stereo_right(self.rig, left, right, m.uv, self._geo.right_guess(Xc_old), cfg, fb_check=False)
             if self.record_observations:
                 self._record(k, m.ids, m.uv, uvr_old, ok_old)
             if ok_old.any():
                 idx_o = np.flatnonzero(ok_old)
-                Xc_new, err_new = self._triangulate(m.uv[idx_o], uvr_old[idx_o], self._doff)
-                good = (err_new < cfg.triangulation_max_px) & (Xc_new[:, 2] > cfg.min_depth_m) & \
-                    (Xc_new[:, 2] < self._max_depth)
+                Xc_new, err_new = self._geo.triangulate(m.uv[idx_o], uvr_old[idx_o])
+                good = self._geo.good_points(Xc_new, err_new)
                 idx = idx_o[good]
                 if cfg.refine_points:
                     # running mean of each tracked point over its stereo observations at keyframes
@@ -703,12 +406,7 @@ class StereoEstimator:
         uvr = np.zeros((0, 2), np.float32)
         Xw = np.zeros((0, 3))
         if len(cands_all):
-            uvu = undistort_px(cands_all, self.rig.cam0.K, self.rig.cam0.dist)
-            rays = np.column_stack([(uvu[:, 0] - self.rig.cam0.cx) / self.rig.cam0.fx,
-                                    (uvu[:, 1] - self.rig.cam0.cy) / self.rig.cam0.fy, np.ones(len(uvu))])
-            uvr, ok = stereo_right(self.rig, left, right, cands_all, self._right_guess(rays * z0), cfg)
-            Xc, err = self._triangulate(cands_all, uvr, self._doff)
-            ok &= (err < cfg.triangulation_max_px) & (Xc[:, 2] > cfg.min_depth_m) & (Xc[:, 2] < self._max_depth)
+            uvr, Xc, ok = self._geo.stereo_points(left, right, cands_all, z0)
             Xw = Xc @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
             # corners (not SIFT keypoints) become tracked map points, up to max_points
             sel = np.flatnonzero(ok)[: max(0, need)]
@@ -738,4 +436,4 @@ class StereoEstimator:
 
     def _default_depth(self) -> float:
         # a depth that gives a middle disparity on this rig
-        return float(np.clip(self._rect.f * self._rect.baseline_m / 20.0, 0.5, 20.0))
+        return float(np.clip(self._geo.rect.f * self._geo.rect.baseline_m / 20.0, 0.5, 20.0))

@@ -1,0 +1,253 @@
+"""The keyframe worker of the ``stereo`` estimator: modified-ASIFT work off the frame loop.
+
+A keyframe's ASIFT work runs on one worker thread with a queue of one running and one
+waiting job (a newer keyframe replaces the waiting one): the keyframe's affine views are
+detected, its original-view SIFT is matched against the previous keyframe library (all
+views, each with a stereo 3D point) around the positions predicted by the tracked pose,
+and the keyframe pose is solved jointly from those matches and the tracked map points;
+then the keyframe's own library is built.  The frame loop joins the result at the first
+frame after it is ready and never waits for it: the correction of the keyframe pose is
+applied to the live state (current pose and map) as one rigid motion, mapped through the
+corrections applied since the job was submitted.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from stereopath.device.core.geometry import invert_pose, rotation_angle_deg
+
+log = logging.getLogger(__name__)
+
+_LIVE_POSES = ("_T_world_cam", "_T_prev_prev", "_T_kf", "_T_library")
+
+
+@dataclass
+class Library:
+    """A keyframe's features of all views, each with a stereo 3D point in that keyframe's camera frame."""
+
+    seq: int
+    feats: object  # stereopath.device.core.features.Features
+    X_cam: np.ndarray
+
+
+@dataclass
+class Job:
+    """A keyframe job in flight: its future and the world it was submitted in."""
+
+    future: object  # concurrent.futures.Future or Ready
+    C_sub: np.ndarray  # the cumulative live-state correction when it was submitted
+    prev: object  # what it matches against: a (Library, T_world_kf, C) triple, or the previous Job
+
+
+@dataclass
+class KeyframeResult:
+    seq: int
+    T_tracked: np.ndarray  # the keyframe pose the frame loop used (world at submission)
+    T_refined: np.ndarray | None  # from the ASIFT matches and the tracked map, None if not solved
+    n_asift: int
+    library: Library | None  # this keyframe's library, or the one it matched against when it has none
+    T_library: np.ndarray | None  # pose of that library's keyframe (world at submission, corrected)
+    T_library_pre: np.ndarray | None = None  # the same without this job's own correction
+
+
+class Ready:
+    """A finished result with the Future interface (the synchronous mode)."""
+
+    def __init__(self, value) -> None:
+        self._value = value
+
+    def done(self) -> bool:
+        return True
+
+    def result(self):
+        return self._value
+
+
+def rigid(T: np.ndarray) -> np.ndarray:
+    """``T`` with its rotation projected onto SO(3): products of corrections stay rigid."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    out = T.copy()
+    out[:3, :3] = R
+    return out
+
+
+def resolve_previous(source, C_sub: np.ndarray):
+    """The library a job matches against and its keyframe pose, in the world of the job's submission.
+
+    ``source`` is a ``(library, T_world_kf, C)`` triple, or the previous job (already finished:
+    the worker runs jobs in order), whose result is mapped through the corrections between the
+    two submissions."""
+    if source is None:
+        return None, None
+    if isinstance(source, Job):
+        try:
+            res = source.future.result()
+        except Exception:
+            return None, None
+        if res is None or res.library is None or res.T_library is None:
+            return None, None
+        # not joined before this job was submitted: this job's world lacks the previous job's own
+        # correction, so the library sits where the tracked state put it
+        return res.library, rigid(C_sub @ invert_pose(source.C_sub)) @ res.T_library_pre
+    lib, T, C = source
+    return lib, rigid(C_sub @ invert_pose(C)) @ T
+
+
+class KeyframeJobs:
+    """Mixin of :class:`~stereopath.device.estimation.stereo_vo.StereoEstimator`: the keyframe queue.
+
+    Uses the estimator's ``cfg``, ``rig``, ``_geo`` (StereoMeasure), ``_map``, ``counters`` and
+    live poses; owns ``_jobs``, ``_executor``, ``_C``, ``_library``, ``_T_library``."""
+
+    def _init_keyframe_jobs(self) -> None:
+        self._jobs: list[Job] = []  # keyframe jobs in flight, oldest first: at most one running, one waiting
+        self._C = np.eye(4)  # product of the corrections applied to the live state so far
+        self._library: Library | None = None  # the newest keyframe library joined
+        self._T_library: np.ndarray | None = None  # its keyframe's pose in the live world
+        self._executor = None
+        self._feature_cfg = None
+        self._match_cfg = None
+        if self.cfg.use_asift_keyframes and self.cfg.background_keyframes:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keyframe-features")
+
+    def close(self) -> None:
+        """Stop the background keyframe worker (idempotent)."""
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
+            self._executor = None
+
+    def _features(self, img: np.ndarray, views: list[int] | None = None):
+        from stereopath.device.core.features import detect, get_preset
+
+        if self._feature_cfg is None:
+            self._feature_cfg = get_preset(self.cfg.feature_preset)
+        return detect(img, self._feature_cfg, views=views)
+
+    def _apply_correction(self, G: np.ndarray) -> None:
+        """One rigid motion of the live state keeps the map and the current pose consistent."""
+        self._map.move(G)
+        for name in _LIVE_POSES:
+            T = getattr(self, name)
+            if T is not None:
+                setattr(self, name, G @ T)
+        self._C = rigid(G @ self._C)
+
+    def _join_keyframe_job(self) -> None:
+        """Take the finished keyframe jobs' results, oldest first (never waits)."""
+        while self._jobs and self._jobs[0].future.done():
+            job = self._jobs.pop(0)
+            try:
+                res: KeyframeResult | None = job.future.result()
+            except Exception:  # a failed job costs one keyframe's ASIFT, never the session
+                log.exception("keyframe feature job failed")
+                continue
+            if res is None:
+                continue
+            # the job worked in the world of its submission; corrections applied since map it to the live one
+            C_since = self._C @ invert_pose(job.C_sub)
+            if res.T_refined is not None:
+                G = rigid(C_since @ res.T_refined @ invert_pose(res.T_tracked) @ invert_pose(C_since))
+                ang = rotation_angle_deg(G[:3, :3])
+                log.debug("keyframe %d: correction %.3f deg, %.4f m", res.seq, ang, float(np.linalg.norm(G[:3, 3])))
+                if ang <= self.cfg.max_correction_deg:
+                    self._apply_correction(G)
+                    self.counters["kf_corrections"] += 1
+                    self.counters["asift_matches"] += res.n_asift
+                else:
+                    log.info("keyframe %d: ASIFT correction of %.2f deg rejected", res.seq, ang)
+            if res.library is not None and res.T_library is not None:
+                # the job's belief of its keyframe (refined) in the live world, before its own correction
+                self._library = res.library
+                self._T_library = C_since @ res.T_library
+
+    def _asift_matches(self, prev: Library, prev_X: np.ndarray, feats0, T_tracked: np.ndarray) -> np.ndarray:
+        """(current, previous) index pairs of the keyframe's original view against the previous library."""
+        from stereopath.device.core.matching import MatchConfig, match, match_guided
+
+        if self.cfg.guided_radius_px <= 0:
+            mt = match(feats0, prev.feats, self._match_cfg or MatchConfig())
+            return np.asarray(mt.idx).reshape(-1, 2)
+        T_cw = invert_pose(T_tracked)
+        Xc = prev_X @ T_cw[:3, :3].T + T_cw[:3, 3]
+        pred = np.full((len(Xc), 2), np.nan)
+        front = Xc[:, 2] > self.cfg.min_depth_m
+        if np.any(front):
+            pred[front] = cv2.projectPoints(Xc[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
+                                            self.rig.cam0.K, self.rig.cam0.dist)[0].reshape(-1, 2)
+        mt = match_guided(prev.feats, feats0, pred, self.cfg.guided_radius_px, self._match_cfg or MatchConfig())
+        return np.asarray(mt.idx).reshape(-1, 2)[:, ::-1]
+
+    def _keyframe_job(self, seq: int, left, right, T_tracked: np.ndarray, z0: float, X_map: np.ndarray,
+                      uv_map: np.ndarray, prev_source, C_sub: np.ndarray) -> KeyframeResult:
+        """Modified-ASIFT work of one keyframe (on the worker thread): the joint pose, then the library.
+
+        The keyframe's original-view SIFT is matched against the previous library (all views of
+        the previous keyframe, each with a 3D point) around the positions the tracked pose
+        predicts; those matches and the tracked map points give the keyframe pose."""
+        prev, T_prev = resolve_previous(prev_source, C_sub)
+        feats = self._features(left)
+        T_ref, n_asift = None, 0
+        if prev is not None and len(feats):
+            prev_X = prev.X_cam @ T_prev[:3, :3].T + T_prev[:3, 3]
+            feats0 = feats.original_view()
+            idx = self._asift_matches(prev, prev_X, feats0, T_tracked)
+            if len(idx) >= self.cfg.min_pnp_inliers:
+                X = np.vstack([prev_X[idx[:, 1]], X_map])
+                uv = np.vstack([feats0.xy[idx[:, 0]].astype(np.float64), uv_map])
+                T_new, _, mask = self._geo.solve_pose(left, right, X, uv, T_tracked, seed=seq)
+                # the tracked map must still fit the joint pose: ASIFT matches that pull the pose away
+                # from it (repeated texture, a wrong 3D point) would turn its points into outliers
+                if T_new is not None and mask[len(idx):].sum() >= self.cfg.kf_map_agreement * len(X_map):
+                    T_ref, n_asift = T_new, int(mask[: len(idx)].sum())
+        library = self._library_of(seq, left, right, feats, z0)
+        if library is None:  # the next keyframe matches against the one before
+            return KeyframeResult(seq, T_tracked, T_ref, n_asift, prev, T_prev, T_prev)
+        return KeyframeResult(seq, T_tracked, T_ref, n_asift, library, T_tracked if T_ref is None else T_ref,
+                              T_tracked)
+
+    def _library_of(self, seq: int, left, right, feats, z0: float) -> Library | None:
+        """The keyframe's features with stereo 3D points (camera frame)."""
+        if len(feats) == 0:
+            return None
+        if len(feats) > self.cfg.kf_library_max:  # the strongest keypoints of all views
+            keep = np.argsort(-feats.response, kind="stable")[: self.cfg.kf_library_max]
+            feats = feats.subset(np.sort(keep))
+        _, Xc, ok = self._geo.stereo_points(left, right, feats.xy.astype(np.float32), z0)
+        if ok.sum() < self.cfg.min_pnp_inliers:
+            return None
+        return Library(seq, feats.subset(ok), Xc[ok])
+
+    def _submit_keyframe_job(self, left, right, T_world_cam: np.ndarray, z0: float) -> None:
+        """Queue this keyframe's ASIFT work: one job running and one waiting at most (the newest wins)."""
+        if not self.cfg.use_asift_keyframes:
+            return
+        self._join_keyframe_job()
+        prev = self._jobs[-1] if self._jobs else (
+            None if self._library is None else (self._library, self._T_library.copy(), self._C.copy()))
+        if len(self._jobs) >= 2 and self._jobs[-1].future.cancel():
+            # the waiting job never started: this newer keyframe takes its place and its source
+            dropped = self._jobs.pop()
+            prev = dropped.prev
+            self.counters["kf_jobs_skipped"] += 1
+        elif len(self._jobs) >= 2:
+            self.counters["kf_jobs_skipped"] += 1
+            return
+        m = self._map
+        C_sub = self._C.copy()
+        args = (self._cur_seq, left, right, T_world_cam.copy(), z0, m.X.copy(), m.uv.astype(np.float64), prev, C_sub)
+        self.counters["kf_jobs"] += 1
+        if self._executor is not None:
+            fut = self._executor.submit(self._keyframe_job, *args)
+        else:
+            fut = Ready(self._keyframe_job(*args))
+        self._jobs.append(Job(fut, C_sub, prev))

@@ -1,0 +1,117 @@
+"""Stereo measurements of the ``stereo`` estimator: right-image search, triangulation, two-camera pose.
+
+One object per estimator holds the rig, its rectification and the configuration; the
+frame loop and the keyframe worker both measure through it.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from stereopath.device.core.geometry import invert_pose
+from stereopath.device.core.rig import Rig
+from stereopath.device.core.stereo import (
+    pose_to_rvec_tvec,
+    refine_pose_lm,
+    rvec_tvec_to_pose,
+    stereo_right,
+    triangulate,
+    undistort_px,
+)
+
+
+class StereoMeasure:
+    """Right-image correspondences, stereo points and poses for one rig (``cfg``: a ``StereoConfig``)."""
+
+    def __init__(self, rig: Rig, cfg) -> None:
+        self.rig = rig
+        self.cfg = cfg
+        self.rect = rig.rectification()
+        self.disparity_offset_px = float(cfg.disparity_offset_px)
+        fb = self.rect.f * self.rect.baseline_m
+        self.max_depth = min(cfg.max_depth_m, fb / cfg.min_disparity_px) if cfg.min_disparity_px > 0 \
+            else cfg.max_depth_m
+
+    def right_guess(self, X_cam0: np.ndarray) -> np.ndarray:
+        """Where points given in camera 1's frame appear in the right image (distorted pixels)."""
+        if len(X_cam0) == 0:
+            return np.zeros((0, 2))
+        Xr = X_cam0 @ self.rig.R.T + self.rig.T
+        Xr[:, 2] = np.maximum(Xr[:, 2], 1e-3)
+        return cv2.projectPoints(Xr.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.rig.cam1.K,
+                                 self.rig.cam1.dist)[0].reshape(-1, 2)
+
+    def rays(self, xy: np.ndarray) -> np.ndarray:
+        """Camera-1 rays (z = 1) of distorted left pixels."""
+        c = self.rig.cam0
+        uvu = undistort_px(xy, c.K, c.dist)
+        return np.column_stack([(uvu[:, 0] - c.cx) / c.fx, (uvu[:, 1] - c.cy) / c.fy, np.ones(len(uvu))])
+
+    def triangulate(self, uv_left: np.ndarray, uv_right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Stereo points (camera 1 frame) and their reprojection error, the disparity offset removed.
+
+        Removing an offset ``d0`` from the rectified disparity is moving the right point by ``+d0``
+        along its rectified row (done through the rectification, so it holds for distorted images)."""
+        offset = self.disparity_offset_px
+        uvl = undistort_px(uv_left, self.rig.cam0.K, self.rig.cam0.dist)
+        if offset != 0.0 and len(uv_right):
+            r = self.rect
+            rr = cv2.undistortPoints(uv_right.reshape(-1, 1, 2).astype(np.float64), self.rig.cam1.K,
+                                     self.rig.cam1.dist, R=r.R1, P=r.P1).reshape(-1, 2)
+            rr[:, 0] += offset
+            # back from the rectified right image to ideal pixels of camera 2 (K1, no distortion)
+            Pinv = np.linalg.inv(r.P1[:, :3])
+            rays = np.column_stack([rr, np.ones(len(rr))]) @ Pinv.T
+            rays = rays @ r.R1  # R1^T applied to each row
+            uvr = (rays / rays[:, 2:3]) @ self.rig.cam1.K.T
+            uvr = uvr[:, :2]
+        else:
+            uvr = undistort_px(uv_right, self.rig.cam1.K, self.rig.cam1.dist)
+        return triangulate(self.rig, uvl, uvr)
+
+    def good_points(self, Xc: np.ndarray, err: np.ndarray) -> np.ndarray:
+        """Triangulations that are consistent and inside the mapped depth range."""
+        cfg = self.cfg
+        return (err < cfg.triangulation_max_px) & (Xc[:, 2] > cfg.min_depth_m) & (Xc[:, 2] < self.max_depth)
+
+    def stereo_points(self, left, right, xy: np.ndarray, z0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """New stereo points at left pixels ``xy``: (right pixels, camera-1 points, good mask).
+
+        The right-image search starts from each pixel's ray at depth ``z0``."""
+        uvr, ok = stereo_right(self.rig, left, right, xy, self.right_guess(self.rays(xy) * z0), self.cfg)
+        Xc, err = self.triangulate(xy, uvr)
+        return uvr, Xc, ok & self.good_points(Xc, err)
+
+    def solve_pose(self, left, right, X: np.ndarray, uv: np.ndarray, T_guess: np.ndarray, seed: int,
+                   use_guess: bool = True):
+        """PnP RANSAC (from the guess), then LM in both cameras.  Returns (T_world_cam, n_inliers, mask)."""
+        cfg = self.cfg
+        K0, d0 = self.rig.cam0.K, self.rig.cam0.dist
+        uv_u = undistort_px(uv, K0, d0)
+        T_cw = invert_pose(T_guess)
+        rvec, tvec = pose_to_rvec_tvec(T_cw)
+        # RANSAC draws do not depend on what ran before (OpenCV's RNG is per thread)
+        cv2.setRNGSeed(seed)
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            X.reshape(-1, 1, 3), uv_u.reshape(-1, 1, 2), K0, None, rvec, tvec, useExtrinsicGuess=use_guess,
+            iterationsCount=200 if use_guess else 500, reprojectionError=cfg.pnp_reproj_px, confidence=0.999,
+            flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok or inl is None or len(inl) < cfg.min_pnp_inliers:
+            return None, 0, None
+        mask = np.zeros(len(X), bool)
+        mask[inl.ravel()] = True
+        T_cw = rvec_tvec_to_pose(rvec, tvec)
+        # right-image observations of the inliers for the two-camera refinement
+        Xc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
+        idx = np.flatnonzero(mask & (Xc[:, 2] > cfg.min_depth_m))
+        uvr, okr = stereo_right(self.rig, left, right, uv[idx], self.right_guess(Xc[idx]), cfg, fb_check=False)
+        ridx = idx[okr]
+        uvr_u = undistort_px(uvr[okr], self.rig.cam1.K, self.rig.cam1.dist)
+        res = refine_pose_lm(self.rig, T_cw, X[mask], uv_u[mask], X[ridx], uvr_u, huber_px=cfg.huber_px,
+                             outlier_px=cfg.pnp_reproj_px)
+        final = np.zeros(len(X), bool)
+        final[np.flatnonzero(mask)[res.inliers_left]] = True
+        if final.sum() < cfg.min_pnp_inliers:
+            return None, 0, None
+        return invert_pose(res.T_cam_world), int(final.sum()), final
