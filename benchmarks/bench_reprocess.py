@@ -13,9 +13,11 @@
    (The hand-written solver GTSAM replaced was measured in the same run before it was deleted:
    README, "Figures".)
 2. KITTI 06 frames 0-50 (no map): the vision-only variant (KITTI has no IMU).
-3. --loop N: a session on the `loop` trajectory (N frames): on-board ATE and end-to-start error,
-   then `host reprocess` (GTSAM with loop closure): the loops accepted, ATE and end-to-start
-   error after (targets: end-to-start <= 1 mm, ATE <= 0.5x on-board).
+3. --loop N: a session on the `loop` trajectory (N frames): on-board ATE and end-to-start error
+   (target >= 10 mm; with --loop-seeds S also of S more in-memory sessions, seeds 1..S), then
+   `host reprocess` (GTSAM with loop closure): the loops accepted, how many of them are false
+   (their relative pose more than 20 mm or 1 deg off the ground truth's), ATE and end-to-start
+   error after (targets: end-to-start <= 1 mm, ATE <= 0.5x on-board, 0 false loops).
 4. --ablations: GTSAM without the disparity offset, without the frame refinement, and the
    `quick` preset (tracks without affine views), on both sequences.
 Prints figures; asserts nothing.
@@ -120,6 +122,37 @@ def print_bias_recovery(name: str, imu: dict, t_ns, accel_true, gyro_true) -> No
               f"per keyframe median {np.median(per_kf) * 100:.1f} %, max {per_kf.max() * 100:.1f} % (target <= 10 %)")
 
 
+def false_loops(seq, stages: Path) -> tuple[int, float, float]:
+    """Accepted loops whose relative pose is > 20 mm or 1 deg off the truth; the largest errors (mm, deg)."""
+    import numpy as np
+
+    from stereopath.device.core.geometry import invert_pose, rotation_angle_deg
+    from stereopath.host.reprocess.loops import loops_from_array
+
+    trk, est = np.load(stages / "tracks.npz"), np.load(stages / "estimate.npz")
+    gt = seq.groundtruth
+    t_gt = np.asarray(gt.t_ns)
+    G = np.array([gt.T_world_cam[np.argmin(np.abs(t_gt - t))] for t in est["t_ns"][trk["kf_index"]]])
+    errs = [(1000 * np.linalg.norm(rel[:3, 3] - lp.T_ci_cj[:3, 3]), rotation_angle_deg(rel[:3, :3].T @ lp.T_ci_cj[:3, :3]))
+            for lp in loops_from_array(trk["loops"]) for rel in [invert_pose(G[lp.i]) @ G[lp.j]]]
+    if not errs:
+        return 0, 0.0, 0.0
+    e = np.array(errs)
+    return int(np.sum((e[:, 0] > 20.0) | (e[:, 1] > 1.0))), float(e[:, 0].max()), float(e[:, 1].max())
+
+
+def loop_gaps(frames: int, seeds: int) -> None:
+    """On-board end-to-start error of in-memory `loop` sessions with seeds 1..seeds."""
+    from stereopath.device.sim.session import SimConfig, open_sim
+    from stereopath.host.reprocess.outputs import end_to_start_error
+
+    for seed in range(1, seeds + 1):
+        seq = open_sim(SimConfig(trajectory="loop", frames=frames, seed=seed))
+        run = estimate_sequence(seq, "stereo", progress=False)
+        print(f"loop seed {seed}: on-board ATE {mm(evaluate(seq.groundtruth, run.trajectory)['ate_rmse_m'])}, "
+              f"end-to-start error {mm(end_to_start_error(seq.groundtruth, run.trajectory))} (target: >= 10 mm)")
+
+
 def loop_figures(tmp: Path, frames: int, base) -> None:
     """Record a loop session, reprocess it with loop closure, print the loop figures."""
     from stereopath.device.formats.recorder import record_sequence
@@ -133,7 +166,7 @@ def loop_figures(tmp: Path, frames: int, base) -> None:
     run = estimate_sequence(seq, "stereo", progress=False)
     ate_on = evaluate(seq.groundtruth, run.trajectory)["ate_rmse_m"]
     gap_on = end_to_start_error(seq.groundtruth, run.trajectory)
-    print(f"loop session: {len(seq)} frames, {seq.groundtruth.path_length_m():.2f} m; on-board ATE {mm(ate_on)}, "
+    print(f"loop session (seed 0): {len(seq)} frames, {seq.groundtruth.path_length_m():.2f} m; on-board ATE {mm(ate_on)}, "
           f"end-to-start error {mm(gap_on)} (target: >= 10 mm)")
     t = time.perf_counter()
     res = reprocess_sequence(seq, tmp / "loop_out", preset=base, do_map=False, progress=False, onboard=run.trajectory)
@@ -144,6 +177,9 @@ def loop_figures(tmp: Path, frames: int, base) -> None:
     more = " ..." if len(lp["accepted"]) > 12 else ""
     print(f"  reprocess (GTSAM, loop closure) {time.perf_counter() - t:.1f} s: {len(lp['accepted'])} loops accepted "
           f"(keyframe pairs / inliers: {pairs}{more})")
+    n_false, e_mm, e_deg = false_loops(seq, tmp / "loop_out" / "stages")
+    print(f"  false loops: {n_false} (target 0); largest disagreement of a loop with the truth {e_mm:.2f} mm, "
+          f"{e_deg:.3f} deg")
     print(f"  ATE after {mm(after)} = x{after / ate_on:.3f} of on-board (target <= 0.5); end-to-start error: "
           f"re-estimated {mm(err['reestimated'])}, after {mm(err['bundle_adjusted'])} (target <= 1 mm)")
 
@@ -157,6 +193,8 @@ def main() -> int:
     ap.add_argument("--ablations", action="store_true")
     ap.add_argument("--loop", type=int, default=0, metavar="FRAMES", help="also the loop trajectory with this many frames")
     ap.add_argument("--only-loop", action="store_true", help="only the loop figures")
+    ap.add_argument("--loop-seeds", type=int, default=0, metavar="S",
+                    help="with --loop: also the on-board end-to-start error of seeds 1..S")
     ap.add_argument("--reuse", action="store_true",
                     help="with --keep: compare the solvers on stages already stored there (no end-to-end run)")
     ap.add_argument("--keep", default=None, help="write into this folder instead of a temporary one")
@@ -169,6 +207,7 @@ def main() -> int:
         tmp.mkdir(parents=True, exist_ok=True)
         if args.loop:
             loop_figures(tmp, args.loop, base)
+            loop_gaps(args.loop, args.loop_seeds)
         if args.only_loop:
             return 0
         sequences = []

@@ -50,9 +50,9 @@ def test_live_mapper_rejects_keyframes_of_another_rig(tmp_path):
     assert not (tmp_path / "s1").exists()
 
 
-def _drifting_loop_keyframes(frames=range(8, 42, 3)):
+def _drifting_loop_keyframes(frames=range(8, 50, 3)):
     """Keyframes of the simulated `loop` path up to its first return to the start (90-frame version:
-    the first turn ends near frame 40), sent with a drift that grows along the path (up to 1.5 deg
+    the first turn ends near frame 47), sent with a drift that grows along the path (up to 1.5 deg
     about the vertical and 15 mm), as an on-board estimate would; (keyframes, true poses, sent poses)."""
     from stereopath.device.core.geometry import make_pose, so3_exp
     from stereopath.device.sim.session import SimConfig, open_sim

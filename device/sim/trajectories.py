@@ -28,11 +28,15 @@ Trajectories (:data:`TRAJECTORIES`, :func:`get_trajectory`):
   same arc at the same speed (a shorter session is the beginning of the scan, a longer one goes
   on around the table).
 * ``"orbit"``: one full circle (r = 1.1 m, h = 1.35 m) around the objects over the session.
-* ``"loop"``: a hand-held walk of :data:`LOOP_TURNS` turns around the table that returns to its
-  start pose at the end of the session (radius 0.95-1.25 m, height 1.2-1.45 m, camera-frame
-  excursions up to about 10 deg, all periodic over the loop; only the hand shake, about 2 mm and
-  0.3 deg, is not): long enough for the on-board path to drift measurably before it comes back
-  (a test case for loop closure).
+* ``"loop"``: a hand-held walk of :data:`LOOP_TURNS` turns around the room (radius 1.35-1.55 m
+  about its centre, 0.45-0.65 m from the walls; height 1.2-1.45 m) that returns to its start pose
+  at the end of the session.  The camera faces along the walk, away from the table, swinging 30 deg
+  towards the walls and back once a turn, so it sees walls, corners and floor at 0.5-3 m rather than
+  the table objects; camera-frame excursions up to about 10 deg, all periodic over the loop; only
+  the hand shake, about 2 mm and 0.3 deg, is not.  Every turn passes the start in the same
+  direction (loop closure candidates).  With far and oblique surfaces the on-board path drifts
+  more than on turns around the table (whose close objects it keeps seeing): a test case for loop
+  closure.
 * ``"line"``: a 1 m straight slide past the table with fixed orientation.
 * ``"still"``: the arc's start pose, perfectly still (no shake).
 """
@@ -215,8 +219,9 @@ class LookAtOrbitShape(Shape):
 
     def __init__(self, phi0: float, k: float, r: Sines, r0: float, h: Sines, h0: float,
                  excursions: tuple[Sines, Sines, Sines] | None, shake_pos: list[Sines] | None,
-                 shake_rot: list[Sines] | None) -> None:
+                 shake_rot: list[Sines] | None, yaw_offset: Sines | None = None) -> None:
         self.phi0, self.k = float(phi0), float(k)
+        self.yaw_offset = yaw_offset  # heading away from the target (0: looking at it), a function of g
         self.r, self.r0, self.h, self.h0 = r, float(r0), h, float(h0)
         self.exc = excursions
         self.shake_pos, self.shake_rot = shake_pos, shake_rot
@@ -244,6 +249,10 @@ class LookAtOrbitShape(Shape):
         pitch, dpitch, ddpitch = _pitch_down(h - zt, dh, ddh, r, dr, ddr)
         yaw = self.phi0 + self.k * g + np.pi
         zeros = np.zeros(n)
+        dyaw, ddyaw = np.full(n, self.k), zeros
+        if self.yaw_offset is not None:
+            off, doff, ddoff = self.yaw_offset(g)
+            yaw, dyaw, ddyaw = yaw + off, dyaw + doff, ddoff
         ax = [-pitch, -dpitch, -ddpitch]
         ay = [zeros.copy(), zeros.copy(), zeros.copy()]
         az = [zeros.copy(), zeros.copy(), zeros.copy()]
@@ -254,7 +263,7 @@ class LookAtOrbitShape(Shape):
                 vals = group[srcs](g)
                 for j in range(3):
                     dst[j] = dst[j] + vals[j]
-        return [("z", yaw, np.full(n, self.k), zeros), ("const", _R_BASE), ("x", *ax), ("y", *ay), ("z", *az)]
+        return [("z", yaw, dyaw, ddyaw), ("const", _R_BASE), ("x", *ax), ("y", *ay), ("z", *az)]
 
 
 def _add_shake(P, dP, ddP, shake_pos, g) -> None:
@@ -395,12 +404,13 @@ def make_orbit(duration_s: float = DEFAULT_DURATION_S, seed: int = 0) -> Analyti
     return AnalyticTrajectory("orbit", shape, law, duration_s)
 
 
-LOOP_TURNS = 3
+LOOP_TURNS = 2
+LOOP_RADIUS_M = 1.45
 
 
 def make_loop(duration_s: float = DEFAULT_DURATION_S, seed: int = 0, turns: int = LOOP_TURNS,
-              radius_m: float = 1.1) -> AnalyticTrajectory:
-    """``turns`` turns around the table, back to the start pose at ``duration_s`` (module doc)."""
+              radius_m: float = LOOP_RADIUS_M) -> AnalyticTrajectory:
+    """``turns`` walks around the room, back to the start pose at ``duration_s`` (module doc)."""
     law = TimeLaw(duration_s)
     G = law.g_end if law.g_end > 0 else 1.0
     k = 2 * np.pi * turns / G if law.g_end > 0 else 0.0
@@ -411,8 +421,10 @@ def make_loop(duration_s: float = DEFAULT_DURATION_S, seed: int = 0, turns: int 
         Sines(np.radians([9.0, 3.0]), per[[2, 3]], [3.3, 0.2]),   # pan (camera y)
         Sines(np.radians([10.0, 4.0]), per[[0, 3]], [0.9, 2.6]),  # roll (camera z)
     )
+    # heading: along the walk (90 deg off the table), swinging 30 deg towards the walls and back once a turn
+    heading = Sines(np.radians([90.0, 30.0]), [0.0, turns / G], [np.pi / 2, 0.0])
     shape = LookAtOrbitShape(np.radians(-100.0), k, Sines([0.10, 0.03], per[[2, 4]], [0.3, 1.0]), radius_m,
-                             Sines([0.09, 0.03], per[[1, 3]], [1.1, 0.2]), 1.32, exc, sp, sr)
+                             Sines([0.09, 0.03], per[[1, 3]], [1.1, 0.2]), 1.32, exc, sp, sr, yaw_offset=heading)
     return AnalyticTrajectory("loop", shape, law, duration_s)
 
 
