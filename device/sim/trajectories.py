@@ -28,8 +28,8 @@ Trajectories (:data:`TRAJECTORIES`, :func:`get_trajectory`):
   same arc at the same speed (a shorter session is the beginning of the scan, a longer one goes
   on around the table).
 * ``"orbit"``: one full circle (r = 1.1 m, h = 1.35 m) around the objects over the session.
-* ``"loop"``: a hand-held walk of :data:`LOOP_TURNS` turns around the room (radius 1.35-1.55 m
-  about its centre, 0.45-0.65 m from the walls; height 1.2-1.45 m) that returns to its start pose
+* ``"loop"``: a hand-held walk of :data:`LOOP_TURNS` turns around the room (radius 1.3-1.6 m
+  about its centre, at least 0.45 m from the walls; height 1.2-1.45 m) that returns to its start pose
   at the end of the session.  The camera faces along the walk, away from the table, swinging 30 deg
   towards the walls and back once a turn, so it sees walls, corners and floor at 0.5-3 m rather than
   the table objects; camera-frame excursions up to about 10 deg, all periodic over the loop; only
