@@ -14,7 +14,8 @@
    README, "Figures".)
 2. KITTI 06 frames 0-50 (no map): the vision-only variant (KITTI has no IMU).
 3. --loop N: a session on the `loop` trajectory (N frames): on-board ATE and end-to-start error
-   (target >= 10 mm; with --loop-seeds S also of S more in-memory sessions, seeds 1..S), then
+   (target >= 10 mm; --loop-seed picks the session's seed, --loop-seeds S adds the on-board figures
+   of in-memory sessions with the other seeds up to S), then
    `host reprocess` (GTSAM with loop closure): the loops accepted, how many of them are false
    (their relative pose more than 20 mm or 1 deg off the ground truth's), ATE and end-to-start
    error after (targets: end-to-start <= 1 mm, ATE <= 0.5x on-board, 0 false loops).
@@ -141,35 +142,37 @@ def false_loops(seq, stages: Path) -> tuple[int, float, float]:
     return int(np.sum((e[:, 0] > 20.0) | (e[:, 1] > 1.0))), float(e[:, 0].max()), float(e[:, 1].max())
 
 
-def loop_gaps(frames: int, seeds: int) -> None:
-    """On-board end-to-start error of in-memory `loop` sessions with seeds 1..seeds."""
+def loop_gaps(frames: int, seeds: int, skip: int) -> None:
+    """On-board end-to-start error of in-memory `loop` sessions with seeds 0..seeds but ``skip``."""
     from stereopath.device.sim.session import SimConfig, open_sim
     from stereopath.host.reprocess.outputs import end_to_start_error
 
-    for seed in range(1, seeds + 1):
+    for seed in (s for s in range(seeds + 1) if s != skip):
         seq = open_sim(SimConfig(trajectory="loop", frames=frames, seed=seed))
         run = estimate_sequence(seq, "stereo", progress=False)
         print(f"loop seed {seed}: on-board ATE {mm(evaluate(seq.groundtruth, run.trajectory)['ate_rmse_m'])}, "
               f"end-to-start error {mm(end_to_start_error(seq.groundtruth, run.trajectory))} (target: >= 10 mm)")
 
 
-def loop_figures(tmp: Path, frames: int, base) -> None:
+def loop_figures(tmp: Path, frames: int, base, seed: int = 0) -> None:
     """Record a loop session, reprocess it with loop closure, print the loop figures."""
     from stereopath.device.formats.recorder import record_sequence
     from stereopath.device.sim.session import SimConfig, open_sim
     from stereopath.host.reprocess.outputs import end_to_start_error
 
-    session = tmp / "loop_session"
+    suffix = f"_seed{seed}" if seed else ""
+    session, out = tmp / f"loop_session{suffix}", tmp / f"loop_out{suffix}"
     if not (session / "mav0").is_dir():
-        record_sequence(open_sim(SimConfig(trajectory="loop", frames=frames)), session, config_dict={"source": "sim"})
+        record_sequence(open_sim(SimConfig(trajectory="loop", frames=frames, seed=seed)), session,
+                        config_dict={"source": "sim"})
     seq = open_source(f"session:{session}")
     run = estimate_sequence(seq, "stereo", progress=False)
     ate_on = evaluate(seq.groundtruth, run.trajectory)["ate_rmse_m"]
     gap_on = end_to_start_error(seq.groundtruth, run.trajectory)
-    print(f"loop session (seed 0): {len(seq)} frames, {seq.groundtruth.path_length_m():.2f} m; on-board ATE {mm(ate_on)}, "
+    print(f"loop session (seed {seed}): {len(seq)} frames, {seq.groundtruth.path_length_m():.2f} m; on-board ATE {mm(ate_on)}, "
           f"end-to-start error {mm(gap_on)} (target: >= 10 mm)")
     t = time.perf_counter()
-    res = reprocess_sequence(seq, tmp / "loop_out", preset=base, do_map=False, progress=False, onboard=run.trajectory)
+    res = reprocess_sequence(seq, out, preset=base, do_map=False, progress=False, onboard=run.trajectory)
     lp = res.report["extra"]["loops"]
     after = res.report["ate_rmse_m"]
     err = lp["end_to_start_error_m"]
@@ -177,7 +180,7 @@ def loop_figures(tmp: Path, frames: int, base) -> None:
     more = " ..." if len(lp["accepted"]) > 12 else ""
     print(f"  reprocess (GTSAM, loop closure) {time.perf_counter() - t:.1f} s: {len(lp['accepted'])} loops accepted "
           f"(keyframe pairs / inliers: {pairs}{more})")
-    n_false, e_mm, e_deg = false_loops(seq, tmp / "loop_out" / "stages")
+    n_false, e_mm, e_deg = false_loops(seq, out / "stages")
     print(f"  false loops: {n_false} (target 0); largest disagreement of a loop with the truth {e_mm:.2f} mm, "
           f"{e_deg:.3f} deg")
     print(f"  ATE after {mm(after)} = x{after / ate_on:.3f} of on-board (target <= 0.5); end-to-start error: "
@@ -193,8 +196,9 @@ def main() -> int:
     ap.add_argument("--ablations", action="store_true")
     ap.add_argument("--loop", type=int, default=0, metavar="FRAMES", help="also the loop trajectory with this many frames")
     ap.add_argument("--only-loop", action="store_true", help="only the loop figures")
+    ap.add_argument("--loop-seed", type=int, default=0, help="with --loop: the seed of the reprocessed session")
     ap.add_argument("--loop-seeds", type=int, default=0, metavar="S",
-                    help="with --loop: also the on-board end-to-start error of seeds 1..S")
+                    help="with --loop: also the on-board end-to-start error of seeds 0..S (but --loop-seed)")
     ap.add_argument("--reuse", action="store_true",
                     help="with --keep: compare the solvers on stages already stored there (no end-to-end run)")
     ap.add_argument("--keep", default=None, help="write into this folder instead of a temporary one")
@@ -206,8 +210,8 @@ def main() -> int:
         tmp = Path(args.keep) if args.keep else Path(tmp_name)
         tmp.mkdir(parents=True, exist_ok=True)
         if args.loop:
-            loop_figures(tmp, args.loop, base)
-            loop_gaps(args.loop, args.loop_seeds)
+            loop_figures(tmp, args.loop, base, args.loop_seed)
+            loop_gaps(args.loop, args.loop_seeds, args.loop_seed)
         if args.only_loop:
             return 0
         sequences = []

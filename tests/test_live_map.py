@@ -50,9 +50,9 @@ def test_live_mapper_rejects_keyframes_of_another_rig(tmp_path):
     assert not (tmp_path / "s1").exists()
 
 
-def _drifting_loop_keyframes(frames=range(8, 50, 3)):
-    """Keyframes of the simulated `loop` path up to its first return to the start (90-frame version:
-    the first turn ends near frame 47), sent with a drift that grows along the path (up to 1.5 deg
+def _drifting_loop_keyframes(frames=range(11, 50, 4)):
+    """Keyframes of the simulated `loop` path (a walk around the room, fused with the `room` preset)
+    up to its first return to the start (90-frame version: the first turn ends near frame 47), sent with a drift that grows along the path (up to 1.5 deg
     about the vertical and 15 mm), as an on-board estimate would; (keyframes, true poses, sent poses)."""
     from stereopath.device.core.geometry import make_pose, so3_exp
     from stereopath.device.sim.session import SimConfig, open_sim
@@ -87,7 +87,7 @@ def test_a_loop_closed_while_scanning_is_in_the_next_mesh(tmp_path):
 
     rig, kfs, T_true, T_sent = _drifting_loop_keyframes()
     refreshes = []  # (keyframes fused, loops closed, mesh) at each refresh
-    m = LiveMapper(rig, tmp_path, every=1000, loops=LoopConfig(min_separation=5),
+    m = LiveMapper(rig, tmp_path, every=1000, preset="room", loops=LoopConfig(min_separation=5),
                    on_mesh=lambda s, mesh: refreshes.append((m.fused, m.loops_closed, mesh)))
     for kf in kfs:
         m.on_keyframe(kf, True)
