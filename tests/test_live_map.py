@@ -52,8 +52,9 @@ def test_live_mapper_rejects_keyframes_of_another_rig(tmp_path):
 
 def _drifting_loop_keyframes(frames=range(11, 50, 4)):
     """Keyframes of the simulated `loop` path (a walk around the room, fused with the `room` preset)
-    up to its first return to the start (90-frame version: the first turn ends near frame 47), sent with a drift that grows along the path (up to 1.5 deg
-    about the vertical and 15 mm), as an on-board estimate would; (keyframes, true poses, sent poses)."""
+    up to its first return to the start (90-frame version: the first turn ends near frame 47), sent
+    with a drift that grows along the path (up to 1.5 deg about the vertical and 15 mm), as an
+    on-board estimate would; (keyframes, true poses, sent poses)."""
     from stereopath.device.core.geometry import make_pose, so3_exp
     from stereopath.device.sim.session import SimConfig, open_sim
 
