@@ -94,3 +94,17 @@ def test_fast_motion_every_nth_kitti_frame_is_tracked(data_dir, step):
     assert run.frames_tracked == len(frames)  # 0 lost
     m = evaluate(seq.groundtruth, run.trajectory)
     assert m["end_error_m"] / m["path_length_m"] < 0.02
+
+
+def test_online_disparity_offset_is_estimated_bounded_and_used(data_dir):
+    rig, frames = _kitti_frames(data_dir, range(14))
+    est = StereoEstimator(rig, StereoConfig(kf_max_frames=2, background_keyframes=False,
+                                            estimate_disparity_offset=True))
+    out = [est.process(f, None) for f in frames]
+    est.close()
+    assert all(e.status == "ok" for e in out)
+    assert est._offset.n >= 3 and est._offset.ready
+    assert abs(est._offset.value) <= est._offset.bound
+    # the fused value is what the triangulation and the pose refinement now remove
+    assert est._geo.disparity_offset_px == est._offset.value != 0.0
+    assert est.counters["disparity_offset_mpx"] == round(1000 * est._offset.value)
