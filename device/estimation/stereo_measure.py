@@ -114,7 +114,8 @@ class StereoMeasure:
         # right-image observations of the inliers for the two-camera refinement
         Xc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
         idx = np.flatnonzero(mask & (Xc[:, 2] > cfg.min_depth_m))
-        uvr, okr = stereo_right(self.rig, left, right, uv[idx], self.right_guess(Xc[idx]), cfg, fb_check=False)
+        uvr, okr = stereo_right(self.rig, left, right, uv[idx], self.right_guess(Xc[idx]), cfg, fb_check=False,
+                                levels=cfg.seeded_stereo_levels)
         ridx = idx[okr]
         uvr_u = self.right_ideal(uvr[okr])
         res = refine_pose_lm(self.rig, T_cw, X[mask], uv_u[mask], X[ridx], uvr_u, huber_px=cfg.huber_px,

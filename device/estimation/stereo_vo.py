@@ -71,8 +71,11 @@ class StereoConfig:
     kf_rotation_deg: float = 15.0  # rotation since the last keyframe -> keyframe (the view change ASIFT bridges)
     kf_parallax_px: float = 0.0  # median flow since the keyframe -> keyframe (0 = off)
     kf_max_frames: int = 20
+    asift_min_rotation_deg: float = 3.0  # rotation since the last ASIFT keyframe that asks for ASIFT work again
+    asift_max_frames: int = 30  # ... or frames since it
     klt_window: int = 21
     klt_levels: int = 3
+    seeded_stereo_levels: int = 2  # pyramid of the right-image search from a known 3D point (an accurate guess)
     retry_klt_levels: int = 5  # deeper pyramid of the retry when tracking from the prediction fails
     relocalise: bool = True  # match SIFT against the last keyframe library when tracking fails
     fb_max_px: float = 0.6  # forward-backward KLT disagreement
@@ -105,8 +108,11 @@ class StereoConfig:
         check_range("kf_rotation_deg", self.kf_rotation_deg, 0.5, 180.0)
         check_range("kf_parallax_px", self.kf_parallax_px, 0.0, 10000.0)
         check_range("kf_max_frames", self.kf_max_frames, 1, 1000)
+        check_range("asift_min_rotation_deg", self.asift_min_rotation_deg, 0.0, 180.0)
+        check_range("asift_max_frames", self.asift_max_frames, 1, 100000)
         check_range("klt_window", self.klt_window, 5, 61)
         check_range("klt_levels", self.klt_levels, 0, 6)
+        check_range("seeded_stereo_levels", self.seeded_stereo_levels, 0, 6)
         check_range("retry_klt_levels", self.retry_klt_levels, 0, 8)
         check_range("epipolar_max_dy_px", self.epipolar_max_dy_px, 0.1, 5.0)
         check_range("min_depth_m", self.min_depth_m, 0.01, self.max_depth_m)
@@ -170,7 +176,7 @@ class StereoEstimator(KeyframeJobs):
         self._next_id = 0
         self._cur_seq = 0
         self.counters = {"keyframes": 0, "imu_only": 0, "lost": 0, "asift_matches": 0, "kf_jobs": 0,
-                         "kf_jobs_skipped": 0, "kf_corrections": 0, "retracked": 0, "relocalised": 0,
+                         "kf_jobs_skipped": 0, "kf_jobs_deferred": 0, "kf_corrections": 0, "retracked": 0, "relocalised": 0,
                          "disparity_offset_mpx": int(round(1000 * self.cfg.disparity_offset_px))}
 
     # ------------------------------------------------------------------ public
@@ -434,7 +440,8 @@ class StereoEstimator(KeyframeJobs):
         m = self._map
         T_cw = invert_pose(T_world_cam)
         Xc_old = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
-        uvr_old, ok_old = stereo_right(self.rig, left, right, m.uv, self._geo.right_guess(Xc_old), cfg, fb_check=False)
+        uvr_old, ok_old = stereo_right(self.rig, left, right, m.uv, self._geo.right_guess(Xc_old), cfg, fb_check=False,
+                                      levels=cfg.seeded_stereo_levels)
         if self.record_observations:
             self._record(k, m.ids, m.uv, uvr_old, ok_old)
         if not ok_old.any():
