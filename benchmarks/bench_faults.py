@@ -12,7 +12,6 @@ size=...``); otherwise an injected ``ENOSPC`` at the write helper.
 from __future__ import annotations
 
 import argparse
-import errno
 import json
 import os
 import shutil
@@ -31,29 +30,23 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault("STEREOPATH_DATA", str(ROOT.parent / "shared" / "data"))
 
-from tests.test_streaming_support import make_device, small_images, stored_seqs, wait_for  # noqa: E402
+from tests.test_streaming_support import free_ports, kill_9_once_spooled, loopback_stream, make_device, small_images, stored_seqs, \
+    wait_for, write_or_enospc  # noqa: E402
 
 TIME_LIMIT_S = 90.0  # per scenario: a scenario that takes longer counts as a hang
 
 
-def _free_ports(n: int) -> list[int]:
-    out = []
-    for _ in range(n):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            out.append(s.getsockname()[1])
-    return out
-
-
-def _cli(argv: list[str], timeout: float = TIME_LIMIT_S) -> tuple[int | str, str]:
-    """``python -m stereopath.host ARGV``: (exit code or 'HANG', the last error/warning line)."""
+def _cli(argv: list[str], timeout: float = TIME_LIMIT_S, pick: str = "") -> tuple[int | str, str]:
+    """``python -m stereopath.host ARGV``: (exit code or 'HANG', the last error/warning line, or the
+    last line holding ``pick``)."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     try:
         p = subprocess.run([sys.executable, "-m", "stereopath.host", *argv], cwd=ROOT, env=env,
                            capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
         return "HANG", ""
-    return p.returncode, _user_line(p.stderr + p.stdout)
+    picked = [ln for ln in (p.stderr + p.stdout).splitlines() if pick and pick in ln]
+    return p.returncode, picked[-1][:400] if picked else _user_line(p.stderr + p.stdout)
 
 
 def _user_line(text: str) -> str:
@@ -93,9 +86,13 @@ def _small_fs(size: str):
 
 
 def _receiver(dev, out: Path, **kw):
+    return _receiver_at(dev.pose_endpoint, dev.keyframe_endpoint, out, **kw)
+
+
+def _receiver_at(pose_endpoint: str, keyframe_endpoint: str, out: Path, **kw):
     from stereopath.host.live.receiver import Receiver, ReceiverConfig
 
-    cfg = ReceiverConfig(dev.pose_endpoint, dev.keyframe_endpoint, insecure=True, fsync=False,
+    cfg = ReceiverConfig(pose_endpoint, keyframe_endpoint, insecure=True, fsync=False,
                          heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
                          reconnect_ivl_max_ms=400, stall_timeout_s=1.0, **kw)
     return Receiver(cfg, out)
@@ -183,12 +180,7 @@ def sc_host_disk_full(tmp: Path, mount: bool) -> dict:
             ctx, out_root = None, tmp
             full = {"on": False}
             real = store_mod.write_atomic
-
-            def write(path, *a, **k):
-                if full["on"]:
-                    raise OSError(errno.ENOSPC, "No space left on device", str(path))
-                return real(path, *a, **k)
-            store_mod.write_atomic = write
+            store_mod.write_atomic = write_or_enospc(real, full)
         try:
             out = out_root / "host"
             rx = _receiver(dev, out)
@@ -229,9 +221,7 @@ def sc_device_disk_full(tmp: Path, mount: bool) -> dict:
     from stereopath.host.live.receiver import Receiver, ReceiverConfig
     from tests.test_service_support import FakeEstimator, sim_tables, write_toml
 
-    ports = _free_ports(2)
-    stream = {"insecure": True, "pose_endpoint": f"tcp://127.0.0.1:{ports[0]}",
-              "keyframe_endpoint": f"tcp://127.0.0.1:{ports[1]}", "drain_s": 5.0}
+    stream = loopback_stream(drain_s=5.0)
     if not mount:
         return _row("2 device disk full", message="skipped: needs root for a size-limited tmpfs (the test injects it)")
     with _small_fs("6m") as (dev_root, _grow):
@@ -304,7 +294,7 @@ def sc_port_taken(tmp: Path, mount: bool) -> dict:
     blocker = socket.socket()
     blocker.bind(("127.0.0.1", 0))
     blocker.listen()
-    free = _free_ports(1)[0]
+    free = free_ports(1)[0]
     stream = {"insecure": True, "pose_endpoint": f"tcp://127.0.0.1:{blocker.getsockname()[1]}",
               "keyframe_endpoint": f"tcp://127.0.0.1:{free}"}
     cfg = write_toml(tmp / "device.toml", sim_tables(tmp, frames=20, stream=stream))
@@ -353,7 +343,8 @@ def sc_bad_rigs(tmp: Path, mount: bool) -> dict:
     (tmp / "neg.yaml").write_text(yaml.safe_dump(data))
     d = _session(tmp)
     rc1, m1 = _cli(["device", "run", "--source", f"replay:session:{d}", "--insecure", "--no-stream", "--frames", "3",
-                    "--status-file", "", "--out", str(tmp / "r"), "--config", str(_rig_cfg(tmp, tmp / "neg.yaml"))])
+                    "--status-file", "", "--out", str(tmp / "r"), "--config", str(_rig_cfg(tmp, tmp / "neg.yaml"))],
+                   pick="configuration error")
     m = d / "mav0"
     (m / "cam0").rename(m / "x")
     (m / "cam1").rename(m / "cam0")
@@ -365,7 +356,8 @@ def sc_bad_rigs(tmp: Path, mount: bool) -> dict:
     write_tum(tmp / "still.tum", Trajectory(gt.t_ns, np.repeat(np.eye(4)[None], len(gt), 0)))
     rc3, m3 = _cli(["eval", "--gt", str(d / "groundtruth.tum"), "--est", str(tmp / "still.tum")])
     return _row("7 bad rig / swapped / still", rc=f"{rc1} / {rc2} / {rc3}",
-                message=f"neg. baseline: {m1[-70:]} | swapped: {m2[-60:]} | still: {m3[-60:]}")
+                message=f"neg. baseline: {m1[m1.find('configuration error'):][:50]} ... "
+                        f"{m1[m1.find('cam1 sits'):][:45]} | swapped: {m2[-60:]} | still: {m3[-60:]}")
 
 
 def _rig_cfg(tmp: Path, rig: Path) -> Path:
@@ -376,32 +368,84 @@ def _rig_cfg(tmp: Path, rig: Path) -> Path:
 
 
 def sc_killed_device_spool(tmp: Path, mount: bool) -> dict:
-    """Device killed with keyframes no host acknowledged; a new session starts; a host connects."""
-    dev = make_device(tmp, None, "sessOld")
-    for i in range(6):
-        _offer(dev, i)
-    dev.wait_spooled(6, 10)
-    dev.close(timeout_s=1)  # stands in for kill -9: nothing was delivered
-    new = make_device(tmp, None, "sessNew")
+    """`device run` killed (-9) mid-session before any host acknowledged its keyframes; a new run
+    (waiting for a host) and a host: the earlier session's keyframes reach the host, the device deletes them."""
+    from stereopath.host.live.receiver_sessions import session_states
+    from tests.test_service_support import device_run, sim_tables, write_toml
+
+    stream = loopback_stream(spool_fsync=False)
+
+    def run(frames: int, *args: str) -> subprocess.Popen:
+        cfg = write_toml(tmp / "device.toml", sim_tables(tmp, frames=frames, rate_hz=20.0, stream=stream))
+        return device_run(["--config", str(cfg), *args])
+    sessions = tmp / "sessions"
+    first = run(400)
+    old = kill_9_once_spooled(first, sessions, 8)
+    killed = len(list((old / "keyframes").glob("*.kf")))
+    second = run(40, "--wait-for-host", "60")
     out = tmp / "host"
-    rx = _receiver(new, out)
-    for i in range(3):
-        _offer(new, i)
-    wait_for(lambda: len(stored_seqs(out, "sessNew")) == 3, 20, between=lambda: rx.poll(0.02))
-    for _ in range(50):
-        rx.poll(0.02)
-    rx.close()
-    new.close()
-    old = len(stored_seqs(out, "sessOld"))
-    return _row("6 killed device's spool", kf_sent=9, kf_stored=old + len(stored_seqs(out, "sessNew")),
-                kf_lost=f"{6 - old} (device only)", rc="n/a",
-                message="NOT FIXED: the earlier session's spool is not offered again; it stays on the device disk")
+    rx = _receiver_at(stream["pose_endpoint"], stream["keyframe_endpoint"], out)
+    try:
+        wait_for(lambda: second.poll() is not None, TIME_LIMIT_S - 10, between=lambda: rx.poll(0.05))
+        for _ in range(20):
+            rx.poll(0.02)
+    finally:
+        rx.close()
+        if second.poll() is None:
+            second.kill()
+    _, err = second.communicate()
+    stored = len(stored_seqs(out, old.name))
+    left = len(list((old / "keyframes").glob("*.kf")))
+    states = {st.session_id: st.state for st in session_states(out)}
+    offer = next((ln for ln in err.splitlines() if "no host acknowledged" in ln), "")
+    return _row("6 killed device's spool", kf_sent=killed, kf_stored=stored, kf_lost=killed - stored,
+                rc=f"kill -9 / restart {second.returncode}",
+                message=f"{left} left on the device, earlier session {states.get(old.name)} on the host "
+                        f"(rig.yaml {(out / old.name / 'rig.yaml').is_file()}); device: {offer.split(': ', 1)[-1][:110]}")
+
+
+def sc_live_map_shipped_rig(tmp: Path, mount: bool) -> dict:
+    """`host live --map --rig firmware_cfg/rig_paper.yaml` against a device on another rig (the simulator's)."""
+    from stereopath.device.formats.source import open_source
+    from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
+    from tests.test_streaming_support import device_config, port_of
+
+    seq = open_source("sim:0", frames=60)
+    dev = DeviceStreamer(device_config(None), KeyframeSpool(tmp / "spool", fsync=False), "sessM", rig=seq.rig,
+                         status_interval_s=0.2)
+    n = 6
+    for i in range(30, 30 + 4 * n, 4):
+        f = seq.render(i)
+        _offer_frame(dev, i, f)
+    dev.wait_spooled(n, 20)
+    out = tmp / "host"
+    rc, msg = _cli(["host", "live", "--device", f"127.0.0.1:{port_of(dev.pose_endpoint)}", "--keyframe-port",
+                    str(port_of(dev.keyframe_endpoint)), "--insecure", "--out", str(out), "--no-fsync", "--map",
+                    "--map-every", "2", "--rig", str(ROOT / "firmware_cfg" / "rig_paper.yaml"), "--duration", "5"],
+                   pick="is not the rig")
+    dev.close()
+    mesh = out / "sessM" / "model" / "mesh.ply"
+    rc2, msg2 = _cli(["host", "map", str(out / "sessM"), "--out", str(tmp / "map")])
+    return _row("8 live map, shipped rig", kf_sent=n, kf_stored=len(stored_seqs(out, "sessM")),
+                kf_lost=n - len(stored_seqs(out, "sessM")), rc=f"{rc} / host map {rc2}",
+                message=f"mesh {mesh.stat().st_size if mesh.is_file() else 0} bytes, rig.yaml "
+                        f"{(out / 'sessM' / 'rig.yaml').is_file()}; {msg.split(': ', 1)[-1][:150]} | host map "
+                        f"(no --rig): {msg2[:70]}")
+
+
+def _offer_frame(dev, i: int, f) -> None:
+    t_end = time.monotonic() + 10
+    while not dev.offer_keyframe(i, f.t_ns, f.meta["T_world_cam0"], f.left, f.right):
+        if time.monotonic() > t_end:
+            raise RuntimeError(f"the device refused keyframe {i} for 10 s")
+        time.sleep(0.01)
 
 
 SCENARIOS = {
     "torn_index": sc_torn_index, "host_disk_full": sc_host_disk_full, "device_disk_full": sc_device_disk_full,
     "two_hosts": sc_two_hosts, "port_taken": sc_port_taken, "bad_groundtruth": sc_bad_groundtruth,
     "bad_frame": sc_bad_frame, "bad_rigs": sc_bad_rigs, "killed_device_spool": sc_killed_device_spool,
+    "live_map_shipped_rig": sc_live_map_shipped_rig,
 }
 
 

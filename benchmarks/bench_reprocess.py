@@ -7,9 +7,10 @@
    `host reprocess` end to end (re-estimate, tracks, bundle adjustment, frame refinement, dense
    model, reports) once; then the `ba` stage alone (keyframe bundle adjustment and frame
    refinement, no map) with each back end (`ba_solver` "schur": the hand-written
-   Levenberg-Marquardt, "gtsam": GTSAM), R times each, alternating, on the same stored estimate
-   and tracks: median ATE, median wall and CPU seconds (all threads) of the stage, and the ratios
-   gtsam / schur.
+   Levenberg-Marquardt, "gtsam": GTSAM vision only, "gtsam+imu": GTSAM with IMU preintegration
+   factors), R times each, alternating, on the same stored estimate and tracks: median ATE, median
+   wall and CPU seconds (all threads) of the stage, the ratios to schur, and the IMU biases
+   estimated against the simulator's truth.
 2. KITTI 06 frames 0-50 (no map): the same comparison.
 3. --loop N: a session on the `loop` trajectory (N frames): on-board ATE and end-to-start error,
    then `host reprocess` (GTSAM with loop closure): the loops accepted, ATE and end-to-start
@@ -70,30 +71,53 @@ def ba_stage(seq, stages: Path, preset):
     return ate, wall, cpu, json.loads(str(out["stats"]))
 
 
+VARIANTS = {"schur": {"ba_solver": "schur"}, "gtsam": {"ba_solver": "gtsam", "ba_imu": False},
+            "gtsam+imu": {"ba_solver": "gtsam", "ba_imu": True}}
+
+
 def compare_solvers(name: str, seq, stages: Path, base, runs: int, ate_on: float, unit: float,
-                    unit_name: str) -> None:
+                    unit_name: str, variants: tuple[str, ...] = ("schur", "gtsam"), bias_truth=None) -> None:
     """Old (schur) vs GTSAM ba stage on the same stored estimate and tracks, ``runs`` times each, alternating."""
-    fig: dict[str, dict[str, list]] = {s: {"ate": [], "wall": [], "cpu": []} for s in ("schur", "gtsam")}
+    fig: dict[str, dict[str, list]] = {s: {"ate": [], "wall": [], "cpu": []} for s in variants}
     stats = {}
     for _ in range(runs):
-        for solver in ("schur", "gtsam"):
-            ate, wall, cpu, st = ba_stage(seq, stages, dataclasses.replace(base, ba_solver=solver))
-            fig[solver]["ate"].append(ate)
-            fig[solver]["wall"].append(wall)
-            fig[solver]["cpu"].append(cpu)
-            stats[solver] = st
+        for v in variants:
+            ate, wall, cpu, st = ba_stage(seq, stages, dataclasses.replace(base, **VARIANTS[v]))
+            fig[v]["ate"].append(ate)
+            fig[v]["wall"].append(wall)
+            fig[v]["cpu"].append(cpu)
+            stats[v] = st
     med = {s: {k: statistics.median(v) for k, v in f.items()} for s, f in fig.items()}
-    for s in ("schur", "gtsam"):
+    for s in variants:
         st = stats[s]
-        print(f"  {name} ba_solver={s:5s}: ATE {med[s]['ate'] * unit:.4f} {unit_name} (x{med[s]['ate'] / ate_on:.3f} of "
+        print(f"  {name} {s:9s}: ATE {med[s]['ate'] * unit:.4f} {unit_name} (x{med[s]['ate'] / ate_on:.3f} of "
               f"on-board), ba stage {med[s]['wall']:.1f} s wall, {med[s]['cpu']:.1f} s CPU (bundle adjustment "
               f"{st['ba_seconds']:.1f} s, frame refinement {st['frame_refinement_seconds']:.1f} s); "
               f"{st['poses']} kf, {st['points']} points, {st['observations']} obs, rms "
               f"{st['rms_before_px']:.3f} -> {st['rms_after_px']:.3f} px, {st['iterations']} iterations, "
               f"disparity offset {st['disparity_offset_px']}")
-    print(f"  {name} gtsam / schur: ATE x{med['gtsam']['ate'] / med['schur']['ate']:.3f}, ba stage CPU "
-          f"x{med['gtsam']['cpu'] / med['schur']['cpu']:.2f}, wall x{med['gtsam']['wall'] / med['schur']['wall']:.2f} "
-          f"(medians of {runs} run(s) each)")
+    for s in variants[1:]:
+        print(f"  {name} {s} / {variants[0]}: ATE x{med[s]['ate'] / med[variants[0]]['ate']:.3f}, ba stage CPU "
+              f"x{med[s]['cpu'] / med[variants[0]]['cpu']:.2f}, wall x{med[s]['wall'] / med[variants[0]]['wall']:.2f} "
+              f"(medians of {runs} run(s) each)")
+    if "gtsam+imu" in stats and stats["gtsam+imu"].get("imu") and bias_truth is not None:
+        print_bias_recovery(name, stats["gtsam+imu"]["imu"], *bias_truth)
+
+
+def print_bias_recovery(name: str, imu: dict, t_ns, accel_true, gyro_true) -> None:
+    """The estimated keyframe biases against the simulator's (interpolated at the keyframes)."""
+    import numpy as np
+
+    b = imu["biases"]
+    t = np.asarray(b["t_ns"], float)
+    for label, est, true in (("accel", b["accel_m_s2"], accel_true), ("gyro", b["gyro_rad_s"], gyro_true)):
+        est = np.asarray(est)
+        tr = np.column_stack([np.interp(t, t_ns, true[:, a]) for a in range(3)])
+        per_kf = np.linalg.norm(est - tr, axis=1) / np.linalg.norm(tr, axis=1)
+        mean_err = np.linalg.norm(est.mean(0) - tr.mean(0)) / np.linalg.norm(tr.mean(0))
+        print(f"  {name} {label} bias: estimated mean {np.round(est.mean(0), 5).tolist()}, true "
+              f"{np.round(tr.mean(0), 5).tolist()}: error {mean_err * 100:.1f} % of the true (mean over keyframes); "
+              f"per keyframe median {np.median(per_kf) * 100:.1f} %, max {per_kf.max() * 100:.1f} % (target <= 10 %)")
 
 
 def loop_figures(tmp: Path, frames: int, base) -> None:
@@ -168,10 +192,11 @@ def main() -> int:
 
 def sim_figures(tmp: Path, args, base):
     """The default simulated session: on-board ATE, end-to-end reprocessing, the solver comparison."""
+    from stereopath.device.sim.session import SimConfig, open_sim
+
     session = tmp / "session"
     if not (session / "mav0").is_dir():
         from stereopath.device.formats.recorder import record_sequence
-        from stereopath.device.sim.session import SimConfig, open_sim
 
         record_sequence(open_sim(SimConfig()), session, config_dict={"source": "sim"})
     seq = open_source(f"session:{session}")
@@ -185,7 +210,10 @@ def sim_figures(tmp: Path, args, base):
         print(f"  reprocess --preset {args.preset} end to end (GTSAM): {time.perf_counter() - t:.1f} s (estimate "
               f"{st['estimate']:.1f}, tracks {st['tracks']:.1f}, ba {st['ba']:.1f}, map {st['map']:.1f} s), "
               f"ATE {mm(res.report['ate_rmse_m'])}; target <= 180 s")
-    compare_solvers("sim", seq, tmp / "sim" / "stages", base, args.runs, ate_on, 1000, "mm")
+    sim = open_sim(SimConfig())
+    truth = (sim.imu.t_ns, sim.imu_biases.accel_m_s2, sim.imu_biases.gyro_rad_s)
+    compare_solvers("sim", seq, tmp / "sim" / "stages", base, args.runs, ate_on, 1000, "mm",
+                    ("schur", "gtsam", "gtsam+imu"), truth)
     return ("sim", seq, ate_on)
 
 

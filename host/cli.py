@@ -28,6 +28,7 @@ COMMANDS: dict[str, tuple[str, str] | dict[str, tuple[str, str]]] = {
         "live": ("stereopath.host.commands.live", "receive poses and keyframes from a device and show them live"),
         "map": ("stereopath.host.commands.map", "dense 3D model (mesh, cloud, preview) from a session or stored keyframes"),
         "reprocess": ("stereopath.host.commands.reprocess", "re-estimate a recorded session offline, bundle adjust, and map"),
+        "sessions": ("stereopath.host.commands.sessions", "list the sessions `host live` stored and which are incomplete"),
     },
     "device": {
         "selftest": ("stereopath.device.commands.selftest", "check the configured sensors and print pass/fail"),

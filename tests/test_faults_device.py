@@ -5,10 +5,12 @@ from __future__ import annotations
 import json
 import socket
 import subprocess
+from pathlib import Path
 
 import pytest
 
 from tests.test_service_support import device_run, sim_tables, write_toml
+from tests.test_streaming_support import loopback_stream
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -26,19 +28,43 @@ def test_port_taken_exits_with_config_code_and_leaves_no_folder(tmp_path, which)
     stream = {"insecure": True, "pose_endpoint": f"tcp://127.0.0.1:{ports['pose']}",
               "keyframe_endpoint": f"tcp://127.0.0.1:{ports['keyframe']}"}
     cfg = write_toml(tmp_path / "device.toml", sim_tables(tmp_path, frames=20, stream=stream))
+    try:
+        err = _config_failure(tmp_path, cfg, "a port taken")
+    finally:
+        blocker.close()
+    assert "Address already in use" in err
+
+
+def _config_failure(tmp_path: Path, cfg: Path, what: str) -> str:
+    """Run `device run --config CFG`, expect exit 78 with one line and no session folder; its stderr."""
     proc = device_run(["--config", str(cfg)])
     try:
         _, err = proc.communicate(timeout=60)
     except subprocess.TimeoutExpired:
         proc.kill()
         _, err = proc.communicate()
-        pytest.fail("device run hung with a port taken:\n" + err[-2000:])
-    finally:
-        blocker.close()
+        pytest.fail(f"device run hung with {what}:\n" + err[-2000:])
     assert proc.returncode == 78, err[-2000:]
-    assert "Address already in use" in err and "Traceback" not in err
+    assert "Traceback" not in err
     sessions = tmp_path / "sessions"
     assert not sessions.exists() or list(sessions.iterdir()) == []
+    return err
+
+
+# item 7 (the service side): a bad rig is a configuration error ------------------------------------
+
+def test_device_run_with_a_bad_rig_exits_with_the_config_code(tmp_path):
+    import yaml
+
+    data = yaml.safe_load((Path(__file__).resolve().parents[1] / "firmware_cfg" / "rig_paper.yaml").read_text())
+    data["T_cam1_cam0_m"] = [-v for v in data["T_cam1_cam0_m"]]  # cam1 to the left of cam0
+    rig = tmp_path / "neg.yaml"
+    rig.write_text(yaml.safe_dump(data))
+    tables = sim_tables(tmp_path, frames=5)
+    tables["source"]["rig_file"] = str(rig)
+    err = _config_failure(tmp_path, write_toml(tmp_path / "device.toml", tables), "a bad rig")
+    assert "configuration error: unusable rig calibration (source.rig_file" in err, err[-2000:]
+    assert "to the LEFT of cam0" in err
 
 
 # item 2: device disk full -----------------------------------------------------------------------
@@ -94,13 +120,7 @@ def test_device_disk_full_mid_run_loses_no_keyframe_reaching_a_host_and_exits_74
     real_usage = shutil_mod.disk_usage
     monkeypatch.setattr(shutil_mod, "disk_usage",
                         lambda p: usage(10**12, 10**12, 0) if full.is_set() else real_usage(p))
-    ports = []
-    for _ in range(2):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            ports.append(s.getsockname()[1])
-    stream = {"insecure": True, "pose_endpoint": f"tcp://127.0.0.1:{ports[0]}",
-              "keyframe_endpoint": f"tcp://127.0.0.1:{ports[1]}", "drain_s": 5.0}
+    stream = loopback_stream(drain_s=5.0)
     tables = sim_tables(tmp_path, frames=40, rate_hz=20.0, stream=stream)
     cfg_path = write_toml(tmp_path / "device.toml", tables)
     opts = RunOptions(out=str(tmp_path / "s"), wait_for_host_s=10.0)

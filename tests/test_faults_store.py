@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import errno
 import logging
 
 import pytest
@@ -63,20 +62,12 @@ def test_host_disk_full_keeps_keyframes_unacked_until_space_returns(tmp_path, mo
     from stereopath.host.live import store as store_mod
     from stereopath.device.wire.security import make_demo_keys
     from tests.test_streaming_integration import _receiver
-    from tests.test_streaming_support import assert_exactly_once, make_device, small_images, wait_for
+    from tests.test_streaming_support import assert_exactly_once, make_device, small_images, wait_for, \
+        write_or_enospc
 
     full = {"on": True}
-    real_write, real_json = store_mod.write_atomic, receiver_mod.write_json_atomic
-
-    def write_or_enospc(real):
-        def write(path, *a, **k):
-            if full["on"]:
-                raise OSError(errno.ENOSPC, "No space left on device", str(path))
-            return real(path, *a, **k)
-        return write
-
-    monkeypatch.setattr(store_mod, "write_atomic", write_or_enospc(real_write))
-    monkeypatch.setattr(receiver_mod, "write_json_atomic", write_or_enospc(real_json))
+    monkeypatch.setattr(store_mod, "write_atomic", write_or_enospc(store_mod.write_atomic, full))
+    monkeypatch.setattr(receiver_mod, "write_json_atomic", write_or_enospc(receiver_mod.write_json_atomic, full))
     keys = make_demo_keys(tmp_path / "keys")
     dev = make_device(tmp_path, keys, "sessF")
     out = tmp_path / "out"

@@ -48,3 +48,69 @@ def test_live_mapper_rejects_keyframes_of_another_rig(tmp_path):
     assert m.close() == {}
     assert m.rejected == 2 and m.fused == 0
     assert not (tmp_path / "s1").exists()
+
+
+def _drifting_loop_keyframes(frames=range(8, 42, 3)):
+    """Keyframes of the simulated `loop` path up to its first return to the start (90-frame version:
+    the first turn ends near frame 40), sent with a drift that grows along the path (up to 1.5 deg
+    about the vertical and 15 mm), as an on-board estimate would; (keyframes, true poses, sent poses)."""
+    from stereopath.device.core.geometry import make_pose, so3_exp
+    from stereopath.device.sim.session import SimConfig, open_sim
+
+    seq = open_sim(SimConfig(trajectory="loop", frames=90))
+    name, h = rig_reference(seq.rig)
+    frames = list(frames)
+    kfs, T_true, T_sent = [], [], []
+    for k, i in enumerate(frames):
+        f = seq.render(i)
+        T = f.meta["T_world_cam0"]
+        a = k / (len(frames) - 1)
+        Ts = make_pose(so3_exp([0, 0, np.radians(1.5) * a]), [0.012 * a, -0.008 * a, 0.004 * a]) @ T
+        T_true.append(T)
+        T_sent.append(Ts)
+        kfs.append(decode_keyframe(encode_keyframe(Keyframe(
+            "s", k, i, f.t_ns, tuple(Ts[:3, 3]), tuple(matrix_to_quat_xyzw(Ts[:3, :3])),
+            encode_image(f.left, "png"), encode_image(f.right, "png"), name, h))))
+    return seq.rig, kfs, np.array(T_true), np.array(T_sent)
+
+
+def _mean_distance(mesh_a, mesh_b) -> float:
+    """Mean distance from mesh_a's vertices to the nearest vertex of mesh_b."""
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(np.asarray(mesh_b.vertices)).query(np.asarray(mesh_a.vertices))
+    return float(np.mean(d))
+
+
+def test_a_loop_closed_while_scanning_is_in_the_next_mesh(tmp_path):
+    from stereopath.host.reprocess.loops import LoopConfig
+
+    rig, kfs, T_true, T_sent = _drifting_loop_keyframes()
+    refreshes = []  # (keyframes fused, loops closed, mesh) at each refresh
+    m = LiveMapper(rig, tmp_path, every=1000, loops=LoopConfig(min_separation=5),
+                   on_mesh=lambda s, mesh: refreshes.append((m.fused, m.loops_closed, mesh)))
+    for kf in kfs:
+        m.on_keyframe(kf, True)
+    models = m.close()
+    closer, mapper = m._closers["s"], m._mappers["s"]
+    assert m.fused == len(kfs) and m.loops_closed == len(closer.loops) >= 1
+    first = closer.loops[0]
+    assert first.j - first.i > 5 and np.linalg.norm(T_true[first.i, :3, 3] - T_true[first.j, :3, 3]) < 0.3
+    # with `every` this large, refreshes come from closed loops only, each with the keyframe that closed it
+    assert [n for n, _, _ in refreshes] == [lp.j + 1 for lp in closer.loops]
+    assert [c for _, c, _ in refreshes] == list(range(1, len(closer.loops) + 1))
+    # the fused keyframes were re-posed: the end of the path is back near the truth
+    P = np.array(mapper.poses)
+    err_sent = np.linalg.norm(T_sent[:, :3, 3] - T_true[:, :3, 3], axis=1)
+    err_fused = np.linalg.norm(P[:, :3, 3] - T_true[:, :3, 3], axis=1)
+    assert err_fused[-1] < 0.5 * err_sent[-1]
+    assert mapper.reposed == len(closer.loops)
+    # ... and the refreshed mesh is the re-integrated one: closer to the model fused at the true poses
+    # than the model fused at the drifting poses is
+    mesh_loop = refreshes[-1][2]
+    mapper.repose(T_true)
+    truth = mapper.mesh()
+    mapper.repose(T_sent)
+    drifting = mapper.mesh()
+    assert _mean_distance(mesh_loop, truth) < 0.7 * _mean_distance(drifting, truth)
+    assert (models["s"] / "mesh.ply").stat().st_size > 0

@@ -236,7 +236,7 @@ def test_malformed_control_messages_rejected_valid_traffic_continues(tmp_path, k
 
         def drain() -> None:
             if d.poll(20):
-                received.append(decode_message(d.recv(), KEYFRAME_LIMITS, ("keyframe", "status")))
+                received.append(decode_message(d.recv(), KEYFRAME_LIMITS, ("keyframe", "status", "session")))
 
         assert wait_for(lambda: sum(isinstance(m, Keyframe) for m in received) == 2, 10, between=drain)
         # an oversized frame (over the socket's maxmsgsize) drops the connection; it reconnects and works

@@ -40,10 +40,60 @@ def key_settings(keys: DemoKeys | None) -> KeySettings | None:
                                                  clients_dir=str(keys.clients_dir))
 
 
-def make_device(tmp: Path, keys: DemoKeys | None, session: str, **overrides: Any) -> DeviceStreamer:
+def make_device(tmp: Path, keys: DemoKeys | None, session: str, backlog_roots: Any = (),
+                **overrides: Any) -> DeviceStreamer:
     spool = KeyframeSpool(tmp / f"spool_{session}", fsync=False)
     return DeviceStreamer(device_config(keys, **overrides), spool, session, rig_ref=("testrig", "0123456789abcdef"),
-                          keys=key_settings(keys), status_interval_s=0.2)
+                          keys=key_settings(keys), status_interval_s=0.2, backlog_roots=backlog_roots)
+
+
+def free_ports(n: int) -> list[int]:
+    """``n`` loopback TCP ports free right now (for configurations that name their ports)."""
+    import socket
+
+    out = []
+    for _ in range(n):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            out.append(s.getsockname()[1])
+    return out
+
+
+def loopback_stream(**extra: Any) -> dict[str, Any]:
+    """A ``[stream]`` table on two free loopback ports, without CURVE."""
+    pose, keyframe = free_ports(2)
+    return {"insecure": True, "pose_endpoint": f"tcp://127.0.0.1:{pose}",
+            "keyframe_endpoint": f"tcp://127.0.0.1:{keyframe}", **extra}
+
+
+def write_or_enospc(real: Callable[..., Any], full: dict[str, bool]) -> Callable[..., Any]:
+    """A stand-in for a write helper (``write_atomic``...) that fails with ENOSPC while ``full["on"]``."""
+    import errno
+
+    def write(path: Any, *a: Any, **k: Any) -> Any:
+        if full["on"]:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real(path, *a, **k)
+    return write
+
+
+def kill_9_once_spooled(proc: Any, sessions: Path, n: int) -> Path:
+    """SIGKILL the ``device run`` child ``proc`` once its session under ``sessions`` spooled ``n``
+    keyframes; returns that session folder."""
+    import os
+    import signal
+
+    try:
+        assert wait_for(lambda: sessions.is_dir() and any(len(list(d.glob("keyframes/*.kf"))) >= n
+                                                          for d in sessions.iterdir()), 60, step_s=0.1)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    (session,) = list(sessions.iterdir())
+    return session
 
 
 def port_of(endpoint: str) -> int:

@@ -450,6 +450,8 @@ def record_sequence(seq: Any, out_dir: str | Path, config_dict: dict[str, Any] |
     recorder_kwargs.setdefault("cam_rate_hz", median_rate_hz(t_frames) or 20.0)
     if imu is not None and len(imu):
         recorder_kwargs.setdefault("imu_rate_hz", median_rate_hz(imu.t_ns) or 200.0)
+        if getattr(seq, "imu_noise_figures", None):  # a sequence that knows its IMU's noise (the simulator)
+            recorder_kwargs.setdefault("imu_noise", seq.imu_noise_figures)
     with SessionRecorder(out_dir, seq.rig, config_dict, **recorder_kwargs) as rec:
         prev = None
         for k, frame in enumerate(seq.frames()):

@@ -8,7 +8,7 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-_DATA_GLOBS = ("mav0/cam*/data/*", "keyframes/*.kf", "keyframes/*.msgpack")
+_DATA_GLOBS = ("mav0/cam*/data/*", "keyframes/*.kf", "keyframes/kf_*.msgpack")  # not the spool's session.msgpack
 
 
 def holds_captured_data(session_dir: Path) -> bool:

@@ -14,7 +14,7 @@ from typing import Any, Mapping
 
 from stereopath.device.core.config import as_dict
 from stereopath.device.core.frames import median_rate_hz
-from stereopath.device.errors import ConfigError
+from stereopath.device.errors import CalibrationError, ConfigError
 from stereopath.device.service.options import secret_key_path
 from stereopath.device.service.settings import DeviceConfig
 from stereopath.device.service.sinks import NoRecording, NoStreaming, RecordingSink, StreamingSink
@@ -37,9 +37,14 @@ def open_source(cfg: DeviceConfig, source: Any, inject: Mapping[str, Any]) -> An
     """The configured (or injected, unopened) stereo source, opened; it must carry a rig."""
     from stereopath.device.capture.sources import create_source
 
-    if source is None:
-        source = create_source(cfg.source, **inject)
-    source.open()
+    try:
+        if source is None:
+            source = create_source(cfg.source, **inject)
+        source.open()
+    except CalibrationError as exc:  # a bad rig is a configuration problem: 78, not a runtime failure
+        where = f"source.rig_file = {cfg.source.rig_file!r}" if cfg.source.rig_file else \
+            f"the {cfg.source.backend} source's own calibration"
+        raise ConfigError(f"unusable rig calibration ({where}): {exc}") from None
     if source.rig is None:
         source.close()
         raise ConfigError(f"source.rig_file: the {cfg.source.backend} source has no calibration of its own; "
@@ -111,10 +116,13 @@ def open_streaming(cfg: DeviceConfig, session_dir: Path, session_id: str, rig: A
 
     from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
 
-    spool = KeyframeSpool(session_dir / "keyframes", reserve_bytes=int(cfg.recorder.reserve_mb * 1e6))
+    spool = KeyframeSpool(session_dir / "keyframes", fsync=cfg.stream.spool_fsync,
+                          reserve_bytes=int(cfg.recorder.reserve_mb * 1e6))
     keys = dataclasses.replace(cfg.keys, server_secret=str(secret_key_path(cfg, environ)))
+    # earlier sessions' spools: beside this session's folder (its --out parent) and in recorder.dir
+    roots = [session_dir.parent, Path(cfg.recorder.dir)]
     return StreamingSink(DeviceStreamer(cfg.stream, spool, session_id, rig=rig, keys=keys,
-                                        status_interval_s=cfg.service.status_interval_s))
+                                        status_interval_s=cfg.service.status_interval_s, backlog_roots=roots))
 
 
 def open_components(cfg: DeviceConfig, session_dir: Path, session_id: str, *, source: Any = None,

@@ -203,7 +203,9 @@ class CaptureService:
         self.session_dir = Path(self.options.out) if self.options.out else Path(cfg.recorder.dir) / self.session_id
         self._session_dir_existed = self.session_dir.exists()
         if self.session_dir.exists() and (not self.session_dir.is_dir() or any(self.session_dir.iterdir())):
-            raise ConfigError(f"--out {self.session_dir}: exists and is not empty (a session is never overwritten)")
+            raise ConfigError(f"--out {self.session_dir}: exists and is not empty (a session is never overwritten; "
+                              f"name a new folder: keyframes of earlier sessions in {self.session_dir.parent} or "
+                              f"recorder.dir that no host acknowledged are offered to hosts again)")
         p = open_components(cfg, self.session_dir, self.session_id, environ=self.environ, parts=self.parts,
                             **self._inject)
         self.pipeline = FramePipeline(p.source, p.imu, p.aligner, p.estimator,

@@ -185,7 +185,8 @@ class StreamingSink(NoStreaming):
                 "poses_sent": s.get("poses_sent", 0), "keyframes_spooled": s.get("spool_count", 0),
                 "keyframes_refused": s.get("keyframes_refused", 0),
                 "keyframes_failed": s.get("keyframes_failed", 0),
-                "spool_disk_full": s.get("spool_disk_full"), "keyframes_in_memory": s.get("keyframes_in_memory", 0)}
+                "spool_disk_full": s.get("spool_disk_full"), "keyframes_in_memory": s.get("keyframes_in_memory", 0),
+                "backlog_keyframes": s.get("backlog_keyframes", 0), "backlog_sessions": s.get("backlog_sessions", 0)}
 
     def publish_health(self, status: dict[str, Any]) -> None:
         """The device health part of the status report, sent to the hosts on the keyframe channel."""

@@ -95,6 +95,8 @@ def status_line(s: Mapping[str, Any]) -> str:
         *(["DISK FULL: keyframes in memory until a host has them "
            f"({s.get('keyframes_in_memory', 0)} waiting, {s.get('keyframes_failed', 0)} lost)"]
           if s.get("spool_disk_full") or s.get("recorder_state") == "stopped_low_disk" else []),
+        *([f"{s['backlog_keyframes']} keyframe(s) of earlier sessions not yet on a host"]
+          if s.get("backlog_keyframes") else []),
         f"{s.get('hosts', 0)} host(s)",
     ]
     head = f"{s.get('state', '?')} {s.get('session_id', '')}".strip()

@@ -95,6 +95,17 @@ class ImuNoiseModel:
     def accel_lsb_per_m_s2(self) -> float:
         return ACCEL_LSB_PER_G[self.accel_fs_g] / G_M_S2
 
+    def sensor_noise(self) -> dict[str, float]:
+        """The noise this model draws, in ``imu0/sensor.yaml``'s (EuRoC/Kalibr) keys and SI units,
+        and the gravity the accelerometer reads at rest (``gravity_m_s2``: 1 g of its m/s^2)."""
+        return {
+            "gravity_m_s2": G_M_S2,
+            "gyroscope_noise_density": float(np.radians(self.gyro_noise_density_dps_rthz)),
+            "gyroscope_random_walk": float(self.gyro_bias_walk_rad_s2_rthz),
+            "accelerometer_noise_density": float(self.accel_noise_density_ug_rthz * 1e-6 * G_M_S2),
+            "accelerometer_random_walk": float(self.accel_bias_walk_m_s3_rthz),
+        }
+
     def white_sigma(self, rate_hz: float) -> tuple[float, float]:
         """Per-sample white-noise sigma (gyro rad/s, accel m/s^2) at ``rate_hz``."""
         g = np.radians(self.gyro_noise_density_dps_rthz) * np.sqrt(rate_hz)

@@ -119,6 +119,8 @@ class SimSession:
         self.imu: ImuSamples = meas
         self.imu_raw = raw            # int16 register counts (stereopath.device.sim.imu.RawImu)
         self.imu_biases = biases      # biases that were added (SI, per sample)
+        # the noise drawn, for the recording's imu0/sensor.yaml (None: no noise was added)
+        self.imu_noise_figures = self.imu_model.sensor_noise() if cfg.imu_noise else None
         self._renderer = None
         log.debug("sim session: %d frames, %s, %.2f m", cfg.frames, cfg.trajectory, self.groundtruth.path_length_m())
 

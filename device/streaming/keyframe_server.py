@@ -19,6 +19,12 @@ unreachable is forgotten.  Memory is bounded: at most ``max_peers`` connections,
 ``max_credit`` keyframes in flight per host (the bytes are read from the spool on demand), and
 the ROUTER's high-water marks bound what ZeroMQ queues.
 
+After each hello the host gets the status and the live session's ``session`` message (its rig),
+then the live keyframes; once it holds every live keyframe it also gets, oldest first, the
+keyframes of earlier sessions no host acknowledged (:mod:`stereopath.device.streaming.backlog`),
+each session's message before its first keyframe.  Such a keyframe is deleted from the device when
+a host acknowledges it on the connection it was sent on.
+
 Also sent on this channel: the status heartbeat (to every connected host, dropped when a host's
 queue is full).  Everything a host sends is decoded as untrusted input; rejected messages are
 counted by reason.
@@ -34,6 +40,7 @@ from stereopath.device.errors import DatasetError
 from stereopath.device.wire.protocol import Ack, Credit, DecodeError, Hello, decode_control
 from stereopath.device.service.settings import StreamSettings
 from stereopath.device.wire.sockets import CurveKeys, bind_or_close, open_socket
+from stereopath.device.streaming.backlog import Backlog
 from stereopath.device.streaming.spool import KeyframeSpool
 
 log = logging.getLogger(__name__)
@@ -49,7 +56,7 @@ def _conn_id(key: str, routing_id: bytes) -> str:
 
 class _Peer:
     __slots__ = ("key", "conn", "routing_id", "next_seq", "credit", "acked", "max_sent", "connected",
-                 "last_heard")
+                 "last_heard", "bl_cursor", "bl_info_sent", "bl_inflight")
 
     def __init__(self, key: str, routing_id: bytes) -> None:
         self.key = key
@@ -61,13 +68,20 @@ class _Peer:
         self.max_sent = -1
         self.connected = True
         self.last_heard = time.monotonic()
+        self.restart_backlog()
+
+    def restart_backlog(self) -> None:
+        self.bl_cursor = (0, -1)                    # (backlog session index, last seq sent)
+        self.bl_info_sent: set[int] = set()         # backlog sessions whose message this connection got
+        self.bl_inflight: set[tuple[str, int]] = set()  # backlog keyframes sent, not yet acknowledged
 
 
 class KeyframeServer:
     """ROUTER socket bound to ``config.keyframe_endpoint``; driven by the streamer's I/O thread."""
 
     def __init__(self, ctx: Any, config: StreamSettings, spool: KeyframeSpool, session_id: str,
-                 curve_keys: CurveKeys | None, status_fn: Callable[[], bytes]) -> None:
+                 curve_keys: CurveKeys | None, status_fn: Callable[[], bytes],
+                 session_fn: Callable[[], bytes] | None = None, backlog: Backlog | None = None) -> None:
         import zmq
 
         self._zmq = zmq
@@ -76,6 +90,8 @@ class KeyframeServer:
         self.session_id = session_id
         self.secure = curve_keys is not None
         self._status_fn = status_fn
+        self._session_fn = session_fn
+        self.backlog = backlog if backlog is not None and backlog.sessions else None
         self.sock = open_socket(ctx, zmq.ROUTER, curve_keys,
                                 options={zmq.ROUTER_MANDATORY: 1, zmq.SNDHWM: config.keyframe_sndhwm,
                                          zmq.RCVHWM: config.control_rcvhwm},
@@ -89,6 +105,7 @@ class KeyframeServer:
             "control_received": 0, "control_rejected": 0, "hellos": 0, "acks": 0, "credits": 0,
             "keyframes_sent": 0, "keyframes_resent": 0, "status_sent": 0, "status_dropped": 0,
             "unroutable": 0, "peers_evicted": 0, "spool_errors": 0, "send_blocked": 0,
+            "backlog_sent": 0, "session_sent": 0,
         }
         self.rejected: dict[str, int] = {}
 
@@ -157,9 +174,14 @@ class KeyframeServer:
             peer.acked = min(acked, self.spool.last_seq)
             peer.next_seq = peer.acked + 1
             peer.credit = min(msg.credit, self.config.max_credit)
+            peer.restart_backlog()
+            if peer.acked >= 0:
+                self.spool.mark_acked(peer.acked, upto=True)
             log.info("host %s: hello (session %s, acked %d, credit %d) -> sending from seq %d",
                      key[:20], msg.session_id, msg.acked_seq, msg.credit, peer.next_seq)
             self._send_to(peer, self._status_fn(), status=True)
+            if self._session_fn is not None and self._send_to(peer, self._session_fn()):
+                self.stats["session_sent"] += 1
             return
         if peer is None:
             self._reject("no_hello", f"{type(msg).__name__} from {key[:20]} before hello")
@@ -174,6 +196,10 @@ class KeyframeServer:
             if msg.session_id == self.session_id and msg.seq <= peer.max_sent:
                 peer.acked = max(peer.acked, msg.seq)
                 self.spool.release(peer.acked)  # stored on a host: what a full disk kept in memory can go
+                self.spool.mark_acked(msg.seq)
+            elif (msg.session_id, msg.seq) in peer.bl_inflight and self.backlog is not None:
+                peer.bl_inflight.discard((msg.session_id, msg.seq))
+                self.backlog.acknowledged(msg.session_id, msg.seq)
             peer.credit = min(peer.credit + msg.credit, self.config.max_credit)
         else:
             self.stats["credits"] += 1
@@ -244,7 +270,42 @@ class KeyframeServer:
                         self._sent_by_key.pop(next(iter(self._sent_by_key)))
                 peer.next_seq = seq + 1
                 peer.credit -= 1
+            if self.backlog is not None and peer.next_seq > last and sent < burst:
+                blocked = self._pump_backlog(peer, burst - sent) or blocked
         return blocked
+
+    def _pump_backlog(self, peer: _Peer, burst: int) -> bool:
+        """Earlier sessions' undelivered keyframes to a host that holds every live one; True if blocked."""
+        backlog = self.backlog
+        assert backlog is not None
+        sent = 0
+        while peer.connected and peer.credit > 0 and sent < burst:
+            item = backlog.next_after(peer.bl_cursor)
+            if item is None:
+                return False
+            si, seq = item
+            sess = backlog.sessions[si]
+            if si not in peer.bl_info_sent:
+                if not self._send_to(peer, sess.message):
+                    return peer.connected
+                peer.bl_info_sent.add(si)
+                self.stats["session_sent"] += 1
+                log.info("host %s: offering %d undelivered keyframe(s) of earlier session %s", peer.key[:20],
+                         len(sess.pending), sess.session_id)
+            data = backlog.read(si, seq)
+            if data is None:  # delivered through another connection meanwhile
+                peer.bl_cursor = (si, seq)
+                continue
+            if not self._send_to(peer, data):
+                if peer.connected:
+                    self.stats["send_blocked"] += 1
+                return peer.connected
+            peer.bl_cursor = (si, seq)
+            peer.bl_inflight.add((sess.session_id, seq))
+            peer.credit -= 1
+            sent += 1
+            self.stats["backlog_sent"] += 1
+        return False
 
     def broadcast_status(self, data: bytes) -> None:
         for peer in list(self._peers.values()):

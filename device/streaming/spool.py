@@ -4,7 +4,12 @@ The spool is the part of the session recording the keyframe server resends from:
 keyframe message (exactly the bytes sent on the wire) is written to a temporary file, flushed
 (``fsync`` optional), renamed to ``<seq:08d>.kf`` and only then offered to hosts.  Seqs are
 contiguous from 0, so the in-memory index is just the count: memory does not grow with the
-session.  Files are never deleted by the streamer (they are part of the recording).
+session.  The live run never deletes them (they are part of the recording); a later run deletes
+those it delivers from an earlier session's backlog (:mod:`stereopath.device.streaming.backlog`).
+
+``acked.json`` records the highest seq a host acknowledged contiguously (:meth:`mark_acked`, on
+every advance, without fsync: it survives a killed process); a later run offers what lies beyond
+it.
 
 Thread model: one writer (:meth:`append`), any number of readers (:meth:`read`) of seqs below
 :attr:`count`.
@@ -19,6 +24,7 @@ the streamer); :attr:`memory_count` keyframes not yet acknowledged are lost if t
 from __future__ import annotations
 
 import errno
+import json
 import logging
 import re
 import shutil
@@ -33,7 +39,21 @@ from stereopath.device.formats.fileio import is_temp
 log = logging.getLogger(__name__)
 
 SUFFIX = ".kf"
+ACKED_NAME = "acked.json"
 _NAME_RE = re.compile(r"^(\d{8,10})\.kf$")
+
+
+def read_acked(directory: str | Path) -> int:
+    """The highest seq of the spool ``directory`` a host acknowledged (-1: none, or no readable record)."""
+    try:
+        v = json.loads((Path(directory) / ACKED_NAME).read_text()).get("acked_seq", -1)
+    except (OSError, ValueError, AttributeError):
+        return -1
+    return v if isinstance(v, int) and not isinstance(v, bool) and v >= -1 else -1
+
+
+def save_acked(directory: str | Path, seq: int, fsync: bool = False) -> None:
+    fileio.write_atomic(Path(directory) / ACKED_NAME, json.dumps({"acked_seq": int(seq)}).encode(), fsync=fsync)
 
 
 class KeyframeSpool:
@@ -66,6 +86,8 @@ class KeyframeSpool:
                                f"({len(seqs)} files, last seq {seqs[-1]})")
         self._count = len(seqs)
         self.bytes_written = 0
+        self.acked_seq = read_acked(self.dir)
+        self._acked_above: set[int] = set()  # acknowledged seqs past a gap (bounded by what is in flight)
 
     @property
     def count(self) -> int:
@@ -129,6 +151,27 @@ class KeyframeSpool:
             for s in [s for s in self._memory if s <= acked_seq]:
                 self.memory_bytes -= len(self._memory.pop(s))
                 self._released.add(s)
+
+    def mark_acked(self, seq: int, upto: bool = False) -> None:
+        """A host stored keyframe ``seq`` (``upto``: every keyframe up to ``seq``); when that advances the
+        contiguous acknowledged seq, record it (a later run offers only what follows)."""
+        if seq <= self.acked_seq:
+            return
+        if upto:
+            self._acked_above = {s for s in self._acked_above if s > seq}
+            self.acked_seq = seq
+        else:
+            self._acked_above.add(seq)
+        before = self.acked_seq
+        while self.acked_seq + 1 in self._acked_above:
+            self.acked_seq += 1
+            self._acked_above.discard(self.acked_seq)
+        if self.acked_seq == before and not upto:
+            return
+        try:
+            save_acked(self.dir, self.acked_seq)
+        except OSError as exc:  # disk full: the next advance tries again; at worst a later run resends a few
+            log.debug("keyframe spool %s: cannot record acked seq %d: %s", self.dir, self.acked_seq, exc)
 
     @property
     def memory_count(self) -> int:

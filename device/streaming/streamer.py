@@ -37,8 +37,9 @@ from typing import Any
 import numpy as np
 
 from stereopath.device.errors import ConfigError, DatasetError, ProtocolError
-from stereopath.device.wire.protocol import HEALTH_FIELDS, DeviceHealth, Status, check_session_id, encode_keyframe, encode_pose, encode_status, make_keyframe, \
-    pose_from_matrix, rig_reference
+from stereopath.device.wire.protocol import HEALTH_FIELDS, DeviceHealth, Status, check_session_id, encode_keyframe, \
+    decode_session, encode_pose, encode_session, encode_status, make_keyframe, make_session_info, pose_from_matrix, rig_reference
+from stereopath.device.streaming.backlog import Backlog, find_backlog, write_marker
 from stereopath.device.streaming import health
 from stereopath.device.service.settings import KeySettings, StreamSettings
 from stereopath.device.streaming.keyframe_server import KeyframeServer
@@ -56,12 +57,15 @@ class DeviceStreamer:
     """Streams poses, keyframes and status to hosts; see the module docstring.
 
     ``rig`` (a :class:`stereopath.device.core.rig.Rig`) or ``rig_ref`` (``(name, hash)``) names the calibration
-    sent with every keyframe.  Bind errors and key problems raise :class:`ConfigError` here.
+    sent with every keyframe; the rig itself goes to each host once per connection (the session
+    message).  ``backlog_roots``: folders holding earlier sessions' spools, whose keyframes no host
+    acknowledged are offered after this session's (:mod:`stereopath.device.streaming.backlog`).
+    Bind errors and key problems raise :class:`ConfigError` here.
     """
 
     def __init__(self, config: StreamSettings, spool: KeyframeSpool, session_id: str, rig: Any = None,
                  rig_ref: tuple[str, str] | None = None, *, keys: KeySettings | None = None,
-                 status_interval_s: float = 1.0) -> None:
+                 status_interval_s: float = 1.0, backlog_roots: Any = ()) -> None:
         import zmq
 
         self.config = config
@@ -72,7 +76,9 @@ class DeviceStreamer:
         except ProtocolError as exc:
             raise ConfigError(f"streaming: {exc}") from None
         self.rig_ref = rig_ref or (rig_reference(rig) if rig is not None else UNKNOWN_RIG)
+        self._session_info = self._checked_session_info(rig)
         self._zmq = zmq
+        self.backlog = self._open_backlog(backlog_roots)
 
         def server_keys() -> CurveKeys:
             if keys is None:
@@ -89,7 +95,8 @@ class DeviceStreamer:
             if curve_keys is not None and keys is not None:
                 self._auth = start_authenticator(self._ctx, keys.clients_dir)
             self._pub = PosePublisher(self._ctx, config, curve_keys)
-            self._server = KeyframeServer(self._ctx, config, spool, self.session_id, curve_keys, self._status_bytes)
+            self._server = KeyframeServer(self._ctx, config, spool, self.session_id, curve_keys, self._status_bytes,
+                                          self._session_bytes, self.backlog)
         except zmq.ZMQError as exc:
             self._teardown()
             raise ConfigError(f"cannot bind streaming endpoints ({config.pose_endpoint}, "
@@ -198,6 +205,8 @@ class DeviceStreamer:
         out["spool_disk_full"] = self.spool.disk_full
         out["keyframes_in_memory"] = self.spool.memory_count
         out["keyframes_held_in_memory"] = self.spool.held_in_memory
+        out["keyframes_acked"] = self.spool.acked_seq + 1
+        out.update(self.backlog.summary())
         if self._pub is not None:
             out["poses_sent"] = self._pub.sent
             out["poses_dropped_send"] = self._pub.dropped
@@ -242,6 +251,34 @@ class DeviceStreamer:
         self.close()
 
     # ------------------------------------------------------------------ internals
+
+    def _open_backlog(self, roots: Any) -> Backlog:
+        """Mark this spool as this session's and find earlier sessions' undelivered keyframes."""
+        try:
+            write_marker(self.spool.dir, encode_session(self._session_info))
+        except (OSError, ProtocolError) as exc:  # a later run cannot offer this session's keyframes again
+            log.error("cannot write the session marker of spool %s: %s; if this run dies, its undelivered "
+                      "keyframes stay on the device", self.spool.dir, exc)
+        backlog = Backlog(find_backlog(roots, self.spool.dir) if roots else [])
+        if backlog.sessions:
+            log.warning("%d earlier session(s) left %d keyframe(s) no host acknowledged (%s): offered to hosts "
+                        "after this session's", len(backlog.sessions), backlog.pending,
+                        ", ".join(b.session_id for b in backlog.sessions[:5]) +
+                        (", ..." if len(backlog.sessions) > 5 else ""))
+        return backlog
+
+    def _checked_session_info(self, rig: Any) -> Any:
+        """The session message, decodable by a host (else sent without the rig, with a warning)."""
+        info = make_session_info(self.session_id, rig, self.rig_ref)
+        try:
+            decode_session(encode_session(info))
+        except ProtocolError as exc:
+            log.warning("the rig cannot be sent to hosts (%s): they need --rig to map this session", exc)
+            info = dataclasses.replace(info, rig=None)
+        return info
+
+    def _session_bytes(self) -> bytes:
+        return encode_session(dataclasses.replace(self._session_info, keyframes=self.spool.count))
 
     def _note_call(self, t0: float) -> None:
         dt = time.perf_counter() - t0

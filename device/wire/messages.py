@@ -1,7 +1,7 @@
 """The wire's message types and identifiers: what device and host exchange, with its bounds.
 
 See :mod:`stereopath.device.wire.protocol` for the encoding; this module holds the shapes
-(:class:`Pose`, :class:`Keyframe`, :class:`Status` with :class:`DeviceHealth`, :class:`Hello`,
+(:class:`Pose`, :class:`Keyframe`, :class:`Status` with :class:`DeviceHealth`, :class:`SessionInfo`, :class:`Hello`,
 :class:`Ack`, :class:`Credit`), the limits applied to untrusted bytes and the session-id rules.
 """
 
@@ -62,6 +62,8 @@ class Limits:
 POSE_LIMITS = Limits(max_message_bytes=256)
 CONTROL_LIMITS = Limits(max_message_bytes=512)
 KEYFRAME_LIMITS = Limits(max_message_bytes=64 * 2**20, max_bin_len=32 * 2**20)
+# a session message carries the rig calibration: up to 14 distortion coefficients and a free rig name
+SESSION_LIMITS = Limits(max_message_bytes=16384, max_array_len=16, max_str_len=256)
 
 
 # --------------------------------------------------------------------------- message types
@@ -113,6 +115,25 @@ class Keyframe:
     @property
     def T_world_cam(self) -> np.ndarray:
         return pose_matrix(self.position_m, self.quat_xyzw)
+
+
+@dataclass(frozen=True)
+class SessionInfo:
+    """Device -> host, once per session on each connection, before that session's keyframes.
+
+    ``rig`` is the session's calibration in the rig YAML schema
+    (:func:`stereopath.device.core.rig.rig_to_dict`; None when the device has none to send), named
+    by ``rig_name``/``rig_hash`` exactly as its keyframes name it.  ``keyframes`` is how many
+    keyframes the device has spooled of the session (so far, for the live one); ``live`` is False
+    for an earlier session whose unacknowledged keyframes the device still holds (a killed run).
+    """
+
+    session_id: str
+    rig_name: str
+    rig_hash: str
+    rig: dict[str, Any] | None
+    keyframes: int
+    live: bool = True
 
 
 @dataclass(frozen=True)
@@ -188,7 +209,7 @@ class Credit:
     n: int
 
 
-Message = Pose | Keyframe | Status | Hello | Ack | Credit
+Message = Pose | Keyframe | Status | SessionInfo | Hello | Ack | Credit
 
 
 # --------------------------------------------------------------------------- helpers

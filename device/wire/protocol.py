@@ -7,6 +7,9 @@ Every message is one msgpack map with a schema version ``v`` and a ``type``:
 ``keyframe``  pose plus the left and right images (JPEG or PNG, or raw pixels whose dtype and
               shape come from an allow-list) and the rig calibration reference (name + hash)
               -- ROUTER/DEALER, loss-free;
+``session``   a session's rig calibration (the rig YAML schema, checked against its hash) and
+              how many keyframes the device holds of it, once per session on each connection
+              before its keyframes (also for an earlier session's undelivered keyframes);
 ``status``    device health, about 1 Hz (frame and IMU rates, drops, CPU, temperature, disk,
               recorder state) plus streaming counters -- on the keyframe channel;
 ``hello``     host -> device: (re)start of the keyframe flow, with the host's last stored
@@ -40,20 +43,21 @@ from stereopath.device.wire.images import check_shape, decode_image, decode_imag
 from stereopath.device.wire.messages import (
     CONTROL_LIMITS, HEALTH_FIELDS, I63, IMAGE_CHANNELS, IMAGE_ENCODINGS, KEYFRAME_LIMITS, MAX_CREDIT, MAX_IMAGE_SIDE,
     MAX_POSITION_M, POSE_LIMITS, POSE_MAX_BYTES, PROTOCOL_VERSION, RAW_DTYPES, RECORDER_STATE_RE, RIG_HASH_RE,
-    RIG_NAME_RE, SESSION_ID_RE, TRACKING_STATES, U32, Ack, Credit, DecodeError, DeviceHealth, EncodedImage, Hello,
-    Keyframe, Limits, Message, Pose, Status, check_session_id, new_session_id, pose_from_matrix, pose_matrix,
-    rig_reference,
+    RIG_NAME_RE, SESSION_ID_RE, SESSION_LIMITS, TRACKING_STATES, U32, Ack, Credit, DecodeError, DeviceHealth,
+    EncodedImage, Hello, Keyframe, Limits, Message, Pose, SessionInfo, Status, check_session_id, new_session_id,
+    pose_from_matrix, pose_matrix, rig_reference,
 )
 
 # the protocol's public names, one import away for both sides
 __all__ = [
     "CONTROL_LIMITS", "HEALTH_FIELDS", "IMAGE_CHANNELS", "IMAGE_ENCODINGS", "KEYFRAME_LIMITS", "MAX_CREDIT",
     "MAX_IMAGE_SIDE", "POSE_LIMITS", "POSE_MAX_BYTES", "PROTOCOL_VERSION", "RAW_DTYPES", "RECORDER_STATE_RE",
-    "RIG_HASH_RE", "RIG_NAME_RE", "SESSION_ID_RE", "TRACKING_STATES", "Ack", "Credit", "DecodeError", "DeviceHealth",
-    "EncodedImage", "Hello", "Keyframe", "Limits", "Message", "Pose", "Status", "check_session_id", "decode_control",
-    "decode_image", "decode_keyframe", "decode_message", "decode_pose", "decode_status", "encode_ack",
-    "encode_credit", "encode_hello", "encode_image", "encode_keyframe", "encode_message", "encode_pose",
-    "encode_status", "image_header_size", "make_keyframe", "new_session_id", "pose_from_matrix", "pose_matrix",
+    "RIG_HASH_RE", "RIG_NAME_RE", "SESSION_ID_RE", "SESSION_LIMITS", "TRACKING_STATES", "Ack", "Credit", "DecodeError",
+    "DeviceHealth", "EncodedImage", "Hello", "Keyframe", "Limits", "Message", "Pose", "SessionInfo", "Status",
+    "check_session_id", "decode_control", "decode_image", "decode_keyframe", "decode_message", "decode_pose",
+    "decode_session", "decode_status", "encode_ack", "encode_credit", "encode_hello", "encode_image",
+    "encode_keyframe", "encode_message", "encode_pose", "encode_session", "encode_status", "image_header_size",
+    "make_keyframe", "make_session_info", "new_session_id", "pose_from_matrix", "pose_matrix", "rig_of",
     "rig_reference",
 ]
 
@@ -144,16 +148,21 @@ def encode_keyframe(msg: Keyframe) -> bytes:
                   "l": pack_image(msg.left), "r": pack_image(msg.right)})
 
 
-def _decode_keyframe(obj: dict[str, Any]) -> Keyframe:
-    exact_keys(obj, _KEYFRAME_KEYS, "keyframe")
+def _rig_ref_field(obj: dict[str, Any]) -> tuple[str, str]:
+    """The ``rig`` field of a keyframe or session message: ``{"name": ..., "hash": ...}``."""
     rig = obj["rig"]
     if not isinstance(rig, dict):
         raise DecodeError("field", "rig must be a map")
     exact_keys(rig, ("name", "hash"), "rig")
+    return field_str(rig, "name", RIG_NAME_RE), field_str(rig, "hash", RIG_HASH_RE)
+
+
+def _decode_keyframe(obj: dict[str, Any]) -> Keyframe:
+    exact_keys(obj, _KEYFRAME_KEYS, "keyframe")
+    rig_name, rig_hash = _rig_ref_field(obj)
     return Keyframe(check_session_id(obj["sid"]), field_int(obj, "seq", 0, U32), field_int(obj, "fseq", 0, U32),
                     field_int(obj, "t", 0, I63), field_vec(obj, "p", 3, MAX_POSITION_M), field_quat(obj, "q"),  # type: ignore[arg-type]
-                    decode_image_field(obj["l"], "l"), decode_image_field(obj["r"], "r"),
-                    field_str(rig, "name", RIG_NAME_RE), field_str(rig, "hash", RIG_HASH_RE))
+                    decode_image_field(obj["l"], "l"), decode_image_field(obj["r"], "r"), rig_name, rig_hash)
 
 
 def decode_keyframe(data: bytes, limits: Limits = KEYFRAME_LIMITS) -> Keyframe:
@@ -208,6 +217,71 @@ def _decode_status(obj: dict[str, Any]) -> Status:
             values[attr] = field_float(obj, key, lo, hi)
     return Status(check_session_id(obj["sid"]), field_int(obj, "t", 0, I63),
                   recorder_state=field_str(obj, "rec", RECORDER_STATE_RE), **values)
+
+
+# --------------------------------------------------------------------------- session
+
+_SESSION_KEYS = ("type", "v", "sid", "rig", "cal", "kfs", "live")
+
+
+def make_session_info(session_id: str, rig: Any, rig_ref: tuple[str, str], keyframes: int = 0,
+                      live: bool = True) -> SessionInfo:
+    """The session message of a device session: ``rig`` (a Rig, or None) named by ``rig_ref``."""
+    from stereopath.device.core.rig import rig_to_dict
+
+    return SessionInfo(session_id, rig_ref[0], rig_ref[1], None if rig is None else rig_to_dict(rig),
+                       int(keyframes), bool(live))
+
+
+def encode_session(msg: SessionInfo) -> bytes:
+    check_common(msg.session_id, msg.keyframes, 0, "session")
+    if not RIG_NAME_RE.match(msg.rig_name) or not RIG_HASH_RE.match(msg.rig_hash):
+        raise ProtocolError(f"session: rig reference ({msg.rig_name!r}, {msg.rig_hash!r}) is malformed")
+    data = pack({"type": "session", "v": PROTOCOL_VERSION, "sid": msg.session_id,
+                 "rig": {"name": msg.rig_name, "hash": msg.rig_hash}, "cal": msg.rig, "kfs": int(msg.keyframes),
+                 "live": bool(msg.live)})
+    if len(data) > SESSION_LIMITS.max_message_bytes:
+        raise ProtocolError(f"session message is {len(data)} bytes, over {SESSION_LIMITS.max_message_bytes}")
+    return data
+
+
+def rig_of(msg: SessionInfo) -> Any:
+    """The :class:`stereopath.device.core.rig.Rig` a session message carries (None if it carries none).
+
+    Raises :class:`DecodeError` when the calibration is not a valid rig or does not hash to the
+    reference the session's keyframes carry.
+    """
+    from stereopath.device.core.rig import rig_from_dict
+    from stereopath.device.errors import CalibrationError
+
+    if msg.rig is None:
+        return None
+    try:
+        rig = rig_from_dict(msg.rig, source=f"session {msg.session_id} rig")
+    except (CalibrationError, TypeError, ValueError) as exc:
+        raise DecodeError("rig", f"session {msg.session_id}: invalid rig calibration: {exc}") from None
+    ref = rig_reference(rig)
+    if ref[1] != msg.rig_hash:
+        raise DecodeError("rig", f"session {msg.session_id}: the calibration hashes to {ref[1]}, not the "
+                                 f"declared {msg.rig_hash}")
+    return rig
+
+
+def _decode_session(obj: dict[str, Any]) -> SessionInfo:
+    exact_keys(obj, _SESSION_KEYS, "session")
+    rig_name, rig_hash = _rig_ref_field(obj)
+    cal, live = obj["cal"], obj["live"]
+    if cal is not None and not isinstance(cal, dict):
+        raise DecodeError("field", "cal must be a map or nil")
+    if not isinstance(live, bool):
+        raise DecodeError("field", f"live={live!r} must be a boolean")
+    msg = SessionInfo(check_session_id(obj["sid"]), rig_name, rig_hash, cal, field_int(obj, "kfs", 0, U32), live)
+    rig_of(msg)  # the calibration must be a valid rig with the declared hash
+    return msg
+
+
+def decode_session(data: bytes, limits: Limits = SESSION_LIMITS) -> SessionInfo:
+    return _expect(decode_message(data, limits, ("session",)), SessionInfo)
 
 
 # --------------------------------------------------------------------------- control
@@ -268,6 +342,7 @@ _DECODERS: dict[str, Callable[[dict[str, Any]], Any]] = {
     "pose": _decode_pose,
     "keyframe": _decode_keyframe,
     "status": _decode_status,
+    "session": _decode_session,
     "hello": _decode_hello,
     "ack": _decode_ack,
     "credit": _decode_credit,
@@ -277,8 +352,8 @@ _DECODERS: dict[str, Callable[[dict[str, Any]], Any]] = {
 def encode_message(msg: Message) -> bytes:
     """Encode any message type."""
     encoders: dict[type, Callable[[Any], bytes]] = {
-        Pose: encode_pose, Keyframe: encode_keyframe, Status: encode_status, Hello: encode_hello, Ack: encode_ack,
-        Credit: encode_credit}
+        Pose: encode_pose, Keyframe: encode_keyframe, Status: encode_status, SessionInfo: encode_session,
+        Hello: encode_hello, Ack: encode_ack, Credit: encode_credit}
     for cls, encode in encoders.items():
         if isinstance(msg, cls):
             return encode(msg)

@@ -6,6 +6,12 @@ and writes into OUT, per device session: OUT/<session>/poses.tum (flushed as pos
 OUT/<session>/keyframes/ (one file per keyframe plus index.csv), and OUT/receiver.json
 (messages received, duplicates, pose seq gaps, rejected messages by reason).  Restarting with
 the same OUT resumes: keyframes already stored are not received twice.
+
+The device sends its rig once per session: it is stored as OUT/<session>/rig.yaml, and --map
+maps each session with it (no --rig needed; a --rig that differs from the device's is named in a
+warning and the device's is used).  Keyframes of an earlier device session that no host had
+(the device was killed) arrive after the live ones, into their own OUT/<session>/; sessions
+still missing keyframes are logged at start and at the end (and listed by `host sessions OUT`).
 """
 
 from __future__ import annotations
@@ -30,12 +36,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     view = parser.add_mutually_exclusive_group()
     view.add_argument("--rerun", action="store_true", help="show the path, camera and keyframes in a rerun viewer")
     view.add_argument("--rerun-save", metavar="FILE.rrd", help="write the rerun recording to FILE.rrd")
-    parser.add_argument("--rig", metavar="FILE.yaml", help="rig calibration for the rerun camera frustum")
+    parser.add_argument("--rig", metavar="FILE.yaml",
+                        help="rig calibration for the rerun camera frustum, and for --map when the device sends none")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     parser.add_argument("--window", type=int, default=8, help="keyframes in flight (credit window)")
     parser.add_argument("--no-fsync", action="store_true", help="do not fsync each stored keyframe")
     parser.add_argument("--map", action="store_true",
-                        help="build the dense model as keyframes arrive (needs --rig); mesh refreshed every --map-every")
+                        help="build the dense model as keyframes arrive (with the device's rig); mesh refreshed every "
+                             "--map-every")
     parser.add_argument("--map-every", type=int, default=10, metavar="N", help="refresh the live mesh every N keyframes")
 
 
@@ -64,12 +72,11 @@ def run(args: argparse.Namespace) -> int:
         rerun_view = RerunView(save_path=args.rerun_save, spawn=args.rerun, rig=rig)
     mapper = None
     if args.map:
-        if rig is None:
-            raise ConfigError("--map needs --rig FILE.yaml (keyframes carry only the rig's name and hash)")
         from stereopath.host.live.live_map import LiveMapper
 
         mapper = LiveMapper(rig, args.out, every=args.map_every,
-                            on_mesh=getattr(rerun_view, "on_mesh", None) if rerun_view else None)
+                            on_mesh=getattr(rerun_view, "on_mesh", None) if rerun_view else None,
+                            rig_for=lambda sid: receiver.sessions.rig(sid))
 
     def on_keyframe(kf, new):
         if rerun_view is not None:
@@ -90,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
     finally:
         term.close()
         receiver.close()
+        models = {}
         if mapper is not None:
             models = mapper.close()
             for session, folder in models.items():
@@ -98,6 +106,11 @@ def run(args: argparse.Namespace) -> int:
             rerun_view.close()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+    return _exit_status(receiver, mapper, models)
+
+
+def _exit_status(receiver, mapper, models) -> int:
+    """Log the totals; 1 if keyframes could not be stored or mapped, 2 if the device let nothing through."""
     st = receiver.stats
     log.info("received %d poses, %d keyframes (%d duplicates), %d pose seq gaps, %d rejected; sessions: %s",
              st.received["pose"], st.received["keyframe"], st.duplicates, st.pose_seq_gaps, st.rejected,
@@ -106,6 +119,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"stereopath: error: keyframes could not be stored on this host ({receiver.storage_error}); the "
               f"device keeps every keyframe not acknowledged and sends it to the next `host live` with space",
               file=sys.stderr)
+        return 1
+    if mapper is not None and mapper.rejected and not models:
+        print(f"stereopath: error: --map: none of the {mapper.rejected} keyframe(s) could be mapped (see the "
+              f"warnings above: no calibration matching their rig); no model written", file=sys.stderr)
         return 1
     got = st.received["pose"] + st.received["keyframe"] + st.received["status"]
     if got == 0 and st.link["auth_failures"]:

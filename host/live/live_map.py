@@ -5,6 +5,16 @@ take about 0.1 s per keyframe), so receiving never waits on mapping.  Every ``ev
 keyframes the current mesh is written to ``OUT/<session>/model/mesh.ply`` (atomically) and
 shown in rerun when a view is open; at the end the whole model (mesh, cloud, preview,
 map.json) is written for each session.
+
+Loop closure (``loops``, on by default): each keyframe is also checked for a return to an earlier
+part of the path (:class:`stereopath.host.live.live_loops.LiveLoopCloser`).  When a loop closes,
+every fused keyframe is re-posed on the corrected path and the TSDF is **re-integrated** from the
+kept depth maps (not deformed), and the mesh is refreshed at once, so the closed loop is in the
+very next mesh; later keyframes are fused at their corrected poses.
+
+Each session is mapped with the rig its keyframes were taken with: the device's own (``rig_for``,
+the rig the receiver stored from the device's session message), else the given ``rig`` when its
+hash matches the keyframes'.  A given rig that differs from the device's is named in one warning.
 """
 
 from __future__ import annotations
@@ -13,7 +23,7 @@ import logging
 import queue
 import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from stereopath.device.errors import CalibrationError, StereopathError
 from stereopath.device.core.rig import Rig
@@ -22,17 +32,24 @@ log = logging.getLogger(__name__)
 
 
 class LiveMapper:
-    def __init__(self, rig: Rig, out_dir: str | Path, every: int = 10, preset: str = "object",
-                 on_mesh: Any = None) -> None:
+    def __init__(self, rig: Rig | None, out_dir: str | Path, every: int = 10, preset: str = "object",
+                 on_mesh: Any = None, rig_for: Callable[[str], Rig | None] | None = None,
+                 loops: Any = True) -> None:
         from stereopath.device.wire.protocol import rig_reference
 
         self.rig = rig
+        self.rig_for = rig_for
+        self._session_rigs: dict[str, Rig] = {}
         self.out = Path(out_dir)
         self.every = max(1, int(every))
         self.preset = preset
         self.on_mesh = on_mesh
-        self._ref = rig_reference(rig)
+        self._ref = rig_reference(rig) if rig is not None else None
         self._mappers: dict[str, Any] = {}
+        # loops: True (default LoopConfig), False/None (off) or a LoopConfig
+        self.loops = loops
+        self._closers: dict[str, Any] = {}
+        self.loops_closed = 0
         self._q: queue.Queue = queue.Queue()
         self._thread = threading.Thread(target=self._work, name="live-map", daemon=True)
         self._thread.start()
@@ -44,15 +61,65 @@ class LiveMapper:
         if new:
             self._q.put(kf)
 
-    def _mapper(self, session: str):
+    def _rig_of(self, kf: Any) -> Rig:
+        """The rig ``kf`` was taken with: the device's (stored from its session message), else ``rig``."""
+        from stereopath.device.wire.protocol import rig_reference
+
+        rig = self._session_rigs.get(kf.session_id)
+        if rig is None:
+            device = self.rig_for(kf.session_id) if self.rig_for is not None else None
+            if device is not None and rig_reference(device)[1] == kf.rig_hash:
+                if self._ref is not None and self._ref[1] != kf.rig_hash:
+                    log.warning("live map: --rig %s (%s) is not the rig session %s was taken with; mapping with "
+                                "the device's rig %s (%s)", self._ref[0], self._ref[1], kf.session_id,
+                                kf.rig_name, kf.rig_hash)
+                rig = device
+            elif self.rig is not None and self._ref is not None and self._ref[1] == kf.rig_hash:
+                rig = self.rig
+            else:
+                given = f"; --rig is {self._ref[0]} ({self._ref[1]})" if self._ref is not None else ""
+                raise CalibrationError(f"keyframe {kf.seq} of session {kf.session_id} was taken with rig "
+                                       f"{kf.rig_name} ({kf.rig_hash}) and the device sent no calibration for it{given}")
+            self._session_rigs[kf.session_id] = rig
+        elif rig_reference(rig)[1] != kf.rig_hash:
+            raise CalibrationError(f"keyframe {kf.seq} of session {kf.session_id} names rig {kf.rig_name} "
+                                   f"({kf.rig_hash}), not the session's")
+        return rig
+
+    def _mapper(self, session: str, rig: Rig):
         from stereopath.host.mapping.mapper import DenseMapper, map_preset
 
         if session not in self._mappers:
-            self._mappers[session] = DenseMapper(self.rig, map_preset(self.preset), source=f"live:{session}")
+            self._mappers[session] = DenseMapper(rig, map_preset(self.preset), source=f"live:{session}",
+                                                 keep_depth=bool(self.loops))
         return self._mappers[session]
 
-    def _work(self) -> None:
+    def _fuse(self, kf: Any, rig: Rig) -> bool:
+        """Fuse one keyframe (at its loop-corrected pose); True when it closed a loop and the map was re-posed."""
         from stereopath.device.wire.protocol import decode_image
+        from stereopath.host.live.live_loops import LiveLoopCloser
+
+        m = self._mapper(kf.session_id, rig)
+        left, right = decode_image(kf.left), decode_image(kf.right)
+        if not self.loops:
+            m.add(left, right, kf.T_world_cam, kf.seq)
+            return False
+        closer = self._closers.get(kf.session_id)
+        if closer is None:
+            closer = self._closers[kf.session_id] = LiveLoopCloser(rig, None if self.loops is True else self.loops)
+        closed = closer.add(left, right, kf.T_world_cam)
+        T = closer.poses()
+        try:
+            m.add(left, right, T[-1], kf.seq)
+        except StereopathError:
+            closer.discard_last()  # the map and the closer keep the same keyframes
+            raise
+        if closed:
+            m.repose(T)
+            self.loops_closed += 1
+        return closed
+
+    def _work(self) -> None:
         from stereopath.host.mapping.fusion import write_mesh
 
         while True:
@@ -60,17 +127,15 @@ class LiveMapper:
             if kf is None:
                 return
             try:
-                if (kf.rig_name, kf.rig_hash) != self._ref:
-                    raise CalibrationError(f"keyframe {kf.seq} of session {kf.session_id} was taken with rig "
-                                           f"{kf.rig_name} ({kf.rig_hash}); --rig is {self._ref[0]} ({self._ref[1]})")
-                m = self._mapper(kf.session_id)
-                m.add(decode_image(kf.left), decode_image(kf.right), kf.T_world_cam, kf.seq)
+                rig = self._rig_of(kf)
+                closed = self._fuse(kf, rig)
+                m = self._mapper(kf.session_id, rig)
                 self.fused += 1
             except StereopathError as exc:
                 self.rejected += 1
                 log.warning("live map: keyframe %s not fused: %s", getattr(kf, "seq", "?"), exc)
                 continue
-            if m.keyframes % self.every == 0:
+            if m.keyframes % self.every == 0 or closed:  # a closed loop is shown at once
                 mesh = m.mesh()
                 if len(mesh.triangles) == 0:  # too few views of any surface yet
                     continue

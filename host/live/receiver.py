@@ -4,7 +4,11 @@
 each device session id it sees keeps a folder ``OUT/<session>/`` with
 
 * ``poses.tum``  every received pose, appended and flushed as it arrives;
-* ``keyframes/`` every keyframe exactly once (see :mod:`stereopath.host.live.store`).
+* ``keyframes/`` every keyframe exactly once (see :mod:`stereopath.host.live.store`);
+* ``rig.yaml`` and ``session.json``: the device's rig and keyframe count, from its ``session``
+  message (see :mod:`stereopath.host.live.receiver_sessions`).  Keyframes of an earlier session
+  the device still held (it was killed before a host had them) arrive after the live ones and
+  are stored under their own session id; incomplete sessions are logged at start and at the end.
 
 ``OUT/receiver.json`` counts messages received, keyframe duplicates, gaps in the pose seq and
 rejected messages by reason (totals over restarts of the receiver).
@@ -35,19 +39,21 @@ from pathlib import Path
 from typing import Any, Callable, TextIO
 
 from stereopath.device.errors import ConfigError
-from stereopath.device.wire.protocol import KEYFRAME_LIMITS, POSE_LIMITS, Ack, DecodeError, Hello, Keyframe, Limits, Pose, Status, \
-    decode_message, encode_ack, encode_hello
+from stereopath.device.wire.protocol import KEYFRAME_LIMITS, POSE_LIMITS, SESSION_LIMITS, Ack, DecodeError, \
+    Keyframe, Limits, Pose, SessionInfo, Status, decode_message, encode_ack
 from stereopath.device.wire.security import load_host_keys
 from stereopath.device.wire.sockets import CurveKeys, open_socket, secure_channel
 from stereopath.device.formats.tum import ns_to_seconds_str
 from stereopath.device.formats.fileio import write_json_atomic
 from stereopath.host.live.receiver_config import RECEIVER_JSON, ReceiverConfig
+from stereopath.host.live.receiver_link import LinkControl
+from stereopath.host.live.receiver_sessions import SessionCatalog, describe_incomplete
 from stereopath.host.live.receiver_stats import EventRate, LiveState, ReceiverStats, SessionStats
 from stereopath.host.live.store import KeyframeStore, list_sessions
 
 log = logging.getLogger(__name__)
 
-class Receiver:
+class Receiver(LinkControl):
     """Receives from one device into ``out_dir``; drive it with :meth:`poll` or :meth:`run`."""
 
     def __init__(self, config: ReceiverConfig, out_dir: str | Path,
@@ -68,8 +74,13 @@ class Receiver:
         self.stats.runs += 1
         self.store = KeyframeStore(self.out, fsync=config.fsync)
         self.live = LiveState(session_id=self.store.last_session)
+        self.sessions = SessionCatalog(self.out, fsync=config.fsync)
+        self.device_session: str | None = None  # the device's live session (from its status / session message)
         self._kf_limits = Limits(max_message_bytes=config.max_keyframe_bytes,
-                                 max_bin_len=min(KEYFRAME_LIMITS.max_bin_len, config.max_keyframe_bytes))
+                                 max_bin_len=min(KEYFRAME_LIMITS.max_bin_len, config.max_keyframe_bytes),
+                                 max_array_len=SESSION_LIMITS.max_array_len, max_str_len=SESSION_LIMITS.max_str_len)
+        for line in describe_incomplete(self.out):
+            log.warning("incomplete session in %s: %s", self.out, line)
         self._tum: dict[str, TextIO] = {}
         self._pose_rate, self._kf_rate = EventRate(), EventRate()
         self._pose_window: collections.deque[tuple[float, int]] = collections.deque(maxlen=4096)
@@ -168,6 +179,8 @@ class Receiver:
                 log.error("closing a poses.tum: %s", exc.strerror or exc)
         self._tum.clear()
         self.store.close()
+        for line in describe_incomplete(self.out):
+            log.warning("incomplete session: %s", line)
         try:
             self.dealer.disable_monitor()
         except self._zmq.ZMQError:
@@ -216,7 +229,7 @@ class Receiver:
                 if channel == "pose":
                     msg = decode_message(frames[0], POSE_LIMITS, ("pose",))
                 else:
-                    msg = decode_message(frames[0], self._kf_limits, ("keyframe", "status"))
+                    msg = decode_message(frames[0], self._kf_limits, ("keyframe", "status", "session"))
             except DecodeError as exc:
                 self._reject(channel, exc.reason, str(exc))
                 continue
@@ -230,6 +243,8 @@ class Receiver:
                 self._handle_keyframe(msg, frames[0])
             elif isinstance(msg, Status):
                 self._handle_status(msg)
+            elif isinstance(msg, SessionInfo):
+                self._handle_session(msg)
         return n
 
     def _admit_session(self, sid: str) -> bool:
@@ -259,11 +274,12 @@ class Receiver:
         else:
             log.debug("rejected %s message (%s): %s", channel, reason, detail[:200])
 
-    def _session(self, sid: str) -> SessionStats:
+    def _session(self, sid: str, live: bool = True) -> SessionStats:
+        """The counters of ``sid``; ``live``: it is the device's current session (shown in the live view)."""
         s = self.stats.sessions.get(sid)
         if s is None:
             s = self.stats.sessions[sid] = SessionStats()
-        if sid != self.live.session_id:
+        if live and sid != self.live.session_id:
             log.info("device session %s (previous: %s): stored apart in %s", sid, self.live.session_id,
                      self.out / sid)
             self.live.session_id = sid
@@ -331,26 +347,30 @@ class Receiver:
         return fh
 
     def _handle_keyframe(self, kf: Keyframe, data: bytes) -> None:
+        live = self.device_session is None or kf.session_id == self.device_session  # else an earlier session's
         try:
             new = self.store.put(kf, data)  # written (and fsynced) before the ack
-            self.store.set_last_session(kf.session_id)
+            if live:
+                self.store.set_last_session(kf.session_id)
         except OSError as exc:  # disk full, read-only, ...: not acknowledged, so the device keeps it
             self._storage_failed(f"keyframe {kf.seq} of session {kf.session_id}", exc)
             return
         if self.storage_error is not None:
             log.info("storing keyframes again (after: %s)", self.storage_error)
             self.storage_error = None
+        self.sessions.on_count(kf.session_id, kf.seq + 1)  # the device holds at least this many
         now = time.monotonic()
         with self.lock:
             self.stats.received["keyframe"] += 1
-            s = self._session(kf.session_id)
+            s = self._session(kf.session_id, live)
             if new:
                 s.keyframes += 1
                 self._kf_rate.add(now)
             else:
                 s.keyframe_duplicates += 1
                 self.stats.duplicates += 1
-            self.live.acked_seq = self.store.session(kf.session_id).acked_seq
+            if live:
+                self.live.acked_seq = self.store.session(kf.session_id).acked_seq
         self._last_progress = now
         try:
             self.dealer.send(encode_ack(Ack(kf.session_id, kf.seq, 1)), self._zmq.NOBLOCK)
@@ -373,6 +393,8 @@ class Receiver:
             log.debug("cannot store %s: %s", what, exc)
 
     def _handle_status(self, st: Status) -> None:
+        self.device_session = st.session_id
+        self.sessions.on_count(st.session_id, st.keyframes_spooled)
         with self.lock:
             self.stats.received["status"] += 1
             self._session(st.session_id)
@@ -380,110 +402,15 @@ class Receiver:
         if self.on_status is not None:
             self.on_status(st)
 
-    def _handle_monitor(self) -> None:
-        from zmq.utils.monitor import recv_monitor_message
-
-        zmq = self._zmq
-        while True:
-            try:
-                ev = recv_monitor_message(self.monitor, zmq.NOBLOCK)
-            except zmq.Again:
-                break
-            e = ev["event"]
-            if e == zmq.EVENT_HANDSHAKE_SUCCEEDED:
-                self.stats.link["connects"] += 1
-                self.live.connected = True
-                log.info("connected to device %s", self.config.keyframe_endpoint)
-                self._hello_pending = True
-            elif e == zmq.EVENT_DISCONNECTED:
-                if self.live.connected:
-                    self.stats.link["disconnects"] += 1
-                    log.info("disconnected from device; reconnecting")
-                self.live.connected = False
-            elif e == zmq.EVENT_HANDSHAKE_FAILED_AUTH:
-                self.stats.link["auth_failures"] += 1
-                if not self._auth_warned:
-                    self._auth_warned = True
-                    log.warning("device refused this host's key (is its public key in the device's clients dir?)")
-            else:
-                self.stats.link["handshake_failures"] += 1
-                if not self._auth_warned:
-                    self._auth_warned = True
-                    log.warning("handshake with the device failed (wrong device key, or CURVE on one side only?)")
-
-    def _send_hello(self) -> None:
-        sid, acked = self.store.hello_state()
-        try:
-            self.dealer.send(encode_hello(Hello(sid, acked, self.config.window)), self._zmq.NOBLOCK)
-        except self._zmq.Again:
-            self._hello_pending = True  # pipe not attached yet: retry on the next poll
-            return
-        self._hello_pending = False
-        self._last_hello_at = time.monotonic()
-        self.stats.link["hellos"] += 1
-        self._last_progress = time.monotonic()
-        log.debug("hello: session %s, acked %d, window %d", sid, acked, self.config.window)
-
-    def _check_silence(self, now: float) -> None:
-        """Connected, yet neither status nor keyframes for a while: the device has lost track of this
-        connection (or the stream died); say hello again instead of showing a good link forever."""
-        if not self.live.connected or self._hello_pending:
-            return
-        quiet = now - max(self._last_dealer_rx, self._last_hello_at)
-        if quiet < max(self.config.stall_timeout_s, 2.0 * self.config.heartbeat_ivl_ms / 1000.0):
-            return
-        self.stats.link["rehellos_silent"] += 1
-        if "silent" not in self._warned:
-            self._warned.add("silent")
-            log.warning("no status or keyframes from the device for %.1f s although connected: hello again", quiet)
-        self.live.link_quality = "lost"
-        self._send_hello()
-
-    def _check_stall(self, now: float) -> None:
-        self._check_silence(now)
-        st = self.live.status
-        if not self.live.connected or st is None or now - self._last_progress < self.config.stall_timeout_s:
-            return
-        try:
-            have = self.store.session(st.session_id).acked_seq if st.session_id == self.store.last_session else -1
-        except OSError as exc:
-            self._storage_failed(f"session {st.session_id}", exc)
-            self._last_progress = now
-            return
-        if st.keyframes_spooled - 1 > have:
-            self.stats.link["rehellos_after_stall"] += 1
-            log.info("keyframes stalled (device has %d, host holds up to %d): hello again",
-                     st.keyframes_spooled, have)
-            if st.session_id != self.store.last_session:
-                self.store.set_last_session(st.session_id)
-            self._send_hello()
-        self._last_progress = now
-
-    def _update_live(self, now: float) -> None:
+    def _handle_session(self, info: SessionInfo) -> None:
+        if info.live:
+            self.device_session = info.session_id
         with self.lock:
-            self._update_live_locked(now)
-
-    def _update_live_locked(self, now: float) -> None:
-        live = self.live
-        live.pose_rate_hz = self._pose_rate.rate(now)
-        live.keyframe_rate_hz = self._kf_rate.rate(now)
-        w = self._pose_window
-        while w and now - w[0][0] > 2.0:
-            w.popleft()
-        if len(w) >= 2:
-            span = max(s for _, s in w) - min(s for _, s in w) + 1
-            live.pose_window_ratio = min(1.0, len(w) / span)
-        age = None if live.last_rx is None else now - live.last_rx
-        if self.stats.link["auth_failures"] and not live.connected:
-            live.link_quality = "refused"
-        elif age is None:
-            live.link_quality = "waiting"
-        elif age > 3.0 or not live.connected:
-            live.link_quality = "lost"
-        elif age > 0.5 or live.pose_window_ratio < 0.9 or now - self._last_dealer_rx > self.config.stall_timeout_s:
-            live.link_quality = "poor"  # (the last: poses flow but no status or keyframes on the keyframe link)
-        else:
-            live.link_quality = "good"
+            self.stats.received["session"] += 1
+        try:
+            self.sessions.on_session(info)
+        except OSError as exc:  # the next connection sends it again
+            self._storage_failed(f"the rig of session {info.session_id}", exc)
 
     # ------------------------------------------------------------------ statistics
 
@@ -506,6 +433,7 @@ class Receiver:
             write_json_atomic(self.out / RECEIVER_JSON, data, indent=1, fsync=False)
             if self.store.last_session:
                 self.store.save_state()
+            self.sessions.save()
         except OSError as exc:  # disk full: the counters are rewritten on the next period
             if "stats" not in self._warned:
                 self._warned.add("stats")

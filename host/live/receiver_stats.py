@@ -27,7 +27,7 @@ class SessionStats:
 class ReceiverStats:
     """Counters written to ``receiver.json`` (cumulative over receiver restarts)."""
 
-    received: dict[str, int] = field(default_factory=lambda: {"pose": 0, "keyframe": 0, "status": 0})
+    received: dict[str, int] = field(default_factory=lambda: {"pose": 0, "keyframe": 0, "status": 0, "session": 0})
     duplicates: int = 0
     pose_seq_gaps: int = 0
     rejected_by_reason: dict[str, int] = field(default_factory=dict)

@@ -2,8 +2,8 @@
 
 :func:`open_map_input` reads a recorded session (``SESSION/mav0`` ..., poses from ``trajectory.tum``
 or a ``poses`` file, keyframes chosen by :func:`select_keyframes`) or a folder of keyframes stored
-by ``host live`` (:mod:`stereopath.host.live.store`; the rig comes from a ``rig.yaml`` beside them or
-an explicit rig and must match the keyframes' rig hash).
+by ``host live`` (:mod:`stereopath.host.live.store`; the rig comes from the ``rig.yaml`` ``host live``
+stored beside them from the device, or an explicit rig, and must match the keyframes' rig hash).
 """
 
 from __future__ import annotations
@@ -213,8 +213,11 @@ def keyframes_input(path: str | Path, selection: KeyframeSelection | None = None
         the_rig, rig_src = load_rig_yaml(found[0]), str(found[0])
     got = rig_reference(the_rig)
     if got[1] != rig_hash:
+        stored = [c for c in (kdir / "rig.yaml", kdir.parent / "rig.yaml") if c.is_file() and c != Path(rig_src)]
+        hint = (f"; the device's rig of these keyframes is stored in {stored[0]}: drop --rig to map with it"
+                if rig is not None and stored else "")
         raise CalibrationError(f"{rig_src}: rig hash {got[1]} ({got[0]}) does not match the keyframes' rig "
-                               f"{rig_name!r} (hash {rig_hash})")
+                               f"{rig_name!r} (hash {rig_hash}){hint}")
     poses = np.array([k.T_world_cam for k in kfs])
     sel = select_keyframes(poses, selection or KeyframeSelection(stride=1))
 

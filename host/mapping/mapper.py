@@ -102,8 +102,10 @@ class DenseMapper:
     and ``mesh()`` every few keyframes (extraction costs about 0.1-0.5 s for a table-top scan).
     """
 
-    def __init__(self, rig: Rig, config: MapConfig, source: str = "") -> None:
+    def __init__(self, rig: Rig, config: MapConfig, source: str = "", keep_depth: bool = False) -> None:
         self.rig = rig
+        # keep_depth: every keyframe's depth map stays in memory (about 1.2 MB at 640x480) so that
+        # :meth:`repose` can fuse them again at new poses
         self.config = config
         self.source = source or rig.name
         self.depth = StereoDepth(rig, config.depth)
@@ -111,6 +113,8 @@ class DenseMapper:
         self.poses: list[np.ndarray] = []
         self.indices: list[int] = []
         self.valid_fractions: list[float] = []
+        self.depth_maps: list[Any] | None = [] if keep_depth else None
+        self.reposed = 0
         self.timings = {"load": 0.0, "depth": 0.0, "fusion": 0.0}
         log.info("dense mapping (%s): depth %s; fusion %s", config.preset, config.depth, config.fusion)
 
@@ -129,7 +133,27 @@ class DenseMapper:
         self.poses.append(np.asarray(T_world_cam0, float))
         self.indices.append(len(self.indices) if index is None else int(index))
         self.valid_fractions.append(dm.valid_fraction)
+        if self.depth_maps is not None:
+            self.depth_maps.append(dm)
         return dm
+
+    def repose(self, T_world_cam0: np.ndarray) -> None:
+        """Move the fused keyframes to new poses (K, 4, 4): the TSDF is rebuilt by integrating every
+        kept depth map again at its new pose (re-integration, not a deformation of the old volume:
+        exact, and about the fusion time of the keyframes so far, ~0.05 s each)."""
+        if self.depth_maps is None:
+            raise StereopathError(f"{self.source}: repose needs the depth maps (DenseMapper(keep_depth=True))")
+        T = np.asarray(T_world_cam0, float)
+        if T.shape != (len(self.poses), 4, 4):
+            raise StereopathError(f"{self.source}: repose got {T.shape[0] if T.ndim == 3 else '?'} poses for "
+                                  f"{len(self.poses)} fused keyframes")
+        t0 = time.perf_counter()
+        self.volume = TsdfVolume(self.config.fusion)
+        for dm, Tk in zip(self.depth_maps, T):
+            self.volume.integrate_depth_map(dm, Tk)
+        self.poses = [Tk.copy() for Tk in T]
+        self.reposed += 1
+        self.timings["fusion"] += time.perf_counter() - t0
 
     def mesh(self) -> Any:
         """The current legacy Open3D mesh (may be empty)."""

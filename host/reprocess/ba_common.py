@@ -33,6 +33,7 @@ class BAResult:
     inlier_fraction: float = float("nan")  # observations with a residual below ``outlier_px``
     history: list[float] = field(default_factory=list)  # robust cost after each iteration
     disparity_offset_px: float = 0.0  # estimated right principal-point offset (0 unless estimated)
+    imu_biases: np.ndarray | None = None  # (K, 6) accelerometer then gyro bias per pose (with IMU factors)
 
 
 @dataclass(frozen=True)

@@ -91,7 +91,7 @@ def candidate_pairs(T_world_cam: np.ndarray, cfg: LoopConfig) -> list[tuple[int,
     return out
 
 
-def _matches(a, b) -> np.ndarray:
+def descriptor_matches(a, b) -> np.ndarray:
     from stereopath.device.core.matching import MatchConfig, match
 
     return match(a.feats, b.feats, MatchConfig(ratio=0.8, mutual=True, per_view=False)).idx
@@ -124,7 +124,7 @@ def verify_pair(rig: Rig, a, b, T_wi: np.ndarray, T_wj: np.ndarray, path_m: floa
                 i: int = 0, j: int = 1, m: np.ndarray | None = None) -> tuple[Loop | None, str]:
     """Geometric verification of keyframes ``a`` (i) and ``b`` (j) with their descriptor matches ``m``
     (computed when None); (the loop or None, the reason)."""
-    m = _matches(a, b) if m is None else m
+    m = descriptor_matches(a, b) if m is None else m
     if len(m) < cfg.min_matches:
         return None, f"{len(m)} matches"
     X_i, uv_j, X_j = a.X_cam[m[:, 0]], b.uv0[m[:, 1]], b.X_cam[m[:, 1]]
@@ -165,7 +165,7 @@ def detect_loops(rig: Rig, kfs: list, T_world_cam: np.ndarray, cfg: LoopConfig =
     loops = []
     for i, js in by_i.items():
         # appearance: the candidates with the most descriptor matches first
-        scored = sorted(((_matches(kfs[i], kfs[j]), j) for j in js), key=lambda mj: -len(mj[0]))
+        scored = sorted(((descriptor_matches(kfs[i], kfs[j]), j) for j in js), key=lambda mj: -len(mj[0]))
         for m, j in scored[:cfg.candidates_per_keyframe]:
             if len(m) < cfg.min_matches:
                 continue

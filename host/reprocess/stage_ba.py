@@ -74,6 +74,33 @@ def end_to_start(T: np.ndarray) -> dict[str, float]:
     return {"distance_m": float(np.linalg.norm(rel[:3, 3])), "rotation_deg": float(rotation_angle_deg(rel[:3, :3]))}
 
 
+def imu_terms_of(config: ReprocessPreset, inputs: StageInputs):
+    """Preintegrated IMU between the keyframes (None without ``ba_imu``, a GTSAM back end or usable IMU data)."""
+    from stereopath.host.reprocess.imu_factors import imu_terms
+
+    if not config.ba_imu or config.ba_solver != "gtsam" or getattr(inputs.seq, "imu", None) is None:
+        return None
+    est, trk = inputs.results["estimate"], inputs.results["tracks"]
+    try:
+        return imu_terms(inputs.seq, est["t_ns"][trk["kf_index"]], trk["T_kf"])
+    except EstimationError as exc:
+        log.warning("bundle adjustment without the IMU: %s", exc)
+        return None
+
+
+def imu_report(terms, res, t_kf: np.ndarray) -> dict[str, Any] | None:
+    """The IMU part of the stage's stats: noise used, gravity, the biases estimated per keyframe."""
+    if terms is None or res.imu_biases is None:
+        return None
+    b = res.imu_biases
+    ok = np.flatnonzero(np.isfinite(b[:, 0]))
+    return {"factors": len(terms.pims), "noise": dataclasses.asdict(terms.noise),
+            "gravity_world_initial": terms.gravity_world.tolist(),
+            "biases": {"t_ns": t_kf[ok].tolist(), "accel_m_s2": b[ok, :3].tolist(), "gyro_rad_s": b[ok, 3:].tolist()},
+            "accel_bias_mean_m_s2": b[ok, :3].mean(axis=0).tolist() if len(ok) else None,
+            "gyro_bias_mean_rad_s": b[ok, 3:].mean(axis=0).tolist() if len(ok) else None}
+
+
 def solver(config: ReprocessPreset):
     """The back-end module of ``config.ba_solver`` (``bundle_adjust``, ``refine_poses_fixed_points``)."""
     if config.ba_solver == "schur":
@@ -83,7 +110,7 @@ def solver(config: ReprocessPreset):
     return mod
 
 
-def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list):
+def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list, imu=None):
     """Bundle adjustment of the keyframes (a ``BAResult``); EstimationError when there is too little."""
     bundle_adjust = solver(config).bundle_adjust
     trk = inputs.results["tracks"]
@@ -91,6 +118,7 @@ def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list)
     extra = {}
     if config.ba_solver == "gtsam":
         extra["loops"] = loops_of(trk)
+        extra["imu"] = imu
     elif len(loops_of(trk)):
         log.warning("ba_solver 'schur' has no loop factors: %d loop(s) ignored", len(loops_of(trk)))
     bar = progress_bar(config.ba_max_iterations * (1 + config.ba_outlier_rounds), "bundle adjustment",
@@ -164,8 +192,9 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     if config.imu_rotation_priors:
         priors = gyro_rotation_priors(inputs.seq, est["t_ns"][kf], config.gyro_sigma_rad_per_sqrt_s)
     t0 = time.perf_counter()
+    imu = imu_terms_of(config, inputs)
     try:
-        res = adjust_keyframes(config, inputs, priors)
+        res = adjust_keyframes(config, inputs, priors, imu)
     except EstimationError as exc:
         # too little structure to adjust (e.g. a very short or featureless session): keep the re-estimate
         log.warning("bundle adjustment not possible (%s): the re-estimated path is kept", exc)
@@ -183,6 +212,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
              "frames_refined": n_refined, "ba_seconds": round(t_ba, 3),
              "frame_refinement_seconds": round(time.perf_counter() - t1, 3),
              "loops": [lp.as_dict() for lp in loops_of(trk)] if config.ba_solver == "gtsam" else [],
+             "imu": imu_report(imu, res, est["t_ns"][kf]),
              "end_to_start": {"reestimated": end_to_start(est["T_world_cam"]), "bundle_adjusted": end_to_start(T_frames)}}
     ids = np.fromiter(res.points.keys(), np.int64, len(res.points))
     return {

@@ -1,0 +1,161 @@
+"""IMU preintegration between keyframes for the GTSAM back end (stereo-inertial bundle adjustment).
+
+Between consecutive keyframes the IMU samples are preintegrated
+(``PreintegratedCombinedMeasurements``: rotation, velocity and position increments with their
+covariance, first-order bias correction) into one ``CombinedImuFactor`` on the two keyframes'
+poses, velocities and biases; the bias is a variable per keyframe with a random walk between
+them.  The graph's poses are camera poses: the preintegration parameters carry the IMU's pose in
+the camera (``body_P_sensor`` = inverse of the rig's ``T_body_cam0``), so the lever arm and the
+axes' rotation are accounted for.
+
+Noise: what the session records in ``imu0/sensor.yaml`` (the simulator writes the noise it
+draws and ``gravity_m_s2``, the 1 g of its accelerometer's units; a device session the MPU-6050
+figures of :data:`stereopath.device.formats.rig_files.MPU6050_NOISE`, and standard gravity).
+
+Gravity: its direction is taken from the still start (the mean specific force before the first
+frame, rotated by the first keyframe's pose) only as a starting point.  That mean holds the
+accelerometer bias too (0.03 m/s^2 is a 3 mrad tilt), so the back end does not trust it: the
+held first pose is left free to tilt (:func:`stereopath.host.reprocess.gtsam_ba` rotates the
+solution back afterwards), i.e. the gravity direction is estimated jointly with the path and
+the biases.  The first bias prior: gyro from the still block, accelerometer 0.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from stereopath.device.errors import EstimationError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ImuNoise:
+    gyro_noise_density: float  # rad/s/sqrt(Hz)
+    gyro_random_walk: float  # rad/s^2/sqrt(Hz)
+    accel_noise_density: float  # m/s^2/sqrt(Hz)
+    accel_random_walk: float  # m/s^3/sqrt(Hz)
+    gravity_m_s2: float = 9.80665  # what the accelerometer reads at rest (its units' 1 g)
+    gyro_bias_prior: float = 0.02  # rad/s: the first keyframe's gyro bias around the still estimate
+    accel_bias_prior: float = 0.2  # m/s^2: the first keyframe's accelerometer bias around 0
+
+    @staticmethod
+    def of(seq: Any) -> "ImuNoise":
+        """The noise recorded with ``seq``: the simulator's ``imu_noise_figures``, else the session's
+        ``imu0/sensor.yaml``, else the MPU-6050 figures the recorder writes by default."""
+        from stereopath.device.estimation.inertial import GRAVITY_M_S2
+        from stereopath.device.formats.rig_files import MPU6050_NOISE
+
+        d = {**MPU6050_NOISE, **(getattr(seq, "imu_noise_figures", None) or _sensor_yaml_noise(seq))}
+        return ImuNoise(float(d["gyroscope_noise_density"]), float(d["gyroscope_random_walk"]),
+                        float(d["accelerometer_noise_density"]), float(d["accelerometer_random_walk"]),
+                        float(d.get("gravity_m_s2", GRAVITY_M_S2)))
+
+
+NOISE_KEYS = ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
+              "accelerometer_random_walk", "gravity_m_s2")
+
+
+def _sensor_yaml_noise(seq: Any) -> dict[str, float]:
+    """The noise entries of ``mav0/imu0/sensor.yaml`` of an ASL sequence ({} if there is none)."""
+    import yaml
+
+    mav0 = getattr(seq, "mav0", None)
+    path = None if mav0 is None else Path(mav0) / "imu0" / "sensor.yaml"
+    if path is None or not path.is_file():
+        return {}
+    text = "\n".join(ln for ln in path.read_text().splitlines() if not ln.startswith("%YAML"))
+    try:
+        data = yaml.safe_load(text) or {}
+    except yaml.YAMLError as exc:
+        log.warning("%s: unreadable (%s): the MPU-6050 noise figures are used", path, exc)
+        return {}
+    out = {}
+    for k in NOISE_KEYS:
+        v = data.get(k) if isinstance(data, dict) else None
+        if isinstance(v, (int, float)) and v > 0:
+            out[k] = float(v)
+        elif v is not None:
+            log.warning("%s: %s = %r is not a positive number: ignored", path, k, v)
+    return out
+
+
+@dataclass
+class ImuTerms:
+    """Everything the graph needs: one preintegration per consecutive keyframe pair."""
+
+    pims: list  # (i, j, PreintegratedCombinedMeasurements)
+    velocities: np.ndarray  # (K, 3) initial world velocities of the keyframes (camera origin)
+    bias0: Any  # gtsam.imuBias.ConstantBias: the first keyframe's bias prior mean
+    noise: ImuNoise
+    gravity_world: np.ndarray
+
+
+def _params(gtsam: Any, noise: ImuNoise, gravity_world: np.ndarray, T_body_cam0: np.ndarray) -> Any:
+    p = gtsam.PreintegrationCombinedParams(np.asarray(gravity_world, float))
+    p.setGyroscopeCovariance(noise.gyro_noise_density ** 2 * np.eye(3))
+    p.setAccelerometerCovariance(noise.accel_noise_density ** 2 * np.eye(3))
+    p.setIntegrationCovariance(1e-8 * np.eye(3))
+    p.setBiasOmegaCovariance(noise.gyro_random_walk ** 2 * np.eye(3))
+    p.setBiasAccCovariance(noise.accel_random_walk ** 2 * np.eye(3))
+    T_cam_body = np.linalg.inv(np.asarray(T_body_cam0, float))
+    p.setBodyPSensor(gtsam.Pose3(gtsam.Rot3.ClosestTo(T_cam_body[:3, :3]), T_cam_body[:3, 3]))
+    return p
+
+
+def _velocities(t_ns: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
+    """Central differences of the keyframe positions (initial values only)."""
+    p = T_world_cam[:, :3, 3]
+    t = np.asarray(t_ns, float) * 1e-9
+    if len(t) < 2:
+        return np.zeros((len(t), 3))
+    return np.gradient(p, t, axis=0)
+
+
+def imu_terms(seq: Any, t_kf: np.ndarray, T_world_cam: np.ndarray, noise: ImuNoise | None = None,
+              gravity_world: np.ndarray | None = None) -> ImuTerms:
+    """Preintegrated IMU between consecutive keyframes (times ``t_kf``, poses ``T_world_cam``).
+
+    ``noise``: default :meth:`ImuNoise.of` the sequence; ``gravity_world``: default from the
+    still start.  EstimationError when the sequence has no IMU, no ``T_body_cam0`` or no still start."""
+    from stereopath.device.estimation.inertial import estimate_still
+    from stereopath.host.reprocess.gtsam_ba import import_gtsam
+
+    g = import_gtsam()
+    imu, rig = getattr(seq, "imu", None), seq.rig
+    if imu is None or not len(imu) or rig.T_body_cam0 is None:
+        raise EstimationError("IMU preintegration needs an IMU stream and the rig's T_body_cam0")
+    noise = noise or ImuNoise.of(seq)
+    still = estimate_still(imu.between(int(imu.t_ns[0]) - 1, int(seq.t_ns[0])))
+    if still is None:
+        raise EstimationError("IMU preintegration needs the rig still before the first frame (gravity, gyro bias)")
+    R_cb = np.linalg.inv(np.asarray(rig.T_body_cam0, float))[:3, :3]
+    f_world = np.asarray(T_world_cam[0], float)[:3, :3] @ R_cb @ still.accel_mean_m_s2  # first kf ~ the still pose
+    if gravity_world is None:
+        gravity = -f_world / np.linalg.norm(f_world) * noise.gravity_m_s2
+    else:
+        gravity = np.asarray(gravity_world, float)
+    params = _params(g, noise, gravity, rig.T_body_cam0)
+    bias0 = g.imuBias.ConstantBias(np.zeros(3), np.asarray(still.gyro_bias_rad_s, float))
+    pims = []
+    for i in range(len(t_kf) - 1):
+        a, b = int(t_kf[i]), int(t_kf[i + 1])
+        blk = imu.between(a - 1, b)
+        if len(blk) < 2:
+            continue
+        pim = g.PreintegratedCombinedMeasurements(params, bias0)
+        # samples are instantaneous values: integrate each interval with the mean of its two ends
+        ts = np.concatenate([[a], blk.t_ns, [b]]).astype(np.int64)
+        acc = np.vstack([blk.accel_m_s2[:1], blk.accel_m_s2, blk.accel_m_s2[-1:]])
+        gyr = np.vstack([blk.gyro_rad_s[:1], blk.gyro_rad_s, blk.gyro_rad_s[-1:]])
+        for k in range(len(ts) - 1):
+            dt = (ts[k + 1] - ts[k]) * 1e-9
+            if dt > 0:
+                pim.integrateMeasurement(0.5 * (acc[k] + acc[k + 1]), 0.5 * (gyr[k] + gyr[k + 1]), dt)
+        pims.append((i, i + 1, pim))
+    return ImuTerms(pims, _velocities(t_kf, np.asarray(T_world_cam, float)), bias0, noise, gravity)

@@ -1,0 +1,131 @@
+"""IMU preintegration in the GTSAM back end: the simulator's biases recovered, the path no worse than vision only."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stereopath.device.core.geometry import invert_pose, make_pose, so3_exp
+from stereopath.device.core.stereo import project
+from stereopath.device.errors import EstimationError
+from stereopath.host.reprocess import gtsam_ba
+from stereopath.host.reprocess.imu_factors import ImuNoise, imu_terms
+
+
+@pytest.fixture(scope="module")
+def sim():
+    """The default simulated scan's IMU and path (400 frames, 20 s; nothing is rendered)."""
+    from stereopath.device.sim.session import SimConfig, open_sim
+
+    return open_sim(SimConfig())
+
+
+def _ate(T: np.ndarray, T_true: np.ndarray) -> float:
+    """Position RMS after the best rigid alignment (Kabsch, no scale)."""
+    P, Q = T[:, :3, 3], T_true[:, :3, 3]
+    mp, mq = P.mean(0), Q.mean(0)
+    U, _, Vt = np.linalg.svd((Q - mq).T @ (P - mp))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return float(np.sqrt(np.mean(np.sum(((P - mp) @ (U @ D @ Vt).T - (Q - mq)) ** 2, axis=1))))
+
+
+def _visual_problem(sim, every: int = 8, per_kf: int = 25, seed: int = 0):
+    """Keyframes every ``every`` frames on the true path (world = the first camera), points seen from
+    them with 0.5 px noise, and the poses and points perturbed (a few mm, a few mrad)."""
+    rng = np.random.default_rng(seed)
+    rig = sim.rig
+    kf = np.arange(0, len(sim), every)
+    T0inv = invert_pose(sim.groundtruth.T_world_cam[0])
+    T_true = np.array([T0inv @ T for T in sim.groundtruth.T_world_cam[kf]])
+    pts = {}
+    for T in T_true:
+        for _ in range(per_kf):
+            Xc = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.4, 0.4), rng.uniform(0.8, 1.6)])
+            pts[len(pts)] = T[:3, :3] @ Xc + T[:3, 3]
+    obs = []
+    for k, T in enumerate(T_true):
+        Tcw = invert_pose(T)
+        for i, X in pts.items():
+            Xc = Tcw[:3, :3] @ X + Tcw[:3, 3]
+            if Xc[2] < 0.3:
+                continue
+            uv0, _ = project(rig.cam0.K, Xc[None])
+            uv1, _ = project(rig.cam1.K, (rig.R @ Xc + rig.T)[None])
+            if 0 <= uv0[0, 0] < rig.cam0.size[0] and 0 <= uv0[0, 1] < rig.cam0.size[1]:
+                obs.append([k, i, 0, *(uv0[0] + rng.normal(0, 0.5, 2))])
+                obs.append([k, i, 1, *(uv1[0] + rng.normal(0, 0.5, 2))])
+    T_noisy = T_true.copy()
+    for k in range(1, len(T_noisy)):
+        T_noisy[k] = T_noisy[k] @ make_pose(so3_exp(rng.normal(0, 0.003, 3)), rng.normal(0, 0.005, 3))
+    pts_noisy = {i: X + rng.normal(0, 0.005, 3) for i, X in pts.items()}
+    return rig, sim.t_ns[kf], T_true, T_noisy, pts_noisy, np.array(obs)
+
+
+def test_imu_factors_recover_the_simulated_biases_and_keep_the_path(sim):
+    rig, t_kf, T_true, T_noisy, pts, obs = _visual_problem(sim)
+    vision = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0)
+    terms = imu_terms(sim, t_kf, T_noisy)
+    assert terms.noise == ImuNoise.of(sim) and terms.noise.accel_random_walk == sim.imu_model.accel_bias_walk_m_s3_rthz
+    fused = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0, imu=terms)
+    assert vision.imu_biases is None and fused.imu_biases.shape == (len(t_kf), 6)
+    # the path: no worse than vision only, and the first pose stays where it was held
+    assert _ate(fused.T_world_cam, T_true) <= _ate(vision.T_world_cam, T_true) * 1.001
+    assert np.allclose(fused.T_world_cam[0], T_noisy[0], atol=1e-5)
+    # the biases at the keyframes: within 10 % of the simulator's (constant part + random walk)
+    t_imu = sim.imu.t_ns
+    for est, true in ((fused.imu_biases[:, :3], sim.imu_biases.accel_m_s2), (fused.imu_biases[:, 3:], sim.imu_biases.gyro_rad_s)):
+        tr = np.column_stack([np.interp(t_kf, t_imu, true[:, a]) for a in range(3)])
+        err = np.linalg.norm(est - tr, axis=1) / np.linalg.norm(tr, axis=1)
+        assert np.median(err) < 0.10, (est.mean(0), tr.mean(0))
+
+
+def test_imu_terms_need_an_imu_and_a_still_start(sim):
+    from dataclasses import replace
+
+    from stereopath.device.core.frames import ImuSamples
+
+    t_kf = sim.t_ns[::10]
+    T = sim.groundtruth.T_world_cam[::10]
+
+    class NoImu:
+        rig, t_ns, imu = sim.rig, sim.t_ns, None
+
+    with pytest.raises(EstimationError, match="IMU stream"):
+        imu_terms(NoImu(), t_kf, T)
+
+    class Moving:  # the IMU starts with the first frame: no still block for gravity and the gyro bias
+        rig, t_ns = sim.rig, sim.t_ns
+        imu = ImuSamples(sim.imu.t_ns[sim.imu.t_ns >= sim.t_ns[0]], sim.imu.gyro_rad_s[sim.imu.t_ns >= sim.t_ns[0]],
+                         sim.imu.accel_m_s2[sim.imu.t_ns >= sim.t_ns[0]])
+
+    with pytest.raises(EstimationError, match="still"):
+        imu_terms(Moving(), np.array([sim.t_ns[1], sim.t_ns[20]]), T[:2])
+
+    class NoExtrinsics:
+        rig, t_ns, imu = replace(sim.rig, T_body_cam0=None), sim.t_ns, sim.imu
+
+    with pytest.raises(EstimationError, match="T_body_cam0"):
+        imu_terms(NoExtrinsics(), t_kf, T)
+
+
+def test_a_recorded_simulation_carries_the_noise_it_draws(tmp_path):
+    """imu0/sensor.yaml of a simulated session holds the simulator's noise (not the MPU-6050 defaults)."""
+    from stereopath.device.formats.recorder import record_sequence
+    from stereopath.device.formats.rig_files import MPU6050_NOISE
+    from stereopath.device.formats.source import open_source
+    from stereopath.device.sim.session import SimConfig, open_sim
+
+    s = open_sim(SimConfig(frames=2))
+    record_sequence(s, tmp_path / "s", config_dict={"source": "sim"})
+    noise = ImuNoise.of(open_source(f"session:{tmp_path / 's'}"))
+    assert noise.gyro_random_walk == pytest.approx(s.imu_model.gyro_bias_walk_rad_s2_rthz)
+    assert noise.accel_random_walk == pytest.approx(s.imu_model.accel_bias_walk_m_s3_rthz)
+    assert noise.accel_random_walk != MPU6050_NOISE["accelerometer_random_walk"]
+    assert noise.gravity_m_s2 == pytest.approx(9.81)
+    # a session without the file (or a bad entry) falls back to the MPU-6050 figures
+    yaml_path = tmp_path / "s" / "mav0" / "imu0" / "sensor.yaml"
+    yaml_path.write_text(yaml_path.read_text().replace("accelerometer_random_walk: 0.001",
+                                                       "accelerometer_random_walk: fast"))
+    noise = ImuNoise.of(open_source(f"session:{tmp_path / 's'}"))
+    assert noise.accel_random_walk == MPU6050_NOISE["accelerometer_random_walk"]
+    assert noise.gyro_random_walk == pytest.approx(s.imu_model.gyro_bias_walk_rad_s2_rthz)
