@@ -224,7 +224,9 @@ class KeyframeJobs:
         if len(feats) > self.cfg.kf_library_max:  # the strongest keypoints of all views
             keep = np.argsort(-feats.response, kind="stable")[: self.cfg.kf_library_max]
             feats = feats.subset(np.sort(keep))
-        _, Xc, ok = self._geo.stereo_points(left, right, feats.xy.astype(np.float32), z0)
+        # no forward-backward check: a wrong 3D point of the library is an outlier of the next
+        # keyframe's RANSAC, and the check would double the cost of its largest stereo search
+        _, Xc, ok = self._geo.stereo_points(left, right, feats.xy.astype(np.float32), z0, fb_check=False)
         if ok.sum() < self.cfg.min_pnp_inliers:
             return None
         return Library(seq, feats.subset(ok), Xc[ok])

@@ -84,11 +84,13 @@ class StereoMeasure:
         cfg = self.cfg
         return (err < cfg.triangulation_max_px) & (Xc[:, 2] > cfg.min_depth_m) & (Xc[:, 2] < self.max_depth)
 
-    def stereo_points(self, left, right, xy: np.ndarray, z0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def stereo_points(self, left, right, xy: np.ndarray, z0: float,
+                      fb_check: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """New stereo points at left pixels ``xy``: (right pixels, camera-1 points, good mask).
 
-        The right-image search starts from each pixel's ray at depth ``z0``."""
-        uvr, ok = stereo_right(self.rig, left, right, xy, self.right_guess(self.rays(xy) * z0), self.cfg)
+        The right-image search starts from each pixel's ray at depth ``z0``; ``fb_check`` as in
+        :func:`~stereopath.device.core.stereo.stereo_right`."""
+        uvr, ok = stereo_right(self.rig, left, right, xy, self.right_guess(self.rays(xy) * z0), self.cfg, fb_check)
         Xc, err = self.triangulate(xy, uvr)
         return uvr, Xc, ok & self.good_points(Xc, err)
 
