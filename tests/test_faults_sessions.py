@@ -291,3 +291,47 @@ def test_earlier_session_keyframes_wait_for_host_space(tmp_path, monkeypatch):
     finally:
         rx.close()
         new.close()
+
+
+def test_a_refused_out_does_not_strand_its_spool(tmp_path):
+    """The killed run's --out is refused (78); a run with a new --out beside it offers the killed
+    session's keyframes and, at its stop, waits (up to stream.drain_s) until a host has them."""
+    import threading
+
+    from stereopath.device.service.main import run_service
+    from stereopath.device.service.options import RunOptions, load_config
+    from stereopath.device.service.service import CaptureService
+    from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
+    from tests.test_service_support import FakeEstimator, sim_tables, write_toml
+    from tests.test_streaming_support import device_config, loopback_stream
+
+    scans = tmp_path / "scans"
+    killed = DeviceStreamer(device_config(None), KeyframeSpool(scans / "a" / "keyframes", fsync=False), "sessA",
+                            status_interval_s=0.2)  # stands in for the killed run of `device run --out scans/a`
+    for i in range(3):
+        assert killed.offer_keyframe(i, i, np.eye(4), *small_images(i))
+    assert killed.wait_spooled(3, 10)
+    killed.close(timeout_s=1)
+    stream = loopback_stream(drain_s=5.0, spool_fsync=False)
+    cfg_path = write_toml(tmp_path / "device.toml", sim_tables(tmp_path, frames=10, rate_hz=20.0, stream=stream))
+    assert run_service(cfg_path, RunOptions(out=str(scans / "a")), environ={}) == 78
+    opts = RunOptions(out=str(scans / "b"), wait_for_host_s=20.0)
+    service = CaptureService(load_config(cfg_path, opts), opts, cfg_path, environ={},
+                             estimator=FakeEstimator(kf_every=2))
+    out = tmp_path / "host"
+    result: dict = {}
+    th = threading.Thread(target=lambda: result.setdefault("code", service.run()), daemon=True)
+    th.start()
+    rx = _receiver(stream["pose_endpoint"], stream["keyframe_endpoint"], out)
+    try:
+        while th.is_alive():
+            rx.poll(0.02)
+        for _ in range(20):
+            rx.poll(0.02)
+    finally:
+        th.join(30)
+        rx.close()
+    assert result["code"] == 0
+    assert stored_seqs(out, "sessA") == [0, 1, 2]
+    assert not list((scans / "a" / "keyframes").glob("*.kf"))
+    assert stored_seqs(out, service.session_id) == list(range(5))

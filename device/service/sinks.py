@@ -195,7 +195,8 @@ class StreamingSink(NoStreaming):
         self.streamer.publish_status(**{k: status[k] for k in HEALTH_FIELDS})
 
     def drain(self, seconds: float, clock: Callable[[], float]) -> None:
-        """Wait up to ``seconds`` for a connected host to acknowledge every spooled keyframe."""
+        """Wait up to ``seconds`` for a connected host to acknowledge every spooled keyframe (and those of
+        earlier sessions offered in this run)."""
         st = self.streamer
         if seconds <= 0:
             return
@@ -207,11 +208,14 @@ class StreamingSink(NoStreaming):
             peers = s.get("peers", [])
             if not peers:
                 return  # no host has said hello: nobody to wait for
-            if spooled_all and any(p["acked"] >= st.spool.last_seq for p in peers):
-                log.info("every keyframe (%d) acknowledged by a host", st.spool.count)
+            if spooled_all and any(p["acked"] >= st.spool.last_seq for p in peers) and not s.get("backlog_keyframes"):
+                log.info("every keyframe (%d) acknowledged by a host%s", st.spool.count,
+                         f", and {s['backlog_delivered']} of earlier sessions" if s.get("backlog_delivered") else "")
                 return
             time.sleep(0.05)
-        log.warning("stopping with keyframes not yet acknowledged by any host (they stay in %s)", st.spool.dir)
+        left = st.stats().get("backlog_keyframes", 0)
+        log.warning("stopping with keyframes not yet acknowledged by any host (they stay in %s%s; the next run "
+                    "offers them again)", st.spool.dir, f", and {left} of earlier sessions" if left else "")
 
     def close(self) -> None:
         self.streamer.close()
