@@ -2,11 +2,15 @@
 cluster on loopback, and a worker killed with SIGKILL during a session's `ba` stage.
 
     .venv/bin/python benchmarks/bench_fleet.py [--frames N] [--runs R] [--preset NAME]
-                                               [--skip-cluster] [--skip-fault] [--keep DIR]
+                                               [--skip-cluster] [--skip-fault] [--keep DIR] [--profile]
 
 Four simulated sessions (`stereopath sim`: seeds 1-4, trajectories arc/line/orbit/arc, N frames
 each; written once, not timed), then:
 
+0. with --profile: the costliest session (orbit) alone through the one-session entry point, per
+   stage: wall, CPU of the process and CPU of each thread, with the default thread pools and
+   with every pool at one thread (as in a fleet task): where the time goes, how parallel a
+   session is by itself, whether threads spin.
 1. sequential: the four through the one-session entry point (`reprocess_session`, the code of
    `stereopath host reprocess SESSION`) one after another in this process; and fleet: the same
    four with `run_fleet` on a local Ray of 2 CPUs, Ray's start and shutdown included in its wall
@@ -22,7 +26,7 @@ each; written once, not timed), then:
    session; same results.  The Ray processes started here are stopped by their process ids.
 3. fault: local Ray, the four sessions, the worker of the second session killed with SIGKILL
    once its `ba` stage has started; every session must end done, the killed one retried with
-   `estimate` and `tracks` reused, and the same results.
+   `tracks` reused (its `estimate` came from its first task), and the same results.
 Prints figures; asserts nothing.
 """
 
@@ -89,6 +93,7 @@ class Phase:
 
     def __enter__(self) -> "Phase":
         self.t0, self.busy0, self.own0 = time.perf_counter(), machine_busy_s(), tree_cpu_s()
+        self.load0 = os.getloadavg()[0]
         self.extra_cpu = 0.0  # CPU of processes that end inside the block (added by the caller)
         return self
 
@@ -98,6 +103,7 @@ class Phase:
         self.own = (tree_cpu_s() if own_now is None else own_now) - self.own0 + self.extra_cpu
         self.others = max(0.0, self.busy - self.own)
         self.free_share = max(0.05, 1.0 - self.others / (CORES * self.wall))
+        self.load1 = os.getloadavg()[0]
 
     def __exit__(self, *exc) -> None:
         if not hasattr(self, "wall"):
@@ -106,7 +112,7 @@ class Phase:
     def line(self) -> str:
         return (f"{self.name}: wall {self.wall:.1f} s, own CPU {self.own:.1f} s, other jobs' CPU {self.others:.1f} s "
                 f"({self.others / self.wall:.2f} of {CORES} cores busy with them), wall x free share "
-                f"{self.wall * self.free_share:.1f} s")
+                f"{self.wall * self.free_share:.1f} s; load average {self.load0:.1f} -> {self.load1:.1f}")
 
 
 def make_sessions(root: Path, frames: int) -> list[Path]:
@@ -133,8 +139,11 @@ def sequential(sessions, out: Path, settings: ReprocessSettings) -> Phase:
 
 
 def fleet_local(sessions, out: Path, settings: ReprocessSettings, on_update=None) -> tuple[Phase, object]:
+    import shutil
+
     import ray
 
+    shutil.rmtree(out, ignore_errors=True)  # everything computed (a kept folder would be reused)
     with Phase("fleet (local Ray, 2 CPUs)") as ph:
         ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
                  logging_level=logging.WARNING)
@@ -143,6 +152,56 @@ def fleet_local(sessions, out: Path, settings: ReprocessSettings, on_update=None
         ray.shutdown()
         ph.stop(own_now=own)
     return ph, res
+
+
+def thread_cpu_s() -> dict[int, float]:
+    """CPU seconds of each thread of this process (/proc/self/task)."""
+    tck, out = os.sysconf("SC_CLK_TCK"), {}
+    for t in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{t}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            out[int(t)] = (int(fields[11]) + int(fields[12])) / tck
+        except OSError:
+            pass
+    return out
+
+
+def profile(session, out: Path, settings: ReprocessSettings, threads: int | None) -> None:
+    """One session through the one-session entry point: per stage, wall, CPU (all threads) and the
+    CPU of each thread (the main one first) - where the time goes and how parallel each stage is."""
+    import contextlib
+
+    import cv2
+    import scipy.linalg  # noqa: F401 - loaded, so that threadpoolctl limits its BLAS too
+    from threadpoolctl import threadpool_limits
+
+    marks = [("start", time.perf_counter(), time.process_time(), thread_cpu_s())]
+
+    def hook(name: str) -> None:
+        marks.append((name, time.perf_counter(), time.process_time(), thread_cpu_s()))
+
+    cv_threads = cv2.getNumThreads()
+    with threadpool_limits(limits=threads) if threads else contextlib.nullcontext():
+        cv2.setNumThreads(threads or cv_threads)  # as a fleet task's limit_threads does
+        reprocess_session(session.path, out, preset=settings.preset, do_map=settings.do_map,
+                          map_preset=settings.map_preset, progress=False, force=True, after_stage=hook)
+        hook("outputs")
+    cv2.setNumThreads(cv_threads)
+    print(f"  {session.id}, {threads or 'default'} thread(s) (OpenCV {threads or cv_threads}):")
+    for (_, w0, c0, t0), (name, w1, c1, t1) in zip(marks, marks[1:]):
+        per = sorted(((tid != os.getpid(), -(c - t0.get(tid, 0.0))) for tid, c in t1.items()))
+        busy = " ".join(f"{-c:.1f}" for _, c in per if -c >= 0.05)
+        print(f"    {name:8s} wall {w1 - w0:6.1f} s, CPU {c1 - c0:6.1f} s ({(c1 - c0) / (w1 - w0):.2f} cores); "
+              f"CPU per thread: {busy} s ({len(t1)} threads)")
+    w, c = marks[-1][1] - marks[0][1], marks[-1][2] - marks[0][2]
+    print(f"    total    wall {w:6.1f} s, CPU {c:6.1f} s ({c / w:.2f} cores)")
+
+
+def session_lines(res) -> list[str]:
+    return [f"    {st.session.id}: {st.status}, {(st.result or {}).get('keyframes')} keyframes, task wall "
+            f"{(st.result or {}).get('wall_s')} s, CPU {(st.result or {}).get('cpu_s')} s, node {st.node}"
+            for st in res.sessions]
 
 
 def check(ref: Path, out: Path, sessions) -> str:
@@ -267,6 +326,8 @@ def main() -> int:
     ap.add_argument("--skip-ratio", action="store_true",
                     help="no fleet timing: one sequential run as the reference of the cluster and fault runs")
     ap.add_argument("--keep", default=None, help="work in this folder instead of a temporary one")
+    ap.add_argument("--profile", action="store_true",
+                    help="first: the costliest session (orbit) alone, per stage, with the default threads and with one")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     settings = ReprocessSettings(preset=args.preset)
@@ -278,6 +339,10 @@ def main() -> int:
         sessions = expand_sessions(paths)
         print(f"{len(sessions)} simulated sessions of {args.frames} frames ({', '.join(TRAJECTORIES)}; seeds 1-4), "
               f"preset {args.preset}, {CORES} cores")
+        if args.profile:
+            print("one session, per stage:")
+            profile(sessions[2], tmp / "profile_default", settings, None)
+            profile(sessions[2], tmp / "profile_one_thread", settings, 1)
         seq_ph, fl_ph = [], []
         if args.skip_ratio:
             ph = sequential(sessions, tmp / "seq0", settings)
@@ -288,6 +353,7 @@ def main() -> int:
             seq_ph.append(ph)
             ph, res = fleet_local(sessions, tmp / f"fleet{r}", settings)
             print(f"  run {r + 1}: {ph.line()}; {res.counts()['done']} done; {check(tmp / f'seq{r}', tmp / f'fleet{r}', sessions)}")
+            print("\n".join(session_lines(res)))
             fl_ph.append(ph)
         if seq_ph:
             report_ratio(seq_ph, fl_ph)

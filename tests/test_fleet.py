@@ -87,19 +87,36 @@ def test_sessions_from_folder_glob_and_ids(sessions, tmp_path):
 
 
 def test_fleet_results_equal_the_one_session_command(fleet_run, sessions, tmp_path):
+    import numpy as np
+
+    from stereopath.host.fleet.compare import npz_contents
     from stereopath.host.reprocess.pipeline import reprocess_session
 
     out, res, updates = fleet_run
     ids = _ids(sessions)
     for name in ("a", "b"):
-        one = tmp_path / name
+        one = tmp_path / name  # this process: the one-session command's default threads
         reprocess_session(sessions.absolute() / name, one, preset=SETTINGS.preset, progress=False)
         assert differences(one, out / ids[name]) == []
         assert (out / ids[name] / "report.html").is_file()
+        # every stage's arrays byte for byte (the worker ran one thread of everything), records untimed
+        for stage in ("estimate", "tracks", "ba"):
+            x = npz_contents(one / "stages" / f"{stage}.npz")
+            y = npz_contents(out / ids[name] / "stages" / f"{stage}.npz")
+            assert sorted(x) == sorted(y)
+            for k in x:
+                assert x[k] == y[k] if isinstance(x[k], dict) else x[k].tobytes() == y[k].tobytes(), (stage, k)
+        assert (one / "trajectory.tum").read_bytes() == (out / ids[name] / "trajectory.tum").read_bytes()
+    ba = npz_contents(tmp_path / "a" / "stages" / "ba.npz")
+    assert len(ba["T_frames"]) == 30 and len(ba["point_xyz"]) > 0 and ba["stats"]["iterations"] > 0
     assert (out / ids["a"] / "mesh.ply").is_file()
-    # the comparison does see a change
+    # the comparison does see a change: the last bit of one adjusted pose, a changed trajectory
+    ba_raw = dict(np.load(tmp_path / "a" / "stages" / "ba.npz"))
+    ba_raw["T_frames"][-1, 0, 3] = np.nextafter(ba_raw["T_frames"][-1, 0, 3], np.inf)
+    np.savez(tmp_path / "a" / "stages" / "ba.npz", **ba_raw)
     (tmp_path / "a" / "trajectory.tum").write_text("0 0 0 0 0 0 0 1\n")
-    assert differences(tmp_path / "a", out / ids["a"]) == ["trajectory.tum: bytes differ"]
+    assert differences(tmp_path / "a", out / ids["a"]) == ["trajectory.tum: bytes differ",
+                                                          "stages/ba.npz: T_frames differs"]
 
 
 def test_a_failing_session_is_reported_and_the_others_finish(fleet_run, sessions):
@@ -156,8 +173,9 @@ def test_worker_killed_during_ba_resumes_from_the_stored_stages(local_ray, fleet
     res = run_fleet(expand_sessions([sessions / "b"]), out, SETTINGS, after_stage=kill_once_after_tracks)
     st = res.sessions[0]
     assert marker.exists() and st.status == "done" and st.attempts == 2
-    # the retry reused the two stages stored before the kill and computed the rest
-    assert st.result["stages"] == {"estimate": "reused", "tracks": "reused", "ba": "computed", "map": "computed"}
+    # the session's first task computed the estimate; the retry of its second task reused the
+    # tracks stored before the kill and computed the rest
+    assert st.result["stages"] == {"estimate": "computed", "tracks": "reused", "ba": "computed", "map": "computed"}
     stored = json.loads(marker.read_text())
     assert sorted(stored) == ["estimate.npz", "tracks.npz"]
     for name, mt in stored.items():
@@ -227,6 +245,19 @@ def test_options_and_path_map_check_their_input():
     assert capacity({"CPU": 8.0, "memory": 16 * gb}, FleetOptions(max_in_flight=5)) == 5
     with pytest.raises(ConfigError, match="cannot hold one task"):
         capacity({"CPU": 2.0, "memory": 16 * gb}, FleetOptions(task_cpus=3))
+
+
+def test_a_task_limits_every_thread_pool_of_its_worker():
+    import subprocess
+    import sys
+
+    code = ("from stereopath.host.fleet.worker import limit_threads, limit_tbb\n"
+            "import cv2, threadpoolctl\n"
+            "limit_threads(1)\n"
+            "print(cv2.getNumThreads(), {p['num_threads'] for p in threadpoolctl.threadpool_info()}, limit_tbb(1))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split("\n")[-2] == "1 {1} True"  # limit_tbb checks the value TBB reports back
 
 
 def test_fleet_html_escapes_names():

@@ -81,6 +81,9 @@ def test_reprocess_writes_every_output_and_improves_the_path(full_run):
     assert ba["ate_ratio_vs_reestimated"] == pytest.approx(after / before)
     assert rep["extra"]["bundle_adjustment"]["rms_after_px"] < rep["extra"]["bundle_adjustment"]["rms_before_px"]
     # a 60-frame arc never comes back: no loop, but the loop entry says so with the end-to-start figures
+    imu = rep["extra"]["bundle_adjustment"]["imu"]  # the simulated session's IMU is in the adjustment
+    assert imu["factors"] >= 1 and len(imu["biases"]["accel_m_s2"]) == len(imu["biases"]["t_ns"]) >= 2
+    assert imu["noise"]["accel_random_walk"] == pytest.approx(1e-3)  # what the simulator records (and draws)
     loops = rep["extra"]["loops"]
     assert loops["accepted"] == []
     gap = loops["end_to_start"]["bundle_adjusted"]["distance_m"]

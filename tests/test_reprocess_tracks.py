@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from stereopath.device.core.geometry import invert_pose
-from stereopath.host.reprocess.bundle_adjust import bundle_adjust
+from stereopath.host.reprocess.gtsam_ba import bundle_adjust
 from stereopath.host.reprocess.tracks import TrackConfig, build_tracks, frame_observations, stereo_features
 
 

@@ -1,9 +1,11 @@
 """Do two reprocessing output folders hold the same results?
 
 Compared byte for byte: ``trajectory.tum``, ``mesh.ply``, ``cloud.ply``; every array of the
-stage files (``stages/*.npz``) except the JSON ``stats``/``meta`` records and per-frame times; ``report.json`` and
-``map.json`` with their timing fields removed (wall and CPU times differ from run to run, so
-those files can never be byte-identical between two runs, fleet or not).
+stage files (``stages/*.npz``: estimate, tracks, ba) except the per-frame times; their JSON
+``stats``/``meta`` records, ``report.json`` and ``map.json`` with their timing fields removed
+(wall and CPU times differ from run to run, so those records can never be equal between two
+runs, fleet or not; neither can the ``.npz`` files themselves, whose zip entries carry the time
+they were written).
 """
 
 from __future__ import annotations
@@ -14,7 +16,8 @@ from typing import Any
 
 BYTE_FILES = ("trajectory.tum",)
 PLY_FILES = ("mesh.ply", "cloud.ply")
-_UNTIMED_ARRAYS = ("stats", "meta", "frame_ms")  # JSON records with timings, per-frame times
+_TIMES = ("frame_ms",)  # per-frame times: left out
+_RECORDS = ("stats", "meta")  # JSON records: compared without their timing fields
 
 
 def _timing(key: str) -> bool:
@@ -30,11 +33,18 @@ def _untimed(v: Any, drop: tuple[str, ...] = ()) -> Any:
     return v
 
 
-def _npz_arrays(path: Path) -> dict[str, Any]:
+def npz_contents(path: Path) -> dict[str, Any]:
+    """A stage file's arrays, its JSON records as untimed values, without the per-frame times."""
     import numpy as np
 
     with np.load(path, allow_pickle=False) as z:
-        return {k: z[k] for k in z.files if k not in _UNTIMED_ARRAYS}
+        return {k: _untimed(json.loads(str(z[k]))) if k in _RECORDS else z[k] for k in z.files if k not in _TIMES}
+
+
+def _same(x: Any, y: Any) -> bool:
+    if isinstance(x, dict) or isinstance(y, dict):
+        return x == y
+    return x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
 
 
 def _rows(*arrays: Any) -> Any:
@@ -104,13 +114,13 @@ def differences(a: str | Path, b: str | Path, ignore_source: bool = False) -> li
     if na != nb:
         diffs.append(f"stage files differ: {na} vs {nb}")
     for name in set(na) & set(nb):
-        xa, xb = _npz_arrays(a / "stages" / name), _npz_arrays(b / "stages" / name)
+        xa, xb = npz_contents(a / "stages" / name), npz_contents(b / "stages" / name)
         if sorted(xa) != sorted(xb):
             diffs.append(f"stages/{name}: arrays {sorted(xa)} vs {sorted(xb)}")
             continue
         for k in xa:
-            if xa[k].dtype != xb[k].dtype or xa[k].shape != xb[k].shape or xa[k].tobytes() != xb[k].tobytes():
-                diffs.append(f"stages/{name}: array {k} differs")
+            if not _same(xa[k], xb[k]):
+                diffs.append(f"stages/{name}: {k} differs")
     for name in ("report.json", "map.json"):
         fa, fb = a / name, b / name
         if fa.is_file() != fb.is_file():

@@ -1,10 +1,13 @@
 """Schedule sessions on Ray: start a local Ray or join a cluster, bounded in-flight tasks, faults.
 
-One Ray task per session (:func:`stereopath.host.fleet.worker.reprocess_task`): the session's
-stages run in order inside it, sessions run in parallel.  Each task declares its resources
-(``task_cpus`` CPUs and ``task_memory_gb`` of memory: the dense model needs about 1 GB), and the
-driver keeps no more tasks in flight than the cluster holds (the smaller of its CPUs and memory
-divided by one task's), submitting the next session as one finishes.
+Each session runs through the one-session pipeline (:func:`stereopath.host.fleet.worker.reprocess_task`)
+as two Ray tasks, its stages in order: the first stops once the ``estimate`` stage is stored (and
+reports the session's keyframes: what the rest will cost), the second runs the rest from the
+stored estimate.  Sessions run in parallel; the costliest estimated sessions go first, so that a
+long session does not run alone at the end (see :class:`_Scheduler`).  Each task declares its
+resources (``task_cpus`` CPUs and ``task_memory_gb`` of memory: the dense model needs about 1 GB)
+and runs that many threads inside; the driver keeps no more tasks in flight than the cluster
+holds (the smaller of its CPUs and memory divided by one task's).
 
 Faults: a session whose task raises (bad input: a :class:`StereopathError`) is reported failed
 and the others go on; a task whose worker process or node dies is retried by Ray (``retries``
@@ -25,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from stereopath.device.errors import ConfigError, StereopathError
-from stereopath.host.fleet.sessions import FleetSession, PathMap
+from stereopath.host.fleet.sessions import FleetSession, PathMap, frame_count
 from stereopath.host.fleet.worker import STAGE_ORDER
 
 log = logging.getLogger(__name__)
@@ -88,6 +91,7 @@ class SessionState:
     pid: int | None = None  # worker process of the latest attempt
     error: str | None = None
     result: dict[str, Any] | None = None
+    first: dict[str, Any] | None = None  # what the first of the session's two tasks reported
     started: float | None = None
     finished: float | None = None
 
@@ -159,6 +163,112 @@ def _error_text(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {first[0] if first else ''}".rstrip(": ")
 
 
+def cluster_info(ray: Any, options: FleetOptions) -> dict[str, Any]:
+    """The cluster as ``fleet.json`` records it, with ``max_in_flight`` (:func:`capacity`)."""
+    res = ray.cluster_resources()
+    return {"address": options.ray, "nodes": len([n for n in ray.nodes() if n.get("Alive")]),
+            "cpus": res.get("CPU"), "memory_gb": round(res.get("memory", 0.0) / GB, 2),
+            "task_cpus": options.task_cpus, "task_memory_gb": options.task_memory_gb,
+            "max_in_flight": capacity(res, options)}
+
+
+def submission_order(states: Sequence[SessionState]) -> list[SessionState]:
+    """Largest sessions (most frames) first, so that a long one does not run alone at the end."""
+    return sorted(states, key=lambda st: -frame_count(st.session.path))
+
+
+def _cost(st: SessionState) -> tuple[int, int]:
+    """What the rest of a session costs, from its estimate: keyframes (tracks and bundle adjustment
+    grow with them), then frames."""
+    return int((st.first or {}).get("keyframes") or 0), frame_count(st.session.path)
+
+
+class _Scheduler:
+    """Submits session tasks while the cluster has room and records how each one ends.
+
+    A session runs as two tasks, its stages in order: "first" (the estimate, which also measures
+    the session: its keyframes) and "rest" (tracks, ba, map, outputs).  A free slot takes the rest
+    of the costliest estimated session once ``slots`` sessions wait for theirs (or no first part
+    is left), else the next first part: the long sessions start early instead of running alone at
+    the end.  With ``force`` a session is one task ("all": a split would reuse the later stages).
+    """
+
+    def __init__(self, ray: Any, states: list[SessionState], settings: ReprocessSettings, options: FleetOptions,
+                 after_stage: Callable[[str], None] | None) -> None:
+        from stereopath.host.fleet.worker import ProgressBoard, reprocess_task
+
+        self.ray, self.options, self.after_stage = ray, options, after_stage
+        self.kwargs = dataclasses.asdict(settings)
+        self.split = not settings.force
+        self.first = submission_order(states)  # sessions whose first task is still to start
+        self.rest: list[SessionState] = []  # estimated sessions waiting for their second task
+        self.inflight: dict[Any, tuple[SessionState, str]] = {}
+        self.board = ray.remote(num_cpus=0)(ProgressBoard).remote()
+        self.task = ray.remote(reprocess_task)
+        self.task_opts: dict[str, Any] = {"num_cpus": options.task_cpus, "max_retries": options.retries,
+                                          "retry_exceptions": False}
+        if options.task_memory_gb > 0:
+            self.task_opts["memory"] = int(options.task_memory_gb * GB)
+        self.threads = max(1, math.ceil(options.task_cpus))  # threads inside a task: its CPUs
+
+    def busy(self) -> bool:
+        return bool(self.first or self.rest or self.inflight)
+
+    def _next(self, slots: int) -> tuple[SessionState, str] | None:
+        if self.rest and (not self.first or len(self.rest) >= slots):
+            st = max(self.rest, key=_cost)
+            self.rest.remove(st)
+            return st, "rest"
+        if self.first:
+            return self.first.pop(0), ("first" if self.split else "all")
+        return None
+
+    def submit(self, slots: int) -> None:
+        pm = self.options.path_map
+        while len(self.inflight) < slots and (nxt := self._next(slots)) is not None:
+            st, part = nxt
+            ref = self.task.options(name=f"reprocess {st.session.id} ({part})", **self.task_opts).remote(
+                st.session.id, pm.to_worker(st.session.path), pm.to_worker(st.out), self.kwargs, self.board,
+                self.after_stage, self.threads, part)
+            self.inflight[ref] = (st, part)
+            st.status, st.stage = "running", (STAGE_ORDER[1] if part == "rest" else STAGE_ORDER[0])
+            st.started = st.started or time.time()
+
+    def collect(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for a task to end; True when one did."""
+        ready, _ = self.ray.wait(list(self.inflight), num_returns=1, timeout=timeout_s)
+        for ref in ready:
+            st, part = self.inflight.pop(ref)
+            try:
+                r = self.ray.get(ref)
+            except self.ray.exceptions.RayError as exc:
+                st.status, st.stage, st.error, st.finished = "failed", None, _error_text(exc), time.time()
+                log.warning("session %s failed: %s", st.session.id, st.error)
+                continue
+            if r.get("status") == "estimated":  # the first part: queue the rest
+                st.first, st.status, st.stage = r, "pending", None
+                self.rest.append(st)
+                continue
+            if st.first:  # the session's figures cover both tasks
+                r["wall_s"] = round(r["wall_s"] + st.first["wall_s"], 3)
+                r["cpu_s"] = round(r["cpu_s"] + st.first["cpu_s"], 3)
+                r["stages"] = {**r["stages"], **st.first["stages"]}
+            st.result, st.status, st.stage, st.finished = r, "done", None, time.time()
+            st.stored = [s for s in STAGE_ORDER if r["stages"].get(s) in ("computed", "reused")]
+            st.node = r.get("node")
+        return bool(ready)
+
+    def cancel(self) -> None:
+        """Stop every running task (Ctrl-C, or an unexpected error in the driver)."""
+        for ref, (st, _) in self.inflight.items():
+            self.ray.cancel(ref, force=True)
+            st.status, st.stage = "interrupted", None
+        for st in self.rest:
+            st.status = "interrupted"
+        self.inflight.clear()
+        self.rest.clear()
+
+
 def run_fleet(sessions: Sequence[FleetSession], out_dir: str | Path, settings: ReprocessSettings = ReprocessSettings(),
               options: FleetOptions = FleetOptions(), on_update: Callable[[list[SessionState]], None] | None = None,
               after_stage: Callable[[str], None] | None = None) -> FleetResult:
@@ -169,83 +279,45 @@ def run_fleet(sessions: Sequence[FleetSession], out_dir: str | Path, settings: R
     it; it must be picklable).  Uses an already initialised Ray as it is (and leaves it running).
     """
     from stereopath.host.fleet.summary import write_summary
-    from stereopath.host.fleet.worker import ProgressBoard, reprocess_task
 
     out = Path(out_dir).absolute()
     if out.exists() and not out.is_dir():
         raise StereopathError(f"output {out} exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     states = [SessionState(s, out / s.id) for s in sessions]
-    kwargs = {k: v for k, v in dataclasses.asdict(settings).items()}
     t0 = time.perf_counter()
     ray, owned = connect(options)
     cluster: dict[str, Any] = {}
-    interrupted = False
-    inflight: dict[Any, SessionState] = {}
+    result = FleetResult(out, states, 0.0, cluster)
+    sched: _Scheduler | None = None
 
     def save() -> None:
-        write_summary(out, FleetResult(out, states, time.perf_counter() - t0, cluster, interrupted), settings)
+        result.wall_s = time.perf_counter() - t0
+        write_summary(out, result, settings)
 
     try:
-        res = ray.cluster_resources()
-        slots = capacity(res, options)
-        cluster.update({"address": options.ray, "nodes": len([n for n in ray.nodes() if n.get("Alive")]),
-                        "cpus": res.get("CPU"), "memory_gb": round(res.get("memory", 0.0) / GB, 2),
-                        "task_cpus": options.task_cpus, "task_memory_gb": options.task_memory_gb,
-                        "max_in_flight": slots})
-        log.info("Ray: %s nodes, %s CPUs; %d session tasks at a time", cluster["nodes"], cluster["cpus"], slots)
-        board = ray.remote(num_cpus=0)(ProgressBoard).remote()
-        task = ray.remote(reprocess_task)
-        task_opts: dict[str, Any] = {"num_cpus": options.task_cpus, "max_retries": options.retries,
-                                     "retry_exceptions": False}
-        if options.task_memory_gb > 0:
-            task_opts["memory"] = int(options.task_memory_gb * GB)
-        threads = max(1, math.ceil(options.task_cpus))
-        queue = list(states)
+        cluster.update(cluster_info(ray, options))
+        log.info("Ray: %s nodes, %s CPUs; %d session tasks at a time", cluster["nodes"], cluster["cpus"],
+                 cluster["max_in_flight"])
+        sched = _Scheduler(ray, states, settings, options, after_stage)
         save()
         last_poll = 0.0
-        while queue or inflight:
-            while queue and len(inflight) < slots:
-                st = queue.pop(0)
-                ref = task.options(name=f"reprocess {st.session.id}", **task_opts).remote(
-                    st.session.id, options.path_map.to_worker(st.session.path), options.path_map.to_worker(st.out),
-                    kwargs, board, after_stage, threads)
-                inflight[ref] = st
-                st.status, st.stage, st.started = "running", STAGE_ORDER[0], time.time()
-            changed = False
-            ready, _ = ray.wait(list(inflight), num_returns=1, timeout=options.poll_s)
-            for ref in ready:
-                st = inflight.pop(ref)
-                st.finished = time.time()
-                try:
-                    st.result = ray.get(ref)
-                    st.status, st.stage = "done", None
-                    st.stored = [s for s in STAGE_ORDER if st.result["stages"].get(s) in ("computed", "reused")]
-                    st.node = st.result.get("node")
-                except ray.exceptions.RayError as exc:
-                    st.status, st.stage, st.error = "failed", None, _error_text(exc)
-                    log.warning("session %s failed: %s", st.session.id, st.error)
-                changed = True
-            now = time.perf_counter()
-            if now - last_poll >= options.poll_s or changed:
-                last_poll = now
-                changed |= _poll(ray, board, states, settings)
+        while sched.busy():
+            sched.submit(cluster["max_in_flight"])
+            changed = sched.collect(options.poll_s)
+            if changed or time.perf_counter() - last_poll >= options.poll_s:
+                last_poll = time.perf_counter()
+                changed |= _poll(ray, sched.board, states, settings)
             if changed:
                 save()
                 if on_update is not None:
                     on_update(states)
     except KeyboardInterrupt:
-        interrupted = True
-        for ref, st in inflight.items():
-            ray.cancel(ref, force=True)
-            st.status, st.stage = "interrupted", None
-        inflight.clear()
+        result.interrupted = True
         raise
     finally:
-        if inflight:  # an unexpected error in this loop: do not leave tasks running
-            for ref, st in inflight.items():
-                ray.cancel(ref, force=True)
-                st.status, st.stage = "interrupted", None
+        if sched is not None:
+            sched.cancel()  # nothing left running after Ctrl-C or an unexpected error here
         if cluster:
             try:
                 save()
@@ -253,7 +325,8 @@ def run_fleet(sessions: Sequence[FleetSession], out_dir: str | Path, settings: R
                 log.error("cannot write the fleet summary into %s: %s", out, exc)
         if owned:
             ray.shutdown()
-    return FleetResult(out, states, time.perf_counter() - t0, cluster, interrupted)
+    result.wall_s = time.perf_counter() - t0
+    return result
 
 
 def _poll(ray: Any, board: Any, states: list[SessionState], settings: ReprocessSettings) -> bool:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import glob
 import json
+import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -44,6 +45,15 @@ def session_id(d: Path) -> str:
         pass
     sid = _UNSAFE.sub("_", sid or d.name).strip("._") or "session"
     return sid
+
+
+def frame_count(d: Path) -> int:
+    """Images in the session's left camera folder (its size, for the submission order; 0 if none)."""
+    try:
+        with os.scandir(Path(d) / "mav0" / "cam0" / "data") as it:
+            return sum(1 for e in it if e.is_file())
+    except OSError:
+        return 0
 
 
 def expand_sessions(specs: Sequence[str | Path]) -> list[FleetSession]:

@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import dataclasses
 import html
-import json
 import time
 from pathlib import Path
-
-from stereopath.device.formats.fileio import write_text_atomic
 from typing import Any
+
+from stereopath.device.formats.fileio import write_json_atomic, write_text_atomic
 
 FORMAT = "stereopath-fleet"
 VERSION = 1
@@ -45,10 +44,6 @@ def summary_dict(result: Any, settings: Any) -> dict[str, Any]:
         "settings": dataclasses.asdict(settings) if dataclasses.is_dataclass(settings) else dict(settings),
         "sessions": rows,
     }
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    write_text_atomic(path, text, fsync=False)
 
 
 def _cell(v: Any, scale: float = 1.0, digits: int = 3) -> str:
@@ -112,6 +107,7 @@ def render_html(summary: dict[str, Any]) -> str:
 def write_summary(out_dir: Path, result: Any, settings: Any) -> dict[str, Any]:
     """Write ``fleet.json`` and ``fleet.html`` into ``out_dir``; returns the summary dict."""
     summary = summary_dict(result, settings)
-    _atomic_write(out_dir / "fleet.json", json.dumps(summary, indent=2) + "\n")
-    _atomic_write(out_dir / "fleet.html", render_html(summary))
+    # no fsync: the summary is rewritten after every change and can be rebuilt by rerunning the command
+    write_json_atomic(out_dir / "fleet.json", summary, fsync=False)
+    write_text_atomic(out_dir / "fleet.html", render_html(summary), fsync=False)
     return summary

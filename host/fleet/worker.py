@@ -14,6 +14,7 @@ already stored) and when a stage is stored; the driver reads it for the progress
 from __future__ import annotations
 
 import json
+import logging
 import os
 import socket
 import time
@@ -21,26 +22,33 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+log = logging.getLogger(__name__)
+
 STAGE_ORDER = ("estimate", "tracks", "ba", "map")  # the order the pipeline runs its stages in
 
 
 class ProgressBoard:
-    """Per session: attempts, process and node of the latest attempt, stages stored so far."""
+    """Per session: attempts, process and node of the latest attempt, stages stored so far.
+
+    A session may run as two tasks (``part`` "first": up to its estimate, then "rest"); each
+    counts its own attempts, and the session's ``attempts`` is the largest of them.
+    """
 
     def __init__(self) -> None:
         self.sessions: dict[str, dict[str, Any]] = {}
 
-    def started(self, sid: str, info: dict[str, Any]) -> int:
-        """Record an attempt; returns its number (1 for the first)."""
-        e = self.sessions.setdefault(sid, {"attempts": 0, "stored": []})
-        e["attempts"] += 1
+    def started(self, sid: str, info: dict[str, Any], part: str = "all") -> int:
+        """Record an attempt of the task ``part`` of session ``sid``; returns its number (1 for the first)."""
+        e = self.sessions.setdefault(sid, {"attempts": 0, "stored": [], "parts": {}})
+        e["parts"][part] = e["parts"].get(part, 0) + 1
+        e["attempts"] = max(e["parts"].values())
         e.update({k: info[k] for k in ("pid", "node") if k in info})
         e["stored"] = [s for s in STAGE_ORDER if s in info.get("stored", ()) or s in e["stored"]]
         e["started"] = time.time()
-        return int(e["attempts"])
+        return int(e["parts"][part])
 
     def stage_done(self, sid: str, name: str) -> None:
-        e = self.sessions.setdefault(sid, {"attempts": 0, "stored": []})
+        e = self.sessions.setdefault(sid, {"attempts": 0, "stored": [], "parts": {}})
         if name not in e["stored"]:
             e["stored"] = [s for s in STAGE_ORDER if s in e["stored"] or s == name]
 
@@ -92,29 +100,91 @@ def summarise(res: Any, wall_s: float, cpu_s: float) -> dict[str, Any]:
     }
 
 
+class _Stop(Exception):
+    """Ends the first part of a split session once its ``estimate`` stage is stored."""
+
+
+_TBB_LIMITS: dict[int, Any] = {}  # oneTBB global_control objects, alive as long as the worker
+
+
+def limit_tbb(n: int) -> bool:
+    """Open3D's TBB pool (the map stage) at ``n`` threads; False when that is not possible.
+
+    Open3D has no Python call for it, so this creates oneTBB's ``global_control(max_allowed_parallelism,
+    n)`` through the entry points of the TBB library Open3D ships (``tbb::detail::r1``, oneTBB's stable
+    binary interface; the object is three words: value, reserved, parameter 0) and checks the
+    active value TBB reports back.
+    """
+    import ctypes
+    import glob
+
+    if n in _TBB_LIMITS:
+        return True
+    try:
+        import open3d
+
+        lib = ctypes.CDLL(sorted(glob.glob(os.path.join(os.path.dirname(open3d.__file__), "libtbb.so*")))[0])
+        create = lib._ZN3tbb6detail2r16createERNS0_2d114global_controlE
+        active = lib._ZN3tbb6detail2r127global_control_active_valueEi
+    except (ImportError, IndexError, OSError, AttributeError) as exc:
+        log.warning("cannot limit Open3D's TBB threads: %s", exc)
+        return False
+    active.restype, active.argtypes = ctypes.c_size_t, [ctypes.c_int]
+    ctl = (ctypes.c_size_t * 3)(n, 0, 0)
+    create(ctypes.byref(ctl))
+    _TBB_LIMITS[n] = ctl
+    return int(active(0)) == n
+
+
+def limit_threads(n: int) -> None:
+    """Every thread pool of this worker process at ``n`` threads, the task's CPUs: OpenCV's, every
+    BLAS (threadpoolctl) and Open3D's TBB, so that the tasks Ray places by their declared CPUs do not
+    oversubscribe the cores.  Results do not depend on it (the stages pin BLAS to one thread; OpenCV
+    and TBB split independent work: only the order of the model's elements changes, not the elements)."""
+    import cv2
+    import scipy.linalg  # noqa: F401 - each library brings its own BLAS, which must be loaded to be limited
+    from threadpoolctl import threadpool_limits
+
+    cv2.setNumThreads(n)
+    threadpool_limits(limits=n)
+    limit_tbb(n)
+
+
+def first_part(out_dir: str | Path, wall_s: float, cpu_s: float) -> dict[str, Any]:
+    """What the first part of a split session reports: its estimate's keyframes (the cost of the rest)."""
+    from stereopath.host.reprocess.store import load_npz
+
+    est = load_npz(Path(out_dir) / "stages" / "estimate.npz") or {}
+    kf = est.get("keyframe")
+    return {"status": "estimated", "keyframes": None if kf is None else int(kf.sum()),
+            "stages": {"estimate": "computed"}, "wall_s": round(wall_s, 3), "cpu_s": round(cpu_s, 3)}
+
+
 def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any], board: Any = None,
-                   after_stage: Callable[[str], None] | None = None, threads: int | None = None) -> dict[str, Any]:
+                   after_stage: Callable[[str], None] | None = None, threads: int | None = None,
+                   part: str = "all") -> dict[str, Any]:
     """Reprocess one session (paths as this worker sees them); returns :func:`summarise`'s dict.
 
     ``settings``: keyword arguments of ``reprocess_session`` (preset, do_map, map_preset,
     imu_priors, force; force applies to the first attempt only).  ``board``: a :class:`ProgressBoard` actor handle or None.
     ``after_stage(name)`` is called after each stored stage, after the board is told.
-    ``threads``: OpenCV's thread count in this worker (the task's CPUs; None leaves it).
+    ``threads``: the thread count of every pool in this worker (:func:`limit_threads`; None leaves them).
+    ``part``: "all"; or "first": stop once the ``estimate`` stage is computed and return
+    :func:`first_part`'s dict (when it was already stored, the session runs to its end); or
+    "rest": the session from its stored estimate (the driver runs "first" before it).
     A :class:`StereopathError` (bad input) propagates: the driver reports the session failed.
     """
     from stereopath.host.reprocess.pipeline import reprocess_session
 
     if threads is not None:
-        import cv2
-
-        cv2.setNumThreads(max(1, int(threads)))
+        limit_threads(max(1, int(threads)))
     t0, c0 = time.perf_counter(), time.process_time()
     node = _node()
     if board is not None:
         import ray
 
         attempt = ray.get(board.started.remote(sid, {"pid": os.getpid(), "node": node,
-                                                     "stored": stored_stages(out_dir)}))
+                                                     "stored": stored_stages(out_dir)}, part))
         if attempt > 1:  # a retry (the worker died): resume from the stored stages even with force
             settings = {**settings, "force": False}
 
@@ -123,8 +193,14 @@ def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any
             board.stage_done.remote(sid, name)
         if after_stage is not None:
             after_stage(name)
+        if part == "first" and name == "estimate":
+            raise _Stop
 
-    res = reprocess_session(session, out_dir, progress=False, after_stage=hook, **settings)
-    out = summarise(res, time.perf_counter() - t0, time.process_time() - c0)
+    try:
+        res = reprocess_session(session, out_dir, progress=False, after_stage=hook, **settings)
+    except _Stop:
+        out = first_part(out_dir, time.perf_counter() - t0, time.process_time() - c0)
+    else:
+        out = summarise(res, time.perf_counter() - t0, time.process_time() - c0)
     out.update({"node": node, "pid": os.getpid()})
     return out

@@ -15,8 +15,6 @@ import numpy as np
 from stereopath.host.reprocess.loops import LoopConfig
 from stereopath.host.reprocess.tracks import TrackConfig
 
-BA_SOLVERS = ("gtsam", "schur")
-
 
 @dataclass(frozen=True)
 class ReprocessPreset:
@@ -30,7 +28,6 @@ class ReprocessPreset:
     estimator_options: tuple[tuple[str, Any], ...] = (("background_keyframes", False),)
     tracks: TrackConfig = field(default_factory=TrackConfig)
     loops: LoopConfig = field(default_factory=LoopConfig)  # loop closure between keyframes (tracks stage)
-    ba_solver: str = "gtsam"  # "gtsam" (gtsam_ba) or "schur" (the hand-written bundle_adjust, a cross-check)
     ba_loss: str = "huber"
     ba_robust_px: float = 1.0
     ba_max_iterations: int = 30
@@ -46,12 +43,6 @@ class ReprocessPreset:
     ba_imu: bool = True
     imu_rotation_priors: bool = False  # gyro-integrated relative rotations between keyframes as BA terms
     gyro_sigma_rad_per_sqrt_s: float = 0.002
-
-    def __post_init__(self) -> None:
-        if self.ba_solver not in BA_SOLVERS:
-            from stereopath.device.errors import ConfigError
-
-            raise ConfigError(f"ba_solver = {self.ba_solver!r}; known: {', '.join(BA_SOLVERS)}")
 
 
 _TRACK_GAPS = (1, 2, 3, 5, 8, 12, 16, 20)

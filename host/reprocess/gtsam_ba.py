@@ -289,7 +289,8 @@ def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarra
                   max_iterations: int = 50, n_fixed: int = 1, rotation_priors: list[RotationPrior] | None = None,
                   outlier_px: float = 3.0, outlier_rounds: int = 1, estimate_disparity_offset: bool = False,
                   disparity_offset_px: float = 0.0, disparity_offset_min_px: float = 0.0,
-                  on_iteration=None, loops: list | None = None, imu: Any = None) -> BAResult:
+                  on_iteration=None, loops: list | None = None, imu: Any = None,
+                  relative_tol: float = RELATIVE_TOL) -> BAResult:
     """Refine ``T_world_cam`` (K, 4, 4) and ``points`` {id: XYZ world} on ``observations`` (N, 5|6).
 
     ``huber_px`` is the scale of the robust ``loss`` (pixels).  With ``outlier_rounds > 0`` the
@@ -298,7 +299,8 @@ def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarra
     verified loop closures (:class:`stereopath.host.reprocess.loops.Loop`, pose indices ``i``,
     ``j``) added as relative-pose factors.  ``imu``: preintegrated IMU between consecutive poses
     (:class:`stereopath.host.reprocess.imu_factors.ImuTerms`); the biases come back in
-    ``imu_biases``.
+    ``imu_biases``.  ``relative_tol``: the final solve stops when an iteration lowers the cost by
+    less than this fraction.
     """
     if loss not in LOSSES:
         raise ConfigError(f"loss = {loss!r}; known: {', '.join(LOSSES)}")
@@ -310,9 +312,9 @@ def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarra
     rms0 = rms_px(*reprojection_residuals(rig, T, points, obs, disparity_offset_px))
     offset, est = float(disparity_offset_px), bool(estimate_disparity_offset) and bool(np.any(obs[:, 2] == 1))
     rounds = max(outlier_rounds, 0)
-    opts["tol"] = RELATIVE_TOL_BEFORE_OUTLIERS if rounds else RELATIVE_TOL
+    opts["tol"] = RELATIVE_TOL_BEFORE_OUTLIERS if rounds else relative_tol
     T, pts, new_offset, iters, history = _solve(rig, T, points, obs, held, priors, opts, offset, est, on_iteration)
-    resolve = opts["tol"] != RELATIVE_TOL  # the last solve stopped early: solve again unless a round does
+    resolve = opts["tol"] != relative_tol  # the last solve stopped early: solve again unless a round does
     if est and abs(new_offset - offset) < disparity_offset_min_px:
         log.info("disparity offset %+.4f px below %.3f px: not applied", new_offset - offset, disparity_offset_min_px)
         est, resolve = False, True
@@ -325,12 +327,12 @@ def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarra
         if not bad.any() or len(np.unique(keep[:, 1])) < 10:
             break
         obs = keep
-        opts["tol"] = RELATIVE_TOL_BEFORE_OUTLIERS if k + 1 < rounds else RELATIVE_TOL
+        opts["tol"] = RELATIVE_TOL_BEFORE_OUTLIERS if k + 1 < rounds else relative_tol
         T, pts, new_offset, it2, h2 = _solve(rig, T, pts, obs, held, priors, opts, offset, est, on_iteration)
         offset = new_offset if est else offset
-        iters, history, resolve = iters + it2, history + h2, opts["tol"] != RELATIVE_TOL
+        iters, history, resolve = iters + it2, history + h2, opts["tol"] != relative_tol
     if resolve:  # no outlier round followed the first solve (or the offset was dropped after it)
-        opts["tol"] = RELATIVE_TOL
+        opts["tol"] = relative_tol
         T, pts, new_offset, it2, h2 = _solve(rig, T, pts, obs, held, priors, opts, offset, est, on_iteration)
         offset = new_offset if est else offset
         iters, history = iters + it2, history + h2

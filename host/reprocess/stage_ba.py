@@ -1,9 +1,10 @@
 """Stage ``ba``: bundle adjustment of the keyframe poses and track points, then every other frame.
 
-The keyframes: :func:`stereopath.host.reprocess.bundle_adjust.bundle_adjust` (reprojection
+The keyframes: :func:`stereopath.host.reprocess.gtsam_ba.bundle_adjust` on GTSAM (reprojection
 error in both cameras, robust loss; the rig's constant disparity error estimated too and applied
-when it exceeds ``ba_disparity_offset_min_px``; optional gyro rotation priors), outlier removal
-and a second solve.  Every other frame: the keyframe corrections interpolated in time, then a
+when it exceeds ``ba_disparity_offset_min_px``; the verified loops; IMU preintegration between
+keyframes when the session has a usable IMU; optional gyro rotation priors), outlier removal and
+a second solve.  Every other frame: the keyframe corrections interpolated in time, then a
 motion-only refinement on the adjusted points (each frame observes its neighbouring keyframes'
 tracked keypoints by one KLT step each).
 
@@ -75,10 +76,10 @@ def end_to_start(T: np.ndarray) -> dict[str, float]:
 
 
 def imu_terms_of(config: ReprocessPreset, inputs: StageInputs):
-    """Preintegrated IMU between the keyframes (None without ``ba_imu``, a GTSAM back end or usable IMU data)."""
+    """Preintegrated IMU between the keyframes (None without ``ba_imu`` or usable IMU data)."""
     from stereopath.host.reprocess.imu_factors import imu_terms
 
-    if not config.ba_imu or config.ba_solver != "gtsam" or getattr(inputs.seq, "imu", None) is None:
+    if not config.ba_imu or getattr(inputs.seq, "imu", None) is None:
         return None
     est, trk = inputs.results["estimate"], inputs.results["tracks"]
     try:
@@ -101,26 +102,12 @@ def imu_report(terms, res, t_kf: np.ndarray) -> dict[str, Any] | None:
             "gyro_bias_mean_rad_s": b[ok, 3:].mean(axis=0).tolist() if len(ok) else None}
 
 
-def solver(config: ReprocessPreset):
-    """The back-end module of ``config.ba_solver`` (``bundle_adjust``, ``refine_poses_fixed_points``)."""
-    if config.ba_solver == "schur":
-        from stereopath.host.reprocess import bundle_adjust as mod
-    else:
-        from stereopath.host.reprocess import gtsam_ba as mod
-    return mod
-
-
 def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list, imu=None):
     """Bundle adjustment of the keyframes (a ``BAResult``); EstimationError when there is too little."""
-    bundle_adjust = solver(config).bundle_adjust
+    from stereopath.host.reprocess.gtsam_ba import bundle_adjust
+
     trk = inputs.results["tracks"]
     points = {int(i): x for i, x in zip(trk["point_ids"], trk["point_xyz"])}
-    extra = {}
-    if config.ba_solver == "gtsam":
-        extra["loops"] = loops_of(trk)
-        extra["imu"] = imu
-    elif len(loops_of(trk)):
-        log.warning("ba_solver 'schur' has no loop factors: %d loop(s) ignored", len(loops_of(trk)))
     bar = progress_bar(config.ba_max_iterations * (1 + config.ba_outlier_rounds), "bundle adjustment",
                        inputs.progress, "iteration")
     try:
@@ -129,7 +116,7 @@ def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list,
                              outlier_px=config.ba_outlier_px, outlier_rounds=config.ba_outlier_rounds,
                              rotation_priors=priors, estimate_disparity_offset=config.ba_disparity_offset,
                              disparity_offset_min_px=config.ba_disparity_offset_min_px,
-                             on_iteration=None if bar is None else bar.update, **extra)
+                             on_iteration=None if bar is None else bar.update, loops=loops_of(trk), imu=imu)
     finally:
         if bar is not None:
             bar.close()
@@ -170,7 +157,8 @@ def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.
 
 def refine_frames(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.ndarray) -> int:
     """Motion-only refinement of the non-keyframes of ``T_frames`` (in place); the number refined."""
-    refine_poses_fixed_points = solver(config).refine_poses_fixed_points
+    from stereopath.host.reprocess.gtsam_ba import refine_poses_fixed_points
+
     is_kf = np.zeros(len(T_frames), bool)
     is_kf[inputs.results["tracks"]["kf_index"]] = True
     rows = _frame_rows(config, inputs, res, T_frames, is_kf)
@@ -211,7 +199,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
              "disparity_offset_px": res.disparity_offset_px if config.ba_disparity_offset else None,
              "frames_refined": n_refined, "ba_seconds": round(t_ba, 3),
              "frame_refinement_seconds": round(time.perf_counter() - t1, 3),
-             "loops": [lp.as_dict() for lp in loops_of(trk)] if config.ba_solver == "gtsam" else [],
+             "loops": [lp.as_dict() for lp in loops_of(trk)],
              "imu": imu_report(imu, res, est["t_ns"][kf]),
              "end_to_start": {"reestimated": end_to_start(est["T_world_cam"]), "bundle_adjusted": end_to_start(T_frames)}}
     ids = np.fromiter(res.points.keys(), np.int64, len(res.points))
