@@ -57,7 +57,8 @@ def test_gray_accepts_colour_and_single_channel():
 
 def test_keyframe_work_never_stalls_the_frame_loop_and_its_queue_is_bounded(data_dir):
     rig, frames = _kitti_frames(data_dir, range(12))
-    est = StereoEstimator(rig, StereoConfig(kf_max_frames=1))  # a keyframe at every frame
+    # a keyframe at every frame, each asking for ASIFT work
+    est = StereoEstimator(rig, StereoConfig(kf_max_frames=1, asift_min_rotation_deg=0.0))
     release = threading.Event()
     started = []
     real_job = est._keyframe_job
@@ -94,3 +95,34 @@ def test_fast_motion_every_nth_kitti_frame_is_tracked(data_dir, step):
     assert run.frames_tracked == len(frames)  # 0 lost
     m = evaluate(seq.groundtruth, run.trajectory)
     assert m["end_error_m"] / m["path_length_m"] < 0.02
+
+
+def test_online_disparity_offset_is_estimated_bounded_and_used(data_dir):
+    rig, frames = _kitti_frames(data_dir, range(14))
+    est = StereoEstimator(rig, StereoConfig(kf_max_frames=2, background_keyframes=False,
+                                            estimate_disparity_offset=True))
+    out = [est.process(f, None) for f in frames]
+    est.close()
+    assert all(e.status == "ok" for e in out)
+    assert est._offset.n >= 3 and est._offset.ready
+    assert abs(est._offset.value) <= est._offset.bound
+    # the fused value is what the triangulation and the pose refinement now remove
+    assert est._geo.disparity_offset_px == est._offset.value != 0.0
+    assert est.counters["disparity_offset_mpx"] == round(1000 * est._offset.value)
+
+
+def test_asift_work_is_scheduled_by_view_change_not_at_every_keyframe(data_dir):
+    rig, frames = _kitti_frames(data_dir, range(12))  # driving straight: little rotation
+    est = StereoEstimator(rig, StereoConfig(kf_max_frames=1, background_keyframes=False, asift_max_frames=5))
+    out = [est.process(f, None) for f in frames]
+    est.close()
+    assert all(e.status == "ok" for e in out) and sum(e.keyframe for e in out) >= 10
+    # the first keyframe and then one by age (5 frames) at most: the rest only top up the map
+    assert 2 <= est.counters["kf_jobs"] <= 3
+    assert est.counters["kf_jobs_deferred"] == est.counters["keyframes"] - est.counters["kf_jobs"]
+    turning = StereoEstimator(rig, StereoConfig(kf_max_frames=1, background_keyframes=False,
+                                                asift_min_rotation_deg=0.0))
+    for f in frames[:4]:
+        turning.process(f, None)
+    turning.close()
+    assert turning.counters["kf_jobs"] == 4  # any rotation asks for it: every keyframe

@@ -51,11 +51,11 @@ def test_paper_preset_has_25_views_with_the_papers_tilts_and_longitudes():
 
 
 def test_presets_are_listed_and_valid():
-    assert {"sift", "paper", "fast", "fast_sym", "full"} <= set(PRESETS)
+    assert {"sift", "paper", "fast", "fast_sym", "fast_asym", "full"} <= set(PRESETS)
     assert PRESETS["sift"].n_views == 1
     assert PRESETS["full"].backend == "cv2_affine"
-    assert PRESETS["fast"].pairing == "asymmetric"
-    assert PRESETS["fast_sym"].pairing == "symmetric"
+    assert PRESETS["fast"].pairing == "symmetric" and PRESETS["fast_sym"] is PRESETS["fast"]
+    assert PRESETS["fast_asym"].pairing == "asymmetric"
     with pytest.raises(ConfigError, match="unknown feature preset 'nope'"):
         get_preset("nope")
 
@@ -170,7 +170,7 @@ def test_sift_preset_equals_original_view_of_fast():
 
 def test_earlier_image_gets_original_view_only_when_asymmetric():
     img = texture(seed=2)
-    cfg = get_preset("fast")
+    cfg = get_preset("fast_asym")
     full = detect(img, cfg)
     early = earlier_features(img, cfg)
     assert (early.view == 0).all()

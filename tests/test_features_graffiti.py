@@ -28,7 +28,7 @@ def counts(graf):
     """Correct matches (3 px) for img1 -> img2 and img1 -> img4, per preset, at full resolution."""
     img1 = cv2.imread(str(graf / "img1.png"), cv2.IMREAD_GRAYSCALE)
     out = {}
-    for n, presets in ((2, ("sift", "fast")), (4, ("sift", "fast", "fast_sym"))):
+    for n, presets in ((2, ("sift", "fast_asym")), (4, ("sift", "fast_asym", "fast"))):
         img = cv2.imread(str(graf / f"img{n}.png"), cv2.IMREAD_GRAYSCALE)
         H = load_homography(graf / f"H1to{n}p.xml")
         for p in presets:
@@ -37,7 +37,7 @@ def counts(graf):
 
 
 def test_small_viewpoint_change_sift_and_fast_both_match_well(counts):
-    sift, fast = counts[(2, "sift")], counts[(2, "fast")]
+    sift, fast = counts[(2, "sift")], counts[(2, "fast_asym")]
     assert sift["correct"] >= 600
     assert fast["correct"] >= 1000
     assert fast["correct"] >= 0.7 * fast["matches"]  # mostly right, not just many
@@ -45,11 +45,11 @@ def test_small_viewpoint_change_sift_and_fast_both_match_well(counts):
 
 
 def test_50_degree_viewpoint_affine_views_beat_sift(counts):
-    sift, fast, sym = counts[(4, "sift")], counts[(4, "fast")], counts[(4, "fast_sym")]
+    sift, fast, sym = counts[(4, "sift")], counts[(4, "fast_asym")], counts[(4, "fast")]
     assert sift["correct"] <= 150  # plain SIFT mostly fails at ~50 deg (about 70)
     assert fast["correct"] >= 280
     assert fast["correct"] >= 4 * sift["correct"]
-    assert sym["correct"] >= 900
+    assert sym["correct"] >= 1000  # the `fast` preset's target (its time is the benchmark's business)
     assert sym["correct"] >= 10 * sift["correct"]
     # asymmetric pairing: the earlier image only has its original view
     assert fast["keypoints1"] < fast["keypoints2"]

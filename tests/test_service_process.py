@@ -140,5 +140,5 @@ def test_device_run_streams_poses_and_keyframes_to_a_host(tmp_path):
     device_traj = read_tum(out / "trajectory.tum")
     assert set(poses.t_ns.tolist()) <= set(device_traj.t_ns.tolist())
     assert poses.t_ns[0] == device_traj.t_ns[0]  # --wait-for-host: the host saw the path from its start
-    assert "a host is connected; starting capture" in err
+    assert "a host is connected and subscribed to poses; starting capture" in err
     assert rx.stats.rejected == 0 and rx.live.status is not None and rx.live.status.session_id == sid

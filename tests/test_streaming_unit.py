@@ -255,3 +255,40 @@ def test_terminal_view_tty_and_log_modes(caplog):
         logged = TerminalView(quiet, tty=False, log_interval_s=0.0)
         logged.update(rx)
     assert quiet.getvalue() == "" and "link good" in caplog.text
+
+
+def test_pose_publisher_counts_subscriptions_and_a_pose_sent_after_one_arrives(tmp_path):
+    """``--wait-for-host`` starts capture once a host's pose subscription has reached the publisher: the
+    XPUB hands each subscription up, and a pose published after it is not lost to the slow-joiner gap."""
+    import time
+
+    import zmq
+
+    from stereopath.device.streaming.pose_publisher import PosePublisher
+    from tests.test_streaming_support import device_config
+
+    ctx = zmq.Context()
+    pub = PosePublisher(ctx, device_config(None), None)
+    sub = ctx.socket(zmq.SUB)
+    try:
+        assert pub.subscriptions() == 0
+        sub.connect(pub.endpoint)
+        sub.setsockopt(zmq.SUBSCRIBE, b"")
+        deadline = time.monotonic() + 10
+        while pub.subscriptions() == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert pub.subscriptions() == 1
+        assert pub.send(b"first pose")
+        assert sub.poll(5000) and sub.recv() == b"first pose"
+        second = ctx.socket(zmq.SUB)  # every host's subscription counts (XPUB_VERBOSE), not only the first
+        second.connect(pub.endpoint)
+        second.setsockopt(zmq.SUBSCRIBE, b"")
+        deadline = time.monotonic() + 10
+        while pub.subscriptions() < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        second.close(linger=0)
+        assert pub.subscriptions() == 2
+    finally:
+        sub.close(linger=0)
+        pub.close()
+        ctx.term()

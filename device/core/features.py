@@ -20,15 +20,15 @@ Presets (:data:`PRESETS`):
 * ``sift``  - the original view only (plain SIFT);
 * ``paper`` - latitudes 15/30/45/60 deg x longitudes 0..150 every 30 deg plus the
   original view (25 views), full resolution, unlimited keypoints;
-* ``fast``  - our real-time preset in the paper's asymmetric scheme: the original
-  view plus tilt 2 (60 deg of latitude, where plain SIFT fails) at four
-  longitudes, views downscaled to 0.7, lower contrast and looser edge thresholds
-  (more keypoints per view);
-* ``fast_sym`` - symmetric pairing (all views of both images are matched view
-  against view): tilt 2 at three longitudes.  In a sequence every image's views
-  are computed once anyway (when it is the later image), so the symmetric pairing
-  costs only matching time, and it doubles the covered tilt directions
-  (image 1 squeezed along phi = image 2 stretched along phi);
+* ``fast`` (also ``fast_sym``, its earlier name) - our real-time preset and the stereo
+  estimator's keyframes: symmetric pairing (all views of both images are matched view
+  against view), the original view plus tilt 2 (60 deg of latitude, where plain SIFT
+  fails) at three longitudes, lower contrast and looser edge thresholds.  In a
+  sequence every image's views are computed once anyway (when it is the later image),
+  so the symmetric pairing costs only matching time, and it doubles the covered tilt
+  directions (image 1 squeezed along phi = image 2 stretched along phi);
+* ``fast_asym`` - the same cost in the paper's asymmetric scheme: tilt 2 at four
+  longitudes, views downscaled to 0.7, SIFT only on the earlier image;
 * ``full``  - OpenCV's ``cv2.AffineFeature`` with its default view parameters (the
   reference; its keypoints carry ``view = -1`` since OpenCV does not report the view).
 
@@ -210,19 +210,24 @@ def _paper_views() -> tuple[tuple[float, float], ...]:
     return tuple(views)
 
 
+_FAST = FeatureConfig(
+    views=(ORIGINAL_VIEW, (2.0, 0.0), (2.0, 60.0), (2.0, 120.0)),
+    pairing="symmetric",
+    contrast_threshold=0.015,
+    edge_threshold=20.0,
+)
+
 PRESETS: dict[str, FeatureConfig] = {
     "sift": FeatureConfig(pairing="symmetric"),
     "paper": FeatureConfig(views=_paper_views()),
-    "fast": FeatureConfig(
+    # the real-time preset (and the stereo estimator's keyframes): symmetric, tilt 2 at three longitudes
+    "fast": _FAST,
+    "fast_sym": _FAST,  # its earlier name
+    # the paper's asymmetric scheme at real-time cost (SIFT on the earlier image, four tilted views at 0.7)
+    "fast_asym": FeatureConfig(
         views=(ORIGINAL_VIEW, (2.0, 0.0), (2.0, 45.0), (2.0, 90.0), (2.0, 135.0)),
         view_scale=0.7,
         contrast_threshold=0.02,
-        edge_threshold=20.0,
-    ),
-    "fast_sym": FeatureConfig(
-        views=(ORIGINAL_VIEW, (2.0, 0.0), (2.0, 60.0), (2.0, 120.0)),
-        pairing="symmetric",
-        contrast_threshold=0.015,
         edge_threshold=20.0,
     ),
     "full": FeatureConfig(backend="cv2_affine", pairing="symmetric"),
@@ -236,8 +241,9 @@ PRESETS: dict[str, FeatureConfig] = {
 PRESET_HELP: dict[str, str] = {
     "sift": "plain SIFT (original view only)",
     "paper": "the paper's modified ASIFT: latitudes 15/30/45/60 x longitudes 0..150 step 30 + original (25 views)",
-    "fast": "paper's asymmetric scheme, real time: original + tilt 2 at longitudes 0/45/90/135, views at 0.7 scale",
-    "fast_sym": "symmetric: original + tilt 2 at longitudes 0/60/120 on both images (views reused per image)",
+    "fast": "real time, symmetric: original + tilt 2 at longitudes 0/60/120 on both images (views reused per image)",
+    "fast_sym": "the earlier name of fast",
+    "fast_asym": "paper's asymmetric scheme, real time: original + tilt 2 at longitudes 0/45/90/135, views at 0.7 scale",
     "full": "OpenCV cv2.AffineFeature(SIFT) with its default view parameters (reference ASIFT)",
     "onboard": "the stereo estimator's keyframes: original + tilt 2 at longitudes 0/90, views at 0.5 scale",
 }

@@ -78,20 +78,14 @@ def _camera_system(T: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray, 
     cost = float(np.sum(w * e * e))
     x, y, zz = Xk[:, 0], Xk[:, 1], np.where(valid, Xk[:, 2], 1.0)
     fx, fy = K[0, 0], K[1, 1]
-    # d(u,v)/d(Xk)
-    Ju = np.stack([fx / zz, np.zeros_like(zz), -fx * x / zz**2], axis=1)
-    Jv = np.stack([np.zeros_like(zz), fy / zz, -fy * y / zz**2], axis=1)
-    R_e = np.eye(3) if Te is None else Te[:3, :3]
-    # d(Xc)/d(dt, dtheta) = [I, -[Xc]x]; d(Xk) = R_e d(Xc)
-    n = len(Xc)
-    J_xc = np.zeros((n, 3, 6))
-    J_xc[:, :, :3] = np.eye(3)
-    J_xc[:, 0, 4], J_xc[:, 0, 5] = Xc[:, 2], -Xc[:, 1]
-    J_xc[:, 1, 3], J_xc[:, 1, 5] = -Xc[:, 2], Xc[:, 0]
-    J_xc[:, 2, 3], J_xc[:, 2, 4] = Xc[:, 1], -Xc[:, 0]
-    J_xk = np.einsum("ij,njk->nik", R_e, J_xc)
-    Jpu = np.einsum("ni,nik->nk", Ju, J_xk)
-    Jpv = np.einsum("ni,nik->nk", Jv, J_xk)
+    # d(u,v)/d(Xk), then through Xk = R_e Xc + t_e to the row vectors a = d(u)/d(Xc)
+    Ju = np.column_stack([fx / zz, np.zeros_like(zz), -fx * x / zz**2])
+    Jv = np.column_stack([np.zeros_like(zz), fy / zz, -fy * y / zz**2])
+    if Te is not None:
+        Ju, Jv = Ju @ Te[:3, :3], Jv @ Te[:3, :3]
+    # d(Xc)/d(dt, dtheta) = [I, -[Xc]x], and a (-[Xc]x) = Xc x a for a row vector a
+    Jpu = np.hstack([Ju, np.cross(Xc, Ju)])
+    Jpv = np.hstack([Jv, np.cross(Xc, Jv)])
     H = (Jpu * w[:, None]).T @ Jpu + (Jpv * w[:, None]).T @ Jpv
     g = (Jpu * w[:, None]).T @ r[:, 0] + (Jpv * w[:, None]).T @ r[:, 1]
     return cost, H, g
@@ -154,9 +148,11 @@ def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, X_world: np.ndarray, uv_le
         T_new = Tn @ T
         new_cost, H_new, g_new = cost_and_system(T_new)
         if new_cost < cost:
+            # converged: the step no longer lowers the cost noticeably (relative 1e-6)
+            converged = cost - new_cost <= 1e-6 * cost or np.linalg.norm(delta) < 1e-10
             T, cost, H, g = T_new, new_cost, H_new, g_new
             lam = max(lam / 10, 1e-7)
-            if np.linalg.norm(delta) < 1e-10:
+            if converged:
                 break
         else:
             lam *= 10
@@ -186,19 +182,21 @@ KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 0.005)
 
 
 def stereo_right(rig: Rig, left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, guess_right: np.ndarray,
-                 cfg: KltStereoParams, fb_check: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                 cfg: KltStereoParams, fb_check: bool = True, levels: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Locate left-image points in the right image; returns right pixels (float32) and the accepted mask.
 
     Pyramidal KLT from left to right seeded by ``guess_right`` (e.g. a projection at an expected
     depth).  A point is accepted when KLT converged, the rectified rows agree within
     ``cfg.epipolar_max_dy_px``, the disparity is positive and the point lies inside the right
     image; ``fb_check`` adds the right-to-left track back (within ``cfg.fb_max_px``), which new
-    points need and known inliers (refinement) can skip.  Images are grey, as captured (the
+    points need and known inliers (refinement) can skip.  ``levels`` overrides ``cfg.klt_levels``
+    (a guess from a known 3D point needs no coarse levels).  Images are grey, as captured (the
     rectified-row test undistorts and rectifies the two point sets, not the images).
     """
     if len(xy_left) == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, bool)
-    lk = dict(winSize=(cfg.klt_window, cfg.klt_window), maxLevel=cfg.klt_levels, criteria=KLT_CRITERIA)
+    lk = dict(winSize=(cfg.klt_window, cfg.klt_window), maxLevel=cfg.klt_levels if levels is None else levels,
+              criteria=KLT_CRITERIA)
     p0 = np.asarray(xy_left, np.float32).reshape(-1, 1, 2)
     g = np.asarray(guess_right, np.float32).reshape(-1, 1, 2)
     p1, st, _ = cv2.calcOpticalFlowPyrLK(left, right, p0, g.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)

@@ -23,7 +23,7 @@ from stereopath.device.core.geometry import invert_pose, rotation_angle_deg
 
 log = logging.getLogger(__name__)
 
-_LIVE_POSES = ("_T_world_cam", "_T_prev_prev", "_T_kf", "_T_library")
+_LIVE_POSES = ("_T_world_cam", "_T_prev_prev", "_T_kf", "_T_library", "_T_asift")
 
 
 @dataclass
@@ -112,6 +112,8 @@ class KeyframeJobs:
         self._C = np.eye(4)  # product of the corrections applied to the live state so far
         self._library: Library | None = None  # the newest keyframe library joined
         self._T_library: np.ndarray | None = None  # its keyframe's pose in the live world
+        self._T_asift: np.ndarray | None = None  # pose of the last keyframe whose ASIFT work was submitted
+        self._asift_frame = -(10**9)  # its frame number
         self._executor = None
         self._feature_cfg = None
         self._match_cfg = None
@@ -222,16 +224,31 @@ class KeyframeJobs:
         if len(feats) > self.cfg.kf_library_max:  # the strongest keypoints of all views
             keep = np.argsort(-feats.response, kind="stable")[: self.cfg.kf_library_max]
             feats = feats.subset(np.sort(keep))
-        _, Xc, ok = self._geo.stereo_points(left, right, feats.xy.astype(np.float32), z0)
+        # no forward-backward check: a wrong 3D point of the library is an outlier of the next
+        # keyframe's RANSAC, and the check would double the cost of its largest stereo search
+        _, Xc, ok = self._geo.stereo_points(left, right, feats.xy.astype(np.float32), z0, fb_check=False)
         if ok.sum() < self.cfg.min_pnp_inliers:
             return None
         return Library(seq, feats.subset(ok), Xc[ok])
+
+    def _asift_needed(self, T_world_cam: np.ndarray) -> bool:
+        """ASIFT work where the view changed: a rotation since the last ASIFT keyframe (the tilt the
+        affine views bridge), or its age; a keyframe in between only tops up the tracked map."""
+        cfg = self.cfg
+        if self._T_asift is None or self._library is None and not self._jobs:
+            return True
+        if self._cur_seq - self._asift_frame >= cfg.asift_max_frames:
+            return True
+        return rotation_angle_deg(self._T_asift[:3, :3].T @ T_world_cam[:3, :3]) >= cfg.asift_min_rotation_deg
 
     def _submit_keyframe_job(self, left, right, T_world_cam: np.ndarray, z0: float) -> None:
         """Queue this keyframe's ASIFT work: one job running and one waiting at most (the newest wins)."""
         if not self.cfg.use_asift_keyframes:
             return
         self._join_keyframe_job()
+        if not self._asift_needed(T_world_cam):
+            self.counters["kf_jobs_deferred"] += 1
+            return
         prev = self._jobs[-1] if self._jobs else (
             None if self._library is None else (self._library, self._T_library.copy(), self._C.copy()))
         if len(self._jobs) >= 2 and self._jobs[-1].future.cancel():
@@ -246,6 +263,7 @@ class KeyframeJobs:
         C_sub = self._C.copy()
         args = (self._cur_seq, left, right, T_world_cam.copy(), z0, m.X.copy(), m.uv.astype(np.float64), prev, C_sub)
         self.counters["kf_jobs"] += 1
+        self._T_asift, self._asift_frame = T_world_cam.copy(), self._cur_seq
         if self._executor is not None:
             fut = self._executor.submit(self._keyframe_job, *args)
         else:

@@ -48,38 +48,49 @@ class StereoMeasure:
         uvu = undistort_px(xy, c.K, c.dist)
         return np.column_stack([(uvu[:, 0] - c.cx) / c.fx, (uvu[:, 1] - c.cy) / c.fy, np.ones(len(uvu))])
 
-    def triangulate(self, uv_left: np.ndarray, uv_right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Stereo points (camera 1 frame) and their reprojection error, the disparity offset removed.
+    def right_ideal(self, uv_right: np.ndarray) -> np.ndarray:
+        """Right pixels -> ideal (undistorted, K of camera 2) pixels with the disparity offset removed.
 
         Removing an offset ``d0`` from the rectified disparity is moving the right point by ``+d0``
         along its rectified row (done through the rectification, so it holds for distorted images)."""
         offset = self.disparity_offset_px
+        if offset == 0.0 or len(uv_right) == 0:
+            return undistort_px(uv_right, self.rig.cam1.K, self.rig.cam1.dist)
+        r = self.rect
+        rr = cv2.undistortPoints(np.asarray(uv_right, np.float64).reshape(-1, 1, 2), self.rig.cam1.K,
+                                 self.rig.cam1.dist, R=r.R1, P=r.P1).reshape(-1, 2)
+        rr[:, 0] += offset
+        # back from the rectified right image to ideal pixels of camera 2 (K1, no distortion)
+        rays = np.column_stack([rr, np.ones(len(rr))]) @ np.linalg.inv(r.P1[:, :3]).T
+        rays = rays @ r.R1  # R1^T applied to each row
+        return ((rays / rays[:, 2:3]) @ self.rig.cam1.K.T)[:, :2]
+
+    def rectified_observations(self, uv_left: np.ndarray, uv_right: np.ndarray) -> np.ndarray:
+        """(n, 3) rows ``(u, v, disparity)`` in the rectified left image, as measured (no offset removed)."""
+        r = self.rect
+        rl = cv2.undistortPoints(np.asarray(uv_left, np.float64).reshape(-1, 1, 2), self.rig.cam0.K,
+                                 self.rig.cam0.dist, R=r.R0, P=r.P0).reshape(-1, 2)
+        rr = cv2.undistortPoints(np.asarray(uv_right, np.float64).reshape(-1, 1, 2), self.rig.cam1.K,
+                                 self.rig.cam1.dist, R=r.R1, P=r.P1).reshape(-1, 2)
+        return np.column_stack([rl, rl[:, 0] - rr[:, 0]])
+
+    def triangulate(self, uv_left: np.ndarray, uv_right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Stereo points (camera 1 frame) and their reprojection error, the disparity offset removed."""
         uvl = undistort_px(uv_left, self.rig.cam0.K, self.rig.cam0.dist)
-        if offset != 0.0 and len(uv_right):
-            r = self.rect
-            rr = cv2.undistortPoints(uv_right.reshape(-1, 1, 2).astype(np.float64), self.rig.cam1.K,
-                                     self.rig.cam1.dist, R=r.R1, P=r.P1).reshape(-1, 2)
-            rr[:, 0] += offset
-            # back from the rectified right image to ideal pixels of camera 2 (K1, no distortion)
-            Pinv = np.linalg.inv(r.P1[:, :3])
-            rays = np.column_stack([rr, np.ones(len(rr))]) @ Pinv.T
-            rays = rays @ r.R1  # R1^T applied to each row
-            uvr = (rays / rays[:, 2:3]) @ self.rig.cam1.K.T
-            uvr = uvr[:, :2]
-        else:
-            uvr = undistort_px(uv_right, self.rig.cam1.K, self.rig.cam1.dist)
-        return triangulate(self.rig, uvl, uvr)
+        return triangulate(self.rig, uvl, self.right_ideal(uv_right))
 
     def good_points(self, Xc: np.ndarray, err: np.ndarray) -> np.ndarray:
         """Triangulations that are consistent and inside the mapped depth range."""
         cfg = self.cfg
         return (err < cfg.triangulation_max_px) & (Xc[:, 2] > cfg.min_depth_m) & (Xc[:, 2] < self.max_depth)
 
-    def stereo_points(self, left, right, xy: np.ndarray, z0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def stereo_points(self, left, right, xy: np.ndarray, z0: float,
+                      fb_check: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """New stereo points at left pixels ``xy``: (right pixels, camera-1 points, good mask).
 
-        The right-image search starts from each pixel's ray at depth ``z0``."""
-        uvr, ok = stereo_right(self.rig, left, right, xy, self.right_guess(self.rays(xy) * z0), self.cfg)
+        The right-image search starts from each pixel's ray at depth ``z0``; ``fb_check`` as in
+        :func:`~stereopath.device.core.stereo.stereo_right`."""
+        uvr, ok = stereo_right(self.rig, left, right, xy, self.right_guess(self.rays(xy) * z0), self.cfg, fb_check)
         Xc, err = self.triangulate(xy, uvr)
         return uvr, Xc, ok & self.good_points(Xc, err)
 
@@ -105,9 +116,10 @@ class StereoMeasure:
         # right-image observations of the inliers for the two-camera refinement
         Xc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
         idx = np.flatnonzero(mask & (Xc[:, 2] > cfg.min_depth_m))
-        uvr, okr = stereo_right(self.rig, left, right, uv[idx], self.right_guess(Xc[idx]), cfg, fb_check=False)
+        uvr, okr = stereo_right(self.rig, left, right, uv[idx], self.right_guess(Xc[idx]), cfg, fb_check=False,
+                                levels=cfg.seeded_stereo_levels)
         ridx = idx[okr]
-        uvr_u = undistort_px(uvr[okr], self.rig.cam1.K, self.rig.cam1.dist)
+        uvr_u = self.right_ideal(uvr[okr])
         res = refine_pose_lm(self.rig, T_cw, X[mask], uv_u[mask], X[ridx], uvr_u, huber_px=cfg.huber_px,
                              outlier_px=cfg.pnp_reproj_px)
         final = np.zeros(len(X), bool)

@@ -23,9 +23,12 @@ Per frame (see docs/architecture.md, "Estimators"), a bounded amount of work:
 The modified-ASIFT work of a keyframe runs off the frame loop on a worker thread
 (:mod:`stereopath.device.estimation.keyframe_jobs`); the frame loop never waits for it.
 
-A known stereo disparity offset (``disparity_offset_px``: a calibration error of
-the principal points shows as a constant disparity bias) is removed from every
-triangulation; it is not estimated on line.
+A constant stereo disparity offset (a yaw or principal-point error of the
+calibration shows as one), ``disparity_offset_px``, is removed from every
+triangulation and from the right-image observations of the pose refinement.  With
+``estimate_disparity_offset`` it is refined on line: the points seen in stereo at two
+consecutive keyframes give it through a small bundle adjustment
+(:mod:`stereopath.device.estimation.disparity_offset`), fused slowly and bounded.
 
 Works without an IMU (KITTI): the prior is then a constant-velocity model.
 At start-up a still IMU block before the first frame gives the gyro bias and
@@ -47,6 +50,7 @@ from stereopath.device.estimation.base import PoseEstimate, WorldFrame
 from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still, gravity_aligned_rotation
 from stereopath.device.core.features import gray
 from stereopath.device.core.stereo import stereo_right, undistort_px
+from stereopath.device.estimation.disparity_offset import OffsetFilter, offset_from_two_keyframes
 from stereopath.device.estimation.keyframe_jobs import KeyframeJobs
 from stereopath.device.estimation.stereo_measure import StereoMeasure
 from stereopath.device.core.frames import ImuSamples, StereoFrame
@@ -58,7 +62,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class StereoConfig:
-    feature_preset: str = "onboard"  # modified-ASIFT preset used at keyframes
+    feature_preset: str = "onboard"  # modified-ASIFT preset used at keyframes (`fast`: 1.4x the CPU, see README)
     use_asift_keyframes: bool = True
     max_points: int = 500  # map points kept for tracking
     new_corner_spacing_px: int = 14
@@ -67,8 +71,11 @@ class StereoConfig:
     kf_rotation_deg: float = 15.0  # rotation since the last keyframe -> keyframe (the view change ASIFT bridges)
     kf_parallax_px: float = 0.0  # median flow since the keyframe -> keyframe (0 = off)
     kf_max_frames: int = 20
+    asift_min_rotation_deg: float = 3.0  # rotation since the last ASIFT keyframe that asks for ASIFT work again
+    asift_max_frames: int = 30  # ... or frames since it
     klt_window: int = 21
     klt_levels: int = 3
+    seeded_stereo_levels: int = 2  # pyramid of the right-image search from a known 3D point (an accurate guess)
     retry_klt_levels: int = 5  # deeper pyramid of the retry when tracking from the prediction fails
     relocalise: bool = True  # match SIFT against the last keyframe library when tracking fails
     fb_max_px: float = 0.6  # forward-backward KLT disagreement
@@ -89,7 +96,10 @@ class StereoConfig:
     kf_library_max: int = 6000  # keypoints (all views) kept with 3D per keyframe for the next match
     max_correction_deg: float = 2.0  # larger keyframe corrections from the ASIFT solve are rejected
     kf_map_agreement: float = 0.8  # share of the tracked map that must stay inlier in the keyframe's ASIFT solve
-    disparity_offset_px: float = 0.0  # a known stereo disparity offset (calibration), removed from new points
+    disparity_offset_px: float = 0.0  # a known stereo disparity offset (calibration): the prior of the estimate
+    # refine it on line from points seen in stereo at two keyframes; off by default: without an independent
+    # translation the estimate is coupled to it (correlation ~0.85-0.9) and came out ~0.08 px off on KITTI and the sim
+    estimate_disparity_offset: bool = False
 
     def __post_init__(self) -> None:
         check_range("max_points", self.max_points, 20, 20000)
@@ -98,8 +108,11 @@ class StereoConfig:
         check_range("kf_rotation_deg", self.kf_rotation_deg, 0.5, 180.0)
         check_range("kf_parallax_px", self.kf_parallax_px, 0.0, 10000.0)
         check_range("kf_max_frames", self.kf_max_frames, 1, 1000)
+        check_range("asift_min_rotation_deg", self.asift_min_rotation_deg, 0.0, 180.0)
+        check_range("asift_max_frames", self.asift_max_frames, 1, 100000)
         check_range("klt_window", self.klt_window, 5, 61)
         check_range("klt_levels", self.klt_levels, 0, 6)
+        check_range("seeded_stereo_levels", self.seeded_stereo_levels, 0, 6)
         check_range("retry_klt_levels", self.retry_klt_levels, 0, 8)
         check_range("epipolar_max_dy_px", self.epipolar_max_dy_px, 0.1, 5.0)
         check_range("min_depth_m", self.min_depth_m, 0.01, self.max_depth_m)
@@ -116,10 +129,13 @@ class _Map:
     uv_kf: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))  # at keyframe
     ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # stable point ids
     nobs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float64))  # stereo observations averaged
+    # rectified (u, v, disparity) as measured at the keyframe numbered obs_kf (the disparity offset estimate)
+    obs: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    obs_kf: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     def keep(self, mask: np.ndarray) -> None:
         self.X, self.uv, self.uv_kf, self.ids = self.X[mask], self.uv[mask], self.uv_kf[mask], self.ids[mask]
-        self.nobs = self.nobs[mask]
+        self.nobs, self.obs, self.obs_kf = self.nobs[mask], self.obs[mask], self.obs_kf[mask]
 
     def move(self, G: np.ndarray) -> None:
         self.X = self.X @ G[:3, :3].T + G[:3, 3]
@@ -145,6 +161,7 @@ class StereoEstimator(KeyframeJobs):
         self._prev_left: np.ndarray | None = None
         self._map = _Map()
         self._init_keyframe_jobs()
+        self._offset = OffsetFilter(prior=float(self.cfg.disparity_offset_px))
         self._since_kf = 0
         self._failures = 0
         self._gyro: GyroIntegrator | None = None
@@ -159,7 +176,8 @@ class StereoEstimator(KeyframeJobs):
         self._next_id = 0
         self._cur_seq = 0
         self.counters = {"keyframes": 0, "imu_only": 0, "lost": 0, "asift_matches": 0, "kf_jobs": 0,
-                         "kf_jobs_skipped": 0, "kf_corrections": 0, "retracked": 0, "relocalised": 0}
+                         "kf_jobs_skipped": 0, "kf_jobs_deferred": 0, "kf_corrections": 0, "retracked": 0, "relocalised": 0,
+                         "disparity_offset_mpx": int(round(1000 * self.cfg.disparity_offset_px))}
 
     # ------------------------------------------------------------------ public
 
@@ -386,22 +404,8 @@ class StereoEstimator(KeyframeJobs):
         k = len(self.keyframe_poses)
         if self.record_observations:
             self.keyframe_poses.append((self._cur_seq, T_world_cam.copy()))
-        if (self.record_observations or cfg.refine_points) and len(m):
-            Xc_old = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
-            uvr_old, ok_old = stereo_right(self.rig, left, right, m.uv, self._geo.right_guess(Xc_old), cfg, fb_check=False)
-            if self.record_observations:
-                self._record(k, m.ids, m.uv, uvr_old, ok_old)
-            if ok_old.any():
-                idx_o = np.flatnonzero(ok_old)
-                Xc_new, err_new = self._geo.triangulate(m.uv[idx_o], uvr_old[idx_o])
-                good = self._geo.good_points(Xc_new, err_new)
-                idx = idx_o[good]
-                if cfg.refine_points:
-                    # running mean of each tracked point over its stereo observations at keyframes
-                    Xw_new = Xc_new[good] @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
-                    n = m.nobs[idx][:, None]
-                    m.X[idx] = (m.X[idx] * n + Xw_new) / (n + 1)
-                    m.nobs[idx] += 1
+        if (self.record_observations or cfg.refine_points or cfg.estimate_disparity_offset) and len(m):
+            self._observe_map(left, right, T_world_cam, k)
         sel = np.zeros(0, np.int64)
         uvr = np.zeros((0, 2), np.float32)
         Xw = np.zeros((0, 3))
@@ -419,12 +423,62 @@ class StereoEstimator(KeyframeJobs):
         m.uv = np.vstack([m.uv, cands_all[sel]]).astype(np.float32)
         m.ids = np.concatenate([m.ids, new_ids])
         m.nobs = np.concatenate([m.nobs, np.ones(len(sel))])
+        new_obs = self._geo.rectified_observations(cands_all[sel], uvr[sel]) if len(sel) else np.zeros((0, 3))
+        m.obs = np.vstack([m.obs, new_obs])
+        m.obs_kf = np.concatenate([m.obs_kf, np.full(len(sel), self.counters["keyframes"], np.int64)])
         m.uv_kf = m.uv.copy()
         self._since_kf = 0
         self._T_kf = T_world_cam.copy()
         self._n_at_kf = len(m)
         self.counters["keyframes"] += 1
         return len(m)
+
+    def _observe_map(self, left, right, T_world_cam: np.ndarray, k: int) -> None:
+        """Stereo of the tracked points at this keyframe: the bundle-adjustment log, the running mean
+        of each point's triangulations, and the disparity offset from the last keyframe to this one."""
+        cfg = self.cfg
+        m = self._map
+        T_cw = invert_pose(T_world_cam)
+        Xc_old = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
+        uvr_old, ok_old = stereo_right(self.rig, left, right, m.uv, self._geo.right_guess(Xc_old), cfg, fb_check=False,
+                                      levels=cfg.seeded_stereo_levels)
+        if self.record_observations:
+            self._record(k, m.ids, m.uv, uvr_old, ok_old)
+        if not ok_old.any():
+            return
+        idx_o = np.flatnonzero(ok_old)
+        if cfg.estimate_disparity_offset:
+            self._update_disparity_offset(idx_o, uvr_old[idx_o], T_world_cam)
+        Xc_new, err_new = self._geo.triangulate(m.uv[idx_o], uvr_old[idx_o])
+        good = self._geo.good_points(Xc_new, err_new)
+        idx = idx_o[good]
+        if cfg.refine_points:
+            # running mean of each tracked point over its stereo observations at keyframes
+            Xw_new = Xc_new[good] @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+            n = m.nobs[idx][:, None]
+            m.X[idx] = (m.X[idx] * n + Xw_new) / (n + 1)
+            m.nobs[idx] += 1
+
+    def _update_disparity_offset(self, idx: np.ndarray, uv_right: np.ndarray, T_world_cam: np.ndarray) -> None:
+        """Fuse the offset seen between the last keyframe and this one (points measured in stereo at both)."""
+        m = self._map
+        B = self._geo.rectified_observations(m.uv[idx], uv_right)
+        kf = self.counters["keyframes"]
+        both = m.obs_kf[idx] == kf - 1
+        if self._T_kf is not None and both.sum() >= self.cfg.min_pnp_inliers:
+            rect = self._geo.rect
+            T_BA = invert_pose(T_world_cam) @ self._T_kf  # previous keyframe -> this one (camera frames)
+            R_BA, t_BA = rect.R0 @ T_BA[:3, :3] @ rect.R0.T, rect.R0 @ T_BA[:3, 3]
+            est = offset_from_two_keyframes(m.obs[idx[both]], B[both], R_BA, t_BA, rect.f, rect.P0[0, 2],
+                                            rect.P0[1, 2], rect.baseline_m)
+            used = self._offset.update(est)
+            log.debug("keyframe %d: disparity offset %s (used %s), fused %.3f +- %.3f px", self._cur_seq, est, used,
+                      self._offset.value, self._offset.sigma)
+            if used and self._offset.ready:
+                self._geo.disparity_offset_px = self._offset.value
+                self.counters["disparity_offset_mpx"] = int(round(1000 * self._offset.value))
+        m.obs[idx] = B
+        m.obs_kf[idx] = kf
 
     def _record(self, k: int, ids, uv_left, uv_right, ok_right) -> None:
         """Observations (undistorted pixels) of map points at keyframe ``k``, for bundle adjustment."""

@@ -232,9 +232,11 @@ class CaptureService:
         self.notifier.notify(STATUS="waiting for a host to connect")
         deadline = self._clock() + limit
         while not self._stop.is_set() and self._clock() < deadline:
-            if any(p.get("connected") for p in streaming.peers()):
-                log.info("a host is connected; starting capture")
-                self._stop.wait(0.3)  # let its pose subscription reach the publisher
+            stats = streaming.stats()
+            # a host has said hello on the keyframe channel and its pose subscription has reached the
+            # publisher (the XPUB hands it up): the first pose published now reaches it
+            if any(p.get("connected") for p in stats.get("peers", [])) and stats.get("pose_subscriptions", 0) > 0:
+                log.info("a host is connected and subscribed to poses; starting capture")
                 return
             self._stop.wait(0.05)
         if not self._stop.is_set():

@@ -1,4 +1,4 @@
-"""Live poses on a PUB socket: lossy by design, never blocks.
+"""Live poses on an XPUB socket: lossy by design, never blocks.
 
 :meth:`PosePublisher.send` is called from the producer's thread (under a lock, so several
 producer threads may share it): a ``NOBLOCK`` send only hands the frame to ZeroMQ, whose own I/O
@@ -6,6 +6,10 @@ thread encrypts and transmits it, so the caller never waits on the network and t
 thread hop of latency.  A message a subscriber cannot take (its high-water mark reached) is
 dropped by ZeroMQ, and an ``EAGAIN`` is counted as a drop.  Hosts see drops as gaps in the pose
 seq.
+
+The socket is an XPUB (a PUB that also hands up its subscribers' subscriptions, ``XPUB_VERBOSE``:
+every one), so the device can tell when a host's subscription has reached it:
+``device run --wait-for-host`` starts capture only then, and the host sees the first pose.
 """
 
 from __future__ import annotations
@@ -24,19 +28,21 @@ INBOUND_MAX_BYTES = 4096
 
 
 class PosePublisher:
-    """PUB socket bound to ``config.pose_endpoint`` (CURVE server unless insecure)."""
+    """XPUB socket bound to ``config.pose_endpoint`` (CURVE server unless insecure)."""
 
     def __init__(self, ctx: Any, config: StreamSettings, curve_keys: CurveKeys | None) -> None:
         import zmq
 
         self._zmq = zmq
-        self.sock = open_socket(ctx, zmq.PUB, curve_keys, options={zmq.SNDHWM: config.pose_sndhwm},
+        self.sock = open_socket(ctx, zmq.XPUB, curve_keys, options={zmq.SNDHWM: config.pose_sndhwm,
+                                                                   zmq.XPUB_VERBOSE: 1},
                                 heartbeat_ivl_ms=config.heartbeat_ivl_ms,
                                 heartbeat_timeout_ms=config.heartbeat_timeout_ms,
                                 heartbeat_ttl_ms=config.heartbeat_ttl_ms, maxmsgsize=INBOUND_MAX_BYTES)
         self.endpoint = bind_or_close(self.sock, config.pose_endpoint)
         self.sent = 0
         self.dropped = 0
+        self.subscribed = 0  # subscriptions seen (a host's SUB socket, once per connection)
         self._lock = threading.Lock()
         self._closed = False
 
@@ -53,6 +59,18 @@ class PosePublisher:
                 return False
             self.sent += 1
             return True
+
+    def subscriptions(self) -> int:
+        """Read the subscriptions that arrived (never blocks); the number seen since the start."""
+        with self._lock:
+            while not self._closed:
+                try:
+                    msg = self.sock.recv(self._zmq.NOBLOCK)
+                except self._zmq.Again:
+                    break
+                if msg[:1] == b"\x01":  # 1 = subscribe, 0 = unsubscribe (a host went away)
+                    self.subscribed += 1
+            return self.subscribed
 
     def close(self) -> None:
         with self._lock:

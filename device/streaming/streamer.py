@@ -210,6 +210,7 @@ class DeviceStreamer:
         if self._pub is not None:
             out["poses_sent"] = self._pub.sent
             out["poses_dropped_send"] = self._pub.dropped
+            out["pose_subscriptions"] = self._pub.subscriptions()
         if self._server is not None:
             out.update(self._server.stats)
             out["control_rejected_by_reason"] = dict(self._server.rejected)

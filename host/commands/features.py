@@ -4,8 +4,8 @@ A match is correct when the second image's keypoint lies within --tolerance
 pixels (default 3) of the first keypoint mapped by the ground-truth homography
 (--homography, Oxford/OpenCV XML as in the affine-covariant data sets, or a
 plain-text 3x3 matrix).  Presets with the paper's asymmetric pairing (`paper`,
-`fast`) give IMG1 plain SIFT (the original view) and IMG2 the affine views;
-symmetric presets (`full`, `fast_sym`) give both images all views; `sift` is
+`fast_asym`) give IMG1 plain SIFT (the original view) and IMG2 the affine views;
+symmetric presets (`full`, `fast`) give both images all views; `sift` is
 SIFT on both.  Times: detect_s = detection on both images, match_s = matching.
 """
 

@@ -34,7 +34,7 @@ class LiveLoopCloser:
 
         self.rig = rig
         self.cfg = loops or LoopConfig()
-        self.track_cfg = features or TrackConfig(feature_preset="fast", original_view_only=True, max_features=2000)
+        self.track_cfg = features or TrackConfig(feature_preset="fast_asym", original_view_only=True, max_features=2000)
         self.onboard: list[np.ndarray] = []  # the poses as they arrived
         self.feats: list[Any] = []
         self.loops: list[Any] = []

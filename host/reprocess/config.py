@@ -49,13 +49,13 @@ _TRACK_GAPS = (1, 2, 3, 5, 8, 12, 16, 20)
 
 REPROCESS_PRESETS: dict[str, ReprocessPreset] = {
     "standard": ReprocessPreset(
-        "the on-board estimator again, then modified-ASIFT (preset 'fast': original view + 4 tilted "
+        "the on-board estimator again, then modified-ASIFT (preset 'fast_asym': original view + 4 tilted "
         "views) at every keyframe, tracks over 20 keyframes, bundle adjustment, frame refinement",
-        tracks=TrackConfig(feature_preset="fast", max_features=0, window=20, gaps=_TRACK_GAPS),
+        tracks=TrackConfig(feature_preset="fast_asym", max_features=0, window=20, gaps=_TRACK_GAPS),
     ),
     "quick": ReprocessPreset(
         "plain SIFT tracks (no affine views) over 20 keyframes: about half the time, less accurate",
-        tracks=TrackConfig(feature_preset="fast", original_view_only=True, max_features=0, window=20,
+        tracks=TrackConfig(feature_preset="fast_asym", original_view_only=True, max_features=0, window=20,
                            gaps=_TRACK_GAPS),
     ),
     "paper": ReprocessPreset(

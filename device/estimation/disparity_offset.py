@@ -1,0 +1,206 @@
+"""On-line estimate of a constant stereo disparity offset from two keyframes (pure compute).
+
+A constant offset ``d0`` of the measured disparity (``d_measured = d_true + d0``: a yaw or
+principal-point error of the calibration, or a small bias of the right-image search) is
+invisible in one stereo pair but not in two: a point seen in stereo at keyframe A and again
+at keyframe B must move rigidly with the camera, and an offset bends near and far points
+differently (depth ``f b / (d - d0)``).  :func:`offset_from_two_keyframes` is a small bundle
+adjustment in the rectified frame: the relative pose (6), ``d0`` and each point (3), with
+pixel residuals (u, v, disparity at A and at B) under a Huber loss, the points eliminated
+by the Schur complement.  Errors stay in pixel space, so far
+points (where inverse-depth noise is large) do not bias it.
+
+:class:`OffsetFilter` fuses the per-pair estimates slowly: information-weighted with a prior
+at zero, every estimate's variance floored (model errors: rolling motion, a few moving
+points), estimates far from the current value gated out once there is a value, and the
+result bounded.  A wrong estimate therefore moves the offset by a fraction of a pixel at most.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stereopath.device.core.geometry import so3_exp
+
+
+@dataclass(frozen=True)
+class PairEstimate:
+    d0: float  # px, in the convention d_measured = d_true + d0
+    sigma: float  # px, formal standard deviation scaled by the residuals
+    n_points: int
+    coupling: float = 0.0  # |correlation| of d0 with the translation along its best-correlated direction
+
+
+def _residuals(R, t, d0, P, A, B, f, cx, cy, fb):
+    """(n, 6) residuals: (u, v, d) at A and at B of points ``P`` = (x/z, y/z, 1/z) in A's frame."""
+    XA = np.column_stack([P[:, 0], P[:, 1], np.ones(len(P))]) / P[:, 2:3]
+    XB = XA @ R.T + t
+    z = np.maximum(XB[:, 2], 1e-9)
+    r = np.column_stack([f * P[:, 0] + cx - A[:, 0], f * P[:, 1] + cy - A[:, 1], fb * P[:, 2] + d0 - A[:, 2],
+                         f * XB[:, 0] / z + cx - B[:, 0], f * XB[:, 1] / z + cy - B[:, 1], fb / z + d0 - B[:, 2]])
+    return r, XA, XB, z
+
+
+def _jacobians(R, P, XA, XB, z, f, fb):
+    """Residual derivatives: global (n, 6, 7) over (dt, dtheta, d0), per point (n, 6, 3) over P."""
+    n = len(z)
+    dproj = np.zeros((n, 3, 3))  # d(u, v, d)/d(XB)
+    dproj[:, 0, 0] = f / z
+    dproj[:, 0, 2] = -f * XB[:, 0] / z**2
+    dproj[:, 1, 1] = f / z
+    dproj[:, 1, 2] = -f * XB[:, 1] / z**2
+    dproj[:, 2, 2] = -fb / z**2
+    dX = np.zeros((n, 3, 6))
+    dX[:, :, :3] = np.eye(3)
+    dX[:, :, 3:] = -_skew_rows(XA @ R.T)  # d(exp(w) R XA)/dw = -[R XA]x
+    Jg = np.zeros((n, 6, 7))
+    Jg[:, 3:, :6] = np.einsum("nij,njk->nik", dproj, dX)
+    Jg[:, 2, 6] = 1.0
+    Jg[:, 5, 6] = 1.0
+    rho = P[:, 2]
+    dXA = np.zeros((n, 3, 3))  # d(XA)/d(P)
+    dXA[:, 0, 0] = dXA[:, 1, 1] = 1.0 / rho
+    dXA[:, 0, 2] = -P[:, 0] / rho**2
+    dXA[:, 1, 2] = -P[:, 1] / rho**2
+    dXA[:, 2, 2] = -1.0 / rho**2
+    Jp = np.zeros((n, 6, 3))
+    Jp[:, 0, 0] = Jp[:, 1, 1] = f
+    Jp[:, 2, 2] = fb
+    Jp[:, 3:] = np.einsum("nij,jk,nkl->nil", dproj, R, dXA)
+    return Jg, Jp
+
+
+def _skew_rows(v: np.ndarray) -> np.ndarray:
+    """``[v]x`` for each row of ``v``: (n, 3) -> (n, 3, 3)."""
+    S = np.zeros((len(v), 3, 3))
+    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
+    return S
+
+
+def _weights(r: np.ndarray, z: np.ndarray, huber_px: float) -> np.ndarray:
+    e = np.abs(r)
+    w = np.where(e < huber_px, 1.0, huber_px / np.maximum(e, 1e-12))
+    w[(z < 1e-6) | (e.max(1) > 20 * huber_px)] = 0.0
+    return w
+
+
+def offset_from_two_keyframes(A: np.ndarray, B: np.ndarray, R_BA: np.ndarray, t_BA: np.ndarray, f: float,
+                              cx: float, cy: float, baseline_m: float, huber_px: float = 0.5,
+                              min_points: int = 30, iterations: int = 10, fix_pose: bool = False) -> PairEstimate | None:
+    """The disparity offset from points observed in stereo at two keyframes (rectified pixels).
+
+    ``A`` and ``B`` are (n, 3) rows ``(u, v, disparity)`` of the same points in the rectified
+    left image of keyframes A and B; ``R_BA``, ``t_BA`` the initial motion (``x_B = R x_A + t``,
+    rectified camera frames).  Every point is a free 3D point (all its measurements are
+    residuals: fixing its ray at A would dilute the estimate towards zero).  Returns None when
+    there are too few points or the system is singular (no translation: no parallax)."""
+    A = np.asarray(A, float)
+    B = np.asarray(B, float)
+    ok = np.isfinite(A).all(1) & np.isfinite(B).all(1) & (A[:, 2] > 0) & (B[:, 2] > 0)
+    A, B = A[ok], B[ok]
+    if len(A) < min_points:
+        return None
+    fb = f * baseline_m
+    P = np.column_stack([(A[:, 0] - cx) / f, (A[:, 1] - cy) / f, A[:, 2] / fb])
+    R, t, d0 = np.asarray(R_BA, float).copy(), np.asarray(t_BA, float).reshape(3).copy(), 0.0
+    S = None
+    for _ in range(iterations):
+        r, XA, XB, z = _residuals(R, t, d0, P, A, B, f, cx, cy, fb)
+        w = _weights(r, z, huber_px)
+        Jg, Jp = _jacobians(R, P, XA, XB, z, f, fb)
+        if fix_pose:
+            Jg[:, :, :6] = 0.0
+        Hgg = np.einsum("nki,nk,nkj->ij", Jg, w, Jg)
+        Hgp = np.einsum("nki,nk,nkj->nij", Jg, w, Jp)  # (n, 7, 3)
+        Hpp = np.einsum("nki,nk,nkj->nij", Jp, w, Jp) + 1e-9 * np.eye(3)
+        bg = np.einsum("nki,nk,nk->i", Jg, w, r)
+        bp = np.einsum("nki,nk,nk->ni", Jp, w, r)
+        try:
+            Hpp_inv = np.linalg.inv(Hpp)
+            W = np.einsum("nij,njk->nik", Hgp, Hpp_inv)  # (n, 7, 3)
+            S = Hgg - np.einsum("nij,nkj->ik", W, Hgp)
+            s = bg - np.einsum("nij,nj->i", W, bp)
+            S = S + (1.0 if fix_pose else 1e-9) * np.diag([1.0] * 6 + [1e-9])
+            dg = -np.linalg.solve(S, s)
+        except np.linalg.LinAlgError:
+            return None
+        dp = -np.einsum("nij,nj->ni", Hpp_inv, bp + np.einsum("nji,j->ni", Hgp, dg))
+        R = so3_exp(dg[3:6]) @ R
+        t = t + dg[:3]
+        d0 += float(dg[6])
+        P = P + dp
+        P[:, 2] = np.maximum(P[:, 2], 1e-9)
+        if np.abs(dg).max() < 1e-8:
+            break
+    r, *_ = _residuals(R, t, d0, P, A, B, f, cx, cy, fb)
+    inl = np.abs(r).max(1) < 3 * huber_px
+    n_inl = int(inl.sum())
+    if n_inl < min_points or S is None:
+        return None
+    try:
+        cov = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        return None
+    # residual scale over the inliers (6 residuals and 3 unknowns per point, 7 shared)
+    dof = max(3 * n_inl - 7, 1)
+    s2 = float(np.sum(r[inl] ** 2) / dof)
+    var = cov[6, 6] * max(s2, 1e-6)
+    if not np.isfinite(var) or var <= 0:
+        return None
+    # how much of d0 a change of the translation could explain (multiple correlation with t)
+    Ctt, Ctd = cov[:3, :3], cov[:3, 6]
+    try:
+        coupling = float(np.sqrt(max(Ctd @ np.linalg.solve(Ctt, Ctd) / cov[6, 6], 0.0))) if not fix_pose else 0.0
+    except np.linalg.LinAlgError:
+        coupling = 1.0
+    return PairEstimate(float(d0), float(np.sqrt(var)), n_inl, min(coupling, 1.0))
+
+
+@dataclass
+class OffsetFilter:
+    """Slow, bounded fusion of per-pair offset estimates (information-weighted, prior at ``prior``)."""
+
+    prior: float = 0.0
+    prior_sigma: float = 0.15  # px: without evidence the offset stays near the prior
+    floor_sigma: float = 0.1  # px: no single pair is trusted more than this
+    max_sigma: float = 0.2  # px: poorer estimates are ignored
+    gate_sigma: float = 3.0  # estimates farther than this many sigmas (combined) from the value are ignored
+    bound: float = 1.0  # px: |offset - prior| never exceeds this
+    min_pairs: int = 3  # estimates fused before the offset is used
+
+    def __post_init__(self) -> None:
+        self._info = 1.0 / self.prior_sigma**2
+        self._sum = self.prior * self._info
+        self.n = 0
+        self.rejected = 0
+
+    @property
+    def value(self) -> float:
+        v = self._sum / self._info
+        return float(np.clip(v, self.prior - self.bound, self.prior + self.bound))
+
+    @property
+    def sigma(self) -> float:
+        return float(1.0 / np.sqrt(self._info))
+
+    @property
+    def ready(self) -> bool:
+        return self.n >= self.min_pairs
+
+    def update(self, est: PairEstimate | None) -> bool:
+        """Fuse one estimate; returns whether it was used."""
+        if est is None or not np.isfinite(est.d0) or est.sigma > self.max_sigma:
+            return False
+        sig = max(est.sigma, self.floor_sigma)
+        if self.n >= self.min_pairs and abs(est.d0 - self.value) > self.gate_sigma * np.hypot(sig, self.sigma):
+            self.rejected += 1
+            return False
+        info = 1.0 / sig**2
+        self._info += info
+        self._sum += info * est.d0
+        self.n += 1
+        return True

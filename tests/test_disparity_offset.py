@@ -1,0 +1,63 @@
+"""The on-line disparity offset: two-keyframe bundle adjustment and its bounded fusion (synthetic, exact truth)."""
+
+import numpy as np
+
+from stereopath.device.core.geometry import so3_exp
+from stereopath.device.estimation.disparity_offset import OffsetFilter, PairEstimate, offset_from_two_keyframes
+
+F, CX, CY, B = 450.0, 320.0, 240.0, 0.05
+
+
+def _pair(rng, d0, noise, t=(0.03, -0.02, 0.12), n=250):
+    X = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-0.7, 0.7, n), np.ones(n)]) * rng.uniform(0.5, 4, n)[:, None]
+    R = so3_exp(np.array([0.02, -0.05, 0.01]))
+    XB = X @ R.T + np.asarray(t)
+
+    def obs(P):
+        return np.column_stack([F * P[:, 0] / P[:, 2] + CX, F * P[:, 1] / P[:, 2] + CY, F * B / P[:, 2] + d0])
+
+    return obs(X) + rng.normal(0, noise, (n, 3)), obs(XB) + rng.normal(0, noise, (n, 3)), R, np.asarray(t)
+
+
+def test_two_keyframes_recover_a_disparity_offset_from_a_poor_initial_motion():
+    rng = np.random.default_rng(3)
+    for d0 in (-0.3, 0.0, 0.25):
+        A, Bo, R, t = _pair(rng, d0, 0.0)
+        est = offset_from_two_keyframes(A, Bo, np.eye(3), np.zeros(3), F, CX, CY, B)
+        assert est is not None and abs(est.d0 - d0) < 1e-3
+    # noisy measurements: within a few formal sigmas, and the sigma is honest (not tiny)
+    errs = []
+    for _ in range(10):
+        A, Bo, R, t = _pair(rng, 0.2, 0.1)
+        est = offset_from_two_keyframes(A, Bo, np.eye(3), np.zeros(3), F, CX, CY, B)
+        errs.append((est.d0 - 0.2) / est.sigma)
+        assert 0.005 < est.sigma < 0.2 and 0.0 <= est.coupling <= 1.0
+    assert np.sqrt(np.mean(np.square(errs))) < 3.0
+
+
+def test_outliers_do_not_carry_the_offset_and_degenerate_input_gives_none():
+    rng = np.random.default_rng(4)
+    A, Bo, R, t = _pair(rng, -0.1, 0.05)
+    Bo[:25, 2] += rng.uniform(3, 8, 25)  # 10 % gross disparity errors at B
+    est = offset_from_two_keyframes(A, Bo, R, t, F, CX, CY, B)
+    assert est is not None and abs(est.d0 + 0.1) < 0.05
+    assert offset_from_two_keyframes(A[:10], Bo[:10], R, t, F, CX, CY, B) is None  # too few points
+    Anan = A.copy()
+    Anan[:, 2] = np.nan
+    assert offset_from_two_keyframes(Anan, Bo, R, t, F, CX, CY, B) is None
+    # the known motion held fixed gives the offset as well
+    fixed = offset_from_two_keyframes(A, Bo, R, t, F, CX, CY, B, fix_pose=True)
+    assert fixed is not None and abs(fixed.d0 + 0.1) < 0.05
+
+
+def test_offset_filter_is_slow_gated_and_bounded():
+    f = OffsetFilter(prior=0.0, bound=0.5, min_pairs=3)
+    assert f.value == 0.0 and not f.ready
+    assert not f.update(None) and not f.update(PairEstimate(0.1, 0.5, 100))  # too uncertain
+    for _ in range(3):
+        assert f.update(PairEstimate(-0.2, 0.05, 100))
+    assert f.ready and -0.2 < f.value < -0.1  # the prior still holds some weight
+    assert not f.update(PairEstimate(3.0, 0.05, 100)) and f.rejected == 1  # far from the value: gated out
+    for _ in range(200):
+        f.update(PairEstimate(f.value - 0.25, 0.1, 100))  # a steady pull cannot take it past the bound
+    assert f.value >= -0.5
