@@ -147,7 +147,7 @@ def loop_gaps(frames: int, seeds: int, skip: int) -> None:
     from stereopath.device.sim.session import SimConfig, open_sim
     from stereopath.host.reprocess.outputs import end_to_start_error
 
-    for seed in (s for s in range(seeds + 1) if s != skip):
+    for seed in (s for s in range(seeds + 1) if seeds > 0 and s != skip):
         seq = open_sim(SimConfig(trajectory="loop", frames=frames, seed=seed))
         run = estimate_sequence(seq, "stereo", progress=False)
         print(f"loop seed {seed}: on-board ATE {mm(evaluate(seq.groundtruth, run.trajectory)['ate_rmse_m'])}, "
