@@ -245,6 +245,7 @@ def stop_nodes(procs: list[subprocess.Popen]) -> None:
 def two_node_cluster(sessions, ref: Path, tmp: Path, settings: ReprocessSettings) -> None:
     import ray
 
+
     port = 6400 + os.getpid() % 500
     addr = f"127.0.0.1:{port}"
     head_tmp, worker_tmp = Path(tempfile.mkdtemp(prefix="rh_")), Path(tempfile.mkdtemp(prefix="rw_"))
@@ -329,6 +330,12 @@ def main() -> int:
     ap.add_argument("--profile", action="store_true",
                     help="first: the costliest session (orbit) alone, per stage, with the default threads and with one")
     args = ap.parse_args()
+    if not args.skip_cluster:
+        # Ray 2.59+ turns token authentication on for a `ray start --head` it sees as local, while a driver
+        # joining an address keeps it off: the same RAY_AUTH_MODE on every node and in this process before
+        # Ray is first used (it reads the mode once), one token (~/.ray/auth_token, generated if missing)
+        os.environ["RAY_AUTH_MODE"] = "token"
+        subprocess.run([ray_bin(), "get-auth-token", "--generate"], capture_output=True)
     logging.basicConfig(level=logging.WARNING)
     settings = ReprocessSettings(preset=args.preset)
 

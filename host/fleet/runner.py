@@ -137,6 +137,10 @@ def connect(options: FleetOptions) -> tuple[Any, bool]:
             ray.init(address=options.ray, **kw)
     except (ConnectionError, RuntimeError, ValueError) as exc:
         what = "start a local Ray" if options.ray == "auto" else f"join the Ray cluster at {options.ray}"
+        if "InvalidAuthToken" in f"{exc} {exc.__cause__}":
+            raise ConfigError(f"cannot {what}: the cluster uses token authentication and this process has no "
+                              f"valid token: export RAY_AUTH_MODE=token (the cluster's token in ~/.ray/auth_token "
+                              f"or RAY_AUTH_TOKEN)") from exc
         raise ConfigError(f"cannot {what}: {exc}") from exc
     return ray, True
 
