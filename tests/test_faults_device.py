@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from tests.test_service_support import device_run, sim_tables, write_toml
-from tests.test_streaming_support import loopback_stream
+from tests.test_streaming_support import loopback_stream, receive_until_done
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -133,14 +133,9 @@ def test_device_disk_full_mid_run_loses_no_keyframe_reaching_a_host_and_exits_74
     th.start()
     try:
         assert wait_until(lambda: (rx.poll(0.02) or True) and service.frames_in >= 8, 30)
-        full.set()  # the device's disk fills up mid-scan
-        while th.is_alive():
-            rx.poll(0.02)
-        for _ in range(20):
-            rx.poll(0.02)
     finally:
-        th.join(30)
-        rx.close()
+        full.set()  # the device's disk fills up mid-scan
+        receive_until_done(th, rx)
     assert result["code"] == EXIT_DISK_FULL
     status = json.loads((tmp_path / "status.json").read_text())
     assert status["recorder_state"] == "stopped_low_disk" and status["spool_disk_full"]

@@ -12,7 +12,7 @@ import pytest
 from stereopath.device.errors import CalibrationError
 from stereopath.device.wire.protocol import DecodeError, decode_session, encode_session, make_session_info, \
     rig_of, rig_reference
-from tests.test_streaming_support import make_device, small_images, stored_seqs, wait_for
+from tests.test_streaming_support import make_device, receive_until_done, small_images, stored_seqs, wait_for
 
 REPO = Path(__file__).resolve().parents[1]
 PAPER_YAML = REPO / "firmware_cfg" / "rig_paper.yaml"
@@ -322,15 +322,7 @@ def test_a_refused_out_does_not_strand_its_spool(tmp_path):
     result: dict = {}
     th = threading.Thread(target=lambda: result.setdefault("code", service.run()), daemon=True)
     th.start()
-    rx = _receiver(stream["pose_endpoint"], stream["keyframe_endpoint"], out)
-    try:
-        while th.is_alive():
-            rx.poll(0.02)
-        for _ in range(20):
-            rx.poll(0.02)
-    finally:
-        th.join(30)
-        rx.close()
+    receive_until_done(th, _receiver(stream["pose_endpoint"], stream["keyframe_endpoint"], out))
     assert result["code"] == 0
     assert stored_seqs(out, "sessA") == [0, 1, 2]
     assert not list((scans / "a" / "keyframes").glob("*.kf"))

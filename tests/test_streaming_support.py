@@ -131,3 +131,16 @@ def assert_exactly_once(out: Path, session: str, spool: KeyframeSpool) -> None:
     rows = [r["seq"] for r in read_index(out / session)]
     assert sorted(rows) == seqs, f"index rows {sorted(rows)}"
     assert not list(d.glob("*.tmp"))
+
+
+def receive_until_done(th: Any, rx: Any) -> None:
+    """Poll the receiver ``rx`` while the service thread ``th`` runs (and a little after, for the last
+    acknowledgements), then join it and close ``rx``."""
+    try:
+        while th.is_alive():
+            rx.poll(0.02)
+        for _ in range(20):
+            rx.poll(0.02)
+    finally:
+        th.join(30)
+        rx.close()
