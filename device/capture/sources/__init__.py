@@ -44,5 +44,5 @@ def create_source(settings: SourceSettings, **inject: Any) -> StereoSource:
     if backend == "sim":
         from stereopath.device.capture.sources.sim import SimSource
 
-        return SimSource(settings.sim, session=inject.get("session"), rig_file=settings.rig_file, **pacing)
+        return SimSource(settings.sim, sequence=inject.get("session"), rig_file=settings.rig_file, **pacing)
     raise ConfigError(f"source.backend = {backend!r} is not one of picamera2, depthai, replay, sim")

@@ -50,10 +50,12 @@ class SequenceSource(SourceBase):
 
     name = "sequence"
 
-    def __init__(self, sequence: Any = None, rig_file: str = "",
+    def __init__(self, settings: Any, sequence: Any = None, rig_file: str = "",
                  clock_ns: Callable[[], int] = time.monotonic_ns, sleep: Callable[[float], None] = time.sleep,
                  imu_lookahead_ns: int = 100_000_000) -> None:
+        """``settings``: the subclass's section of ``[source]``; ``sequence``: an already opened one (tests)."""
         super().__init__()
+        self.settings = settings
         self._seq_arg = sequence
         self._rig_file = rig_file
         self._clock_ns = clock_ns
@@ -116,12 +118,7 @@ class ReplaySource(SequenceSource):
     """Frames of a recorded sequence (see module doc)."""
 
     name = "replay"
-
-    def __init__(self, settings: ReplaySettings, sequence: Any = None, rig_file: str = "",
-                 clock_ns: Callable[[], int] = time.monotonic_ns, sleep: Callable[[float], None] = time.sleep,
-                 imu_lookahead_ns: int = 100_000_000) -> None:
-        super().__init__(sequence, rig_file, clock_ns, sleep, imu_lookahead_ns)
-        self.settings = settings
+    settings: ReplaySettings
 
     def _load(self) -> Any:
         if not self.settings.path:

@@ -12,7 +12,6 @@ simulated IMU is exposed as ``source.imu`` (an :class:`~stereopath.device.captur
 from __future__ import annotations
 
 import logging
-import time
 from typing import Any, Callable
 
 from stereopath.device.capture.sources.replay import SequenceSource
@@ -32,12 +31,7 @@ class SimSource(SequenceSource):
     """Frames rendered by the simulator (see module doc)."""
 
     name = "sim"
-
-    def __init__(self, settings: SimSettings, session: Any = None, rig_file: str = "",
-                 clock_ns: Callable[[], int] = time.monotonic_ns, sleep: Callable[[float], None] = time.sleep,
-                 imu_lookahead_ns: int = 100_000_000) -> None:
-        super().__init__(session, rig_file, clock_ns, sleep, imu_lookahead_ns)
-        self.settings = settings
+    settings: SimSettings
 
     @property
     def session(self) -> Any:
