@@ -142,6 +142,29 @@ MPU6050_NOISE = {
 }
 
 
+IMU_NOISE_KEYS = ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
+                  "accelerometer_random_walk", "gravity_m_s2")
+
+
+def load_imu_noise(path: str | Path) -> dict[str, float]:
+    """The positive noise entries (and ``gravity_m_s2``) of an EuRoC/ASL ``imu0/sensor.yaml``.
+
+    A missing file is ``{}``; a file that does not parse raises :class:`CalibrationError`; an entry
+    that is not a positive number is named in a warning and left out."""
+    p = Path(path)
+    if not p.is_file():
+        return {}
+    data = _euroc_sensor(p)
+    out: dict[str, float] = {}
+    for k in IMU_NOISE_KEYS:
+        v = data.get(k)
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0:
+            out[k] = float(v)
+        elif v is not None:
+            log.warning("%s: %s = %r is not a positive number: ignored", p, k, v)
+    return out
+
+
 def _yaml_list(values: Any) -> str:
     return "[" + ", ".join(repr(float(v)) for v in values) + "]"
 

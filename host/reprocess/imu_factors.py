@@ -57,32 +57,19 @@ class ImuNoise:
                         float(d.get("gravity_m_s2", GRAVITY_M_S2)))
 
 
-NOISE_KEYS = ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
-              "accelerometer_random_walk", "gravity_m_s2")
-
-
 def _sensor_yaml_noise(seq: Any) -> dict[str, float]:
     """The noise entries of ``mav0/imu0/sensor.yaml`` of an ASL sequence ({} if there is none)."""
-    import yaml
+    from stereopath.device.errors import CalibrationError
+    from stereopath.device.formats.rig_files import load_imu_noise
 
     mav0 = getattr(seq, "mav0", None)
-    path = None if mav0 is None else Path(mav0) / "imu0" / "sensor.yaml"
-    if path is None or not path.is_file():
+    if mav0 is None:
         return {}
-    text = "\n".join(ln for ln in path.read_text().splitlines() if not ln.startswith("%YAML"))
     try:
-        data = yaml.safe_load(text) or {}
-    except yaml.YAMLError as exc:
-        log.warning("%s: unreadable (%s): the MPU-6050 noise figures are used", path, exc)
+        return load_imu_noise(Path(mav0) / "imu0" / "sensor.yaml")
+    except CalibrationError as exc:
+        log.warning("%s: the MPU-6050 noise figures are used", exc)
         return {}
-    out = {}
-    for k in NOISE_KEYS:
-        v = data.get(k) if isinstance(data, dict) else None
-        if isinstance(v, (int, float)) and v > 0:
-            out[k] = float(v)
-        elif v is not None:
-            log.warning("%s: %s = %r is not a positive number: ignored", path, k, v)
-    return out
 
 
 @dataclass
