@@ -293,6 +293,41 @@ def test_earlier_session_keyframes_wait_for_host_space(tmp_path, monkeypatch):
         new.close()
 
 
+def test_keyframes_refused_before_later_ones_stored_are_fetched_again(tmp_path, monkeypatch):
+    """The first two keyframes of an earlier session hit a full disk, the next two are stored: the
+    host must still ask for the first two again (a stored keyframe does not mean nothing is missing)."""
+    import errno
+
+    from stereopath.host.live import store as store_mod
+
+    old = make_device(tmp_path, None, "sessOld")
+    for i in range(4):
+        assert old.offer_keyframe(i, i, np.eye(4), *small_images(i))
+    assert old.wait_spooled(4, 10)
+    old.close(timeout_s=1)
+    real = store_mod.write_atomic
+    refused: list[str] = []
+
+    def first_two_keyframes_fail(path, *a, **k):
+        if str(path).endswith(".msgpack") and "sessOld" in str(path) and len(refused) < 2:
+            refused.append(str(path))
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(store_mod, "write_atomic", first_two_keyframes_fail)
+    new = make_device(tmp_path, None, "sessNew", backlog_roots=[tmp_path])
+    out = tmp_path / "host"
+    rx = _receiver(new.pose_endpoint, new.keyframe_endpoint, out)
+    try:
+        assert wait_for(lambda: len(stored_seqs(out, "sessOld")) == 4, 30, between=lambda: rx.poll(0.02))
+        assert len(refused) == 2 and rx.stats.link["store_failures"] == 2
+        assert wait_for(lambda: not list((tmp_path / "spool_sessOld").glob("*.kf")), 10,
+                        between=lambda: rx.poll(0.02))
+    finally:
+        rx.close()
+        new.close()
+
+
 def test_a_refused_out_does_not_strand_its_spool(tmp_path):
     """The killed run's --out is refused (78); a run with a new --out beside it offers the killed
     session's keyframes and, at its stop, waits (up to stream.drain_s) until a host has them."""

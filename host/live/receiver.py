@@ -91,6 +91,7 @@ class Receiver(LinkControl):
         self._warned: set[str] = set()
         self._known_sessions: set[str] = set(list_sessions(self.out))
         self.storage_error: str | None = None  # set while keyframes cannot be stored (disk full)
+        self._refused_since_hello = False  # a keyframe went unacknowledged: a later hello has it resent
         self._last_dealer_rx = self._last_hello_at = time.monotonic()
         self._new_sessions = 0
         self._ctx = zmq.Context()
@@ -384,6 +385,7 @@ class Receiver(LinkControl):
         """Log a storage failure once per streak; the device resends what was not acknowledged."""
         with self.lock:
             self.stats.link["store_failures"] += 1
+            self._refused_since_hello = True
             first = self.storage_error is None
             self.storage_error = f"{exc.strerror or exc} ({self.out})"
         if first:

@@ -41,6 +41,7 @@ class LinkControl:
     _pose_window: Any
     _storage_failed: Callable[[str, OSError], None]
     storage_error: str | None
+    _refused_since_hello: bool
 
     def _handle_monitor(self) -> None:
         from zmq.utils.monitor import recv_monitor_message
@@ -81,6 +82,7 @@ class LinkControl:
             self._hello_pending = True  # pipe not attached yet: retry on the next poll
             return
         self._hello_pending = False
+        self._refused_since_hello = False
         self._last_hello_at = time.monotonic()
         self.stats.link["hellos"] += 1
         self._last_progress = time.monotonic()
@@ -119,7 +121,9 @@ class LinkControl:
             if st.session_id != self.store.last_session:
                 self.store.set_last_session(st.session_id)
             self._send_hello()
-        elif self.storage_error is not None:  # e.g. an earlier session's keyframe not stored: resent after a hello
+        elif self._refused_since_hello:
+            # a keyframe was not stored (e.g. an earlier session's, disk full) even if later ones were:
+            # the device resends what no host acknowledged after a hello
             self.stats.link["rehellos_after_stall"] += 1
             self._send_hello()
         self._last_progress = now
