@@ -45,7 +45,11 @@ class TrackConfig:
     radius_px: float = 16.0  # guided matching: search radius around the predicted position
     ratio: float = 0.8
     prefilter_px: float = 3.0  # matches used to refine the pair's relative pose (deviation after the median offset)
-    verify_px: float = 0.7  # accepted deviation from the position predicted with the refined pose
+    verify_px: float = 0.7  # accepted deviation from the position predicted with the refined pose ...
+    # ... where the prediction is the segment swept by the point's depth over this stereo disparity
+    # uncertainty (the depth of a far point is uncertain: moving towards it turns that into an image
+    # shift along the epipolar line, which grows with the motion; 0 = the point's depth as measured)
+    verify_depth_disparity_px: float = 0.5
     verify_disparity_px: float = 1.5  # accepted stereo disparity disagreement
     klt_window: int = 21
     klt_levels: int = 3
@@ -65,6 +69,7 @@ class TrackConfig:
         check_range("ratio", self.ratio, 0.1, 1.0)
         check_range("min_track_length", self.min_track_length, 2, 1000)
         check_range("min_depth_m", self.min_depth_m, 1e-3, self.max_depth_m)
+        check_range("verify_depth_disparity_px", self.verify_depth_disparity_px, 0.0, 20.0)
 
 
 @dataclass
@@ -211,12 +216,40 @@ def match_keyframes(rig: Rig, a: KeyframeFeatures, b: KeyframeFeatures, T_world_
     pre = np.linalg.norm(res - np.median(res, axis=0), axis=1) <= cfg.prefilter_px
     if pre.sum() >= 12:
         T_b_a = _refine_relative_pose(rig, a.X_cam[idx[pre, 0]], xy_b[pre], T_b_a)
-    Xb = a.X_cam[idx[:, 0]] @ T_b_a[:3, :3].T + T_b_a[:3, 3]
+    Xa = a.X_cam[idx[:, 0]]
+    Xb = Xa @ T_b_a[:3, :3].T + T_b_a[:3, 3]
     pred = _project(rig, Xb, cfg.min_depth_m)
     res = xy_b - pred
-    ok = np.linalg.norm(res - np.nanmedian(res, axis=0), axis=1) <= cfg.verify_px
+    res = res - np.nanmedian(res, axis=0)
+    if cfg.verify_depth_disparity_px > 0:
+        res = _off_depth_segment(rig, Xa, T_b_a, pred, res, cfg)
+    ok = np.linalg.norm(res, axis=1) <= cfg.verify_px
     ok &= np.abs(_disparity(rig, Xb) - _disparity(rig, b.X_cam[idx[:, 1]])) <= cfg.verify_disparity_px
     return idx[ok]
+
+
+def _off_depth_segment(rig: Rig, Xa: np.ndarray, T_b_a: np.ndarray, pred: np.ndarray, res: np.ndarray,
+                       cfg: TrackConfig) -> np.ndarray:
+    """``res`` (b's pixel minus ``pred``) less its part explained by a's stereo depth uncertainty.
+
+    a's point moves along a's viewing ray when its disparity changes by +-``verify_depth_disparity_px``
+    (the point scaled by d / (d -+ delta)); its image in b sweeps a short segment of the epipolar line
+    around ``pred``.  Returned: the offset of b's pixel from that segment (zero along it inside)."""
+    d = np.maximum(_disparity(rig, Xa), 1e-3)
+    delta = cfg.verify_depth_disparity_px
+    ends = []
+    for dd in (-delta, delta):
+        s = (d / np.maximum(d + dd, 1e-3))[:, None]  # nearer (+delta) or farther (-delta), far end capped
+        s = np.where((d + dd)[:, None] > 1e-3, s, 1e3)
+        ends.append(_project(rig, (Xa * s) @ T_b_a[:3, :3].T + T_b_a[:3, 3], cfg.min_depth_m) - pred)
+    seg = ends[1] - ends[0]  # from the far end to the near end
+    L2 = np.einsum("ij,ij->i", seg, seg)
+    ok = np.isfinite(L2) & (L2 > 1e-12)
+    tpar = np.zeros(len(res))
+    tpar[ok] = np.einsum("ij,ij->i", res[ok] - ends[0][ok], seg[ok]) / L2[ok]
+    tpar = np.clip(tpar, 0.0, 1.0)
+    closest = np.where(ok[:, None], ends[0] + tpar[:, None] * seg, 0.0)
+    return res - closest
 
 
 def _disparity(rig: Rig, X_cam: np.ndarray) -> np.ndarray:
