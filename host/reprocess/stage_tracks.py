@@ -32,11 +32,35 @@ def settings(config: ReprocessPreset) -> dict:
 
 
 def choose_keyframes(est: dict[str, np.ndarray]) -> np.ndarray:
-    """Frame indices used as bundle-adjustment keyframes: the estimator's keyframes that were
-    tracked, plus the first and last tracked frames."""
+    """The estimator's keyframes that were tracked, plus the first and last tracked frames."""
     ok = np.flatnonzero(est["status"] == 0)
     kf = np.flatnonzero(est["keyframe"] & (est["status"] == 0))
     return np.unique(np.concatenate([ok[:1], kf, ok[-1:]])).astype(np.int64)
+
+
+def keyframes_by_parallax(rig, est: dict[str, np.ndarray], features_of, parallax_px: float,
+                          min_depth_m: float, progress=None) -> tuple[np.ndarray, list]:
+    """Offline keyframes (frame indices) and their features: from the first tracked frame, the next
+    keyframe is the last tracked frame where the previous keyframe's stereo points moved by at most
+    ``parallax_px`` (median, :func:`tracks.image_motion_px`), at least the next tracked frame; the
+    last tracked frame ends the list.  ``features_of(i)`` computes frame ``i``'s features."""
+    from stereopath.host.reprocess.tracks import image_motion_px
+
+    ok = np.flatnonzero(est["status"] == 0)
+    T = est["T_world_cam"]
+    kf, feats = [int(ok[0])], [features_of(int(ok[0]))]
+    while kf[-1] < ok[-1]:
+        later = ok[ok > kf[-1]]
+        nxt = int(later[0])
+        for j in later[1:]:
+            if image_motion_px(rig, feats[-1], T[kf[-1]], T[j], min_depth_m) > parallax_px:
+                break
+            nxt = int(j)
+        kf.append(nxt)
+        feats.append(features_of(nxt))
+        if progress is not None:
+            progress(1)
+    return np.array(kf, np.int64), feats
 
 
 def _empty(est: dict[str, np.ndarray], kf: np.ndarray, reason: str) -> dict[str, np.ndarray]:
@@ -52,17 +76,28 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     from stereopath.host.reprocess import tracks as tracks_mod
 
     seq, est = inputs.seq, inputs.results["estimate"]
-    kf = choose_keyframes(est) if np.any(est["status"] == 0) else np.zeros(0, np.int64)
+    cfg = config.tracks
+    if not np.any(est["status"] == 0):
+        return _empty(est, np.zeros(0, np.int64), "no tracked frame in the re-estimate")
+
+    def features_of(i: int):
+        fr = seq.frame(int(est["seq"][i]))
+        return tracks_mod.stereo_features(seq.rig, fr.left, fr.right, cfg)
+
+    if cfg.keyframe_parallax_px > 0:
+        with Bar(None, "keyframe features", inputs.progress, "kf") as tick:
+            kf, feats = keyframes_by_parallax(seq.rig, est, features_of, cfg.keyframe_parallax_px,
+                                              cfg.min_depth_m, tick)
+    else:
+        kf = choose_keyframes(est)
+        feats = []
+        with Bar(len(kf), "keyframe features", inputs.progress, "kf") as tick:
+            for i in kf:
+                feats.append(features_of(int(i)))
+                tick(1)
     if len(kf) < 2:
         return _empty(est, kf, f"{len(kf)} tracked keyframe(s) in the re-estimate; bundle adjustment needs two")
     T_kf = est["T_world_cam"][kf]
-    cfg = config.tracks
-    feats = []
-    with Bar(len(kf), "keyframe features", inputs.progress, "kf") as tick:
-        for i in kf:
-            fr = seq.frame(int(est["seq"][i]))
-            feats.append(tracks_mod.stereo_features(seq.rig, fr.left, fr.right, cfg))
-            tick(1)
     n_gaps = len([g for g in (cfg.gaps or range(1, cfg.window + 1)) if 1 <= g <= cfg.window])
     with Bar(n_gaps, "track matching", inputs.progress, "gap") as tick:
         tr = tracks_mod.build_tracks(seq.rig, feats, T_kf, cfg, progress=tick)

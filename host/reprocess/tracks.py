@@ -60,6 +60,11 @@ class TrackConfig:
     max_depth_m: float = 40.0
     guess_disparity_px: float = 20.0  # right-image search starts at this disparity unless a depth guess is given
     min_track_length: int = 2
+    # offline keyframes: the next keyframe is the last frame where the previous keyframe's stereo
+    # points have moved by at most this much in the image (median, predicted with the estimated
+    # poses), at least the next frame; independent of the on-board estimator's real-time choice
+    # (0 = the estimator's keyframes)
+    keyframe_parallax_px: float = 30.0
     size_weighting_px: float = 10.0  # keypoints larger than this get weight size_weighting_px / size (0 = off)
 
     def __post_init__(self) -> None:
@@ -69,6 +74,7 @@ class TrackConfig:
         check_range("ratio", self.ratio, 0.1, 1.0)
         check_range("min_track_length", self.min_track_length, 2, 1000)
         check_range("min_depth_m", self.min_depth_m, 1e-3, self.max_depth_m)
+        check_range("keyframe_parallax_px", self.keyframe_parallax_px, 0.0, 10_000.0)
         check_range("verify_depth_disparity_px", self.verify_depth_disparity_px, 0.0, 20.0)
 
 
@@ -175,6 +181,18 @@ def _project(rig: Rig, X_cam: np.ndarray, min_depth: float) -> np.ndarray:
     else:
         pred[front] = X_cam[front, :2] / X_cam[front, 2:] * [K0[0, 0], K0[1, 1]] + K0[:2, 2]
     return pred
+
+
+def image_motion_px(rig: Rig, kf: KeyframeFeatures, T_world_kf: np.ndarray, T_world_cam: np.ndarray,
+                    min_depth_m: float) -> float:
+    """Median image motion (px) of a keyframe's stereo points seen from ``T_world_cam`` (inf for
+    points that end up behind the camera)."""
+    if len(kf) == 0:
+        return float("inf")
+    T = invert_pose(T_world_cam) @ T_world_kf
+    pred = _project(rig, kf.X_cam @ T[:3, :3].T + T[:3, 3], min_depth_m)
+    d = np.linalg.norm(pred - kf.feats.xy, axis=1)
+    return float(np.median(np.where(np.isfinite(d), d, np.inf)))
 
 
 def _refine_relative_pose(rig: Rig, X_a: np.ndarray, xy_b: np.ndarray, T_b_a: np.ndarray) -> np.ndarray:
