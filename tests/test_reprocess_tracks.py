@@ -74,3 +74,98 @@ def test_frame_observations_follow_keyframe_points_into_a_frame(scan):
     K = sess.rig.cam0.K
     uv = X[:, :2] / X[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
     assert np.median(np.linalg.norm(uv - left[:, 3:5], axis=1)) < 0.5
+
+
+def _forward_rig():
+    """A KITTI-like rectified rig (718 px focal length, 0.54 m baseline, 1241 x 376 images)."""
+    from stereopath.device.core.rig import make_camera, make_rig
+
+    K = np.array([[718.0, 0.0, 607.0], [0.0, 718.0, 185.0], [0.0, 0.0, 1.0]])
+    return make_rig(make_camera("cam0", K, None, (1241, 376)), make_camera("cam1", K, None, (1241, 376)),
+                    np.eye(3), [-0.54, 0.0, 0.0])
+
+
+def _keyframe(rig, X_cam, desc, disparity_noise_px, rng):
+    """KeyframeFeatures of camera points whose stereo depth carries a disparity error."""
+    from stereopath.device.core.features import Features
+    from stereopath.host.reprocess.tracks import KeyframeFeatures
+
+    K = rig.cam0.K
+    f, b = K[0, 0], rig.baseline_m
+    uv0 = X_cam[:, :2] / X_cam[:, 2:] * f + K[:2, 2]
+    d = f * b / X_cam[:, 2] + rng.normal(0.0, disparity_noise_px, len(X_cam))
+    z = f * b / d
+    X = np.column_stack([(uv0 - K[:2, 2]) / f * z[:, None], z])
+    uv1 = uv0 - np.column_stack([d, np.zeros(len(d))])
+    n = len(X_cam)
+    feats = Features(uv0.astype(np.float32), desc.astype(np.float32), np.full(n, 4.0, np.float32),
+                     np.zeros(n, np.float32), np.ones(n, np.float32), np.zeros(n, np.int16))
+    return KeyframeFeatures(feats, uv0, uv1, X)
+
+
+def test_matches_after_driving_forward_are_kept_and_wrong_ones_rejected():
+    """Driving 2.4 m towards points 5-40 m away: a's stereo depth error (0.25 px disparity noise) moves
+    the predicted position along the epipolar line by up to ~1 px near the image's sides.  Correct
+    matches are kept (the check allows the shift the depth uncertainty explains); matches 2 px off
+    the epipolar line are rejected."""
+    from stereopath.host.reprocess.tracks import match_keyframes
+
+    rig, rng = _forward_rig(), np.random.default_rng(3)
+    n = 1500
+    z = rng.uniform(5.0, 40.0, n)
+    K = rig.cam0.K
+    uv = np.column_stack([rng.uniform(20, 1220, n), rng.uniform(20, 356, n)])
+    Xa = np.column_stack([(uv - K[:2, 2]) / K[0, 0] * z[:, None], z])
+    T_b = np.eye(4)
+    T_b[2, 3] = 2.4
+    Xb = Xa - T_b[:3, 3]
+    desc = rng.normal(size=(n, 128))
+    a = _keyframe(rig, Xa, desc, 0.25, rng)
+    b = _keyframe(rig, Xb, desc + rng.normal(scale=0.05, size=desc.shape), 0.25, rng)
+    # every 10th match is wrong: b's pixel moved 2 px across the epipolar line (radial from the centre)
+    wrong = np.arange(n) % 10 == 0
+    radial = b.feats.xy - K[:2, 2]
+    across = np.column_stack([-radial[:, 1], radial[:, 0]]) / np.linalg.norm(radial, axis=1)[:, None]
+    b.feats.xy[wrong] += (2.0 * across[wrong]).astype(np.float32)
+    b.feats.xy[:] += rng.normal(0.0, 0.1, b.feats.xy.shape).astype(np.float32)  # keypoint noise
+    def kept(cfg):
+        idx = match_keyframes(rig, a, b, np.eye(4), T_b, cfg)
+        assert np.all(idx[:, 0] == idx[:, 1])
+        return np.isin(np.arange(n), idx[:, 0])
+
+    # the matches the descriptors find at all (keypoints closer than a few pixels collapse)
+    found = kept(TrackConfig(verify_px=50.0, verify_disparity_px=50.0))
+    ok = found & ~wrong
+    new = kept(TrackConfig())
+    assert new[ok].mean() > 0.97 and new[found & wrong].mean() < 0.05
+    # without the depth allowance many correct matches were lost
+    old = kept(TrackConfig(verify_depth_disparity_px=0.0))
+    assert old[ok].mean() < 0.8
+
+
+def test_offline_keyframes_follow_the_image_motion_not_the_estimators_keyframes():
+    from stereopath.host.reprocess.stage_tracks import keyframes_by_parallax
+    from stereopath.host.reprocess.tracks import image_motion_px
+
+    rig, rng = _forward_rig(), np.random.default_rng(4)
+    n_frames = 30
+    speed = np.where(np.arange(n_frames) < 15, 0.3, 1.5)  # slow, then fast (m per frame)
+    T = np.repeat(np.eye(4)[None], n_frames, axis=0)
+    T[:, 2, 3] = np.concatenate([[0.0], np.cumsum(speed[1:])])
+    K = rig.cam0.K
+    z = rng.uniform(8.0, 30.0, 800)
+    uv = np.column_stack([rng.uniform(100, 1140, 800), rng.uniform(40, 340, 800)])
+    X = np.column_stack([(uv - K[:2, 2]) / K[0, 0] * z[:, None], z])
+    feats = _keyframe(rig, X, rng.normal(size=(800, 128)), 0.0, rng)
+    est = {"status": np.zeros(n_frames, np.int8), "T_world_cam": T,
+           "keyframe": np.arange(n_frames) % 10 == 0}  # the estimator's choice: ignored
+    asked = []
+    kf, fs = keyframes_by_parallax(rig, est, lambda i: asked.append(i) or feats, 30.0, 0.1)
+    assert kf[0] == 0 and kf[-1] == n_frames - 1 and list(kf) == asked and len(fs) == len(kf)
+    for k0, k1 in zip(kf[:-1], kf[1:]):
+        moved = image_motion_px(rig, feats, T[k0], T[k1], 0.1)
+        assert k1 == k0 + 1 or moved <= 30.0
+        if k1 + 1 < n_frames:  # the last frame within the motion: the next one is beyond it
+            assert image_motion_px(rig, feats, T[k0], T[k1 + 1], 0.1) > 30.0
+    gaps = np.diff(kf)
+    assert gaps[: 3].min() > 1 and gaps[-3:].max() == 1  # sparse while slow, every frame when fast
