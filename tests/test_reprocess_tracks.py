@@ -139,19 +139,28 @@ def test_matches_after_driving_forward_are_kept_and_wrong_ones_rejected():
     new = kept(TrackConfig())
     assert new[ok].mean() > 0.97 and new[found & wrong].mean() < 0.05
     # without the depth allowance many correct matches were lost
-    old = kept(TrackConfig(verify_depth_disparity_px=0.0))
+    old = kept(TrackConfig(verify_depth_sigmas=0.0))
     assert old[ok].mean() < 0.8
 
 
-def test_offline_keyframes_follow_the_image_motion_not_the_estimators_keyframes():
-    from stereopath.host.reprocess.stage_tracks import keyframes_by_parallax
-    from stereopath.host.reprocess.tracks import image_motion_px
+def test_offline_keyframes_follow_the_viewpoint_change_not_the_estimators_keyframes():
+    """Offline keyframes: a new one when the view of the last one's points changed by more than
+    ``keyframe_parallax_deg`` (or its points moved more than ``keyframe_motion_px``): sparse while
+    the camera turns on the spot or moves slowly, every frame when it drives fast towards the scene;
+    the estimator's keyframe flags play no part."""
+    from stereopath.device.core.geometry import so3_exp
+    from stereopath.host.reprocess.stage_tracks import keyframes_by_view_change
+    from stereopath.host.reprocess.tracks import view_change
 
     rig, rng = _forward_rig(), np.random.default_rng(4)
-    n_frames = 30
-    speed = np.where(np.arange(n_frames) < 15, 0.3, 1.5)  # slow, then fast (m per frame)
+    n_frames = 40
     T = np.repeat(np.eye(4)[None], n_frames, axis=0)
-    T[:, 2, 3] = np.concatenate([[0.0], np.cumsum(speed[1:])])
+    for i in range(1, n_frames):  # 10 frames turning on the spot (1.5 deg each), then slow, then fast forward
+        T[i] = T[i - 1].copy()
+        if i < 10:
+            T[i, :3, :3] = T[i - 1, :3, :3] @ so3_exp(np.radians([0.0, 1.5, 0.0]))
+        else:
+            T[i, :3, 3] = T[i - 1, :3, 3] + T[i - 1, :3, 2] * (0.2 if i < 25 else 3.0)
     K = rig.cam0.K
     z = rng.uniform(8.0, 30.0, 800)
     uv = np.column_stack([rng.uniform(100, 1140, 800), rng.uniform(40, 340, 800)])
@@ -159,13 +168,19 @@ def test_offline_keyframes_follow_the_image_motion_not_the_estimators_keyframes(
     feats = _keyframe(rig, X, rng.normal(size=(800, 128)), 0.0, rng)
     est = {"status": np.zeros(n_frames, np.int8), "T_world_cam": T,
            "keyframe": np.arange(n_frames) % 10 == 0}  # the estimator's choice: ignored
+    cfg = TrackConfig()
     asked = []
-    kf, fs = keyframes_by_parallax(rig, est, lambda i: asked.append(i) or feats, 30.0, 0.1)
+    kf, fs = keyframes_by_view_change(rig, est, lambda i: asked.append(i) or feats, cfg)
     assert kf[0] == 0 and kf[-1] == n_frames - 1 and list(kf) == asked and len(fs) == len(kf)
+
+    def within(k0, k1):
+        angle, motion = view_change(rig, feats, T[k0], T[k1], cfg.min_depth_m)
+        return angle <= cfg.keyframe_parallax_deg and motion <= cfg.keyframe_motion_px
+
     for k0, k1 in zip(kf[:-1], kf[1:]):
-        moved = image_motion_px(rig, feats, T[k0], T[k1], 0.1)
-        assert k1 == k0 + 1 or moved <= 30.0
-        if k1 + 1 < n_frames:  # the last frame within the motion: the next one is beyond it
-            assert image_motion_px(rig, feats, T[k0], T[k1 + 1], 0.1) > 30.0
-    gaps = np.diff(kf)
-    assert gaps[: 3].min() > 1 and gaps[-3:].max() == 1  # sparse while slow, every frame when fast
+        assert k1 == k0 + 1 or within(k0, k1)
+        if k1 + 1 < n_frames:  # the last frame within the limits: the next one is beyond them
+            assert not within(k0, k1 + 1)
+    assert 3 <= kf[1] <= 9  # turning on the spot: no viewpoint change, a keyframe when the points moved ~100 px
+    assert np.sum((kf > 10) & (kf < 25)) <= 2  # 0.2 m a frame: few keyframes
+    assert np.all(np.diff(kf)[-10:] == 1)  # 3 m a frame towards points 8-30 m away: every frame

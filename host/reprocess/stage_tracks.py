@@ -38,13 +38,15 @@ def choose_keyframes(est: dict[str, np.ndarray]) -> np.ndarray:
     return np.unique(np.concatenate([ok[:1], kf, ok[-1:]])).astype(np.int64)
 
 
-def keyframes_by_parallax(rig, est: dict[str, np.ndarray], features_of, parallax_px: float,
-                          min_depth_m: float, progress=None) -> tuple[np.ndarray, list]:
+def keyframes_by_view_change(rig, est: dict[str, np.ndarray], features_of, cfg, progress=None
+                             ) -> tuple[np.ndarray, list]:
     """Offline keyframes (frame indices) and their features: from the first tracked frame, the next
-    keyframe is the last tracked frame where the previous keyframe's stereo points moved by at most
-    ``parallax_px`` (median, :func:`tracks.image_motion_px`), at least the next tracked frame; the
-    last tracked frame ends the list.  ``features_of(i)`` computes frame ``i``'s features."""
-    from stereopath.host.reprocess.tracks import image_motion_px
+    keyframe is the last tracked frame that sees the previous keyframe's points within
+    ``cfg.keyframe_parallax_deg`` and ``cfg.keyframe_motion_px`` (:func:`tracks.view_change`), at least
+    the next tracked frame; the last tracked frame ends the list.  ``features_of(i)`` computes
+    frame ``i``'s features.  Rotation alone changes no viewpoint: a scan that mostly turns gets few
+    keyframes, driving towards the scene one every frame or two."""
+    from stereopath.host.reprocess.tracks import view_change
 
     ok = np.flatnonzero(est["status"] == 0)
     T = est["T_world_cam"]
@@ -53,7 +55,8 @@ def keyframes_by_parallax(rig, est: dict[str, np.ndarray], features_of, parallax
         later = ok[ok > kf[-1]]
         nxt = int(later[0])
         for j in later[1:]:
-            if image_motion_px(rig, feats[-1], T[kf[-1]], T[j], min_depth_m) > parallax_px:
+            angle, motion = view_change(rig, feats[-1], T[kf[-1]], T[j], cfg.min_depth_m)
+            if angle > cfg.keyframe_parallax_deg or motion > cfg.keyframe_motion_px:
                 break
             nxt = int(j)
         kf.append(nxt)
@@ -84,10 +87,9 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
         fr = seq.frame(int(est["seq"][i]))
         return tracks_mod.stereo_features(seq.rig, fr.left, fr.right, cfg)
 
-    if cfg.keyframe_parallax_px > 0:
+    if cfg.keyframe_parallax_deg > 0:
         with Bar(None, "keyframe features", inputs.progress, "kf") as tick:
-            kf, feats = keyframes_by_parallax(seq.rig, est, features_of, cfg.keyframe_parallax_px,
-                                              cfg.min_depth_m, tick)
+            kf, feats = keyframes_by_view_change(seq.rig, est, features_of, cfg, tick)
     else:
         kf = choose_keyframes(est)
         feats = []

@@ -46,10 +46,11 @@ class TrackConfig:
     ratio: float = 0.8
     prefilter_px: float = 3.0  # matches used to refine the pair's relative pose (deviation after the median offset)
     verify_px: float = 0.7  # accepted deviation from the position predicted with the refined pose ...
-    # ... where the prediction is the segment swept by the point's depth over this stereo disparity
-    # uncertainty (the depth of a far point is uncertain: moving towards it turns that into an image
-    # shift along the epipolar line, which grows with the motion; 0 = the point's depth as measured)
-    verify_depth_disparity_px: float = 0.5
+    # ... where the prediction is the segment swept by the point's depth over this many standard
+    # deviations of the stereo disparity (moving towards a point turns its depth error into an image
+    # shift along the epipolar line, which grows with the motion; 0 = the depth as measured).  The
+    # standard deviation is the pair's own: the spread (MAD) of the matches' disparity disagreement
+    verify_depth_sigmas: float = 2.0
     verify_disparity_px: float = 1.5  # accepted stereo disparity disagreement
     klt_window: int = 21
     klt_levels: int = 3
@@ -60,11 +61,13 @@ class TrackConfig:
     max_depth_m: float = 40.0
     guess_disparity_px: float = 20.0  # right-image search starts at this disparity unless a depth guess is given
     min_track_length: int = 2
-    # offline keyframes: the next keyframe is the last frame where the previous keyframe's stereo
-    # points have moved by at most this much in the image (median, predicted with the estimated
-    # poses), at least the next frame; independent of the on-board estimator's real-time choice
-    # (0 = the estimator's keyframes)
-    keyframe_parallax_px: float = 30.0
+    # offline keyframes (independent of the on-board estimator's real-time choice): the next keyframe
+    # is the last frame from which the previous keyframe's stereo points are seen under a viewpoint
+    # change (median parallax angle between the two camera centres) of at most keyframe_parallax_deg
+    # and moved by at most keyframe_motion_px in the image (median), at least the next frame
+    # (keyframe_parallax_deg = 0: the estimator's keyframes)
+    keyframe_parallax_deg: float = 2.5
+    keyframe_motion_px: float = 100.0
     size_weighting_px: float = 10.0  # keypoints larger than this get weight size_weighting_px / size (0 = off)
 
     def __post_init__(self) -> None:
@@ -74,8 +77,9 @@ class TrackConfig:
         check_range("ratio", self.ratio, 0.1, 1.0)
         check_range("min_track_length", self.min_track_length, 2, 1000)
         check_range("min_depth_m", self.min_depth_m, 1e-3, self.max_depth_m)
-        check_range("keyframe_parallax_px", self.keyframe_parallax_px, 0.0, 10_000.0)
-        check_range("verify_depth_disparity_px", self.verify_depth_disparity_px, 0.0, 20.0)
+        check_range("keyframe_parallax_deg", self.keyframe_parallax_deg, 0.0, 90.0)
+        check_range("keyframe_motion_px", self.keyframe_motion_px, 1.0, 100_000.0)
+        check_range("verify_depth_sigmas", self.verify_depth_sigmas, 0.0, 20.0)
 
 
 @dataclass
@@ -183,16 +187,20 @@ def _project(rig: Rig, X_cam: np.ndarray, min_depth: float) -> np.ndarray:
     return pred
 
 
-def image_motion_px(rig: Rig, kf: KeyframeFeatures, T_world_kf: np.ndarray, T_world_cam: np.ndarray,
-                    min_depth_m: float) -> float:
-    """Median image motion (px) of a keyframe's stereo points seen from ``T_world_cam`` (inf for
-    points that end up behind the camera)."""
+def view_change(rig: Rig, kf: KeyframeFeatures, T_world_kf: np.ndarray, T_world_cam: np.ndarray,
+                min_depth_m: float) -> tuple[float, float]:
+    """How far a camera at ``T_world_cam`` sees a keyframe's stereo points from the keyframe's view:
+    the median parallax angle (deg) between the rays from the two camera centres, and the median
+    image motion (px; inf for points that end up behind the camera)."""
     if len(kf) == 0:
-        return float("inf")
+        return float("inf"), float("inf")
     T = invert_pose(T_world_cam) @ T_world_kf
     pred = _project(rig, kf.X_cam @ T[:3, :3].T + T[:3, 3], min_depth_m)
     d = np.linalg.norm(pred - kf.feats.xy, axis=1)
-    return float(np.median(np.where(np.isfinite(d), d, np.inf)))
+    X, c = kf.X_cam, invert_pose(T)[:3, 3]  # the camera's centre in the keyframe
+    cos = np.einsum("ij,ij->i", X, X - c) / np.maximum(np.linalg.norm(X, axis=1) * np.linalg.norm(X - c, axis=1), 1e-12)
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return float(np.median(angle)), float(np.median(np.where(np.isfinite(d), d, np.inf)))
 
 
 def _refine_relative_pose(rig: Rig, X_a: np.ndarray, xy_b: np.ndarray, T_b_a: np.ndarray) -> np.ndarray:
@@ -239,27 +247,30 @@ def match_keyframes(rig: Rig, a: KeyframeFeatures, b: KeyframeFeatures, T_world_
     pred = _project(rig, Xb, cfg.min_depth_m)
     res = xy_b - pred
     res = res - np.nanmedian(res, axis=0)
-    if cfg.verify_depth_disparity_px > 0:
-        res = _off_depth_segment(rig, Xa, T_b_a, pred, res, cfg)
+    disp_err = _disparity(rig, Xb) - _disparity(rig, b.X_cam[idx[:, 1]])
+    if cfg.verify_depth_sigmas > 0 and pre.sum() >= 12:
+        # a's and b's disparities are equally noisy: their difference has sqrt(2) sigma
+        e = disp_err[pre]
+        sigma = 1.4826 * np.median(np.abs(e - np.median(e))) / np.sqrt(2.0)
+        res = _off_depth_segment(rig, Xa, T_b_a, pred, res, cfg.verify_depth_sigmas * sigma, cfg.min_depth_m)
     ok = np.linalg.norm(res, axis=1) <= cfg.verify_px
-    ok &= np.abs(_disparity(rig, Xb) - _disparity(rig, b.X_cam[idx[:, 1]])) <= cfg.verify_disparity_px
+    ok &= np.abs(disp_err) <= cfg.verify_disparity_px
     return idx[ok]
 
 
 def _off_depth_segment(rig: Rig, Xa: np.ndarray, T_b_a: np.ndarray, pred: np.ndarray, res: np.ndarray,
-                       cfg: TrackConfig) -> np.ndarray:
+                       delta: float, min_depth_m: float) -> np.ndarray:
     """``res`` (b's pixel minus ``pred``) less its part explained by a's stereo depth uncertainty.
 
-    a's point moves along a's viewing ray when its disparity changes by +-``verify_depth_disparity_px``
+    a's point moves along a's viewing ray when its disparity changes by +-``delta`` px
     (the point scaled by d / (d -+ delta)); its image in b sweeps a short segment of the epipolar line
     around ``pred``.  Returned: the offset of b's pixel from that segment (zero along it inside)."""
     d = np.maximum(_disparity(rig, Xa), 1e-3)
-    delta = cfg.verify_depth_disparity_px
     ends = []
     for dd in (-delta, delta):
         s = (d / np.maximum(d + dd, 1e-3))[:, None]  # nearer (+delta) or farther (-delta), far end capped
         s = np.where((d + dd)[:, None] > 1e-3, s, 1e3)
-        ends.append(_project(rig, (Xa * s) @ T_b_a[:3, :3].T + T_b_a[:3, 3], cfg.min_depth_m) - pred)
+        ends.append(_project(rig, (Xa * s) @ T_b_a[:3, :3].T + T_b_a[:3, 3], min_depth_m) - pred)
     seg = ends[1] - ends[0]  # from the far end to the near end
     L2 = np.einsum("ij,ij->i", seg, seg)
     ok = np.isfinite(L2) & (L2 > 1e-12)
