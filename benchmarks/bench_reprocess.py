@@ -13,6 +13,9 @@
    (The hand-written solver GTSAM replaced was measured in the same run before it was deleted:
    README, "Figures".)
 2. KITTI 06 frames 0-50 (no map): the vision-only variant (KITTI has no IMU).
+   Then (both sequences) the tracks and ba stages with the offline keyframes and keyframe-match check
+   of before session 4 (the estimator's keyframes, no depth allowance) and today's (keyframes by
+   viewpoint change, matches allowed their stereo depth's uncertainty), on the same re-estimate.
 3. --loop N: a session on the `loop` trajectory (N frames): on-board ATE and end-to-start error
    (target >= 10 mm; --loop-seed picks the session's seed, --loop-seeds S adds the on-board figures
    of in-memory sessions with the other seeds up to S), then
@@ -35,6 +38,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -105,6 +110,46 @@ def compare_solvers(name: str, seq, stages: Path, base, runs: int, ate_on: float
               f"(medians of {runs} run(s) each)")
     if "gtsam+imu" in stats and stats["gtsam+imu"].get("imu") and bias_truth is not None:
         print_bias_recovery(name, stats["gtsam+imu"]["imu"], *bias_truth)
+
+
+# the offline keyframes and match check before issue 13's session 4: the estimator's keyframes,
+# a keyframe match verified against its stereo point's position only (no depth allowance)
+TRACKS_BEFORE = {"keyframe_parallax_deg": 0.0, "verify_depth_sigmas": 0.0}
+
+
+def compare_tracks(name: str, seq, tmp: Path, base, ate_on: float, unit: float, unit_name: str, runs: int) -> None:
+    """The tracks and ba stages with the earlier offline keyframes and match check, then today's, on
+    the same stored re-estimate (``tmp/name``), ``runs`` times each, alternating: ATE, keyframes, CPU."""
+    import json
+    import shutil
+
+    variants = {"before": dataclasses.replace(base, tracks=dataclasses.replace(base.tracks, **TRACKS_BEFORE)),
+                "after": base}
+    fig = {v: {"ate": [], "cpu": []} for v in variants}
+    stats = {}
+    for r in range(runs):
+        for v, preset in variants.items():
+            out = tmp / f"{name}_tracks_{v}"
+            shutil.rmtree(out, ignore_errors=True)
+            (out / "stages").mkdir(parents=True)
+            for f in ("estimate.npz", "manifest.json"):
+                shutil.copy(tmp / name / "stages" / f, out / "stages" / f)
+            c = time.process_time()
+            res = reprocess_sequence(seq, out, preset=preset, do_map=False, progress=False)
+            fig[v]["cpu"].append(time.process_time() - c)
+            fig[v]["ate"].append(res.report["ate_rmse_m"])
+            ba = json.loads(str(np.load(out / "stages" / "ba.npz")["stats"]))
+            trk = json.loads(str(np.load(out / "stages" / "tracks.npz")["stats"]))
+            stats[v] = (trk, ba)
+    med = {v: {k: statistics.median(x) for k, x in f.items()} for v, f in fig.items()}
+    for v in variants:
+        trk, ba = stats[v]
+        print(f"  {name} tracks {v:6s}: ATE {med[v]['ate'] * unit:.4f} {unit_name} (x{med[v]['ate'] / ate_on:.3f} of "
+              f"on-board), tracks + ba stages {med[v]['cpu']:.1f} s CPU; {trk['keyframes']} kf, {trk['matches']} matches, "
+              f"{trk['tracks']} tracks (mean length {trk['mean_track_length']:.2f} kf), rms {ba['rms_before_px']:.3f} -> "
+              f"{ba['rms_after_px']:.3f} px, disparity offset {ba['disparity_offset_px']}")
+    print(f"  {name} tracks after / before: ATE x{med['after']['ate'] / med['before']['ate']:.3f}, CPU "
+          f"x{med['after']['cpu'] / med['before']['cpu']:.2f} (medians of {runs} run(s))")
 
 
 def print_bias_recovery(name: str, imu: dict, t_ns, accel_true, gyro_true) -> None:
@@ -191,6 +236,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3, help="ba-stage runs per back end (median)")
     ap.add_argument("--preset", default="standard", choices=list(REPROCESS_PRESETS))
+    ap.add_argument("--tracks-runs", type=int, default=1,
+                    help="runs of the tracks + ba stages per offline keyframe / match setting (median)")
     ap.add_argument("--skip-kitti", action="store_true")
     ap.add_argument("--skip-sim", action="store_true")
     ap.add_argument("--ablations", action="store_true")
@@ -225,6 +272,7 @@ def main() -> int:
                 if not (args.reuse and (tmp / "kitti" / "stages" / "tracks.npz").is_file()):
                     reprocess_sequence(kseq, tmp / "kitti", preset=base, do_map=False, progress=False, force=True)
                 compare_solvers("kitti", kseq, tmp / "kitti" / "stages", base, args.runs, k_on, 1, "m")
+                compare_tracks("kitti", kseq, tmp, base, k_on, 1, "m", args.tracks_runs)
                 sequences.append(("kitti", kseq, k_on))
             else:
                 print(f"KITTI data not found at {KITTI}: skipped")
@@ -257,6 +305,7 @@ def sim_figures(tmp: Path, args, base):
     truth = (sim.imu.t_ns, sim.imu_biases.accel_m_s2, sim.imu_biases.gyro_rad_s)
     compare_solvers("sim", seq, tmp / "sim" / "stages", base, args.runs, ate_on, 1000, "mm",
                     ("gtsam", "gtsam+imu"), truth)
+    compare_tracks("sim", seq, tmp, base, ate_on, 1000, "mm", args.tracks_runs)
     return ("sim", seq, ate_on)
 
 

@@ -50,7 +50,7 @@ class TrackConfig:
     # deviations of the stereo disparity (moving towards a point turns its depth error into an image
     # shift along the epipolar line, which grows with the motion; 0 = the depth as measured).  The
     # standard deviation is the pair's own: the spread (MAD) of the matches' disparity disagreement
-    verify_depth_sigmas: float = 2.0
+    verify_depth_sigmas: float = 3.0
     verify_disparity_px: float = 1.5  # accepted stereo disparity disagreement
     klt_window: int = 21
     klt_levels: int = 3
