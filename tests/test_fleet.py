@@ -107,6 +107,8 @@ def test_fleet_results_equal_the_one_session_command(fleet_run, sessions, tmp_pa
             for k in x:
                 assert x[k] == y[k] if isinstance(x[k], dict) else x[k].tobytes() == y[k].tobytes(), (stage, k)
         assert (one / "trajectory.tum").read_bytes() == (out / ids[name] / "trajectory.tum").read_bytes()
+    # the tracks stage's pieces (per keyframe, per gap) ran as Ray tasks of their own
+    assert all(s.result["pieces"] > 0 for s in res.sessions if s.session.path.name in ("a", "b"))
     ba = npz_contents(tmp_path / "a" / "stages" / "ba.npz")
     assert len(ba["T_frames"]) == 30 and len(ba["point_xyz"]) > 0 and ba["stats"]["iterations"] > 0
     assert (out / ids["a"] / "mesh.ply").is_file()

@@ -49,6 +49,7 @@ class FleetOptions:
     path_map: PathMap = field(default_factory=PathMap)
     poll_s: float = 0.5  # how often the driver looks at the progress board
     ray_logs: bool = False  # forward the workers' log output to this terminal
+    spread: bool = True  # a session's independent pieces (per keyframe, per gap) as Ray tasks of their own
 
     def __post_init__(self) -> None:
         if not self.ray or not isinstance(self.ray, str):
@@ -233,7 +234,7 @@ class _Scheduler:
             st, part = nxt
             ref = self.task.options(name=f"reprocess {st.session.id} ({part})", **self.task_opts).remote(
                 st.session.id, pm.to_worker(st.session.path), pm.to_worker(st.out), self.kwargs, self.board,
-                self.after_stage, self.threads, part)
+                self.after_stage, self.threads, part, self.options.spread)
             self.inflight[ref] = (st, part)
             st.status, st.stage = "running", (STAGE_ORDER[1] if part == "rest" else STAGE_ORDER[0])
             st.started = st.started or time.time()
@@ -256,6 +257,7 @@ class _Scheduler:
             if st.first:  # the session's figures cover both tasks
                 r["wall_s"] = round(r["wall_s"] + st.first["wall_s"], 3)
                 r["cpu_s"] = round(r["cpu_s"] + st.first["cpu_s"], 3)
+                r["pieces"] = r.get("pieces", 0) + st.first.get("pieces", 0)
                 r["stages"] = {**r["stages"], **st.first["stages"]}
             st.result, st.status, st.stage, st.finished = r, "done", None, time.time()
             st.stored = [s for s in STAGE_ORDER if r["stages"].get(s) in ("computed", "reused")]
