@@ -35,3 +35,22 @@ def test_a_spreader_that_loses_pieces_is_an_error():
     with spread_with(lambda fn, shared, items: [fn(shared, items[0])]):
         with pytest.raises(RuntimeError, match="1 results for 2 pieces"):
             parallel_map(_scaled, 1, [1, 2])
+
+
+def test_depth_pieces_sent_elsewhere_give_the_same_maps():
+    """The map stage's per-keyframe depth (StereoDepth pickled to another process, its matcher made
+    again there) gives the same bits as here (the fleet test checks the whole model)."""
+    import pickle
+
+    import numpy as np
+
+    from stereopath.device.sim.session import SimConfig, open_sim
+    from stereopath.host.mapping.depth import DEPTH_PRESETS, StereoDepth
+
+    sess = open_sim(SimConfig(frames=30))
+    fr = sess.frame(12)
+    sd = StereoDepth(sess.rig, DEPTH_PRESETS["object"])
+    here = sd.compute(fr.left, fr.right)  # makes (and caches) an OpenCV matcher, which cannot be pickled
+    there = pickle.loads(pickle.dumps(sd)).compute(fr.left, fr.right)
+    assert here.depth_m.tobytes() == there.depth_m.tobytes()
+    assert np.array_equal(here.disparity_px, there.disparity_px, equal_nan=True)
