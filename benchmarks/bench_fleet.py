@@ -160,19 +160,14 @@ def sequential(sessions, out: Path, settings: ReprocessSettings) -> Phase:
     return ph
 
 
-def fleet_local(sessions, out: Path, settings: ReprocessSettings, on_update=None) -> tuple[Phase, object]:
+def fleet_local(sessions, out: Path, settings: ReprocessSettings, on_update=None,
+                poll_s: float = 0.5) -> tuple[Phase, object]:
     import shutil
 
-    import ray
-
     shutil.rmtree(out, ignore_errors=True)  # everything computed (a kept folder would be reused)
-    with Phase("fleet (local Ray, 2 CPUs)") as ph:
-        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
-                 logging_level=logging.WARNING)
-        res = run_fleet(sessions, out, settings, FleetOptions(poll_s=0.25), on_update=on_update)
-        own = ph.cpu.total()  # Ray's processes are still alive: count them now
-        ray.shutdown()
-        ph.stop(own_now=own)
+    with Phase("fleet (local Ray, 2 CPUs)") as ph:  # run_fleet starts and stops Ray (as the command does)
+        res = run_fleet(sessions, out, settings, FleetOptions(num_cpus=2, poll_s=poll_s), on_update=on_update)
+        ph.stop()
     return ph, res
 
 
@@ -330,7 +325,7 @@ def fault_run(sessions, ref: Path, tmp: Path, settings: ReprocessSettings) -> No
                 killed.update(pid=st.pid, stored=list(st.stored), at=time.perf_counter())
 
     out = tmp / "fault_out"
-    ph, res = fleet_local(sessions, out, settings, on_update=on_update)
+    ph, res = fleet_local(sessions, out, settings, on_update=on_update, poll_s=0.25)
     st = next(s for s in res.sessions if s.session.id == victim)
     print(f"  killed worker pid {killed.get('pid')} of {victim} during ba (stored then: {killed.get('stored')})")
     print(f"  {ph.line()}")

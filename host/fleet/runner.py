@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -133,7 +134,10 @@ def connect(options: FleetOptions) -> tuple[Any, bool]:
                           "logging_level": logging.WARNING}
     try:
         if options.ray == "auto":
-            ray.init(address="local", num_cpus=options.num_cpus, **kw)
+            cpus = options.num_cpus or os.cpu_count() or 1
+            # keep idle workers (up to two per CPU: the session tasks waiting for their pieces, and the
+            # pieces) instead of Ray's one per CPU: each new worker imports Ray, OpenCV, GTSAM, Open3D again
+            ray.init(address="local", num_cpus=cpus, _system_config={"num_workers_soft_limit": 2 * cpus + 1}, **kw)
         else:
             ray.init(address=options.ray, **kw)
     except (ConnectionError, RuntimeError, ValueError) as exc:

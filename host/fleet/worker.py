@@ -238,6 +238,7 @@ def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any
     except _Stop:
         out = first_part(out_dir, time.perf_counter() - t0, time.process_time() - c0)
     else:  # CPU: this task's and its pieces'
-        out = summarise(res, time.perf_counter() - t0, time.process_time() - c0 + (spreader.cpu_s if spreader else 0))
+        cpu_s = time.process_time() - c0 + (spreader.cpu_s if spreader else 0.0)
+        out = summarise(res, time.perf_counter() - t0, cpu_s)
     out.update({"node": node, "pid": os.getpid(), "pieces": spreader.pieces if spreader else 0})
     return out

@@ -126,7 +126,8 @@ class DenseMapper:
     def add(self, left: np.ndarray, right: np.ndarray, T_world_cam0: np.ndarray, index: int | None = None,
             depth: Any = None) -> Any:
         """Depth of one raw stereo pair, fused at the camera-0 pose; returns the :class:`stereopath.host.mapping.depth.DepthMap`.
-        ``depth``: the pair's depth map when already computed (by ``self.depth``; the images are then unused)."""
+
+        ``depth``: the pair's depth map when already computed by ``self.depth`` (the images are then unused)."""
         t0 = time.perf_counter()
         dm = depth if depth is not None else self.depth.compute(left, right)
         t1 = time.perf_counter()
