@@ -216,9 +216,11 @@ def profile(session, out: Path, settings: ReprocessSettings, threads: int | None
 
 
 def session_lines(res) -> list[str]:
-    return [f"    {st.session.id}: {st.status}, {(st.result or {}).get('keyframes')} keyframes, task wall "
-            f"{(st.result or {}).get('wall_s')} s, CPU {(st.result or {}).get('cpu_s')} s, node {st.node}"
-            for st in res.sessions]
+    t0 = min((st.started for st in res.sessions if st.started), default=0.0)
+    return [f"    {st.session.id}: {st.status}, {(st.result or {}).get('keyframes')} keyframes, from "
+            f"{(st.started or t0) - t0:.1f} s to {(st.finished or t0) - t0:.1f} s after the first task, tasks' wall "
+            f"{(st.result or {}).get('wall_s')} s, CPU {(st.result or {}).get('cpu_s')} s (with "
+            f"{(st.result or {}).get('pieces')} pieces), node {st.node}" for st in res.sessions]
 
 
 def check(ref: Path, out: Path, sessions) -> str:
