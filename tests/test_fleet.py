@@ -35,7 +35,10 @@ def _record(d: Path, frames: int, seed: int, trajectory: str = "arc") -> Path:
 def local_ray():
     if ray.is_initialized():
         ray.shutdown()
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    from stereopath.host.fleet.runner import keep_workers
+
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
+             _system_config=keep_workers(2))  # as run_fleet starts a local Ray
     yield ray
     ray.shutdown()
 

@@ -125,6 +125,14 @@ def _import_ray() -> Any:
     return ray
 
 
+def keep_workers(cpus: int) -> dict[str, int]:
+    """Ray settings that keep a local Ray's idle workers: up to two per CPU plus the progress actor
+    (the session tasks waiting for their pieces, and the pieces) for up to a minute, instead of one
+    per CPU for a second: a new worker imports Ray, OpenCV, GTSAM and Open3D again (1-2 s of CPU),
+    and a session's pieces come in bursts, stage after stage."""
+    return {"num_workers_soft_limit": 2 * cpus + 2, "idle_worker_killing_time_threshold_ms": 60_000}
+
+
 def connect(options: FleetOptions) -> tuple[Any, bool]:
     """Ray, started locally or joined; ``owned`` is True when this call started it (shut it down)."""
     ray = _import_ray()
@@ -135,9 +143,7 @@ def connect(options: FleetOptions) -> tuple[Any, bool]:
     try:
         if options.ray == "auto":
             cpus = options.num_cpus or os.cpu_count() or 1
-            # keep idle workers (up to two per CPU: the session tasks waiting for their pieces, and the
-            # pieces) instead of Ray's one per CPU: each new worker imports Ray, OpenCV, GTSAM, Open3D again
-            ray.init(address="local", num_cpus=cpus, _system_config={"num_workers_soft_limit": 2 * cpus + 1}, **kw)
+            ray.init(address="local", num_cpus=cpus, _system_config=keep_workers(cpus), **kw)
         else:
             ray.init(address=options.ray, **kw)
     except (ConnectionError, RuntimeError, ValueError) as exc:
