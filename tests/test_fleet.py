@@ -271,3 +271,16 @@ def test_fleet_html_escapes_names():
     page = render_html({"counts": {"done": 0, "failed": 1}, "wall_s": 1.0, "written_utc": "now",
                         "sessions": [{"id": "<x>", "status": "failed", "error": "DatasetError: <bad> & worse"}]})
     assert "<x>" not in page and "&lt;bad&gt; &amp; worse" in page
+
+
+def test_compare_can_leave_out_the_session_path_a_worker_saw(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    for d, src in ((a, "/data/s1"), (b, "/mnt/worker/s1")):
+        d.mkdir()
+        (d / "report.json").write_text(json.dumps({"source": src, "frames": 3, "wall_s": 1.0,
+                                                   "extra": {"map": {"error": f"{src}: no surface"}}}))
+    assert differences(a, b) == ["report.json: differs in extra, source"]
+    assert differences(a, b, ignore_source=True) == []
+    (b / "report.json").write_text(json.dumps({"source": "/mnt/worker/s1", "frames": 4,
+                                               "extra": {"map": {"error": "/mnt/worker/s1: no surface"}}}))
+    assert differences(a, b, ignore_source=True) == ["report.json: differs in frames"]
