@@ -46,6 +46,7 @@ import cv2
 import numpy as np
 
 from stereopath.device.core.config import check_range
+from stereopath.device.errors import ConfigError
 from stereopath.device.estimation.base import PoseEstimate, WorldFrame
 from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still, gravity_aligned_rotation
 from stereopath.device.core.features import gray
@@ -73,9 +74,16 @@ class StereoConfig:
     kf_max_frames: int = 20
     asift_min_rotation_deg: float = 3.0  # rotation since the last ASIFT keyframe that asks for ASIFT work again
     asift_max_frames: int = 30  # ... or frames since it
-    klt_window: int = 21
-    klt_levels: int = 3
+    # the affine views of a keyframe match: "predicted" simulates them on the keyframe only when the view
+    # change since the matched keyframe (from the tracked poses) exceeds asift_view_min_tilt (what SIFT bridges
+    # itself: the sqrt(2) tilt step of ASIFT's sampling); "preset" keeps every view of feature_preset in the library
+    asift_views: str = "predicted"
+    asift_view_min_tilt: float = 1.41
+    klt_window: int = 15  # tracking and stereo (15: ~half the pixels of 21 per iteration)
+    klt_levels: int = 3  # pyramid of a search without a 3D guess (new stereo points)
+    track_klt_levels: int = 2  # pyramid of the tracking from the predicted pose (the retry goes deeper)
     seeded_stereo_levels: int = 2  # pyramid of the right-image search from a known 3D point (an accurate guess)
+    fb_klt_levels: int = 1  # pyramid of the backward (check) track: it starts at the known answer, a refinement
     retry_klt_levels: int = 5  # deeper pyramid of the retry when tracking from the prediction fails
     relocalise: bool = True  # match SIFT against the last keyframe library when tracking fails
     fb_max_px: float = 0.6  # forward-backward KLT disagreement
@@ -110,9 +118,14 @@ class StereoConfig:
         check_range("kf_max_frames", self.kf_max_frames, 1, 1000)
         check_range("asift_min_rotation_deg", self.asift_min_rotation_deg, 0.0, 180.0)
         check_range("asift_max_frames", self.asift_max_frames, 1, 100000)
+        check_range("asift_view_min_tilt", self.asift_view_min_tilt, 1.0, 16.0)
+        if self.asift_views not in ("predicted", "preset"):
+            raise ConfigError(f"asift_views must be 'predicted' or 'preset', got {self.asift_views!r}")
         check_range("klt_window", self.klt_window, 5, 61)
         check_range("klt_levels", self.klt_levels, 0, 6)
+        check_range("track_klt_levels", self.track_klt_levels, 0, 6)
         check_range("seeded_stereo_levels", self.seeded_stereo_levels, 0, 6)
+        check_range("fb_klt_levels", self.fb_klt_levels, 0, 8)
         check_range("retry_klt_levels", self.retry_klt_levels, 0, 8)
         check_range("epipolar_max_dy_px", self.epipolar_max_dy_px, 0.1, 5.0)
         check_range("min_depth_m", self.min_depth_m, 0.01, self.max_depth_m)
@@ -176,7 +189,7 @@ class StereoEstimator(KeyframeJobs):
         self._next_id = 0
         self._cur_seq = 0
         self.counters = {"keyframes": 0, "imu_only": 0, "lost": 0, "asift_matches": 0, "kf_jobs": 0,
-                         "kf_jobs_skipped": 0, "kf_jobs_deferred": 0, "kf_corrections": 0, "retracked": 0, "relocalised": 0,
+                         "kf_jobs_skipped": 0, "kf_jobs_deferred": 0, "asift_views": 0, "kf_corrections": 0, "retracked": 0, "relocalised": 0,
                          "disparity_offset_mpx": int(round(1000 * self.cfg.disparity_offset_px))}
 
     # ------------------------------------------------------------------ public
@@ -260,8 +273,8 @@ class StereoEstimator(KeyframeJobs):
         if len(m) >= cfg.min_pnp_inliers and self._prev_left is not None:
             # first from the predicted pose; then a deeper pyramid from the last positions (a motion
             # the prediction missed: the first frames without a velocity, a jolt, dropped frames)
-            attempts = [(T_pred, cfg.klt_levels)]
-            if cfg.retry_klt_levels > cfg.klt_levels:
+            attempts = [(T_pred, cfg.track_klt_levels)]
+            if cfg.retry_klt_levels > cfg.track_klt_levels:
                 attempts.append((None, cfg.retry_klt_levels))
             for k, (T_guess, levels) in enumerate(attempts):
                 uv_new, good = self._klt_track(left, T_guess, levels)
@@ -345,8 +358,9 @@ class StereoEstimator(KeyframeJobs):
         g = guess.reshape(-1, 1, 2).astype(np.float32)
         p1, st, _ = cv2.calcOpticalFlowPyrLK(self._prev_left, left, p0, g.copy(),
                                              flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **klt)
-        pb, stb, _ = cv2.calcOpticalFlowPyrLK(left, self._prev_left, p1, p0.copy(),
-                                              flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **klt)
+        # back from the new positions, seeded with the old ones: a true track converges there at once
+        pb, stb, _ = cv2.calcOpticalFlowPyrLK(left, self._prev_left, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                                              **dict(klt, maxLevel=min(levels, self.cfg.fb_klt_levels)))
         fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
         w, h = self.rig.cam0.size
         p1 = p1.reshape(-1, 2)
