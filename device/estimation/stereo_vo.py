@@ -65,9 +65,9 @@ log = logging.getLogger(__name__)
 class StereoConfig:
     feature_preset: str = "onboard"  # modified-ASIFT preset used at keyframes (`fast`: 1.4x the CPU, see README)
     use_asift_keyframes: bool = True
-    max_points: int = 500  # map points kept for tracking
+    max_points: int = 400  # map points kept for tracking (the frame loop's cost grows with them)
     new_corner_spacing_px: int = 14
-    min_tracked: int = 120  # fewer tracked inliers -> keyframe
+    min_tracked: int = 100  # fewer tracked inliers -> keyframe
     kf_track_ratio: float = 0.6  # tracked inliers below this share of the map at the last keyframe -> keyframe
     kf_rotation_deg: float = 15.0  # rotation since the last keyframe -> keyframe (the view change ASIFT bridges)
     kf_parallax_px: float = 0.0  # median flow since the keyframe -> keyframe (0 = off)
@@ -82,7 +82,7 @@ class StereoConfig:
     klt_window: int = 15  # tracking and stereo (15: ~half the pixels of 21 per iteration)
     klt_levels: int = 3  # pyramid of a search without a 3D guess (new stereo points)
     track_klt_levels: int = 2  # pyramid of the tracking from the predicted pose (the retry goes deeper)
-    seeded_stereo_levels: int = 2  # pyramid of the right-image search from a known 3D point (an accurate guess)
+    seeded_stereo_levels: int = 1  # pyramid of the right-image search from a known 3D point (a guess within ~1 px)
     fb_klt_levels: int = 1  # pyramid of the backward (check) track: it starts at the known answer, a refinement
     retry_klt_levels: int = 5  # deeper pyramid of the retry when tracking from the prediction fails
     relocalise: bool = True  # match SIFT against the last keyframe library when tracking fails
