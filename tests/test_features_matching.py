@@ -238,19 +238,3 @@ def test_matches_points_helper():
     np.testing.assert_allclose(p1, f.xy[[0, 2]])
     np.testing.assert_allclose(p2, f.xy[[1, 3]])
 
-
-def test_distinct_view_pairs_skip_a_simulated_view_against_itself():
-    # both sets have views 0 and 1; the points are seen only in view 1 on both sides: matching view 1 with
-    # view 1 (the same tilt and longitude: no relative tilt) is what "distinct" leaves out
-    rng = np.random.default_rng(7)
-    xy = rng.uniform(10, 630, (60, 2))
-    desc = random_desc(rng, 60)
-    other = random_desc(rng, 60)
-    f1 = make_features(np.vstack([xy + 200.0, xy]), np.vstack([other, desc]), [0] * 60 + [1] * 60)
-    f2 = make_features(np.vstack([xy - 200.0, xy]), np.vstack([random_desc(rng, 60), desc + 1.0]), [0] * 60 + [1] * 60)
-    assert len(match(f1, f2, MatchConfig(view_pairs="all"))) >= 55
-    assert len(match(f1, f2, MatchConfig(view_pairs="distinct"))) <= 2
-    # the original view is still matched with itself
-    g1 = make_features(xy, desc, [0] * 60)
-    g2 = make_features(xy, desc + 1.0, [0] * 60)
-    assert len(match(g1, g2, MatchConfig(view_pairs="distinct"))) >= 55
