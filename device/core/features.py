@@ -234,9 +234,7 @@ PRESETS: dict[str, FeatureConfig] = {
     ),
     "full": FeatureConfig(backend="cv2_affine", pairing="symmetric"),
     # the on-board estimator's keyframes: plain SIFT density, two tilted views at half scale
-    # the on-board estimator's keyframes: plain SIFT on the image at 0.7 (SIFT's doubled first octave is then
-    # at 1.4x: the finest, least repeatable scales go, ~half the cost), two tilted views at half scale (the
-    # estimator simulates the tilt it predicts instead when asked to: StereoConfig.asift_views)
+    # the estimator's keyframes: SIFT on the image at 0.7 (its doubled first octave at 1.4x; ~half the cost)
     "onboard": FeatureConfig(
         views=(ORIGINAL_VIEW, (2.0, 0.0), (2.0, 90.0)),
         view_scale=0.5,
@@ -430,24 +428,17 @@ def _check_image(image: np.ndarray) -> np.ndarray:
 
 
 def _detect_original(image: np.ndarray, cfg: FeatureConfig) -> Features:
-    """SIFT on the original view, at ``cfg.original_scale`` (keypoints in original pixels)."""
-    sift = _make_sift(cfg, view=False)
+    """SIFT on the original view at ``cfg.original_scale``, keypoints in original pixels."""
     h, w = image.shape
-    M = None
-    b = cfg.border_px
-    if cfg.original_scale != 1.0:
-        sw, sh = max(1, int(round(w * cfg.original_scale))), max(1, int(round(h * cfg.original_scale)))
-        image = cv2.resize(image, (sw, sh), interpolation=cv2.INTER_AREA)
-        sx, sy = sw / w, sh / h
-        # original -> small with pixel centres kept: x_s = sx * x + 0.5 * sx - 0.5
-        M = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5]])
-        h, w = sh, sw
-        b = max(1, int(round(b * sx))) if b > 0 else 0
-    mask = None
-    if b > 0:
-        mask = np.zeros((h, w), np.uint8)
-        mask[b:h - b, b:w - b] = 255
-    kps, desc = sift.detectAndCompute(image, mask)
+    s, M = cfg.original_scale, None
+    if s != 1.0:
+        image = cv2.resize(image, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
+        sx, sy = image.shape[1] / w, image.shape[0] / h
+        M = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5]])  # pixel centres kept
+        h, w = image.shape
+    b = max(1, int(round(cfg.border_px * s))) if cfg.border_px > 0 else 0
+    mask = None if b == 0 else cv2.rectangle(np.zeros((h, w), np.uint8), (b, b), (w - 1 - b, h - 1 - b), 255, -1)
+    kps, desc = _make_sift(cfg, view=False).detectAndCompute(image, mask)
     return _keypoints_to_arrays(kps, desc, 0, M)
 
 

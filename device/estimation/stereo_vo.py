@@ -4,21 +4,17 @@ Per frame (see docs/architecture.md, "Estimators"), a bounded amount of work:
 
 1. gyro integration since the previous frame gives the rotation prior (and the
    fallback when vision fails: the frame is flagged ``imu_only``);
-2. map points (3D, world frame, triangulated from a stereo pair) are tracked
-   into the new left image by pyramidal KLT seeded with the predicted pose,
-   checked forward-backward; when that fails (fast motion the prediction
-   missed) the track is retried with a deeper pyramid from the last positions,
+2. map points (3D, world frame, from stereo) are tracked into the new left image by
+   pyramidal KLT seeded with the predicted pose, checked backward from the new positions;
+   when that fails the track is retried with a deeper pyramid from the last positions,
    and then the frame is relocalised against the last keyframe's features;
-3. PnP RANSAC on the 2D-3D matches, then Levenberg-Marquardt on the
-   reprojection error in both cameras (the right-image observations found by
-   KLT on the rectified rows);
-4. keyframes are chosen by what the path needs: too few tracked points left
-   (absolute, or a share of the map at the last keyframe), a rotation since the
-   last keyframe that the next modified-ASIFT match must bridge, or age - not
-   by pixel flow, which driving produces on every frame.  At a keyframe the
-   map is topped up with new stereo points (corners away from the tracks,
-   left/right by KLT, accepted when the rectified rows agree and the disparity
-   is positive) - that is all the frame loop does.
+3. PnP RANSAC on the 2D-3D matches, then Levenberg-Marquardt on the reprojection error
+   in both cameras (the right-image observations found by KLT on the rectified rows);
+4. keyframes are chosen by what the path needs: too few tracked points left (absolute, or
+   a share of the map at the last keyframe), a rotation the next modified-ASIFT match must
+   bridge, or age - not by pixel flow, which driving produces on every frame.  A keyframe
+   tops the map up with new stereo points (corners away from the tracks, left/right by
+   KLT on the same rectified row, positive disparity) - that is all the frame loop does.
 
 The modified-ASIFT work of a keyframe runs off the frame loop on a worker thread
 (:mod:`stereopath.device.estimation.keyframe_jobs`); the frame loop never waits for it.
@@ -74,12 +70,9 @@ class StereoConfig:
     kf_max_frames: int = 20
     asift_min_rotation_deg: float = 3.0  # rotation since the last ASIFT keyframe that asks for ASIFT work again
     asift_max_frames: int = 30  # ... or frames since it
-    # the affine views of a keyframe match: "predicted" simulates them on the keyframe only when the view
-    # change since the matched keyframe (from the tracked poses) exceeds asift_view_min_tilt (what SIFT bridges
-    # itself: the sqrt(2) tilt step of ASIFT's sampling); "preset" keeps every view of feature_preset in the library
-    asift_views: str = "predicted"
-    asift_view_min_tilt: float = 1.41
-    klt_window: int = 15  # tracking and stereo (15: ~half the pixels of 21 per iteration)
+    asift_views: str = "predicted"  # affine views for the predicted view change ("preset": every preset view)
+    asift_view_min_tilt: float = 1.41  # ... above the tilt SIFT bridges itself (ASIFT's sqrt(2) tilt step)
+    klt_window: int = 15  # tracking and stereo
     klt_levels: int = 3  # pyramid of a search without a 3D guess (new stereo points)
     track_klt_levels: int = 2  # pyramid of the tracking from the predicted pose (the retry goes deeper)
     seeded_stereo_levels: int = 1  # pyramid of the right-image search from a known 3D point (a guess within ~1 px)
