@@ -72,7 +72,7 @@ class StereoConfig:
     asift_max_frames: int = 30  # ... or frames since it
     asift_views: str = "predicted"  # affine views for the predicted view change ("preset": every preset view)
     asift_view_min_tilt: float = 1.41  # ... above the tilt SIFT bridges itself (ASIFT's sqrt(2) tilt step)
-    klt_window: int = 15  # tracking and stereo
+    klt_window: int = 19  # tracking and stereo (15 lost tracks on the blurrier EuRoC frames)
     klt_levels: int = 3  # pyramid of a search without a 3D guess (new stereo points)
     track_klt_levels: int = 2  # pyramid of the tracking from the predicted pose (the retry goes deeper)
     seeded_stereo_levels: int = 1  # pyramid of the right-image search from a known 3D point (a guess within ~1 px)
