@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stereopath.device.core.geometry import invert_pose, make_pose
+from stereopath.device.core.geometry import make_pose
 from stereopath.device.core.rig import make_camera, make_rig
 from stereopath.device.core.stereo import project
 from stereopath.device.estimation.stereo_measure import StereoMeasure
@@ -27,18 +27,16 @@ def _kitti_like_rig():
 
 def _scene(rng, rig, n_kf=6, n_pts=300):
     """A forward drive past points 6-40 m away; the right observations carry the disparity bias."""
-    pts = {i: np.array([rng.uniform(-12, 12), rng.uniform(-2, 2), rng.uniform(6, 40)]) for i in range(n_pts)}
+    X = np.column_stack([rng.uniform(-12, 12, n_pts), rng.uniform(-2, 2, n_pts), rng.uniform(6, 40, n_pts)])
     T_wc = np.array([make_pose(np.eye(3), [0, 0, 0.8 * k]) for k in range(n_kf)])
-    obs = []
-    for k, T in enumerate(T_wc):
-        Tcw = invert_pose(T)
-        for i, X in pts.items():
-            Xc = Tcw[:3, :3] @ X + Tcw[:3, 3]
-            uv0, _ = project(rig.cam0.K, Xc[None])
-            uv1, _ = project(rig.cam1.K, (rig.R @ Xc + rig.T)[None])
-            obs.append([k, i, 0, *(uv0[0] + rng.normal(0, 0.05, 2))])
-            obs.append([k, i, 1, uv1[0, 0] + BIAS_PX + rng.normal(0, 0.05), uv1[0, 1] + rng.normal(0, 0.05)])
-    return T_wc, pts, np.array(obs)
+    ids = np.arange(n_pts)
+    rows = []
+    for k in range(n_kf):
+        Xc = X - T_wc[k][:3, 3]  # the camera only moves forward
+        for cam, uv in ((0, project(rig.cam0.K, Xc)[0]), (1, project(rig.cam1.K, Xc + rig.T)[0] + [BIAS_PX, 0])):
+            uv = uv + rng.normal(0, 0.05, uv.shape)
+            rows.append(np.column_stack([np.full(n_pts, k), ids, np.full(n_pts, cam), uv]))
+    return T_wc, dict(enumerate(X)), np.vstack(rows)
 
 
 def test_the_refined_rig_round_trip_removes_the_offset(tmp_path):
