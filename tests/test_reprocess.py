@@ -142,6 +142,7 @@ def test_the_refined_rig_is_written_only_when_a_disparity_offset_was_applied(ful
     assert np.array_equal(refined.cam0.K, rig.cam0.K) and np.array_equal(refined.cam1.dist, rig.cam1.dist)
     assert np.allclose(refined.T_body_cam0, rig.T_body_cam0) and np.allclose(refined.R, rig.R)
     assert str(session) in (tmp_path / "rig_refined.yaml").read_text()
+    assert "href='rig_refined.yaml'" in (tmp_path / "report.html").read_text()
 
 
 def test_resume_after_an_interruption(full_run, session, tmp_path):
