@@ -63,26 +63,47 @@ def machine_busy_s() -> float:
     return (sum(vals[:8]) - idle) / os.sysconf("SC_CLK_TCK")
 
 
-def tree_cpu_s(pids: list[int] | None = None) -> float:
-    """CPU seconds (user + system, all threads) of this process and its live descendants."""
-    import psutil
+class TreeCpu:
+    """CPU seconds of this process and every descendant that lived during the block, sampled every
+    ``period_s`` (Ray starts and ends worker processes on its own: a worker that exits is counted
+    up to its last sample, and a pid is known by its start time)."""
 
-    roots = [psutil.Process(p) for p in (pids or [os.getpid()])]
-    total = 0.0
-    seen = set()
-    for r in roots:
-        for p in [r, *r.children(recursive=True)]:
-            if p.pid in seen:
-                continue
-            seen.add(p.pid)
+    def __init__(self, period_s: float = 0.2) -> None:
+        import threading
+
+        self.period_s, self.seen = period_s, {}
+        self.stop_event = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def sample(self) -> None:
+        import psutil
+
+        me = psutil.Process()
+        for p in [me, *me.children(recursive=True)]:
             try:
                 t = p.cpu_times()
-                total += t.user + t.system
-                if p.pid == os.getpid():
-                    total += t.children_user + t.children_system  # finished children
+                self.seen[(p.pid, p.create_time())] = t.user + t.system
             except psutil.NoSuchProcess:
                 pass
-    return total
+
+    def _run(self) -> None:
+        while not self.stop_event.wait(self.period_s):
+            self.sample()
+
+    def __enter__(self) -> "TreeCpu":
+        self.sample()
+        self.start = dict(self.seen)
+        self.thread.start()
+        return self
+
+    def total(self) -> float:
+        """CPU used since the start (processes alive at the start count from their start value)."""
+        self.sample()
+        return sum(c - self.start.get(k, 0.0) for k, c in self.seen.items())
+
+    def __exit__(self, *exc) -> None:
+        self.stop_event.set()
+        self.thread.join()
 
 
 class Phase:
@@ -92,15 +113,16 @@ class Phase:
         self.name = name
 
     def __enter__(self) -> "Phase":
-        self.t0, self.busy0, self.own0 = time.perf_counter(), machine_busy_s(), tree_cpu_s()
+        self.cpu = TreeCpu().__enter__()
+        self.t0, self.busy0 = time.perf_counter(), machine_busy_s()
         self.load0 = os.getloadavg()[0]
-        self.extra_cpu = 0.0  # CPU of processes that end inside the block (added by the caller)
         return self
 
     def stop(self, own_now: float | None = None) -> None:
         self.wall = time.perf_counter() - self.t0
         self.busy = machine_busy_s() - self.busy0
-        self.own = (tree_cpu_s() if own_now is None else own_now) - self.own0 + self.extra_cpu
+        self.own = self.cpu.total() if own_now is None else own_now
+        self.cpu.__exit__()
         self.others = max(0.0, self.busy - self.own)
         self.free_share = max(0.05, 1.0 - self.others / (CORES * self.wall))
         self.load1 = os.getloadavg()[0]
@@ -138,19 +160,14 @@ def sequential(sessions, out: Path, settings: ReprocessSettings) -> Phase:
     return ph
 
 
-def fleet_local(sessions, out: Path, settings: ReprocessSettings, on_update=None) -> tuple[Phase, object]:
+def fleet_local(sessions, out: Path, settings: ReprocessSettings, on_update=None,
+                poll_s: float = 0.5) -> tuple[Phase, object]:
     import shutil
 
-    import ray
-
     shutil.rmtree(out, ignore_errors=True)  # everything computed (a kept folder would be reused)
-    with Phase("fleet (local Ray, 2 CPUs)") as ph:
-        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
-                 logging_level=logging.WARNING)
-        res = run_fleet(sessions, out, settings, FleetOptions(poll_s=0.25), on_update=on_update)
-        own = tree_cpu_s()  # Ray's processes are still alive: count them now
-        ray.shutdown()
-        ph.stop(own_now=own)
+    with Phase("fleet (local Ray, 2 CPUs)") as ph:  # run_fleet starts and stops Ray (as the command does)
+        res = run_fleet(sessions, out, settings, FleetOptions(num_cpus=2, poll_s=poll_s), on_update=on_update)
+        ph.stop()
     return ph, res
 
 
@@ -199,9 +216,11 @@ def profile(session, out: Path, settings: ReprocessSettings, threads: int | None
 
 
 def session_lines(res) -> list[str]:
-    return [f"    {st.session.id}: {st.status}, {(st.result or {}).get('keyframes')} keyframes, task wall "
-            f"{(st.result or {}).get('wall_s')} s, CPU {(st.result or {}).get('cpu_s')} s, node {st.node}"
-            for st in res.sessions]
+    t0 = min((st.started for st in res.sessions if st.started), default=0.0)
+    return [f"    {st.session.id}: {st.status}, {(st.result or {}).get('keyframes')} keyframes, from "
+            f"{(st.started or t0) - t0:.1f} s to {(st.finished or t0) - t0:.1f} s after the first task, tasks' wall "
+            f"{(st.result or {}).get('wall_s')} s, CPU {(st.result or {}).get('cpu_s')} s (with "
+            f"{(st.result or {}).get('pieces')} pieces), node {st.node}" for st in res.sessions]
 
 
 def check(ref: Path, out: Path, sessions) -> str:
@@ -308,7 +327,7 @@ def fault_run(sessions, ref: Path, tmp: Path, settings: ReprocessSettings) -> No
                 killed.update(pid=st.pid, stored=list(st.stored), at=time.perf_counter())
 
     out = tmp / "fault_out"
-    ph, res = fleet_local(sessions, out, settings, on_update=on_update)
+    ph, res = fleet_local(sessions, out, settings, on_update=on_update, poll_s=0.25)
     st = next(s for s in res.sessions if s.session.id == victim)
     print(f"  killed worker pid {killed.get('pid')} of {victim} during ba (stored then: {killed.get('stored')})")
     print(f"  {ph.line()}")

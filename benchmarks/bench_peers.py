@@ -1,7 +1,7 @@
 """Our `stereo` estimator side by side with ORB-SLAM3 on the same frames (issue 10).  Prints figures.
 
     .venv/bin/python benchmarks/bench_peers.py [--runs 3] [--cases kitti06,kitti06_s2,kitti06_s3,sim]
-        [--peer-venv DIR] [--vocab FILE] [--sim-frames N] [--threads N]
+        [--peer-venv DIR] [--vocab FILE] [--sim-frames N] [--threads N] [--rig RIG.yaml]
 
 Installs nothing.  ORB-SLAM3 runs only when its own environment exists (a virtual environment
 with `pyorbslam3`, default `../peer-venv` or `../../peer-venv` beside the repository, or
@@ -22,7 +22,9 @@ alignment, ``stereopath eval``), median and p95 wall ms per frame (the estimator
 CPU ms per frame (process CPU time of all threads over the frame loop, image decoding included for
 both systems, divided by the frames) and frames tracked.  Ratios ours / ORB-SLAM3 come from the
 same run.  For one-core figures run it under ``taskset -c 0`` with ``--threads 1`` (OpenCV at one
-thread in our process; ORB-SLAM3 inherits the affinity).
+thread in our process; ORB-SLAM3 inherits the affinity).  ``--rig`` runs ours with another
+calibration of the same cameras (e.g. the ``rig_refined.yaml`` of ``stereopath host reprocess``);
+ORB-SLAM3 keeps the source's.
 """
 
 from __future__ import annotations
@@ -94,15 +96,21 @@ def subsampled_kitti(src: Path, step: int, out: Path) -> Path:
 # ------------------------------------------------------------------------------------ systems
 
 
-def run_ours(spec: str, options: dict | None = None) -> dict:
-    """One run of our `stereo` on ``spec``; CPU time of the whole process over the frame loop."""
+def run_ours(spec: str, options: dict | None = None, rig_file: str | None = None) -> dict:
+    """One run of our `stereo` on ``spec`` (with ``rig_file``'s rig if given); CPU time of the whole
+    process over the frame loop."""
     from stereopath.device.estimation.base import run_estimator
     from stereopath.device.estimation.registry import make_estimator
     from stereopath.host.evaluation.evaluate import evaluate
     from stereopath.device.formats.source import open_source
 
     seq = open_source(spec)
-    est = make_estimator("stereo", seq.rig, options=options)
+    rig = seq.rig
+    if rig_file:
+        from stereopath.device.formats.rig_files import load_rig_yaml
+
+        rig = load_rig_yaml(rig_file)
+    est = make_estimator("stereo", rig, options=options)
     cpu0 = time.process_time()
     run = run_estimator(est, seq.frames(), seq.imu)  # joins the keyframe worker before returning
     cpu = time.process_time() - cpu0
@@ -176,6 +184,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None, help="cv2.setNumThreads in our process (1 = one core)")
     ap.add_argument("--no-peer", action="store_true", help="our rows only")
     ap.add_argument("--option", action="append", default=[], help="stereo config KEY=VALUE (ours)")
+    ap.add_argument("--rig", default=None, help="rig YAML for ours instead of the source's (e.g. rig_refined.yaml)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     import cv2
@@ -237,7 +246,7 @@ def main() -> None:
                     row = run_orb(py, runner, orb_source, tmp / f"orb_{case}_{r}", vocab, gt)
                     results[case]["ORB-SLAM3 stereo"].append(row)
                     print(f"{case} run {r}: ORB-SLAM3 {json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()})}", flush=True)
-                row = run_ours(ours_spec, options)
+                row = run_ours(ours_spec, options, args.rig)
                 results[case]["stereo"].append(row)
                 print(f"{case} run {r}: stereo    {json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()})}", flush=True)
         print_table(results)

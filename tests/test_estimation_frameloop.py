@@ -126,3 +126,61 @@ def test_asift_work_is_scheduled_by_view_change_not_at_every_keyframe(data_dir):
         turning.process(f, None)
     turning.close()
     assert turning.counters["kf_jobs"] == 4  # any rotation asks for it: every keyframe
+
+
+def _look_at(c, target=np.zeros(3), up=np.array([0.0, -1.0, 0.0])):
+    """Camera-to-world pose at ``c`` looking at ``target`` (x right, y down, z forward)."""
+    z = target - c
+    z = z / np.linalg.norm(z)
+    x = np.cross(up, z)
+    x = x / np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    T[:3, 3] = c
+    return T
+
+
+def test_predicted_view_change_gives_the_tilt_and_its_direction():
+    from stereopath.device.estimation.keyframe_jobs import predicted_view_change
+
+    rng = np.random.default_rng(0)
+    X = rng.normal(0, 0.05, (200, 3))  # a small cloud around the origin, 2 m ahead
+    T0 = _look_at(np.array([0.0, 0.0, -2.0]))
+    # a pure rotation changes no viewing direction: no tilt
+    T_rot = T0.copy()
+    T_rot[:3, :3] = T0[:3, :3] @ cv2.Rodrigues(np.array([0.0, 0.3, 0.0]))[0]
+    assert predicted_view_change(X, T0, T_rot)[0] == pytest.approx(1.0, abs=1e-9)
+    # orbiting 60 deg sideways (about the vertical): tilt 2 along the image x axis
+    a = np.radians(60)
+    tilt, phi = predicted_view_change(X, T0, _look_at(2.0 * np.array([np.sin(a), 0.0, -np.cos(a)])))
+    assert tilt == pytest.approx(2.0, rel=0.03)
+    assert min(phi, 180 - phi) < 3.0
+    # orbiting 45 deg upwards: tilt sqrt(2) along the image y axis
+    a = np.radians(45)
+    tilt, phi = predicted_view_change(X, T0, _look_at(2.0 * np.array([0.0, -np.sin(a), -np.cos(a)])))
+    assert tilt == pytest.approx(np.sqrt(2), rel=0.03)
+    assert abs(phi - 90.0) < 3.0
+    assert predicted_view_change(np.zeros((0, 3)), T0, T0) == (1.0, 0.0)
+
+
+def test_keyframe_match_simulates_views_only_for_a_large_predicted_view_change(data_dir):
+    from stereopath.device.core.features import Features
+
+    rig, frames = _kitti_frames(data_dir, [0])
+    est = StereoEstimator(rig, StereoConfig(background_keyframes=False))
+    left = frames[0].left
+    feats0 = est._features(left, views=[0])
+    X = np.random.default_rng(1).normal(0, 0.5, (100, 3)) + [0.0, 0.0, 10.0]
+    T0 = _look_at(np.zeros(3), np.array([0.0, 0.0, 10.0]))
+    small = _look_at(np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 10.0]))  # ~6 deg: SIFT bridges it
+    same = est._with_predicted_views(left, feats0, X, T0, small)
+    assert same is feats0
+    big = _look_at(np.array([10.0 * np.sin(1.0), 0.0, 10.0 - 10.0 * np.cos(1.0)]), np.array([0.0, 0.0, 10.0]))
+    out = est._with_predicted_views(left, feats0, X, T0, big)  # 57 deg: tilt ~1.85
+    assert isinstance(out, Features) and set(np.unique(out.view)) == {0, 1, 2}
+    assert len(out) > len(feats0)
+    est.close()
+    from stereopath.device.errors import ConfigError
+
+    with pytest.raises(ConfigError):
+        StereoConfig(asift_views="sometimes")

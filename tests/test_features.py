@@ -145,6 +145,24 @@ def test_downscaled_views_map_back_too():
 # --------------------------------------------------------------------------- detect
 
 
+def test_original_view_at_a_reduced_scale_maps_back_to_full_resolution_keypoints():
+    img = texture(w=480, h=360, seed=4)
+    full = detect(img, FeatureConfig())
+    half = detect(img, FeatureConfig(original_scale=0.5))
+    assert 20 < len(half) < len(full)
+    assert (half.view == 0).all()
+    ms = cv2.BFMatcher(cv2.NORM_L2).match(half.desc, full.desc)
+    d = np.array([full.xy[m.trainIdx] - half.xy[m.queryIdx] for m in ms])
+    close = np.linalg.norm(d, axis=1) < 3.0
+    assert close.sum() > 0.3 * len(half)
+    assert np.abs(np.median(d[close], axis=0)).max() < 0.3  # pixel centres kept: no half-pixel shift
+    # sizes in original pixels: the matched keypoints' sizes agree
+    ratio = np.array([full.size[m.trainIdx] / half.size[m.queryIdx] for m in ms])[close]
+    assert 0.8 < np.median(ratio) < 1.25
+    with pytest.raises(ConfigError):
+        FeatureConfig(original_scale=1.5)
+
+
 def test_detect_returns_consistent_arrays():
     f = detect(texture(), "fast")
     n = len(f)

@@ -237,3 +237,4 @@ def test_matches_points_helper():
     p1, p2 = m.points(f, f)
     np.testing.assert_allclose(p1, f.xy[[0, 2]])
     np.testing.assert_allclose(p2, f.xy[[1, 3]])
+

@@ -35,7 +35,10 @@ def _record(d: Path, frames: int, seed: int, trajectory: str = "arc") -> Path:
 def local_ray():
     if ray.is_initialized():
         ray.shutdown()
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    from stereopath.host.fleet.runner import keep_workers
+
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
+             _system_config=keep_workers(2))  # as run_fleet starts a local Ray
     yield ray
     ray.shutdown()
 
@@ -107,6 +110,8 @@ def test_fleet_results_equal_the_one_session_command(fleet_run, sessions, tmp_pa
             for k in x:
                 assert x[k] == y[k] if isinstance(x[k], dict) else x[k].tobytes() == y[k].tobytes(), (stage, k)
         assert (one / "trajectory.tum").read_bytes() == (out / ids[name] / "trajectory.tum").read_bytes()
+    # the tracks stage's pieces (per keyframe, per gap) ran as Ray tasks of their own
+    assert all(s.result["pieces"] > 0 for s in res.sessions if s.session.path.name in ("a", "b"))
     ba = npz_contents(tmp_path / "a" / "stages" / "ba.npz")
     assert len(ba["T_frames"]) == 30 and len(ba["point_xyz"]) > 0 and ba["stats"]["iterations"] > 0
     assert (out / ids["a"] / "mesh.ply").is_file()
@@ -266,3 +271,16 @@ def test_fleet_html_escapes_names():
     page = render_html({"counts": {"done": 0, "failed": 1}, "wall_s": 1.0, "written_utc": "now",
                         "sessions": [{"id": "<x>", "status": "failed", "error": "DatasetError: <bad> & worse"}]})
     assert "<x>" not in page and "&lt;bad&gt; &amp; worse" in page
+
+
+def test_compare_can_leave_out_the_session_path_a_worker_saw(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    for d, src in ((a, "/data/s1"), (b, "/mnt/worker/s1")):
+        d.mkdir()
+        (d / "report.json").write_text(json.dumps({"source": src, "frames": 3, "wall_s": 1.0,
+                                                   "extra": {"map": {"error": f"{src}: no surface"}}}))
+    assert differences(a, b) == ["report.json: differs in extra, source"]
+    assert differences(a, b, ignore_source=True) == []
+    (b / "report.json").write_text(json.dumps({"source": "/mnt/worker/s1", "frames": 4,
+                                               "extra": {"map": {"error": "/mnt/worker/s1: no surface"}}}))
+    assert differences(a, b, ignore_source=True) == ["report.json: differs in frames"]

@@ -80,6 +80,9 @@ def test_reprocess_writes_every_output_and_improves_the_path(full_run):
     assert after <= before  # bundle adjustment improves (or keeps) the path
     assert ba["ate_ratio_vs_reestimated"] == pytest.approx(after / before)
     assert rep["extra"]["bundle_adjustment"]["rms_after_px"] < rep["extra"]["bundle_adjustment"]["rms_before_px"]
+    # a refined rig for the device exactly when the adjustment applied a disparity offset
+    applied = rep["extra"]["bundle_adjustment"]["disparity_offset_px"] != 0.0
+    assert (rep["extra"]["rig_refined"] is not None) == applied == (out / "rig_refined.yaml").is_file()
     # a 60-frame arc never comes back: no loop, but the loop entry says so with the end-to-start figures
     imu = rep["extra"]["bundle_adjustment"]["imu"]  # the simulated session's IMU is in the adjustment
     assert imu["factors"] >= 1 and len(imu["biases"]["accel_m_s2"]) == len(imu["biases"]["t_ns"]) >= 2
@@ -109,6 +112,37 @@ def test_rerun_reuses_every_stage_and_gives_identical_outputs(full_run, session)
     assert seen == [] and set(res.stages.values()) == {"reused"}
     assert _mtimes(out / "stages") == mt
     assert (out / "trajectory.tum").read_bytes() == traj_before
+
+
+@pytest.mark.parametrize("min_px", [0.0, 1.0])
+def test_the_refined_rig_is_written_only_when_a_disparity_offset_was_applied(full_run, session, tmp_path, min_px):
+    """Threshold 0: any offset is applied -> rig_refined.yaml, the session's rig with cam1.cx moved by
+    it; threshold 1 px: none is -> no file (an earlier run's is removed) and ``rig_refined: null``."""
+    import dataclasses
+
+    from stereopath.device.formats.rig_files import load_rig_yaml
+    from stereopath.device.formats.source import open_source
+
+    out, _, _ = full_run
+    shutil.copytree(out / "stages", tmp_path / "stages")  # the estimate and tracks stages are reused
+    (tmp_path / "rig_refined.yaml").write_text("# an earlier run's\n")
+    preset = dataclasses.replace(REPROCESS_PRESETS["standard"], ba_disparity_offset_min_px=min_px,
+                                 refine_frames=False)
+    res = reprocess_session(session, tmp_path, preset=preset, do_map=False, progress=False)
+    assert res.stages["estimate"] == res.stages["tracks"] == "reused" and res.stages["ba"] == "computed"
+    off = res.report["extra"]["bundle_adjustment"]["disparity_offset_px"]
+    entry = json.loads((tmp_path / "report.json").read_text())["extra"]["rig_refined"]
+    if min_px > 0:
+        assert off == 0.0 and entry is None
+        assert not (tmp_path / "rig_refined.yaml").exists() and "rig_refined.yaml" not in res.files
+        return
+    assert off != 0.0 and entry["disparity_offset_px"] == off and "rig_refined.yaml" in res.files
+    rig, refined = open_source(f"session:{session}").rig, load_rig_yaml(tmp_path / "rig_refined.yaml")
+    assert refined.cam1.cx == pytest.approx(rig.cam1.cx + off, abs=1e-9)
+    assert np.array_equal(refined.cam0.K, rig.cam0.K) and np.array_equal(refined.cam1.dist, rig.cam1.dist)
+    assert np.allclose(refined.T_body_cam0, rig.T_body_cam0) and np.allclose(refined.R, rig.R)
+    assert str(session) in (tmp_path / "rig_refined.yaml").read_text()
+    assert "href='rig_refined.yaml'" in (tmp_path / "report.html").read_text()
 
 
 def test_resume_after_an_interruption(full_run, session, tmp_path):

@@ -123,14 +123,19 @@ class Rig:
 
     @property
     def is_rectified(self) -> bool:
-        """True when the pair is already row-aligned (KITTI): no rotation, no distortion, x-only baseline."""
+        """True when the pair is already row-aligned (KITTI): no rotation, no distortion, x-only baseline.
+
+        The principal points may differ along x (a refined calibration's constant disparity
+        offset, see ``host reprocess``'s ``rig_refined.yaml``): rows stay aligned."""
+        K0, K1 = self.cam0.K, self.cam1.K
+        same = np.array([[1, 1, 0], [1, 1, 1], [1, 1, 1]], bool)  # every entry but cx
         return (
             np.allclose(self.R, np.eye(3), atol=1e-9)
             and abs(self.T[1]) < 1e-9
             and abs(self.T[2]) < 1e-9
             and not np.any(self.cam0.dist)
             and not np.any(self.cam1.dist)
-            and np.allclose(self.cam0.K, self.cam1.K)
+            and np.allclose(K0[same], K1[same])
         )
 
     def rectification(self, alpha: float = 0.0) -> Rectification:

@@ -24,6 +24,7 @@ from stereopath.device.core.geometry import invert_pose, rotation_angle_deg
 log = logging.getLogger(__name__)
 
 _LIVE_POSES = ("_T_world_cam", "_T_prev_prev", "_T_kf", "_T_library", "_T_asift")
+MAX_SIMULATED_TILT = 4.0  # larger predicted view changes are simulated at this tilt (latitude ~76 deg)
 
 
 @dataclass
@@ -53,6 +54,7 @@ class KeyframeResult:
     library: Library | None  # this keyframe's library, or the one it matched against when it has none
     T_library: np.ndarray | None  # pose of that library's keyframe (world at submission, corrected)
     T_library_pre: np.ndarray | None = None  # the same without this job's own correction
+    n_views: int = 0  # affine views simulated for the match (predicted from the view change)
 
 
 class Ready:
@@ -77,6 +79,33 @@ def rigid(T: np.ndarray) -> np.ndarray:
     out = T.copy()
     out[:3, :3] = R
     return out
+
+
+def predicted_view_change(X_world: np.ndarray, T_prev: np.ndarray, T_cur: np.ndarray) -> tuple[float, float]:
+    """The affine view change from the previous keyframe to this one, as ASIFT parameters.
+
+    Returns ``(tilt, longitude_deg)`` in the current image: ``tilt = 1 / cos(theta)`` with ``theta``
+    the median angle between the two cameras' viewing rays to the points ``X_world`` (a pure
+    rotation changes no viewing direction: tilt 1), and the longitude the image direction along
+    which the viewpoint moved (where a surface facing one camera is foreshortened in the other)."""
+    X = np.asarray(X_world, np.float64).reshape(-1, 3)
+    if len(X) == 0:
+        return 1.0, 0.0
+    R_cw = T_cur[:3, :3].T
+    rc = (X - T_cur[:3, 3]) @ R_cw.T  # rays in the current camera frame
+    rp = (X - T_prev[:3, 3]) @ R_cw.T
+    ok = (rc[:, 2] > 0) & (np.linalg.norm(rp, axis=1) > 0)
+    if not ok.any():
+        return 1.0, 0.0
+    rc = rc[ok] / np.linalg.norm(rc[ok], axis=1, keepdims=True)
+    rp = rp[ok] / np.linalg.norm(rp[ok], axis=1, keepdims=True)
+    theta = float(np.median(np.arccos(np.clip(np.sum(rc * rp, axis=1), -1.0, 1.0))))
+    tilt = 1.0 / max(np.cos(theta), 1e-3)
+    d = rp - rc  # the move of the viewpoint, seen from the current camera (an axis: doubled angles)
+    a = 2.0 * np.arctan2(d[:, 1], d[:, 0])
+    w = np.hypot(d[:, 0], d[:, 1])
+    phi = 0.5 * np.degrees(np.arctan2(np.sum(w * np.sin(a)), np.sum(w * np.cos(a))))
+    return float(tilt), float(phi % 180.0)
 
 
 def resolve_previous(source, C_sub: np.ndarray):
@@ -167,6 +196,7 @@ class KeyframeJobs:
                     self.counters["asift_matches"] += res.n_asift
                 else:
                     log.info("keyframe %d: ASIFT correction of %.2f deg rejected", res.seq, ang)
+            self.counters["asift_views"] += res.n_views
             if res.library is not None and res.T_library is not None:
                 # the job's belief of its keyframe (refined) in the live world, before its own correction
                 self._library = res.library
@@ -197,15 +227,19 @@ class KeyframeJobs:
         the previous keyframe, each with a 3D point) around the positions the tracked pose
         predicts; those matches and the tracked map points give the keyframe pose."""
         prev, T_prev = resolve_previous(prev_source, C_sub)
-        feats = self._features(left)
-        T_ref, n_asift = None, 0
+        predicted = self.cfg.asift_views == "predicted"
+        feats = self._features(left, views=[0] if predicted else None)
+        T_ref, n_asift, n_views = None, 0, 0
         if prev is not None and len(feats):
             prev_X = prev.X_cam @ T_prev[:3, :3].T + T_prev[:3, 3]
-            feats0 = feats.original_view()
-            idx = self._asift_matches(prev, prev_X, feats0, T_tracked)
+            cur = feats.original_view()
+            if predicted:
+                cur = self._with_predicted_views(left, cur, prev_X, T_prev, T_tracked)
+                n_views = int(cur.view.max())
+            idx = self._asift_matches(prev, prev_X, cur, T_tracked)
             if len(idx) >= self.cfg.min_pnp_inliers:
                 X = np.vstack([prev_X[idx[:, 1]], X_map])
-                uv = np.vstack([feats0.xy[idx[:, 0]].astype(np.float64), uv_map])
+                uv = np.vstack([cur.xy[idx[:, 0]].astype(np.float64), uv_map])
                 T_new, _, mask = self._geo.solve_pose(left, right, X, uv, T_tracked, seed=seq)
                 # the tracked map must still fit the joint pose: ASIFT matches that pull the pose away
                 # from it (repeated texture, a wrong 3D point) would turn its points into outliers
@@ -213,9 +247,30 @@ class KeyframeJobs:
                     T_ref, n_asift = T_new, int(mask[: len(idx)].sum())
         library = self._library_of(seq, left, right, feats, z0)
         if library is None:  # the next keyframe matches against the one before
-            return KeyframeResult(seq, T_tracked, T_ref, n_asift, prev, T_prev, T_prev)
+            return KeyframeResult(seq, T_tracked, T_ref, n_asift, prev, T_prev, T_prev, n_views)
         return KeyframeResult(seq, T_tracked, T_ref, n_asift, library, T_tracked if T_ref is None else T_ref,
-                              T_tracked)
+                              T_tracked, n_views)
+
+    def _with_predicted_views(self, left, feats0, prev_X: np.ndarray, T_prev: np.ndarray, T_tracked: np.ndarray):
+        """The keyframe's original view, plus the affine views that undo the predicted view change.
+
+        The tracked poses give the tilt and its direction since the previous keyframe (the one whose
+        library is matched).  Below ``asift_view_min_tilt`` SIFT bridges the change itself and no
+        view is simulated; above it, two views at the predicted tilt: squeezed along the move (a
+        surface facing this camera) and across it (one facing the previous camera, up to scale),
+        at the preset's view scale."""
+        import dataclasses
+
+        from stereopath.device.core.features import ORIGINAL_VIEW, Features, detect, get_preset
+
+        tilt, phi = predicted_view_change(prev_X, T_prev, T_tracked)
+        if tilt < self.cfg.asift_view_min_tilt:
+            return feats0
+        t = min(tilt, MAX_SIMULATED_TILT)
+        cfg = dataclasses.replace(get_preset(self.cfg.feature_preset),
+                                  views=(ORIGINAL_VIEW, (t, phi), (t, (phi + 90.0) % 180.0)))
+        log.debug("keyframe views at tilt %.2f, longitudes %.0f/%.0f deg", t, phi, (phi + 90.0) % 180.0)
+        return Features.concat([feats0, detect(left, cfg, views=[1, 2])])
 
     def _library_of(self, seq: int, left, right, feats, z0: float) -> Library | None:
         """The keyframe's features with stereo 3D points (camera frame)."""

@@ -4,21 +4,17 @@ Per frame (see docs/architecture.md, "Estimators"), a bounded amount of work:
 
 1. gyro integration since the previous frame gives the rotation prior (and the
    fallback when vision fails: the frame is flagged ``imu_only``);
-2. map points (3D, world frame, triangulated from a stereo pair) are tracked
-   into the new left image by pyramidal KLT seeded with the predicted pose,
-   checked forward-backward; when that fails (fast motion the prediction
-   missed) the track is retried with a deeper pyramid from the last positions,
+2. map points (3D, world frame, from stereo) are tracked into the new left image by
+   pyramidal KLT seeded with the predicted pose, checked backward from the new positions;
+   when that fails the track is retried with a deeper pyramid from the last positions,
    and then the frame is relocalised against the last keyframe's features;
-3. PnP RANSAC on the 2D-3D matches, then Levenberg-Marquardt on the
-   reprojection error in both cameras (the right-image observations found by
-   KLT on the rectified rows);
-4. keyframes are chosen by what the path needs: too few tracked points left
-   (absolute, or a share of the map at the last keyframe), a rotation since the
-   last keyframe that the next modified-ASIFT match must bridge, or age - not
-   by pixel flow, which driving produces on every frame.  At a keyframe the
-   map is topped up with new stereo points (corners away from the tracks,
-   left/right by KLT, accepted when the rectified rows agree and the disparity
-   is positive) - that is all the frame loop does.
+3. PnP RANSAC on the 2D-3D matches, then Levenberg-Marquardt on the reprojection error
+   in both cameras (the right-image observations found by KLT on the rectified rows);
+4. keyframes are chosen by what the path needs: too few tracked points left (absolute, or
+   a share of the map at the last keyframe), a rotation the next modified-ASIFT match must
+   bridge, or age - not by pixel flow, which driving produces on every frame.  A keyframe
+   tops the map up with new stereo points (corners away from the tracks, left/right by
+   KLT on the same rectified row, positive disparity) - that is all the frame loop does.
 
 The modified-ASIFT work of a keyframe runs off the frame loop on a worker thread
 (:mod:`stereopath.device.estimation.keyframe_jobs`); the frame loop never waits for it.
@@ -46,6 +42,7 @@ import cv2
 import numpy as np
 
 from stereopath.device.core.config import check_range
+from stereopath.device.errors import ConfigError
 from stereopath.device.estimation.base import PoseEstimate, WorldFrame
 from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still, gravity_aligned_rotation
 from stereopath.device.core.features import gray
@@ -64,18 +61,22 @@ log = logging.getLogger(__name__)
 class StereoConfig:
     feature_preset: str = "onboard"  # modified-ASIFT preset used at keyframes (`fast`: 1.4x the CPU, see README)
     use_asift_keyframes: bool = True
-    max_points: int = 500  # map points kept for tracking
+    max_points: int = 400  # map points kept for tracking (the frame loop's cost grows with them)
     new_corner_spacing_px: int = 14
-    min_tracked: int = 120  # fewer tracked inliers -> keyframe
+    min_tracked: int = 100  # fewer tracked inliers -> keyframe
     kf_track_ratio: float = 0.6  # tracked inliers below this share of the map at the last keyframe -> keyframe
     kf_rotation_deg: float = 15.0  # rotation since the last keyframe -> keyframe (the view change ASIFT bridges)
     kf_parallax_px: float = 0.0  # median flow since the keyframe -> keyframe (0 = off)
     kf_max_frames: int = 20
     asift_min_rotation_deg: float = 3.0  # rotation since the last ASIFT keyframe that asks for ASIFT work again
     asift_max_frames: int = 30  # ... or frames since it
-    klt_window: int = 21
-    klt_levels: int = 3
-    seeded_stereo_levels: int = 2  # pyramid of the right-image search from a known 3D point (an accurate guess)
+    asift_views: str = "predicted"  # affine views for the predicted view change ("preset": every preset view)
+    asift_view_min_tilt: float = 1.41  # ... above the tilt SIFT bridges itself (ASIFT's sqrt(2) tilt step)
+    klt_window: int = 19  # tracking and stereo (15 lost tracks on the blurrier EuRoC frames)
+    klt_levels: int = 3  # pyramid of a search without a 3D guess (new stereo points)
+    track_klt_levels: int = 2  # pyramid of the tracking from the predicted pose (the retry goes deeper)
+    seeded_stereo_levels: int = 1  # pyramid of the right-image search from a known 3D point (a guess within ~1 px)
+    fb_klt_levels: int = 1  # pyramid of the backward (check) track: it starts at the known answer, a refinement
     retry_klt_levels: int = 5  # deeper pyramid of the retry when tracking from the prediction fails
     relocalise: bool = True  # match SIFT against the last keyframe library when tracking fails
     fb_max_px: float = 0.6  # forward-backward KLT disagreement
@@ -110,9 +111,14 @@ class StereoConfig:
         check_range("kf_max_frames", self.kf_max_frames, 1, 1000)
         check_range("asift_min_rotation_deg", self.asift_min_rotation_deg, 0.0, 180.0)
         check_range("asift_max_frames", self.asift_max_frames, 1, 100000)
+        check_range("asift_view_min_tilt", self.asift_view_min_tilt, 1.0, 16.0)
+        if self.asift_views not in ("predicted", "preset"):
+            raise ConfigError(f"asift_views must be 'predicted' or 'preset', got {self.asift_views!r}")
         check_range("klt_window", self.klt_window, 5, 61)
         check_range("klt_levels", self.klt_levels, 0, 6)
+        check_range("track_klt_levels", self.track_klt_levels, 0, 6)
         check_range("seeded_stereo_levels", self.seeded_stereo_levels, 0, 6)
+        check_range("fb_klt_levels", self.fb_klt_levels, 0, 8)
         check_range("retry_klt_levels", self.retry_klt_levels, 0, 8)
         check_range("epipolar_max_dy_px", self.epipolar_max_dy_px, 0.1, 5.0)
         check_range("min_depth_m", self.min_depth_m, 0.01, self.max_depth_m)
@@ -176,7 +182,7 @@ class StereoEstimator(KeyframeJobs):
         self._next_id = 0
         self._cur_seq = 0
         self.counters = {"keyframes": 0, "imu_only": 0, "lost": 0, "asift_matches": 0, "kf_jobs": 0,
-                         "kf_jobs_skipped": 0, "kf_jobs_deferred": 0, "kf_corrections": 0, "retracked": 0, "relocalised": 0,
+                         "kf_jobs_skipped": 0, "kf_jobs_deferred": 0, "asift_views": 0, "kf_corrections": 0, "retracked": 0, "relocalised": 0,
                          "disparity_offset_mpx": int(round(1000 * self.cfg.disparity_offset_px))}
 
     # ------------------------------------------------------------------ public
@@ -260,8 +266,8 @@ class StereoEstimator(KeyframeJobs):
         if len(m) >= cfg.min_pnp_inliers and self._prev_left is not None:
             # first from the predicted pose; then a deeper pyramid from the last positions (a motion
             # the prediction missed: the first frames without a velocity, a jolt, dropped frames)
-            attempts = [(T_pred, cfg.klt_levels)]
-            if cfg.retry_klt_levels > cfg.klt_levels:
+            attempts = [(T_pred, cfg.track_klt_levels)]
+            if cfg.retry_klt_levels > cfg.track_klt_levels:
                 attempts.append((None, cfg.retry_klt_levels))
             for k, (T_guess, levels) in enumerate(attempts):
                 uv_new, good = self._klt_track(left, T_guess, levels)
@@ -345,8 +351,9 @@ class StereoEstimator(KeyframeJobs):
         g = guess.reshape(-1, 1, 2).astype(np.float32)
         p1, st, _ = cv2.calcOpticalFlowPyrLK(self._prev_left, left, p0, g.copy(),
                                              flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **klt)
-        pb, stb, _ = cv2.calcOpticalFlowPyrLK(left, self._prev_left, p1, p0.copy(),
-                                              flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **klt)
+        # back from the new positions, seeded with the old ones: a true track converges there at once
+        pb, stb, _ = cv2.calcOpticalFlowPyrLK(left, self._prev_left, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                                              **dict(klt, maxLevel=min(levels, self.cfg.fb_klt_levels)))
         fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
         w, h = self.rig.cam0.size
         p1 = p1.reshape(-1, 2)

@@ -11,7 +11,9 @@ where it stopped; --force recomputes everything.
 OUT gets trajectory.tum (the refined path), report.json (before/after figures: the session's
 on-board path, the re-estimate and the adjusted path, with errors when the session has ground
 truth), path.png, errors.png (with ground truth), mesh.ply, cloud.ply, model.png, map.json and
-report.html (open it in a browser).
+report.html (open it in a browser); when the bundle adjustment applied a disparity offset, also
+rig_refined.yaml: the session's rig with the right principal point corrected, for the device's
+later sessions of the same rig (source.rig_file).
 
 Several sessions (SESSION may also be a folder of sessions or a glob pattern) are reprocessed as
 a fleet on Ray (pip install 'stereopath[fleet]'): each session's stages and outputs go into

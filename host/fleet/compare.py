@@ -25,11 +25,11 @@ def _timing(key: str) -> bool:
             or key in ("finished_utc", "stages"))
 
 
-def _untimed(v: Any, drop: tuple[str, ...] = ()) -> Any:
+def _untimed(v: Any) -> Any:
     if isinstance(v, dict):
-        return {k: _untimed(x, drop) for k, x in v.items() if not _timing(str(k)) and k not in drop}
+        return {k: _untimed(x) for k, x in v.items() if not _timing(str(k))}
     if isinstance(v, list):
-        return [_untimed(x, drop) for x in v]
+        return [_untimed(x) for x in v]
     return v
 
 
@@ -85,13 +85,27 @@ def ply_canonical(path: Path) -> tuple[Any, Any]:
     return v[order], t
 
 
+def _unlabelled(record: dict[str, Any]) -> dict[str, Any]:
+    """``record`` without its ``source`` label, and the label's path replaced in every text."""
+    src = record.get("source")
+
+    def walk(v: Any) -> Any:
+        if isinstance(v, dict):
+            return {k: walk(x) for k, x in v.items() if k != "source"}
+        if isinstance(v, list):
+            return [walk(x) for x in v]
+        return v.replace(src, "<source>") if isinstance(v, str) and isinstance(src, str) and src else v
+
+    return walk(record)
+
+
 def differences(a: str | Path, b: str | Path, ignore_source: bool = False) -> list[str]:
     """What differs between output folders ``a`` and ``b`` (``[]``: the same results).
 
     ``ignore_source``: leave out the ``source`` labels (the session path as the process that
-    reprocessed it saw it: another path on a cluster worker that sees the data elsewhere).
+    reprocessed it saw it: another path on a cluster worker that sees the data elsewhere), also
+    where a message quotes that path.
     """
-    drop = ("source",) if ignore_source else ()
     a, b = Path(a), Path(b)
     diffs: list[str] = []
     for name in BYTE_FILES:
@@ -126,7 +140,9 @@ def differences(a: str | Path, b: str | Path, ignore_source: bool = False) -> li
         if fa.is_file() != fb.is_file():
             diffs.append(f"{name}: only in {'the first' if fa.is_file() else 'the second'}")
         elif fa.is_file():
-            ja, jb = _untimed(json.loads(fa.read_text()), drop), _untimed(json.loads(fb.read_text()), drop)
+            ja, jb = _untimed(json.loads(fa.read_text())), _untimed(json.loads(fb.read_text()))
+            if ignore_source:
+                ja, jb = _unlabelled(ja), _unlabelled(jb)
             if ja != jb:
                 keys = sorted(k for k in set(ja) | set(jb) if ja.get(k) != jb.get(k))
                 diffs.append(f"{name}: differs in {', '.join(keys)}")

@@ -136,7 +136,7 @@ def limit_tbb(n: int) -> bool:
     return int(active(0)) == n
 
 
-def limit_threads(n: int) -> None:
+def limit_threads(n: int, tbb: bool = True) -> None:
     """Every thread pool of this worker process at ``n`` threads, the task's CPUs: OpenCV's, every
     BLAS (threadpoolctl) and Open3D's TBB, so that the tasks Ray places by their declared CPUs do not
     oversubscribe the cores.  Results do not depend on it (the stages pin BLAS to one thread; OpenCV
@@ -147,7 +147,40 @@ def limit_threads(n: int) -> None:
 
     cv2.setNumThreads(n)
     threadpool_limits(limits=n)
-    limit_tbb(n)
+    if tbb:
+        limit_tbb(n)
+
+
+def run_piece(fn: Callable[[Any, Any], Any], shared: Any, item: Any) -> Any:
+    """One piece of a stage's :func:`~stereopath.host.reprocess.parallel.parallel_map`, as a Ray task
+    of one CPU: every pool of its worker at one thread (as in the stage it came from: one BLAS
+    thread, so the same bits), then ``fn(shared, item)``; returns it with the CPU seconds it took."""
+    limit_threads(1, tbb=False)
+    c0 = time.process_time()
+    out = fn(shared, item)
+    return out, time.process_time() - c0
+
+
+class RaySpreader:
+    """A spreader for :func:`~stereopath.host.reprocess.parallel.spread_with`: each piece a Ray task
+    of one CPU, ``shared`` put once into the object store (the pieces read it by reference), the
+    results in the order of the items.  While the calling task waits for them Ray lends its CPU to
+    the pieces, so a session uses as many cores as the cluster has free, and no more.
+    ``pieces`` counts the pieces spread, ``cpu_s`` their CPU seconds."""
+
+    def __init__(self, retries: int = 3) -> None:
+        import ray
+
+        self.ray, self.pieces, self.cpu_s = ray, 0, 0.0
+        self.task = ray.remote(num_cpus=1, max_retries=retries)(run_piece)
+
+    def __call__(self, fn: Callable[[Any, Any], Any], shared: Any, items: list[Any]) -> list[Any]:
+        ref = self.ray.put(shared)
+        refs = [self.task.options(name=f"piece {fn.__name__}").remote(fn, ref, it) for it in items]
+        done = self.ray.get(refs)
+        self.pieces += len(refs)
+        self.cpu_s += sum(c for _, c in done)
+        return [r for r, _ in done]
 
 
 def first_part(out_dir: str | Path, wall_s: float, cpu_s: float) -> dict[str, Any]:
@@ -162,7 +195,7 @@ def first_part(out_dir: str | Path, wall_s: float, cpu_s: float) -> dict[str, An
 
 def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any], board: Any = None,
                    after_stage: Callable[[str], None] | None = None, threads: int | None = None,
-                   part: str = "all") -> dict[str, Any]:
+                   part: str = "all", spread: bool = False) -> dict[str, Any]:
     """Reprocess one session (paths as this worker sees them); returns :func:`summarise`'s dict.
 
     ``settings``: keyword arguments of ``reprocess_session`` (preset, do_map, map_preset,
@@ -172,8 +205,10 @@ def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any
     ``part``: "all"; or "first": stop once the ``estimate`` stage is computed and return
     :func:`first_part`'s dict (when it was already stored, the session runs to its end); or
     "rest": the session from its stored estimate (the driver runs "first" before it).
+    ``spread``: the stages' independent pieces run as Ray tasks of their own (:class:`RaySpreader`).
     A :class:`StereopathError` (bad input) propagates: the driver reports the session failed.
     """
+    from stereopath.host.reprocess.parallel import spread_with
     from stereopath.host.reprocess.pipeline import reprocess_session
 
     if threads is not None:
@@ -196,11 +231,14 @@ def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any
         if part == "first" and name == "estimate":
             raise _Stop
 
+    spreader = RaySpreader() if spread else None
     try:
-        res = reprocess_session(session, out_dir, progress=False, after_stage=hook, **settings)
+        with spread_with(spreader):
+            res = reprocess_session(session, out_dir, progress=False, after_stage=hook, **settings)
     except _Stop:
         out = first_part(out_dir, time.perf_counter() - t0, time.process_time() - c0)
-    else:
-        out = summarise(res, time.perf_counter() - t0, time.process_time() - c0)
-    out.update({"node": node, "pid": os.getpid()})
+    else:  # CPU: this task's and its pieces'
+        cpu_s = time.process_time() - c0 + (spreader.cpu_s if spreader else 0.0)
+        out = summarise(res, time.perf_counter() - t0, cpu_s)
+    out.update({"node": node, "pid": os.getpid(), "pieces": spreader.pieces if spreader else 0})
     return out

@@ -378,6 +378,11 @@ class StereoDepth:
         log.debug("stereo depth: f=%.1f px, B=%.4f m, %d disparities (%.2f-%.2f m)", f, B, self.num_disparities,
                   self.config.min_depth_m, self.config.max_depth_m)
 
+    def __getstate__(self) -> dict:
+        """Picklable (a fleet task sends it to the processes computing its keyframes' depth): the
+        OpenCV matchers are made again where they are used."""
+        return {**self.__dict__, "_matchers": {}}
+
     @property
     def K(self) -> np.ndarray:
         return self.rect.K

@@ -38,6 +38,7 @@ from stereopath.device.formats.tum import Trajectory
 from stereopath.host.mapping.depth import DEPTH_PRESETS, DepthConfig, StereoDepth
 from stereopath.host.mapping.fusion import FUSION_PRESETS, FusionConfig, TsdfVolume
 from stereopath.host.mapping.inputs import KeyframeSelection, MapInput, keyframes_from_sequence, open_map_input
+from stereopath.host.reprocess.parallel import parallel_map
 from stereopath.host.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -122,10 +123,13 @@ class DenseMapper:
     def keyframes(self) -> int:
         return len(self.poses)
 
-    def add(self, left: np.ndarray, right: np.ndarray, T_world_cam0: np.ndarray, index: int | None = None) -> Any:
-        """Depth of one raw stereo pair, fused at the camera-0 pose; returns the :class:`stereopath.host.mapping.depth.DepthMap`."""
+    def add(self, left: np.ndarray, right: np.ndarray, T_world_cam0: np.ndarray, index: int | None = None,
+            depth: Any = None) -> Any:
+        """Depth of one raw stereo pair, fused at the camera-0 pose; returns the :class:`stereopath.host.mapping.depth.DepthMap`.
+
+        ``depth``: the pair's depth map when already computed by ``self.depth`` (the images are then unused)."""
         t0 = time.perf_counter()
-        dm = self.depth.compute(left, right)
+        dm = depth if depth is not None else self.depth.compute(left, right)
         t1 = time.perf_counter()
         self.volume.integrate_depth_map(dm, T_world_cam0)
         self.timings["depth"] += t1 - t0
@@ -225,6 +229,14 @@ class DenseMapper:
         return MapResult(mesh=mesh, cloud=cloud, preview=preview, stats=stats)
 
 
+DEPTH_BATCH = 8  # keyframes loaded and their depth computed together before they are fused in order
+
+
+def _depth_map(depth: StereoDepth, images: tuple[np.ndarray, np.ndarray]) -> Any:
+    """One keyframe's depth map (a piece of :func:`~stereopath.host.reprocess.parallel.parallel_map`)."""
+    return depth.compute(images[0], images[1])
+
+
 def build_map(inp: MapInput, config: MapConfig, progress: bool | None = None,
               on_keyframe: Callable[[int, Any], None] | None = None, strict: bool = False) -> MapResult:
     """Depth and fusion of every keyframe of ``inp``, then mesh, cloud and preview (no file I/O).
@@ -239,22 +251,28 @@ def build_map(inp: MapInput, config: MapConfig, progress: bool | None = None,
     mapper = DenseMapper(inp.rig, config, source=inp.source)
     bar = progress_bar(len(inp.keyframes), "depth + fusion", progress, unit="kf")
     try:
-        for k, kf in enumerate(inp.keyframes):
+        for start in range(0, len(inp.keyframes), DEPTH_BATCH):
+            loaded = []
+            for k in range(start, min(start + DEPTH_BATCH, len(inp.keyframes))):
+                kf, t0 = inp.keyframes[k], time.perf_counter()
+                try:
+                    loaded.append((k, kf, kf.load()))
+                except DatasetError as exc:
+                    if strict:
+                        raise
+                    log.warning("skipping keyframe %d: %s", kf.index, exc)
+                    inp.skipped.append(str(kf.index))
+                mapper.timings["load"] += time.perf_counter() - t0
+            # the batch's depth maps are independent (a fleet task spreads them over idle cores); fused in order
             t0 = time.perf_counter()
-            try:
-                left, right = kf.load()
-            except DatasetError as exc:
-                if strict:
-                    raise
-                log.warning("skipping keyframe %d: %s", kf.index, exc)
-                inp.skipped.append(str(kf.index))
-                continue
-            mapper.timings["load"] += time.perf_counter() - t0
-            dm = mapper.add(left, right, kf.T_world_cam0, index=kf.index)
-            if on_keyframe is not None:
-                on_keyframe(k, dm)
-            if bar is not None:
-                bar.update(1)
+            depths = parallel_map(_depth_map, mapper.depth, [images for _, _, images in loaded])
+            mapper.timings["depth"] += time.perf_counter() - t0
+            for (k, kf, _), dm in zip(loaded, depths):
+                mapper.add(None, None, kf.T_world_cam0, index=kf.index, depth=dm)
+                if on_keyframe is not None:
+                    on_keyframe(k, dm)
+                if bar is not None:
+                    bar.update(1)
     finally:
         if bar is not None:
             bar.close()

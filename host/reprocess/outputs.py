@@ -1,7 +1,9 @@
 """The outputs of ``host reprocess`` (always rewritten, each atomically): ``trajectory.tum``,
 ``report.json`` (the schema of :mod:`stereopath.host.evaluation.report` plus ``extra``: the
 before/after figures of the on-board path, the re-estimate and the adjusted path, with errors
-when there is ground truth), ``path.png``, ``errors.png``, the model files and ``report.html``.
+when there is ground truth), ``path.png``, ``errors.png``, the model files, ``report.html`` and,
+when the bundle adjustment applied a disparity offset, ``rig_refined.yaml``
+(:mod:`stereopath.host.reprocess.rig_refine`).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import numpy as np
 from stereopath.device.errors import StereopathError
 from stereopath.device.formats.tum import Trajectory
 from stereopath.host.reprocess.config import ReprocessPreset
+from stereopath.host.reprocess.rig_refine import report_entry, write_refined_rig
 from stereopath.host.reprocess.stage_map import MODEL_FILES
 from stereopath.host.reprocess.store import copy_atomic, meta, plain
 
@@ -132,6 +135,7 @@ def build_report(s: RunSummary) -> dict[str, Any]:
         "loops": loop_report(s),
         "stages": {k: {"status": s.status.get(k, "skipped"), "seconds": s.stage_seconds.get(k, 0.0)} for k in STAGES},
         "map": s.map_stats,
+        "rig_refined": report_entry(s.seq.rig, meta(s.ba, "stats")),  # None: no offset applied, no file
     }
     if gt_error is not None:
         extra["groundtruth_error"] = gt_error
@@ -177,6 +181,7 @@ def write_outputs(s: RunSummary) -> tuple[dict[str, Any], list[str]]:
     write_tum(s.out / "trajectory.tum", s.final)
     write_report(s.out / "report.json", report)
     files = ["trajectory.tum", "report.json", *_plots(s, report)]
+    files += write_refined_rig(s.out, s.seq.rig, report["extra"]["rig_refined"], s.label)
     if s.do_map and s.status.get("map") != "failed" and (s.out / "stages" / "map").is_dir():
         for f in MODEL_FILES:
             src = s.out / "stages" / "map" / f

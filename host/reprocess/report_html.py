@@ -86,6 +86,12 @@ def render_html(report: dict[str, Any], images: list[str], title: str = "stereop
         rows = [[html.escape(k.replace("_", " ")), _fmt(v)] for k, v in {**tracks, **bundle}.items()
                 if not isinstance(v, (dict, list))]
         parts.append(_table(["quantity", "value"], rows))
+    rr = extra.get("rig_refined")
+    if rr:
+        cx, f = rr["cam1_cx_px"], html.escape(str(rr["file"]))
+        parts.append(f"<p>Refined stereo calibration: <a href='{f}'>{f}</a> (right principal point cx "
+                     f"{_fmt(cx['before'], 1, 4)} &rarr; {_fmt(cx['after'], 1, 4)} px): for later sessions of this "
+                     "rig (device configuration source.rig_file).</p>")
     stages = extra.get("stages") or {}
     if stages:
         parts.append("<h2>Stages</h2>")

@@ -19,6 +19,7 @@ import numpy as np
 
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
 from stereopath.host.reprocess.loops import detect_loops, loops_to_array
+from stereopath.host.reprocess.parallel import parallel_map
 from stereopath.host.progress import Bar
 from stereopath.host.reprocess.store import json_array
 
@@ -75,6 +76,14 @@ def _empty(est: dict[str, np.ndarray], kf: np.ndarray, reason: str) -> dict[str,
             "stats": json_array({"skipped": reason, "keyframes": len(kf)})}
 
 
+def _keyframe_features(shared: tuple, images: tuple[np.ndarray, np.ndarray]):
+    """One keyframe's stereo keypoints (a piece of :func:`parallel_map`; ``shared`` = rig, track config)."""
+    from stereopath.host.reprocess.tracks import stereo_features
+
+    rig, cfg = shared
+    return stereo_features(rig, images[0], images[1], cfg)
+
+
 def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     from stereopath.host.reprocess import tracks as tracks_mod
 
@@ -92,11 +101,14 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
             kf, feats = keyframes_by_view_change(seq.rig, est, features_of, cfg, tick)
     else:
         kf = choose_keyframes(est)
-        feats = []
         with Bar(len(kf), "keyframe features", inputs.progress, "kf") as tick:
+            images = []
             for i in kf:
-                feats.append(features_of(int(i)))
-                tick(1)
+                fr = seq.frame(int(est["seq"][i]))
+                images.append((fr.left, fr.right))
+            # independent per keyframe: a fleet task spreads them over idle cores (same results, same order)
+            feats = parallel_map(_keyframe_features, (seq.rig, cfg), images)
+            tick(len(kf))
     if len(kf) < 2:
         return _empty(est, kf, f"{len(kf)} tracked keyframe(s) in the re-estimate; bundle adjustment needs two")
     T_kf = est["T_world_cam"][kf]

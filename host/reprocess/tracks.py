@@ -31,6 +31,7 @@ from stereopath.device.core.features import gray
 from stereopath.device.core.stereo import stereo_right, triangulate, undistort_px
 from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import Rig
+from stereopath.host.reprocess.parallel import parallel_map
 
 log = logging.getLogger(__name__)
 
@@ -290,6 +291,12 @@ def _disparity(rig: Rig, X_cam: np.ndarray) -> np.ndarray:
     return ul - ur
 
 
+def _match_gap(shared: tuple, gap: int) -> list[np.ndarray]:
+    """:func:`match_keyframes` of every keyframe ``i`` with ``i + gap`` (``shared``: rig, keyframes, poses, config)."""
+    rig, kfs, T, cfg = shared
+    return [match_keyframes(rig, kfs[i], kfs[i + gap], T[i], T[i + gap], cfg) for i in range(len(kfs) - gap)]
+
+
 @dataclass
 class Tracks:
     """Feature tracks over keyframes (see :func:`build_tracks`)."""
@@ -316,10 +323,11 @@ def build_tracks(rig: Rig, kfs: list[KeyframeFeatures], T_world_cam: np.ndarray,
     n_matches = 0
     # nearer keyframe pairs first: their matches are the most reliable, later conflicting ones lose
     gaps = sorted(g for g in (cfg.gaps or range(1, cfg.window + 1)) if 1 <= g <= cfg.window)
-    for gap in gaps:
-        for i in range(len(kfs) - gap):
+    # the gaps' matchings are independent (parallel_map may spread them); joined below in order
+    matched = parallel_map(_match_gap, (rig, kfs, T_world_cam, cfg), gaps)
+    for gap, per_i in zip(gaps, matched):
+        for i, idx in enumerate(per_i):
             j = i + gap
-            idx = match_keyframes(rig, kfs[i], kfs[j], T_world_cam[i], T_world_cam[j], cfg)
             n_matches += len(idx)
             uf.union_many((idx[:, 0] + offsets[i]).tolist(), (idx[:, 1] + offsets[j]).tolist())
         if progress is not None:

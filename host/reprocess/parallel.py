@@ -1,0 +1,48 @@
+"""How a stage runs independent pieces of its work: in order in this thread, or spread by the caller.
+
+A stage calls :func:`parallel_map` for work whose pieces do not depend on each other (the tracks
+stage: each keyframe's stereo keypoints; the matching of each keyframe gap).  By default the
+pieces run one after another here, exactly as a plain loop would.  A caller that has idle
+processors can install a spreader for the duration of a call with :func:`spread_with` (a fleet
+task spreads the pieces as Ray tasks, so that a long session uses the cores other sessions have
+left free).  The results always come back in the order of ``items`` and are joined by the stage
+in that order, so the stage's output does not depend on where or in which order the pieces ran.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from contextvars import ContextVar
+from typing import Any
+
+Spreader = Callable[[Callable[[Any, Any], Any], Any, Sequence[Any]], Sequence[Any]]
+
+_SPREADER: ContextVar[Spreader | None] = ContextVar("stereopath_reprocess_spreader", default=None)
+
+
+def parallel_map(fn: Callable[[Any, Any], Any], shared: Any, items: Sequence[Any]) -> list[Any]:
+    """``[fn(shared, item) for item in items]``, possibly computed elsewhere (see the module doc).
+
+    ``fn`` must be a module-level function (a spreader sends it to other processes by name) that
+    depends on nothing but its arguments; ``shared`` is what every piece reads (sent once),
+    ``items`` what differs between them.
+    """
+    spread = _SPREADER.get()
+    if spread is None or len(items) < 2:
+        return [fn(shared, item) for item in items]
+    out = list(spread(fn, shared, items))
+    if len(out) != len(items):
+        raise RuntimeError(f"spreader returned {len(out)} results for {len(items)} pieces")
+    return out
+
+
+@contextmanager
+def spread_with(spreader: Spreader | None) -> Iterator[None]:
+    """Within the block, :func:`parallel_map` hands its pieces to ``spreader(fn, shared, items)``
+    (which must return the results in the order of ``items``); None runs them here."""
+    token = _SPREADER.set(spreader)
+    try:
+        yield
+    finally:
+        _SPREADER.reset(token)
