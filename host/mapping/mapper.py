@@ -123,17 +123,18 @@ class DenseMapper:
     def keyframes(self) -> int:
         return len(self.poses)
 
-    def add(self, left: np.ndarray, right: np.ndarray, T_world_cam0: np.ndarray, index: int | None = None,
-            depth: Any = None) -> Any:
-        """Depth of one raw stereo pair, fused at the camera-0 pose; returns the :class:`stereopath.host.mapping.depth.DepthMap`.
-
-        ``depth``: the pair's depth map when already computed by ``self.depth`` (the images are then unused)."""
+    def add(self, left: np.ndarray, right: np.ndarray, T_world_cam0: np.ndarray, index: int | None = None) -> Any:
+        """Depth of one raw stereo pair, fused at the camera-0 pose; returns the :class:`stereopath.host.mapping.depth.DepthMap`."""
         t0 = time.perf_counter()
-        dm = depth if depth is not None else self.depth.compute(left, right)
-        t1 = time.perf_counter()
+        dm = self.depth.compute(left, right)
+        self.timings["depth"] += time.perf_counter() - t0
+        return self.fuse(dm, T_world_cam0, index)
+
+    def fuse(self, dm: Any, T_world_cam0: np.ndarray, index: int | None = None) -> Any:
+        """Fuse a depth map computed by ``self.depth`` at the camera-0 pose; returns ``dm``."""
+        t0 = time.perf_counter()
         self.volume.integrate_depth_map(dm, T_world_cam0)
-        self.timings["depth"] += t1 - t0
-        self.timings["fusion"] += time.perf_counter() - t1
+        self.timings["fusion"] += time.perf_counter() - t0
         self.poses.append(np.asarray(T_world_cam0, float))
         self.indices.append(len(self.indices) if index is None else int(index))
         self.valid_fractions.append(dm.valid_fraction)
@@ -268,7 +269,7 @@ def build_map(inp: MapInput, config: MapConfig, progress: bool | None = None,
             depths = parallel_map(_depth_map, mapper.depth, [images for _, _, images in loaded])
             mapper.timings["depth"] += time.perf_counter() - t0
             for (k, kf, _), dm in zip(loaded, depths):
-                mapper.add(None, None, kf.T_world_cam0, index=kf.index, depth=dm)
+                mapper.fuse(dm, kf.T_world_cam0, index=kf.index)
                 if on_keyframe is not None:
                     on_keyframe(k, dm)
                 if bar is not None:

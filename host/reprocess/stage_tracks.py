@@ -92,9 +92,12 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     if not np.any(est["status"] == 0):
         return _empty(est, np.zeros(0, np.int64), "no tracked frame in the re-estimate")
 
-    def features_of(i: int):
+    def images_of(i: int) -> tuple[np.ndarray, np.ndarray]:
         fr = seq.frame(int(est["seq"][i]))
-        return tracks_mod.stereo_features(seq.rig, fr.left, fr.right, cfg)
+        return fr.left, fr.right
+
+    def features_of(i: int):
+        return _keyframe_features((seq.rig, cfg), images_of(i))
 
     if cfg.keyframe_parallax_deg > 0:
         with Bar(None, "keyframe features", inputs.progress, "kf") as tick:
@@ -102,10 +105,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     else:
         kf = choose_keyframes(est)
         with Bar(len(kf), "keyframe features", inputs.progress, "kf") as tick:
-            images = []
-            for i in kf:
-                fr = seq.frame(int(est["seq"][i]))
-                images.append((fr.left, fr.right))
+            images = [images_of(i) for i in kf]
             # independent per keyframe: a fleet task spreads them over idle cores (same results, same order)
             feats = parallel_map(_keyframe_features, (seq.rig, cfg), images)
             tick(len(kf))
