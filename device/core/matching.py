@@ -29,7 +29,7 @@ from __future__ import annotations
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Literal, Mapping
+from typing import Any, Collection, Literal, Mapping
 
 import numpy as np
 
@@ -40,7 +40,7 @@ from stereopath.device.core.nn_index import NNIndex
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MatchConfig", "Matches", "NNIndex", "knn", "match", "collapse_duplicates", "match_epipolar_rectified", "match_guided"]
+__all__ = ["MatchConfig", "Matches", "NNIndex", "knn", "match", "match_candidates", "collapse_duplicates", "match_epipolar_rectified", "match_guided"]
 
 
 @dataclass(frozen=True)
@@ -225,7 +225,7 @@ def _view_groups(f: Features, per_view: bool) -> list[np.ndarray]:
     return np.split(order, bounds)
 
 
-def match(f1: Features, f2: Features, cfg: MatchConfig = MatchConfig()) -> Matches:
+def match(f1: Features, f2: Features, cfg: MatchConfig = MatchConfig(), only_pairs: Collection[tuple[int, int]] | None = None) -> Matches:
     """Match ``f1`` (e.g. SIFT on the earlier image) to ``f2`` (e.g. affine views of the later one).
 
     With ``cfg.per_view`` and view labels on the features, each view of ``f1`` is
@@ -233,45 +233,42 @@ def match(f1: Features, f2: Features, cfg: MatchConfig = MatchConfig()) -> Match
     view's descriptors act as distractors in another view's ratio test); the
     results are merged and each location keeps its most distinctive match.
     Without labels (``view == -1``) one global location-aware matching is done.
+    ``only_pairs`` (view of ``f1``, view of ``f2``) restricts per-view matching to those
+    view pairs (e.g. the ones :mod:`~stereopath.device.core.view_selection` chose).
     """
-    n1, n2 = len(f1), len(f2)
-    if n1 == 0 or n2 == 0:
-        return Matches.empty()
+    i, j, d, r = match_candidates(f1, f2, cfg, only_pairs)
+    if len(i) > 1:
+        keep = collapse_duplicates(f1.xy[i], f2.xy[j], r if cfg.rank_by == "ratio" else d, cfg.distinct_px)
+        i, j, d = i[keep], j[keep], d[keep]
+    return Matches(np.stack([i, j], axis=1).astype(np.int32), d.astype(np.float32))
+
+
+def match_candidates(f1: Features, f2: Features, cfg: MatchConfig = MatchConfig(), only_pairs: Collection[tuple[int, int]] | None = None) -> tuple[np.ndarray, ...]:
+    """:func:`match` before the duplicate collapse: ``(i, j, distance, ratio)`` arrays of the
+    candidates that passed the ratio test and the mutual check, from every matched view pair."""
+    none = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, np.float32))
+    if len(f1) == 0 or len(f2) == 0:
+        return none
     if f1.desc.shape[1] != f2.desc.shape[1]:
         raise ConfigError(f"descriptor sizes differ: {f1.desc.shape[1]} vs {f2.desc.shape[1]}")
     groups1 = _view_groups(f1, cfg.per_view)
     groups2 = _view_groups(f2, cfg.per_view)
-    group_of_1 = np.zeros(n1, np.int64)
-    for gi, g in enumerate(groups1):
-        group_of_1[g] = gi
     view1 = [int(f1.view[g[0]]) for g in groups1]
     view2 = [int(f2.view[g[0]]) for g in groups2]
+    labelled = cfg.per_view and bool((f1.view >= 0).all() and (f2.view >= 0).all())
+    chosen = None if only_pairs is None or not labelled else {(int(a), int(b)) for a, b in only_pairs}
 
     def wanted(a: int, b: int) -> bool:
+        if chosen is not None:
+            return (a, b) in chosen
         if cfg.view_pairs == "all" or len(groups1) == 1 or len(groups2) == 1:
             return True
         return a == 0 or b == 0 or (cfg.view_pairs == "original+same" and a == b)
 
     def forward(g2i: int) -> list[tuple[np.ndarray, ...]]:
         # every (wanted) f1 view against view g2i of f2, one index per f2 view
-        g2 = groups2[g2i]
         g1s = [g1 for g1, v1 in zip(groups1, view1) if wanted(v1, view2[g2i])]
-        if not g1s:
-            return []
-        index = NNIndex(f2.desc[g2], cfg, expected_queries=sum(len(g) for g in g1s))
-        out = []
-        for g1 in g1s:
-            nn_idx, nn_dist = index.query(f1.desc[g1], cfg.k)
-            d0 = nn_dist[:, 0]
-            d_other = _ratio_at_other_location(nn_idx, nn_dist, f2.xy[g2], cfg.distinct_px)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ratio = np.where(d_other > 0, d0 / d_other, np.where(d0 > 0, np.inf, 0.0))
-            ok = np.isfinite(d0) & (ratio < cfg.ratio)
-            if cfg.max_distance > 0:
-                ok &= d0 <= cfg.max_distance
-            sel = np.nonzero(ok)[0]
-            out.append((g1[sel], g2[nn_idx[sel, 0]], d0[sel], ratio[sel]))
-        return out
+        return _forward(f1, f2, g1s, groups2[g2i], cfg) if g1s else []
 
     if cfg.threads > 1 and len(groups2) > 1:
         with ThreadPoolExecutor(max_workers=cfg.threads) as pool:
@@ -279,31 +276,50 @@ def match(f1: Features, f2: Features, cfg: MatchConfig = MatchConfig()) -> Match
     else:
         results = [forward(g) for g in range(len(groups2))]
     parts = [p for res in results for p in res]
-    cand_i = [p[0] for p in parts] or [np.zeros(0, np.int64)]
-    cand_j = [p[1] for p in parts] or [np.zeros(0, np.int64)]
-    cand_d = [p[2] for p in parts] or [np.zeros(0, np.float32)]
-    cand_r = [p[3] for p in parts] or [np.zeros(0, np.float32)]
-    i = np.concatenate(cand_i)
-    j = np.concatenate(cand_j)
-    d = np.concatenate(cand_d).astype(np.float32)
-    r = np.concatenate(cand_r).astype(np.float32)
+    if not parts:
+        return none
+    i, j, d, r = (np.concatenate([p[c] for p in parts]) for c in range(4))
+    d, r = d.astype(np.float32), r.astype(np.float32)
     if cfg.mutual and len(i):
-        # Reverse: the nearest f1 keypoint (in the same f1 view) of each candidate must
-        # lie at the candidate's location.
-        keep = np.zeros(len(i), bool)
-        gi_of = group_of_1[i]
-        for gi, g1 in enumerate(groups1):
-            sel = np.nonzero(gi_of == gi)[0]
-            if len(sel) == 0:
-                continue
-            rev_idx, _ = NNIndex(f1.desc[g1], cfg, expected_queries=len(sel)).query(f2.desc[j[sel]], 1)
-            rev = g1[rev_idx[:, 0]]
-            keep[sel] = np.linalg.norm(f1.xy[rev] - f1.xy[i[sel]], axis=1) <= cfg.distinct_px
+        keep = _mutual(f1, f2, groups1, i, j, cfg)
         i, j, d, r = i[keep], j[keep], d[keep], r[keep]
-    if len(i) > 1:
-        keep = collapse_duplicates(f1.xy[i], f2.xy[j], r if cfg.rank_by == "ratio" else d, cfg.distinct_px)
-        i, j, d = i[keep], j[keep], d[keep]
-    return Matches(np.stack([i, j], axis=1).astype(np.int32), d.astype(np.float32))
+    return i, j, d, r
+
+
+def _forward(f1: Features, f2: Features, g1s: list[np.ndarray], g2: np.ndarray, cfg: MatchConfig) -> list[tuple[np.ndarray, ...]]:
+    """Ratio-tested nearest neighbours of each f1 view in ``g1s`` among f2 view ``g2``."""
+    index = NNIndex(f2.desc[g2], cfg, expected_queries=sum(len(g) for g in g1s))
+    out = []
+    for g1 in g1s:
+        nn_idx, nn_dist = index.query(f1.desc[g1], cfg.k)
+        d0 = nn_dist[:, 0]
+        d_other = _ratio_at_other_location(nn_idx, nn_dist, f2.xy[g2], cfg.distinct_px)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(d_other > 0, d0 / d_other, np.where(d0 > 0, np.inf, 0.0))
+        ok = np.isfinite(d0) & (ratio < cfg.ratio)
+        if cfg.max_distance > 0:
+            ok &= d0 <= cfg.max_distance
+        sel = np.nonzero(ok)[0]
+        out.append((g1[sel], g2[nn_idx[sel, 0]], d0[sel], ratio[sel]))
+    return out
+
+
+def _mutual(f1: Features, f2: Features, groups1: list[np.ndarray], i: np.ndarray, j: np.ndarray, cfg: MatchConfig) -> np.ndarray:
+    """Reverse check: the nearest f1 keypoint (in the same f1 view) of each candidate's f2
+    keypoint must lie at the candidate's location.  Returns a keep mask."""
+    group_of_1 = np.zeros(len(f1), np.int64)
+    for gi, g in enumerate(groups1):
+        group_of_1[g] = gi
+    keep = np.zeros(len(i), bool)
+    gi_of = group_of_1[i]
+    for gi, g1 in enumerate(groups1):
+        sel = np.nonzero(gi_of == gi)[0]
+        if len(sel) == 0:
+            continue
+        rev_idx, _ = NNIndex(f1.desc[g1], cfg, expected_queries=len(sel)).query(f2.desc[j[sel]], 1)
+        rev = g1[rev_idx[:, 0]]
+        keep[sel] = np.linalg.norm(f1.xy[rev] - f1.xy[i[sel]], axis=1) <= cfg.distinct_px
+    return keep
 
 
 def _pairs_in_boxes(query_xy: np.ndarray, ref_xy: np.ndarray, x_lo: np.ndarray, x_hi: np.ndarray, y_lo: np.ndarray, y_hi: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:

@@ -5,8 +5,10 @@ pixels (default 3) of the first keypoint mapped by the ground-truth homography
 (--homography, Oxford/OpenCV XML as in the affine-covariant data sets, or a
 plain-text 3x3 matrix).  Presets with the paper's asymmetric pairing (`paper`,
 `fast_asym`) give IMG1 plain SIFT (the original view) and IMG2 the affine views;
-symmetric presets (`full`, `fast`) give both images all views; `sift` is
-SIFT on both.  Times: detect_s = detection on both images, match_s = matching.
+symmetric presets (`full`, `fast`) give both images views (`fast` only those of the view pairs
+its low-resolution pass keeps, Morel & Yu's two-resolution scheme); `sift` is SIFT on both.
+Times: detect_s = detection on both images (that pass included), match_s = matching; the
+*_cpu_s fields are the same as process CPU time of all threads.
 """
 
 from __future__ import annotations

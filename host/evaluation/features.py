@@ -59,17 +59,23 @@ def correct_mask(p1, p2, H, tolerance: float = 3.0):
 
 
 def compare_pair(img1, img2, preset: str, homography=None, tolerance: float = 3.0, match_cfg=None) -> dict:
-    """Detect, match and (with a homography) count correct matches; returns the JSON record."""
-    from stereopath.device.core.features import detect, earlier_features, get_preset
+    """Detect, match and (with a homography) count correct matches; returns the JSON record.
+
+    ``detect_s`` / ``match_s`` are wall times, ``*_cpu_s`` the process CPU time of all threads;
+    detection includes the preset's low-resolution view selection (``view_pairs``: how many view
+    pairs it kept, ``None`` without selection).
+    """
+    from stereopath.device.core.features import get_preset
     from stereopath.device.core.matching import MatchConfig, match
+    from stereopath.device.core.view_selection import detect_pair
 
     cfg = get_preset(preset)
-    t0 = time.perf_counter()
-    f1 = earlier_features(img1, cfg)
-    f2 = detect(img2, cfg)
-    t1 = time.perf_counter()
-    m = match(f1, f2, match_cfg or MatchConfig())
-    t2 = time.perf_counter()
+    match_cfg = match_cfg or MatchConfig()
+    t0, c0 = time.perf_counter(), time.process_time()
+    f1, f2, pairs = detect_pair(img1, img2, cfg, match_cfg)  # the preset's view selection included
+    t1, c1 = time.perf_counter(), time.process_time()
+    m = match(f1, f2, match_cfg, only_pairs=pairs)
+    t2, c2 = time.perf_counter(), time.process_time()
     correct = None
     if homography is not None:
         p1, p2 = m.points(f1, f2)
@@ -79,7 +85,10 @@ def compare_pair(img1, img2, preset: str, homography=None, tolerance: float = 3.
         "keypoints1": len(f1),
         "keypoints2": len(f2),
         "matches": len(m),
+        "view_pairs": None if pairs is None else len(pairs),
         "correct": correct,
         "detect_s": round(t1 - t0, 4),
         "match_s": round(t2 - t1, 4),
+        "detect_cpu_s": round(c1 - c0, 4),  # process CPU time, all threads
+        "match_cpu_s": round(c2 - c1, 4),
     }
