@@ -95,3 +95,17 @@ def test_sliding_sideways_past_a_scene_leaves_the_offset_unidentified_and_the_fi
     # approaching an object with little depth range tells it from a turn no better (~40)
     A, Bo, R, t = _scene_pair(rng, (0.0, 0.0, -0.08), (0.9, 1.3))
     assert offset_from_two_keyframes(A, Bo, R, t, F, CX, CY, B).inflation > 20.0
+
+
+def test_a_pair_past_the_inflation_limit_is_not_solved():
+    rng = np.random.default_rng(8)
+    A, Bo, R, t = _scene_pair(rng, (-0.08, 0.0, 0.0), (0.5, 3.0))
+    full = offset_from_two_keyframes(A, Bo, R, t, F, CX, CY, B)
+    quick = offset_from_two_keyframes(A, Bo, R, t, F, CX, CY, B, max_inflation=10.0)
+    assert np.isnan(quick.d0) and quick.inflation > 10.0
+    assert abs(quick.inflation - full.inflation) < 0.2 * full.inflation  # the initial motion's is close to the final
+    f = OffsetFilter(max_inflation=10.0)
+    assert not f.update(quick) and f.unidentified == 1
+    A, Bo, R, t = _scene_pair(rng, (0.0, 0.0, -0.08), (0.5, 3.0))
+    kept = offset_from_two_keyframes(A, Bo, R, t, F, CX, CY, B, max_inflation=10.0)
+    assert np.isfinite(kept.d0) and kept.inflation < 10.0

@@ -104,14 +104,17 @@ def _weights(r: np.ndarray, z: np.ndarray, huber_px: float) -> np.ndarray:
 
 def offset_from_two_keyframes(A: np.ndarray, B: np.ndarray, R_BA: np.ndarray, t_BA: np.ndarray, f: float,
                               cx: float, cy: float, baseline_m: float, huber_px: float = 0.5,
-                              min_points: int = 30, iterations: int = 10, fix_pose: bool = False) -> PairEstimate | None:
+                              min_points: int = 30, iterations: int = 10, fix_pose: bool = False,
+                              max_inflation: float | None = None) -> PairEstimate | None:
     """The disparity offset from points observed in stereo at two keyframes (rectified pixels).
 
     ``A`` and ``B`` are (n, 3) rows ``(u, v, disparity)`` of the same points in the rectified
     left image of keyframes A and B; ``R_BA``, ``t_BA`` the initial motion (``x_B = R x_A + t``,
     rectified camera frames).  Every point is a free 3D point (all its measurements are
     residuals: fixing its ray at A would dilute the estimate towards zero).  Returns None when
-    there are too few points or the system is singular (no translation: no parallax)."""
+    there are too few points or the system is singular (no translation: no parallax).  With
+    ``max_inflation``, a pair whose variance inflation at the initial motion exceeds it is not
+    solved: the estimate returned has ``d0 = nan`` and that inflation (the filter ignores it)."""
     A = np.asarray(A, float)
     B = np.asarray(B, float)
     ok = np.isfinite(A).all(1) & np.isfinite(B).all(1) & (A[:, 2] > 0) & (B[:, 2] > 0)
@@ -122,7 +125,7 @@ def offset_from_two_keyframes(A: np.ndarray, B: np.ndarray, R_BA: np.ndarray, t_
     P = np.column_stack([(A[:, 0] - cx) / f, (A[:, 1] - cy) / f, A[:, 2] / fb])
     R, t, d0 = np.asarray(R_BA, float).copy(), np.asarray(t_BA, float).reshape(3).copy(), 0.0
     S = None
-    for _ in range(iterations):
+    for it in range(iterations):
         r, XA, XB, z = _residuals(R, t, d0, P, A, B, f, cx, cy, fb)
         w = _weights(r, z, huber_px)
         Jg, Jp = _jacobians(R, P, XA, XB, z, f, fb)
@@ -140,6 +143,10 @@ def offset_from_two_keyframes(A: np.ndarray, B: np.ndarray, R_BA: np.ndarray, t_
             s = bg - np.einsum("nij,nj->i", W, bp)
             S = S + (1.0 if fix_pose else 1e-9) * np.diag([1.0] * 6 + [1e-9])
             dg = -np.linalg.solve(S, s)
+            if it == 0 and max_inflation is not None and not fix_pose:
+                inflation = float(np.linalg.inv(S)[6, 6] * S[6, 6])
+                if inflation > max_inflation:
+                    return PairEstimate(float("nan"), float("inf"), len(A), 0.0, inflation)
         except np.linalg.LinAlgError:
             return None
         dp = -np.einsum("nij,nj->ni", Hpp_inv, bp + np.einsum("nji,j->ni", Hgp, dg))
@@ -211,10 +218,10 @@ class OffsetFilter:
 
     def update(self, est: PairEstimate | None) -> bool:
         """Fuse one estimate; returns whether it was used."""
-        if est is None or not np.isfinite(est.d0) or est.sigma > self.max_sigma:
-            return False
-        if est.inflation > self.max_inflation:
+        if est is not None and est.inflation > self.max_inflation:
             self.unidentified += 1
+            return False
+        if est is None or not np.isfinite(est.d0) or est.sigma > self.max_sigma:
             return False
         sig = max(est.sigma, self.floor_sigma)
         if self.n >= self.min_pairs and abs(est.d0 - self.value) > self.gate_sigma * np.hypot(sig, self.sigma):

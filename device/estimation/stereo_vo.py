@@ -484,7 +484,7 @@ class StereoEstimator(KeyframeJobs):
             T_BA = invert_pose(T_world_cam) @ self._T_kf  # previous keyframe -> this one (camera frames)
             R_BA, t_BA = rect.R0 @ T_BA[:3, :3] @ rect.R0.T, rect.R0 @ T_BA[:3, 3]
             est = offset_from_two_keyframes(m.obs[idx[both]], B[both], R_BA, t_BA, rect.f, rect.P0[0, 2],
-                                            rect.P0[1, 2], rect.baseline_m)
+                                            rect.P0[1, 2], rect.baseline_m, max_inflation=self._offset.max_inflation)
             used = self._offset.update(est)
             self.counters["disparity_offset_pairs"] = self._offset.n
             self.counters["disparity_offset_unidentified"] = self._offset.unidentified
