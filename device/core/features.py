@@ -23,10 +23,10 @@ Presets (:data:`PRESETS`):
 * ``fast`` (also ``fast_sym``, its earlier name) - our real-time preset and the stereo
   estimator's keyframes: symmetric pairing (all views of both images are matched view
   against view), the original view plus tilt 2 (60 deg of latitude, where plain SIFT
-  fails) at three longitudes, lower contrast and looser edge thresholds.  In a
-  sequence every image's views are computed once anyway (when it is the later image),
-  so the symmetric pairing costs only matching time, and it doubles the covered tilt
-  directions (image 1 squeezed along phi = image 2 stretched along phi);
+  fails) at three longitudes, lower contrast and looser edge thresholds.  The symmetric
+  pairing doubles the covered tilt directions (image 1 squeezed along phi = image 2
+  stretched along phi); for one pair (``view_selection.detect_pair``) a low-resolution
+  pass first picks the view pairs worth computing (``coarse_factor``);
 * ``fast_asym`` - the same cost in the paper's asymmetric scheme: tilt 2 at four
   longitudes, views downscaled to 0.7, SIFT only on the earlier image;
 * ``full``  - OpenCV's ``cv2.AffineFeature`` with its default view parameters (the
@@ -260,7 +260,7 @@ PRESETS: dict[str, FeatureConfig] = {
 PRESET_HELP: dict[str, str] = {
     "sift": "plain SIFT (original view only)",
     "paper": "the paper's modified ASIFT: latitudes 15/30/45/60 x longitudes 0..150 step 30 + original (25 views)",
-    "fast": "real time, symmetric: original + tilt 2 at longitudes 0/60/120 on both images (views reused per image)",
+    "fast": "real time, symmetric: original + tilt 2 at longitudes 0/60/120 on both images, view pairs picked at 1/3 resolution",
     "fast_sym": "the earlier name of fast",
     "fast_asym": "paper's asymmetric scheme, real time: original + tilt 2 at longitudes 0/45/90/135, views at 0.7 scale",
     "full": "OpenCV cv2.AffineFeature(SIFT) with its default view parameters (reference ASIFT)",
