@@ -10,7 +10,7 @@ import pytest
 
 from stereopath.device.core.features import FeatureConfig, detect, get_preset
 from stereopath.device.core.matching import MatchConfig, match
-from stereopath.device.core.view_selection import candidate_pairs, coarse_pair_counts, detect_pair, match_pair, select_view_pairs, views_of
+from stereopath.device.core.view_selection import candidate_pairs, coarse_config, coarse_pair_counts, detect_pair, match_pair, select_view_pairs, views_of
 from stereopath.device.errors import ConfigError
 from stereopath.host.evaluation.features import correct_mask
 
@@ -119,3 +119,16 @@ def test_coarse_config_is_validated():
     with pytest.raises(ConfigError, match="coarse_min_share"):
         FeatureConfig(coarse_min_share=1.5)
     assert get_preset("fast").coarse_factor == 3 and get_preset("fast_asym").coarse_factor == 0
+
+
+def test_coarse_pass_caps_every_view_at_the_same_keypoint_density():
+    fast = get_preset("fast")  # tilt-2 views: half the image's area, half the keypoints
+    small = coarse_config(fast)
+    assert small.coarse_factor == 0 and small.nfeatures == fast.coarse_nfeatures
+    assert small.view_nfeatures == round(fast.coarse_nfeatures / 2)
+    assert small.border_px == max(1, round(fast.border_px / fast.coarse_factor))
+    paper = dataclasses.replace(get_preset("paper"), coarse_factor=3, coarse_nfeatures=400)
+    tilts = np.array([t for t, _ in paper.views[1:]])
+    assert coarse_config(paper).view_nfeatures == round(400 / np.exp(np.log(tilts).mean()))
+    uncapped = coarse_config(dataclasses.replace(fast, coarse_nfeatures=0))
+    assert uncapped.nfeatures == fast.nfeatures and uncapped.view_nfeatures == fast.view_nfeatures

@@ -164,11 +164,12 @@ class FeatureConfig:
     # Pair-level view selection (Morel & Yu's two-resolution ASIFT, view_selection.py): match all
     # views of the two images reduced ``coarse_factor`` times, then compute and match at full
     # resolution only the view pairs with >= ``coarse_min_share`` of the best pair's matches;
-    # each reduced view keeps its ``coarse_nfeatures`` strongest keypoints (0 = as at full
-    # resolution).  coarse_factor 0 = off.  detect() on one image always computes every view.
+    # the reduced original view keeps its ``coarse_nfeatures`` strongest keypoints, a view at tilt
+    # t 1/t of that (the same density; 0 = as at full resolution).  coarse_factor 0 = off.
+    # detect() on one image always computes every view.
     coarse_factor: int = 0
     coarse_min_share: float = 0.2
-    coarse_nfeatures: int = 300
+    coarse_nfeatures: int = 400
     # cv2.AffineFeature parameters (backend "cv2_affine" only); OpenCV's defaults.
     affine_max_tilt: int = 5
     affine_min_tilt: int = 0

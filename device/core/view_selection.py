@@ -28,7 +28,7 @@ import numpy as np
 from stereopath.device.core.features import FeatureConfig, Features, detect, earlier_features, get_preset
 from stereopath.device.core.matching import MatchConfig, Matches, collapse_duplicates, match, match_candidates
 
-__all__ = ["MIN_MATCHES", "candidate_pairs", "coarse_pair_counts", "select_view_pairs", "views_of", "detect_pair", "match_pair"]
+__all__ = ["MIN_MATCHES", "candidate_pairs", "coarse_config", "coarse_pair_counts", "select_view_pairs", "views_of", "detect_pair", "match_pair"]
 
 MIN_MATCHES = 3  # a view pair with fewer low-resolution matches than this is noise
 
@@ -52,19 +52,30 @@ def _reduce(image: np.ndarray, k: int) -> np.ndarray:
     return cv2.resize(image, (max(1, round(w / k)), max(1, round(h / k))), interpolation=cv2.INTER_AREA)
 
 
+def coarse_config(cfg: FeatureConfig) -> FeatureConfig:
+    """The preset as used on the reduced images: border scaled, keypoints capped at the same
+    density in every view (a view at tilt ``t`` has ``1/t`` of the image's area; the mean tilt
+    of the views when they differ)."""
+    k = max(2, cfg.coarse_factor)
+    cap = cfg.coarse_nfeatures
+    tilt = float(np.exp(np.mean([np.log(t) for t, _ in cfg.views[1:]]))) if cfg.n_views > 1 else 1.0
+    return dataclasses.replace(cfg, coarse_factor=0, border_px=max(1, round(cfg.border_px / k)) if cfg.border_px else 0,
+                               nfeatures=cap or cfg.nfeatures, view_nfeatures=max(1, round(cap / tilt)) if cap else cfg.view_nfeatures)
+
+
 def coarse_pair_counts(img1: np.ndarray, img2: np.ndarray, cfg: FeatureConfig, match_cfg: MatchConfig = MatchConfig()) -> dict[tuple[int, int], int]:
     """Matches of every candidate view pair on the two images reduced ``cfg.coarse_factor`` times.
 
     Each pair is counted on its own: candidates that pass the ratio test and the mutual
-    check, made one-to-one per location inside the pair.  Each reduced view keeps its
-    ``cfg.coarse_nfeatures`` strongest keypoints (SIFT's own response ranking): the most
-    repeatable ones are enough to rank the pairs, and descriptors are most of SIFT's cost.
+    check, made one-to-one per location inside the pair.  The reduced original view keeps its
+    ``cfg.coarse_nfeatures`` strongest keypoints (SIFT's own response ranking) and a view at tilt
+    ``t`` (``1/t`` of the area) ``1/t`` of that, the same density everywhere, so that no view's
+    counts are favoured by its size: the most repeatable keypoints are enough to rank the pairs,
+    and descriptors are most of SIFT's cost.
     """
     k = max(2, cfg.coarse_factor)
     pairs = candidate_pairs(cfg)
-    cap = cfg.coarse_nfeatures
-    small = dataclasses.replace(cfg, coarse_factor=0, border_px=max(1, round(cfg.border_px / k)) if cfg.border_px else 0,
-                                nfeatures=cap or cfg.nfeatures, view_nfeatures=cap or cfg.view_nfeatures)
+    small = coarse_config(cfg)
     f1 = detect(_reduce(img1, k), small, views=views_of(pairs, 0))
     f2 = detect(_reduce(img2, k), small, views=views_of(pairs, 1))
     i, j, d, r = match_candidates(f1, f2, match_cfg, pairs)
