@@ -67,6 +67,34 @@ def keyframes_by_view_change(rig, est: dict[str, np.ndarray], features_of, cfg, 
     return np.array(kf, np.int64), feats
 
 
+# the points that choose the offline keyframes: Shi-Tomasi corners, as the on-board estimator finds its points
+VIEW_CORNERS = 1000
+VIEW_CORNER_QUALITY = 0.01
+VIEW_CORNER_SPACING_PX = 8
+
+
+def view_points(rig, left: np.ndarray, right: np.ndarray, cfg):
+    """A keyframe's points for choosing the next one (:func:`keyframes_by_view_change`): corners of the
+    left image with a stereo 3D point, found and triangulated as the keyframe's keypoints are
+    (:func:`tracks.stereo_points`).  They sample the same scene as the keypoints (the viewpoint change
+    is a median over them) at a small part of their cost, so the keypoints of every keyframe can be
+    computed afterwards, independently (:func:`parallel_map`).  Returned as keypoints without descriptors."""
+    import cv2
+
+    from stereopath.device.core.features import Features, gray
+    from stereopath.host.reprocess.tracks import KeyframeFeatures, stereo_points
+
+    left, right = gray(left), gray(right)
+    c = cv2.goodFeaturesToTrack(left, maxCorners=VIEW_CORNERS, qualityLevel=VIEW_CORNER_QUALITY,
+                                minDistance=VIEW_CORNER_SPACING_PX)
+    xy = np.zeros((0, 2), np.float32) if c is None else c.reshape(-1, 2).astype(np.float32)
+    uv0, uv1, X, ok = stereo_points(rig, left, right, xy, cfg)
+    n = int(ok.sum())
+    z = np.zeros(n, np.float32)
+    feats = Features(xy[ok], np.zeros((n, 0), np.float32), z, z.copy(), z.copy(), np.zeros(n, np.int16))
+    return KeyframeFeatures(feats, uv0[ok], uv1[ok], X[ok])
+
+
 def _empty(est: dict[str, np.ndarray], kf: np.ndarray, reason: str) -> dict[str, np.ndarray]:
     log.warning("no tracks: %s", reason)
     return {"kf_index": kf, "T_kf": est["T_world_cam"][kf], "observations": np.zeros((0, 6)),
@@ -96,19 +124,22 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
         fr = seq.frame(int(est["seq"][i]))
         return fr.left, fr.right
 
-    def features_of(i: int):
-        return _keyframe_features((seq.rig, cfg), images_of(i))
+    images: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def points_of(i: int):
+        images[i] = images_of(i)
+        return view_points(seq.rig, *images[i], cfg)
 
     if cfg.keyframe_parallax_deg > 0:
-        with Bar(None, "keyframe features", inputs.progress, "kf") as tick:
-            kf, feats = keyframes_by_view_change(seq.rig, est, features_of, cfg, tick)
+        with Bar(None, "keyframes", inputs.progress, "kf") as tick:
+            kf, _ = keyframes_by_view_change(seq.rig, est, points_of, cfg, tick)
     else:
         kf = choose_keyframes(est)
-        with Bar(len(kf), "keyframe features", inputs.progress, "kf") as tick:
-            images = [images_of(i) for i in kf]
-            # independent per keyframe: a fleet task spreads them over idle cores (same results, same order)
-            feats = parallel_map(_keyframe_features, (seq.rig, cfg), images)
-            tick(len(kf))
+    with Bar(len(kf), "keyframe features", inputs.progress, "kf") as tick:
+        pairs = [images.pop(int(i), None) or images_of(i) for i in kf]
+        # independent per keyframe: a fleet task spreads them over idle cores (same results, same order)
+        feats = parallel_map(_keyframe_features, (seq.rig, cfg), pairs)
+        tick(len(kf))
     if len(kf) < 2:
         return _empty(est, kf, f"{len(kf)} tracked keyframe(s) in the re-estimate; bundle adjustment needs two")
     T_kf = est["T_world_cam"][kf]
