@@ -67,10 +67,10 @@ def keyframes_by_view_change(rig, est: dict[str, np.ndarray], features_of, cfg, 
     return np.array(kf, np.int64), feats
 
 
-# the points that choose the offline keyframes: Shi-Tomasi corners, as the on-board estimator finds its points
-VIEW_CORNERS = 1000
+# the points that choose the offline keyframes: Shi-Tomasi corners spread over the image (as the keypoints are)
+VIEW_CORNERS = 500
 VIEW_CORNER_QUALITY = 0.01
-VIEW_CORNER_SPACING_PX = 8
+VIEW_CORNER_SPACING_PX = 12
 
 
 def view_points(rig, left: np.ndarray, right: np.ndarray, cfg):
