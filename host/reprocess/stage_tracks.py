@@ -101,6 +101,7 @@ def keyframes_ahead(rig, est: dict[str, np.ndarray], images_of, cfg, progress=No
         if progress is not None:
             progress(len(kf) - start)
         if kf[-1] in feats:  # the last tracked frame, with its keypoints
+            log.info("offline keyframes guessed ahead: %d keyframes, keypoints of %d frames", len(kf), len(feats))
             return np.array(kf, np.int64), [feats[k] for k in kf]
         size = 2 * size if len(kf) - start >= len(guess) - 1 else 2
 
