@@ -131,6 +131,7 @@ def run_demo(out: str | Path, frames: int | None = None, seed: int = 0, timeout_
                 timings["device_run_s"] = time.perf_counter() - t0
                 if code != 0:
                     raise StereopathError(f"the device process failed (code {code}):\n{_tail(dev_log)}")
+                _wait_for_poses(session_dir, live_dir, 10.0)
             finally:
                 if dev.poll() is None:
                     dev.send_signal(signal.SIGTERM)
@@ -155,6 +156,24 @@ def run_demo(out: str | Path, frames: int | None = None, seed: int = 0, timeout_
 
             write_report(out / "report.json", report)
     return DemoResult(out, session_dir, live_dir, report, time.perf_counter() - start, timings)
+
+
+def _wait_for_poses(session_dir: Path, live_dir: Path, timeout_s: float) -> None:
+    """Give the host up to ``timeout_s`` to write the poses the device recorded (its last ones may still
+    be on their way when the device exits); the report counts whatever arrived."""
+    def lines(paths) -> int:
+        n = 0
+        for p in paths:
+            try:
+                n += sum(1 for line in p.read_text().splitlines() if line and not line.startswith("#"))
+            except OSError:
+                pass
+        return n
+
+    want = lines([session_dir / "trajectory.tum"])
+    deadline = time.monotonic() + timeout_s
+    while lines(live_dir.glob("*/poses.tum")) < want and time.monotonic() < deadline:
+        time.sleep(0.1)
 
 
 def _evaluate(out: Path, session_dir: Path, live_dir: Path, source: str) -> dict:

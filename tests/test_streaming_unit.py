@@ -292,3 +292,39 @@ def test_pose_publisher_counts_subscriptions_and_a_pose_sent_after_one_arrives(t
         sub.close(linger=0)
         pub.close()
         ctx.term()
+
+
+def test_the_last_poses_of_a_run_reach_a_connected_host_when_the_publisher_closes():
+    """Closing right after a burst: without the flush, ZeroMQ drops what its I/O thread has not sent yet."""
+    import dataclasses
+    import time
+
+    import zmq
+
+    from stereopath.device.streaming.pose_publisher import PosePublisher
+    from tests.test_streaming_support import device_config
+
+    ctx = zmq.Context()
+    cfg = dataclasses.replace(device_config(None), pose_sndhwm=5000)
+    pub = PosePublisher(ctx, cfg, None)
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.RCVHWM, 5000)
+    got = 0
+    try:
+        sub.connect(pub.endpoint)
+        sub.setsockopt(zmq.SUBSCRIBE, b"")
+        deadline = time.monotonic() + 10
+        while pub.subscriptions() == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        payload = bytes(2000)  # a backlog the I/O thread cannot have sent by the close (linger 0 loses most of it)
+        sent = sum(pub.send(payload) for _ in range(3000))
+        pub.close(flush_ms=cfg.pose_flush_ms)
+        while sub.poll(2000):
+            sub.recv()
+            got += 1
+    finally:
+        sub.close(linger=0)
+        pub.close()  # (closed already unless the test failed before)
+        ctx.term()
+    assert cfg.pose_flush_ms > 0 and sent == 3000
+    assert got == sent

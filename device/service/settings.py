@@ -263,6 +263,7 @@ class StreamSettings:
     max_credit: int = 16                # keyframes in flight per host, whatever credit it asks for
     max_peers: int = 8                  # hosts tracked at once (least recently heard is evicted)
     pose_sndhwm: int = 16               # PUB high-water mark (per subscriber, then dropped)
+    pose_flush_ms: int = 500            # at the end of a run, up to this long to send the last poses queued
     keyframe_sndhwm: int = 64           # ROUTER outbound messages per host
     control_rcvhwm: int = 64            # ROUTER inbound messages per host
     max_pending_keyframes: int = 16     # keyframes waiting to be encoded and spooled
@@ -278,6 +279,7 @@ class StreamSettings:
         check_range("stream.max_credit", self.max_credit, 1, 1024)
         check_range("stream.max_peers", self.max_peers, 1, 256)
         check_range("stream.pose_sndhwm", self.pose_sndhwm, 1, 100000)
+        check_range("stream.pose_flush_ms", self.pose_flush_ms, 0, 10000)
         check_range("stream.keyframe_sndhwm", self.keyframe_sndhwm, self.max_credit + 2, 100000)
         check_range("stream.control_rcvhwm", self.control_rcvhwm, 1, 100000)
         check_range("stream.max_pending_keyframes", self.max_pending_keyframes, 1, 1024)

@@ -72,7 +72,9 @@ class PosePublisher:
                     self.subscribed += 1
             return self.subscribed
 
-    def close(self) -> None:
+    def close(self, flush_ms: int = 0) -> None:
+        """Close the socket; poses ZeroMQ still holds for a connected host get up to ``flush_ms`` to
+        leave (the context's ``term`` waits at most that long; with no host nothing waits)."""
         with self._lock:
             self._closed = True
-            self.sock.close(linger=0)
+            self.sock.close(linger=int(flush_ms))

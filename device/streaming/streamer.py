@@ -227,7 +227,8 @@ class DeviceStreamer:
         return True
 
     def close(self, timeout_s: float = 10.0) -> None:
-        """Spool the keyframes still queued, stop both threads, close the sockets (linger 0)."""
+        """Spool the keyframes still queued, stop both threads, close the sockets (the keyframe socket
+        at once, the pose socket after at most ``pose_flush_ms`` for the last poses)."""
         if self._closed:
             return
         self._closed = True
@@ -293,9 +294,10 @@ class DeviceStreamer:
             pass  # pipe full: the I/O thread is already due to wake up
 
     def _teardown(self) -> None:
-        for closer in (self._server, self._pub):
-            if closer is not None:
-                closer.close()
+        if self._server is not None:
+            self._server.close()
+        if self._pub is not None:  # the last poses of the run still reach a connected host
+            self._pub.close(flush_ms=self.config.pose_flush_ms)
         if self._auth is not None:
             self._auth.stop()
         self._ctx.term()
