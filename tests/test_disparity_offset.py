@@ -61,3 +61,51 @@ def test_offset_filter_is_slow_gated_and_bounded():
     for _ in range(200):
         f.update(PairEstimate(f.value - 0.25, 0.1, 100))  # a steady pull cannot take it past the bound
     assert f.value >= -0.5
+
+
+def _scene_pair(rng, t, depth_range, d0=0.0, noise=0.05, n=300):
+    """Points in front of the camera (depths in ``depth_range``) seen from A and from B = A moved by ``t``."""
+    Z = rng.uniform(*depth_range, n)
+    X = np.column_stack([rng.uniform(-0.6, 0.6, n) * Z, rng.uniform(-0.45, 0.45, n) * Z, Z])
+    R = so3_exp(np.array([0.0, 0.01, 0.0]))
+    XB = X @ R.T + np.asarray(t)
+
+    def obs(P):
+        return np.column_stack([F * P[:, 0] / P[:, 2] + CX, F * P[:, 1] / P[:, 2] + CY, F * B / P[:, 2] + d0])
+
+    return obs(X) + rng.normal(0, noise, (n, 3)), obs(XB) + rng.normal(0, noise, (n, 3)), R, np.asarray(t, float)
+
+
+def test_sliding_sideways_past_a_scene_leaves_the_offset_unidentified_and_the_filter_ignores_it():
+    rng = np.random.default_rng(7)
+    # a scene 0.5-3 m deep; the camera slides 8 cm sideways (measured ~55)
+    A, Bo, R, t = _scene_pair(rng, (-0.08, 0.0, 0.0), (0.5, 3.0))
+    side = offset_from_two_keyframes(A, Bo, R, t, F, CX, CY, B)
+    # the same scene approached by 8 cm: the offset bends near and far points differently (~4)
+    A, Bo, R, t = _scene_pair(rng, (0.0, 0.0, -0.08), (0.5, 3.0))
+    forward = offset_from_two_keyframes(A, Bo, R, t, F, CX, CY, B)
+    assert side is not None and forward is not None
+    assert side.inflation > 20.0 > forward.inflation >= 1.0
+    f = OffsetFilter()
+    assert not f.update(side) and f.unidentified == 1 and f.n == 0
+    assert f.update(forward) and f.n == 1
+    # with the motion known there is nothing to inflate
+    fixed = offset_from_two_keyframes(A, Bo, R, t, F, CX, CY, B, fix_pose=True)
+    assert fixed.inflation == 1.0
+    # approaching an object with little depth range tells it from a turn no better (~40)
+    A, Bo, R, t = _scene_pair(rng, (0.0, 0.0, -0.08), (0.9, 1.3))
+    assert offset_from_two_keyframes(A, Bo, R, t, F, CX, CY, B).inflation > 20.0
+
+
+def test_a_pair_past_the_inflation_limit_is_not_solved():
+    rng = np.random.default_rng(8)
+    A, Bo, R, t = _scene_pair(rng, (-0.08, 0.0, 0.0), (0.5, 3.0))
+    full = offset_from_two_keyframes(A, Bo, R, t, F, CX, CY, B)
+    quick = offset_from_two_keyframes(A, Bo, R, t, F, CX, CY, B, max_inflation=10.0)
+    assert np.isnan(quick.d0) and quick.inflation > 10.0
+    assert abs(quick.inflation - full.inflation) < 0.2 * full.inflation  # the initial motion's is close to the final
+    f = OffsetFilter(max_inflation=10.0)
+    assert not f.update(quick) and f.unidentified == 1
+    A, Bo, R, t = _scene_pair(rng, (0.0, 0.0, -0.08), (0.5, 3.0))
+    kept = offset_from_two_keyframes(A, Bo, R, t, F, CX, CY, B, max_inflation=10.0)
+    assert np.isfinite(kept.d0) and kept.inflation < 10.0

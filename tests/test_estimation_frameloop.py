@@ -111,6 +111,21 @@ def test_online_disparity_offset_is_estimated_bounded_and_used(data_dir):
     assert est.counters["disparity_offset_mpx"] == round(1000 * est._offset.value)
 
 
+def test_online_disparity_offset_stays_at_the_prior_around_an_object():
+    """An orbit around the table objects cannot tell an offset from a turn: every pair is ignored."""
+    from stereopath.device.sim.session import open_sim
+
+    seq = open_sim(seed=2, frames=60, trajectory="orbit")
+    est = StereoEstimator(seq.rig, StereoConfig(kf_max_frames=2, background_keyframes=False))
+    assert est.cfg.estimate_disparity_offset  # on by default
+    out = [est.process(seq.frame(i), None) for i in range(len(seq))]
+    est.close()
+    assert all(e.status == "ok" for e in out)
+    assert est.counters["disparity_offset_unidentified"] >= 5
+    assert est._offset.n < est._offset.min_pairs and est._geo.disparity_offset_px == 0.0
+    assert est.counters["disparity_offset_mpx"] == 0
+
+
 def test_asift_work_is_scheduled_by_view_change_not_at_every_keyframe(data_dir):
     rig, frames = _kitti_frames(data_dir, range(12))  # driving straight: little rotation
     est = StereoEstimator(rig, StereoConfig(kf_max_frames=1, background_keyframes=False, asift_max_frames=5))

@@ -22,9 +22,12 @@ The modified-ASIFT work of a keyframe runs off the frame loop on a worker thread
 A constant stereo disparity offset (a yaw or principal-point error of the
 calibration shows as one), ``disparity_offset_px``, is removed from every
 triangulation and from the right-image observations of the pose refinement.  With
-``estimate_disparity_offset`` it is refined on line: the points seen in stereo at two
-consecutive keyframes give it through a small bundle adjustment
-(:mod:`stereopath.device.estimation.disparity_offset`), fused slowly and bounded.
+``estimate_disparity_offset`` (on by default) it is refined on line: the points seen in
+stereo at two consecutive keyframes give it through a small bundle adjustment
+(:mod:`stereopath.device.estimation.disparity_offset`), fused slowly and bounded, from the
+pairs whose motion tells an offset from a turn (moving towards a scene of varied depth
+does, sliding sideways past it does not).  When the value changes, the tracked points seen at that
+keyframe restart their averaged triangulation there (the earlier ones carry the old offset).
 
 Works without an IMU (KITTI): the prior is then a constant-velocity model.
 At start-up a still IMU block before the first frame gives the gyro bias and
@@ -98,9 +101,9 @@ class StereoConfig:
     max_correction_deg: float = 2.0  # larger keyframe corrections from the ASIFT solve are rejected
     kf_map_agreement: float = 0.8  # share of the tracked map that must stay inlier in the keyframe's ASIFT solve
     disparity_offset_px: float = 0.0  # a known stereo disparity offset (calibration): the prior of the estimate
-    # refine it on line from points seen in stereo at two keyframes; off by default: without an independent
-    # translation the estimate is coupled to it (correlation ~0.85-0.9) and came out ~0.08 px off on KITTI and the sim
-    estimate_disparity_offset: bool = False
+    # refine it on line from points seen in stereo at two keyframes, using only the pairs where the offset is
+    # identifiable (OffsetFilter.max_inflation): an orbit around an object leaves it at the prior
+    estimate_disparity_offset: bool = True
 
     def __post_init__(self) -> None:
         check_range("max_points", self.max_points, 20, 20000)
@@ -454,11 +457,15 @@ class StereoEstimator(KeyframeJobs):
         if not ok_old.any():
             return
         idx_o = np.flatnonzero(ok_old)
+        offset_before = self._geo.disparity_offset_px
         if cfg.estimate_disparity_offset:
             self._update_disparity_offset(idx_o, uvr_old[idx_o], T_world_cam)
         Xc_new, err_new = self._geo.triangulate(m.uv[idx_o], uvr_old[idx_o])
         good = self._geo.good_points(Xc_new, err_new)
         idx = idx_o[good]
+        if self._geo.disparity_offset_px != offset_before:
+            # the earlier triangulations carry the old offset: restart each point's mean from this keyframe
+            m.nobs[idx] = 0
         if cfg.refine_points:
             # running mean of each tracked point over its stereo observations at keyframes
             Xw_new = Xc_new[good] @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
@@ -477,8 +484,10 @@ class StereoEstimator(KeyframeJobs):
             T_BA = invert_pose(T_world_cam) @ self._T_kf  # previous keyframe -> this one (camera frames)
             R_BA, t_BA = rect.R0 @ T_BA[:3, :3] @ rect.R0.T, rect.R0 @ T_BA[:3, 3]
             est = offset_from_two_keyframes(m.obs[idx[both]], B[both], R_BA, t_BA, rect.f, rect.P0[0, 2],
-                                            rect.P0[1, 2], rect.baseline_m)
+                                            rect.P0[1, 2], rect.baseline_m, max_inflation=self._offset.max_inflation)
             used = self._offset.update(est)
+            self.counters["disparity_offset_pairs"] = self._offset.n
+            self.counters["disparity_offset_unidentified"] = self._offset.unidentified
             log.debug("keyframe %d: disparity offset %s (used %s), fused %.3f +- %.3f px", self._cur_seq, est, used,
                       self._offset.value, self._offset.sigma)
             if used and self._offset.ready:
