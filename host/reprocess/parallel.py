@@ -37,6 +37,11 @@ def parallel_map(fn: Callable[[Any, Any], Any], shared: Any, items: Sequence[Any
     return out
 
 
+def spreading() -> bool:
+    """Whether a spreader is installed (work guessed ahead in parallel only pays where pieces can spread)."""
+    return _SPREADER.get() is not None
+
+
 @contextmanager
 def spread_with(spreader: Spreader | None) -> Iterator[None]:
     """Within the block, :func:`parallel_map` hands its pieces to ``spreader(fn, shared, items)``

@@ -19,7 +19,7 @@ import numpy as np
 
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
 from stereopath.host.reprocess.loops import detect_loops, loops_to_array
-from stereopath.host.reprocess.parallel import parallel_map
+from stereopath.host.reprocess.parallel import parallel_map, spreading
 from stereopath.host.progress import Bar
 from stereopath.host.reprocess.store import json_array
 
@@ -39,32 +39,98 @@ def choose_keyframes(est: dict[str, np.ndarray]) -> np.ndarray:
     return np.unique(np.concatenate([ok[:1], kf, ok[-1:]])).astype(np.int64)
 
 
+def next_keyframe(rig, est: dict[str, np.ndarray], k: int, points, cfg) -> int:
+    """The keyframe after keyframe ``k`` (frame index): the last tracked frame that sees ``points`` (frame
+    ``k``'s stereo points) within ``cfg.keyframe_parallax_deg`` and ``cfg.keyframe_motion_px``
+    (:func:`tracks.view_change`), at least the next tracked frame."""
+    from stereopath.host.reprocess.tracks import view_change
+
+    ok, T = np.flatnonzero(est["status"] == 0), est["T_world_cam"]
+    later = ok[ok > k]
+    nxt = int(later[0])
+    for j in later[1:]:
+        angle, motion = view_change(rig, points, T[k], T[j], cfg.min_depth_m)
+        if angle > cfg.keyframe_parallax_deg or motion > cfg.keyframe_motion_px:
+            break
+        nxt = int(j)
+    return nxt
+
+
 def keyframes_by_view_change(rig, est: dict[str, np.ndarray], features_of, cfg, progress=None
                              ) -> tuple[np.ndarray, list]:
     """Offline keyframes (frame indices) and their features: from the first tracked frame, the next
-    keyframe is the last tracked frame that sees the previous keyframe's points within
-    ``cfg.keyframe_parallax_deg`` and ``cfg.keyframe_motion_px`` (:func:`tracks.view_change`), at least
-    the next tracked frame; the last tracked frame ends the list.  ``features_of(i)`` computes
-    frame ``i``'s features.  Rotation alone changes no viewpoint: a scan that mostly turns gets few
-    keyframes, driving towards the scene one every frame or two."""
-    from stereopath.host.reprocess.tracks import view_change
-
+    keyframe is :func:`next_keyframe` from the previous keyframe's features; the last tracked frame
+    ends the list.  ``features_of(i)`` computes frame ``i``'s features.  Rotation alone changes no
+    viewpoint: a scan that mostly turns gets few keyframes, driving towards the scene one every frame or two."""
     ok = np.flatnonzero(est["status"] == 0)
-    T = est["T_world_cam"]
     kf, feats = [int(ok[0])], [features_of(int(ok[0]))]
     while kf[-1] < ok[-1]:
-        later = ok[ok > kf[-1]]
-        nxt = int(later[0])
-        for j in later[1:]:
-            angle, motion = view_change(rig, feats[-1], T[kf[-1]], T[j], cfg.min_depth_m)
-            if angle > cfg.keyframe_parallax_deg or motion > cfg.keyframe_motion_px:
-                break
-            nxt = int(j)
-        kf.append(nxt)
-        feats.append(features_of(nxt))
+        kf.append(next_keyframe(rig, est, kf[-1], feats[-1], cfg))
+        feats.append(features_of(kf[-1]))
         if progress is not None:
             progress(1)
     return np.array(kf, np.int64), feats
+
+
+def keyframes_ahead(rig, est: dict[str, np.ndarray], images_of, cfg, progress=None) -> tuple[np.ndarray, list]:
+    """The keyframes and keypoints of :func:`keyframes_by_view_change` (the same ones), with the keypoints
+    computed in batches of independent pieces (:func:`parallel_map`) instead of one after another.
+
+    Each keyframe is chosen from the previous one's keypoints, so the chain is guessed ahead from
+    cheap corners (:func:`view_points`, the same rule on other points of the same scene), the keypoints
+    of the guessed keyframes are computed together, and the chain is then followed with the rule on
+    the keypoints as far as the guesses were right.  At a wrong guess the next batch starts from the
+    right keyframe; a batch grows while the guesses hold (twice the last one's size) and starts again
+    at two after a wrong one, so little work is thrown away where the guesses are poor."""
+    ok = np.flatnonzero(est["status"] == 0)
+    feats: dict[int, object] = {}
+    corners: dict[int, object] = {}
+    kf, size = [int(ok[0])], 2
+    while True:
+        guess = [kf[-1]]  # kf[-1] is a keyframe whose keypoints are still to compute
+        while len(guess) < size and guess[-1] < ok[-1]:
+            g = guess[-1]
+            if g not in corners:
+                corners[g] = view_points(rig, *images_of(g), cfg)
+            guess.append(next_keyframe(rig, est, g, corners[g], cfg))
+        todo = [g for g in guess if g not in feats]
+        feats.update(zip(todo, parallel_map(_keyframe_features, (rig, cfg), [images_of(g) for g in todo])))
+        start = len(kf)
+        while kf[-1] < ok[-1] and kf[-1] in feats:
+            kf.append(next_keyframe(rig, est, kf[-1], feats[kf[-1]], cfg))
+        if progress is not None:
+            progress(len(kf) - start)
+        if kf[-1] in feats:  # the last tracked frame, with its keypoints
+            log.info("offline keyframes guessed ahead: %d keyframes, keypoints of %d frames", len(kf), len(feats))
+            return np.array(kf, np.int64), [feats[k] for k in kf]
+        size = 2 * size if len(kf) - start >= len(guess) - 1 else 2
+
+
+# the points that guess the offline keyframes ahead: Shi-Tomasi corners spread over the image (as the keypoints are)
+VIEW_CORNERS = 500
+VIEW_CORNER_QUALITY = 0.01
+VIEW_CORNER_SPACING_PX = 12
+
+
+def view_points(rig, left: np.ndarray, right: np.ndarray, cfg):
+    """A frame's points for guessing the next keyframe ahead (:func:`keyframes_ahead`): corners of the
+    left image with a stereo 3D point, found and triangulated as the keypoints are
+    (:func:`tracks.stereo_points`).  They sample the same scene as the keypoints (the viewpoint change
+    is a median over them) at a small part of their cost.  Returned as keypoints without descriptors."""
+    import cv2
+
+    from stereopath.device.core.features import Features, gray
+    from stereopath.host.reprocess.tracks import KeyframeFeatures, stereo_points
+
+    left, right = gray(left), gray(right)
+    c = cv2.goodFeaturesToTrack(left, maxCorners=VIEW_CORNERS, qualityLevel=VIEW_CORNER_QUALITY,
+                                minDistance=VIEW_CORNER_SPACING_PX)
+    xy = np.zeros((0, 2), np.float32) if c is None else c.reshape(-1, 2).astype(np.float32)
+    uv0, uv1, X, ok = stereo_points(rig, left, right, xy, cfg)
+    n = int(ok.sum())
+    z = np.zeros(n, np.float32)
+    feats = Features(xy[ok], np.zeros((n, 0), np.float32), z, z.copy(), z.copy(), np.zeros(n, np.int16))
+    return KeyframeFeatures(feats, uv0[ok], uv1[ok], X[ok])
 
 
 def _empty(est: dict[str, np.ndarray], kf: np.ndarray, reason: str) -> dict[str, np.ndarray]:
@@ -101,7 +167,10 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
 
     if cfg.keyframe_parallax_deg > 0:
         with Bar(None, "keyframe features", inputs.progress, "kf") as tick:
-            kf, feats = keyframes_by_view_change(seq.rig, est, features_of, cfg, tick)
+            if spreading():  # keypoints of guessed keyframes ahead, in parallel (the same keyframes)
+                kf, feats = keyframes_ahead(seq.rig, est, images_of, cfg, tick)
+            else:  # one after another: nothing is computed that is not used
+                kf, feats = keyframes_by_view_change(seq.rig, est, features_of, cfg, tick)
     else:
         kf = choose_keyframes(est)
         with Bar(len(kf), "keyframe features", inputs.progress, "kf") as tick:

@@ -122,18 +122,26 @@ def stereo_features(rig: Rig, left: np.ndarray, right: np.ndarray, cfg: TrackCon
     feats = detect(left, cfg.feature_preset, views=[0] if cfg.original_view_only else None)
     if cfg.max_features and len(feats) > cfg.max_features:
         feats = feats.subset(np.argsort(-feats.response, kind="stable")[: cfg.max_features])
+    uv0, uv1, X, ok = stereo_points(rig, left, right, feats.xy, cfg, depth_guess_m)
+    return KeyframeFeatures(feats.subset(ok), uv0[ok], uv1[ok], X[ok])
+
+
+def stereo_points(rig: Rig, left: np.ndarray, right: np.ndarray, xy: np.ndarray, cfg: TrackConfig,
+                  depth_guess_m: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Left pixels ``xy`` of grey images located in the right image and triangulated: undistorted
+    left and right pixels, 3D points in the left camera, and the mask of the good ones."""
     K0, d0, K1, d1 = rig.cam0.K, rig.cam0.dist, rig.cam1.K, rig.cam1.dist
-    uv0 = undistort_px(feats.xy, K0, d0)
+    uv0 = undistort_px(xy, K0, d0)
     z0 = depth_guess_m or rig.rectification().f * rig.rectification().baseline_m / cfg.guess_disparity_px
     rays = np.column_stack([(uv0[:, 0] - K0[0, 2]) / K0[0, 0], (uv0[:, 1] - K0[1, 2]) / K0[1, 1], np.ones(len(uv0))])
     Xr = (rays * z0) @ rig.R.T + rig.T
     Xr[:, 2] = np.maximum(Xr[:, 2], 1e-3)
     guess = cv2.projectPoints(Xr.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K1, d1)[0].reshape(-1, 2)
-    xr, ok = stereo_right(rig, left, right, feats.xy, guess, cfg)
+    xr, ok = stereo_right(rig, left, right, xy, guess, cfg)
     uv1 = undistort_px(xr, K1, d1)
     X, err = triangulate(rig, uv0, uv1)
     ok &= (err < cfg.triangulation_max_px) & (X[:, 2] > cfg.min_depth_m) & (X[:, 2] < cfg.max_depth_m)
-    return KeyframeFeatures(feats.subset(ok), uv0[ok], uv1[ok], X[ok])
+    return uv0, uv1, X, ok
 
 
 class _Tracks:
