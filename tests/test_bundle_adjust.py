@@ -108,18 +108,31 @@ def test_gross_outliers_are_removed_and_weights_scale_residuals(ba):
         ba.bundle_adjust(rig, T_true, pts, obs[:, :4])
 
 
-def test_motion_only_refinement_with_fixed_points(ba):
+def test_motion_only_refinement_with_fixed_points():
+    from stereopath.host.reprocess.stage_ba import refine_frame
+
     rng = np.random.default_rng(5)
     rig, T_true, pts, obs = _problem(rng, n_kf=5, n_pts=150)
     T_noisy, _ = _perturbed(rng, T_true, pts, 0.01, 0.03, 0.0)
     T_noisy[0] = T_true[0] @ make_pose(so3_exp([0.01, 0, 0]), [0.02, 0, 0])
-    few = obs[~((obs[:, 0] == 4) & (obs[:, 1] > 2))]  # pose 4 keeps only 3 points x 2 cameras
-    out, ok = ba.refine_poses_fixed_points(rig, T_noisy, pts, few, min_obs=8)
-    assert list(ok) == [True, True, True, True, False]
     for k in range(4):
-        assert np.linalg.norm(out[k][:3, 3] - T_true[k][:3, 3]) < 2e-3
-        assert rotation_angle_deg(out[k][:3, :3].T @ T_true[k][:3, :3]) < 0.05
-    assert np.array_equal(out[4], T_noisy[4])  # too few observations: left as it was
+        out = refine_frame(rig, T_noisy[k], pts, obs[obs[:, 0] == k], 1.0, 0.0)
+        assert np.linalg.norm(out[:3, 3] - T_true[k][:3, 3]) < 2e-3
+        assert rotation_angle_deg(out[:3, :3].T @ T_true[k][:3, :3]) < 0.05
+    few = obs[(obs[:, 0] == 4) & (obs[:, 1] <= 2)]  # 3 points x 2 cameras
+    assert refine_frame(rig, T_noisy[4], pts, few, 1.0, 0.0, min_obs=8) is None
+    # a known disparity offset (right principal point shifted) is applied to the right observations
+    Tcw = invert_pose(T_true[1])
+    Xc = np.array([Tcw[:3, :3] @ X + Tcw[:3, 3] for X in pts.values()])
+    ids = np.array(list(pts.keys()), float)
+    uv0, _ = project(rig.cam0.K, Xc)
+    uv1, _ = project(rig.cam1.K, Xc @ rig.R.T + rig.T)
+    shifted = np.vstack([np.column_stack([np.ones(len(ids)), ids, np.zeros(len(ids)), uv0]),
+                         np.column_stack([np.ones(len(ids)), ids, np.ones(len(ids)), uv1 + [0.8, 0.0]])])
+    plain = refine_frame(rig, T_noisy[1], pts, shifted, 1.0, 0.0)
+    known = refine_frame(rig, T_noisy[1], pts, shifted, 1.0, 0.8)
+    err = [np.linalg.norm(T[:3, 3] - T_true[1][:3, 3]) for T in (known, plain)]
+    assert err[0] < 1e-5 and err[1] > 1e-4
 
 
 def test_rotation_priors_pull_the_relative_rotation(ba):

@@ -253,6 +253,20 @@ def test_a_tiny_session_still_gives_a_path(tmp_path):
     assert (tmp_path / "out" / "report.html").is_file()
 
 
+def test_the_re_estimate_leaves_the_disparity_offset_to_the_bundle_adjustment():
+    from stereopath.device.core.rig import paper_rig
+    from stereopath.device.estimation.registry import make_estimator
+    from stereopath.host.reprocess.stage_estimate import estimator_options
+
+    opts = estimator_options(REPROCESS_PRESETS["standard"])
+    assert opts["estimate_disparity_offset"] is False and opts["background_keyframes"] is False
+    est = make_estimator("stereo", paper_rig(), options=opts)  # the option names the estimator knows
+    try:
+        assert est.cfg.estimate_disparity_offset is False
+    finally:
+        est.close()
+
+
 def test_cli_preset_names_match_the_library():
     from stereopath.host.commands import reprocess as cmd
     from stereopath.host.reprocess.pipeline import DEFAULT_PRESET

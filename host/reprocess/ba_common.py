@@ -56,21 +56,6 @@ def as_observations(observations: np.ndarray) -> np.ndarray:
     return obs
 
 
-def motion_only_selection(T_world_cam: np.ndarray, points: dict[int, np.ndarray], observations: np.ndarray,
-                          min_obs: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For motion-only refinement: (poses as (N, 4, 4), the rows of refinable poses on known points, mask).
-
-    A pose is refinable when it has at least ``min_obs`` observations of points in ``points``; the
-    returned rows are those of refinable poses only (empty when none is).
-    """
-    T_world_cam = np.asarray(T_world_cam, dtype=float).reshape(-1, 4, 4)
-    obs = as_observations(observations)
-    if len(obs):
-        obs = obs[np.isin(obs[:, 1].astype(np.int64), np.fromiter(points.keys(), np.int64, len(points)))]
-    ok = np.bincount(obs[:, 0].astype(np.int64), minlength=len(T_world_cam)) >= min_obs
-    return T_world_cam, obs[ok[obs[:, 0].astype(np.int64)]], ok
-
-
 def select_observations(observations: np.ndarray, points: dict[int, np.ndarray],
                         min_poses_per_point: int = 2) -> np.ndarray:
     """The observation rows of known points seen from at least ``min_poses_per_point`` poses."""

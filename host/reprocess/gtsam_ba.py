@@ -16,8 +16,9 @@ from the right camera through the calibrated baseline); Levenberg-Marquardt over
   the right observations are ``GeneralSFMFactor2Cal3_S2`` factors.  An estimate smaller than
   ``disparity_offset_min_px`` is not applied (the problem is solved again without it).
 
-:func:`refine_poses_fixed_points` is the motion-only variant (points held by tight priors, poses
-independent).  GTSAM is imported when a function runs (``pip install 'stereopath[host]'``).
+The motion-only refinement of the frames between keyframes (one 6-unknown problem per frame on
+fixed points) is :func:`stereopath.host.reprocess.stage_ba.refine_frame`.  GTSAM is imported when a
+function runs (``pip install 'stereopath[host]'``).
 Pure computation: no I/O.
 """
 
@@ -34,7 +35,6 @@ from stereopath.host.reprocess.ba_common import (
     BAResult,
     RotationPrior,
     check_problem,
-    motion_only_selection,
     reprojection_residuals,
     rms_px,
     select_observations,
@@ -43,7 +43,7 @@ from stereopath.host.reprocess.ba_common import (
 log = logging.getLogger(__name__)
 
 LOSSES = ("huber", "cauchy", "linear")
-GAUGE_SIGMA = 1e-6  # rad and m: the held poses (and points of the motion-only refinement)
+GAUGE_SIGMA = 1e-6  # rad and m: the held poses
 RIG_SIGMA = 1e-5  # rad and m: right-camera pose = left pose x rig extrinsics (disparity offset only)
 FREE_SIGMA = 1e3  # an unconstrained direction of a prior
 TILT_SIGMA = 0.1  # rad: the held pose's tilt when the IMU's gravity can fix it
@@ -141,13 +141,9 @@ class _Graph:
                 self.values.insert(self.R_(k), P.compose(self.T01))
                 self.graph.add(g.BetweenFactorPose3(self.X(k), self.R_(k), self.T01, rig_noise))
 
-    def add_points(self, ids: np.ndarray, xyz: np.ndarray, held: bool = False) -> None:
-        g = self.g
-        tight = g.noiseModel.Isotropic.Sigma(3, GAUGE_SIGMA)
+    def add_points(self, ids: np.ndarray, xyz: np.ndarray) -> None:
         for i, x in zip(ids, xyz):
             self.values.insert(self.L(int(i)), np.asarray(x, float))
-            if held:
-                self.graph.add(g.PriorFactorPoint3(self.L(int(i)), np.asarray(x, float), tight))
 
     def add_observations(self, obs: np.ndarray) -> None:
         g, add = self.g, self.graph.add
@@ -350,34 +346,6 @@ def _result(rig, T, pts, obs, offset, rms0, iters, history, outlier_px) -> BARes
              "disparity offset %+.3f px", len(T), len(pts), len(obs), rms0, rms1, iters, offset)
     return BAResult(T, pts, rms0, rms1, len(obs), len(pts), iters, history[0], history[-1],
                     float(np.mean(rn <= outlier_px)) if len(rn) else float("nan"), history, offset)
-
-
-def refine_poses_fixed_points(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarray],
-                              observations: np.ndarray, huber_px: float = 1.0, loss: str = "huber",
-                              max_iterations: int = 10, min_obs: int = 6,
-                              disparity_offset_px: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Motion-only refinement: each pose moved to fit fixed ``points``; returns (poses, refined mask).
-
-    Poses with fewer than ``min_obs`` observations of known points keep their input value.
-    """
-    T_world_cam, obs, ok = motion_only_selection(T_world_cam, points, observations, min_obs)
-    out = T_world_cam.copy()
-    if not ok.any():
-        return out, ok
-    gr = _Graph(rig, loss, huber_px, disparity_offset_px, False)
-    idx = np.flatnonzero(ok)
-    slot = np.full(len(T_world_cam), -1)
-    slot[idx] = np.arange(len(idx))
-    gr.add_poses(T_world_cam[idx], np.zeros(len(idx), bool))
-    ids = np.unique(obs[:, 1].astype(np.int64))
-    gr.add_points(ids, np.array([points[int(i)] for i in ids]), held=True)
-    local = obs.copy()
-    local[:, 0] = slot[obs[:, 0].astype(np.int64)]
-    gr.add_observations(local)
-    values, _, _ = _optimize(gr, max_iterations)
-    for a, k in enumerate(idx):
-        out[k] = values.atPose3(gr.X(a)).matrix()
-    return out, ok
 
 
 def pose_graph(T_world_cam: np.ndarray, loops: list, odometry_sigma_per_m: float = 0.01,

@@ -155,20 +155,44 @@ def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.
     return rows
 
 
+def refine_frame(rig: Any, T_world_cam: np.ndarray, points: dict[int, np.ndarray], rows: np.ndarray,
+                 huber_px: float, disparity_offset_px: float, min_obs: int = 6) -> np.ndarray | None:
+    """One frame's pose moved to fit the fixed adjusted ``points`` (its observation ``rows``); None
+    with fewer than ``min_obs`` rows.  Each frame is independent once the points are fixed, so this is
+    a 6-unknown Levenberg-Marquardt per frame (Huber, both cameras; the right camera's principal point
+    shifted by the adjusted disparity offset, as in the bundle adjustment)."""
+    from stereopath.device.core.geometry import invert_pose
+    from stereopath.device.core.stereo import refine_pose_lm
+
+    rows = rows[np.isin(rows[:, 1].astype(np.int64), np.fromiter(points.keys(), np.int64, len(points)))]
+    if len(rows) < min_obs:
+        return None
+    X = np.array([points[int(i)] for i in rows[:, 1]])
+    left, right = rows[:, 2] == 0, rows[:, 2] == 1
+    uv_r = rows[right, 3:5] - [disparity_offset_px, 0.0]
+    res = refine_pose_lm(rig, invert_pose(T_world_cam), X[left], rows[left, 3:5], X[right], uv_r,
+                         huber_px=huber_px, max_iter=10, outlier_px=3.0 * huber_px)
+    T = invert_pose(res.T_cam_world)
+    return T if np.all(np.isfinite(T)) else None
+
+
 def refine_frames(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.ndarray) -> int:
     """Motion-only refinement of the non-keyframes of ``T_frames`` (in place); the number refined."""
-    from stereopath.host.reprocess.gtsam_ba import refine_poses_fixed_points
-
     is_kf = np.zeros(len(T_frames), bool)
     is_kf[inputs.results["tracks"]["kf_index"]] = True
     rows = _frame_rows(config, inputs, res, T_frames, is_kf)
     if not rows:
         return 0
-    T_ref, ok = refine_poses_fixed_points(inputs.seq.rig, T_frames, res.points, np.vstack(rows),
-                                          huber_px=config.ba_robust_px, disparity_offset_px=res.disparity_offset_px)
-    ok &= ~is_kf
-    T_frames[ok] = T_ref[ok]
-    return int(ok.sum())
+    obs = np.vstack(rows)
+    obs = obs[np.argsort(obs[:, 0], kind="stable")]
+    frames, starts = np.unique(obs[:, 0].astype(np.int64), return_index=True)
+    n = 0
+    for i, part in zip(frames, np.split(obs, starts[1:])):
+        T = refine_frame(inputs.seq.rig, T_frames[i], res.points, part, config.ba_robust_px, res.disparity_offset_px)
+        if T is not None and not is_kf[i]:
+            T_frames[i] = T
+            n += 1
+    return n
 
 
 def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:

@@ -55,6 +55,9 @@ class TrackConfig:
     verify_disparity_px: float = 1.5  # accepted stereo disparity disagreement
     klt_window: int = 21
     klt_levels: int = 3
+    # pyramid levels above the image for KLT seeded from a known 3D point (frame refinement): the
+    # seed is within a pixel or two, so the coarse levels only cost time
+    seeded_klt_levels: int = 1
     fb_max_px: float = 0.5
     epipolar_max_dy_px: float = 1.0
     triangulation_max_px: float = 1.0
@@ -81,6 +84,7 @@ class TrackConfig:
         check_range("keyframe_parallax_deg", self.keyframe_parallax_deg, 0.0, 90.0)
         check_range("keyframe_motion_px", self.keyframe_motion_px, 1.0, 100_000.0)
         check_range("verify_depth_sigmas", self.verify_depth_sigmas, 0.0, 20.0)
+        check_range("seeded_klt_levels", self.seeded_klt_levels, 0, 8)
 
 
 @dataclass
@@ -407,7 +411,7 @@ def frame_observations(rig: Rig, kf_left: np.ndarray, kf_xy: np.ndarray, kf_ids:
         return np.zeros((0, 6))
     K0, d0, K1, d1 = rig.cam0.K, rig.cam0.dist, rig.cam1.K, rig.cam1.dist
     guess = cv2.projectPoints(Xc.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K0, d0)[0].reshape(-1, 2)
-    lk = dict(winSize=(cfg.klt_window, cfg.klt_window), maxLevel=cfg.klt_levels,
+    lk = dict(winSize=(cfg.klt_window, cfg.klt_window), maxLevel=cfg.seeded_klt_levels,
               criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 0.005))
     p0 = xy.reshape(-1, 1, 2)
     p1, st, _ = cv2.calcOpticalFlowPyrLK(kf_left, left, p0, guess.reshape(-1, 1, 2).astype(np.float32),
@@ -424,7 +428,7 @@ def frame_observations(rig: Rig, kf_left: np.ndarray, kf_xy: np.ndarray, kf_ids:
     Xr = Xc @ rig.R.T + rig.T
     Xr[:, 2] = np.maximum(Xr[:, 2], 1e-3)
     gr = cv2.projectPoints(Xr.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K1, d1)[0].reshape(-1, 2)
-    pr, okr = stereo_right(rig, left, right, p1, gr, cfg)
+    pr, okr = stereo_right(rig, left, right, p1, gr, cfg, levels=cfg.seeded_klt_levels)
     ul = undistort_px(p1, K0, d0)
     ur = undistort_px(pr[okr], K1, d1)
     rows = [np.column_stack([np.zeros(len(ids)), ids, np.zeros(len(ids)), ul, np.ones(len(ids))])]
