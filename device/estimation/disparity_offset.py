@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stereopath.device.core.geometry import so3_exp
+from stereopath.device.core.geometry import invert_pose, so3_exp
 
 
 @dataclass(frozen=True)
@@ -181,6 +181,16 @@ def offset_from_two_keyframes(A: np.ndarray, B: np.ndarray, R_BA: np.ndarray, t_
     # S is the offset's information after the points were eliminated (motion known: S[6, 6])
     inflation = 1.0 if fix_pose else float(max(cov[6, 6] * S[6, 6], 1.0))
     return PairEstimate(float(d0), float(np.sqrt(var)), n_inl, min(coupling, 1.0), inflation)
+
+
+def offset_between_keyframes(rect, A: np.ndarray, B: np.ndarray, T_world_a: np.ndarray, T_world_b: np.ndarray,
+                             max_inflation: float | None = None) -> PairEstimate | None:
+    """:func:`offset_from_two_keyframes` for keyframes at poses ``T_world_a``, ``T_world_b`` (camera 1 to
+    world) of a rig with rectification ``rect`` (``R0``, ``P0``, ``f``, ``baseline_m``)."""
+    T_ba = invert_pose(T_world_b) @ T_world_a  # keyframe A -> keyframe B (camera frames)
+    R_ba, t_ba = rect.R0 @ T_ba[:3, :3] @ rect.R0.T, rect.R0 @ T_ba[:3, 3]
+    return offset_from_two_keyframes(A, B, R_ba, t_ba, rect.f, rect.P0[0, 2], rect.P0[1, 2], rect.baseline_m,
+                                     max_inflation=max_inflation)
 
 
 @dataclass

@@ -22,12 +22,10 @@ The modified-ASIFT work of a keyframe runs off the frame loop on a worker thread
 A constant stereo disparity offset (a yaw or principal-point error of the
 calibration shows as one), ``disparity_offset_px``, is removed from every
 triangulation and from the right-image observations of the pose refinement.  With
-``estimate_disparity_offset`` (on by default) it is refined on line: the points seen in
-stereo at two consecutive keyframes give it through a small bundle adjustment
-(:mod:`stereopath.device.estimation.disparity_offset`), fused slowly and bounded, from the
-pairs whose motion tells an offset from a turn (moving towards a scene of varied depth
-does, sliding sideways past it does not).  When the value changes, the tracked points seen at that
-keyframe restart their averaged triangulation there (the earlier ones carry the old offset).
+``estimate_disparity_offset`` (on by default) it is refined on line from the points seen in
+stereo at two consecutive keyframes whose motion identifies it
+(:mod:`stereopath.device.estimation.disparity_offset`); when it changes, the tracked points
+restart their averaged triangulation at that keyframe (the earlier ones carry the old offset).
 
 Works without an IMU (KITTI): the prior is then a constant-velocity model.
 At start-up a still IMU block before the first frame gives the gyro bias and
@@ -39,7 +37,7 @@ gyro prior, else ``lost``) with the predicted pose; it is never reported ``ok``.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -50,9 +48,10 @@ from stereopath.device.estimation.base import PoseEstimate, WorldFrame
 from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still, gravity_aligned_rotation
 from stereopath.device.core.features import gray
 from stereopath.device.core.stereo import stereo_right, undistort_px
-from stereopath.device.estimation.disparity_offset import OffsetFilter, offset_from_two_keyframes
+from stereopath.device.estimation.disparity_offset import OffsetFilter, offset_between_keyframes
 from stereopath.device.estimation.keyframe_jobs import KeyframeJobs
 from stereopath.device.estimation.stereo_measure import StereoMeasure
+from stereopath.device.estimation.tracked_map import TrackedMap
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, so3_log
 from stereopath.device.core.rig import Rig
@@ -131,28 +130,6 @@ class StereoConfig:
         check_range("disparity_offset_px", self.disparity_offset_px, -10.0, 10.0)
 
 
-@dataclass
-class _Map:
-    X: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # world points
-    uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))  # left pixels, last frame
-    uv_kf: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))  # at keyframe
-    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # stable point ids
-    nobs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float64))  # stereo observations averaged
-    # rectified (u, v, disparity) as measured at the keyframe numbered obs_kf (the disparity offset estimate)
-    obs: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    obs_kf: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-
-    def keep(self, mask: np.ndarray) -> None:
-        self.X, self.uv, self.uv_kf, self.ids = self.X[mask], self.uv[mask], self.uv_kf[mask], self.ids[mask]
-        self.nobs, self.obs, self.obs_kf = self.nobs[mask], self.obs[mask], self.obs_kf[mask]
-
-    def move(self, G: np.ndarray) -> None:
-        self.X = self.X @ G[:3, :3].T + G[:3, 3]
-
-    def __len__(self) -> int:
-        return len(self.X)
-
-
 class StereoEstimator(KeyframeJobs):
     name = "stereo"
 
@@ -168,7 +145,7 @@ class StereoEstimator(KeyframeJobs):
         self._t_prev: int | None = None
         self._dt_prev: float | None = None
         self._prev_left: np.ndarray | None = None
-        self._map = _Map()
+        self._map = TrackedMap()
         self._init_keyframe_jobs()
         self._offset = OffsetFilter(prior=float(self.cfg.disparity_offset_px))
         self._since_kf = 0
@@ -298,7 +275,7 @@ class StereoEstimator(KeyframeJobs):
             self._prev_left = left
             if relocalised:
                 self.counters["relocalised"] += 1
-                self._map = _Map()
+                self._map = TrackedMap()
                 self._new_keyframe(left, right, T_est)
                 return PoseEstimate(frame.seq, frame.t_ns, T_est, "ok", inliers=n_inl, keyframe=True,
                                     note="relocalised")
@@ -314,7 +291,7 @@ class StereoEstimator(KeyframeJobs):
         self._failures += 1
         is_kf = False
         if self._failures > cfg.max_failures_keep_map or len(m) < cfg.min_pnp_inliers:
-            self._map = _Map()
+            self._map = TrackedMap()
             n = self._new_keyframe(left, right, T_pred)
             if n >= cfg.min_pnp_inliers:
                 self._prev_left = left
@@ -480,11 +457,8 @@ class StereoEstimator(KeyframeJobs):
         kf = self.counters["keyframes"]
         both = m.obs_kf[idx] == kf - 1
         if self._T_kf is not None and both.sum() >= self.cfg.min_pnp_inliers:
-            rect = self._geo.rect
-            T_BA = invert_pose(T_world_cam) @ self._T_kf  # previous keyframe -> this one (camera frames)
-            R_BA, t_BA = rect.R0 @ T_BA[:3, :3] @ rect.R0.T, rect.R0 @ T_BA[:3, 3]
-            est = offset_from_two_keyframes(m.obs[idx[both]], B[both], R_BA, t_BA, rect.f, rect.P0[0, 2],
-                                            rect.P0[1, 2], rect.baseline_m, max_inflation=self._offset.max_inflation)
+            est = offset_between_keyframes(self._geo.rect, m.obs[idx[both]], B[both], self._T_kf, T_world_cam,
+                                           self._offset.max_inflation)
             used = self._offset.update(est)
             self.counters["disparity_offset_pairs"] = self._offset.n
             self.counters["disparity_offset_unidentified"] = self._offset.unidentified
