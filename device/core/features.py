@@ -249,8 +249,8 @@ PRESETS: dict[str, FeatureConfig] = {
         edge_threshold=20.0,
     ),
     "full": FeatureConfig(backend="cv2_affine", pairing="symmetric"),
-    # the on-board estimator's keyframes: plain SIFT density, two tilted views at half scale
-    # the estimator's keyframes: SIFT on the image at 0.7 (its doubled first octave at 1.4x; ~half the cost)
+    # the on-board estimator's keyframes: SIFT on the image at 0.7 (its doubled first octave at 1.4x; ~half
+    # the cost), two tilted views at half scale
     "onboard": FeatureConfig(
         views=(ORIGINAL_VIEW, (2.0, 0.0), (2.0, 90.0)),
         view_scale=0.5,

@@ -163,7 +163,8 @@ class StereoEstimator(KeyframeJobs):
         self._cur_seq = 0
         self.counters = {"keyframes": 0, "imu_only": 0, "lost": 0, "asift_matches": 0, "kf_jobs": 0,
                          "kf_jobs_skipped": 0, "kf_jobs_deferred": 0, "asift_views": 0, "kf_corrections": 0, "retracked": 0, "relocalised": 0,
-                         "disparity_offset_mpx": int(round(1000 * self.cfg.disparity_offset_px))}
+                         "disparity_offset_mpx": int(round(1000 * self.cfg.disparity_offset_px)),
+                         "disparity_offset_pairs": 0, "disparity_offset_unidentified": 0}
 
     # ------------------------------------------------------------------ public
 

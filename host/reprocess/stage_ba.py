@@ -164,7 +164,7 @@ def refine_frame(rig: Any, T_world_cam: np.ndarray, points: dict[int, np.ndarray
     from stereopath.device.core.geometry import invert_pose
     from stereopath.device.core.stereo import refine_pose_lm
 
-    rows = rows[np.isin(rows[:, 1].astype(np.int64), np.fromiter(points.keys(), np.int64, len(points)))]
+    rows = rows[np.fromiter((int(p) in points for p in rows[:, 1]), bool, len(rows))]
     if len(rows) < min_obs:
         return None
     X = np.array([points[int(i)] for i in rows[:, 1]])
