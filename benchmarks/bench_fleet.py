@@ -71,7 +71,7 @@ class TreeCpu:
     def __init__(self, period_s: float = 0.2) -> None:
         import threading
 
-        self.period_s, self.seen = period_s, {}
+        self.period_s, self.seen, self.kind = period_s, {}, {}
         self.stop_event = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
 
@@ -82,7 +82,10 @@ class TreeCpu:
         for p in [me, *me.children(recursive=True)]:
             try:
                 t = p.cpu_times()
-                self.seen[(p.pid, p.create_time())] = t.user + t.system
+                key = (p.pid, p.create_time())
+                self.seen[key] = t.user + t.system
+                if key not in self.kind or self.kind[key].startswith("ray::IDLE"):
+                    self.kind[key] = process_kind(p)
             except psutil.NoSuchProcess:
                 pass
 
@@ -101,9 +104,37 @@ class TreeCpu:
         self.sample()
         return sum(c - self.start.get(k, 0.0) for k, c in self.seen.items())
 
+    def by_kind(self) -> dict[str, tuple[int, float]]:
+        """CPU since the start per kind of process (this driver, each Ray daemon, workers by the
+        task they ran): number of processes and CPU seconds."""
+        out: dict[str, tuple[int, float]] = {}
+        for k, c in self.seen.items():
+            n, s = out.get(self.kind.get(k, "?"), (0, 0.0))
+            out[self.kind.get(k, "?")] = (n + 1, s + c - self.start.get(k, 0.0))
+        return out
+
     def __exit__(self, *exc) -> None:
         self.stop_event.set()
         self.thread.join()
+
+
+def process_kind(p) -> str:
+    """A process's kind: the driver, a Ray daemon's name, or a worker's title (``ray::<task>``)."""
+    import psutil
+
+    if p.pid == os.getpid():
+        return "driver"
+    try:
+        cmd = p.cmdline()
+    except psutil.Error:
+        return "?"
+    if cmd and cmd[0].startswith("ray::"):
+        return cmd[0].split()[0]
+    for c in cmd[:3]:
+        base = os.path.basename(c)
+        if base.endswith(".py"):
+            return base
+    return p.name()
 
 
 class Phase:
@@ -114,7 +145,7 @@ class Phase:
 
     def __enter__(self) -> "Phase":
         self.cpu = TreeCpu().__enter__()
-        self.t0, self.busy0 = time.perf_counter(), machine_busy_s()
+        self.t0, self.busy0, self.t0_epoch = time.perf_counter(), machine_busy_s(), time.time()
         self.load0 = os.getloadavg()[0]
         return self
 
@@ -130,6 +161,10 @@ class Phase:
     def __exit__(self, *exc) -> None:
         if not hasattr(self, "wall"):
             self.stop()
+
+    def kinds(self) -> str:
+        parts = sorted(self.cpu.by_kind().items(), key=lambda kv: -kv[1][1])
+        return ", ".join(f"{k} x{n} {c:.1f} s" for k, (n, c) in parts if c >= 0.05)
 
     def line(self) -> str:
         return (f"{self.name}: wall {self.wall:.1f} s, own CPU {self.own:.1f} s, other jobs' CPU {self.others:.1f} s "
@@ -153,9 +188,12 @@ def make_sessions(root: Path, frames: int) -> list[Path]:
 
 def sequential(sessions, out: Path, settings: ReprocessSettings) -> Phase:
     with Phase("sequential") as ph:
+        ph.per_session = []
         for s in sessions:
+            c0, w0 = time.process_time(), time.perf_counter()
             reprocess_session(s.path, out / s.id, preset=settings.preset, do_map=settings.do_map,
                               map_preset=settings.map_preset, progress=False, force=True)
+            ph.per_session.append(f"{s.id} wall {time.perf_counter() - w0:.1f} s CPU {time.process_time() - c0:.1f} s")
         ph.stop()
     return ph
 
@@ -376,10 +414,12 @@ def main() -> int:
         for r in range(0 if args.skip_ratio else args.runs):
             ph = sequential(sessions, tmp / f"seq{r}", settings)
             print(f"  run {r + 1}: {ph.line()}")
+            print(f"    per session: {'; '.join(ph.per_session)}")
             seq_ph.append(ph)
             ph, res = fleet_local(sessions, tmp / f"fleet{r}", settings)
             print(f"  run {r + 1}: {ph.line()}; {res.counts()['done']} done; {check(tmp / f'seq{r}', tmp / f'fleet{r}', sessions)}")
             print("\n".join(session_lines(res)))
+            print(f"    CPU by process: {ph.kinds()}")
             fl_ph.append(ph)
         if seq_ph:
             report_ratio(seq_ph, fl_ph)

@@ -125,3 +125,45 @@ def test_keyframe_keypoints_are_independent_pieces_with_offline_keyframes(orbit,
     assert len(batches) >= 2 and max(batches) > 2 and sum(batches) >= n_kf - 2
     for name in plain:
         assert np.array_equal(plain[name], spread[name]), name
+
+
+class _Cores:
+    """A spreader whose idle cores come and go: ``idle()`` answers from ``pattern`` in turn."""
+
+    def __init__(self, pattern: list[bool]) -> None:
+        self.pattern, self.asked, self.calls = pattern, 0, []
+
+    def idle(self) -> bool:
+        self.asked += 1
+        return self.pattern[(self.asked - 1) % len(self.pattern)]
+
+    def __call__(self, fn, shared, items):
+        self.calls.append(len(items))
+        return [fn(shared, it) for it in items]
+
+
+@pytest.mark.parametrize("pattern", [[False], [False, False, True], [True, False]])
+def test_nothing_is_guessed_while_every_core_is_busy(orbit, keypoints_once, monkeypatch, pattern):
+    """Guesses are made only while the spreader has idle cores: with none, no corner is computed and
+    every keypoint computed is a keyframe's (no work a busy core was not free for); as cores come
+    and go the keyframes and keypoints are still those chosen one after another."""
+    from stereopath.host.reprocess import stage_tracks
+    from stereopath.host.reprocess.parallel import spread_with
+
+    cfg = TrackConfig(feature_preset="sift", max_features=0)
+    est = _estimate(orbit)
+    images_of = lambda i: (orbit.frame(i).left, orbit.frame(i).right)  # noqa: E731
+    kf, feats = stage_tracks.keyframes_by_view_change(
+        orbit.rig, est, lambda i: stage_tracks._keyframe_features((orbit.rig, cfg), images_of(i)), cfg)
+    corners, looked = stage_tracks.view_points, []
+    monkeypatch.setattr(stage_tracks, "view_points", lambda *a: looked.append(1) or corners(*a))
+    cores, n0 = _Cores(pattern), len(keypoints_once)
+    with spread_with(cores):
+        kf2, feats2 = stage_tracks.keyframes_ahead(orbit.rig, est, images_of, cfg)
+    assert list(kf2) == list(kf)
+    for a, b in zip(feats, feats2):
+        assert np.array_equal(a.feats.xy, b.feats.xy) and np.array_equal(a.X_cam, b.X_cam)
+    if pattern == [False]:
+        assert looked == [] and cores.calls == [] and len(keypoints_once) - n0 == len(kf)
+    else:
+        assert looked and cores.calls  # guessed while cores were idle

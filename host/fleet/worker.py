@@ -162,25 +162,58 @@ def run_piece(fn: Callable[[Any, Any], Any], shared: Any, item: Any) -> Any:
 
 
 class RaySpreader:
-    """A spreader for :func:`~stereopath.host.reprocess.parallel.spread_with`: each piece a Ray task
-    of one CPU, ``shared`` put once into the object store (the pieces read it by reference), the
-    results in the order of the items.  While the calling task waits for them Ray lends its CPU to
-    the pieces, so a session uses as many cores as the cluster has free, and no more.
-    ``pieces`` counts the pieces spread, ``cpu_s`` their CPU seconds."""
+    """A spreader for :func:`~stereopath.host.reprocess.parallel.spread_with`: the calling task runs
+    pieces itself, in order from the front, while pieces from the back go out as Ray tasks of one
+    CPU (``shared`` put once into the object store, read by reference) onto the cluster's idle CPUs
+    (Ray's available resources); the results come back in the order of the items.  When other
+    sessions keep every core busy, every piece runs here: no task, no serialisation, no worker
+    started, nothing done that a core was not free for.  At a batch's end the task waits for its
+    pieces and Ray lends its CPU to them.  ``pieces`` counts the pieces sent out, ``cpu_s`` their
+    CPU seconds (the ones run here are in the task's own CPU time).
 
-    def __init__(self, retries: int = 3) -> None:
+    ``lead``: the session the fleet waits for (the costliest running, its critical path) also keeps
+    up to ``queue_ahead`` pieces queued in Ray beyond the idle CPUs, so that a CPU another task
+    frees goes to the lead's next piece first (the driver starts a new session only on a CPU that
+    stays idle); the other sessions run in the cores the lead leaves idle (its serial stages).
+    ``idle_cpus``: how many CPUs are idle now (default: the cluster's available CPUs, from Ray)."""
+
+    def __init__(self, retries: int = 3, idle_cpus: Callable[[], float] | None = None, lead: bool = False,
+                 queue_ahead: int = 2) -> None:
         import ray
 
         self.ray, self.pieces, self.cpu_s = ray, 0, 0.0
+        self.ahead = queue_ahead if lead else 0
         self.task = ray.remote(num_cpus=1, max_retries=retries)(run_piece)
+        self.idle_cpus = idle_cpus or (lambda: ray.available_resources().get("CPU", 0.0))
+
+    def idle(self) -> bool:
+        """Whether a piece sent now would run soon (an idle CPU, or the lead's turn at the next one)."""
+        return self.ahead > 0 or self.idle_cpus() >= 1.0
 
     def __call__(self, fn: Callable[[Any, Any], Any], shared: Any, items: list[Any]) -> list[Any]:
-        ref = self.ray.put(shared)
-        refs = [self.task.options(name=f"piece {fn.__name__}").remote(fn, ref, it) for it in items]
-        done = self.ray.get(refs)
-        self.pieces += len(refs)
-        self.cpu_s += sum(c for _, c in done)
-        return [r for r, _ in done]
+        out: list[Any] = [None] * len(items)
+        pending: dict[Any, int] = {}
+        ref = None
+        lo, hi = 0, len(items)  # this task takes pieces from the front, other CPUs from the back
+        while lo < hi or pending:
+            # as many out as CPUs are idle (the lead: and queued ahead), then one piece here
+            n = 0 if hi - lo < 2 else min(hi - lo - 1, max(int(self.idle_cpus()), self.ahead - len(pending)))
+            for _ in range(n):
+                if ref is None:
+                    ref = self.ray.put(shared)
+                hi -= 1
+                pending[self.task.options(name=f"piece {fn.__name__}").remote(fn, ref, items[hi])] = hi
+            if lo < hi:
+                out[lo] = fn(shared, items[lo])
+                lo += 1
+                ready, _ = self.ray.wait(list(pending), num_returns=len(pending), timeout=0) if pending else ([], [])
+            else:
+                ready, _ = self.ray.wait(list(pending), num_returns=1)
+            for r in ready:
+                out[pending.pop(r)], cpu = self.ray.get(r)
+                self.pieces += 1
+                self.cpu_s += cpu
+        return out
 
 
 def first_part(out_dir: str | Path, wall_s: float, cpu_s: float) -> dict[str, Any]:
@@ -195,7 +228,7 @@ def first_part(out_dir: str | Path, wall_s: float, cpu_s: float) -> dict[str, An
 
 def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any], board: Any = None,
                    after_stage: Callable[[str], None] | None = None, threads: int | None = None,
-                   part: str = "all", spread: bool = False) -> dict[str, Any]:
+                   part: str = "all", spread: bool = False, lead: bool = False) -> dict[str, Any]:
     """Reprocess one session (paths as this worker sees them); returns :func:`summarise`'s dict.
 
     ``settings``: keyword arguments of ``reprocess_session`` (preset, do_map, map_preset,
@@ -205,7 +238,8 @@ def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any
     ``part``: "all"; or "first": stop once the ``estimate`` stage is computed and return
     :func:`first_part`'s dict (when it was already stored, the session runs to its end); or
     "rest": the session from its stored estimate (the driver runs "first" before it).
-    ``spread``: the stages' independent pieces run as Ray tasks of their own (:class:`RaySpreader`).
+    ``spread``: the stages' independent pieces run as Ray tasks of their own on idle CPUs
+    (:class:`RaySpreader`); ``lead``: this session is the one the fleet waits for (its spreader's ``lead``).
     A :class:`StereopathError` (bad input) propagates: the driver reports the session failed.
     """
     from stereopath.host.reprocess.parallel import spread_with
@@ -231,7 +265,7 @@ def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any
         if part == "first" and name == "estimate":
             raise _Stop
 
-    spreader = RaySpreader() if spread else None
+    spreader = RaySpreader(lead=lead) if spread else None
     try:
         with spread_with(spreader):
             res = reprocess_session(session, out_dir, progress=False, after_stage=hook, **settings)

@@ -42,6 +42,18 @@ def spreading() -> bool:
     return _SPREADER.get() is not None
 
 
+def spare_cores() -> bool:
+    """Whether pieces handed to the installed spreader would run on idle processors now: a spreader
+    with an ``idle()`` method answers for itself (a fleet task asks Ray), one without is assumed to
+    have them, and without a spreader there are none.  Work that is only worth doing in parallel
+    (guessing ahead) asks this before each batch, so that it is not done while every core is busy."""
+    spread = _SPREADER.get()
+    if spread is None:
+        return False
+    idle = getattr(spread, "idle", None)
+    return True if idle is None else bool(idle())
+
+
 @contextmanager
 def spread_with(spreader: Spreader | None) -> Iterator[None]:
     """Within the block, :func:`parallel_map` hands its pieces to ``spreader(fn, shared, items)``

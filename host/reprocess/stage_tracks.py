@@ -19,7 +19,7 @@ import numpy as np
 
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
 from stereopath.host.reprocess.loops import detect_loops, loops_to_array
-from stereopath.host.reprocess.parallel import parallel_map, spreading
+from stereopath.host.reprocess.parallel import parallel_map, spare_cores, spreading
 from stereopath.host.progress import Bar
 from stereopath.host.reprocess.store import json_array
 
@@ -81,12 +81,24 @@ def keyframes_ahead(rig, est: dict[str, np.ndarray], images_of, cfg, progress=No
     of the guessed keyframes are computed together, and the chain is then followed with the rule on
     the keypoints as far as the guesses were right.  At a wrong guess the next batch starts from the
     right keyframe; a batch grows while the guesses hold (twice the last one's size) and starts again
-    at two after a wrong one, so little work is thrown away where the guesses are poor."""
+    at two after a wrong one, so little work is thrown away where the guesses are poor.  While the
+    spreader has no idle processor (:func:`spare_cores`: other sessions keep every core busy) the
+    next keyframe is found exactly as one after another, and nothing is guessed."""
     ok = np.flatnonzero(est["status"] == 0)
     feats: dict[int, object] = {}
     corners: dict[int, object] = {}
     kf, size = [int(ok[0])], 2
     while True:
+        if not spare_cores():
+            if kf[-1] not in feats:
+                feats[kf[-1]] = _keyframe_features((rig, cfg), images_of(kf[-1]))
+            if kf[-1] >= ok[-1]:
+                break
+            kf.append(next_keyframe(rig, est, kf[-1], feats[kf[-1]], cfg))
+            if progress is not None:
+                progress(1)
+            size = 2
+            continue
         guess = [kf[-1]]  # kf[-1] is a keyframe whose keypoints are still to compute
         while len(guess) < size and guess[-1] < ok[-1]:
             g = guess[-1]
@@ -101,9 +113,10 @@ def keyframes_ahead(rig, est: dict[str, np.ndarray], images_of, cfg, progress=No
         if progress is not None:
             progress(len(kf) - start)
         if kf[-1] in feats:  # the last tracked frame, with its keypoints
-            log.info("offline keyframes guessed ahead: %d keyframes, keypoints of %d frames", len(kf), len(feats))
-            return np.array(kf, np.int64), [feats[k] for k in kf]
+            break
         size = 2 * size if len(kf) - start >= len(guess) - 1 else 2
+    log.info("offline keyframes guessed ahead: %d keyframes, keypoints of %d frames", len(kf), len(feats))
+    return np.array(kf, np.int64), [feats[k] for k in kf]
 
 
 # the points that guess the offline keyframes ahead: Shi-Tomasi corners spread over the image (as the keypoints are)
