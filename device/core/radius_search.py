@@ -43,91 +43,137 @@ def _empty(nq: int, nr: int) -> RadiusNearest:
                          np.full(nq, np.inf, np.float32), np.full(nr, -1, np.int64))
 
 
-def _cells(p: np.ndarray, rxy: np.ndarray, radius: float, cell_radii: float
-           ) -> tuple[np.ndarray, np.ndarray, int] | None:
-    """Integer cell keys of the queries near the references (others: -1) and of the references,
-    and the key stride of one cell row; None when no query is near."""
+def _grid(p: np.ndarray, rxy: np.ndarray, radius: float, k: int) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """Integer keys of square cells of ``radius / k`` px (a candidate is at most ``k`` cells away in
+    x and y) of the queries near the references (others: -1) and of the references, and the key
+    stride of one cell row; None when no query is near."""
     lo = rxy.min(axis=0) - radius - 1.0
     hi = rxy.max(axis=0) + radius + 1.0
     with np.errstate(invalid="ignore"):
         near = np.all((p >= lo) & (p <= hi), axis=1)  # False for NaN predictions
     if not near.any():
         return None
-    size = max(cell_radii * radius, radius + 1.0)  # a candidate is never more than one cell away
-    cq = np.floor((p[near] - lo) / size).astype(np.int64) + 1
-    cr = np.floor((rxy - lo) / size).astype(np.int64) + 1
-    stride = int(max(cq[:, 0].max(), cr[:, 0].max())) + 2
+    size = radius / k + 1e-6
+    cq = np.floor((p[near] - lo) / size).astype(np.int64) + k + 1
+    cr = np.floor((rxy - lo) / size).astype(np.int64) + k + 1
+    stride = int(max(cq[:, 0].max(), cr[:, 0].max())) + k + 2
     qkey = np.full(len(p), -1, np.int64)
     qkey[near] = cq[:, 1] * stride + cq[:, 0]
     return qkey, cr[:, 1] * stride + cr[:, 0], stride
 
 
+def _windows(keys: np.ndarray, rkey: np.ndarray, stride: int, k: int, pad: int) -> np.ndarray:
+    """(cells, M) reference indices of the (2k+1)^2 cells around each cell ``keys`` (padded with ``pad``)."""
+    rorder = np.argsort(rkey, kind="stable")
+    rsorted = rkey[rorder]
+    rows = [(np.searchsorted(rsorted, keys + dy * stride - k, "left"),
+             np.searchsorted(rsorted, keys + dy * stride + k, "right")) for dy in range(-k, k + 1)]
+    counts = [hi - lo for lo, hi in rows]
+    total = np.sum(counts, axis=0)
+    win = np.full((len(keys), max(int(total.max()), 1)), pad, np.int64)
+    filled = np.zeros(len(keys), np.int64)
+    for (lo, _), cnt in zip(rows, counts):
+        n = int(cnt.sum())
+        if n:
+            cell = np.repeat(np.arange(len(keys)), cnt)
+            within = np.arange(n) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+            win[cell, filled[cell] + within] = rorder[lo[cell] + within]
+        filled += cnt
+    return win
+
+
+def _pow2(n: np.ndarray, least: int) -> np.ndarray:
+    return np.maximum(least, 1 << np.ceil(np.log2(np.maximum(n, 1))).astype(np.int64))
+
+
 def radius_nearest(pred: np.ndarray, desc_q: np.ndarray, ref_xy: np.ndarray, desc_ref: np.ndarray,
                    radius: float, distinct_px: float, ref_rank: np.ndarray | None = None,
-                   cell_radii: float = 2.0) -> RadiusNearest:
+                   cells_per_radius: int = 2) -> RadiusNearest:
     """Nearest candidates of every query among the reference keypoints within ``radius`` px of
     its predicted position ``pred`` (see the module doc).  NaN predictions have no candidate."""
     p = np.asarray(pred, np.float64).reshape(-1, 2)
     rxy = np.asarray(ref_xy, np.float64).reshape(-1, 2)
     nq, nr = len(p), len(rxy)
     out = _empty(nq, nr)
-    if nq == 0 or nr == 0:
+    grid = _grid(p, rxy, float(radius), cells_per_radius) if nq and nr else None
+    if grid is None:
         return out
-    cells = _cells(p, rxy, float(radius), cell_radii)
-    if cells is None:
-        return out
-    qkey, rkey, stride = cells
-    rank = np.arange(nr) if ref_rank is None else np.asarray(ref_rank, np.int64)
-    rorder = np.lexsort((rank, rkey))  # by cell, then rank
-    rsorted = rkey[rorder]
+    qkey, rkey, stride = grid
     qsel = np.flatnonzero(qkey >= 0)
     qorder = qsel[np.argsort(qkey[qsel], kind="stable")]  # by cell, then index
-    keys, starts = np.unique(qkey[qorder], return_index=True)
-    bounds = np.r_[starts, len(qorder)]
-    spans = [(np.searchsorted(rsorted, keys + dy * stride - 1, "left"),
-              np.searchsorted(rsorted, keys + dy * stride + 1, "right")) for dy in (-1, 0, 1)]
-    dq = np.ascontiguousarray(desc_q, np.float32)
-    dr = np.ascontiguousarray(desc_ref, np.float32)
-    norms = (np.einsum("ij,ij->i", dq, dq), np.einsum("ij,ij->i", dr, dr))
-    ref_d = np.full(nr, np.inf, np.float32)
-    for c in range(len(keys)):
-        rs = np.concatenate([rorder[a[c]:b[c]] for a, b in spans])
-        if len(rs) == 0:
-            continue
-        rs = rs[np.argsort(rank[rs], kind="stable")]
-        _cell(qorder[bounds[c]:bounds[c + 1]], rs, p, rxy, dq, dr, norms, float(radius), distinct_px, out, ref_d)
+    keys, qstart, qcount = np.unique(qkey[qorder], return_index=True, return_counts=True)
+    qmat = np.full((len(keys), int(qcount.max())), nq, np.int64)
+    qmat[np.repeat(np.arange(len(keys)), qcount), np.arange(len(qorder)) - np.repeat(qstart, qcount)] = qorder
+    win = _windows(keys, rkey, stride, cells_per_radius, nr)
+    wcount = (win < nr).sum(axis=1)
+    # cells of similar size together: one batch of products per (queries, references) size class
+    qb, mb = _pow2(qcount, 1), _pow2(wcount, 8)
+    cls = qb * (int(mb.max()) + 1) + mb
+    order = np.argsort(cls, kind="stable")
+    bounds = np.flatnonzero(np.diff(cls[order])) + 1
+    ext = _Extended(p, rxy, desc_q, desc_ref, ref_rank)
+    found: list[tuple[np.ndarray, ...]] = []
+    for cells in np.split(order, bounds):
+        _batch(qmat[cells, :qb[cells[0]]], win[cells, :mb[cells[0]]], ext, float(radius), distinct_px, out, found)
+    _nearest_queries(found, out)
     return out
 
 
-def _cell(qs: np.ndarray, rs: np.ndarray, p: np.ndarray, rxy: np.ndarray, dq: np.ndarray, dr: np.ndarray,
-          norms: tuple[np.ndarray, np.ndarray], radius: float, distinct_px: float, out: RadiusNearest,
-          ref_d: np.ndarray) -> None:
-    """One cell: queries ``qs`` (ascending) against references ``rs`` (ascending rank); updates ``out``
-    and ``ref_d`` (the distance of ``out.ref_best``) in place."""
-    P, R = p[qs], rxy[rs]
-    px, py, rx, ry = P[:, :1], P[:, 1:], R[None, :, 0], R[None, :, 1]
+class _Extended:
+    """Query and reference arrays with one padding row each (NaN position: never a candidate)."""
+
+    def __init__(self, p, rxy, desc_q, desc_ref, ref_rank) -> None:
+        nan = np.full((1, 2), np.nan)
+        self.p, self.rxy = np.vstack([p, nan]), np.vstack([rxy, nan])
+        dq = np.ascontiguousarray(desc_q, np.float32).reshape(len(p), -1)
+        dr = np.ascontiguousarray(desc_ref, np.float32).reshape(len(rxy), -1)
+        self.dq = np.vstack([dq, np.zeros((1, dq.shape[1]), np.float32)])
+        self.dr = np.vstack([dr, np.zeros((1, dr.shape[1]), np.float32)])
+        self.nq2 = np.einsum("ij,ij->i", self.dq, self.dq)
+        self.nr2 = np.einsum("ij,ij->i", self.dr, self.dr)
+        rank = np.arange(len(rxy)) if ref_rank is None else np.asarray(ref_rank, np.int64)
+        self.rank = np.r_[rank, np.iinfo(np.int64).max]
+
+
+def _batch(qi: np.ndarray, ri: np.ndarray, e: _Extended, radius: float, distinct_px: float, out: RadiusNearest,
+           found: list) -> None:
+    """Cells ``qi`` (cells, Q) queries (ascending, padded) against ``ri`` (cells, M) references:
+    fills ``out`` for the queries and appends (reference, distance, query) of each reference's
+    nearest query of the cell to ``found``."""
+    P, R = e.p[qi], e.rxy[ri]
+    px, py = P[:, :, 0, None], P[:, :, 1, None]
+    rx, ry = R[:, None, :, 0], R[:, None, :, 1]
     cand = (rx >= px - radius) & (rx <= px + radius) & (ry >= py - radius) & (ry <= py + radius)
     dx, dy = rx - px, ry - py
     cand &= np.sqrt(dx * dx + dy * dy) <= radius
     if not cand.any():
         return
-    g = dq[qs] @ dr[rs].T
-    d2 = norms[0][qs][:, None] + norms[1][rs][None, :] - 2.0 * g
+    g = np.matmul(e.dq[qi], e.dr[ri].transpose(0, 2, 1))
+    d2 = e.nq2[qi][:, :, None] + e.nr2[ri][:, None, :] - 2.0 * g
     dist = np.where(cand, np.sqrt(np.maximum(d2, 0.0)), np.float32(np.inf))
-    rows = np.arange(len(qs))
-    b = np.argmin(dist, axis=1)  # first minimum: the lowest rank among equals
-    bd = dist[rows, b]
-    has = np.isfinite(bd)
-    bx, by = R[b, :1], R[b, 1:]
-    fx, fy = rx - bx, ry - by
+    m = dist.min(axis=2)
+    b = np.where(dist == m[:, :, None], e.rank[ri][:, None, :], np.iinfo(np.int64).max).argmin(axis=2)
+    Rb = np.take_along_axis(R, b[:, :, None], axis=1)
+    fx, fy = rx - Rb[:, :, 0, None], ry - Rb[:, :, 1, None]
     far = np.sqrt(fx * fx + fy * fy) > distinct_px
-    second = np.where(far, dist, np.float32(np.inf)).min(axis=1)
-    q = qs[has]
-    out.best[q], out.best_dist[q], out.second_dist[q] = rs[b[has]], bd[has], second[has]
-    c = np.argmin(dist, axis=0)  # first minimum: the lowest query index among equals
-    cd = dist[c, np.arange(len(rs))]
-    cq = qs[c]
-    cur_d, cur_q = ref_d[rs], out.ref_best[rs]
-    upd = np.isfinite(cd) & ((cd < cur_d) | ((cd == cur_d) & (cq < cur_q)))
-    ref_d[rs[upd]] = cd[upd]
-    out.ref_best[rs[upd]] = cq[upd]
+    second = np.where(far, dist, np.float32(np.inf)).min(axis=2)
+    has = np.isfinite(m)
+    q = qi[has]
+    out.best[q] = np.take_along_axis(ri, b, axis=1)[has]
+    out.best_dist[q], out.second_dist[q] = m[has], second[has]
+    c = dist.argmin(axis=1)  # first minimum: the lowest query index among equals
+    cd = np.take_along_axis(dist, c[:, None, :], axis=1)[:, 0, :]
+    ok = np.isfinite(cd)
+    found.append((ri[ok], cd[ok], np.take_along_axis(qi, c, axis=1)[ok]))
+
+
+def _nearest_queries(found: list, out: RadiusNearest) -> None:
+    """``out.ref_best`` from the cells' nearest queries: the smallest (distance, query) per reference."""
+    if not found:
+        return
+    ref, dist, q = (np.concatenate([f[i] for f in found]) for i in range(3))
+    key = (dist.astype(np.float32).view(np.int32).astype(np.int64) << 32) | q  # distances >= 0: bit order = value order
+    best = np.full(len(out.ref_best), np.iinfo(np.int64).max)
+    np.minimum.at(best, ref, key)
+    hit = best < np.iinfo(np.int64).max
+    out.ref_best[hit] = best[hit] & 0xFFFFFFFF
