@@ -111,69 +111,70 @@ def radius_nearest(pred: np.ndarray, desc_q: np.ndarray, ref_xy: np.ndarray, des
     cls = qb * (int(mb.max()) + 1) + mb
     order = np.argsort(cls, kind="stable")
     bounds = np.flatnonzero(np.diff(cls[order])) + 1
-    ext = _Extended(p, rxy, desc_q, desc_ref, ref_rank)
-    found: list[tuple[np.ndarray, ...]] = []
-    for cells in np.split(order, bounds):
-        _batch(qmat[cells, :qb[cells[0]]], win[cells, :mb[cells[0]]], ext, float(radius), distinct_px, out, found)
-    _nearest_queries(found, out)
+    e = _Padded(p, rxy, desc_q, desc_ref)
+    found = []
+    for same in np.split(order, bounds):
+        q, m = int(qb[same[0]]), int(mb[same[0]])
+        pairs = _candidates(qmat[same, :q], win[same, :m], e, float(radius))
+        if pairs is not None:
+            found.append(pairs)
+    if found:
+        q, r, dist = (np.concatenate([f[i] for f in found]) for i in range(3))
+        _reduce(q, r, dist, rxy, ref_rank, distinct_px, out)
     return out
 
 
-class _Extended:
-    """Query and reference arrays with one padding row each (NaN position: never a candidate)."""
+class _Padded:
+    """Positions with one padding row (NaN: never a candidate); descriptors and their squared norms."""
 
-    def __init__(self, p, rxy, desc_q, desc_ref, ref_rank) -> None:
+    def __init__(self, p, rxy, desc_q, desc_ref) -> None:
         nan = np.full((1, 2), np.nan)
         self.p, self.rxy = np.vstack([p, nan]), np.vstack([rxy, nan])
-        dq = np.ascontiguousarray(desc_q, np.float32).reshape(len(p), -1)
-        dr = np.ascontiguousarray(desc_ref, np.float32).reshape(len(rxy), -1)
-        self.dq = np.vstack([dq, np.zeros((1, dq.shape[1]), np.float32)])
-        self.dr = np.vstack([dr, np.zeros((1, dr.shape[1]), np.float32)])
+        self.dq = np.ascontiguousarray(desc_q, np.float32).reshape(len(p), -1)
+        self.dr = np.ascontiguousarray(desc_ref, np.float32).reshape(len(rxy), -1)
         self.nq2 = np.einsum("ij,ij->i", self.dq, self.dq)
         self.nr2 = np.einsum("ij,ij->i", self.dr, self.dr)
-        rank = np.arange(len(rxy)) if ref_rank is None else np.asarray(ref_rank, np.int64)
-        self.rank = np.r_[rank, np.iinfo(np.int64).max]
 
 
-def _batch(qi: np.ndarray, ri: np.ndarray, e: _Extended, radius: float, distinct_px: float, out: RadiusNearest,
-           found: list) -> None:
-    """Cells ``qi`` (cells, Q) queries (ascending, padded) against ``ri`` (cells, M) references:
-    fills ``out`` for the queries and appends (reference, distance, query) of each reference's
-    nearest query of the cell to ``found``."""
+def _candidates(qi: np.ndarray, ri: np.ndarray, e: _Padded, radius: float) -> tuple[np.ndarray, ...] | None:
+    """Candidate pairs (query, reference, distance) of cells with queries ``qi`` (cells, Q) and window
+    references ``ri`` (cells, M), both padded with the padding row; grouped by query."""
     P, R = e.p[qi], e.rxy[ri]
     px, py = P[:, :, 0, None], P[:, :, 1, None]
     rx, ry = R[:, None, :, 0], R[:, None, :, 1]
     cand = (rx >= px - radius) & (rx <= px + radius) & (ry >= py - radius) & (ry <= py + radius)
     dx, dy = rx - px, ry - py
     cand &= np.sqrt(dx * dx + dy * dy) <= radius
-    if not cand.any():
-        return
-    g = np.matmul(e.dq[qi], e.dr[ri].transpose(0, 2, 1))
-    d2 = e.nq2[qi][:, :, None] + e.nr2[ri][:, None, :] - 2.0 * g
-    dist = np.where(cand, np.sqrt(np.maximum(d2, 0.0)), np.float32(np.inf))
-    m = dist.min(axis=2)
-    b = np.where(dist == m[:, :, None], e.rank[ri][:, None, :], np.iinfo(np.int64).max).argmin(axis=2)
-    Rb = np.take_along_axis(R, b[:, :, None], axis=1)
-    fx, fy = rx - Rb[:, :, 0, None], ry - Rb[:, :, 1, None]
-    far = np.sqrt(fx * fx + fy * fy) > distinct_px
-    second = np.where(far, dist, np.float32(np.inf)).min(axis=2)
-    has = np.isfinite(m)
-    q = qi[has]
-    out.best[q] = np.take_along_axis(ri, b, axis=1)[has]
-    out.best_dist[q], out.second_dist[q] = m[has], second[has]
-    c = dist.argmin(axis=1)  # first minimum: the lowest query index among equals
-    cd = np.take_along_axis(dist, c[:, None, :], axis=1)[:, 0, :]
-    ok = np.isfinite(cd)
-    found.append((ri[ok], cd[ok], np.take_along_axis(qi, c, axis=1)[ok]))
+    cell, qs, rs = np.nonzero(cand)  # by cell, then query: each query's pairs together
+    if len(cell) == 0:
+        return None
+    qi_d, ri_d = np.minimum(qi, len(e.dq) - 1), np.minimum(ri, len(e.dr) - 1)  # padding: any row, masked out
+    g = np.matmul(e.dq[qi_d], e.dr[ri_d].transpose(0, 2, 1))
+    q, r = qi[cell, qs], ri[cell, rs]
+    d2 = e.nq2[q] + e.nr2[r] - 2.0 * g[cell, qs, rs]
+    return q, r, np.sqrt(np.maximum(d2, 0.0))
 
 
-def _nearest_queries(found: list, out: RadiusNearest) -> None:
-    """``out.ref_best`` from the cells' nearest queries: the smallest (distance, query) per reference."""
-    if not found:
-        return
-    ref, dist, q = (np.concatenate([f[i] for f in found]) for i in range(3))
-    key = (dist.astype(np.float32).view(np.int32).astype(np.int64) << 32) | q  # distances >= 0: bit order = value order
-    best = np.full(len(out.ref_best), np.iinfo(np.int64).max)
-    np.minimum.at(best, ref, key)
-    hit = best < np.iinfo(np.int64).max
-    out.ref_best[hit] = best[hit] & 0xFFFFFFFF
+def _reduce(q: np.ndarray, r: np.ndarray, dist: np.ndarray, rxy: np.ndarray, ref_rank: np.ndarray | None,
+            distinct_px: float, out: RadiusNearest) -> None:
+    """``out`` from the candidate pairs (grouped by query)."""
+    starts = np.flatnonzero(np.r_[True, q[1:] != q[:-1]])
+    counts = np.diff(np.r_[starts, len(q)])
+    nearest = np.minimum.reduceat(dist, starts)
+    if ref_rank is None:
+        rank, by_rank = r, np.arange(len(rxy))
+    else:
+        ref_rank = np.asarray(ref_rank, np.int64)
+        rank, by_rank = ref_rank[r], np.argsort(ref_rank)
+    tie = np.where(dist == np.repeat(nearest, counts), rank, np.iinfo(np.int64).max)
+    best = by_rank[np.minimum.reduceat(tie, starts)]  # the lowest rank among the nearest
+    far = np.linalg.norm(rxy[r] - np.repeat(rxy[best], counts, axis=0), axis=1) > distinct_px
+    qi = q[starts]
+    out.best[qi], out.best_dist[qi] = best, nearest
+    out.second_dist[qi] = np.minimum.reduceat(np.where(far, dist, np.float32(np.inf)), starts)
+    # each reference's nearest query, the lowest index among equals (distances >= 0: bit order = value order)
+    key = (dist.astype(np.float32).view(np.int32).astype(np.int64) << 32) | q
+    top = np.full(len(out.ref_best), np.iinfo(np.int64).max)
+    np.minimum.at(top, r, key)
+    hit = top < np.iinfo(np.int64).max
+    out.ref_best[hit] = top[hit] & 0xFFFFFFFF
