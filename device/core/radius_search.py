@@ -62,22 +62,21 @@ def _grid(p: np.ndarray, rxy: np.ndarray, radius: float, k: int) -> tuple[np.nda
     return qkey, cr[:, 1] * stride + cr[:, 0], stride
 
 
-def _windows(keys: np.ndarray, rkey: np.ndarray, stride: int, k: int, pad: int) -> np.ndarray:
-    """(cells, M) reference indices of the (2k+1)^2 cells around each cell ``keys`` (padded with ``pad``)."""
-    rorder = np.argsort(rkey, kind="stable")
-    rsorted = rkey[rorder]
+def _windows(keys: np.ndarray, rsorted: np.ndarray, stride: int, k: int) -> np.ndarray:
+    """(cells, M) positions in ``rsorted`` (the references' sorted cell keys) of the references in the
+    (2k+1)^2 cells around each cell ``keys``, padded with ``len(rsorted)``."""
     rows = [(np.searchsorted(rsorted, keys + dy * stride - k, "left"),
              np.searchsorted(rsorted, keys + dy * stride + k, "right")) for dy in range(-k, k + 1)]
     counts = [hi - lo for lo, hi in rows]
     total = np.sum(counts, axis=0)
-    win = np.full((len(keys), max(int(total.max()), 1)), pad, np.int64)
+    win = np.full((len(keys), max(int(total.max()), 1)), len(rsorted), np.int64)
     filled = np.zeros(len(keys), np.int64)
     for (lo, _), cnt in zip(rows, counts):
         n = int(cnt.sum())
         if n:
             cell = np.repeat(np.arange(len(keys)), cnt)
             within = np.arange(n) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-            win[cell, filled[cell] + within] = rorder[lo[cell] + within]
+            win[cell, filled[cell] + within] = lo[cell] + within
         filled += cnt
     return win
 
@@ -101,17 +100,20 @@ def radius_nearest(pred: np.ndarray, desc_q: np.ndarray, ref_xy: np.ndarray, des
     qkey, rkey, stride = grid
     qsel = np.flatnonzero(qkey >= 0)
     qorder = qsel[np.argsort(qkey[qsel], kind="stable")]  # by cell, then index
+    rorder = np.argsort(rkey, kind="stable")
     keys, qstart, qcount = np.unique(qkey[qorder], return_index=True, return_counts=True)
-    qmat = np.full((len(keys), int(qcount.max())), nq, np.int64)
-    qmat[np.repeat(np.arange(len(keys)), qcount), np.arange(len(qorder)) - np.repeat(qstart, qcount)] = qorder
-    win = _windows(keys, rkey, stride, cells_per_radius, nr)
+    # cells' queries and window references as positions in qorder / rorder (both padded): the
+    # arrays are gathered in those orders, so a window reads a few runs of consecutive rows
+    qmat = np.full((len(keys), int(qcount.max())), len(qorder), np.int64)
+    qmat[np.repeat(np.arange(len(keys)), qcount), np.arange(len(qorder)) - np.repeat(qstart, qcount)] = np.arange(len(qorder))
+    win = _windows(keys, rkey[rorder], stride, cells_per_radius)
     wcount = (win < nr).sum(axis=1)
     # cells of similar size together: one batch of products per (queries, references) size class
     qb, mb = _pow2(qcount, 1), _pow2(wcount, 8)
     cls = qb * (int(mb.max()) + 1) + mb
     order = np.argsort(cls, kind="stable")
     bounds = np.flatnonzero(np.diff(cls[order])) + 1
-    e = _Padded(p, rxy, desc_q, desc_ref)
+    e = _Padded(p[qorder], rxy[rorder], np.asarray(desc_q)[qorder], np.asarray(desc_ref)[rorder])
     found = []
     for same in np.split(order, bounds):
         q, m = int(qb[same[0]]), int(mb[same[0]])
@@ -120,7 +122,7 @@ def radius_nearest(pred: np.ndarray, desc_q: np.ndarray, ref_xy: np.ndarray, des
             found.append(pairs)
     if found:
         q, r, dist = (np.concatenate([f[i] for f in found]) for i in range(3))
-        _reduce(q, r, dist, rxy, ref_rank, distinct_px, out)
+        _reduce(qorder[q], rorder[r], dist, rxy, ref_rank, distinct_px, out)
     return out
 
 
