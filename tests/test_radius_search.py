@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from stereopath.device.core.features import Features
-from stereopath.device.core.matching import MatchConfig, _match_pairs, _scan_rank, match_guided
-from stereopath.device.core.radius_search import radius_nearest
+from stereopath.device.core.matching import MatchConfig, _match_pairs, match_guided
+from stereopath.device.core.radius_search import radius_nearest, strip_rank
 
 
 def _brute(pred, dq, rxy, dr, radius, distinct_px, rank):
@@ -92,7 +92,7 @@ def test_guided_matching_equals_the_pair_list_matcher_on_all_pairs():
     got = match_guided(f1, f2, pred, radius, cfg)
     ok = np.isfinite(pred).all(axis=1)
     xr = f2.xy.astype(np.float64)
-    rank = _scan_rank(xr, pred[ok], radius)
+    rank = strip_rank(xr, pred[ok], radius)
     q, r = [], []
     for i in np.flatnonzero(ok):
         p = pred[i]

@@ -37,7 +37,7 @@ from stereopath.device.core.config import check_range, from_mapping
 from stereopath.device.errors import ConfigError
 from stereopath.device.core.features import Features
 from stereopath.device.core.nn_index import NNIndex
-from stereopath.device.core.radius_search import radius_nearest
+from stereopath.device.core.radius_search import radius_nearest, strip_rank
 
 log = logging.getLogger(__name__)
 
@@ -473,7 +473,9 @@ def match_epipolar_rectified(
 def match_guided(f1: Features, f2: Features, predicted_xy2: np.ndarray, radius_px: float, cfg: MatchConfig = MatchConfig()) -> Matches:
     """Match each ``f1`` keypoint only to ``f2`` keypoints within ``radius_px`` of its predicted position.
 
-    ``predicted_xy2`` is (N1, 2) in the second image; rows with NaN are skipped.
+    ``predicted_xy2`` is (N1, 2) in the second image; rows with NaN are skipped.  The nearest
+    candidates come from :func:`~stereopath.device.core.radius_search.radius_nearest` (cell-batched
+    products); then the ratio test, mutual check and duplicate collapse of :func:`match_epipolar_rectified`.
     """
     pred = np.asarray(predicted_xy2, np.float64).reshape(-1, 2)
     if len(pred) != len(f1):
@@ -487,22 +489,7 @@ def match_guided(f1: Features, f2: Features, predicted_xy2: np.ndarray, radius_p
         return Matches.empty()
     p = pred[vq]
     xy_q, xy_r = f1.xy.astype(np.float64), f2.xy.astype(np.float64)
-    nn = radius_nearest(p, f1.desc[vq], xy_r, f2.desc, radius_px, cfg.distinct_px, _scan_rank(xy_r, p, radius_px))
+    nn = radius_nearest(p, f1.desc[vq], xy_r, f2.desc, radius_px, cfg.distinct_px, strip_rank(xy_r, p, radius_px))
     has = nn.best >= 0
     best_q_of_r = np.where(nn.ref_best >= 0, vq[nn.ref_best], -1)
     return _accept(vq[has], nn.best[has], nn.best_dist[has], nn.second_dist[has], best_q_of_r, xy_q, xy_r, cfg)
-
-
-def _scan_rank(xy_r: np.ndarray, p: np.ndarray, radius_px: float) -> np.ndarray:
-    """Rank of each ref point in the order in which the earlier candidate search met them (strips of
-    width ``radius_px`` from the leftmost search box's edge, by y inside a strip, then by index).
-    Equally distant candidates are resolved in this order, so guided matches stay what they were."""
-    rx, ry = xy_r[:, 0], xy_r[:, 1]
-    cell = max(float(radius_px), 1.0)
-    x0 = min(rx.min(), float(np.min(p[:, 0] - radius_px)))
-    strip = np.floor((rx - x0) / cell).astype(np.int64)
-    ymin = min(ry.min(), float(np.min(p[:, 1] - radius_px))) - 1.0
-    yspan = max(ry.max(), float(np.max(p[:, 1] + radius_px))) - ymin + 2.0
-    rank = np.empty(len(rx), np.int64)
-    rank[np.argsort(strip * yspan + (ry - ymin), kind="stable")] = np.arange(len(rx))
-    return rank

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["RadiusNearest", "radius_nearest"]
+__all__ = ["RadiusNearest", "radius_nearest", "strip_rank"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -180,3 +180,20 @@ def _reduce(q: np.ndarray, r: np.ndarray, dist: np.ndarray, rxy: np.ndarray, ref
     np.minimum.at(top, r, key)
     hit = top < np.iinfo(np.int64).max
     out.ref_best[hit] = top[hit] & 0xFFFFFFFF
+
+
+def strip_rank(xy_r: np.ndarray, p: np.ndarray, radius_px: float) -> np.ndarray:
+    """A tie order for :func:`radius_nearest` (``ref_rank``): the rank of each reference point
+    ``xy_r`` in a scan of vertical strips ``radius_px`` wide from the leftmost edge of the search
+    boxes around the predictions ``p``, by y inside a strip, then by index.  This is the order in
+    which guided matching's earlier pair search met the candidates; resolving equal distances in
+    it keeps the matches what they were."""
+    rx, ry = xy_r[:, 0], xy_r[:, 1]
+    cell = max(float(radius_px), 1.0)
+    x0 = min(rx.min(), float(np.min(p[:, 0] - radius_px)))
+    strip = np.floor((rx - x0) / cell).astype(np.int64)
+    ymin = min(ry.min(), float(np.min(p[:, 1] - radius_px))) - 1.0
+    yspan = max(ry.max(), float(np.max(p[:, 1] + radius_px))) - ymin + 2.0
+    rank = np.empty(len(rx), np.int64)
+    rank[np.argsort(strip * yspan + (ry - ymin), kind="stable")] = np.arange(len(rx))
+    return rank
