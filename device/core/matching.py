@@ -37,6 +37,7 @@ from stereopath.device.core.config import check_range, from_mapping
 from stereopath.device.errors import ConfigError
 from stereopath.device.core.features import Features
 from stereopath.device.core.nn_index import NNIndex
+from stereopath.device.core.radius_search import radius_nearest, strip_rank
 
 log = logging.getLogger(__name__)
 
@@ -393,23 +394,29 @@ def _match_pairs(q: np.ndarray, r: np.ndarray, dist: np.ndarray, nq: int, nr: in
     starts = np.r_[0, np.nonzero(np.diff(q))[0] + 1]
     counts = np.diff(np.r_[starts, len(q)])
     best_r = r[starts]
-    best_d = dist[starts]
     # best candidate of the same query at another location
     best_xy = np.repeat(xy_r[best_r], counts, axis=0)
     far = np.linalg.norm(xy_r[r] - best_xy, axis=1) > cfg.distinct_px
-    d_far = np.where(far, dist, np.inf)
-    second = np.minimum.reduceat(d_far, starts)
-    qi = q[starts]
-    ok = best_d < cfg.ratio * second
-    if cfg.max_distance > 0:
-        ok &= best_d <= cfg.max_distance
+    second = np.minimum.reduceat(np.where(far, dist, np.inf), starts)
+    best_q_of_r = np.full(nr, -1, np.int64)
     if cfg.mutual:
         # best query (location) for every ref point among the same candidate pairs
         order_r = np.lexsort((dist, r))
         r_sorted = r[order_r]
         rs = np.r_[0, np.nonzero(np.diff(r_sorted))[0] + 1]
-        best_q_of_r = np.full(nr, -1, np.int64)
         best_q_of_r[r_sorted[rs]] = q[order_r][rs]
+    return _accept(q[starts], best_r, dist[starts], second, best_q_of_r, xy_q, xy_r, cfg)
+
+
+def _accept(qi: np.ndarray, best_r: np.ndarray, best_d: np.ndarray, second: np.ndarray, best_q_of_r: np.ndarray,
+            xy_q: np.ndarray, xy_r: np.ndarray, cfg: MatchConfig) -> Matches:
+    """Matches of queries ``qi`` (ascending) to their nearest candidates ``best_r``: ratio test against
+    the nearest candidate at another location (``second``), mutual check (``best_q_of_r``: the
+    nearest query of every ref point, -1 = none) and duplicate collapse."""
+    ok = best_d < cfg.ratio * second
+    if cfg.max_distance > 0:
+        ok &= best_d <= cfg.max_distance
+    if cfg.mutual:
         back = best_q_of_r[best_r]
         ok &= back >= 0
         back = np.where(back >= 0, back, qi)
@@ -466,7 +473,9 @@ def match_epipolar_rectified(
 def match_guided(f1: Features, f2: Features, predicted_xy2: np.ndarray, radius_px: float, cfg: MatchConfig = MatchConfig()) -> Matches:
     """Match each ``f1`` keypoint only to ``f2`` keypoints within ``radius_px`` of its predicted position.
 
-    ``predicted_xy2`` is (N1, 2) in the second image; rows with NaN are skipped.
+    ``predicted_xy2`` is (N1, 2) in the second image; rows with NaN are skipped.  The nearest
+    candidates come from :func:`~stereopath.device.core.radius_search.radius_nearest` (cell-batched
+    products); then the ratio test, mutual check and duplicate collapse of :func:`match_epipolar_rectified`.
     """
     pred = np.asarray(predicted_xy2, np.float64).reshape(-1, 2)
     if len(pred) != len(f1):
@@ -479,8 +488,8 @@ def match_guided(f1: Features, f2: Features, predicted_xy2: np.ndarray, radius_p
     if len(vq) == 0:
         return Matches.empty()
     p = pred[vq]
-    q, r = _pairs_in_boxes(p, f2.xy, p[:, 0] - radius_px, p[:, 0] + radius_px, p[:, 1] - radius_px, p[:, 1] + radius_px, cell=radius_px)
-    keep = np.linalg.norm(f2.xy[r].astype(np.float64) - p[q], axis=1) <= radius_px
-    q, r = vq[q[keep]], r[keep]
-    dist = _pair_distances(f1.desc, f2.desc, q, r)
-    return _match_pairs(q, r, dist, len(f1), len(f2), f1.xy.astype(np.float64), f2.xy.astype(np.float64), cfg)
+    xy_q, xy_r = f1.xy.astype(np.float64), f2.xy.astype(np.float64)
+    nn = radius_nearest(p, f1.desc[vq], xy_r, f2.desc, radius_px, cfg.distinct_px, strip_rank(xy_r, p, radius_px))
+    has = nn.best >= 0
+    best_q_of_r = np.where(nn.ref_best >= 0, vq[nn.ref_best], -1)
+    return _accept(vq[has], nn.best[has], nn.best_dist[has], nn.second_dist[has], best_q_of_r, xy_q, xy_r, cfg)
