@@ -209,10 +209,11 @@ class _Scheduler:
 
     A session runs as two tasks, its stages in order: "first" (the estimate, which also measures
     the session: its keyframes) and "rest" (tracks, ba, map, outputs).  A free slot takes the rest
-    of the costliest estimated session once ``2 * slots`` sessions wait for theirs (or no first
-    part is left), else the next first part: the long sessions start early instead of running alone
-    at the end.  The costliest rest running is the lead (its pieces go first to the CPUs that other
-    tasks free); a new task starts only on a CPU that is idle.  With ``force`` a session is one task ("all": a split would reuse the later stages).
+    of the costliest estimated session once ``2 * slots`` sessions wait for theirs (or every first
+    part has ended), else the next first part: the long sessions start early instead of running
+    alone at the end.  The costliest rest running is the lead (its pieces go first to the CPUs that
+    other tasks free; :meth:`_held`); a new task starts only on a CPU that is idle.  With ``force``
+    a session is one task ("all": a split would reuse the later stages).
     """
 
     def __init__(self, ray: Any, states: list[SessionState], settings: ReprocessSettings, options: FleetOptions,
@@ -238,7 +239,8 @@ class _Scheduler:
         return bool(self.first or self.rest or self.inflight)
 
     def _next(self, slots: int) -> tuple[SessionState, str] | None:
-        if self.rest and (not self.first or len(self.rest) >= 2 * slots):
+        estimating = any(p == "first" for _, p in self.inflight.values())
+        if self.rest and (len(self.rest) >= 2 * slots or not (self.first or estimating)):
             st = max(self.rest, key=_cost)
             if not self._held(st, slots):
                 self.rest.remove(st)
