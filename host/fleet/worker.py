@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import socket
 import time
@@ -161,6 +162,23 @@ def run_piece(fn: Callable[[Any, Any], Any], shared: Any, item: Any) -> Any:
     return out, time.process_time() - c0
 
 
+class IdleCpus:
+    """The cluster's idle CPUs (Ray's available resources), asked of Ray's control store at most
+    every ``max_age_s``: every task of a large cluster asks between its pieces, and a view a
+    fraction of a second old is as good as Ray's own (it lags its raylets by about that much)."""
+
+    def __init__(self, max_age_s: float = 0.25) -> None:
+        self.max_age_s, self.at, self.value = max_age_s, -math.inf, 0.0
+
+    def __call__(self) -> float:
+        now = time.monotonic()
+        if now - self.at >= self.max_age_s:
+            import ray
+
+            self.value, self.at = float(ray.available_resources().get("CPU", 0.0)), now
+        return self.value
+
+
 class RaySpreader:
     """A spreader for :func:`~stereopath.host.reprocess.parallel.spread_with`: the calling task runs
     pieces itself, in order from the front, while pieces from the back go out as Ray tasks of one
@@ -184,7 +202,7 @@ class RaySpreader:
         self.ray, self.pieces, self.cpu_s = ray, 0, 0.0
         self.ahead = queue_ahead if lead else 0
         self.task = ray.remote(num_cpus=1, max_retries=retries)(run_piece)
-        self.idle_cpus = idle_cpus or (lambda: ray.available_resources().get("CPU", 0.0))
+        self.idle_cpus = idle_cpus or IdleCpus()
 
     def idle(self) -> bool:
         """Whether a piece sent now would run soon (an idle CPU, or the lead's turn at the next one)."""
