@@ -340,14 +340,11 @@ def test_the_costliest_session_leads_and_the_others_fill_its_serial_stages(local
 def test_idle_cpus_are_asked_of_ray_at_most_every_quarter_second(local_ray, monkeypatch):
     """Every task asks between its pieces how many CPUs are idle: the answer is cached for a short
     while, so that a large cluster's tasks do not flood Ray's control store with the question."""
-    import time as time_mod
-
     from stereopath.host.fleet.worker import IdleCpus
 
     asked, clock = [], [100.0]
     monkeypatch.setattr(local_ray, "available_resources", lambda: asked.append(1) or {"CPU": 2.0 - len(asked)})
-    monkeypatch.setattr(time_mod, "monotonic", lambda: clock[0])
-    idle = IdleCpus(max_age_s=0.25)
+    idle = IdleCpus(max_age_s=0.25, clock=lambda: clock[0])
     assert idle() == 1.0 and idle() == 1.0 and len(asked) == 1
     clock[0] += 0.3
     assert idle() == 0.0 and len(asked) == 2

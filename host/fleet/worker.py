@@ -167,11 +167,11 @@ class IdleCpus:
     every ``max_age_s``: every task of a large cluster asks between its pieces, and a view a
     fraction of a second old is as good as Ray's own (it lags its raylets by about that much)."""
 
-    def __init__(self, max_age_s: float = 0.25) -> None:
-        self.max_age_s, self.at, self.value = max_age_s, -math.inf, 0.0
+    def __init__(self, max_age_s: float = 0.25, clock: Callable[[], float] = time.monotonic) -> None:
+        self.max_age_s, self.clock, self.at, self.value = max_age_s, clock, -math.inf, 0.0
 
     def __call__(self) -> float:
-        now = time.monotonic()
+        now = self.clock()
         if now - self.at >= self.max_age_s:
             import ray
 
