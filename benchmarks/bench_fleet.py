@@ -20,6 +20,9 @@ each; written once, not timed), then:
    the machine used meanwhile (/proc/stat minus ours), and a CPU-normalised ratio: each wall time
    scaled by the share of the 2 cores the other jobs left free during that phase.
    Every fleet output is checked against the sequential one (`stereopath.host.fleet.compare`).
+   Each sequential run prints each session's wall and CPU, each fleet run each session's tasks
+   (wall, CPU with its pieces, pieces sent out) and the CPU of every process by kind (the driver,
+   Ray's daemons, the workers by the task they ran): where the fleet's extra CPU goes.
 2. two-node cluster on loopback: `ray start --head` (1 CPU) and a second `ray start --address`
    (1 CPU, its own --temp-dir), the four sessions through `run_fleet(ray=ADDRESS)` with a path
    map (the workers see the sessions through another path, a symbolic link); which node ran each
