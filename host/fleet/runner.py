@@ -218,7 +218,7 @@ class _Scheduler:
 
     def __init__(self, ray: Any, states: list[SessionState], settings: ReprocessSettings, options: FleetOptions,
                  after_stage: Callable[[str], None] | None) -> None:
-        from stereopath.host.fleet.worker import ProgressBoard, reprocess_task
+        from stereopath.host.fleet.worker import IdleCpus, ProgressBoard, reprocess_task
 
         self.ray, self.options, self.after_stage = ray, options, after_stage
         self.kwargs = dataclasses.asdict(settings)
@@ -227,6 +227,7 @@ class _Scheduler:
         self.rest: list[SessionState] = []  # estimated sessions waiting for their second task
         self.inflight: dict[Any, tuple[SessionState, str]] = {}
         self.lead_refs: set[Any] = set()  # the running rests that lead (see :meth:`_leads`)
+        self.idle_cpus = IdleCpus(max_age_s=0.0)  # asked afresh: each answer may start a task
         self.board = ray.remote(num_cpus=0)(ProgressBoard).remote()
         self.task = ray.remote(reprocess_task)
         self.task_opts: dict[str, Any] = {"num_cpus": options.task_cpus, "max_retries": options.retries,
@@ -260,7 +261,7 @@ class _Scheduler:
     def _idle(self) -> bool:
         """Whether a CPU for one more session task is idle: a CPU the lead session's queued pieces
         take as soon as it is freed is not (the critical path first, see :class:`RaySpreader`)."""
-        return self.ray.available_resources().get("CPU", 0.0) >= self.options.task_cpus
+        return self.idle_cpus() >= self.options.task_cpus
 
     def _leads(self, st: SessionState, part: str) -> bool:
         """Whether the rest of ``st`` is the fleet's critical path when it starts: no estimated session,
