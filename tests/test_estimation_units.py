@@ -129,3 +129,41 @@ def test_a_disparity_offset_lengthens_the_translation_and_removing_it_restores_t
         lengths[known] = np.linalg.norm(res.T_cam_world[:3, 3])
     assert lengths[0.0] > 1.005  # about 0.2 px / (typical disparity)
     assert abs(lengths[-0.2] - 1.0) < 2e-3
+
+
+def test_pose_inliers_are_classified_at_the_refined_pose_not_by_the_ransac_consensus():
+    """A tracked map drops the points a pose calls outliers for good, so the inliers must be those
+    that fit the refined pose: good points that a minimal-sample hypothesis left just outside the
+    threshold come back, and gross outliers stay out (rendered stereo pair, true depths)."""
+    import cv2
+
+    from stereopath.device.estimation.stereo_measure import StereoMeasure
+    from stereopath.device.estimation.stereo_vo import StereoConfig
+    from stereopath.device.sim.session import SimConfig, open_sim
+
+    seq = open_sim(SimConfig(frames=2, with_depth=True))
+    rig, f = seq.rig, seq.frame(1)
+    left = cv2.cvtColor(f.left, cv2.COLOR_BGR2GRAY) if f.left.ndim == 3 else f.left
+    right = cv2.cvtColor(f.right, cv2.COLOR_BGR2GRAY) if f.right.ndim == 3 else f.right
+    xy = cv2.goodFeaturesToTrack(left, 400, 0.01, 10, blockSize=5).reshape(-1, 2)
+    z = f.meta["depth0"][np.round(xy[:, 1]).astype(int), np.round(xy[:, 0]).astype(int)].astype(float)
+    xy = xy[z > 0]
+    geo = StereoMeasure(rig, StereoConfig())
+    X = geo.rays(xy) * z[z > 0, None]  # the world is this camera's frame
+    rng = np.random.default_rng(5)
+    uv = xy + rng.normal(0.0, 0.8, xy.shape)  # some good points 1.5-2.5 px off
+    gross = rng.random(len(uv)) < 0.15
+    uv[gross] += rng.uniform(8.0, 30.0, (gross.sum(), 2)) * rng.choice([-1, 1], (gross.sum(), 2))
+    T_guess = make_pose(so3_exp(np.array([0.002, -0.001, 0.001])), np.array([0.002, 0.0, -0.003]))
+    checked = 0
+    for seed in range(6):
+        T, n, mask = geo.solve_pose(left, right, X, uv.astype(np.float32), T_guess, seed)
+        assert T is not None and n == mask.sum()
+        assert not (mask & gross).any()
+        uv_at_T, _ = project(rig.cam0.K, X @ invert_pose(T)[:3, :3].T + invert_pose(T)[:3, 3])
+        fits = np.linalg.norm(uv_at_T - uv, axis=1) < StereoConfig().pnp_reproj_px
+        # the refinement's own rule (left error below the threshold) decides, at the pose returned
+        np.testing.assert_array_equal(mask, fits)
+        assert np.linalg.norm(T[:3, 3]) < 1e-3 and rotation_angle_deg(T[:3, :3]) < 0.05
+        checked += int(fits.sum())
+    assert checked > 6 * 150

@@ -96,7 +96,8 @@ class StereoMeasure:
 
     def solve_pose(self, left, right, X: np.ndarray, uv: np.ndarray, T_guess: np.ndarray, seed: int,
                    use_guess: bool = True):
-        """PnP RANSAC (from the guess), then LM in both cameras.  Returns (T_world_cam, n_inliers, mask)."""
+        """PnP RANSAC (from the guess), then LM in both cameras over every point in front, inliers classified at
+        the refined pose.  Returns (T_world_cam, n_inliers, mask)."""
         cfg = self.cfg
         K0, d0 = self.rig.cam0.K, self.rig.cam0.dist
         uv_u = undistort_px(uv, K0, d0)
@@ -110,20 +111,22 @@ class StereoMeasure:
             flags=cv2.SOLVEPNP_ITERATIVE)
         if not ok or inl is None or len(inl) < cfg.min_pnp_inliers:
             return None, 0, None
-        mask = np.zeros(len(X), bool)
-        mask[inl.ravel()] = True
         T_cw = rvec_tvec_to_pose(rvec, tvec)
-        # right-image observations of the inliers for the two-camera refinement
+        # The consensus only seeds the refinement: a minimal-sample hypothesis a little off leaves
+        # good points just outside the threshold, and the caller drops outliers for good (a tracked
+        # map loses them, and the pose jumps with the subset).  So every point in front of the camera
+        # enters the robust two-camera refinement, with its right-image observation, and the inliers
+        # are classified at the refined pose.
         Xc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
-        idx = np.flatnonzero(mask & (Xc[:, 2] > cfg.min_depth_m))
+        idx = np.flatnonzero(Xc[:, 2] > cfg.min_depth_m)
         uvr, okr = stereo_right(self.rig, left, right, uv[idx], self.right_guess(Xc[idx]), cfg, fb_check=False,
                                 levels=cfg.seeded_stereo_levels)
         ridx = idx[okr]
         uvr_u = self.right_ideal(uvr[okr])
-        res = refine_pose_lm(self.rig, T_cw, X[mask], uv_u[mask], X[ridx], uvr_u, huber_px=cfg.huber_px,
+        res = refine_pose_lm(self.rig, T_cw, X[idx], uv_u[idx], X[ridx], uvr_u, huber_px=cfg.huber_px,
                              outlier_px=cfg.pnp_reproj_px)
         final = np.zeros(len(X), bool)
-        final[np.flatnonzero(mask)[res.inliers_left]] = True
+        final[idx[res.inliers_left]] = True
         if final.sum() < cfg.min_pnp_inliers:
             return None, 0, None
         return invert_pose(res.T_cam_world), int(final.sum()), final
