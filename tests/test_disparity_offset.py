@@ -2,8 +2,16 @@
 
 import numpy as np
 
-from stereopath.device.core.geometry import so3_exp
-from stereopath.device.estimation.disparity_offset import OffsetFilter, PairEstimate, offset_from_two_keyframes
+from types import SimpleNamespace
+
+from stereopath.device.core.geometry import invert_pose, make_pose, so3_exp
+from stereopath.device.estimation.disparity_offset import (
+    OffsetFilter,
+    PairEstimate,
+    motion_with_offset,
+    offset_correction_of_motion,
+    offset_from_two_keyframes,
+)
 
 F, CX, CY, B = 450.0, 320.0, 240.0, 0.05
 
@@ -109,3 +117,24 @@ def test_a_pair_past_the_inflation_limit_is_not_solved():
     A, Bo, R, t = _scene_pair(rng, (0.0, 0.0, -0.08), (0.5, 3.0))
     kept = offset_from_two_keyframes(A, Bo, R, t, F, CX, CY, B, max_inflation=10.0)
     assert np.isfinite(kept.d0) and kept.inflation < 10.0
+
+
+def test_the_motion_under_the_true_offset_is_the_true_motion_and_the_correction_maps_one_to_the_other():
+    """Driving forward past a deep scene: measured with no offset where there is one, the motion is too
+    long; under the true offset it is the true one; ``offset_correction_of_motion`` is the change."""
+    rng = np.random.default_rng(6)
+    t_true = np.array([0.02, -0.01, 1.0])
+    A, Bo, R, t = _pair(rng, -0.2, 0.02, t=t_true)
+    R0, t0 = motion_with_offset(A, Bo, np.eye(3), np.zeros(3), 0.0, F, CX, CY, B)
+    R1, t1 = motion_with_offset(A, Bo, np.eye(3), np.zeros(3), -0.2, F, CX, CY, B)
+    assert np.linalg.norm(t1 - t_true) < 2e-3 and np.linalg.norm(R1 - R) < 1e-3
+    assert np.linalg.norm(t0) > np.linalg.norm(t_true) + 5e-3  # depths too long without the offset
+    assert motion_with_offset(A[:10], Bo[:10], R, t, -0.2, F, CX, CY, B) is None
+    # in camera frames (here the rectified ones: R0 = I); poses of A and B in a world
+    rect = SimpleNamespace(R0=np.eye(3), f=F, P0=np.array([[F, 0, CX, 0], [0, F, CY, 0], [0, 0, 1, 0]]), baseline_m=B)
+    T_world_a = make_pose(so3_exp(np.array([0.1, 0.2, -0.1])), np.array([1.0, 2.0, 3.0]))
+    T_ba_used = make_pose(R0, t0)
+    T_world_b = T_world_a @ invert_pose(T_ba_used)
+    D = offset_correction_of_motion(rect, A, Bo, T_world_a, T_world_b, 0.0, -0.2)
+    np.testing.assert_allclose(D @ T_ba_used, make_pose(R1, t1), atol=1e-6)
+    assert offset_correction_of_motion(rect, A[:10], Bo[:10], T_world_a, T_world_b, 0.0, -0.2) is None

@@ -102,6 +102,66 @@ def _weights(r: np.ndarray, z: np.ndarray, huber_px: float) -> np.ndarray:
     return w
 
 
+def _gauss_newton_step(R, t, d0, P, A, B, f, cx, cy, fb, huber_px, fix_pose=False, fix_offset=False):
+    """One Gauss-Newton step of the two-keyframe problem, the points eliminated (Schur complement):
+    ``(dg, dp, S)`` with ``dg`` over (dt, dtheta, d0), ``dp`` per point and ``S`` the reduced system;
+    None when singular.  ``fix_pose`` / ``fix_offset`` hold those unknowns."""
+    r, XA, XB, z = _residuals(R, t, d0, P, A, B, f, cx, cy, fb)
+    w = _weights(r, z, huber_px)
+    Jg, Jp = _jacobians(R, P, XA, XB, z, f, fb)
+    if fix_pose:
+        Jg[:, :, :6] = 0.0
+    if fix_offset:
+        Jg[:, :, 6] = 0.0
+    Hgg = np.einsum("nki,nk,nkj->ij", Jg, w, Jg)
+    Hgp = np.einsum("nki,nk,nkj->nij", Jg, w, Jp)  # (n, 7, 3)
+    Hpp = np.einsum("nki,nk,nkj->nij", Jp, w, Jp) + 1e-9 * np.eye(3)
+    bg = np.einsum("nki,nk,nk->i", Jg, w, r)
+    bp = np.einsum("nki,nk,nk->ni", Jp, w, r)
+    try:
+        Hpp_inv = np.linalg.inv(Hpp)
+        W = np.einsum("nij,njk->nik", Hgp, Hpp_inv)  # (n, 7, 3)
+        S = Hgg - np.einsum("nij,nkj->ik", W, Hgp)
+        s = bg - np.einsum("nij,nj->i", W, bp)
+        S = S + (1.0 if fix_pose else 1e-9) * np.diag([1.0] * 6 + [1e-9]) + np.diag([0.0] * 6 + [float(fix_offset)])
+        dg = -np.linalg.solve(S, s)
+    except np.linalg.LinAlgError:
+        return None
+    dp = -np.einsum("nij,nj->ni", Hpp_inv, bp + np.einsum("nji,j->ni", Hgp, dg))
+    return dg, dp, S
+
+
+def _apply_step(R, t, d0, P, dg, dp):
+    P = P + dp
+    P[:, 2] = np.maximum(P[:, 2], 1e-9)
+    return so3_exp(dg[3:6]) @ R, t + dg[:3], d0 + float(dg[6]), P
+
+
+def motion_with_offset(A: np.ndarray, B: np.ndarray, R_BA: np.ndarray, t_BA: np.ndarray, d0: float, f: float,
+                       cx: float, cy: float, baseline_m: float, huber_px: float = 0.5, min_points: int = 30,
+                       iterations: int = 10) -> tuple[np.ndarray, np.ndarray] | None:
+    """The motion ``(R_BA, t_BA)`` between two keyframes that their stereo observations give under a
+    known disparity offset ``d0`` (rows and frames as in :func:`offset_from_two_keyframes`), or None."""
+    A = np.asarray(A, float)
+    B = np.asarray(B, float)
+    ok = np.isfinite(A).all(1) & np.isfinite(B).all(1) & (A[:, 2] - d0 > 0) & (B[:, 2] - d0 > 0)
+    A, B = A[ok], B[ok]
+    if len(A) < min_points:
+        return None
+    fb = f * baseline_m
+    P = np.column_stack([(A[:, 0] - cx) / f, (A[:, 1] - cy) / f, (A[:, 2] - d0) / fb])
+    R, t = np.asarray(R_BA, float).copy(), np.asarray(t_BA, float).reshape(3).copy()
+    for _ in range(iterations):
+        step = _gauss_newton_step(R, t, d0, P, A, B, f, cx, cy, fb, huber_px, fix_offset=True)
+        if step is None:
+            return None
+        dg, dp, _ = step
+        R, t, _, P = _apply_step(R, t, d0, P, dg, dp)
+        if np.abs(dg).max() < 1e-8:
+            break
+    return R, t
+
+
 def offset_from_two_keyframes(A: np.ndarray, B: np.ndarray, R_BA: np.ndarray, t_BA: np.ndarray, f: float,
                               cx: float, cy: float, baseline_m: float, huber_px: float = 0.5,
                               min_points: int = 30, iterations: int = 10, fix_pose: bool = False,
@@ -126,35 +186,18 @@ def offset_from_two_keyframes(A: np.ndarray, B: np.ndarray, R_BA: np.ndarray, t_
     R, t, d0 = np.asarray(R_BA, float).copy(), np.asarray(t_BA, float).reshape(3).copy(), 0.0
     S = None
     for it in range(iterations):
-        r, XA, XB, z = _residuals(R, t, d0, P, A, B, f, cx, cy, fb)
-        w = _weights(r, z, huber_px)
-        Jg, Jp = _jacobians(R, P, XA, XB, z, f, fb)
-        if fix_pose:
-            Jg[:, :, :6] = 0.0
-        Hgg = np.einsum("nki,nk,nkj->ij", Jg, w, Jg)
-        Hgp = np.einsum("nki,nk,nkj->nij", Jg, w, Jp)  # (n, 7, 3)
-        Hpp = np.einsum("nki,nk,nkj->nij", Jp, w, Jp) + 1e-9 * np.eye(3)
-        bg = np.einsum("nki,nk,nk->i", Jg, w, r)
-        bp = np.einsum("nki,nk,nk->ni", Jp, w, r)
-        try:
-            Hpp_inv = np.linalg.inv(Hpp)
-            W = np.einsum("nij,njk->nik", Hgp, Hpp_inv)  # (n, 7, 3)
-            S = Hgg - np.einsum("nij,nkj->ik", W, Hgp)
-            s = bg - np.einsum("nij,nj->i", W, bp)
-            S = S + (1.0 if fix_pose else 1e-9) * np.diag([1.0] * 6 + [1e-9])
-            dg = -np.linalg.solve(S, s)
-            if it == 0 and max_inflation is not None and not fix_pose:
-                inflation = float(np.linalg.inv(S)[6, 6] * S[6, 6])
-                if inflation > max_inflation:
-                    return PairEstimate(float("nan"), float("inf"), len(A), 0.0, inflation)
-        except np.linalg.LinAlgError:
+        step = _gauss_newton_step(R, t, d0, P, A, B, f, cx, cy, fb, huber_px, fix_pose=fix_pose)
+        if step is None:
             return None
-        dp = -np.einsum("nij,nj->ni", Hpp_inv, bp + np.einsum("nji,j->ni", Hgp, dg))
-        R = so3_exp(dg[3:6]) @ R
-        t = t + dg[:3]
-        d0 += float(dg[6])
-        P = P + dp
-        P[:, 2] = np.maximum(P[:, 2], 1e-9)
+        dg, dp, S = step
+        if it == 0 and max_inflation is not None and not fix_pose:
+            try:
+                inflation = float(np.linalg.inv(S)[6, 6] * S[6, 6])
+            except np.linalg.LinAlgError:
+                return None
+            if inflation > max_inflation:
+                return PairEstimate(float("nan"), float("inf"), len(A), 0.0, inflation)
+        R, t, d0, P = _apply_step(R, t, d0, P, dg, dp)
         if np.abs(dg).max() < 1e-8:
             break
     r, *_ = _residuals(R, t, d0, P, A, B, f, cx, cy, fb)
@@ -192,6 +235,27 @@ def offset_between_keyframes(rect, A: np.ndarray, B: np.ndarray, T_world_a: np.n
     return offset_from_two_keyframes(A, B, R_ba, t_ba, rect.f, rect.P0[0, 2], rect.P0[1, 2], rect.baseline_m,
                                      max_inflation=max_inflation)
 
+
+
+def offset_correction_of_motion(rect, A: np.ndarray, B: np.ndarray, T_world_a: np.ndarray, T_world_b: np.ndarray,
+                                d0_used: float, d0_new: float) -> np.ndarray | None:
+    """How learning the offset changes the motion between two keyframes: ``D`` (4x4, in B's camera
+    frame) such that ``D @ T_ba`` is the motion ``T_ba = inv(T_world_b) @ T_world_a`` measured with
+    ``d0_new`` instead of ``d0_used``.  Both motions come from the same two-keyframe solve, so
+    ``D`` holds the offset's effect only; None when either solve fails."""
+    T_ba = invert_pose(T_world_b) @ T_world_a
+    R_ba, t_ba = rect.R0 @ T_ba[:3, :3] @ rect.R0.T, rect.R0 @ T_ba[:3, 3]
+    args = (rect.f, rect.P0[0, 2], rect.P0[1, 2], rect.baseline_m)
+    used = motion_with_offset(A, B, R_ba, t_ba, d0_used, *args)
+    new = motion_with_offset(A, B, R_ba, t_ba, d0_new, *args)
+    if used is None or new is None:
+        return None
+    M = []
+    for R, t in (used, new):  # back from the rectified frames to the cameras'
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = rect.R0.T @ R @ rect.R0, rect.R0.T @ t
+        M.append(T)
+    return M[1] @ invert_pose(M[0])
 
 @dataclass
 class OffsetFilter:
