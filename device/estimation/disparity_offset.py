@@ -236,7 +236,6 @@ def offset_between_keyframes(rect, A: np.ndarray, B: np.ndarray, T_world_a: np.n
                                      max_inflation=max_inflation)
 
 
-
 def offset_correction_of_motion(rect, A: np.ndarray, B: np.ndarray, T_world_a: np.ndarray, T_world_b: np.ndarray,
                                 d0_used: float, d0_new: float) -> np.ndarray | None:
     """How learning the offset changes the motion between two keyframes: ``D`` (4x4, in B's camera
@@ -256,6 +255,7 @@ def offset_correction_of_motion(rect, A: np.ndarray, B: np.ndarray, T_world_a: n
         T[:3, :3], T[:3, 3] = rect.R0.T @ R @ rect.R0, rect.R0.T @ t
         M.append(T)
     return M[1] @ invert_pose(M[0])
+
 
 @dataclass
 class OffsetFilter:
