@@ -131,10 +131,8 @@ def test_a_disparity_offset_lengthens_the_translation_and_removing_it_restores_t
     assert abs(lengths[-0.2] - 1.0) < 2e-3
 
 
-def test_pose_inliers_are_classified_at_the_refined_pose_not_by_the_ransac_consensus():
-    """A tracked map drops the points a pose calls outliers for good, so the inliers must be those
-    that fit the refined pose: good points that a minimal-sample hypothesis left just outside the
-    threshold come back, and gross outliers stay out (rendered stereo pair, true depths)."""
+def _rendered_points():
+    """A rendered stereo pair, its corners and their true 3D points (the world is camera 1's frame)."""
     import cv2
 
     from stereopath.device.estimation.stereo_measure import StereoMeasure
@@ -149,15 +147,27 @@ def test_pose_inliers_are_classified_at_the_refined_pose_not_by_the_ransac_conse
     z = f.meta["depth0"][np.round(xy[:, 1]).astype(int), np.round(xy[:, 0]).astype(int)].astype(float)
     xy = xy[z > 0]
     geo = StereoMeasure(rig, StereoConfig())
-    X = geo.rays(xy) * z[z > 0, None]  # the world is this camera's frame
+    return geo, left, right, xy, geo.rays(xy) * z[z > 0, None]
+
+
+_NEAR_IDENTITY = make_pose(so3_exp(np.array([0.002, -0.001, 0.001])), np.array([0.002, 0.0, -0.003]))
+
+
+def test_pose_inliers_are_classified_at_the_refined_pose_not_by_the_ransac_consensus():
+    """A tracked map drops the points a pose calls outliers for good, so the inliers must be those
+    that fit the refined pose: good points that a minimal-sample hypothesis left just outside the
+    threshold come back, and gross outliers stay out (rendered stereo pair, true depths)."""
+    from stereopath.device.estimation.stereo_vo import StereoConfig
+
+    geo, left, right, xy, X = _rendered_points()
+    rig = geo.rig
     rng = np.random.default_rng(5)
     uv = xy + rng.normal(0.0, 0.8, xy.shape)  # some good points 1.5-2.5 px off
     gross = rng.random(len(uv)) < 0.15
     uv[gross] += rng.uniform(8.0, 30.0, (gross.sum(), 2)) * rng.choice([-1, 1], (gross.sum(), 2))
-    T_guess = make_pose(so3_exp(np.array([0.002, -0.001, 0.001])), np.array([0.002, 0.0, -0.003]))
     checked = 0
     for seed in range(6):
-        T, n, mask = geo.solve_pose(left, right, X, uv.astype(np.float32), T_guess, seed)
+        T, n, mask = geo.solve_pose(left, right, X, uv.astype(np.float32), _NEAR_IDENTITY, seed)
         assert T is not None and n == mask.sum()
         assert not (mask & gross).any()
         uv_at_T, _ = project(rig.cam0.K, X @ invert_pose(T)[:3, :3].T + invert_pose(T)[:3, 3])
@@ -167,3 +177,17 @@ def test_pose_inliers_are_classified_at_the_refined_pose_not_by_the_ransac_conse
         assert np.linalg.norm(T[:3, 3]) < 1e-3 and rotation_angle_deg(T[:3, :3]) < 0.05
         checked += int(fits.sum())
     assert checked > 6 * 150
+
+
+def test_a_block_of_consistently_wrong_matches_does_not_pull_the_pose():
+    """Repeated texture matched one period off: half the points agree on a wrong 6 px shift.  The
+    consensus holds the true pose and those points weigh nothing in its refinement."""
+    geo, left, right, xy, X = _rendered_points()
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        uv = xy + rng.normal(0.0, 0.5, xy.shape)
+        wrong = rng.random(len(uv)) < 0.45
+        uv[wrong] += np.array([6.0, 0.0]) + rng.normal(0.0, 0.5, (wrong.sum(), 2))
+        T, n, mask = geo.solve_pose(left, right, X, uv.astype(np.float32), _NEAR_IDENTITY, seed)
+        assert T is not None and not (mask & wrong).any()
+        assert np.linalg.norm(T[:3, 3]) < 1.5e-3 and rotation_angle_deg(T[:3, :3]) < 0.05

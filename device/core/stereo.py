@@ -68,13 +68,14 @@ def _residuals(T: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray, T_ex
 
 
 def _camera_system(T: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray, Te: np.ndarray | None,
-                   huber_px: float, outlier_px: float) -> tuple[float, np.ndarray, np.ndarray]:
-    """One camera's Huber-weighted cost and normal equations (H, g) for the left perturbation of ``T``."""
+                   huber_px: float, cutoff_px: float) -> tuple[float, np.ndarray, np.ndarray]:
+    """One camera's Huber-weighted cost and normal equations (H, g) for the left perturbation of ``T``
+    (residuals of ``cutoff_px`` or more weigh nothing)."""
     r, Xc, Xk, z = _residuals(T, X, uv, K, Te)
     valid = z > 1e-6
     e = np.linalg.norm(r, axis=1)
     w = np.where(e <= huber_px, 1.0, huber_px / np.maximum(e, 1e-12))
-    w = np.where(valid & (e < 10 * outlier_px), w, 0.0)
+    w = np.where(valid & (e < cutoff_px), w, 0.0)
     cost = float(np.sum(w * e * e))
     x, y, zz = Xk[:, 0], Xk[:, 1], np.where(valid, Xk[:, 2], 1.0)
     fx, fy = K[0, 0], K[1, 1]
@@ -102,14 +103,17 @@ def _inlier_errors(T: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray, 
 def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, X_world: np.ndarray, uv_left: np.ndarray,
                    X_world_r: np.ndarray | None = None, uv_right: np.ndarray | None = None,
                    huber_px: float = 1.0, max_iter: int = 15, outlier_px: float = 3.0,
-                   prior_R: np.ndarray | None = None, prior_weight: float = 0.0) -> RefineResult:
+                   prior_R: np.ndarray | None = None, prior_weight: float = 0.0,
+                   cutoff_px: float | None = None) -> RefineResult:
     """Levenberg-Marquardt on the reprojection error in both cameras (Huber loss, IRLS).
 
     The update is a left perturbation ``T <- [exp(dtheta) | dt] @ T``.  An optional
     rotation prior (e.g. gyro-integrated ``R_cam_world``) adds ``prior_weight *
-    log(R prior^T)`` residuals (radians scaled to pixels by the weight).
+    log(R prior^T)`` residuals (radians scaled to pixels by the weight).  Residuals of ``cutoff_px``
+    (default ``10 * outlier_px``) or more weigh nothing; the inliers returned are those under ``outlier_px``.
     """
     T = T_cam_world.copy()
+    cutoff = 10 * outlier_px if cutoff_px is None else cutoff_px
     K0, K1 = rig.cam0.K, rig.cam1.K
     T10 = rig.T_cam1_cam0
     has_r = X_world_r is not None and uv_right is not None and len(uv_right) > 0
@@ -122,7 +126,7 @@ def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, X_world: np.ndarray, uv_le
         g = np.zeros(6)
         cost = 0.0
         for X, uv, K, Te in blocks:
-            c, Hc, gc = _camera_system(T, X, uv, K, Te, huber_px, outlier_px)
+            c, Hc, gc = _camera_system(T, X, uv, K, Te, huber_px, cutoff)
             cost, H, g = cost + c, H + Hc, g + gc
         if prior_R is not None and prior_weight > 0:
             from stereopath.device.core.geometry import so3_log

@@ -116,7 +116,8 @@ class StereoMeasure:
         # good points just outside the threshold, and the caller drops outliers for good (a tracked
         # map loses them, and the pose jumps with the subset).  So every point in front of the camera
         # enters the robust two-camera refinement, with its right-image observation, and the inliers
-        # are classified at the refined pose.
+        # are classified at the refined pose.  Residuals over twice the threshold weigh nothing: a
+        # block of consistently wrong matches (repeated texture) cannot pull the pose.
         Xc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
         idx = np.flatnonzero(Xc[:, 2] > cfg.min_depth_m)
         uvr, okr = stereo_right(self.rig, left, right, uv[idx], self.right_guess(Xc[idx]), cfg, fb_check=False,
@@ -124,7 +125,7 @@ class StereoMeasure:
         ridx = idx[okr]
         uvr_u = self.right_ideal(uvr[okr])
         res = refine_pose_lm(self.rig, T_cw, X[idx], uv_u[idx], X[ridx], uvr_u, huber_px=cfg.huber_px,
-                             outlier_px=cfg.pnp_reproj_px)
+                             outlier_px=cfg.pnp_reproj_px, cutoff_px=2 * cfg.pnp_reproj_px)
         final = np.zeros(len(X), bool)
         final[idx[res.inliers_left]] = True
         if final.sum() < cfg.min_pnp_inliers:
