@@ -230,10 +230,15 @@ def offset_between_keyframes(rect, A: np.ndarray, B: np.ndarray, T_world_a: np.n
                              max_inflation: float | None = None) -> PairEstimate | None:
     """:func:`offset_from_two_keyframes` for keyframes at poses ``T_world_a``, ``T_world_b`` (camera 1 to
     world) of a rig with rectification ``rect`` (``R0``, ``P0``, ``f``, ``baseline_m``)."""
-    T_ba = invert_pose(T_world_b) @ T_world_a  # keyframe A -> keyframe B (camera frames)
-    R_ba, t_ba = rect.R0 @ T_ba[:3, :3] @ rect.R0.T, rect.R0 @ T_ba[:3, 3]
+    R_ba, t_ba = _rectified_motion(rect, T_world_a, T_world_b)
     return offset_from_two_keyframes(A, B, R_ba, t_ba, rect.f, rect.P0[0, 2], rect.P0[1, 2], rect.baseline_m,
                                      max_inflation=max_inflation)
+
+
+def _rectified_motion(rect, T_world_a: np.ndarray, T_world_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Keyframe A -> keyframe B (``x_B = R x_A + t``) in the rectified frames of camera 1."""
+    T_ba = invert_pose(T_world_b) @ T_world_a
+    return rect.R0 @ T_ba[:3, :3] @ rect.R0.T, rect.R0 @ T_ba[:3, 3]
 
 
 def offset_correction_of_motion(rect, A: np.ndarray, B: np.ndarray, T_world_a: np.ndarray, T_world_b: np.ndarray,
@@ -242,8 +247,7 @@ def offset_correction_of_motion(rect, A: np.ndarray, B: np.ndarray, T_world_a: n
     frame) such that ``D @ T_ba`` is the motion ``T_ba = inv(T_world_b) @ T_world_a`` measured with
     ``d0_new`` instead of ``d0_used``.  Both motions come from the same two-keyframe solve, so
     ``D`` holds the offset's effect only; None when either solve fails."""
-    T_ba = invert_pose(T_world_b) @ T_world_a
-    R_ba, t_ba = rect.R0 @ T_ba[:3, :3] @ rect.R0.T, rect.R0 @ T_ba[:3, 3]
+    R_ba, t_ba = _rectified_motion(rect, T_world_a, T_world_b)
     args = (rect.f, rect.P0[0, 2], rect.P0[1, 2], rect.baseline_m)
     used = motion_with_offset(A, B, R_ba, t_ba, d0_used, *args)
     new = motion_with_offset(A, B, R_ba, t_ba, d0_new, *args)

@@ -40,6 +40,7 @@ gyro prior, else ``lost``) with the predicted pose; it is never reported ``ok``.
 from __future__ import annotations
 
 import logging
+from collections import deque
 from dataclasses import dataclass
 
 import cv2
@@ -63,7 +64,7 @@ from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, so3_log
 from stereopath.device.core.rig import Rig
 
-MAX_PRIOR_PAIRS = 32  # keyframe pairs kept to re-measure the path once the offset is learned (a longer one stays)
+MAX_PRIOR_PAIRS = 32  # the last keyframe pairs re-measured once the offset is learned (earlier ones stay)
 # a learned offset re-measures depths by a few per cent at most (0.2 px at 5 px of disparity: 4 %)
 MAX_PATH_CORRECTION = 0.05
 
@@ -160,7 +161,8 @@ class StereoEstimator(KeyframeJobs):
         self._init_keyframe_jobs()
         self._offset = OffsetFilter(prior=float(self.cfg.disparity_offset_px))
         # keyframe pairs measured with the prior offset, kept until the offset is first learned
-        self._prior_pairs: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._prior_pairs: deque[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = deque(
+            maxlen=MAX_PRIOR_PAIRS)
         self._pending_G: np.ndarray | None = None
         self._since_kf = 0
         self._failures = 0
@@ -482,9 +484,8 @@ class StereoEstimator(KeyframeJobs):
             if not learned_before:
                 if self._prior_pairs and self._prior_pairs[-1][0] != kf - 1:
                     self._prior_pairs.clear()  # a keyframe without a pair breaks the chain
-                if len(self._prior_pairs) < MAX_PRIOR_PAIRS:
-                    self._prior_pairs.append((kf, m.obs[idx[both]].copy(), B[both].copy(), self._T_kf.copy(),
-                                              T_world_cam.copy()))
+                self._prior_pairs.append((kf, m.obs[idx[both]].copy(), B[both].copy(), self._T_kf.copy(),
+                                          T_world_cam.copy()))
             used = self._offset.update(est)
             self.counters["disparity_offset_pairs"] = self._offset.n
             self.counters["disparity_offset_unidentified"] = self._offset.unidentified
