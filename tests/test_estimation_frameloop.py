@@ -120,12 +120,13 @@ def test_the_path_measured_before_the_offset_was_learned_is_re_measured_once(dat
         rig, frames = _kitti_frames(data_dir, range(14))
         est = StereoEstimator(rig, StereoConfig(kf_max_frames=2, background_keyframes=False))
         if not correct:
-            est._prior_path_correction = lambda *args: None
+            real = est._prior_path.correction  # computed (the pairs are forgotten), never applied
+            est._prior_path.correction = lambda *args: [real(*args), None][1]
         out = [est.process(f, None) for f in frames]
         est.close()
         assert all(e.status == "ok" for e in out) and est._offset.ready
         assert est.counters["disparity_offset_path_corrections"] == int(correct)
-        assert not est._prior_pairs  # kept only until the offset is learned
+        assert not est._prior_path.pairs  # kept only until the offset is learned
         end_error[correct] = np.linalg.norm(out[-1].T_world_cam[:3, 3] - gt[13][:, 3])
     assert end_error[True] < end_error[False] - 0.01
 

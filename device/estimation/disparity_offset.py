@@ -31,11 +31,16 @@ into the offset along the near-degenerate direction.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import logging
+
+from collections import deque
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from stereopath.device.core.geometry import invert_pose, so3_exp
+from stereopath.device.core.geometry import invert_pose, make_pose, project_to_so3, rotation_angle_deg, so3_exp
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -310,3 +315,50 @@ class OffsetFilter:
         self._sum += info * est.d0
         self.n += 1
         return True
+
+
+@dataclass
+class PriorPath:
+    """The keyframe pairs measured with the prior offset (the last ``max_pairs`` of one unbroken chain),
+    and the one correction that re-measures them once the offset is learned (pure compute).
+
+    ``correction`` re-solves each pair with the learned offset (:func:`offset_correction_of_motion`),
+    chains the differences and returns the rigid motion of the live state (world frame) that moves the
+    current keyframe where the re-measured chain puts it, and forgets the pairs; None when the chain does
+    not end at that keyframe, or the correction is implausible (over ``max_fraction`` of the chain's length or
+    ``max_deg``).  A pair whose solve fails keeps its tracked motion."""
+
+    max_pairs: int = 32
+    max_fraction: float = 0.05  # a learned offset re-measures depths by a few per cent at most
+    pairs: deque = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.pairs = deque(maxlen=self.max_pairs)
+
+    def add(self, kf: int, A: np.ndarray, B: np.ndarray, T_world_a: np.ndarray, T_world_b: np.ndarray) -> None:
+        """Keyframe ``kf``'s pair with keyframe ``kf - 1``; a gap in the keyframes restarts the chain."""
+        if self.pairs and self.pairs[-1][0] != kf - 1:
+            self.pairs.clear()
+        self.pairs.append((kf, A.copy(), B.copy(), T_world_a.copy(), T_world_b.copy()))
+
+    def correction(self, rect, kf: int, T_world_cam: np.ndarray, d0_used: float, d0_new: float,
+                   max_deg: float) -> np.ndarray | None:
+        pairs, self.pairs = self.pairs, deque(maxlen=self.max_pairs)  # used once
+        if not pairs or pairs[-1][0] != kf:
+            return None
+        E = np.eye(4)  # the re-measured current camera in the tracked one's frame
+        length = 0.0
+        for _, A, B, T_a, T_b in pairs:
+            T_ba = invert_pose(T_b) @ T_a
+            D = offset_correction_of_motion(rect, A, B, T_a, T_b, d0_used, d0_new)
+            E = T_ba @ E @ invert_pose(T_ba) @ (np.eye(4) if D is None else invert_pose(D))
+            length += float(np.linalg.norm(T_ba[:3, 3]))
+        shift, ang = float(np.linalg.norm(E[:3, 3])), rotation_angle_deg(E[:3, :3])
+        if shift > self.max_fraction * length or ang > max_deg:
+            log.info("offset %.3f px: path correction of %.4f m / %.2f deg over %.2f m rejected", d0_new, shift, ang,
+                     length)
+            return None
+        log.info("offset %.3f px learned: the path since %d keyframes back moves %.4f m, %.3f deg", d0_new,
+                 len(pairs), shift, ang)
+        G = T_world_cam @ E @ invert_pose(T_world_cam)
+        return make_pose(project_to_so3(G[:3, :3]), G[:3, 3])

@@ -96,8 +96,9 @@ class StereoMeasure:
 
     def solve_pose(self, left, right, X: np.ndarray, uv: np.ndarray, T_guess: np.ndarray, seed: int,
                    use_guess: bool = True):
-        """PnP RANSAC (from the guess), then LM in both cameras over every point in front (nothing beyond twice
-        the inlier threshold weighs), inliers classified at the refined pose.  Returns (T_world_cam, n_inliers, mask)."""
+        """PnP RANSAC (from the guess), then LM in both cameras over every point in front (nothing beyond
+        twice the inlier threshold weighs), inliers classified at the refined pose.
+        Returns (T_world_cam, n_inliers, mask)."""
         cfg = self.cfg
         K0, d0 = self.rig.cam0.K, self.rig.cam0.dist
         uv_u = undistort_px(uv, K0, d0)

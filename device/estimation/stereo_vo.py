@@ -26,9 +26,8 @@ triangulation and from the right-image observations of the pose refinement.  Wit
 stereo at two consecutive keyframes whose motion identifies it
 (:mod:`stereopath.device.estimation.disparity_offset`); when it changes, the tracked points
 restart their averaged triangulation at that keyframe (the earlier ones carry the old offset).
-When it is first learned, the keyframe motions measured until then with the prior are solved
-again with it, pair by pair, and the live state moves by the difference once (KITTI 06: 4 cm
-after six frames); the poses already reported stay as they were.
+When it is first learned, the path measured with the prior is re-measured with it once
+(:class:`~stereopath.device.estimation.disparity_offset.PriorPath`; KITTI 06: 4 cm after six frames).
 
 Works without an IMU (KITTI): the prior is then a constant-velocity model.
 At start-up a still IMU block before the first frame gives the gyro bias and
@@ -40,7 +39,6 @@ gyro prior, else ``lost``) with the predicted pose; it is never reported ``ok``.
 from __future__ import annotations
 
 import logging
-from collections import deque
 from dataclasses import dataclass
 
 import cv2
@@ -52,21 +50,13 @@ from stereopath.device.estimation.base import PoseEstimate, WorldFrame
 from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still, gravity_aligned_rotation
 from stereopath.device.core.features import gray
 from stereopath.device.core.stereo import stereo_right, undistort_px
-from stereopath.device.estimation.disparity_offset import (
-    OffsetFilter,
-    offset_between_keyframes,
-    offset_correction_of_motion,
-)
-from stereopath.device.estimation.keyframe_jobs import KeyframeJobs, rigid
+from stereopath.device.estimation.disparity_offset import OffsetFilter, PriorPath, offset_between_keyframes
+from stereopath.device.estimation.keyframe_jobs import KeyframeJobs
 from stereopath.device.estimation.stereo_measure import StereoMeasure
 from stereopath.device.estimation.tracked_map import TrackedMap
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, so3_log
 from stereopath.device.core.rig import Rig
-
-MAX_PRIOR_PAIRS = 32  # the last keyframe pairs re-measured once the offset is learned (earlier ones stay)
-# a learned offset re-measures depths by a few per cent at most (0.2 px at 5 px of disparity: 4 %)
-MAX_PATH_CORRECTION = 0.05
 
 log = logging.getLogger(__name__)
 
@@ -161,8 +151,7 @@ class StereoEstimator(KeyframeJobs):
         self._init_keyframe_jobs()
         self._offset = OffsetFilter(prior=float(self.cfg.disparity_offset_px))
         # keyframe pairs measured with the prior offset, kept until the offset is first learned
-        self._prior_pairs: deque[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = deque(
-            maxlen=MAX_PRIOR_PAIRS)
+        self._prior_path = PriorPath()
         self._pending_G: np.ndarray | None = None
         self._since_kf = 0
         self._failures = 0
@@ -177,11 +166,11 @@ class StereoEstimator(KeyframeJobs):
         self.landmarks: dict[int, np.ndarray] = {}
         self._next_id = 0
         self._cur_seq = 0
-        self.counters = {"keyframes": 0, "imu_only": 0, "lost": 0, "asift_matches": 0, "kf_jobs": 0,
-                         "kf_jobs_skipped": 0, "kf_jobs_deferred": 0, "asift_views": 0, "kf_corrections": 0, "retracked": 0, "relocalised": 0,
-                         "disparity_offset_mpx": int(round(1000 * self.cfg.disparity_offset_px)),
-                         "disparity_offset_pairs": 0, "disparity_offset_unidentified": 0,
-                         "disparity_offset_path_corrections": 0}
+        self.counters = dict.fromkeys(
+            "keyframes imu_only lost asift_matches kf_jobs kf_jobs_skipped kf_jobs_deferred asift_views kf_corrections"
+            " retracked relocalised disparity_offset_pairs disparity_offset_unidentified"
+            " disparity_offset_path_corrections".split(), 0)
+        self.counters["disparity_offset_mpx"] = int(round(1000 * self.cfg.disparity_offset_px))
 
     # ------------------------------------------------------------------ public
 
@@ -480,12 +469,8 @@ class StereoEstimator(KeyframeJobs):
         if self._T_kf is not None and both.sum() >= self.cfg.min_pnp_inliers:
             est = offset_between_keyframes(self._geo.rect, m.obs[idx[both]], B[both], self._T_kf, T_world_cam,
                                            self._offset.max_inflation)
-            learned_before = self._offset.ready
-            if not learned_before:
-                if self._prior_pairs and self._prior_pairs[-1][0] != kf - 1:
-                    self._prior_pairs.clear()  # a keyframe without a pair breaks the chain
-                self._prior_pairs.append((kf, m.obs[idx[both]].copy(), B[both].copy(), self._T_kf.copy(),
-                                          T_world_cam.copy()))
+            if not (learned_before := self._offset.ready):  # motions measured with the prior, for the correction
+                self._prior_path.add(kf, m.obs[idx[both]], B[both], self._T_kf, T_world_cam)
             used = self._offset.update(est)
             self.counters["disparity_offset_pairs"] = self._offset.n
             self.counters["disparity_offset_unidentified"] = self._offset.unidentified
@@ -493,36 +478,14 @@ class StereoEstimator(KeyframeJobs):
                       self._offset.value, self._offset.sigma)
             if used and self._offset.ready:
                 if not learned_before:
-                    self._pending_G = self._prior_path_correction(T_world_cam, self._geo.disparity_offset_px,
-                                                                  self._offset.value)
-                    self._prior_pairs.clear()
+                    self._pending_G = self._prior_path.correction(  # applied at the next frame
+                        self._geo.rect, kf, T_world_cam, self._geo.disparity_offset_px, self._offset.value,
+                        self.cfg.max_correction_deg)
+                    self.counters["disparity_offset_path_corrections"] += int(self._pending_G is not None)
                 self._geo.disparity_offset_px = self._offset.value
                 self.counters["disparity_offset_mpx"] = int(round(1000 * self._offset.value))
         m.obs[idx] = B
         m.obs_kf[idx] = kf
-
-    def _prior_path_correction(self, T_world_cam: np.ndarray, d0_used: float, d0_new: float) -> np.ndarray | None:
-        """The rigid correction of the live state (world frame) that re-measures the keyframe motions
-        made with the prior offset (the chain of pairs kept so far, ending at this keyframe) with the
-        learned one; None when it is implausible (a failed pair solve only leaves that pair as tracked)."""
-        if not self._prior_pairs or self._prior_pairs[-1][0] != self.counters["keyframes"]:
-            return None
-        E = np.eye(4)  # the corrected current camera in the tracked one's frame
-        length = 0.0
-        for _, A, B, T_a, T_b in self._prior_pairs:
-            T_ba = invert_pose(T_b) @ T_a
-            D = offset_correction_of_motion(self._geo.rect, A, B, T_a, T_b, d0_used, d0_new)
-            E = T_ba @ E @ invert_pose(T_ba) @ (np.eye(4) if D is None else invert_pose(D))
-            length += float(np.linalg.norm(T_ba[:3, 3]))
-        shift, ang = float(np.linalg.norm(E[:3, 3])), rotation_angle_deg(E[:3, :3])
-        if shift > MAX_PATH_CORRECTION * length or ang > self.cfg.max_correction_deg:
-            log.info("offset %.3f px: path correction of %.4f m / %.2f deg over %.2f m rejected", d0_new, shift, ang,
-                     length)
-            return None
-        log.info("offset %.3f px learned: the path since %d keyframes back moves %.4f m, %.3f deg", d0_new,
-                 len(self._prior_pairs), shift, ang)
-        self.counters["disparity_offset_path_corrections"] += 1
-        return rigid(T_world_cam @ E @ invert_pose(T_world_cam))
 
     def _record(self, k: int, ids, uv_left, uv_right, ok_right) -> None:
         """Observations (undistorted pixels) of map points at keyframe ``k``, for bundle adjustment."""
