@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from stereopath.device.core.geometry import invert_pose, rotation_angle_deg
+from stereopath.device.core.geometry import invert_pose, project_to_so3, rotation_angle_deg
 
 log = logging.getLogger(__name__)
 
@@ -72,12 +72,8 @@ class Ready:
 
 def rigid(T: np.ndarray) -> np.ndarray:
     """``T`` with its rotation projected onto SO(3): products of corrections stay rigid."""
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
     out = T.copy()
-    out[:3, :3] = R
+    out[:3, :3] = project_to_so3(T[:3, :3])
     return out
 
 
