@@ -22,73 +22,109 @@ from __future__ import annotations
 import numpy as np
 
 
-def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Bilinear samples of ``img`` at ``(x, y)`` with their x and y derivatives (of the bilinear
-    surface itself, so that Gauss-Newton sees the function it minimises)."""
-    h, w = img.shape
-    x = np.clip(x, 0.0, w - 1.001)
-    y = np.clip(y, 0.0, h - 1.001)
-    x0 = x.astype(np.int32)
-    y0 = y.astype(np.int32)
-    fx = (x - x0).astype(np.float32)
-    fy = (y - y0).astype(np.float32)
-    i = y0 * w + x0
-    flat = img.ravel()
-    a = flat[i]
-    b = flat[i + 1]
-    c = flat[i + w]
-    d = flat[i + w + 1]
-    top = a + fx * (b - a)
-    bot = c + fx * (d - c)
-    val = top + fy * (bot - top)
-    gx = (b - a) + fy * ((d - c) - (b - a))
-    gy = bot - top
-    return val, gx, gy
+def _gradients(img: np.ndarray) -> np.ndarray:
+    """``(h, w, 3)`` float32: the image and its central-difference x and y derivatives."""
+    import cv2
+
+    f = np.asarray(img, np.float32)
+    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE)
+    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE)
+    return cv2.merge([f, gx, gy])
+
+
+def _corners(img: np.ndarray) -> np.ndarray:
+    """``(h, w, 4)`` float32: each pixel with its right, lower and lower-right neighbours (edges repeated)."""
+    f = np.pad(np.asarray(img, np.float32), ((0, 1), (0, 1)), mode="edge")
+    return np.ascontiguousarray(np.stack([f[:-1, :-1], f[:-1, 1:], f[1:, :-1], f[1:, 1:]], axis=2))
+
+
+def _bilinear(corners: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples at ``(x, y)`` (float32 arrays) of the image behind :func:`_corners`, with exact
+    weights: ``cv2.remap``'s own bilinear mode rounds the position to 1/32 px, which would stall the
+    Gauss-Newton steps below that size, so it only fetches the four neighbours here."""
+    import cv2
+
+    h, w = corners.shape[:2]
+    x0 = np.floor(np.clip(x, 0.0, w - 1.0))
+    y0 = np.floor(np.clip(y, 0.0, h - 1.0))
+    fx = np.clip(x - x0, 0.0, 1.0)
+    fy = np.clip(y - y0, 0.0, 1.0)
+    c = cv2.remap(corners, x0, y0, cv2.INTER_NEAREST)
+    top = c[..., 0] + fx * (c[..., 1] - c[..., 0])
+    bot = c[..., 2] + fx * (c[..., 3] - c[..., 2])
+    return top + fy * (bot - top)
+
+
+def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples of a multi-channel float image at ``(x, y)`` (same shapes; channels last)."""
+    import cv2
+
+    return cv2.remap(img, x.astype(np.float32), y.astype(np.float32), cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE)
 
 
 def refine_slanted(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray,
-                   half: int = 10, iterations: int = 8, max_shift_px: float = 1.0,
-                   max_slant: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+                   half: int = 10, iterations: int = 12, max_shift_px: float = 1.0,
+                   max_slant: float = 0.5, tol_px: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
     """Right-image pixels of ``xy_left`` refined with a slanted window around the match ``xy_right``.
 
     Returns ``(xy_right_refined (n, 2) float64, ok (n,) bool)``.  A point is not refined (``ok``
-    False, its input position returned) when the fit is singular, does not settle, moves more than
-    ``max_shift_px`` from the input, or needs a slant beyond ``max_slant`` (pixels of disparity per
-    pixel: the window then straddles a depth edge rather than a surface).
+    False, its input position returned) when the window has no texture, the fit does not settle
+    within ``tol_px``, it moves more than ``max_shift_px`` from the input, or needs a slant beyond
+    ``max_slant`` (pixels of disparity per pixel: the window then straddles a depth edge rather
+    than a surface).
     """
+    import cv2
+
     xy_left = np.asarray(xy_left, np.float64).reshape(-1, 2)
     xy_right = np.asarray(xy_right, np.float64).reshape(-1, 2)
     n = len(xy_left)
     if n == 0:
         return xy_right.copy(), np.zeros(0, bool)
-    L = np.asarray(left, np.float32)
-    R = np.asarray(right, np.float32)
     dy, dx = np.mgrid[-half:half + 1, -half:half + 1]
     dx = dx.ravel().astype(np.float32)
     dy = dy.ravel().astype(np.float32)
-    T, _, _ = _bilinear(L, xy_left[:, :1] + dx[None], xy_left[:, 1:2] + dy[None])  # (n, m) template
-    p = np.zeros((n, 6))  # x shift, y shift, slant along x, slant along y, gain - 1, offset
-    ok = np.ones(n, bool)
+    # inverse compositional Gauss-Newton: the Jacobian and its normal matrix come from the template
+    tmpl = _sample(_gradients(left), xy_left[:, :1] + dx[None], xy_left[:, 1:2] + dy[None])  # (n, m, 3)
+    T = tmpl[:, :, 0] - tmpl[:, :, 0].mean(axis=1, keepdims=True)
+    t_norm = np.sqrt(np.einsum("nm,nm->n", T, T))
+    gx, gy = tmpl[:, :, 1], tmpl[:, :, 2]
+    J = np.stack([gx, gy, gx * dx[None], gx * dy[None]], axis=1)  # d/d(tx, ty, slant x, slant y)
+    J -= J.mean(axis=2, keepdims=True)  # the brightness offset is free
+    H = np.matmul(J, J.transpose(0, 2, 1)).astype(np.float64)
+    det = np.linalg.det(H)
+    ok = np.isfinite(det) & (det > 1e-9 * np.trace(H, axis1=1, axis2=2) ** 4) & (t_norm > 0)
+    Hinv = np.zeros_like(H)
+    Hinv[ok] = np.linalg.inv(H[ok])
+    R = _corners(right)
+    a11, a12 = np.ones(n), np.zeros(n)  # right x = c + a11 dx + a12 dy + tx, right y = c + dy + ty
+    t = np.zeros((n, 2))
     step = np.full(n, np.inf)
+    act = np.flatnonzero(ok)  # points still moving
     for _ in range(iterations):
-        xr = (xy_right[:, :1] + p[:, :1] + (1.0 + p[:, 2:3]) * dx[None] + p[:, 3:4] * dy[None]).astype(np.float32)
-        yr = (xy_right[:, 1:2] + p[:, 1:2] + dy[None]).astype(np.float32)
-        val, gx, gy = _bilinear(R, xr, yr)
-        res = val - (1.0 + p[:, 4:5]) * T - p[:, 5:6]
-        J = np.stack([gx, gy, gx * dx[None], gx * dy[None], -T, -np.ones_like(T)], axis=1)  # (n, 6, m)
-        A = np.matmul(J, J.transpose(0, 2, 1)).astype(np.float64)
-        g = np.matmul(J, res[:, :, None])[:, :, 0].astype(np.float64)
-        A += 1e-6 * np.trace(A, axis1=1, axis2=2)[:, None, None] * np.eye(6)
-        good = ok & (np.linalg.cond(A) < 1e12)
-        delta = np.zeros_like(p)
-        delta[good] = -np.linalg.solve(A[good], g[good][..., None])[..., 0]
-        ok &= good
-        delta[~ok] = 0.0
-        p += delta
-        step = np.abs(delta[:, 0]) + np.abs(delta[:, 1])
-    ok &= np.all(np.isfinite(p), axis=1) & (step < 1e-2)
-    ok &= np.hypot(p[:, 0], p[:, 1]) <= max_shift_px
-    ok &= (np.abs(p[:, 2]) <= max_slant) & (np.abs(p[:, 3]) <= max_slant)
+        if len(act) == 0:
+            break
+        c = (xy_right[act] + t[act]).astype(np.float32)
+        xr = a11[act].astype(np.float32)[:, None] * dx[None] + a12[act].astype(np.float32)[:, None] * dy[None]
+        xr += c[:, :1]
+        yr = c[:, 1:2] + dy[None]
+        Iw = _bilinear(R, xr, yr)
+        Iw -= Iw.mean(axis=1, keepdims=True)
+        i_norm = np.sqrt(np.einsum("nm,nm->n", Iw, Iw))
+        e = Iw * (t_norm[act] / np.maximum(i_norm, 1e-6))[:, None].astype(np.float32) - T[act]  # gain-free
+        g = np.matmul(J[act], e[:, :, None])[:, :, 0].astype(np.float64)
+        d = np.einsum("nij,nj->ni", Hinv[act], g)  # increment of (tx, ty, slant x, slant y) in the template
+        # compose with the inverse increment: A <- A M^-1, t <- t - A M^-1 t_d
+        sc = 1.0 / np.maximum(1.0 + d[:, 2], 1e-3)
+        na11, na12 = a11[act] * sc, a12[act] - a11[act] * d[:, 3] * sc
+        t[act, 0] -= na11 * d[:, 0] + na12 * d[:, 1]
+        t[act, 1] -= d[:, 1]
+        a11[act], a12[act] = na11, na12
+        step[act] = np.hypot(d[:, 0], d[:, 1])
+        act = act[(step[act] >= tol_px / 2) & (np.abs(t[act]).max(axis=1) < 4 * max_shift_px)]
+    ok &= np.isfinite(t).all(axis=1) & (step < tol_px)
+    ok &= np.hypot(t[:, 0], t[:, 1]) <= max_shift_px
+    ok &= (np.abs(a11 - 1.0) <= max_slant) & (np.abs(a12) <= max_slant)
     out = xy_right.copy()
-    out[ok] += p[ok, :2]
+    out[ok] += t[ok]
     return out, ok
