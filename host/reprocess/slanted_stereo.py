@@ -26,14 +26,30 @@ from __future__ import annotations
 import numpy as np
 
 
-def _gradients(img: np.ndarray) -> list[np.ndarray]:
-    """The image and its central-difference x and y derivatives, float32."""
+def _template(img: np.ndarray, xy: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ``(2 half + 1)^2`` windows of ``img`` around the sub-pixel points ``xy`` and their x and y
+    derivatives (central differences), each ``(n, m)`` float32, bilinear with exact weights.  Every
+    sample of one window shares the point's fractional offset, so one integer patch per point (a
+    pixel wider than the window) and four weights give them all."""
     import cv2
 
-    f = np.asarray(img, np.float32)
-    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE)
-    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE)
-    return [f, gx, gy]
+    n, side = len(xy), 2 * half + 4
+    ix, iy = np.floor(xy[:, 0]), np.floor(xy[:, 1])
+    fx = (xy[:, 0] - ix).astype(np.float32)[:, None, None]
+    fy = (xy[:, 1] - iy).astype(np.float32)[:, None, None]
+    off = np.arange(-half - 1, half + 3, dtype=np.float32)
+    mx = np.broadcast_to((ix.astype(np.float32)[:, None, None] + off[None, None, :]), (n, side, side))
+    my = np.broadcast_to((iy.astype(np.float32)[:, None, None] + off[None, :, None]), (n, side, side))
+    P = cv2.remap(np.asarray(img, np.float32), np.ascontiguousarray(mx).reshape(n, -1),
+                  np.ascontiguousarray(my).reshape(n, -1), cv2.INTER_NEAREST,
+                  borderMode=cv2.BORDER_REPLICATE).reshape(n, side, side)
+    top = P[:, :-1, :-1] + fx * (P[:, :-1, 1:] - P[:, :-1, :-1])
+    bot = P[:, 1:, :-1] + fx * (P[:, 1:, 1:] - P[:, 1:, :-1])
+    grid = top + fy * (bot - top)  # samples at offsets -half-1 .. half+1
+    T = grid[:, 1:-1, 1:-1]
+    gx = 0.5 * (grid[:, 1:-1, 2:] - grid[:, 1:-1, :-2])
+    gy = 0.5 * (grid[:, 2:, 1:-1] - grid[:, :-2, 1:-1])
+    return tuple(np.ascontiguousarray(v).reshape(n, -1) for v in (T, gx, gy))
 
 
 def _corners(img: np.ndarray) -> np.ndarray:
@@ -42,21 +58,20 @@ def _corners(img: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.stack([f[:-1, :-1], f[:-1, 1:], f[1:, :-1], f[1:, 1:]], axis=2))
 
 
-def _bilinear(corners: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear samples at ``(x, y)`` (float32 arrays) of the image behind :func:`_corners`, with exact
-    weights: ``cv2.remap``'s own bilinear mode rounds the position to 1/32 px, which would stall the
-    Gauss-Newton steps below that size, so it only fetches the four neighbours here."""
+def _warped(corners: np.ndarray, x: np.ndarray, row0: np.ndarray, fy: np.ndarray) -> np.ndarray:
+    """Bilinear samples at ``(x, row0)`` plus the fraction ``fy`` (a row offset shared by each point's
+    window), with exact weights: ``cv2.remap``'s own bilinear mode rounds the position to 1/32 px,
+    which would stall the Gauss-Newton steps below that size, so it only fetches the neighbours."""
     import cv2
 
-    h, w = corners.shape[:2]
-    x0 = np.floor(np.clip(x, 0.0, w - 1.0))
-    y0 = np.floor(np.clip(y, 0.0, h - 1.0))
-    fx = np.clip(x - x0, 0.0, 1.0)
-    fy = np.clip(y - y0, 0.0, 1.0)
-    c = cv2.remap(corners, x0, y0, cv2.INTER_NEAREST)
+    x0 = np.floor(x)
+    fx = x - x0
+    c = cv2.remap(corners, x0, row0, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
     top = c[..., 0] + fx * (c[..., 1] - c[..., 0])
     bot = c[..., 2] + fx * (c[..., 3] - c[..., 2])
-    return top + fy * (bot - top)
+    bot -= top
+    bot *= fy
+    return top + bot
 
 
 def refine_slanted(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray,
@@ -79,9 +94,7 @@ def refine_slanted(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_
     dx = dx.ravel().astype(np.float32)
     dy = dy.ravel().astype(np.float32)
     # inverse compositional Gauss-Newton: the Jacobian and its normal matrix come from the template
-    xl = (xy_left[:, :1] + dx[None]).astype(np.float32)
-    yl = (xy_left[:, 1:2] + dy[None]).astype(np.float32)
-    T, gx, gy = (_bilinear(_corners(im), xl, yl) for im in _gradients(left))  # (n, m) each
+    T, gx, gy = _template(left, xy_left, half)  # (n, m) each
     T -= T.mean(axis=1, keepdims=True)
     t_norm = np.sqrt(np.einsum("nm,nm->n", T, T))
     J = np.stack([gx, gy, gx * dx[None], gx * dy[None]], axis=1)  # d/d(tx, ty, slant x, slant y)
@@ -95,20 +108,21 @@ def refine_slanted(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_
     a11, a12 = np.ones(n), np.zeros(n)  # right x = c + a11 dx + a12 dy + tx, right y = c + dy + ty
     t = np.zeros((n, 2))
     step = np.full(n, np.inf)
-    act = np.flatnonzero(ok)  # points still moving
+    act = np.arange(n)  # points still moving (a point without texture has Hinv = 0: it stops at once)
     for _ in range(iterations):
         if len(act) == 0:
             break
-        c = (xy_right[act] + t[act]).astype(np.float32)
+        sub = slice(None) if len(act) == n else act  # no copies while every point still moves
+        c = xy_right[act] + t[act]
         xr = a11[act].astype(np.float32)[:, None] * dx[None] + a12[act].astype(np.float32)[:, None] * dy[None]
-        xr += c[:, :1]
-        yr = c[:, 1:2] + dy[None]
-        Iw = _bilinear(R, xr, yr)
+        xr += c[:, :1].astype(np.float32)
+        iy = np.floor(c[:, 1:2])  # the window's rows share the point's fractional row
+        Iw = _warped(R, xr, (iy.astype(np.float32) + dy[None]), (c[:, 1:2] - iy).astype(np.float32))
         Iw -= Iw.mean(axis=1, keepdims=True)
         i_norm = np.sqrt(np.einsum("nm,nm->n", Iw, Iw))
-        e = Iw * (t_norm[act] / np.maximum(i_norm, 1e-6))[:, None].astype(np.float32) - T[act]  # gain-free
-        g = np.matmul(J[act], e[:, :, None])[:, :, 0].astype(np.float64)
-        d = np.einsum("nij,nj->ni", Hinv[act], g)  # increment of (tx, ty, slant x, slant y) in the template
+        e = Iw * (t_norm[act] / np.maximum(i_norm, 1e-6))[:, None].astype(np.float32) - T[sub]  # gain-free
+        g = np.matmul(J[sub], e[:, :, None])[:, :, 0].astype(np.float64)
+        d = np.einsum("nij,nj->ni", Hinv[sub], g)  # increment of (tx, ty, slant x, slant y) in the template
         # compose with the inverse increment: A <- A M^-1, t <- t - A M^-1 t_d
         sc = 1.0 / np.maximum(1.0 + d[:, 2], 1e-3)
         na11, na12 = a11[act] * sc, a12[act] - a11[act] * d[:, 3] * sc
