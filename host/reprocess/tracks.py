@@ -147,10 +147,13 @@ def stereo_points(rig: Rig, left: np.ndarray, right: np.ndarray, xy: np.ndarray,
     xr, ok = stereo_right(rig, left, right, xy, guess, cfg)
     if cfg.slanted_window:
         idx = np.flatnonzero(ok)
-        xr_ok, refined = refine_slanted(left, right, np.asarray(xy)[idx], xr[idx], half=cfg.slanted_window // 2)
+        import os  # EXPERIMENT
+        xr_ok, refined = refine_slanted(left, right, np.asarray(xy)[idx], xr[idx], half=cfg.slanted_window // 2,
+                                        max_slant=float(os.environ.get("XSLANT", "0.5")))
         xr = xr.astype(np.float64)
         xr[idx] = xr_ok
-        ok[idx] = refined
+        if not os.environ.get("XKEEP"):
+            ok[idx] = refined
     uv1 = undistort_px(xr, K1, d1)
     X, err = triangulate(rig, uv0, uv1)
     ok &= (err < cfg.triangulation_max_px) & (X[:, 2] > cfg.min_depth_m) & (X[:, 2] < cfg.max_depth_m)
