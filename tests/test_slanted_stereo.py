@@ -61,7 +61,7 @@ def test_a_slanted_surface_is_matched_at_the_window_centre_where_a_translational
     xy = _points(300)
     true = truth(xy)
     klt = _translational(left, right, xy, true + 0.3)
-    ref, ok = refine_slanted(left, right, xy, klt, half=7)  # the offline tracks use a 15 px window
+    ref, ok = refine_slanted(left, right, xy, klt, half=10)  # the offline tracks' 21 px window
     assert ok.mean() > 0.95
     err_klt = np.abs(klt[:, 0] - true[:, 0])
     err = np.abs(ref[ok, 0] - true[ok, 0])

@@ -57,8 +57,8 @@ class TrackConfig:
     verify_disparity_px: float = 1.5  # accepted stereo disparity disagreement
     klt_window: int = 21
     # the right-image match refined with a slanted window of this side (pixels; 0 = the KLT match as
-    # is): unbiased on surfaces seen at a slant and at the near side of depth edges (slanted_stereo)
-    slanted_window: int = 15
+    # is; by default the KLT window): unbiased on surfaces seen at a slant (slanted_stereo)
+    slanted_window: int = 21
     klt_levels: int = 3
     # pyramid levels above the image for KLT seeded from a known 3D point (frame refinement): the
     # seed is within a pixel or two, so the coarse levels only cost time
@@ -147,13 +147,10 @@ def stereo_points(rig: Rig, left: np.ndarray, right: np.ndarray, xy: np.ndarray,
     xr, ok = stereo_right(rig, left, right, xy, guess, cfg)
     if cfg.slanted_window:
         idx = np.flatnonzero(ok)
-        import os  # EXPERIMENT
-        xr_ok, refined = refine_slanted(left, right, np.asarray(xy)[idx], xr[idx], half=cfg.slanted_window // 2,
-                                        max_slant=float(os.environ.get("XSLANT", "0.5")))
+        xr_ok, refined = refine_slanted(left, right, np.asarray(xy)[idx], xr[idx], half=cfg.slanted_window // 2)
         xr = xr.astype(np.float64)
         xr[idx] = xr_ok
-        if not os.environ.get("XKEEP"):
-            ok[idx] = refined
+        ok[idx] = refined
     uv1 = undistort_px(xr, K1, d1)
     X, err = triangulate(rig, uv0, uv1)
     ok &= (err < cfg.triangulation_max_px) & (X[:, 2] > cfg.min_depth_m) & (X[:, 2] < cfg.max_depth_m)
