@@ -13,6 +13,7 @@ points (``point_ids``, ``point_xyz``) and every keyframe's keypoints (``kf_offse
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -139,7 +140,8 @@ def view_points(rig, left: np.ndarray, right: np.ndarray, cfg):
     c = cv2.goodFeaturesToTrack(left, maxCorners=VIEW_CORNERS, qualityLevel=VIEW_CORNER_QUALITY,
                                 minDistance=VIEW_CORNER_SPACING_PX)
     xy = np.zeros((0, 2), np.float32) if c is None else c.reshape(-1, 2).astype(np.float32)
-    uv0, uv1, X, ok = stereo_points(rig, left, right, xy, cfg)
+    # a guess needs their depth roughly: the KLT match without the slanted refinement
+    uv0, uv1, X, ok = stereo_points(rig, left, right, xy, dataclasses.replace(cfg, slanted_window=0))
     n = int(ok.sum())
     z = np.zeros(n, np.float32)
     feats = Features(xy[ok], np.zeros((n, 0), np.float32), z, z.copy(), z.copy(), np.zeros(n, np.int16))

@@ -31,7 +31,9 @@ from stereopath.device.core.features import gray
 from stereopath.device.core.stereo import stereo_right, triangulate, undistort_px
 from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import Rig
+from stereopath.device.errors import ConfigError
 from stereopath.host.reprocess.parallel import parallel_map
+from stereopath.host.reprocess.slanted_stereo import refine_slanted
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +56,9 @@ class TrackConfig:
     verify_depth_sigmas: float = 3.0
     verify_disparity_px: float = 1.5  # accepted stereo disparity disagreement
     klt_window: int = 21
+    # the right-image match refined with a slanted window of this side (pixels; 0 = the KLT match as
+    # is; by default the KLT window): unbiased on surfaces seen at a slant (slanted_stereo)
+    slanted_window: int = 21
     klt_levels: int = 3
     # pyramid levels above the image for KLT seeded from a known 3D point (frame refinement): the
     # seed is within a pixel or two, so the coarse levels only cost time
@@ -85,6 +90,8 @@ class TrackConfig:
         check_range("keyframe_motion_px", self.keyframe_motion_px, 1.0, 100_000.0)
         check_range("verify_depth_sigmas", self.verify_depth_sigmas, 0.0, 20.0)
         check_range("seeded_klt_levels", self.seeded_klt_levels, 0, 8)
+        if self.slanted_window and not 5 <= self.slanted_window <= 41:
+            raise ConfigError(f"slanted_window must be 0 (off) or 5-41 pixels, got {self.slanted_window}")
 
 
 @dataclass
@@ -138,6 +145,12 @@ def stereo_points(rig: Rig, left: np.ndarray, right: np.ndarray, xy: np.ndarray,
     Xr[:, 2] = np.maximum(Xr[:, 2], 1e-3)
     guess = cv2.projectPoints(Xr.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K1, d1)[0].reshape(-1, 2)
     xr, ok = stereo_right(rig, left, right, xy, guess, cfg)
+    if cfg.slanted_window:
+        idx = np.flatnonzero(ok)
+        xr_ok, refined = refine_slanted(left, right, np.asarray(xy)[idx], xr[idx], half=cfg.slanted_window // 2)
+        xr = xr.astype(np.float64)
+        xr[idx] = xr_ok
+        ok[idx] = refined
     uv1 = undistort_px(xr, K1, d1)
     X, err = triangulate(rig, uv0, uv1)
     ok &= (err < cfg.triangulation_max_px) & (X[:, 2] > cfg.min_depth_m) & (X[:, 2] < cfg.max_depth_m)
