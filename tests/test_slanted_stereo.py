@@ -90,3 +90,25 @@ def test_points_that_cannot_be_refined_are_flagged_and_left_as_given():
     assert np.array_equal(ref, guess)
     empty, ok0 = refine_slanted(left, right, np.zeros((0, 2)), np.zeros((0, 2)))
     assert empty.shape == (0, 2) and ok0.shape == (0,)
+
+
+def test_blocks_and_threads_give_the_same_result_as_one_pass(monkeypatch):
+    import stereopath.host.reprocess.slanted_stereo as mod
+
+    left, right, truth = _slanted_pair(d0=9.0, ax=0.05, by=-0.05, seed=11)
+    xy = _points(700, seed=12)
+    guess = truth(xy) + 0.2
+    monkeypatch.setattr(mod, "BLOCK", 100_000)
+    one, ok_one = refine_slanted(left, right, xy, guess)
+    monkeypatch.setattr(mod, "BLOCK", 128)  # 6 blocks
+    threads = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(3)
+        many, ok_many = refine_slanted(left, right, xy, guess)
+        cv2.setNumThreads(1)
+        serial, ok_serial = refine_slanted(left, right, xy, guess)
+    finally:
+        cv2.setNumThreads(threads)
+    assert ok_one.mean() > 0.95
+    assert np.array_equal(one, many) and np.array_equal(ok_one, ok_many)
+    assert np.array_equal(one, serial) and np.array_equal(ok_one, ok_serial)
