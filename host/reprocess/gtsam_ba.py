@@ -14,7 +14,9 @@ from the right camera through the calibrated baseline); Levenberg-Marquardt over
   ``Cal3_S2`` unknown with only ``u0`` free (tight priors on the rest); each keyframe then has a
   right-camera pose unknown tied to its left pose by the rig (a tight ``BetweenFactorPose3``), and
   the right observations are ``GeneralSFMFactor2Cal3_S2`` factors.  An estimate smaller than
-  ``disparity_offset_min_px`` is not applied (the problem is solved again without it).
+  ``disparity_offset_min_px``, or than :data:`OFFSET_SIGNIFICANCE` standard errors (its marginal
+  from the solved problem: a short session with little parallax cannot tell an offset from the
+  depths), is not applied (the problem is solved again without it).
 
 The motion-only refinement of the frames between keyframes (one 6-unknown problem per frame on
 fixed points) is :func:`stereopath.host.reprocess.stage_ba.refine_frame`.  GTSAM is imported when a
@@ -47,6 +49,7 @@ GAUGE_SIGMA = 1e-6  # rad and m: the held poses
 RIG_SIGMA = 1e-5  # rad and m: right-camera pose = left pose x rig extrinsics (disparity offset only)
 FREE_SIGMA = 1e3  # an unconstrained direction of a prior
 TILT_SIGMA = 0.1  # rad: the held pose's tilt when the IMU's gravity can fix it
+OFFSET_SIGNIFICANCE = 3.0  # standard errors an estimated disparity offset must exceed to be applied
 
 
 def import_gtsam() -> Any:
@@ -267,6 +270,11 @@ def _solve(rig: Rig, T: np.ndarray, points: dict[int, np.ndarray], obs: np.ndarr
         gr.add_imu(imu)
     values, iters, history = _optimize(gr, opts["max_iterations"], on_iteration, opts.get("tol", RELATIVE_TOL))
     T_new, pts_new, offset = _read(gr, values, len(T), ids)
+    check = opts.pop("offset_check_px", None)
+    if gr.est_offset and check is not None and abs(offset - offset_px) >= check:
+        # the offset's standard error (only where it could be applied: the marginal costs about one solve)
+        cov = gr.g.Marginals(gr.graph, values).marginalCovariance(gr.C(0))
+        opts["offset_sigma_px"] = float(np.sqrt(cov[3, 3]))
     if imu is not None:
         # the held pose tilted to agree with gravity: move the whole solution back onto it (a rigid
         # motion, which changes neither the path's shape nor any residual) so the world stays put
@@ -309,10 +317,13 @@ def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarra
     offset, est = float(disparity_offset_px), bool(estimate_disparity_offset) and bool(np.any(obs[:, 2] == 1))
     rounds = max(outlier_rounds, 0)
     opts["tol"] = RELATIVE_TOL_BEFORE_OUTLIERS if rounds else relative_tol
+    opts["offset_check_px"] = disparity_offset_min_px
     T, pts, new_offset, iters, history = _solve(rig, T, points, obs, held, priors, opts, offset, est, on_iteration)
     resolve = opts["tol"] != relative_tol  # the last solve stopped early: solve again unless a round does
-    if est and abs(new_offset - offset) < disparity_offset_min_px:
-        log.info("disparity offset %+.4f px below %.3f px: not applied", new_offset - offset, disparity_offset_min_px)
+    sigma = opts.pop("offset_sigma_px", 0.0)
+    if est and abs(new_offset - offset) < max(disparity_offset_min_px, OFFSET_SIGNIFICANCE * sigma):
+        log.info("disparity offset %+.4f px (standard error %.4f px) below %.3f px or %g standard errors: not applied",
+                 new_offset - offset, sigma, disparity_offset_min_px, OFFSET_SIGNIFICANCE)
         est, resolve = False, True
     else:
         offset = new_offset
