@@ -115,11 +115,16 @@ def test_rerun_reuses_every_stage_and_gives_identical_outputs(full_run, session)
 
 
 @pytest.mark.parametrize("min_px", [0.0, 1.0])
-def test_the_refined_rig_is_written_only_when_a_disparity_offset_was_applied(full_run, session, tmp_path, min_px):
-    """Threshold 0: any offset is applied -> rig_refined.yaml, the session's rig with cam1.cx moved by
-    it; threshold 1 px: none is -> no file (an earlier run's is removed) and ``rig_refined: null``."""
+def test_the_refined_rig_is_written_only_when_a_disparity_offset_was_applied(full_run, session, tmp_path, min_px,
+                                                                            monkeypatch):
+    """Threshold 0 (and no significance test): any offset is applied -> rig_refined.yaml, the session's
+    rig with cam1.cx moved by it; threshold 1 px: none is -> no file (an earlier run's is removed) and
+    ``rig_refined: null``."""
     import dataclasses
 
+    from stereopath.host.reprocess import gtsam_ba
+
+    monkeypatch.setattr(gtsam_ba, "OFFSET_SIGNIFICANCE", 0.0)
     from stereopath.device.formats.rig_files import load_rig_yaml
     from stereopath.device.formats.source import open_source
 

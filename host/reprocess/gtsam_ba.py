@@ -273,8 +273,13 @@ def _solve(rig: Rig, T: np.ndarray, points: dict[int, np.ndarray], obs: np.ndarr
     check = opts.pop("offset_check_px", None)
     if gr.est_offset and check is not None and abs(offset - offset_px) >= check:
         # the offset's standard error (only where it could be applied: the marginal costs about one solve)
-        cov = gr.g.Marginals(gr.graph, values).marginalCovariance(gr.C(0))
-        opts["offset_sigma_px"] = float(np.sqrt(cov[3, 3]))
+        try:
+            cov = gr.g.Marginals(gr.graph, values).marginalCovariance(gr.C(0))
+            opts["offset_sigma_px"] = float(np.sqrt(cov[3, 3]))
+        except RuntimeError as e:  # an indeterminate system (a point seen from one keyframe pair at the
+            # limit of its parallax): Levenberg-Marquardt's damping solved it, the plain marginal cannot
+            log.info("disparity offset: no standard error (%s); not applied", str(e).strip().splitlines()[0])
+            opts["offset_sigma_px"] = float("inf")
     if imu is not None:
         # the held pose tilted to agree with gravity: move the whole solution back onto it (a rigid
         # motion, which changes neither the path's shape nor any residual) so the world stays put
