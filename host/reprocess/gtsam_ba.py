@@ -15,8 +15,8 @@ from the right camera through the calibrated baseline); Levenberg-Marquardt over
   right-camera pose unknown tied to its left pose by the rig (a tight ``BetweenFactorPose3``), and
   the right observations are ``GeneralSFMFactor2Cal3_S2`` factors.  An estimate smaller than
   ``disparity_offset_min_px``, or than :data:`OFFSET_SIGNIFICANCE` standard errors (its marginal
-  from the solved problem: a short session with little parallax cannot tell an offset from the
-  depths), is not applied (the problem is solved again without it).
+  from the solved problem, where that can be computed: a short session with little parallax cannot
+  tell an offset from the depths), is not applied (the problem is solved again without it).
 
 The motion-only refinement of the frames between keyframes (one 6-unknown problem per frame on
 fixed points) is :func:`stereopath.host.reprocess.stage_ba.refine_frame`.  GTSAM is imported when a
@@ -276,10 +276,9 @@ def _solve(rig: Rig, T: np.ndarray, points: dict[int, np.ndarray], obs: np.ndarr
         try:
             cov = gr.g.Marginals(gr.graph, values).marginalCovariance(gr.C(0))
             opts["offset_sigma_px"] = float(np.sqrt(cov[3, 3]))
-        except RuntimeError as e:  # an indeterminate system (a point seen from one keyframe pair at the
-            # limit of its parallax): Levenberg-Marquardt's damping solved it, the plain marginal cannot
-            log.info("disparity offset: no standard error (%s); not applied", str(e).strip().splitlines()[0])
-            opts["offset_sigma_px"] = float("inf")
+        except RuntimeError as e:  # an indeterminate system (a point at the limit of its parallax):
+            # Levenberg-Marquardt's damping solved it, the plain marginal cannot; the threshold decides
+            log.info("disparity offset: no standard error (%s)", str(e).strip().splitlines()[0])
     if imu is not None:
         # the held pose tilted to agree with gravity: move the whole solution back onto it (a rigid
         # motion, which changes neither the path's shape nor any residual) so the world stays put
