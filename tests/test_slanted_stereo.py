@@ -154,3 +154,14 @@ def test_real_stereo_pairs_are_matched_closer_to_the_true_disparity(data_dir, sc
     # the true disparity is in quarter pixels: both errors carry its +-0.125 px rounding
     assert rms(err[ok]) < 0.95 * rms(err_klt[ok])  # cones 0.341 -> 0.285 px, teddy 0.327 -> 0.293 px
     assert rms(err_klt[~ok]) > rms(err_klt[ok])  # the points it cannot refine are the badly matched ones
+
+
+def test_the_track_setting_takes_off_or_a_window_size_and_rejects_others():
+    from stereopath.device.errors import ConfigError
+    from stereopath.host.reprocess.tracks import TrackConfig
+
+    assert TrackConfig().slanted_window == TrackConfig().klt_window  # by default the KLT's own window
+    assert TrackConfig(slanted_window=0).slanted_window == 0
+    for bad in (3, 43, -1):
+        with pytest.raises(ConfigError, match="slanted_window"):
+            TrackConfig(slanted_window=bad)
