@@ -72,3 +72,16 @@ def test_chordal_mean_known_answers():
 def test_chordal_mean_rejects_empty():
     with pytest.raises(ValueError):
         chordal_mean([])
+
+
+def test_project_to_se3_makes_the_rotation_block_rigid_and_keeps_the_translation():
+    from stereopath.device.core.geometry import make_pose, project_to_se3, so3_exp
+
+    T = make_pose(so3_exp(np.array([0.1, -0.2, 0.3])), np.array([1.0, 2.0, 3.0]))
+    drifted = T.copy()
+    drifted[:3, :3] *= 1.001  # a product of many corrections drifts off SO(3)
+    drifted[0, 1] += 1e-4
+    out = project_to_se3(drifted)
+    assert np.allclose(out[:3, :3].T @ out[:3, :3], np.eye(3), atol=1e-12) and np.linalg.det(out[:3, :3]) > 0
+    assert np.allclose(out[:3, :3], T[:3, :3], atol=2e-4) and np.array_equal(out[:3, 3], T[:3, 3])
+    assert np.array_equal(out[3], [0, 0, 0, 1]) and drifted[0, 0] == T[0, 0] * 1.001  # the input is untouched

@@ -119,6 +119,13 @@ def project_to_so3(M: np.ndarray) -> np.ndarray:
     return U @ D @ Vt
 
 
+def project_to_se3(T: np.ndarray) -> np.ndarray:
+    """``T`` (4x4) with its rotation block projected onto SO(3): products of corrections stay rigid."""
+    out = np.array(T, dtype=float)
+    out[:3, :3] = project_to_so3(out[:3, :3])
+    return out
+
+
 def chordal_mean(rotations: list[np.ndarray] | np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     """Chordal L2 mean of rotations: the element-wise (weighted) mean projected onto SO(3).
 

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from stereopath.device.core.geometry import invert_pose, make_pose, project_to_so3, rotation_angle_deg, so3_exp
+from stereopath.device.core.geometry import invert_pose, project_to_se3, rotation_angle_deg, so3_exp
 
 log = logging.getLogger(__name__)
 
@@ -360,5 +360,4 @@ class PriorPath:
             return None
         log.info("offset %.3f px learned: the path since %d keyframes back moves %.4f m, %.3f deg", d0_new,
                  len(pairs), shift, ang)
-        G = T_world_cam @ E @ invert_pose(T_world_cam)
-        return make_pose(project_to_so3(G[:3, :3]), G[:3, 3])
+        return project_to_se3(T_world_cam @ E @ invert_pose(T_world_cam))

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from stereopath.device.core.geometry import invert_pose, project_to_so3, rotation_angle_deg
+from stereopath.device.core.geometry import invert_pose, project_to_se3 as rigid, rotation_angle_deg
 
 log = logging.getLogger(__name__)
 
@@ -68,13 +68,6 @@ class Ready:
 
     def result(self):
         return self._value
-
-
-def rigid(T: np.ndarray) -> np.ndarray:
-    """``T`` with its rotation projected onto SO(3): products of corrections stay rigid."""
-    out = T.copy()
-    out[:3, :3] = project_to_so3(T[:3, :3])
-    return out
 
 
 def predicted_view_change(X_world: np.ndarray, T_prev: np.ndarray, T_cur: np.ndarray) -> tuple[float, float]:
