@@ -29,7 +29,7 @@ import numpy as np
 BLOCK = 1024
 
 
-def _template(img: np.ndarray, xy: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def window_samples(img: np.ndarray, xy: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ``(2 half + 1)^2`` windows of ``img`` around the sub-pixel points ``xy`` and their x and y
     derivatives (central differences), each ``(n, m)`` float32, bilinear with exact weights.  Every
     sample of one window shares the point's fractional offset, so one integer patch per point (a
@@ -124,7 +124,7 @@ def _refine_block(L: np.ndarray, R: np.ndarray, xy_left: np.ndarray, xy_right: n
     dx = dx.ravel().astype(np.float32)
     dy = dy.ravel().astype(np.float32)
     # inverse compositional Gauss-Newton: the Jacobian and its normal matrix come from the template
-    T, gx, gy = _template(L, xy_left, half)  # (n, m) each
+    T, gx, gy = window_samples(L, xy_left, half)  # (n, m) each
     T -= T.mean(axis=1, keepdims=True)
     t_norm = np.sqrt(np.einsum("nm,nm->n", T, T))
     J = np.stack([gx, gy, gx * dx[None], gx * dy[None]], axis=1)  # d/d(tx, ty, slant x, slant y)

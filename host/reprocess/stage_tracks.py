@@ -14,6 +14,7 @@ points (``point_ids``, ``point_xyz``) and every keyframe's keypoints (``kf_offse
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 
 import numpy as np
@@ -197,8 +198,14 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
         return _empty(est, kf, f"{len(kf)} tracked keyframe(s) in the re-estimate; bundle adjustment needs two")
     T_kf = est["T_world_cam"][kf]
     n_gaps = len([g for g in (cfg.gaps or range(1, cfg.window + 1)) if 1 <= g <= cfg.window])
+    align = None
+    if cfg.align_window:  # every track's observations moved onto its reference view's surface point
+        from stereopath.host.reprocess.track_alignment import align_tracks
+
+        images = [images_of(i) for i in kf]
+        align = functools.partial(align_tracks, seq.rig, [a for a, _ in images], [b for _, b in images], T_kf, cfg)
     with Bar(n_gaps, "track matching", inputs.progress, "gap") as tick:
-        tr = tracks_mod.build_tracks(seq.rig, feats, T_kf, cfg, progress=tick)
+        tr = tracks_mod.build_tracks(seq.rig, feats, T_kf, cfg, progress=tick, align=align)
     loops = detect_loops(seq.rig, feats, T_kf, config.loops)
     ids = np.fromiter(tr.points.keys(), np.int64, len(tr.points))
     xyz = np.array([tr.points[int(i)] for i in ids]).reshape(-1, 3)

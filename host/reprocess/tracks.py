@@ -59,6 +59,11 @@ class TrackConfig:
     # the right-image match refined with a slanted window of this side (pixels; 0 = the KLT match as
     # is; by default the KLT window): unbiased on surfaces seen at a slant (slanted_stereo)
     slanted_window: int = 21
+    # each track's observations aligned on its middle keyframe's window of this side (pixels; 0 = the
+    # keypoints as detected; by default the KLT window) and dropped where that moves them further
+    # than align_max_move_px (track_alignment)
+    align_window: int = 21
+    align_max_move_px: float = 1.5
     klt_levels: int = 3
     # pyramid levels above the image for KLT seeded from a known 3D point (frame refinement): the
     # seed is within a pixel or two, so the coarse levels only cost time
@@ -92,6 +97,9 @@ class TrackConfig:
         check_range("seeded_klt_levels", self.seeded_klt_levels, 0, 8)
         if self.slanted_window and not 5 <= self.slanted_window <= 41:
             raise ConfigError(f"slanted_window must be 0 (off) or 5-41 pixels, got {self.slanted_window}")
+        if self.align_window and not 5 <= self.align_window <= 41:
+            raise ConfigError(f"align_window must be 0 (off) or 5-41 pixels, got {self.align_window}")
+        check_range("align_max_move_px", self.align_max_move_px, 0.1, 10.0)
 
 
 @dataclass
@@ -134,17 +142,26 @@ def stereo_features(rig: Rig, left: np.ndarray, right: np.ndarray, cfg: TrackCon
 
 
 def stereo_points(rig: Rig, left: np.ndarray, right: np.ndarray, xy: np.ndarray, cfg: TrackConfig,
-                  depth_guess_m: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                  depth_guess_m: float | None = None, guess_right: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Left pixels ``xy`` of grey images located in the right image and triangulated: undistorted
-    left and right pixels, 3D points in the left camera, and the mask of the good ones."""
+    left and right pixels, 3D points in the left camera, and the mask of the good ones.  The
+    right-image search starts at ``depth_guess_m``, or at ``guess_right`` (raw right pixels of a
+    match known within a pixel: the slanted window refines it directly, else KLT without its
+    coarse levels)."""
     K0, d0, K1, d1 = rig.cam0.K, rig.cam0.dist, rig.cam1.K, rig.cam1.dist
     uv0 = undistort_px(xy, K0, d0)
-    z0 = depth_guess_m or rig.rectification().f * rig.rectification().baseline_m / cfg.guess_disparity_px
-    rays = np.column_stack([(uv0[:, 0] - K0[0, 2]) / K0[0, 0], (uv0[:, 1] - K0[1, 2]) / K0[1, 1], np.ones(len(uv0))])
-    Xr = (rays * z0) @ rig.R.T + rig.T
-    Xr[:, 2] = np.maximum(Xr[:, 2], 1e-3)
-    guess = cv2.projectPoints(Xr.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K1, d1)[0].reshape(-1, 2)
-    xr, ok = stereo_right(rig, left, right, xy, guess, cfg)
+    if guess_right is not None and cfg.slanted_window:
+        xr, ok = np.asarray(guess_right, np.float64).reshape(-1, 2), np.ones(len(uv0), bool)
+    elif guess_right is not None:
+        xr, ok = stereo_right(rig, left, right, xy, guess_right, cfg, levels=cfg.seeded_klt_levels)
+    else:
+        z0 = depth_guess_m or rig.rectification().f * rig.rectification().baseline_m / cfg.guess_disparity_px
+        rays = np.column_stack([(uv0[:, 0] - K0[0, 2]) / K0[0, 0], (uv0[:, 1] - K0[1, 2]) / K0[1, 1], np.ones(len(uv0))])
+        Xr = (rays * z0) @ rig.R.T + rig.T
+        Xr[:, 2] = np.maximum(Xr[:, 2], 1e-3)
+        guess = cv2.projectPoints(Xr.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K1, d1)[0].reshape(-1, 2)
+        xr, ok = stereo_right(rig, left, right, xy, guess, cfg)
     if cfg.slanted_window:
         idx = np.flatnonzero(ok)
         xr_ok, refined = refine_slanted(left, right, np.asarray(xy)[idx], xr[idx], half=cfg.slanted_window // 2)
@@ -334,7 +351,7 @@ class Tracks:
 
 
 def build_tracks(rig: Rig, kfs: list[KeyframeFeatures], T_world_cam: np.ndarray, cfg: TrackConfig,
-                 progress=None) -> Tracks:
+                 progress=None, align=None) -> Tracks:
     """Join the keyframes' stereo keypoints into tracks (see the module doc).
 
     Observation rows are ``(keyframe, point id, cam, u, v, weight)`` in undistorted pixels, one
@@ -367,6 +384,12 @@ def build_tracks(rig: Rig, kfs: list[KeyframeFeatures], T_world_cam: np.ndarray,
     uniq_roots, inv, counts = np.unique(roots, return_inverse=True, return_counts=True)
     good = counts >= cfg.min_track_length
     sel = good[inv]
+    if align is not None:
+        kfs, kept = align(kfs, kf_of, np.where(sel, inv, -1))
+        sel &= kept
+        counts = np.bincount(inv[sel], minlength=len(uniq_roots))
+        good = counts >= cfg.min_track_length
+        sel &= good[inv]
     tid = np.cumsum(good) - 1  # track id of each good root
     rows = []
     kf_ids, kf_xy = [], []
