@@ -94,7 +94,7 @@ def test_aligned_tracks_see_one_surface_point_where_detections_scatter():
     s = SimSession(SimConfig(frames=60))
     frames = [0, 8, 16, 24, 32]
     T_gt = s.trajectory.pose(s.t_ns[frames] * 1e-9)
-    cfg = TrackConfig(feature_preset="sift", max_features=800, window=4)
+    cfg = TrackConfig(feature_preset="sift", max_features=800, window=4, align_window=21)
     rendered = [s.renderer.render(T) for T in T_gt]
     kfs = [stereo_features(s.rig, left, right, cfg) for left, right, _ in rendered]
 

@@ -30,7 +30,7 @@ import argparse
 
 # stereopath.host.reprocess.pipeline.REPROCESS_PRESETS (kept here so that building the parser imports nothing heavy;
 # a test checks they agree)
-PRESET_NAMES = ("standard", "quick", "paper", "full")
+PRESET_NAMES = ("standard", "aligned", "quick", "paper", "full")
 DEFAULT_PRESET = "standard"
 
 

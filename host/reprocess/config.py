@@ -53,6 +53,12 @@ REPROCESS_PRESETS: dict[str, ReprocessPreset] = {
         "views) at every keyframe, tracks over 20 keyframes, bundle adjustment, frame refinement",
         tracks=TrackConfig(feature_preset="fast_asym", max_features=0, window=20, gaps=_TRACK_GAPS),
     ),
+    "aligned": ReprocessPreset(
+        "standard, with every track's observations aligned on one reference view (an affine window fit): "
+        "each keyframe then sees the same surface point, far more precisely than a detector; for a rig "
+        "whose stereo calibration is good (see README: on KITTI's rectified pair it is worse); ~10 s more",
+        tracks=TrackConfig(feature_preset="fast_asym", max_features=0, window=20, gaps=_TRACK_GAPS, align_window=21),
+    ),
     "quick": ReprocessPreset(
         "plain SIFT tracks (no affine views) over 20 keyframes: about half the time, less accurate",
         tracks=TrackConfig(feature_preset="fast_asym", original_view_only=True, max_features=0, window=20,

@@ -82,11 +82,12 @@ def _add_loop_factors(g: Any, graph: Any, X: Any, loops: list, k_sigma: float = 
 class _Graph:
     """Builds the factor graph and initial values of one problem."""
 
-    def __init__(self, rig: Rig, loss: str, k_px: float, offset_px: float, estimate_offset: bool) -> None:
+    def __init__(self, rig: Rig, loss: str, k_px: float, offset_px: float, estimate_offset: bool,
+                 pixel_sigma: float = 1.0) -> None:
         g = self.g = import_gtsam()
         if loss not in LOSSES:
             raise ConfigError(f"loss = {loss!r}; known: {', '.join(LOSSES)}")
-        self.loss, self.k = loss, float(k_px)
+        self.loss, self.k, self.pixel_sigma = loss, float(k_px), float(pixel_sigma)
         self.graph = g.NonlinearFactorGraph()
         self.values = g.Values()
         self.X, self.L = g.symbol_shorthand.X, g.symbol_shorthand.L
@@ -107,14 +108,15 @@ class _Graph:
         return _pose(self.g, T)
 
     def noise(self, weight: float) -> Any:
-        """Robust isotropic 2D noise with sigma ``1 / weight`` px (cached by weight)."""
+        """Robust isotropic 2D noise with sigma ``pixel_sigma / weight`` px (cached by weight); the
+        robust loss turns at ``k / weight`` px whatever the sigma."""
         m = self._noise.get(weight)
         if m is None:
             nm = self.g.noiseModel
-            m = nm.Isotropic.Sigma(2, 1.0 / max(weight, 1e-9))
+            m = nm.Isotropic.Sigma(2, self.pixel_sigma / max(weight, 1e-9))
             if self.loss != "linear":
                 est = nm.mEstimator.Huber if self.loss == "huber" else nm.mEstimator.Cauchy
-                m = nm.Robust.Create(est.Create(self.k), m)
+                m = nm.Robust.Create(est.Create(self.k / self.pixel_sigma), m)
             self._noise[weight] = m
         return m
 
@@ -135,6 +137,7 @@ class _Graph:
     def add_poses(self, T_world_cam: np.ndarray, held: np.ndarray, gravity_world: np.ndarray | None = None) -> None:
         g = self.g
         rig_noise = g.noiseModel.Isotropic.Sigma(6, RIG_SIGMA)
+
         for k, T in enumerate(T_world_cam):
             P = self.pose(T)
             self.values.insert(self.X(k), P)
@@ -258,7 +261,7 @@ def _solve(rig: Rig, T: np.ndarray, points: dict[int, np.ndarray], obs: np.ndarr
            on_iteration=None):
     # opts: loss, huber_px, max_iterations, loops
     """One batch solve: (poses, points, offset, iterations, history)."""
-    gr = _Graph(rig, opts["loss"], opts["huber_px"], offset_px, estimate_offset)
+    gr = _Graph(rig, opts["loss"], opts["huber_px"], offset_px, estimate_offset, opts.get("pixel_sigma", 1.0))
     ids = np.unique(obs[:, 1].astype(np.int64))
     imu = opts.get("imu")
     gr.add_poses(T, held, None if imu is None else imu.gravity_world)
@@ -331,6 +334,12 @@ def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarra
         est, resolve = False, True
     else:
         offset = new_offset
+    if imu is not None or opts["loops"] or priors:
+        # the observations' noise as measured, so that they weigh against the IMU, loops and priors
+        # as they should (it changes nothing in a problem of observations alone)
+        opts["pixel_sigma"] = pixel_noise_px(*reprojection_residuals(rig, T, pts, obs, offset), outlier_px)
+        log.info("bundle adjustment: pixel noise %.3f px (robust spread of the residuals)", opts["pixel_sigma"])
+        resolve = resolve or rounds == 0
     for k in range(rounds):
         r, front = reprojection_residuals(rig, T, pts, obs, offset)
         bad = ~front | (np.linalg.norm(r, axis=1) > outlier_px)
@@ -349,7 +358,22 @@ def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarra
         iters, history = iters + it2, history + h2
     res = _result(rig, T, pts, obs, offset, rms0, iters, history, outlier_px)
     res.imu_biases = opts.get("imu_biases")
+    res.pixel_sigma_px = opts.get("pixel_sigma")
     return res
+
+
+# the smallest pixel noise assumed: sub-pixel matching is not more repeatable than this
+MIN_PIXEL_SIGMA = 0.02
+
+
+def pixel_noise_px(r: np.ndarray, front: np.ndarray, outlier_px: float) -> float:
+    """The observations' pixel noise: 1.4826 median absolute deviation of the weighted residual
+    components of the observations in front of their camera and within ``outlier_px`` (1 px when
+    there are none; at least :data:`MIN_PIXEL_SIGMA`)."""
+    r = r[front & (np.linalg.norm(r, axis=1) <= outlier_px)].ravel()
+    if len(r) < 10:
+        return 1.0
+    return max(float(1.4826 * np.median(np.abs(r - np.median(r)))), MIN_PIXEL_SIGMA)
 
 
 def _result(rig, T, pts, obs, offset, rms0, iters, history, outlier_px) -> BAResult:

@@ -220,6 +220,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     stats = {"poses": len(kf), "points": res.n_points, "observations": res.n_obs,
              "rms_before_px": res.rms_before_px, "rms_after_px": res.rms_after_px, "iterations": res.iterations,
              "inlier_fraction": res.inlier_fraction, "rotation_priors": len(priors),
+             "pixel_sigma_px": res.pixel_sigma_px,
              "disparity_offset_px": res.disparity_offset_px if config.ba_disparity_offset else None,
              "frames_refined": n_refined, "ba_seconds": round(t_ba, 3),
              "frame_refinement_seconds": round(time.perf_counter() - t1, 3),

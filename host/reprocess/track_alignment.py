@@ -36,10 +36,10 @@ def refine_affine(ref_images: list[np.ndarray], ref_img: np.ndarray, xy_ref: np.
     """Where the window of the grey image ``ref_images[ref_img[i]]`` around ``xy_ref[i]`` lands in the
     grey image ``target``.
 
-    The window maps by ``x -> xy + A (x - xy_ref)``, started at ``xy`` and ``A0`` (n, 2, 2);
-    inverse-compositional Gauss-Newton on the six parameters, brightness offset and gain free.
-    The template is sampled exactly; the target with OpenCV's bilinear remap (positions in 1/32 px:
-    an affine window's samples have different fractions, so the rounding averages out).
+    The window's offsets ``x`` map by ``x -> xy + A x``, started at ``xy`` and ``A0`` (n, 2, 2);
+    inverse-compositional Gauss-Newton on the six parameters, brightness offset and gain free.  The
+    template is sampled exactly; the target with OpenCV's bilinear remap (positions in 1/32 px: an
+    affine window's samples have different fractions, so the rounding averages out).
     Returns ``(xy_refined (n, 2), A (n, 2, 2), settled (n,) bool)``: settled when the last step
     moved the point by less than ``tol_px`` and the window had texture (a point stops at half that)."""
     import cv2
@@ -62,13 +62,14 @@ def refine_affine(ref_images: list[np.ndarray], ref_img: np.ndarray, xy_ref: np.
         T[sel], gx[sel], gy[sel] = window_samples(ref_images[r], xy_ref[sel], half)
     T = T - T.mean(axis=1, keepdims=True)
     t_norm = np.sqrt(np.einsum("nm,nm->n", T, T))
-    # d/d(a11, a12, a21, a22, tx, ty) of the template at the identity warp, brightness offset free
+    # d/d(a11, a12, tx, a21, a22, ty) of the template at the identity warp, brightness offset free
     J = np.empty((n, 6, m), np.float32)
     np.multiply(gx, dx, out=J[:, 0])
     np.multiply(gx, dy, out=J[:, 1])
-    np.multiply(gy, dx, out=J[:, 2])
-    np.multiply(gy, dy, out=J[:, 3])
-    J[:, 4], J[:, 5] = gx, gy
+    J[:, 2] = gx
+    np.multiply(gy, dx, out=J[:, 3])
+    np.multiply(gy, dy, out=J[:, 4])
+    J[:, 5] = gy
     J -= J.mean(axis=2, keepdims=True)
     H = np.matmul(J, J.transpose(0, 2, 1)).astype(np.float64)
     ok = (t_norm > 0) & np.all(np.isfinite(H), axis=(1, 2))
@@ -92,15 +93,15 @@ def refine_affine(ref_images: list[np.ndarray], ref_img: np.ndarray, xy_ref: np.
         Iw = cv2.remap(target, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
         Iw -= Iw.mean(axis=1, keepdims=True)
         i_norm = np.sqrt(np.einsum("nm,nm->n", Iw, Iw))
-        Iw *= (tn / np.maximum(i_norm, 1e-6))[:, None]
+        Iw *= (tn / np.maximum(i_norm, 1e-6))[:, None]  # the gain is free
         Iw -= Tc
         g = np.matmul(Jc, Iw[:, :, None])[:, :, 0].astype(np.float64)
         d = np.einsum("nij,nj->ni", Hc, g)
         # compose with the inverse increment: A <- A M^-1, c <- c - A M^-1 t_d
         M = np.empty((len(act), 2, 2))
-        M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1] = 1 + d[:, 0], d[:, 1], d[:, 2], 1 + d[:, 3]
+        M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1] = 1 + d[:, 0], d[:, 1], d[:, 3], 1 + d[:, 4]
         AM = np.matmul(A[act], np.linalg.inv(M))
-        dc = np.einsum("nij,nj->ni", AM, d[:, 4:])
+        dc = np.einsum("nij,nj->ni", AM, d[:, [2, 5]])
         c[act] -= dc
         A[act] = AM
         step[act] = np.hypot(dc[:, 0], dc[:, 1])

@@ -60,9 +60,9 @@ class TrackConfig:
     # is; by default the KLT window): unbiased on surfaces seen at a slant (slanted_stereo)
     slanted_window: int = 21
     # each track's observations aligned on its middle keyframe's window of this side (pixels; 0 = the
-    # keypoints as detected; by default the KLT window) and dropped where that moves them further
-    # than align_max_move_px (track_alignment)
-    align_window: int = 21
+    # keypoints as detected; 21 = the KLT window in the 'aligned' preset) and dropped where that moves
+    # them further than align_max_move_px (track_alignment)
+    align_window: int = 0
     align_max_move_px: float = 1.5
     klt_levels: int = 3
     # pyramid levels above the image for KLT seeded from a known 3D point (frame refinement): the
