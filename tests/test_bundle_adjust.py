@@ -259,3 +259,38 @@ def test_gtsam_loop_factor_constrains_the_relative_pose():
 
     assert length(free) == pytest.approx(np.linalg.norm(rel[:3, 3]), rel=0.01)
     assert length(tied) == pytest.approx(np.linalg.norm(meas[:3, 3]), rel=1e-3)
+
+
+def test_pixel_noise_is_the_robust_spread_of_the_inlying_residuals():
+    rng = np.random.default_rng(3)
+    r = rng.normal(0, 0.08, (5000, 2))
+    r[:400] = rng.uniform(-2.5, 2.5, (400, 2))  # mismatches: within the outlier limit, but not noise
+    front = np.ones(len(r), bool)
+    assert gtsam_ba.pixel_noise_px(r, front, 3.0) == pytest.approx(0.08, rel=0.15)  # the std would be 0.4
+    # a fit of 2,500 unknowns to the 10,000 components leaves 3/4 of their variance in the residuals
+    assert gtsam_ba.pixel_noise_px(r, front, 3.0, 2500) == pytest.approx(gtsam_ba.pixel_noise_px(r, front, 3.0) / np.sqrt(0.75), rel=0.01)
+    assert gtsam_ba.pixel_noise_px(r[-4:], front[-4:], 3.0) == 1.0  # too few to say: the nominal pixel
+    assert gtsam_ba.pixel_noise_px(r * 1e-3, front, 3.0) == gtsam_ba.MIN_PIXEL_SIGMA
+
+
+def test_precise_observations_outweigh_a_loose_prior_once_their_noise_is_measured(ba, monkeypatch):
+    """A relative-rotation prior 0.5 deg off with a 0.1 deg standard deviation, against observations with
+    0.3 px noise: weighed as 1 px observations the prior pulls the rotation several times further
+    than when they are weighed by the noise they have."""
+    rng = np.random.default_rng(6)
+    rig, T_true, pts, obs = _problem(rng, n_kf=3, n_pts=40)
+    obs = obs[obs[:, 2] == 0]
+    R01_true = invert_pose(T_true[0])[:3, :3] @ invert_pose(T_true[1])[:3, :3].T
+    wrong = so3_exp([0.0, 0.0, np.radians(0.5)]) @ R01_true
+    prior = [RotationPrior(0, 1, wrong, np.radians(0.1))]
+
+    def pull(res) -> float:
+        rel = invert_pose(res.T_world_cam[0])[:3, :3] @ invert_pose(res.T_world_cam[1])[:3, :3].T
+        return rotation_angle_deg(rel.T @ R01_true)
+
+    measured = ba.bundle_adjust(rig, T_true, pts, obs, n_fixed=1, rotation_priors=prior)
+    assert measured.pixel_sigma_px == pytest.approx(0.3, rel=0.2)
+    monkeypatch.setattr(gtsam_ba, "pixel_noise_px", lambda *a: 1.0)
+    nominal = ba.bundle_adjust(rig, T_true, pts, obs, n_fixed=1, rotation_priors=prior)
+    assert pull(nominal) > 3 * pull(measured)
+    assert ba.bundle_adjust(rig, T_true, pts, obs, n_fixed=1).pixel_sigma_px is None  # observations alone: unchanged

@@ -337,7 +337,8 @@ def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarra
     if imu is not None or opts["loops"] or priors:
         # the observations' noise as measured, so that they weigh against the IMU, loops and priors
         # as they should (it changes nothing in a problem of observations alone)
-        opts["pixel_sigma"] = pixel_noise_px(*reprojection_residuals(rig, T, pts, obs, offset), outlier_px)
+        n_unknowns = 3 * len(np.unique(obs[:, 1])) + 6 * int(np.sum(~held))
+        opts["pixel_sigma"] = pixel_noise_px(*reprojection_residuals(rig, T, pts, obs, offset), outlier_px, n_unknowns)
         log.info("bundle adjustment: pixel noise %.3f px (robust spread of the residuals)", opts["pixel_sigma"])
         resolve = resolve or rounds == 0
     for k in range(rounds):
@@ -366,14 +367,17 @@ def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarra
 MIN_PIXEL_SIGMA = 0.02
 
 
-def pixel_noise_px(r: np.ndarray, front: np.ndarray, outlier_px: float) -> float:
+def pixel_noise_px(r: np.ndarray, front: np.ndarray, outlier_px: float, n_unknowns: int = 0) -> float:
     """The observations' pixel noise: 1.4826 median absolute deviation of the weighted residual
-    components of the observations in front of their camera and within ``outlier_px`` (1 px when
-    there are none; at least :data:`MIN_PIXEL_SIGMA`)."""
+    components of the observations in front of their camera and within ``outlier_px``, scaled by
+    ``sqrt(N / (N - n_unknowns))`` for the ``N`` components (the fit absorbs part of the noise);
+    1 px when they are too few to tell (fewer than 10 beyond the unknowns), at least
+    :data:`MIN_PIXEL_SIGMA`."""
     r = r[front & (np.linalg.norm(r, axis=1) <= outlier_px)].ravel()
-    if len(r) < 10:
+    if len(r) - n_unknowns < 10:
         return 1.0
-    return max(float(1.4826 * np.median(np.abs(r - np.median(r)))), MIN_PIXEL_SIGMA)
+    mad = 1.4826 * np.median(np.abs(r - np.median(r)))
+    return max(float(mad * np.sqrt(len(r) / (len(r) - n_unknowns))), MIN_PIXEL_SIGMA)
 
 
 def _result(rig, T, pts, obs, offset, rms0, iters, history, outlier_px) -> BAResult:
