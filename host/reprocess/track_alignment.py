@@ -12,9 +12,9 @@ the track, so the viewpoint changes least) and moves every other observation to 
 reference window lands: the window is mapped by an affine warp, started from the warp that the
 estimated poses predict for a surface facing the reference camera, and fitted by
 inverse-compositional Gauss-Newton (:func:`refine_affine`: six warp parameters, brightness gain
-and offset free, exact bilinear sampling).  The moved left-image position is then matched in the
-right image as at keyframes (KLT and the slanted window), so each observation stays a stereo
-observation of the same surface point.  Observations whose fit does not settle, or that move
+and offset free).  The observation's right-image match moves alike and is refined again with the
+slanted window (:mod:`stereopath.host.reprocess.slanted_stereo`; KLT where that is off), so each
+observation stays a stereo observation of the same surface point.  Observations whose fit does not settle, or that move
 further than a detector could be off, are dropped, and tracks left with fewer than two
 observations with them.  Pure computation on the images handed in.
 """
