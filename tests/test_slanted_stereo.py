@@ -9,7 +9,7 @@ import pytest
 from stereopath.host.reprocess.slanted_stereo import refine_slanted
 
 
-def _texture(x: np.ndarray, y: np.ndarray, seed: int) -> np.ndarray:
+def plane_wave_texture(x: np.ndarray, y: np.ndarray, seed: int) -> np.ndarray:
     """A sum of random plane waves (wavelengths 4-40 px), evaluated exactly at ``(x, y)``, 10-240."""
     rng = np.random.default_rng(seed)
     f = np.zeros(np.broadcast(x, y).shape)
@@ -30,8 +30,8 @@ def _slanted_pair(d0: float, ax: float, by: float, gain: float = 1.0, offset: fl
     # right pixel (u, y) shows left x with u = x - d0 - ax (x - cx) - by (y - cy)
     x_src = (xs + d0 - ax * cx + by * (ys - cy)) / (1.0 - ax)
     rng = np.random.default_rng(seed + 1)
-    left = _texture(xs, ys, seed) + rng.normal(0, 1.0, (h, w)).astype(np.float32)
-    right = gain * _texture(x_src, ys, seed) + offset + rng.normal(0, 1.0, (h, w)).astype(np.float32)
+    left = plane_wave_texture(xs, ys, seed) + rng.normal(0, 1.0, (h, w)).astype(np.float32)
+    right = gain * plane_wave_texture(x_src, ys, seed) + offset + rng.normal(0, 1.0, (h, w)).astype(np.float32)
 
     def true_right(xy):
         d = d0 + ax * (xy[:, 0] - cx) + by * (xy[:, 1] - cy)

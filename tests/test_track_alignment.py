@@ -8,17 +8,7 @@ import numpy as np
 import pytest
 
 from stereopath.host.reprocess.track_alignment import facing_affine, refine_affine
-
-
-def _texture(x: np.ndarray, y: np.ndarray, seed: int = 3) -> np.ndarray:
-    """A sum of random plane waves (wavelengths 4-40 px), evaluated exactly at ``(x, y)``, 10-240."""
-    rng = np.random.default_rng(seed)
-    f = np.zeros(np.broadcast(x, y).shape)
-    for _ in range(60):
-        k = 2 * np.pi / rng.uniform(4.0, 40.0)
-        a = rng.uniform(0, 2 * np.pi)
-        f += np.sin(k * (np.cos(a) * x + np.sin(a) * y) + rng.uniform(0, 2 * np.pi))
-    return (125.0 + 115.0 * f / np.abs(f).max()).astype(np.float32)
+from tests.test_slanted_stereo import plane_wave_texture
 
 
 def _warped_pair(A: np.ndarray, shift: np.ndarray, gain: float = 1.0, offset: float = 0.0):
@@ -30,8 +20,8 @@ def _warped_pair(A: np.ndarray, shift: np.ndarray, gain: float = 1.0, offset: fl
     Ai = np.linalg.inv(A)
     src = np.einsum("ij,jhw->ihw", Ai, np.stack([xs - c[0] - shift[0], ys - c[1] - shift[1]])) + c[:, None, None]
     rng = np.random.default_rng(7)
-    ref = _texture(xs, ys) + rng.normal(0, 1.0, (h, w)).astype(np.float32)
-    tgt = gain * _texture(src[0], src[1]) + offset + rng.normal(0, 1.0, (h, w)).astype(np.float32)
+    ref = plane_wave_texture(xs, ys, 3) + rng.normal(0, 1.0, (h, w)).astype(np.float32)
+    tgt = gain * plane_wave_texture(src[0], src[1], 3) + offset + rng.normal(0, 1.0, (h, w)).astype(np.float32)
 
     def true(p):
         return (p - c) @ A.T + c + shift
