@@ -129,3 +129,25 @@ def test_the_alignment_window_must_be_off_or_a_sensible_size(window):
 
     with pytest.raises(ConfigError, match="align_window"):
         TrackConfig(align_window=window)
+
+
+@pytest.mark.parametrize("slanted_window", [0, 21])
+def test_a_match_known_within_a_pixel_is_refined_from_there(slanted_window):
+    """stereo_points from a right-image guess (an aligned observation's old match moved alike) finds
+    the match the depth-seeded search finds."""
+    import cv2
+
+    from stereopath.device.core.features import gray
+    from stereopath.device.sim.session import SimConfig, SimSession
+    from stereopath.host.reprocess.tracks import TrackConfig, stereo_points
+
+    s = SimSession(SimConfig(frames=5))
+    f = s.frame(2)
+    L, R = gray(f.left), gray(f.right)
+    xy = cv2.goodFeaturesToTrack(L, 300, 0.01, 10).reshape(-1, 2)
+    cfg = TrackConfig(slanted_window=slanted_window)
+    _, uv1, _, ok = stereo_points(s.rig, L, R, xy, cfg)
+    guess = uv1[ok] + np.random.default_rng(2).uniform(-0.4, 0.4, (int(ok.sum()), 2))  # no distortion: raw = undistorted
+    _, uv1_g, _, ok_g = stereo_points(s.rig, L, R, xy[ok], cfg, guess_right=guess)
+    assert ok_g.mean() > 0.9
+    assert np.median(np.linalg.norm(uv1_g[ok_g] - uv1[ok][ok_g], axis=1)) < 0.02

@@ -137,7 +137,6 @@ class _Graph:
     def add_poses(self, T_world_cam: np.ndarray, held: np.ndarray, gravity_world: np.ndarray | None = None) -> None:
         g = self.g
         rig_noise = g.noiseModel.Isotropic.Sigma(6, RIG_SIGMA)
-
         for k, T in enumerate(T_world_cam):
             P = self.pose(T)
             self.values.insert(self.X(k), P)
