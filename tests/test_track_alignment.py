@@ -151,3 +151,12 @@ def test_a_match_known_within_a_pixel_is_refined_from_there(slanted_window):
     _, uv1_g, _, ok_g = stereo_points(s.rig, L, R, xy[ok], cfg, guess_right=guess)
     assert ok_g.mean() > 0.9
     assert np.median(np.linalg.norm(uv1_g[ok_g] - uv1[ok][ok_g], axis=1)) < 0.02
+
+
+def test_a_window_reaching_over_the_image_border_does_not_count_as_aligned():
+    from stereopath.host.reprocess.track_alignment import _window_inside
+
+    c = np.array([[15.0, 40.0], [9.0, 40.0], [100.0, 40.0]])
+    A = np.repeat(np.eye(2)[None], 3, 0)
+    A[2] = [[1.5, 0.0], [0.0, 1.0]]  # a wider window around a point well inside a 112 px wide image
+    assert _window_inside(c, A, 10, 112, 80).tolist() == [True, False, False]

@@ -136,6 +136,13 @@ def facing_affine(K: np.ndarray, uv_ref: np.ndarray, X_ref: np.ndarray, T_tgt_re
     return A
 
 
+def _window_inside(c: np.ndarray, A: np.ndarray, half: int, w: int, h: int) -> np.ndarray:
+    """Whether the windows ``c + A [-half, half]^2`` lie inside a ``w`` x ``h`` image."""
+    corners = np.array([[-half, -half], [half, -half], [-half, half], [half, half]], float)
+    p = c[:, None, :] + np.einsum("nij,kj->nki", A, corners)
+    return np.all((p[..., 0] >= 0) & (p[..., 0] <= w - 1) & (p[..., 1] >= 0) & (p[..., 1] <= h - 1), axis=1)
+
+
 def _raw_px(cam, uv: np.ndarray) -> np.ndarray:
     """Undistorted pixels of camera ``cam`` back to its raw (distorted) pixels."""
     import cv2
@@ -207,10 +214,15 @@ def align_tracks(rig, lefts: list[np.ndarray], rights: list[np.ndarray], T_world
     new_xy = np.empty((len(tgt), 2))
     settled = np.empty(len(tgt), bool)
     args = (kr[order], xy[ref[order]], kt[order], xy[tgt[order]], A0[order])
-    new_xy[order], _, settled[order] = _refine_blocks([g.astype(np.float32) for g in grey], grey, args,
-                                                      cfg.align_window // 2)
+    half = cfg.align_window // 2
+    A = np.empty((len(tgt), 2, 2))
+    new_xy[order], A[order], settled[order] = _refine_blocks([g.astype(np.float32) for g in grey], grey, args, half)
     moved = np.linalg.norm(new_xy - xy[tgt], axis=1)
-    ok = settled & (moved <= cfg.align_max_move_px)
+    h, w = grey[0].shape[:2]
+    # both windows on real pixels (a border replicated into a window would pull the fit)
+    inside = _window_inside(xy[ref], np.repeat(np.eye(2)[None], len(ref), 0), half, w, h)
+    inside &= _window_inside(new_xy, A, half, w, h)
+    ok = settled & inside & (moved <= cfg.align_max_move_px)
     out = []
     for k, kf in enumerate(kfs):
         m = (kt == k)
