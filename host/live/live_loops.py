@@ -5,12 +5,13 @@ a few tenths of a second) and its on-board pose.  The new keyframe is checked ag
 ones close to it in space (on the current, corrected path) and far enough back in the sequence,
 with the offline back end's verification (:func:`stereopath.host.reprocess.loops.verify_pair`:
 PnP RANSAC on stereo points, consistent scale, agreement with the path within its possible
-drift; a repeated texture elsewhere is rejected).  An accepted loop re-estimates every keyframe
-pose on GTSAM (:func:`stereopath.host.reprocess.gtsam_ba.pose_graph`: the on-board relative
-motion between consecutive keyframes, with a drift-per-metre uncertainty, plus every loop so
-far), so the loop's correction is spread along the path.  Later keyframes are moved by the last
-keyframe's correction.  The caller re-poses its fused keyframes
-(:meth:`stereopath.host.mapping.mapper.DenseMapper.repose`).
+drift; a repeated texture elsewhere is rejected).  The keyframe poses live in a pose graph solved
+incrementally with iSAM2 (:class:`stereopath.host.live.live_pose_graph.LivePoseGraph`): the
+on-board relative motion between consecutive keyframes, with a drift-per-metre uncertainty, plus
+every loop so far; a new keyframe is a small update, and an accepted loop re-estimates the poses
+between its ends, so the loop's correction is spread along the path.  Keyframes after the last
+loop follow the last corrected one by their on-board motion.  The caller re-poses its fused
+keyframes (:meth:`stereopath.host.mapping.mapper.DenseMapper.repose`).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from stereopath.device.core.rig import Rig
+from stereopath.host.live.live_pose_graph import LivePoseGraph
 
 log = logging.getLogger(__name__)
 
@@ -35,64 +37,56 @@ class LiveLoopCloser:
         self.rig = rig
         self.cfg = loops or LoopConfig()
         self.track_cfg = features or TrackConfig(feature_preset="fast_asym", original_view_only=True, max_features=2000)
-        self.onboard: list[np.ndarray] = []  # the poses as they arrived
         self.feats: list[Any] = []
-        self.loops: list[Any] = []
-        self._corrected: np.ndarray | None = None  # pose-graph poses of the keyframes up to the last loop
+        self.graph = LivePoseGraph()
+
+    @property
+    def onboard(self) -> list[np.ndarray]:
+        """The keyframe poses as they arrived."""
+        return self.graph.onboard
+
+    @property
+    def loops(self) -> list[Any]:
+        """The loops accepted so far."""
+        return self.graph.loops
 
     def __len__(self) -> int:
-        return len(self.onboard)
+        return len(self.graph)
 
     def poses(self) -> np.ndarray:
         """The current best pose of every keyframe (on-board poses until the first loop)."""
-        T = np.array(self.onboard)
-        c = self._corrected
-        if c is None:
-            return T
-        n = len(c)
-        out = T.copy()
-        out[:n] = c
-        if len(T) > n:  # keyframes after the last loop: moved with the last corrected one
-            out[n:] = np.einsum("ij,njk->nik", c[-1] @ np.linalg.inv(T[n - 1]), T[n:])
-        return out
+        return self.graph.poses()
 
     def add(self, left: np.ndarray, right: np.ndarray, T_world_cam: np.ndarray) -> bool:
         """Take one keyframe; True when it closed a loop (every pose of :meth:`poses` may have moved)."""
-        from stereopath.host.reprocess.gtsam_ba import pose_graph
         from stereopath.host.reprocess.tracks import stereo_features
 
         feats = stereo_features(self.rig, left, right, self.track_cfg)
-        self.onboard.append(np.asarray(T_world_cam, float))
         self.feats.append(feats)
         try:
-            loop = self._check(len(self.onboard) - 1) if self.cfg.enabled else None
-            corrected = None if loop is None else pose_graph(np.array(self.onboard), self.loops + [loop])
+            self.graph.add(T_world_cam)
+            loop = self._check(len(self.graph) - 1) if self.cfg.enabled else None
+            if loop is not None:
+                self.graph.add_loop(loop)
         except Exception:
-            self.onboard.pop()  # a keyframe that could not be taken leaves no trace
-            self.feats.pop()
+            self._forget_last()  # a keyframe that could not be taken leaves no trace
             raise
         if loop is None:
             return False
-        self.loops.append(loop)
-        self._corrected = corrected
         log.info("live loop closed: keyframes %d-%d (%d inliers, correction %.1f mm); %d keyframes re-posed",
-                 loop.i, loop.j, loop.inliers, 1000 * loop.correction_m, len(self.onboard))
+                 loop.i, loop.j, loop.inliers, 1000 * loop.correction_m, len(self.graph))
         return True
 
     def discard_last(self) -> None:
         """Forget the last keyframe (it could not be fused) and any loop it closed."""
-        from stereopath.host.reprocess.gtsam_ba import pose_graph
+        if len(self.graph):
+            self._forget_last()
 
-        j = len(self.onboard) - 1
-        if j < 0:
-            return
-        self.onboard.pop()
+    def _forget_last(self) -> None:
+        j = len(self.feats) - 1
         self.feats.pop()
-        if self.loops and self.loops[-1].j == j:
-            self.loops.pop()
-            self._corrected = pose_graph(np.array(self.onboard), self.loops) if self.loops else None
-        elif self._corrected is not None and len(self._corrected) > len(self.onboard):
-            self._corrected = self._corrected[: len(self.onboard)]
+        keep = [lp for lp in self.graph.loops if lp.i < j and lp.j < j]
+        self.graph.rebuild(self.graph.onboard[:j], keep)
 
     def _check(self, j: int):
         """The best verified loop between keyframe ``j`` and an earlier keyframe, or None."""

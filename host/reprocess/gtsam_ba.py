@@ -390,25 +390,45 @@ def _result(rig, T, pts, obs, offset, rms0, iters, history, outlier_px) -> BARes
                     float(np.mean(rn <= outlier_px)) if len(rn) else float("nan"), history, offset)
 
 
+def odometry_factor(g: Any, X: Any, k: int, T_k: np.ndarray, T_next: np.ndarray, sigma_per_m: float = 0.01,
+                    rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4) -> Any:
+    """The relative pose between poses ``k`` and ``k + 1`` as measured (``T_k``, ``T_next``), with a
+    standard deviation that grows with the distance between them (drift per metre, at least
+    ``min_sigma``: m and rad)."""
+    rel = np.linalg.inv(T_k) @ T_next
+    d = float(np.linalg.norm(rel[:3, 3]))
+    sig = [max(rot_sigma_per_m * d, min_sigma)] * 3 + [max(sigma_per_m * d, min_sigma)] * 3
+    return g.BetweenFactorPose3(X(k), X(k + 1), _pose(g, rel), g.noiseModel.Diagonal.Sigmas(np.array(sig)))
+
+
+def gauge_prior(g: Any, X: Any, T: np.ndarray) -> Any:
+    """The first pose held where it is (the pose graph's gauge)."""
+    return g.PriorFactorPose3(X(0), _pose(g, T), g.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA))
+
+
+def add_loop_factor(g: Any, graph: Any, X: Any, loop: Any) -> None:
+    """One verified loop as a robust relative-pose factor (see :func:`pose_graph`)."""
+    _add_loop_factors(g, graph, X, [loop])
+
+
 def pose_graph(T_world_cam: np.ndarray, loops: list, odometry_sigma_per_m: float = 0.01,
                odometry_rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4) -> np.ndarray:
     """Poses (K, 4, 4) re-estimated from their own relative motion and verified ``loops``.
 
     Consecutive poses are tied by their current relative pose with a standard deviation growing
-    with the distance between them (drift per metre, at least ``min_sigma``: m and rad); each loop
-    adds its measured relative pose (:meth:`_Graph.add_loops`); the first pose is held.  A loop
-    therefore spreads its correction over the path in proportion to the distance travelled."""
+    with the distance between them (:func:`odometry_factor`); each loop adds its measured relative
+    pose (:meth:`_Graph.add_loops`); the first pose is held.  A loop therefore spreads its
+    correction over the path in proportion to the distance travelled.  Solved in one batch
+    (Levenberg-Marquardt); :class:`stereopath.host.live.live_pose_graph.LivePoseGraph` is the same
+    graph solved incrementally as poses and loops arrive."""
     T = np.asarray(T_world_cam, float)
     g = import_gtsam()
-    graph, values, X, nm = g.NonlinearFactorGraph(), g.Values(), g.symbol_shorthand.X, g.noiseModel
+    graph, values, X = g.NonlinearFactorGraph(), g.Values(), g.symbol_shorthand.X
     for k, Tk in enumerate(T):
         values.insert(X(k), _pose(g, Tk))
-    graph.add(g.PriorFactorPose3(X(0), _pose(g, T[0]), nm.Isotropic.Sigma(6, GAUGE_SIGMA)))
+    graph.add(gauge_prior(g, X, T[0]))
     for k in range(len(T) - 1):
-        rel = np.linalg.inv(T[k]) @ T[k + 1]
-        d = float(np.linalg.norm(rel[:3, 3]))
-        sig = [max(odometry_rot_sigma_per_m * d, min_sigma)] * 3 + [max(odometry_sigma_per_m * d, min_sigma)] * 3
-        graph.add(g.BetweenFactorPose3(X(k), X(k + 1), _pose(g, rel), nm.Diagonal.Sigmas(np.array(sig))))
+        graph.add(odometry_factor(g, X, k, T[k], T[k + 1], odometry_sigma_per_m, odometry_rot_sigma_per_m, min_sigma))
     _add_loop_factors(g, graph, X, loops)
     params = g.LevenbergMarquardtParams()
     params.setMaxIterations(50)
