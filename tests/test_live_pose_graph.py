@@ -122,3 +122,29 @@ def test_rebuild_without_the_last_keyframe_and_its_loop_is_a_graph_that_never_ha
     _feed(fresh, T_on[:last], kept)
     assert len(g) == last and len(g.loops) == len(kept)
     assert np.abs(g.poses()[:, :3, 3] - fresh.poses()[:, :3, 3]).max() < 1e-6
+
+
+def test_the_live_closer_forgets_a_keyframe_it_could_not_fuse_and_the_loop_it_closed():
+    from stereopath.device.core.rig import paper_rig
+    from stereopath.host.live.live_loops import LiveLoopCloser
+
+    rng = np.random.default_rng(6)
+    T_true = _walk(40)
+    T_on = _drifted(T_true, rng)
+    closer = LiveLoopCloser(paper_rig())
+    loops = {lp.j: lp for lp in _loops(T_true, 4)}
+    T_on = T_on[:37]  # the last keyframe (36) closes a loop
+    for k, T in enumerate(T_on):  # what add() does once a keyframe's features are known
+        closer.feats.append(f"features of {k}")
+        closer.graph.add(T)
+        if k in loops:
+            closer.graph.add_loop(loops[k])
+    assert closer.loops[-1].j == 36
+    closer.discard_last()
+    assert len(closer) == 36 and len(closer.feats) == 36 and closer.feats[-1] == "features of 35"
+    assert all(lp.j < 36 for lp in closer.loops)
+    expected = LivePoseGraph()
+    _feed(expected, T_on[:36], [lp for lp in loops.values() if lp.j < 36])
+    assert np.abs(closer.poses()[:, :3, 3] - expected.poses()[:, :3, 3]).max() < 1e-6
+    closer.discard_last()  # a keyframe without a loop: the others stay where they were
+    assert np.abs(closer.poses()[:, :3, 3] - expected.poses()[:35, :3, 3]).max() < 1e-6
