@@ -56,21 +56,8 @@ def scan(n: int, turns: int, every: int, seed: int = 0):
 
 
 def optimum(T_on: np.ndarray, loops: list) -> np.ndarray:
-    g = gtsam_ba.import_gtsam()
-    graph, values, X = g.NonlinearFactorGraph(), g.Values(), g.symbol_shorthand.X
-    for k, T in enumerate(T_on):
-        values.insert(X(k), g.Pose3(g.Rot3.ClosestTo(T[:3, :3]), T[:3, 3]))
-    graph.add(gtsam_ba.gauge_prior(g, X, T_on[0]))
-    for k in range(len(T_on) - 1):
-        graph.add(gtsam_ba.odometry_factor(g, X, k, T_on[k], T_on[k + 1]))
-    for lp in loops:
-        gtsam_ba.add_loop_factor(g, graph, X, lp)
-    p = g.LevenbergMarquardtParams()
-    p.setMaxIterations(200)
-    p.setRelativeErrorTol(1e-14)
-    p.setAbsoluteErrorTol(1e-14)
-    out = g.LevenbergMarquardtOptimizer(graph, values, p).optimize()
-    return np.array([out.atPose3(X(k)).matrix() for k in range(len(T_on))])
+    """The graph's optimum: Levenberg-Marquardt to machine precision."""
+    return gtsam_ba.pose_graph(T_on, loops, max_iterations=200, tol=1e-14)
 
 
 def feed_isam2(T_on, loops):

@@ -412,15 +412,17 @@ def add_loop_factor(g: Any, graph: Any, X: Any, loop: Any) -> None:
 
 
 def pose_graph(T_world_cam: np.ndarray, loops: list, odometry_sigma_per_m: float = 0.01,
-               odometry_rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4) -> np.ndarray:
+               odometry_rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4, max_iterations: int = 50,
+               tol: float | None = None) -> np.ndarray:
     """Poses (K, 4, 4) re-estimated from their own relative motion and verified ``loops``.
 
     Consecutive poses are tied by their current relative pose with a standard deviation growing
     with the distance between them (:func:`odometry_factor`); each loop adds its measured relative
     pose (:meth:`_Graph.add_loops`); the first pose is held.  A loop therefore spreads its
     correction over the path in proportion to the distance travelled.  Solved in one batch
-    (Levenberg-Marquardt); :class:`stereopath.host.live.live_pose_graph.LivePoseGraph` is the same
-    graph solved incrementally as poses and loops arrive."""
+    (Levenberg-Marquardt, at most ``max_iterations``; ``tol``: its relative and absolute error
+    tolerances, GTSAM's defaults when None); :class:`stereopath.host.live.live_pose_graph.LivePoseGraph`
+    is the same graph solved incrementally as poses and loops arrive."""
     T = np.asarray(T_world_cam, float)
     g = import_gtsam()
     graph, values, X = g.NonlinearFactorGraph(), g.Values(), g.symbol_shorthand.X
@@ -431,6 +433,9 @@ def pose_graph(T_world_cam: np.ndarray, loops: list, odometry_sigma_per_m: float
         graph.add(odometry_factor(g, X, k, T[k], T[k + 1], odometry_sigma_per_m, odometry_rot_sigma_per_m, min_sigma))
     _add_loop_factors(g, graph, X, loops)
     params = g.LevenbergMarquardtParams()
-    params.setMaxIterations(50)
+    params.setMaxIterations(max_iterations)
+    if tol is not None:
+        params.setRelativeErrorTol(tol)
+        params.setAbsoluteErrorTol(tol)
     out = g.LevenbergMarquardtOptimizer(graph, values, params).optimize()
     return np.array([out.atPose3(X(k)).matrix() for k in range(len(T))])
