@@ -85,7 +85,7 @@ class LiveLoopCloser:
     def _forget_last(self) -> None:
         j = len(self.feats) - 1
         self.feats.pop()
-        keep = [lp for lp in self.graph.loops if lp.i < j and lp.j < j]
+        keep = [lp for lp in self.graph.loops if lp.j < j]
         self.graph.rebuild(self.graph.onboard[:j], keep)
 
     def _check(self, j: int):

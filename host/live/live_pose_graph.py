@@ -41,7 +41,6 @@ class LivePoseGraph:
         self.max_updates, self.tol_m, self.tol_rad = max_updates, tol_m, tol_rad
         self.onboard: list[np.ndarray] = []
         self.loops: list[Any] = []
-        self.updates = 0  # iSAM2 updates run so far (a measure of the work done)
         self._reset()
 
     def _reset(self) -> None:
@@ -80,50 +79,52 @@ class LivePoseGraph:
             start = self._poses[-1] @ np.linalg.inv(self.onboard[-1]) @ T
             graph.add(odometry_factor(g, X, k - 1, self.onboard[-1], T))
         values.insert(X(k), g.Pose3(g.Rot3.ClosestTo(start[:3, :3]), start[:3, 3]))
-        self._update(graph, values)
+        self.isam.update(graph, values)
         self.onboard.append(T)
         self._poses = np.concatenate([self._poses, start[None]])
 
-    def add_loop(self, loop: Any) -> int:
+    def add_loop(self, loop: Any) -> None:
         """A verified loop between keyframes ``loop.i`` and ``loop.j`` (both already added); every
-        pose is re-estimated.  Returns the iSAM2 updates it took."""
-        before = self.updates
-        self._add_loop_factor(loop)
-        self._settle()
-        return self.updates - before
-
-    def rebuild(self, T_world_cam: np.ndarray, loops: list) -> None:
-        """Start again from these keyframe poses and loops (after a keyframe was taken back)."""
-        onboard = [np.asarray(T, float) for T in T_world_cam]
-        self.onboard, self.loops = [], []
-        self._reset()
-        for T in onboard:
-            self.add(T)
-        for lp in loops:
-            self._add_loop_factor(lp)
-        if self.loops:
-            self._settle()
-
-    def _add_loop_factor(self, loop: Any) -> None:
-        from stereopath.host.reprocess.gtsam_ba import add_loop_factor
+        pose is re-estimated."""
+        from stereopath.host.reprocess.gtsam_ba import add_loop_factors
 
         graph = self.g.NonlinearFactorGraph()
-        add_loop_factor(self.g, graph, self.X, loop)
+        add_loop_factors(self.g, graph, self.X, [loop])
         self.loops.append(loop)
-        self._update(graph, self.g.Values())
+        self.isam.update(graph, self.g.Values())
+        self._settle()
 
-    def _update(self, graph: Any = None, values: Any = None) -> None:
-        if graph is None:
-            self.isam.update()
-        else:
-            self.isam.update(graph, values)
-        self.updates += 1
+    def rebuild(self, T_world_cam: np.ndarray, loops: list) -> None:
+        """Start again from these keyframe poses and loops (after a keyframe was taken back): the
+        whole graph in one update, started from the current estimate (the on-board poses when no
+        loop is left, which is then the solution)."""
+        from stereopath.host.reprocess.gtsam_ba import add_loop_factors, gauge_prior, odometry_factor
+
+        g, X = self.g, self.X
+        onboard = [np.asarray(T, float) for T in T_world_cam]
+        n = len(onboard)
+        start = self._poses[:n] if loops and len(self._poses) >= n else np.array(onboard).reshape(-1, 4, 4)
+        self.onboard, self.loops = onboard, list(loops)
+        self._reset()
+        if not onboard:
+            return
+        graph, values = g.NonlinearFactorGraph(), g.Values()
+        graph.add(gauge_prior(g, X, onboard[0]))
+        for k in range(len(onboard) - 1):
+            graph.add(odometry_factor(g, X, k, onboard[k], onboard[k + 1]))
+        add_loop_factors(g, graph, X, self.loops)
+        for k, T in enumerate(start):
+            values.insert(X(k), g.Pose3(g.Rot3.ClosestTo(T[:3, :3]), T[:3, 3]))
+        self.isam.update(graph, values)
+        self._poses = np.array(start)
+        if self.loops:
+            self._settle()
 
     def _settle(self) -> None:
         """More iSAM2 updates until no pose moves by more than the tolerances (or ``max_updates``)."""
         prev = self._estimate()
         for _ in range(self.max_updates):
-            self._update()
+            self.isam.update()
             cur = self._estimate()
             moved = np.max(np.linalg.norm(cur[:, :3, 3] - prev[:, :3, 3], axis=1))
             turned = np.max(np.linalg.norm(cur[:, :3, :3] - prev[:, :3, :3], axis=(1, 2)))  # ~ sqrt(2) x angle

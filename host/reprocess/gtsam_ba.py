@@ -70,7 +70,7 @@ def _pose(g: Any, T: np.ndarray) -> Any:
     return g.Pose3(g.Rot3.ClosestTo(np.asarray(T[:3, :3], float)), np.asarray(T[:3, 3], float))
 
 
-def _add_loop_factors(g: Any, graph: Any, X: Any, loops: list, k_sigma: float = 3.0) -> None:
+def add_loop_factors(g: Any, graph: Any, X: Any, loops: list, k_sigma: float = 3.0) -> None:
     """Relative-pose constraints of verified loops (Huber at ``k_sigma`` standard deviations)."""
     nm = g.noiseModel
     for lp in loops:
@@ -180,7 +180,7 @@ class _Graph:
 
 
     def add_loops(self, loops: list) -> None:
-        _add_loop_factors(self.g, self.graph, self.X, loops)
+        add_loop_factors(self.g, self.graph, self.X, loops)
 
     def add_imu(self, terms: Any) -> None:
         """Velocity and bias unknowns, CombinedImuFactors between keyframes, a prior on each chain's first bias."""
@@ -406,11 +406,6 @@ def gauge_prior(g: Any, X: Any, T: np.ndarray) -> Any:
     return g.PriorFactorPose3(X(0), _pose(g, T), g.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA))
 
 
-def add_loop_factor(g: Any, graph: Any, X: Any, loop: Any) -> None:
-    """One verified loop as a robust relative-pose factor (see :func:`pose_graph`)."""
-    _add_loop_factors(g, graph, X, [loop])
-
-
 def pose_graph(T_world_cam: np.ndarray, loops: list, odometry_sigma_per_m: float = 0.01,
                odometry_rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4, max_iterations: int = 50,
                tol: float | None = None) -> np.ndarray:
@@ -431,7 +426,7 @@ def pose_graph(T_world_cam: np.ndarray, loops: list, odometry_sigma_per_m: float
     graph.add(gauge_prior(g, X, T[0]))
     for k in range(len(T) - 1):
         graph.add(odometry_factor(g, X, k, T[k], T[k + 1], odometry_sigma_per_m, odometry_rot_sigma_per_m, min_sigma))
-    _add_loop_factors(g, graph, X, loops)
+    add_loop_factors(g, graph, X, loops)
     params = g.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     if tol is not None:
