@@ -73,23 +73,30 @@ def _camera_system(T: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray, 
     (residuals of ``cutoff_px`` or more weigh nothing)."""
     r, Xc, Xk, z = _residuals(T, X, uv, K, Te)
     valid = z > 1e-6
-    e = np.linalg.norm(r, axis=1)
+    e = np.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2)
     w = np.where(e <= huber_px, 1.0, huber_px / np.maximum(e, 1e-12))
     w = np.where(valid & (e < cutoff_px), w, 0.0)
     cost = float(np.sum(w * e * e))
-    x, y, zz = Xk[:, 0], Xk[:, 1], np.where(valid, Xk[:, 2], 1.0)
-    fx, fy = K[0, 0], K[1, 1]
-    # d(u,v)/d(Xk), then through Xk = R_e Xc + t_e to the row vectors a = d(u)/d(Xc)
-    Ju = np.column_stack([fx / zz, np.zeros_like(zz), -fx * x / zz**2])
-    Jv = np.column_stack([np.zeros_like(zz), fy / zz, -fy * y / zz**2])
+    iz = 1.0 / np.where(valid, Xk[:, 2], 1.0)
+    # rows a = d(u)/d(Xk) and d(v)/d(Xk), then through Xk = R_e Xc + t_e to d/d(Xc)
+    n = len(z)
+    a = np.zeros((2, n, 3))
+    a[0, :, 0] = K[0, 0] * iz
+    a[0, :, 2] = -K[0, 0] * Xk[:, 0] * iz * iz
+    a[1, :, 1] = K[1, 1] * iz
+    a[1, :, 2] = -K[1, 1] * Xk[:, 1] * iz * iz
     if Te is not None:
-        Ju, Jv = Ju @ Te[:3, :3], Jv @ Te[:3, :3]
+        a = a @ Te[:3, :3]
     # d(Xc)/d(dt, dtheta) = [I, -[Xc]x], and a (-[Xc]x) = Xc x a for a row vector a
-    Jpu = np.hstack([Ju, np.cross(Xc, Ju)])
-    Jpv = np.hstack([Jv, np.cross(Xc, Jv)])
-    H = (Jpu * w[:, None]).T @ Jpu + (Jpv * w[:, None]).T @ Jpv
-    g = (Jpu * w[:, None]).T @ r[:, 0] + (Jpv * w[:, None]).T @ r[:, 1]
-    return cost, H, g
+    J = np.empty((2, n, 6))
+    J[:, :, :3] = a
+    x, y, zc = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+    J[:, :, 3] = y * a[:, :, 2] - zc * a[:, :, 1]
+    J[:, :, 4] = zc * a[:, :, 0] - x * a[:, :, 2]
+    J[:, :, 5] = x * a[:, :, 1] - y * a[:, :, 0]
+    J = J.reshape(2 * n, 6)
+    Jw = J * np.concatenate([w, w])[:, None]
+    return cost, Jw.T @ J, Jw.T @ r.T.reshape(-1)
 
 
 def _inlier_errors(T: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray, Te: np.ndarray | None,
