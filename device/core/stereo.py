@@ -107,9 +107,6 @@ def _inlier_errors(T: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray, 
     return inl, e[inl]
 
 
-STEP_TOL = 1e-6  # a step below this (m, rad) ends the refinement: 1 um, 0.2 arc seconds
-
-
 def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, X_world: np.ndarray, uv_left: np.ndarray,
                    X_world_r: np.ndarray | None = None, uv_right: np.ndarray | None = None,
                    huber_px: float = 1.0, max_iter: int = 15, outlier_px: float = 3.0,
@@ -163,15 +160,14 @@ def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, X_world: np.ndarray, uv_le
         new_cost, H_new, g_new = cost_and_system(T_new)
         if new_cost < cost:
             # converged: the step no longer lowers the cost noticeably (relative 1e-6)
-            converged = cost - new_cost <= 1e-6 * cost or np.abs(delta).max() < STEP_TOL
+            converged = cost - new_cost <= 1e-6 * cost or np.linalg.norm(delta) < 1e-10
             T, cost, H, g = T_new, new_cost, H_new, g_new
             lam = max(lam / 10, 1e-7)
             if converged:
                 break
         else:
-            # no lower cost: at the optimum (a step below the tolerance) or too long a step (damp it)
             lam *= 10
-            if lam > 1e6 or np.abs(delta).max() < STEP_TOL:
+            if lam > 1e6:
                 break
     inl, el = _inlier_errors(T, X_world, uv_left, K0, None, outlier_px)
     errs = [el]
