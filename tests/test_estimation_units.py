@@ -191,3 +191,26 @@ def test_a_block_of_consistently_wrong_matches_does_not_pull_the_pose():
         T, n, mask = geo.solve_pose(left, right, X, uv.astype(np.float32), _NEAR_IDENTITY, seed)
         assert T is not None and not (mask & wrong).any()
         assert np.linalg.norm(T[:3, 3]) < 1.5e-3 and rotation_angle_deg(T[:3, :3]) < 0.05
+
+
+def test_pose_refinement_normal_equations_match_numeric_derivatives():
+    # one camera's (cost, H, g) for the left perturbation [exp(dtheta) | dt] @ T: g = J^T r and
+    # H = J^T J with J the residuals' derivative, checked by central differences (the right camera)
+    from stereopath.device.core.stereo import _camera_system, _residuals
+
+    rig = paper_rig()
+    X = _scene(40)
+    T = make_pose(so3_exp([0.05, -0.1, 0.02]), [0.05, -0.02, 0.1])
+    Te = rig.T_cam1_cam0
+    uv = _residuals(T, X, np.zeros((len(X), 2)), rig.cam1.K, Te)[0] + rng.normal(0, 0.3, (len(X), 2))
+    cost, H, g = _camera_system(T, X, uv, rig.cam1.K, Te, huber_px=1e6, cutoff_px=1e6)
+
+    def res(delta):
+        D = make_pose(so3_exp(delta[3:]), delta[:3])
+        return _residuals(D @ T, X, uv, rig.cam1.K, Te)[0].T.reshape(-1)
+
+    r0 = res(np.zeros(6))
+    J = np.column_stack([(res(h) - res(-h)) / 2e-6 for h in np.eye(6) * 1e-6])
+    assert cost == pytest.approx(float(r0 @ r0), rel=1e-12)
+    assert np.allclose(g, J.T @ r0, rtol=1e-5, atol=1e-6 * np.abs(g).max())
+    assert np.allclose(H, J.T @ J, rtol=1e-5, atol=1e-6 * np.abs(H).max())
