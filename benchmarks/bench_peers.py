@@ -22,8 +22,8 @@ alignment, ``stereopath eval``), median and p95 wall ms per frame (the estimator
 CPU ms per frame (process CPU time of all threads over the frame loop, image decoding included for
 both systems, divided by the frames; for ours also without the CPU time the reading thread spends
 producing the frames, i.e. what the estimator costs on live frames) and frames tracked.  Ratios
-ours / ORB-SLAM3 come from the same run.  For one-core figures run it under ``taskset -c 0`` with ``--threads 1`` (OpenCV at one
-thread in our process; ORB-SLAM3 inherits the affinity).  ``--rig`` runs ours with another
+ours / ORB-SLAM3 come from the same run.  For one-core figures run it under ``taskset -c 0`` with
+``--threads 1`` (OpenCV at one thread in our process; ORB-SLAM3 inherits the affinity).  ``--rig`` runs ours with another
 calibration of the same cameras (e.g. the ``rig_refined.yaml`` of ``stereopath host reprocess``);
 ORB-SLAM3 keeps the source's.
 """

@@ -194,23 +194,35 @@ def test_a_block_of_consistently_wrong_matches_does_not_pull_the_pose():
 
 
 def test_pose_refinement_normal_equations_match_numeric_derivatives():
-    # one camera's (cost, H, g) for the left perturbation [exp(dtheta) | dt] @ T: g = J^T r and
-    # H = J^T J with J the residuals' derivative, checked by central differences (the right camera)
+    # one camera's (cost, H, g) for the left perturbation [exp(dtheta) | dt] @ T: g = J^T W r and
+    # H = J^T W J with J the residuals' derivative (central differences) and W the Huber weights;
+    # the right camera (extrinsic Te) and a left camera with fx != fy, one point behind it (weight 0)
     from stereopath.device.core.stereo import _camera_system, _residuals
 
     rig = paper_rig()
     X = _scene(40)
     T = make_pose(so3_exp([0.05, -0.1, 0.02]), [0.05, -0.02, 0.1])
-    Te = rig.T_cam1_cam0
-    uv = _residuals(T, X, np.zeros((len(X), 2)), rig.cam1.K, Te)[0] + rng.normal(0, 0.3, (len(X), 2))
-    cost, H, g = _camera_system(T, X, uv, rig.cam1.K, Te, huber_px=1e6, cutoff_px=1e6)
+    K_left = np.array([[520.0, 0.0, 330.0], [0.0, 480.0, 250.0], [0.0, 0.0, 1.0]])
+    X_behind = X.copy()
+    X_behind[0] = invert_pose(T)[:3, :3] @ np.array([0.1, 0.1, -1.0]) + invert_pose(T)[:3, 3]
+    for K, Te, pts, huber in ((rig.cam1.K, rig.T_cam1_cam0, X, 1e6), (K_left, None, X_behind, 0.4)):
+        uv = _residuals(T, pts, np.zeros((len(pts), 2)), K, Te)[0] + rng.normal(0, 0.3, (len(pts), 2))
+        cost, H, g = _camera_system(T, pts, uv, K, Te, huber_px=huber, cutoff_px=1e6)
 
-    def res(delta):
-        D = make_pose(so3_exp(delta[3:]), delta[:3])
-        return _residuals(D @ T, X, uv, rig.cam1.K, Te)[0].T.reshape(-1)
+        def res(delta):
+            D = make_pose(so3_exp(delta[3:]), delta[:3])
+            return _residuals(D @ T, pts, uv, K, Te)[0]
 
-    r0 = res(np.zeros(6))
-    J = np.column_stack([(res(h) - res(-h)) / 2e-6 for h in np.eye(6) * 1e-6])
-    assert cost == pytest.approx(float(r0 @ r0), rel=1e-12)
-    assert np.allclose(g, J.T @ r0, rtol=1e-5, atol=1e-6 * np.abs(g).max())
-    assert np.allclose(H, J.T @ J, rtol=1e-5, atol=1e-6 * np.abs(H).max())
+        r0 = res(np.zeros(6))
+        e = np.linalg.norm(r0, axis=1)
+        w = np.where(e <= huber, 1.0, huber / e)
+        in_front = (pts @ T[:3, :3].T + T[:3, 3])[:, 2] > 0
+        w[~in_front] = 0.0
+        assert (huber > 1e3) or (0 < w[in_front].min() < 1.0)  # the Huber weights are in play
+        Jn = np.stack([(res(h) - res(-h)) / 2e-6 for h in np.eye(6) * 1e-6], axis=-1)  # (n, 2, 6)
+        Jn = np.concatenate([Jn[:, 0], Jn[:, 1]])  # u rows, then v rows (the residuals' order)
+        wr = np.concatenate([w, w])
+        rr = np.concatenate([r0[:, 0], r0[:, 1]])
+        assert cost == pytest.approx(float(np.sum(w * e * e)), rel=1e-12)
+        assert np.allclose(g, Jn.T @ (wr * rr), rtol=1e-5, atol=1e-6 * np.abs(g).max())
+        assert np.allclose(H, Jn.T @ (wr[:, None] * Jn), rtol=1e-5, atol=1e-6 * np.abs(H).max())
