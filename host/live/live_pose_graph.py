@@ -98,7 +98,7 @@ class LivePoseGraph:
         """Start again from these keyframe poses and loops (after a keyframe was taken back): the
         whole graph in one update, started from the current estimate (the on-board poses when no
         loop is left, which is then the solution)."""
-        from stereopath.host.reprocess.gtsam_ba import add_loop_factors, gauge_prior, odometry_factor
+        from stereopath.host.reprocess.gtsam_ba import pose_graph_factors
 
         g, X = self.g, self.X
         onboard = [np.asarray(T, float) for T in T_world_cam]
@@ -108,11 +108,7 @@ class LivePoseGraph:
         self._reset()
         if not onboard:
             return
-        graph, values = g.NonlinearFactorGraph(), g.Values()
-        graph.add(gauge_prior(g, X, onboard[0]))
-        for k in range(len(onboard) - 1):
-            graph.add(odometry_factor(g, X, k, onboard[k], onboard[k + 1]))
-        add_loop_factors(g, graph, X, self.loops)
+        graph, values = pose_graph_factors(g, X, np.array(onboard), self.loops), g.Values()
         for k, T in enumerate(start):
             values.insert(X(k), g.Pose3(g.Rot3.ClosestTo(T[:3, :3]), T[:3, 3]))
         self.isam.update(graph, values)

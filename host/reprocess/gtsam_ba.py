@@ -406,6 +406,18 @@ def gauge_prior(g: Any, X: Any, T: np.ndarray) -> Any:
     return g.PriorFactorPose3(X(0), _pose(g, T), g.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA))
 
 
+def pose_graph_factors(g: Any, X: Any, T: np.ndarray, loops: list, sigma_per_m: float = 0.01,
+                       rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4) -> Any:
+    """The pose graph of poses ``T``: the first held (:func:`gauge_prior`), consecutive ones tied by
+    their relative motion (:func:`odometry_factor`), and the verified ``loops``."""
+    graph = g.NonlinearFactorGraph()
+    graph.add(gauge_prior(g, X, T[0]))
+    for k in range(len(T) - 1):
+        graph.add(odometry_factor(g, X, k, T[k], T[k + 1], sigma_per_m, rot_sigma_per_m, min_sigma))
+    add_loop_factors(g, graph, X, loops)
+    return graph
+
+
 def pose_graph(T_world_cam: np.ndarray, loops: list, odometry_sigma_per_m: float = 0.01,
                odometry_rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4, max_iterations: int = 50,
                tol: float | None = None) -> np.ndarray:
@@ -420,13 +432,10 @@ def pose_graph(T_world_cam: np.ndarray, loops: list, odometry_sigma_per_m: float
     is the same graph solved incrementally as poses and loops arrive."""
     T = np.asarray(T_world_cam, float)
     g = import_gtsam()
-    graph, values, X = g.NonlinearFactorGraph(), g.Values(), g.symbol_shorthand.X
+    values, X = g.Values(), g.symbol_shorthand.X
     for k, Tk in enumerate(T):
         values.insert(X(k), _pose(g, Tk))
-    graph.add(gauge_prior(g, X, T[0]))
-    for k in range(len(T) - 1):
-        graph.add(odometry_factor(g, X, k, T[k], T[k + 1], odometry_sigma_per_m, odometry_rot_sigma_per_m, min_sigma))
-    add_loop_factors(g, graph, X, loops)
+    graph = pose_graph_factors(g, X, T, loops, odometry_sigma_per_m, odometry_rot_sigma_per_m, min_sigma)
     params = g.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     if tol is not None:
