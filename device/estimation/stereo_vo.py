@@ -49,6 +49,7 @@ from stereopath.device.errors import ConfigError
 from stereopath.device.estimation.base import PoseEstimate, WorldFrame
 from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still, gravity_aligned_rotation
 from stereopath.device.core.features import gray
+from stereopath.device.core.photometric import GainOffset, correct_right, fit_gain_offset, relation_matters
 from stereopath.device.core.stereo import stereo_right, undistort_px
 from stereopath.device.estimation.disparity_offset import OffsetFilter, PriorPath, offset_between_keyframes
 from stereopath.device.estimation.keyframe_jobs import KeyframeJobs
@@ -105,6 +106,10 @@ class StereoConfig:
     # refine it on line from points seen in stereo at two keyframes, using only the pairs where the offset is
     # identifiable (OffsetFilter.max_inflation): an orbit around an object leaves it at the prior
     estimate_disparity_offset: bool = True
+    # fit the right camera's grey levels to the left's on the stereo matches of each keyframe, and correct
+    # the right image when that changes the matched texture by more than exposure_tolerance grey levels
+    match_exposure: bool = True
+    exposure_tolerance: float = 4.0
 
     def __post_init__(self) -> None:
         check_range("max_points", self.max_points, 20, 20000)
@@ -130,6 +135,7 @@ class StereoConfig:
         check_range("kf_map_agreement", self.kf_map_agreement, 0.0, 1.0)
         check_range("max_correction_deg", self.max_correction_deg, 0.0, 180.0)
         check_range("disparity_offset_px", self.disparity_offset_px, -10.0, 10.0)
+        check_range("exposure_tolerance", self.exposure_tolerance, 0.0, 255.0)
 
 
 class StereoEstimator(KeyframeJobs):
@@ -147,6 +153,9 @@ class StereoEstimator(KeyframeJobs):
         self._t_prev: int | None = None
         self._dt_prev: float | None = None
         self._prev_left: np.ndarray | None = None
+        self._exposure: GainOffset | None = None  # the right camera's grey levels -> the left's, when it matters
+        self._right_raw: np.ndarray | None = None
+        self._exposure_fits: list[GainOffset] = []  # the last fits (used or not)
         self._map = TrackedMap()
         self._init_keyframe_jobs()
         self._offset = OffsetFilter(prior=float(self.cfg.disparity_offset_px))
@@ -169,7 +178,8 @@ class StereoEstimator(KeyframeJobs):
         self.counters = dict.fromkeys(
             "keyframes imu_only lost asift_matches kf_jobs kf_jobs_skipped kf_jobs_deferred asift_views kf_corrections"
             " retracked relocalised disparity_offset_pairs disparity_offset_unidentified"
-            " disparity_offset_path_corrections".split(), 0)
+            " disparity_offset_path_corrections exposure_fits exposure_corrected_frames".split(), 0)
+        self.counters["right_gain_milli"], self.counters["right_offset_centi"] = 1000, 0
         self.counters["disparity_offset_mpx"] = int(round(1000 * self.cfg.disparity_offset_px))
 
     # ------------------------------------------------------------------ public
@@ -188,6 +198,7 @@ class StereoEstimator(KeyframeJobs):
         self._cur_seq = frame.seq
         if self._T_world_cam is None:
             return self._initialise(frame, left, right, imu)
+        right = self._exposure_corrected(right)
         self._join_keyframe_job()
         if self._pending_G is not None:  # the path since the start, re-measured with the learned offset
             self._apply_correction(self._pending_G)
@@ -222,6 +233,13 @@ class StereoEstimator(KeyframeJobs):
         self._T_world_cam = T
         self._t_prev = frame.t_ns
         self._prev_left = left
+        if self.cfg.match_exposure:
+            # a first measurement of the two cameras' exposure on this frame's stereo matches
+            xy = self._corners(left, np.full(left.shape[:2], 255, np.uint8), self.cfg.max_points)
+            if len(xy):
+                uvr, _, ok = self._geo.stereo_points(left, right, xy, self._default_depth())
+                self._fit_exposure(left, right, xy[ok], uvr[ok])
+        right = self._exposure_corrected(right)
         n = self._new_keyframe(left, right, T)
         status = "ok" if n >= self.cfg.min_pnp_inliers else "lost"
         return PoseEstimate(frame.seq, frame.t_ns, T.copy(), status, inliers=n, keyframe=True,
@@ -393,16 +411,14 @@ class StereoEstimator(KeyframeJobs):
             cv2.circle(mask, (int(u), int(v)), cfg.new_corner_spacing_px, 0, -1)
         cands_all = np.zeros((0, 2), np.float32)
         if need > 0:
-            c = cv2.goodFeaturesToTrack(left, maxCorners=need, qualityLevel=0.005,
-                                        minDistance=cfg.new_corner_spacing_px, mask=mask, blockSize=5)
-            if c is not None:
-                cands_all = c.reshape(-1, 2).astype(np.float32)
+            cands_all = self._corners(left, mask, need)
         # observations of the existing points at this keyframe (refinement, disparity offset, bundle adjustment)
         k = len(self.keyframe_poses)
         if self.record_observations:
             self.keyframe_poses.append((self._cur_seq, T_world_cam.copy()))
-        if (self.record_observations or cfg.refine_points or cfg.estimate_disparity_offset) and len(m):
-            self._observe_map(left, right, T_world_cam, k)
+        seen = (np.zeros((0, 2)), np.zeros((0, 2)))
+        if (self.record_observations or cfg.refine_points or cfg.estimate_disparity_offset or cfg.match_exposure) and len(m):
+            seen = self._observe_map(left, right, T_world_cam, k)
         sel = np.zeros(0, np.int64)
         uvr = np.zeros((0, 2), np.float32)
         Xw = np.zeros((0, 3))
@@ -411,6 +427,8 @@ class StereoEstimator(KeyframeJobs):
             Xw = Xc @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
             # corners (not SIFT keypoints) become tracked map points, up to max_points
             sel = np.flatnonzero(ok)[: max(0, need)]
+        if cfg.match_exposure and self._right_raw is not None:
+            self._fit_exposure(left, self._right_raw, np.vstack([seen[0], cands_all[sel]]), np.vstack([seen[1], uvr[sel]]))
         new_ids = np.arange(self._next_id, self._next_id + len(sel), dtype=np.int64)
         self._next_id += len(sel)
         if self.record_observations and len(sel):
@@ -430,9 +448,41 @@ class StereoEstimator(KeyframeJobs):
         self.counters["keyframes"] += 1
         return len(m)
 
-    def _observe_map(self, left, right, T_world_cam: np.ndarray, k: int) -> None:
+    def _corners(self, left: np.ndarray, mask: np.ndarray, n: int) -> np.ndarray:
+        """Up to ``n`` corners of ``left`` where ``mask`` is set (candidate new map points)."""
+        c = cv2.goodFeaturesToTrack(left, maxCorners=n, qualityLevel=0.005,
+                                    minDistance=self.cfg.new_corner_spacing_px, mask=mask, blockSize=5)
+        return np.zeros((0, 2), np.float32) if c is None else c.reshape(-1, 2).astype(np.float32)
+
+    def _exposure_corrected(self, right: np.ndarray) -> np.ndarray:
+        """``right`` in the left camera's grey levels when the two cameras differ (kept as captured for the fit)."""
+        self._right_raw = right
+        if self._exposure is None:
+            return right
+        self.counters["exposure_corrected_frames"] += 1
+        return correct_right(right, self._exposure)
+
+    def _fit_exposure(self, left, right_raw, xy_left: np.ndarray, xy_right: np.ndarray) -> None:
+        """Re-measure the right camera's grey levels against the left's on these stereo matches (the median
+        of the last fits); the correction is used from now on if it matters, dropped if it no longer
+        does, kept if this keyframe does not identify it."""
+        rel = fit_gain_offset(left, right_raw, xy_left, xy_right)
+        if rel is None:
+            return
+        # exposure drifts slowly and one keyframe's fit is noisy (KITTI: gain +-3 %, one fit in 20 twice
+        # the others' change): the median of the last five fits
+        self._exposure_fits = (self._exposure_fits + [rel])[-5:]
+        med = np.median([(f.gain, f.offset, f.change) for f in self._exposure_fits], axis=0)
+        rel = GainOffset(float(med[0]), float(med[1]), rel.n, float(med[2]))
+        self.counters["exposure_fits"] += 1
+        self.counters["right_gain_milli"] = int(round(1000 * rel.gain))
+        self.counters["right_offset_centi"] = int(round(100 * rel.offset))
+        self._exposure = rel if relation_matters(rel, self.cfg.exposure_tolerance) else None
+
+    def _observe_map(self, left, right, T_world_cam: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Stereo of the tracked points at this keyframe: the bundle-adjustment log, the running mean
-        of each point's triangulations, and the disparity offset from the last keyframe to this one."""
+        of each point's triangulations, and the disparity offset from the last keyframe to this one.
+        Returns the left and right pixels of the points found in the right image."""
         cfg = self.cfg
         m = self._map
         T_cw = invert_pose(T_world_cam)
@@ -441,9 +491,10 @@ class StereoEstimator(KeyframeJobs):
                                       levels=cfg.seeded_stereo_levels)
         if self.record_observations:
             self._record(k, m.ids, m.uv, uvr_old, ok_old)
-        if not ok_old.any():
-            return
         idx_o = np.flatnonzero(ok_old)
+        seen = (m.uv[idx_o].copy(), uvr_old[idx_o].copy())
+        if not ok_old.any():
+            return seen
         offset_before = self._geo.disparity_offset_px
         if cfg.estimate_disparity_offset:
             self._update_disparity_offset(idx_o, uvr_old[idx_o], T_world_cam)
@@ -459,6 +510,7 @@ class StereoEstimator(KeyframeJobs):
             n = m.nobs[idx][:, None]
             m.X[idx] = (m.X[idx] * n + Xw_new) / (n + 1)
             m.nobs[idx] += 1
+        return seen
 
     def _update_disparity_offset(self, idx: np.ndarray, uv_right: np.ndarray, T_world_cam: np.ndarray) -> None:
         """Fuse the offset seen between the last keyframe and this one (points measured in stereo at both)."""
