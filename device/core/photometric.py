@@ -4,7 +4,7 @@ Pyramidal KLT assumes the same brightness at a point in both images.  Two camera
 exposure and gain independently (two picamera2 modules each with its own AGC, the EuRoC rig: its
 right images are ~14 grey levels darker with ~8 % more contrast) break that assumption: the
 left-to-right search fails its forward-backward check on points it would otherwise match (EuRoC
-V1_01's first frame: 87 of 265 corners matched as captured, 141 with the right image corrected).
+V1_01's first frame: 87 of 265 corners matched as captured, 148 with the right image corrected by the fit).
 
 The relation is an affine map of grey levels, ``left ~ gain * right + offset``, fitted on the
 mean intensities of small patches around points already matched in stereo (so it measures the
