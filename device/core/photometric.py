@@ -40,11 +40,8 @@ class GainOffset:
         return self.gain * np.asarray(levels, np.float64) + self.offset
 
 
-IDENTITY = GainOffset()
-
-
 def _patch_means(image: np.ndarray, xy: np.ndarray, patch: int) -> np.ndarray:
-    """Mean grey level of the ``patch`` x ``patch`` square around each point (bilinear at sub-pixels)."""
+    """Mean grey level of the ``patch`` x ``patch`` square of whole pixels around each point (clipped at the border)."""
     h, w = image.shape[:2]
     r = patch // 2
     x0 = np.clip(np.floor(xy[:, 0]).astype(np.int64) - r, 0, w - 1)
@@ -109,4 +106,4 @@ def correct_right(right: np.ndarray, rel: GainOffset) -> np.ndarray:
     return cv2.LUT(right, lut)
 
 
-__all__ = ["GainOffset", "IDENTITY", "fit_gain_offset", "relation_matters", "correct_right"]
+__all__ = ["GainOffset", "fit_gain_offset", "relation_matters", "correct_right"]

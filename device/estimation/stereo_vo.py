@@ -492,7 +492,7 @@ class StereoEstimator(KeyframeJobs):
         if self.record_observations:
             self._record(k, m.ids, m.uv, uvr_old, ok_old)
         idx_o = np.flatnonzero(ok_old)
-        seen = (m.uv[idx_o].copy(), uvr_old[idx_o].copy())
+        seen = (m.uv[idx_o], uvr_old[idx_o])  # copies (index arrays)
         if not ok_old.any():
             return seen
         offset_before = self._geo.disparity_offset_px
