@@ -43,6 +43,11 @@ class ReprocessPreset:
     ba_imu: bool = True
     imu_rotation_priors: bool = False  # gyro-integrated relative rotations between keyframes as BA terms
     gyro_sigma_rad_per_sqrt_s: float = 0.002
+    # the right images in the left camera's grey levels for the tracks, ba and map stages where the two
+    # cameras differ by more than exposure_tolerance grey levels (host/reprocess/exposure.py); the estimate
+    # stage runs the on-board estimator, which measures and corrects them itself
+    match_exposure: bool = True
+    exposure_tolerance: float = 4.0
 
 
 _TRACK_GAPS = (1, 2, 3, 5, 8, 12, 16, 20)

@@ -86,6 +86,12 @@ class _Runner:
     def __init__(self, seq: Any, stages_dir: Path, config: ReprocessPreset, force: bool,
                  progress: bool | None, after_stage: Callable[[str], None] | None) -> None:
         self.seq, self.dir, self.config, self.force = seq, stages_dir, config, force
+        # what the stages after the estimate read: the right images in the left camera's grey levels
+        self.matched = seq
+        if config.match_exposure:
+            from stereopath.host.reprocess.exposure import ExposureMatchedSequence
+
+            self.matched = ExposureMatchedSequence(seq, config.tracks, config.exposure_tolerance)
         self.progress, self.after_stage = progress, after_stage
         self.store = StageStore(stages_dir)
         self.status: dict[str, str] = {}
@@ -132,7 +138,8 @@ class _Runner:
                 return data
 
         def compute() -> dict[str, np.ndarray]:
-            inputs = StageInputs(self.seq, self.progress, {d: self.get(d) for d in _DEPENDS[name]})
+            inputs = StageInputs(self.seq if name == "estimate" else self.matched, self.progress,
+                                 {d: self.get(d) for d in _DEPENDS[name]})
             data = _ARRAY_STAGES[name].run(self.config, inputs)
             save_npz(path, **data)
             return data
@@ -148,7 +155,7 @@ class _Runner:
         if not self.force and self.store.done("map", self.keys["map"]):
             self.status["map"] = "reused"
         else:
-            inputs = StageInputs(self.seq, self.progress, extra={"dst": dst, "trajectory": final, "label": label})
+            inputs = StageInputs(self.matched, self.progress, extra={"dst": dst, "trajectory": final, "label": label})
             try:
                 self.run_stage("map", [f"map/{f}" for f in MODEL_FILES], lambda: stage_map.run(map_cfg, inputs))
             except StereopathError as exc:  # e.g. no valid depth with this map preset: keep the path outputs

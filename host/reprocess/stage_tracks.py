@@ -31,7 +31,8 @@ NAME = "tracks"
 
 
 def settings(config: ReprocessPreset) -> dict:
-    return {"tracks": config.tracks, "loops": config.loops}
+    return {"tracks": config.tracks, "loops": config.loops,
+            "exposure": (config.match_exposure, config.exposure_tolerance)}
 
 
 def choose_keyframes(est: dict[str, np.ndarray]) -> np.ndarray:
@@ -219,5 +220,13 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
         "kf_ids": np.concatenate(tr.kf_ids) if tr.kf_ids else np.zeros(0, np.int64),
         "kf_xy": np.concatenate(tr.kf_xy) if tr.kf_xy else np.zeros((0, 2), np.float32),
         "loops": loops_to_array(loops),
-        "stats": json_array({**tr.stats, "loops": len(loops)}),
+        "stats": json_array({**tr.stats, "loops": len(loops), **exposure_stats(seq, est["seq"][kf])}),
     }
+
+
+def exposure_stats(seq, frames: np.ndarray) -> dict:
+    """The right camera's grey-level relation at the keyframes (``frames``: their sequence indices) when
+    the stage read an exposure-matched sequence, else nothing."""
+    from stereopath.host.reprocess.exposure import ExposureMatchedSequence
+
+    return {"exposure": seq.summary(frames)} if isinstance(seq, ExposureMatchedSequence) else {}

@@ -141,6 +141,17 @@ def stereo_features(rig: Rig, left: np.ndarray, right: np.ndarray, cfg: TrackCon
     return KeyframeFeatures(feats.subset(ok), uv0[ok], uv1[ok], X[ok])
 
 
+def right_guess_at_depth(rig: Rig, uv0: np.ndarray, cfg: TrackConfig, depth_guess_m: float | None = None) -> np.ndarray:
+    """Raw right pixels of undistorted left pixels ``uv0`` put at ``depth_guess_m`` (default: the depth of
+    ``cfg.guess_disparity_px``): where a right-image search without a better guess starts."""
+    K0, K1, d1 = rig.cam0.K, rig.cam1.K, rig.cam1.dist
+    z0 = depth_guess_m or rig.rectification().f * rig.rectification().baseline_m / cfg.guess_disparity_px
+    rays = np.column_stack([(uv0[:, 0] - K0[0, 2]) / K0[0, 0], (uv0[:, 1] - K0[1, 2]) / K0[1, 1], np.ones(len(uv0))])
+    Xr = (rays * z0) @ rig.R.T + rig.T
+    Xr[:, 2] = np.maximum(Xr[:, 2], 1e-3)
+    return cv2.projectPoints(Xr.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K1, d1)[0].reshape(-1, 2)
+
+
 def stereo_points(rig: Rig, left: np.ndarray, right: np.ndarray, xy: np.ndarray, cfg: TrackConfig,
                   depth_guess_m: float | None = None, guess_right: np.ndarray | None = None
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -156,12 +167,7 @@ def stereo_points(rig: Rig, left: np.ndarray, right: np.ndarray, xy: np.ndarray,
     elif guess_right is not None:
         xr, ok = stereo_right(rig, left, right, xy, guess_right, cfg, levels=cfg.seeded_klt_levels)
     else:
-        z0 = depth_guess_m or rig.rectification().f * rig.rectification().baseline_m / cfg.guess_disparity_px
-        rays = np.column_stack([(uv0[:, 0] - K0[0, 2]) / K0[0, 0], (uv0[:, 1] - K0[1, 2]) / K0[1, 1], np.ones(len(uv0))])
-        Xr = (rays * z0) @ rig.R.T + rig.T
-        Xr[:, 2] = np.maximum(Xr[:, 2], 1e-3)
-        guess = cv2.projectPoints(Xr.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K1, d1)[0].reshape(-1, 2)
-        xr, ok = stereo_right(rig, left, right, xy, guess, cfg)
+        xr, ok = stereo_right(rig, left, right, xy, right_guess_at_depth(rig, uv0, cfg, depth_guess_m), cfg)
     if cfg.slanted_window:
         idx = np.flatnonzero(ok)
         xr_ok, refined = refine_slanted(left, right, np.asarray(xy)[idx], xr[idx], half=cfg.slanted_window // 2)

@@ -1,0 +1,143 @@
+"""The recorded right images in the left camera's grey levels, for the offline stages (tracks, ba, map).
+
+Two cameras that set their exposure independently (two picamera2 modules each with its own AGC,
+the EuRoC rig) record the same surface at different grey levels, and every right-image search
+that assumes equal brightness (the tracks' stereo KLT, the frame refinement's right-image
+observations, the dense model's block matching) loses matches it would otherwise make.  The
+on-board estimator measures and corrects this as it runs (``StereoConfig.match_exposure``);
+:class:`ExposureMatchedSequence` does the same for a recorded session, so that reprocessing
+sees the images the on-board estimator saw.
+
+The relation ``left ~ gain * right + offset`` (:mod:`stereopath.device.core.photometric`) is
+fitted on a fixed grid of frames (every ``stride``-th): corners of the left image matched in
+the right as recorded (stereo KLT with its forward-backward check).  Frame ``i`` uses the median
+of the fits at the ``span`` grid frames nearest to it (exposure drifts slowly and one frame's fit
+is noisy), and its right image is corrected only when that relation changes the matched texture
+by more than ``tolerance`` grey levels; otherwise it is returned as recorded.  The fits depend on
+the images only, never on which frames were asked for first, so every stage, process and Ray
+worker sees the same corrected frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Any
+
+import cv2
+import numpy as np
+
+from stereopath.device.core.features import gray
+from stereopath.device.core.frames import StereoFrame
+from stereopath.device.core.photometric import GainOffset, correct_right, fit_gain_offset, relation_matters
+from stereopath.device.core.stereo import stereo_right, undistort_px
+from stereopath.device.errors import ConfigError, DatasetError
+from stereopath.device.formats.sequence import SequenceBase
+
+log = logging.getLogger(__name__)
+
+PROBE_CORNERS = 300
+PROBE_QUALITY = 0.01
+PROBE_SPACING_PX = 12
+
+
+def probe_relation(rig, left: np.ndarray, right: np.ndarray, cfg, refine_above: float = 1.0) -> GainOffset | None:
+    """The grey-level relation of one recorded pair: left-image corners matched in the right image
+    (``cfg``: a :class:`~stereopath.host.reprocess.tracks.TrackConfig`, its KLT settings and depth
+    guess), then :func:`~stereopath.device.core.photometric.fit_gain_offset`; None when not identifiable.
+
+    Cameras far apart match few corners as recorded (a right camera at 0.75x gain: 40-50 of 300), so
+    when that first fit changes the texture by more than ``refine_above`` grey levels the corners are
+    matched again in the right image corrected by it, and the relation is fitted anew on those matches
+    (five to six times as many) against the right image as recorded."""
+    from stereopath.host.reprocess.tracks import right_guess_at_depth
+
+    left, right = gray(left), gray(right)
+    c = cv2.goodFeaturesToTrack(left, maxCorners=PROBE_CORNERS, qualityLevel=PROBE_QUALITY,
+                                minDistance=PROBE_SPACING_PX)
+    if c is None:
+        return None
+    xy = c.reshape(-1, 2).astype(np.float32)
+    guess = right_guess_at_depth(rig, undistort_px(xy, rig.cam0.K, rig.cam0.dist), cfg)
+    xr, ok = stereo_right(rig, left, right, xy, guess, cfg)
+    rel = fit_gain_offset(left, right, xy[ok], xr[ok])
+    if rel is None or rel.change <= refine_above:
+        return rel
+    xr, ok = stereo_right(rig, left, correct_right(right, rel), xy, guess, cfg)
+    return fit_gain_offset(left, right, xy[ok], xr[ok]) or rel
+
+
+class ExposureMatchedSequence(SequenceBase):
+    """``seq`` with each right image corrected to the left camera's grey levels where they differ
+    (see the module doc).  Everything else (rig, times, IMU, ground truth, the unreadable frames met
+    so far) is ``seq``'s own; ``relation(i)`` is what frame ``i`` was corrected with (None: as recorded)."""
+
+    def __init__(self, seq: Any, cfg: Any, tolerance: float = 4.0, stride: int = 5, span: int = 5) -> None:
+        if stride < 1 or span < 1:
+            raise ConfigError(f"exposure matching: stride and span must be >= 1 (got {stride}, {span})")
+        self.inner, self.cfg, self.tolerance, self.stride, self.span = seq, cfg, float(tolerance), int(stride), int(span)
+        self.name = getattr(seq, "name", "sequence")
+        self.spec = getattr(seq, "spec", "")
+        self._fits: dict[int, GainOffset | None] = {}
+
+    # the inner sequence's state, shared rather than copied
+    rig = property(lambda self: self.inner.rig)
+    t_ns = property(lambda self: self.inner.t_ns)
+    imu = property(lambda self: self.inner.imu)
+    groundtruth = property(lambda self: self.inner.groundtruth)
+    skipped_frames = property(lambda self: self.inner.skipped_frames)
+    strict = property(lambda self: self.inner.strict, lambda self, v: setattr(self.inner, "strict", v))
+
+    def __len__(self) -> int:
+        return len(self.inner)
+
+    def __getattr__(self, name: str) -> Any:  # anything else a source offers (trajectory, session folder ...)
+        if name == "inner":
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+    def _fit(self, g: int) -> GainOffset | None:
+        """The fit at grid frame ``g`` (cached; None when unreadable or not identifiable)."""
+        if g not in self._fits:
+            try:
+                fr = self.inner.frame(g)
+            except DatasetError as exc:
+                log.warning("%s: exposure probe skips unreadable frame %d: %s", self.name, g, exc)
+                self._fits[g] = None
+            else:
+                self._fits[g] = probe_relation(self.rig, fr.left, fr.right, self.cfg)
+        return self._fits[g]
+
+    def measured(self, i: int) -> GainOffset | None:
+        """The median of the fits at the ``span`` grid frames nearest to frame ``i`` (None: none identifiable)."""
+        grid = np.arange(0, len(self), self.stride)
+        near = np.sort(grid[np.argsort(np.abs(grid - i), kind="stable")[: self.span]])
+        fits = [f for f in (self._fit(int(g)) for g in near) if f is not None]
+        if not fits:
+            return None
+        med = np.median([(f.gain, f.offset, f.change) for f in fits], axis=0)
+        return GainOffset(float(med[0]), float(med[1]), sum(f.n for f in fits), float(med[2]))
+
+    def relation(self, i: int) -> GainOffset | None:
+        """What frame ``i`` is corrected with: :meth:`measured`, or None when it changes the matched
+        texture by no more than ``tolerance`` grey levels (the frame as recorded)."""
+        rel = self.measured(i)
+        return rel if relation_matters(rel, self.tolerance) else None
+
+    def _load(self, i: int) -> StereoFrame:
+        fr = self.inner.frame(i)
+        rel = self.relation(i)
+        if rel is None:
+            return fr
+        return dataclasses.replace(fr, right=correct_right(fr.right, rel))
+
+    def summary(self, frames: np.ndarray) -> dict[str, Any]:
+        """For a stage's statistics: of ``frames`` (indices), how many are corrected, and the median of
+        their measured relations (it depends on the images only, not on what was read before)."""
+        rels = [r for r in (self.measured(int(i)) for i in frames) if r is not None]
+        out: dict[str, Any] = {"frames": len(frames), "measured": len(rels),
+                               "corrected": sum(relation_matters(r, self.tolerance) for r in rels)}
+        if rels:
+            med = np.median([(r.gain, r.offset, r.change) for r in rels], axis=0)
+            out.update(gain=round(float(med[0]), 4), offset=round(float(med[1]), 2), change=round(float(med[2]), 2))
+        return out
