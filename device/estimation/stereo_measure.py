@@ -95,10 +95,11 @@ class StereoMeasure:
         return uvr, Xc, ok & self.good_points(Xc, err)
 
     def solve_pose(self, left, right, X: np.ndarray, uv: np.ndarray, T_guess: np.ndarray, seed: int,
-                   use_guess: bool = True):
+                   use_guess: bool = True, stereo_out: list | None = None):
         """PnP RANSAC (from the guess), then LM in both cameras over every point in front (nothing beyond
         twice the inlier threshold weighs), inliers classified at the refined pose.
-        Returns (T_world_cam, n_inliers, mask)."""
+        Returns (T_world_cam, n_inliers, mask).  ``stereo_out``: a list that receives the right-image
+        matches the refinement used, ``(left pixels, right pixels)`` (distorted, as in the images)."""
         cfg = self.cfg
         K0, d0 = self.rig.cam0.K, self.rig.cam0.dist
         uv_u = undistort_px(uv, K0, d0)
@@ -124,6 +125,8 @@ class StereoMeasure:
         uvr, okr = stereo_right(self.rig, left, right, uv[idx], self.right_guess(Xc[idx]), cfg, fb_check=False,
                                 levels=cfg.seeded_stereo_levels)
         ridx = idx[okr]
+        if stereo_out is not None:
+            stereo_out.append((np.asarray(uv)[ridx], uvr[okr]))
         uvr_u = self.right_ideal(uvr[okr])
         res = refine_pose_lm(self.rig, T_cw, X[idx], uv_u[idx], X[ridx], uvr_u, huber_px=cfg.huber_px,
                              outlier_px=cfg.pnp_reproj_px, cutoff_px=2 * cfg.pnp_reproj_px)

@@ -106,8 +106,9 @@ class StereoConfig:
     # refine it on line from points seen in stereo at two keyframes, using only the pairs where the offset is
     # identifiable (OffsetFilter.max_inflation): an orbit around an object leaves it at the prior
     estimate_disparity_offset: bool = True
-    # fit the right camera's grey levels to the left's on the stereo matches of each keyframe, and correct
-    # the right image when that changes the matched texture by more than exposure_tolerance grey levels
+    # fit the right camera's grey levels to the left's on the stereo matches of every frame (the pose solve's)
+    # and keyframe, and correct the right image when the median of the last five fits changes the matched
+    # texture by more than exposure_tolerance grey levels
     match_exposure: bool = True
     exposure_tolerance: float = 4.0
 
@@ -282,10 +283,14 @@ class StereoEstimator(KeyframeJobs):
                 if good.sum() < cfg.min_pnp_inliers:
                     note = "too_few_tracked"
                     continue
-                T_est, n_inl, inl = self._geo.solve_pose(left, right, m.X[good], uv_new[good], T_pred, self._cur_seq)
+                pairs: list = []
+                T_est, n_inl, inl = self._geo.solve_pose(left, right, m.X[good], uv_new[good], T_pred, self._cur_seq,
+                                                         stereo_out=pairs if cfg.match_exposure else None)
                 if T_est is None:
                     note = "pose_failed"
                     continue
+                if pairs and self._right_raw is not None:  # the cameras' exposure, measured at every frame
+                    self._fit_exposure(left, self._right_raw, *pairs[0])
                 m.uv = uv_new.astype(np.float32)
                 m.keep(good)
                 m.keep(inl)
@@ -464,13 +469,16 @@ class StereoEstimator(KeyframeJobs):
 
     def _fit_exposure(self, left, right_raw, xy_left: np.ndarray, xy_right: np.ndarray) -> None:
         """Re-measure the right camera's grey levels against the left's on these stereo matches (the median
-        of the last fits); the correction is used from now on if it matters, dropped if it no longer
-        does, kept if this keyframe does not identify it."""
+        of the last fits); the correction is used from the next frame if it matters, dropped if it no
+        longer does, kept if these matches do not identify it."""
         rel = fit_gain_offset(left, right_raw, xy_left, xy_right)
         if rel is None:
             return
-        # exposure drifts slowly and one keyframe's fit is noisy (KITTI: gain +-3 %, one fit in 20 twice
-        # the others' change): the median of the last five fits
+        # one fit is noisy (KITTI: gain +-3 %, single fits up to 6.5 levels where their neighbours give 2-4):
+        # the median of the last five (a fit at every tracked frame, on the pose solve's right-image matches,
+        # and one at each keyframe): a quarter of a second at 20 Hz, so two AGCs that disagree more
+        # from moment to moment are followed (measured at keyframes only, the correction lagged half a
+        # swing behind a right camera whose gain swung +-25 % within 2.5 s, and did more harm than good)
         self._exposure_fits = (self._exposure_fits + [rel])[-5:]
         med = np.median([(f.gain, f.offset, f.change) for f in self._exposure_fits], axis=0)
         rel = GainOffset(float(med[0]), float(med[1]), rel.n, float(med[2]))
