@@ -93,6 +93,29 @@ def test_the_relations_do_not_depend_on_the_order_frames_are_read(sim):
     assert np.array_equal(a.frame(17).right, b.frame(17).right)
 
 
+class _Swinging(SequenceBase):
+    """The right camera's gain swinging 0.75-1.25 within 30 frames (an AGC of its own)."""
+
+    def __init__(self, inner) -> None:
+        super().__init__(inner.rig, inner.t_ns)
+        self.inner, self.name = inner, "swinging"
+
+    @staticmethod
+    def gain(i: int) -> float:
+        return 1.0 + 0.25 * np.sin(2 * np.pi * i / 30)
+
+    def _load(self, i: int):
+        fr = self.inner.frame(i)
+        return dataclasses.replace(fr, right=cv2.LUT(fr.right, _lut(self.gain(i), 0.0)))
+
+
+def test_the_correction_follows_a_changing_exposure(sim):
+    seq = ExposureMatchedSequence(_Swinging(sim), TrackConfig())
+    for i in (4, 8, 12, 19, 23, 26):  # around the swing's extremes (frames 7.5 and 22.5)
+        rel = seq.relation(i)
+        assert rel is not None and rel.gain == pytest.approx(1 / _Swinging.gain(i), abs=0.08), i
+
+
 def test_probe_and_settings_refuse_what_they_cannot_use(sim):
     flat = np.full((480, 640), 90, np.uint8)
     assert probe_relation(sim.rig, flat, flat, TrackConfig()) is None  # no corner, no relation

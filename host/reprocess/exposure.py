@@ -72,7 +72,7 @@ class ExposureMatchedSequence(SequenceBase):
     (see the module doc).  Everything else (rig, times, IMU, ground truth, the unreadable frames met
     so far) is ``seq``'s own; ``relation(i)`` is what frame ``i`` was corrected with (None: as recorded)."""
 
-    def __init__(self, seq: Any, cfg: Any, tolerance: float = 4.0, stride: int = 5, span: int = 5) -> None:
+    def __init__(self, seq: Any, cfg: Any, tolerance: float = 4.0, stride: int = 2, span: int = 5) -> None:
         if stride < 1 or span < 1:
             raise ConfigError(f"exposure matching: stride and span must be >= 1 (got {stride}, {span})")
         self.inner, self.cfg, self.tolerance, self.stride, self.span = seq, cfg, float(tolerance), int(stride), int(span)
