@@ -49,7 +49,8 @@ from stereopath.device.errors import ConfigError
 from stereopath.device.estimation.base import PoseEstimate, WorldFrame
 from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still, gravity_aligned_rotation
 from stereopath.device.core.features import gray
-from stereopath.device.core.photometric import GainOffset, correct_right, fit_gain_offset, relation_matters
+from stereopath.device.core.photometric import (GainOffset, correct_right, fit_gain_offset, measure_relation,
+                                                relation_matters)
 from stereopath.device.core.stereo import stereo_right, undistort_px
 from stereopath.device.estimation.disparity_offset import OffsetFilter, PriorPath, offset_between_keyframes
 from stereopath.device.estimation.keyframe_jobs import KeyframeJobs
@@ -238,8 +239,9 @@ class StereoEstimator(KeyframeJobs):
             # a first measurement of the two cameras' exposure on this frame's stereo matches
             xy = self._corners(left, np.full(left.shape[:2], 255, np.uint8), self.cfg.max_points)
             if len(xy):
-                uvr, _, ok = self._geo.stereo_points(left, right, xy, self._default_depth())
-                self._fit_exposure(left, right, xy[ok], uvr[ok])
+                z0 = self._default_depth()
+                self._use_exposure_fit(measure_relation(
+                    left, right, xy, lambda image: self._geo.stereo_points(left, image, xy, z0)[::2]))
         right = self._exposure_corrected(right)
         n = self._new_keyframe(left, right, T)
         status = "ok" if n >= self.cfg.min_pnp_inliers else "lost"
@@ -471,7 +473,10 @@ class StereoEstimator(KeyframeJobs):
         """Re-measure the right camera's grey levels against the left's on these stereo matches (the median
         of the last fits); the correction is used from the next frame if it matters, dropped if it no
         longer does, kept if these matches do not identify it."""
-        rel = fit_gain_offset(left, right_raw, xy_left, xy_right)
+        self._use_exposure_fit(fit_gain_offset(left, right_raw, xy_left, xy_right))
+
+    def _use_exposure_fit(self, rel: GainOffset | None) -> None:
+        """Take one fit into the median of the last five; None (not identifiable) changes nothing."""
         if rel is None:
             return
         # one fit is noisy (KITTI: gain +-3 %, single fits up to 6.5 levels where their neighbours give 2-4):

@@ -29,7 +29,7 @@ import numpy as np
 
 from stereopath.device.core.features import gray
 from stereopath.device.core.frames import StereoFrame
-from stereopath.device.core.photometric import GainOffset, correct_right, fit_gain_offset, relation_matters
+from stereopath.device.core.photometric import GainOffset, correct_right, measure_relation, relation_matters
 from stereopath.device.core.stereo import stereo_right, undistort_px
 from stereopath.device.errors import ConfigError, DatasetError
 from stereopath.device.formats.sequence import SequenceBase
@@ -41,15 +41,11 @@ PROBE_QUALITY = 0.01
 PROBE_SPACING_PX = 12
 
 
-def probe_relation(rig, left: np.ndarray, right: np.ndarray, cfg, refine_above: float = 1.0) -> GainOffset | None:
-    """The grey-level relation of one recorded pair: left-image corners matched in the right image
-    (``cfg``: a :class:`~stereopath.host.reprocess.tracks.TrackConfig`, its KLT settings and depth
-    guess), then :func:`~stereopath.device.core.photometric.fit_gain_offset`; None when not identifiable.
-
-    Cameras far apart match few corners as recorded (a right camera at 0.75x gain: 40-50 of 300), so
-    when that first fit changes the texture by more than ``refine_above`` grey levels the corners are
-    matched again in the right image corrected by it, and the relation is fitted anew on those matches
-    (five to six times as many) against the right image as recorded."""
+def probe_relation(rig, left: np.ndarray, right: np.ndarray, cfg) -> GainOffset | None:
+    """The grey-level relation of one recorded pair: left-image corners searched in the right image by
+    stereo KLT (``cfg``: a :class:`~stereopath.host.reprocess.tracks.TrackConfig`, its KLT settings
+    and depth guess), measured by :func:`~stereopath.device.core.photometric.measure_relation`;
+    None when not identifiable."""
     from stereopath.host.reprocess.tracks import right_guess_at_depth
 
     left, right = gray(left), gray(right)
@@ -59,12 +55,7 @@ def probe_relation(rig, left: np.ndarray, right: np.ndarray, cfg, refine_above: 
         return None
     xy = c.reshape(-1, 2).astype(np.float32)
     guess = right_guess_at_depth(rig, undistort_px(xy, rig.cam0.K, rig.cam0.dist), cfg)
-    xr, ok = stereo_right(rig, left, right, xy, guess, cfg)
-    rel = fit_gain_offset(left, right, xy[ok], xr[ok])
-    if rel is None or rel.change <= refine_above:
-        return rel
-    xr, ok = stereo_right(rig, left, correct_right(right, rel), xy, guess, cfg)
-    return fit_gain_offset(left, right, xy[ok], xr[ok]) or rel
+    return measure_relation(left, right, xy, lambda image: stereo_right(rig, left, image, xy, guess, cfg))
 
 
 class ExposureMatchedSequence(SequenceBase):
@@ -96,11 +87,12 @@ class ExposureMatchedSequence(SequenceBase):
             raise AttributeError(name)
         return getattr(self.inner, name)
 
-    def _fit(self, g: int) -> GainOffset | None:
-        """The fit at grid frame ``g`` (cached; None when unreadable or not identifiable)."""
+    def _fit(self, g: int, frame: StereoFrame | None = None) -> GainOffset | None:
+        """The fit at grid frame ``g`` (cached; None when unreadable or not identifiable); ``frame``: that
+        frame when the caller has read it already."""
         if g not in self._fits:
             try:
-                fr = self.inner.frame(g)
+                fr = frame if frame is not None else self.inner.frame(g)
             except DatasetError as exc:
                 log.warning("%s: exposure probe skips unreadable frame %d: %s", self.name, g, exc)
                 self._fits[g] = None
@@ -126,6 +118,8 @@ class ExposureMatchedSequence(SequenceBase):
 
     def _load(self, i: int) -> StereoFrame:
         fr = self.inner.frame(i)
+        if i % self.stride == 0:  # a grid frame: fitted on the images just read, not read again
+            self._fit(i, fr)
         rel = self.relation(i)
         if rel is None:
             return fr
