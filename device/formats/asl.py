@@ -9,7 +9,13 @@ Ground truth (``T_world_cam0``), first found wins:
 
 1. ``groundtruth.tum`` beside ``mav0`` (our sessions): camera-0 poses as they are;
 2. ``groundtruth_tum.txt`` beside ``mav0`` (EuRoC body poses, TUM): ``T_world_body @ T_BS(cam0)``;
-3. ``mav0/state_groundtruth_estimate0/data.csv`` (EuRoC body poses): same composition.
+3. ``mav0/state_groundtruth_estimate0/data.csv`` (EuRoC body poses): same composition;
+4. ``mav0/mocap0/data.csv`` (TUM VI: motion-capture poses of the IMU, the same columns): same composition.
+
+Calibration: our ``mav0/rig.yaml``, else EuRoC's ``camN/sensor.yaml``, else a Kalibr camchain beside
+the data (:func:`stereopath.device.formats.rig_files.load_euroc_calibration`).  A fisheye
+(equidistant) camera's images are read through its pinhole view
+(:mod:`stereopath.device.core.fisheye`), so the sequence's rig is always pinhole.
 """
 
 from __future__ import annotations
@@ -29,7 +35,8 @@ from stereopath.device.formats.images import read_gray
 from stereopath.device.errors import DatasetError
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.rig import Rig
-from stereopath.device.formats.rig_files import load_euroc_rig, load_rig_yaml
+from stereopath.device.core.fisheye import PinholeView
+from stereopath.device.formats.rig_files import load_euroc_calibration, load_rig_yaml
 from stereopath.device.formats.tum import Trajectory, read_tum, read_tum_poses
 
 log = logging.getLogger(__name__)
@@ -39,8 +46,9 @@ class AslSequence(SequenceBase):
     """A stereo(-inertial) sequence in the ASL layout.  Build with :func:`open_asl`."""
 
     def __init__(self, mav0: Path, rig: Rig, t_ns: np.ndarray, files0: list[Path], files1: list[Path],
-                 name: str, spec: str) -> None:
+                 name: str, spec: str, views: tuple[PinholeView | None, PinholeView | None] = (None, None)) -> None:
         super().__init__(rig, t_ns)
+        self.views = views  # per camera: the pinhole view a fisheye camera's images are read through
         self.mav0 = mav0
         self.name = name
         self.spec = spec
@@ -56,10 +64,14 @@ class AslSequence(SequenceBase):
     def _load(self, i: int) -> StereoFrame:
         p0, p1 = self._files[0][i], self._files[1][i]
         left, right = read_gray(p0), read_gray(p1)
-        for cam, img, path in ((self.rig.cam0, left, p0), (self.rig.cam1, right, p1)):
-            if (img.shape[1], img.shape[0]) != tuple(cam.size):
+        images = []
+        for cam, view, img, path in ((self.rig.cam0, self.views[0], left, p0), (self.rig.cam1, self.views[1], right, p1)):
+            size = cam.size if view is None else view.source.size
+            if (img.shape[1], img.shape[0]) != tuple(size):
                 raise DatasetError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but the calibration "
-                                   f"says {cam.size[0]}x{cam.size[1]}")
+                                   f"says {size[0]}x{size[1]}")
+            images.append(img if view is None else view.apply(img))
+        left, right = images
         return StereoFrame(seq=i, t_ns=int(self.t_ns[i]), left=left, right=right, meta={"source": self.name})
 
     @property
@@ -95,7 +107,12 @@ def open_asl(mav0_dir: str | Path, spec: str | None = None) -> AslSequence:
             raise DatasetError(f"missing folder {m / cam}")
         if not (m / cam / "data").is_dir():
             raise DatasetError(f"missing folder {m / cam / 'data'}")
-    rig = load_rig_yaml(m / layout.RIG_YAML) if (m / layout.RIG_YAML).is_file() else load_euroc_rig(m)
+    views: tuple[PinholeView | None, PinholeView | None] = (None, None)
+    if (m / layout.RIG_YAML).is_file():
+        rig = load_rig_yaml(m / layout.RIG_YAML)
+    else:
+        calib = load_euroc_calibration(m)
+        rig, views = calib.rig, calib.views
 
     rows = [_read_camera_csv(m / cam / "data.csv") for cam in layout.CAMERAS]
     present = [set(os.listdir(m / cam / "data")) for cam in layout.CAMERAS]
@@ -113,7 +130,7 @@ def open_asl(mav0_dir: str | Path, spec: str | None = None) -> AslSequence:
     files = [[m / cam / "data" / with_image[k][t] for t in t_pairs] for k, cam in enumerate(layout.CAMERAS)]
     name = m.parent.name if m.name == layout.MAV0 else m.name
     return AslSequence(m, rig, np.array(t_pairs, dtype=np.int64), files[0], files[1],
-                       name=name, spec=spec or f"euroc:{m}")
+                       name=name, spec=spec or f"euroc:{m}", views=views)
 
 
 def open_session(session_dir: str | Path) -> AslSequence:
@@ -197,6 +214,8 @@ def _read_groundtruth(mav0: Path, rig: Rig) -> Trajectory | None:
         body = read_tum(root / layout.EUROC_GROUNDTRUTH_TUM)
     elif (mav0 / layout.EUROC_GROUNDTRUTH_CSV).is_file():
         body = _read_euroc_state_csv(mav0 / layout.EUROC_GROUNDTRUTH_CSV)
+    elif (mav0 / layout.MOCAP_GROUNDTRUTH_CSV).is_file():
+        body = _read_euroc_state_csv(mav0 / layout.MOCAP_GROUNDTRUTH_CSV)
     if body is None:
         return None
     T_body_cam0 = rig.T_body_cam0
@@ -207,7 +226,8 @@ def _read_groundtruth(mav0: Path, rig: Rig) -> Trajectory | None:
 
 
 def _read_euroc_state_csv(path: Path) -> Trajectory:
-    """EuRoC ``state_groundtruth_estimate0/data.csv``: t, p_RS_R (3), q_RS (w, x, y, z), ..."""
+    """EuRoC ``state_groundtruth_estimate0/data.csv`` (or TUM VI ``mocap0/data.csv``): t, p_RS_R (3),
+    q_RS (w, x, y, z), ..."""
     rows = read_rows(path, (8, 64))
     ts, Ts = [], []
     for line, f in rows:

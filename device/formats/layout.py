@@ -32,6 +32,7 @@ GROUNDTRUTH = "groundtruth.tum"  # T_world_cam0
 TRAJECTORY = "trajectory.tum"  # estimated T_world_cam0
 EUROC_GROUNDTRUTH_TUM = "groundtruth_tum.txt"  # EuRoC body poses beside mav0
 EUROC_GROUNDTRUTH_CSV = "state_groundtruth_estimate0/data.csv"  # EuRoC body poses inside mav0
+MOCAP_GROUNDTRUTH_CSV = "mocap0/data.csv"  # TUM VI motion-capture poses of the IMU inside mav0
 IMU_TEMPERATURE = "temperature.csv"
 
 CAM_CSV_HEADER = "#timestamp [ns],filename\n"

@@ -1,4 +1,5 @@
-"""Rig calibration files: our rig YAML, KITTI odometry ``calib.txt`` and EuRoC/ASL ``sensor.yaml`` (read and written).
+"""Rig calibration files: our rig YAML, KITTI odometry ``calib.txt``, EuRoC/ASL ``sensor.yaml`` (read and
+written) and Kalibr camchains (read).
 
 The rig itself (cameras, extrinsics, rectification) is the pure model of
 :mod:`stereopath.device.core.rig`; this module only reads and writes it.
@@ -8,11 +9,13 @@ from __future__ import annotations
 
 import logging
 import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from stereopath.device.core.fisheye import FisheyeCamera, PinholeView, make_fisheye_camera, pinhole_view
 from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import CameraModel, Rig, checked_array, make_camera, make_rig, rig_from_dict, \
     rig_to_dict
@@ -101,33 +104,140 @@ def _euroc_sensor(path: Path) -> dict[str, Any]:
     return data
 
 
-def _euroc_camera(name: str, path: Path) -> tuple[CameraModel, np.ndarray]:
+PINHOLE_MODELS = ("radial-tangential", "radtan", "plumb_bob")
+FISHEYE_MODELS = ("equidistant", "fisheye", "kannala-brandt", "kannala_brandt", "kb4")
+
+
+def _camera(name: str, where: str, camera_model: Any, model: Any, intr: Any, dist: Any,
+            resolution: Any) -> CameraModel | FisheyeCamera:
+    """A camera from the fields EuRoC's ``sensor.yaml`` and Kalibr's camchain share."""
+    if str(camera_model or "pinhole").lower() != "pinhole":
+        raise CalibrationError(f"{where}: camera_model {camera_model!r} is not supported (pinhole with "
+                               f"radial-tangential or equidistant distortion)")
+    model = str(model or "radial-tangential").lower()
+    if not isinstance(intr, list) or len(intr) != 4:
+        raise CalibrationError(f"{where}: intrinsics must be [fu, fv, cu, cv]")
+    try:
+        fu, fv, cu, cv = (float(v) for v in intr)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{where}: intrinsics must be numbers, got {intr!r}") from None
+    K = np.array([[fu, 0, cu], [0, fv, cv], [0, 0, 1.0]])
+    try:
+        if model in PINHOLE_MODELS:
+            return make_camera(name, K, dist, resolution)
+        if model in FISHEYE_MODELS:
+            return make_fisheye_camera(name, K, dist, resolution)
+    except CalibrationError as exc:
+        raise CalibrationError(f"{where}: {exc}") from None
+    raise CalibrationError(f"{where}: distortion_model {model!r} is not supported "
+                           f"({', '.join(PINHOLE_MODELS + FISHEYE_MODELS)})")
+
+
+def _euroc_camera(name: str, path: Path) -> tuple[CameraModel | FisheyeCamera, np.ndarray]:
     d = _euroc_sensor(path)
     for key in ("T_BS", "intrinsics", "resolution", "distortion_coefficients"):
         if key not in d:
             raise CalibrationError(f"{path}: missing {key}")
-    model = d.get("distortion_model", "radial-tangential")
-    if model not in ("radial-tangential", "radtan"):
-        raise CalibrationError(f"{path}: distortion_model {model!r} is not supported (radial-tangential only)")
     tbs = d["T_BS"]
     data = tbs.get("data") if isinstance(tbs, dict) else tbs
     T_BS = checked_array(f"{name}.T_BS", data, (4, 4))
-    intr = d["intrinsics"]
-    if not isinstance(intr, list) or len(intr) != 4:
-        raise CalibrationError(f"{path}: intrinsics must be [fu, fv, cu, cv]")
-    fu, fv, cu, cv = (float(v) for v in intr)
-    K = np.array([[fu, 0, cu], [0, fv, cv], [0, 0, 1.0]])
-    cam = make_camera(name, K, d["distortion_coefficients"], d["resolution"])
+    cam = _camera(name, str(path), d.get("camera_model"), d.get("distortion_model"), d["intrinsics"],
+                  d["distortion_coefficients"], d["resolution"])
     return cam, T_BS
 
 
-def load_euroc_rig(mav0: str | Path) -> Rig:
-    """EuRoC/ASL rig from ``mav0/cam0/sensor.yaml`` and ``mav0/cam1/sensor.yaml``."""
+def _kalibr_camchain(path: Path) -> tuple[Any, Any, np.ndarray, np.ndarray | None]:
+    """Kalibr ``camchain(-imucam).yaml``: the two cameras, ``T_cam1_cam0`` and ``T_body_cam0`` (None
+    without ``T_cam_imu``, i.e. a camera-only calibration)."""
+    d = _euroc_sensor(path)
+    cams, T_cam_imu = [], []
+    for name in ("cam0", "cam1"):
+        c = d.get(name)
+        if not isinstance(c, dict):
+            raise CalibrationError(f"{path}: missing {name}")
+        for key in ("intrinsics", "resolution", "distortion_coeffs"):
+            if key not in c:
+                raise CalibrationError(f"{path}: missing {name}.{key}")
+        cams.append(_camera(name, f"{path}: {name}", c.get("camera_model"), c.get("distortion_model"),
+                            c["intrinsics"], c["distortion_coeffs"], c["resolution"]))
+        T_cam_imu.append(None if "T_cam_imu" not in c else checked_array(f"{name}.T_cam_imu", c["T_cam_imu"], (4, 4)))
+    if "T_cn_cnm1" in d["cam1"]:
+        T_c1_c0 = checked_array("cam1.T_cn_cnm1", d["cam1"]["T_cn_cnm1"], (4, 4))
+    elif T_cam_imu[0] is not None and T_cam_imu[1] is not None:
+        T_c1_c0 = T_cam_imu[1] @ invert_pose(T_cam_imu[0])
+    else:
+        raise CalibrationError(f"{path}: cam1 has neither T_cn_cnm1 nor (with cam0) T_cam_imu")
+    T_b_c0 = None if T_cam_imu[0] is None else invert_pose(T_cam_imu[0])
+    return cams[0], cams[1], T_c1_c0, T_b_c0
+
+
+def _has_calibration(path: Path) -> bool:
+    """True when ``camN/sensor.yaml`` exists and carries intrinsics (some datasets ship it without)."""
+    return path.is_file() and "intrinsics" in _euroc_sensor(path)
+
+
+def kalibr_camchain_path(mav0: Path) -> Path | None:
+    """A Kalibr camchain beside the ASL data: ``*camchain*.yaml`` in ``mav0``, its parent or the
+    parent's ``dso/`` (the TUM VI layout); an ``imucam`` one (with the IMU) first."""
+    found: list[Path] = []
+    for folder in (mav0, mav0.parent, mav0.parent / "dso"):
+        if folder.is_dir():
+            found += sorted(folder.glob("*camchain*.yaml"))
+    found.sort(key=lambda p: "imucam" not in p.name)  # stable: folder order kept within each kind
+    return found[0] if found else None
+
+
+@dataclass(frozen=True)
+class AslCalibration:
+    """The rig of an ASL sequence as its images are read: ``rig`` is pinhole; ``views`` holds, for each
+    fisheye camera, the :class:`~stereopath.device.core.fisheye.PinholeView` its images go through."""
+
+    rig: Rig
+    views: tuple[PinholeView | None, PinholeView | None]
+    source: str
+
+
+def _as_pinhole(cam: CameraModel | FisheyeCamera, name: str) -> tuple[CameraModel, PinholeView | None]:
+    if isinstance(cam, FisheyeCamera):
+        view = pinhole_view(cam, name)
+        return view.camera, view
+    return cam, None
+
+
+def load_euroc_calibration(mav0: str | Path) -> AslCalibration:
+    """The rig of an ASL ``mav0`` folder: ``cam0/sensor.yaml`` and ``cam1/sensor.yaml`` (EuRoC), or when
+    they carry no intrinsics (or are missing) a Kalibr camchain beside the data (see
+    :func:`kalibr_camchain_path`).  Equidistant cameras come with their pinhole views."""
     m = Path(mav0)
-    cam0, T_B_C0 = _euroc_camera("cam0", m / "cam0" / "sensor.yaml")
-    cam1, T_B_C1 = _euroc_camera("cam1", m / "cam1" / "sensor.yaml")
-    T_C1_C0 = invert_pose(T_B_C1) @ T_B_C0
-    return make_rig(cam0, cam1, T_C1_C0[:3, :3], T_C1_C0[:3, 3], name="euroc", T_body_cam0=T_B_C0)
+    sensors = [m / "cam0" / "sensor.yaml", m / "cam1" / "sensor.yaml"]
+    if all(_has_calibration(p) for p in sensors):
+        cam0, T_B_C0 = _euroc_camera("cam0", sensors[0])
+        cam1, T_B_C1 = _euroc_camera("cam1", sensors[1])
+        T_body: np.ndarray | None = T_B_C0
+        T_C1_C0 = invert_pose(T_B_C1) @ T_B_C0
+        source = f"{sensors[0]}, {sensors[1]}"
+    else:
+        chain = kalibr_camchain_path(m)
+        if chain is None:
+            missing = [str(p) for p in sensors if not _has_calibration(p)]
+            raise CalibrationError(f"no calibration for {m}: {', '.join(missing)} missing or without intrinsics, "
+                                   f"and no Kalibr *camchain*.yaml in {m}, {m.parent} or {m.parent / 'dso'}")
+        cam0, cam1, T_C1_C0, T_body = _kalibr_camchain(chain)
+        source = str(chain)
+    pin0, view0 = _as_pinhole(cam0, "cam0")
+    pin1, view1 = _as_pinhole(cam1, "cam1")
+    rig = make_rig(pin0, pin1, T_C1_C0[:3, :3], T_C1_C0[:3, 3], name="euroc", T_body_cam0=T_body)
+    for name, view in (("cam0", view0), ("cam1", view1)):
+        if view is not None:
+            log.info("%s: %s is an equidistant (fisheye) camera: its images are read through a pinhole view of "
+                     "the same K (+-%.0f x +-%.0f deg)", source, name, *view.half_fov_deg)
+    return AslCalibration(rig=rig, views=(view0, view1), source=source)
+
+
+def load_euroc_rig(mav0: str | Path) -> Rig:
+    """The pinhole rig of an ASL ``mav0`` folder (:func:`load_euroc_calibration`; a fisheye camera's
+    images must go through its view, which :func:`stereopath.device.formats.asl.open_asl` does)."""
+    return load_euroc_calibration(mav0).rig
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,0 +1,177 @@
+"""Fisheye (equidistant) ASL data: EuRoC-style sensor.yaml and Kalibr camchains read, the images seen
+through pinhole views, TUM VI's motion-capture ground truth, and the estimator on a fisheye rig.
+
+The fisheye sessions are the simulator's frames warped into equidistant images with OpenCV's own
+``cv2.fisheye`` model (the same K as the simulated pinhole cameras), written in the ASL layout
+with the calibration files a fisheye dataset ships."""
+
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from stereopath.device.core.fisheye import make_fisheye_camera, pinhole_view, project_fisheye
+from stereopath.device.errors import CalibrationError
+from stereopath.device.estimation.base import run_estimator
+from stereopath.device.estimation.registry import make_estimator
+from stereopath.device.formats.asl import open_asl
+from stereopath.device.formats.rig_files import load_euroc_calibration
+from stereopath.device.formats.source import open_source
+from stereopath.host.evaluation.evaluate import evaluate
+
+D_FISH = [0.03, -0.02, 0.01, -0.002]  # k1..k4 (a mild wide-angle lens, like TUM VI's)
+
+
+def _to_fisheye(img: np.ndarray, K: np.ndarray, D) -> np.ndarray:
+    """The pinhole image ``img`` (camera ``K``, no distortion) as the equidistant camera (K, D) sees it."""
+    h, w = img.shape
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    pts = np.stack([u.ravel(), v.ravel()], 1).reshape(-1, 1, 2)
+    rays = cv2.fisheye.undistortPoints(pts, K, np.asarray(D, float)).reshape(-1, 2)
+    src = rays @ K[:2, :2].T + K[:2, 2]
+    mx = src[:, 0].reshape(h, w).astype(np.float32)
+    my = src[:, 1].reshape(h, w).astype(np.float32)
+    return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def _sensor_yaml(K, D, T_BS, size) -> str:
+    rows = ", ".join(repr(float(v)) for v in np.asarray(T_BS).ravel())
+    return ("%YAML:1.0\nsensor_type: camera\nT_BS:\n  cols: 4\n  rows: 4\n  data: [" + rows + "]\n"
+            f"rate_hz: 20\nresolution: [{size[0]}, {size[1]}]\ncamera_model: pinhole\n"
+            f"intrinsics: [{K[0, 0]}, {K[1, 1]}, {K[0, 2]}, {K[1, 2]}]\n"
+            "distortion_model: equidistant\n"
+            f"distortion_coefficients: {list(map(float, D))}\n")
+
+
+@pytest.fixture(scope="module")
+def fisheye_session(tmp_path_factory):
+    """A 100-frame simulated session recorded, then turned into a fisheye dataset: images warped,
+    ``sensor.yaml`` equidistant, our ``rig.yaml`` removed (the third-party layout)."""
+    from stereopath.device.formats.recorder import record_sequence
+    from stereopath.device.sim.session import SimConfig, open_sim
+
+    root = tmp_path_factory.mktemp("fisheye")
+    pin = root / "pinhole"
+    record_sequence(open_sim(SimConfig(frames=100, seed=2)), pin, config_dict={"source": "sim"})
+    fish = root / "fisheye"
+    shutil.copytree(pin, fish)
+    seq = open_asl(pin / "mav0")
+    rig = seq.rig
+    (fish / "mav0" / "rig.yaml").unlink()
+    T_b_c1 = rig.T_body_cam0 @ rig.T_cam0_cam1
+    for cam, name, T_BS in ((rig.cam0, "cam0", rig.T_body_cam0), (rig.cam1, "cam1", T_b_c1)):
+        (fish / "mav0" / name / "sensor.yaml").write_text(_sensor_yaml(cam.K, D_FISH, T_BS, cam.size))
+        for png in sorted((fish / "mav0" / name / "data").glob("*.png")):
+            cv2.imwrite(str(png), _to_fisheye(cv2.imread(str(png), cv2.IMREAD_GRAYSCALE), cam.K, D_FISH))
+    return pin, fish
+
+
+def test_pinhole_view_undoes_the_lens():
+    K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
+    cam = make_fisheye_camera("cam0", K, D_FISH, (640, 480))
+    view = pinhole_view(cam, "cam0")
+    assert np.allclose(view.camera.K, K) and not np.any(view.camera.dist)
+    assert view.half_fov_deg[0] == pytest.approx(np.degrees(np.arctan(320.5 / 500)), abs=0.1)
+    # a ray lands in the fisheye image where the view's map says its pinhole pixel comes from
+    X = np.array([[0.3, -0.2, 1.0], [-0.5, 0.35, 1.0], [0.0, 0.0, 1.0]])
+    uv_pin = X[:, :2] / X[:, 2:] @ K[:2, :2].T + K[:2, 2]
+    uv_fish = project_fisheye(cam, X)
+    for (u, v), (uf, vf) in zip(uv_pin, uv_fish):
+        assert view.map_x[int(round(v)), int(round(u))] == pytest.approx(uf, abs=0.6)
+        assert view.map_y[int(round(v)), int(round(u))] == pytest.approx(vf, abs=0.6)
+    # and a textured image survives the round trip to within interpolation
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (480, 640)).astype(np.float32), (0, 0), 2.5)
+    img = cv2.normalize(img, None, 20, 230, cv2.NORM_MINMAX).astype(np.uint8)
+    back = view.apply(_to_fisheye(img, K, D_FISH)).astype(int)
+    assert np.median(np.abs(back[10:-10, 10:-10] - img[10:-10, 10:-10])) <= 2
+
+
+def test_a_fisheye_model_that_folds_back_is_refused():
+    K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
+    with pytest.raises(CalibrationError, match="outside"):
+        pinhole_view(make_fisheye_camera("cam1", K, [3.0, 2.0, 1.0, 1.0], (640, 480)), "cam1")
+    with pytest.raises(CalibrationError, match="cam0.distortion"):
+        make_fisheye_camera("cam0", K, [0.1, 0.2, 0.3], (640, 480))
+
+
+def test_fisheye_dataset_reads_as_the_pinhole_rig_it_was_made_from(fisheye_session):
+    pin, fish = fisheye_session
+    a, b = open_asl(pin / "mav0"), open_asl(fish / "mav0")
+    assert b.views[0] is not None and b.views[1] is not None
+    assert np.allclose(b.rig.cam0.K, a.rig.cam0.K) and not np.any(b.rig.cam0.dist)
+    assert np.allclose(b.rig.T, a.rig.T, atol=1e-9) and np.allclose(b.rig.R, a.rig.R, atol=1e-9)
+    assert np.allclose(b.rig.T_body_cam0, a.rig.T_body_cam0)
+    fa, fb = a.frame(10), b.frame(10)
+    assert fb.left.shape == fa.left.shape
+    diff = np.abs(fb.left.astype(int) - fa.left.astype(int))[8:-8, 8:-8]
+    assert np.median(diff) <= 2 and np.mean(diff) < 4
+    # the same images without their lens model are a different picture
+    raw = cv2.imread(str(b.image_paths(10)[0]), cv2.IMREAD_GRAYSCALE).astype(int)
+    assert np.mean(np.abs(raw - fa.left.astype(int))[8:-8, 8:-8]) > 3 * np.mean(diff)
+
+
+def test_estimator_tracks_the_fisheye_rig_as_the_pinhole_one(fisheye_session):
+    pin, fish = fisheye_session
+    out = []
+    for d in (pin, fish):
+        seq = open_source(f"session:{d}")
+        est = make_estimator("stereo", seq.rig)
+        run = run_estimator(est, seq.frames(), seq.imu)
+        out.append((run, evaluate(seq.groundtruth, run.trajectory)))
+    (run_p, m_p), (run_f, m_f) = out
+    assert run_f.frames_tracked == run_p.frames_tracked == 100
+    assert m_f["ate_rmse_m"] < 1.5 * m_p["ate_rmse_m"] + 3e-4
+
+
+def _camchain(rig, T_cam0_imu, D) -> str:
+    def mat(T):
+        return "\n".join(f"  - [{', '.join(repr(float(v)) for v in row)}]" for row in T)
+
+    def cam(c, name, T_cam_imu, extra=""):
+        return (f"{name}:\n  T_cam_imu:\n{mat(T_cam_imu)}\n{extra}  cam_overlaps: [1]\n  camera_model: pinhole\n"
+                f"  distortion_coeffs: {list(map(float, D))}\n  distortion_model: equidistant\n"
+                f"  intrinsics: [{c.fx}, {c.fy}, {c.cx}, {c.cy}]\n  resolution: [{c.size[0]}, {c.size[1]}]\n"
+                f"  rostopic: /{name}/image_raw\n")
+
+    T_c1_c0 = rig.T_cam1_cam0
+    return (cam(rig.cam0, "cam0", T_cam0_imu)
+            + cam(rig.cam1, "cam1", T_c1_c0 @ T_cam0_imu, "  T_cn_cnm1:\n" + mat(T_c1_c0).replace("  -", "    -") + "\n"))
+
+
+def test_kalibr_camchain_and_mocap_ground_truth_of_the_tum_vi_layout(fisheye_session, tmp_path):
+    """TUM VI ships its calibration as a Kalibr camchain in ``dso/`` and its ground truth as the
+    motion capture's IMU poses in ``mav0/mocap0/data.csv``."""
+    from stereopath.device.core.geometry import invert_pose
+
+    _, fish = fisheye_session
+    ref = open_asl(fish / "mav0")
+    d = tmp_path / "dataset-room1_512_16"
+    shutil.copytree(fish / "mav0", d / "mav0")
+    for name in ("cam0", "cam1"):  # sensor files without a calibration
+        (d / "mav0" / name / "sensor.yaml").write_text("sensor_type: camera\nrate_hz: 20\n")
+    with pytest.raises(CalibrationError, match="camchain"):
+        open_asl(d / "mav0")
+    (d / "dso").mkdir()
+    (d / "dso" / "camchain.yaml").write_text(_camchain(ref.rig, invert_pose(ref.rig.T_body_cam0), D_FISH))
+    # the body (IMU) poses of the ground truth, as TUM VI's mocap0 gives them
+    gt = ref.groundtruth
+    body = gt.T_world_cam @ invert_pose(ref.rig.T_body_cam0)
+    (d / "mav0" / "mocap0").mkdir()
+    rows = ["#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []"]
+    from scipy.spatial.transform import Rotation
+
+    for t, T in zip(gt.t_ns, body):
+        x, y, z, w = Rotation.from_matrix(T[:3, :3]).as_quat()
+        rows.append(",".join([str(int(t))] + [repr(float(v)) for v in (*T[:3, 3], w, x, y, z)]))
+    (d / "mav0" / "mocap0" / "data.csv").write_text("\n".join(rows) + "\n")
+    seq = open_asl(d)
+    calib = load_euroc_calibration(d / "mav0")
+    assert calib.source.endswith("camchain.yaml")
+    assert np.allclose(seq.rig.T, ref.rig.T, atol=1e-9) and np.allclose(seq.rig.T_body_cam0, ref.rig.T_body_cam0, atol=1e-9)
+    assert seq.views[0] is not None
+    assert np.array_equal(seq.frame(5).left, ref.frame(5).left)
+    g = seq.groundtruth
+    assert g is not None and len(g.t_ns) == len(gt.t_ns)
+    assert np.allclose(g.T_world_cam, gt.T_world_cam, atol=1e-6)
