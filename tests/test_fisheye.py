@@ -11,12 +11,12 @@ import cv2
 import numpy as np
 import pytest
 
-from stereopath.device.core.fisheye import make_fisheye_camera, pinhole_view, project_fisheye
+from stereopath.device.core.fisheye import make_fisheye_camera, pinhole_view
 from stereopath.device.errors import CalibrationError
 from stereopath.device.estimation.base import run_estimator
 from stereopath.device.estimation.registry import make_estimator
 from stereopath.device.formats.asl import open_asl
-from stereopath.device.formats.rig_files import load_euroc_calibration
+from stereopath.device.formats.rig_files import load_euroc_calibration, load_euroc_rig
 from stereopath.device.formats.source import open_source
 from stereopath.host.evaluation.evaluate import evaluate
 
@@ -72,11 +72,11 @@ def test_pinhole_view_undoes_the_lens():
     cam = make_fisheye_camera("cam0", K, D_FISH, (640, 480))
     view = pinhole_view(cam, "cam0")
     assert np.allclose(view.camera.K, K) and not np.any(view.camera.dist)
-    assert view.half_fov_deg[0] == pytest.approx(np.degrees(np.arctan(320.5 / 500)), abs=0.1)
     # a ray lands in the fisheye image where the view's map says its pinhole pixel comes from
     X = np.array([[0.3, -0.2, 1.0], [-0.5, 0.35, 1.0], [0.0, 0.0, 1.0]])
     uv_pin = X[:, :2] / X[:, 2:] @ K[:2, :2].T + K[:2, 2]
-    uv_fish = project_fisheye(cam, X)
+    uv_fish = cv2.fisheye.projectPoints(X.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K,
+                                        np.array(D_FISH))[0].reshape(-1, 2)
     for (u, v), (uf, vf) in zip(uv_pin, uv_fish):
         assert view.map_x[int(round(v)), int(round(u))] == pytest.approx(uf, abs=0.6)
         assert view.map_y[int(round(v)), int(round(u))] == pytest.approx(vf, abs=0.6)
@@ -110,6 +110,8 @@ def test_fisheye_dataset_reads_as_the_pinhole_rig_it_was_made_from(fisheye_sessi
     # the same images without their lens model are a different picture
     raw = cv2.imread(str(b.image_paths(10)[0]), cv2.IMREAD_GRAYSCALE).astype(int)
     assert np.mean(np.abs(raw - fa.left.astype(int))[8:-8, 8:-8]) > 3 * np.mean(diff)
+    with pytest.raises(CalibrationError, match="pinhole views"):
+        load_euroc_rig(fish / "mav0")  # the rig alone would be read with the fisheye images
 
 
 def test_estimator_tracks_the_fisheye_rig_as_the_pinhole_one(fisheye_session):
@@ -125,7 +127,7 @@ def test_estimator_tracks_the_fisheye_rig_as_the_pinhole_one(fisheye_session):
     assert m_f["ate_rmse_m"] < 1.5 * m_p["ate_rmse_m"] + 3e-4
 
 
-def _camchain(rig, T_cam0_imu, D) -> str:
+def _camchain(rig, T_cam0_imu, D, chain=True) -> str:
     def mat(T):
         return "\n".join(f"  - [{', '.join(repr(float(v)) for v in row)}]" for row in T)
 
@@ -136,8 +138,8 @@ def _camchain(rig, T_cam0_imu, D) -> str:
                 f"  rostopic: /{name}/image_raw\n")
 
     T_c1_c0 = rig.T_cam1_cam0
-    return (cam(rig.cam0, "cam0", T_cam0_imu)
-            + cam(rig.cam1, "cam1", T_c1_c0 @ T_cam0_imu, "  T_cn_cnm1:\n" + mat(T_c1_c0).replace("  -", "    -") + "\n"))
+    extra = "  T_cn_cnm1:\n" + mat(T_c1_c0).replace("  -", "    -") + "\n" if chain else ""
+    return cam(rig.cam0, "cam0", T_cam0_imu) + cam(rig.cam1, "cam1", T_c1_c0 @ T_cam0_imu, extra)
 
 
 def test_kalibr_camchain_and_mocap_ground_truth_of_the_tum_vi_layout(fisheye_session, tmp_path):
@@ -175,3 +177,39 @@ def test_kalibr_camchain_and_mocap_ground_truth_of_the_tum_vi_layout(fisheye_ses
     g = seq.groundtruth
     assert g is not None and len(g.t_ns) == len(gt.t_ns)
     assert np.allclose(g.T_world_cam, gt.T_world_cam, atol=1e-6)
+
+
+def test_camchain_without_t_cn_cnm1_and_broken_camchains(fisheye_session, tmp_path):
+    """The stereo extrinsics from the two T_cam_imu when T_cn_cnm1 is absent; a broken camchain is
+    refused with the file and the field named."""
+    from stereopath.device.core.geometry import invert_pose
+
+    _, fish = fisheye_session
+    ref = open_asl(fish / "mav0")
+    m = tmp_path / "mav0"
+    shutil.copytree(fish / "mav0", m)
+    for name in ("cam0", "cam1"):
+        (m / name / "sensor.yaml").unlink()
+    good = _camchain(ref.rig, invert_pose(ref.rig.T_body_cam0), D_FISH, chain=False)
+    chain = tmp_path / "camchain-imucam-room1.yaml"
+    chain.write_text(good)
+    (tmp_path / "camchain-room1.yaml").write_text("cam0: [1, 2]\n")  # a camera-only one: the imucam wins
+    seq = open_asl(m)
+    assert np.allclose(seq.rig.R, ref.rig.R, atol=1e-9) and np.allclose(seq.rig.T, ref.rig.T, atol=1e-9)
+    assert np.allclose(seq.rig.T_body_cam0, ref.rig.T_body_cam0, atol=1e-9)
+    T_bad = invert_pose(ref.rig.T_body_cam0)
+    T_bad[:3, :3] *= 1.5  # not a rotation
+    i1 = good.index("cam1:")
+    broken = {
+        "cam1.distortion: not numeric": good[:i1] + good[i1:].replace("distortion_coeffs: [0.03", "distortion_coeffs: [a"),
+        "cam0.distortion: expected shape": good.replace("distortion_coeffs: [0.03, ", "distortion_coeffs: [", 1),
+        "cam0.intrinsics must be": good.replace("intrinsics: [", "intrinsics: [1, ", 1),
+        "cam0.distortion_model 'omni'": good.replace("distortion_model: equidistant", "distortion_model: omni", 1),
+        "cam0.T_cam_imu rotation: not a rotation": _camchain(ref.rig, T_bad, D_FISH, chain=False),
+        "missing cam1": good[:i1],
+    }
+    for what, text in broken.items():
+        chain.write_text(text)
+        with pytest.raises(CalibrationError, match=what.replace("(", r"\(")) as info:
+            open_asl(m)
+        assert str(chain) in str(info.value)

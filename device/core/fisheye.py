@@ -15,18 +15,17 @@ focal length at 512 x 512 keeps +-53 deg across, of its +-77 deg).
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from stereopath.device.core.rig import CameraModel, checked_array, make_camera
+from stereopath.device.core.rig import CameraModel, checked_array, checked_intrinsics, checked_size, make_camera
 from stereopath.device.errors import CalibrationError
 
-log = logging.getLogger(__name__)
-
-MAX_OUTSIDE = 0.02  # a view whose pixels fall outside the fisheye image more than this is refused
+# A view whose pixels fall outside the fisheye image more than this is refused; below it the few
+# outside pixels repeat the image's edge (no black border to make false corners).
+MAX_OUTSIDE = 0.02
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,9 +39,10 @@ class FisheyeCamera:
 
 def make_fisheye_camera(name: str, K: Any, dist: Any, size: Any) -> FisheyeCamera:
     """Validated :class:`FisheyeCamera`; errors name the field (e.g. ``cam0.distortion``)."""
-    pin = make_camera(name, K, np.zeros(5), size)  # the same checks of K and size
+    if dist is None:
+        raise CalibrationError(f"{name}.distortion: missing (an equidistant camera has k1, k2, k3, k4)")
     d = checked_array(f"{name}.distortion", dist, (4,))
-    return FisheyeCamera(K=pin.K, dist=d, size=pin.size)
+    return FisheyeCamera(K=checked_intrinsics(name, K), dist=d, size=checked_size(name, size))
 
 
 @dataclass(frozen=True, eq=False)
@@ -58,8 +58,7 @@ class PinholeView:
     def apply(self, image: np.ndarray) -> np.ndarray:
         import cv2
 
-        return cv2.remap(image, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                         borderValue=0)
+        return cv2.remap(image, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def pinhole_view(cam: FisheyeCamera, name: str) -> PinholeView:
@@ -78,17 +77,8 @@ def pinhole_view(cam: FisheyeCamera, name: str) -> PinholeView:
     if outside > MAX_OUTSIDE:
         raise CalibrationError(f"{name}: the equidistant calibration maps {100 * outside:.1f} % of the pinhole view "
                                f"outside the {w}x{h} image (distortion {cam.dist.tolist()}): not a usable fisheye model")
-    map_x = np.where(ok, map_x, -1.0).astype(np.float32)
-    map_y = np.where(ok, map_y, -1.0).astype(np.float32)
+    map_x = np.where(ok, map_x, 0.0).astype(np.float32)
+    map_y = np.where(ok, map_y, 0.0).astype(np.float32)
     fov = (float(np.degrees(np.arctan(max(K[0, 2], w - 1 - K[0, 2]) / K[0, 0]))),
            float(np.degrees(np.arctan(max(K[1, 2], h - 1 - K[1, 2]) / K[1, 1]))))
     return PinholeView(source=cam, camera=pinhole, map_x=map_x, map_y=map_y, half_fov_deg=fov)
-
-
-def project_fisheye(cam: FisheyeCamera, X: np.ndarray) -> np.ndarray:
-    """Pixels of camera-frame points ``X`` (n, 3) in the fisheye image (for tests and tools)."""
-    import cv2
-
-    pts = np.asarray(X, float).reshape(-1, 1, 3)
-    uv, _ = cv2.fisheye.projectPoints(pts, np.zeros(3), np.zeros(3), cam.K, cam.dist)
-    return uv.reshape(-1, 2)

@@ -177,25 +177,49 @@ def checked_array(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
     return a
 
 
-def make_camera(name: str, K: Any, dist: Any, size: Any) -> CameraModel:
-    """Validated :class:`CameraModel`; errors name the field (e.g. ``cam0.K``)."""
+def checked_intrinsics(name: str, K: Any) -> np.ndarray:
+    """A validated 3x3 intrinsic matrix (positive focal lengths, upper triangular, ``K[2,2] = 1``)."""
     K = checked_array(f"{name}.K", K, (3, 3))
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise CalibrationError(f"{name}.K: focal length must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
     if abs(K[2, 2] - 1.0) > 1e-9 or abs(K[1, 0]) > 1e-9 or abs(K[2, 0]) > 1e-9 or abs(K[2, 1]) > 1e-9:
         raise CalibrationError(f"{name}.K: not an upper-triangular intrinsic matrix with K[2,2] = 1")
-    d = np.asarray(dist if dist is not None else np.zeros(5), dtype=float).reshape(-1)
-    if d.size not in (4, 5, 8, 12, 14):
-        raise CalibrationError(f"{name}.distortion: expected 4, 5, 8, 12 or 14 coefficients, got {d.size}")
-    if not np.all(np.isfinite(d)):
-        raise CalibrationError(f"{name}.distortion: contains non-finite values")
+    return K
+
+
+def intrinsic_matrix(where: str, intr: Any) -> np.ndarray:
+    """``[fx, fy, cx, cy]`` (our YAML, EuRoC ``intrinsics``, Kalibr) -> K; errors name ``where``."""
+    if not isinstance(intr, (list, tuple)) or len(intr) != 4:
+        raise CalibrationError(f"{where}.intrinsics must be [fx, fy, cx, cy], got {intr!r}")
+    try:
+        fx, fy, cx, cy = (float(v) for v in intr)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{where}.intrinsics must be numbers, got {intr!r}") from None
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+
+
+def checked_size(name: str, size: Any) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in size)
     except (TypeError, ValueError):
         raise CalibrationError(f"{name}.image_size: expected [width, height], got {size!r}") from None
     if w <= 0 or h <= 0:
         raise CalibrationError(f"{name}.image_size: must be positive, got {w}x{h}")
-    return CameraModel(K=K, dist=d, size=(w, h))
+    return w, h
+
+
+def make_camera(name: str, K: Any, dist: Any, size: Any) -> CameraModel:
+    """Validated :class:`CameraModel`; errors name the field (e.g. ``cam0.K``)."""
+    K = checked_intrinsics(name, K)
+    try:
+        d = np.asarray(dist if dist is not None else np.zeros(5), dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{name}.distortion: not numeric: {dist!r}") from None
+    if d.size not in (4, 5, 8, 12, 14):
+        raise CalibrationError(f"{name}.distortion: expected 4, 5, 8, 12 or 14 coefficients, got {d.size}")
+    if not np.all(np.isfinite(d)):
+        raise CalibrationError(f"{name}.distortion: contains non-finite values")
+    return CameraModel(K=K, dist=d, size=checked_size(name, size))
 
 
 def validated_rotation(name: str, R: Any) -> np.ndarray:
@@ -276,11 +300,7 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
         for key in ("intrinsics", "image_size"):
             if key not in c:
                 raise CalibrationError(f"{source}: missing key {cname}.{key}")
-        intr = c["intrinsics"]
-        if not isinstance(intr, (list, tuple)) or len(intr) != 4:
-            raise CalibrationError(f"{source}: {cname}.intrinsics must be [fx, fy, cx, cy]")
-        fx, fy, cx, cy = (float(v) for v in intr)
-        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+        K = intrinsic_matrix(f"{source}: {cname}", c["intrinsics"])
         cams.append(make_camera(cname, K, c.get("distortion", [0, 0, 0, 0, 0]), c["image_size"]))
     return make_rig(cams[0], cams[1], data["R_cam1_cam0"], data["T_cam1_cam0_m"],
                     name=str(data.get("name", Path(source).stem)), T_body_cam0=data.get("T_body_cam0"))

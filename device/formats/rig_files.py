@@ -17,8 +17,8 @@ import numpy as np
 
 from stereopath.device.core.fisheye import FisheyeCamera, PinholeView, make_fisheye_camera, pinhole_view
 from stereopath.device.core.geometry import invert_pose
-from stereopath.device.core.rig import CameraModel, Rig, checked_array, make_camera, make_rig, rig_from_dict, \
-    rig_to_dict
+from stereopath.device.core.rig import CameraModel, Rig, checked_array, intrinsic_matrix, make_camera, make_rig, \
+    rig_from_dict, rig_to_dict, validated_rotation
 from stereopath.device.errors import CalibrationError
 from stereopath.device.formats.fileio import write_text_atomic
 
@@ -87,13 +87,13 @@ def load_kitti_calib(path: str | Path, image_size: tuple[int, int]) -> Rig:
     return make_rig(cam0, cam1, np.eye(3), [-baseline, 0.0, 0.0], name="kitti")
 
 
-def _euroc_sensor(path: Path) -> dict[str, Any]:
+def _euroc_sensor(path: Path, what: str = "EuRoC sensor file") -> dict[str, Any]:
     import yaml
 
     try:
         text = path.read_text()
     except FileNotFoundError:
-        raise CalibrationError(f"EuRoC sensor file not found: {path}") from None
+        raise CalibrationError(f"{what} not found: {path}") from None
     text = re.sub(r"^%YAML.*$", "", text, count=1, flags=re.MULTILINE)  # OpenCV-style header
     try:
         data = yaml.safe_load(text)
@@ -110,27 +110,37 @@ FISHEYE_MODELS = ("equidistant", "fisheye", "kannala-brandt", "kannala_brandt", 
 
 def _camera(name: str, where: str, camera_model: Any, model: Any, intr: Any, dist: Any,
             resolution: Any) -> CameraModel | FisheyeCamera:
-    """A camera from the fields EuRoC's ``sensor.yaml`` and Kalibr's camchain share."""
+    """A camera from the fields EuRoC's ``sensor.yaml`` and Kalibr's camchain share; errors start
+    with ``where`` (the file) and name the field."""
     if str(camera_model or "pinhole").lower() != "pinhole":
-        raise CalibrationError(f"{where}: camera_model {camera_model!r} is not supported (pinhole with "
+        raise CalibrationError(f"{where}: {name}.camera_model {camera_model!r} is not supported (pinhole with "
                                f"radial-tangential or equidistant distortion)")
     model = str(model or "radial-tangential").lower()
-    if not isinstance(intr, list) or len(intr) != 4:
-        raise CalibrationError(f"{where}: intrinsics must be [fu, fv, cu, cv]")
     try:
-        fu, fv, cu, cv = (float(v) for v in intr)
-    except (TypeError, ValueError):
-        raise CalibrationError(f"{where}: intrinsics must be numbers, got {intr!r}") from None
-    K = np.array([[fu, 0, cu], [0, fv, cv], [0, 0, 1.0]])
-    try:
+        if dist is None:
+            raise CalibrationError(f"{name}.distortion: missing")
+        K = intrinsic_matrix(name, intr)
         if model in PINHOLE_MODELS:
             return make_camera(name, K, dist, resolution)
         if model in FISHEYE_MODELS:
             return make_fisheye_camera(name, K, dist, resolution)
     except CalibrationError as exc:
         raise CalibrationError(f"{where}: {exc}") from None
-    raise CalibrationError(f"{where}: distortion_model {model!r} is not supported "
+    raise CalibrationError(f"{where}: {name}.distortion_model {model!r} is not supported "
                            f"({', '.join(PINHOLE_MODELS + FISHEYE_MODELS)})")
+
+
+def _pose(where: str, name: str, value: Any) -> np.ndarray:
+    """A 4x4 rigid transform from a file: rotation checked, last row [0, 0, 0, 1]."""
+    try:
+        T = checked_array(name, value, (4, 4))
+        if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-9):
+            raise CalibrationError(f"{name}: last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+        T = T.copy()
+        T[:3, :3] = validated_rotation(f"{name} rotation", T[:3, :3])
+    except CalibrationError as exc:
+        raise CalibrationError(f"{where}: {exc}") from None
+    return T
 
 
 def _euroc_camera(name: str, path: Path) -> tuple[CameraModel | FisheyeCamera, np.ndarray]:
@@ -140,7 +150,7 @@ def _euroc_camera(name: str, path: Path) -> tuple[CameraModel | FisheyeCamera, n
             raise CalibrationError(f"{path}: missing {key}")
     tbs = d["T_BS"]
     data = tbs.get("data") if isinstance(tbs, dict) else tbs
-    T_BS = checked_array(f"{name}.T_BS", data, (4, 4))
+    T_BS = _pose(str(path), f"{name}.T_BS", data)
     cam = _camera(name, str(path), d.get("camera_model"), d.get("distortion_model"), d["intrinsics"],
                   d["distortion_coefficients"], d["resolution"])
     return cam, T_BS
@@ -149,24 +159,25 @@ def _euroc_camera(name: str, path: Path) -> tuple[CameraModel | FisheyeCamera, n
 def _kalibr_camchain(path: Path) -> tuple[Any, Any, np.ndarray, np.ndarray | None]:
     """Kalibr ``camchain(-imucam).yaml``: the two cameras, ``T_cam1_cam0`` and ``T_body_cam0`` (None
     without ``T_cam_imu``, i.e. a camera-only calibration)."""
-    d = _euroc_sensor(path)
+    d = _euroc_sensor(path, "Kalibr camchain")
+    where = str(path)
     cams, T_cam_imu = [], []
     for name in ("cam0", "cam1"):
         c = d.get(name)
         if not isinstance(c, dict):
-            raise CalibrationError(f"{path}: missing {name}")
+            raise CalibrationError(f"{where}: missing {name} (or not a mapping)")
         for key in ("intrinsics", "resolution", "distortion_coeffs"):
             if key not in c:
-                raise CalibrationError(f"{path}: missing {name}.{key}")
-        cams.append(_camera(name, f"{path}: {name}", c.get("camera_model"), c.get("distortion_model"),
-                            c["intrinsics"], c["distortion_coeffs"], c["resolution"]))
-        T_cam_imu.append(None if "T_cam_imu" not in c else checked_array(f"{name}.T_cam_imu", c["T_cam_imu"], (4, 4)))
+                raise CalibrationError(f"{where}: missing {name}.{key}")
+        cams.append(_camera(name, where, c.get("camera_model"), c.get("distortion_model"), c["intrinsics"],
+                            c["distortion_coeffs"], c["resolution"]))
+        T_cam_imu.append(_pose(where, f"{name}.T_cam_imu", c["T_cam_imu"]) if "T_cam_imu" in c else None)
     if "T_cn_cnm1" in d["cam1"]:
-        T_c1_c0 = checked_array("cam1.T_cn_cnm1", d["cam1"]["T_cn_cnm1"], (4, 4))
+        T_c1_c0 = _pose(where, "cam1.T_cn_cnm1", d["cam1"]["T_cn_cnm1"])
     elif T_cam_imu[0] is not None and T_cam_imu[1] is not None:
         T_c1_c0 = T_cam_imu[1] @ invert_pose(T_cam_imu[0])
     else:
-        raise CalibrationError(f"{path}: cam1 has neither T_cn_cnm1 nor (with cam0) T_cam_imu")
+        raise CalibrationError(f"{where}: cam1 has neither T_cn_cnm1 nor (with cam0) T_cam_imu")
     T_b_c0 = None if T_cam_imu[0] is None else invert_pose(T_cam_imu[0])
     return cams[0], cams[1], T_c1_c0, T_b_c0
 
@@ -224,20 +235,29 @@ def load_euroc_calibration(mav0: str | Path) -> AslCalibration:
                                    f"and no Kalibr *camchain*.yaml in {m}, {m.parent} or {m.parent / 'dso'}")
         cam0, cam1, T_C1_C0, T_body = _kalibr_camchain(chain)
         source = str(chain)
-    pin0, view0 = _as_pinhole(cam0, "cam0")
-    pin1, view1 = _as_pinhole(cam1, "cam1")
-    rig = make_rig(pin0, pin1, T_C1_C0[:3, :3], T_C1_C0[:3, 3], name="euroc", T_body_cam0=T_body)
+    try:
+        pin0, view0 = _as_pinhole(cam0, "cam0")
+        pin1, view1 = _as_pinhole(cam1, "cam1")
+        rig = make_rig(pin0, pin1, T_C1_C0[:3, :3], T_C1_C0[:3, 3], name="euroc", T_body_cam0=T_body)
+    except CalibrationError as exc:
+        raise CalibrationError(f"{source}: {exc}") from None
+    log.info("%s: calibration from %s", m, source)
     for name, view in (("cam0", view0), ("cam1", view1)):
         if view is not None:
-            log.info("%s: %s is an equidistant (fisheye) camera: its images are read through a pinhole view of "
-                     "the same K (+-%.0f x +-%.0f deg)", source, name, *view.half_fov_deg)
+            log.info("%s is an equidistant (fisheye) camera: its images are read through a pinhole view of the "
+                     "same K (+-%.0f x +-%.0f deg)", name, *view.half_fov_deg)
     return AslCalibration(rig=rig, views=(view0, view1), source=source)
 
 
 def load_euroc_rig(mav0: str | Path) -> Rig:
-    """The pinhole rig of an ASL ``mav0`` folder (:func:`load_euroc_calibration`; a fisheye camera's
-    images must go through its view, which :func:`stereopath.device.formats.asl.open_asl` does)."""
-    return load_euroc_calibration(mav0).rig
+    """The rig of an ASL ``mav0`` folder of pinhole cameras.  A fisheye camera's images must go
+    through its view, so a fisheye rig is refused here: open the data with
+    :func:`stereopath.device.formats.asl.open_asl` (or use :func:`load_euroc_calibration`)."""
+    calib = load_euroc_calibration(mav0)
+    if any(v is not None for v in calib.views):
+        raise CalibrationError(f"{calib.source}: fisheye cameras: their images must be read through their pinhole "
+                               f"views (open the folder as a sequence, euroc:{mav0})")
+    return calib.rig
 
 
 # ---------------------------------------------------------------------------------------------
