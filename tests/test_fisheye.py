@@ -1,9 +1,10 @@
 """Fisheye (equidistant) ASL data: EuRoC-style sensor.yaml and Kalibr camchains read, the images seen
 through pinhole views, TUM VI's motion-capture ground truth, and the estimator on a fisheye rig.
 
-The fisheye sessions are the simulator's frames warped into equidistant images with OpenCV's own
-``cv2.fisheye`` model (the same K as the simulated pinhole cameras), written in the ASL layout
-with the calibration files a fisheye dataset ships."""
+The fisheye sessions are the simulator's frames, rendered with a TUM VI-like pinhole rig (512 x 512,
+f = 190 px, 10 cm baseline), warped into equidistant images with OpenCV's own ``cv2.fisheye`` model
+(the same K, TUM VI's lens coefficients) and written in the ASL layout with the calibration files a
+fisheye dataset ships."""
 
 import shutil
 
@@ -20,7 +21,18 @@ from stereopath.device.formats.rig_files import load_euroc_calibration, load_eur
 from stereopath.device.formats.source import open_source
 from stereopath.host.evaluation.evaluate import evaluate
 
-D_FISH = [0.03, -0.02, 0.01, -0.002]  # k1..k4 (a mild wide-angle lens, like TUM VI's)
+D_FISH = [0.03, -0.02, 0.01, -0.002]  # k1..k4 of a mild wide-angle lens
+D_TUMVI = [0.0034823894022493434, 0.0007150348452162257, -0.0020532361418706202, 0.00020293673591811182]
+
+
+def _tumvi_like(session):
+    """The simulator with a TUM VI-like pinhole rig instead of its own (same IMU and body frame)."""
+    from stereopath.device.core.rig import make_camera, make_rig
+
+    K = np.array([[190.0, 0, 255.5], [0, 190.0, 255.5], [0, 0, 1]])
+    cams = [make_camera(n, K, np.zeros(5), (512, 512)) for n in ("cam0", "cam1")]
+    session.rig = make_rig(*cams, np.eye(3), [-0.10, 0, 0], name="tumvi-like", T_body_cam0=session.rig.T_body_cam0)
+    return session
 
 
 def _to_fisheye(img: np.ndarray, K: np.ndarray, D) -> np.ndarray:
@@ -46,14 +58,14 @@ def _sensor_yaml(K, D, T_BS, size) -> str:
 
 @pytest.fixture(scope="module")
 def fisheye_session(tmp_path_factory):
-    """A 100-frame simulated session recorded, then turned into a fisheye dataset: images warped,
-    ``sensor.yaml`` equidistant, our ``rig.yaml`` removed (the third-party layout)."""
+    """A 100-frame simulated session (TUM VI-like rig) recorded, then turned into a fisheye dataset:
+    images warped, ``sensor.yaml`` equidistant, our ``rig.yaml`` removed (the third-party layout)."""
     from stereopath.device.formats.recorder import record_sequence
     from stereopath.device.sim.session import SimConfig, open_sim
 
     root = tmp_path_factory.mktemp("fisheye")
     pin = root / "pinhole"
-    record_sequence(open_sim(SimConfig(frames=100, seed=2)), pin, config_dict={"source": "sim"})
+    record_sequence(_tumvi_like(open_sim(SimConfig(frames=100, seed=2))), pin, config_dict={"source": "sim"})
     fish = root / "fisheye"
     shutil.copytree(pin, fish)
     seq = open_asl(pin / "mav0")
@@ -61,9 +73,9 @@ def fisheye_session(tmp_path_factory):
     (fish / "mav0" / "rig.yaml").unlink()
     T_b_c1 = rig.T_body_cam0 @ rig.T_cam0_cam1
     for cam, name, T_BS in ((rig.cam0, "cam0", rig.T_body_cam0), (rig.cam1, "cam1", T_b_c1)):
-        (fish / "mav0" / name / "sensor.yaml").write_text(_sensor_yaml(cam.K, D_FISH, T_BS, cam.size))
+        (fish / "mav0" / name / "sensor.yaml").write_text(_sensor_yaml(cam.K, D_TUMVI, T_BS, cam.size))
         for png in sorted((fish / "mav0" / name / "data").glob("*.png")):
-            cv2.imwrite(str(png), _to_fisheye(cv2.imread(str(png), cv2.IMREAD_GRAYSCALE), cam.K, D_FISH))
+            cv2.imwrite(str(png), _to_fisheye(cv2.imread(str(png), cv2.IMREAD_GRAYSCALE), cam.K, D_TUMVI))
     return pin, fish
 
 
@@ -156,7 +168,7 @@ def test_kalibr_camchain_and_mocap_ground_truth_of_the_tum_vi_layout(fisheye_ses
     with pytest.raises(CalibrationError, match="camchain"):
         open_asl(d / "mav0")
     (d / "dso").mkdir()
-    (d / "dso" / "camchain.yaml").write_text(_camchain(ref.rig, invert_pose(ref.rig.T_body_cam0), D_FISH))
+    (d / "dso" / "camchain.yaml").write_text(_camchain(ref.rig, invert_pose(ref.rig.T_body_cam0), D_TUMVI))
     # the body (IMU) poses of the ground truth, as TUM VI's mocap0 gives them
     gt = ref.groundtruth
     body = gt.T_world_cam @ invert_pose(ref.rig.T_body_cam0)
@@ -190,7 +202,7 @@ def test_camchain_without_t_cn_cnm1_and_broken_camchains(fisheye_session, tmp_pa
     shutil.copytree(fish / "mav0", m)
     for name in ("cam0", "cam1"):
         (m / name / "sensor.yaml").unlink()
-    good = _camchain(ref.rig, invert_pose(ref.rig.T_body_cam0), D_FISH, chain=False)
+    good = _camchain(ref.rig, invert_pose(ref.rig.T_body_cam0), D_TUMVI, chain=False)
     chain = tmp_path / "camchain-imucam-room1.yaml"
     chain.write_text(good)
     (tmp_path / "camchain-room1.yaml").write_text("cam0: [1, 2]\n")  # a camera-only one: the imucam wins
@@ -201,11 +213,11 @@ def test_camchain_without_t_cn_cnm1_and_broken_camchains(fisheye_session, tmp_pa
     T_bad[:3, :3] *= 1.5  # not a rotation
     i1 = good.index("cam1:")
     broken = {
-        "cam1.distortion: not numeric": good[:i1] + good[i1:].replace("distortion_coeffs: [0.03", "distortion_coeffs: [a"),
-        "cam0.distortion: expected shape": good.replace("distortion_coeffs: [0.03, ", "distortion_coeffs: [", 1),
+        "cam1.distortion: not numeric": good[:i1] + good[i1:].replace("distortion_coeffs: [0.00", "distortion_coeffs: [a"),
+        "cam0.distortion: expected shape": good.replace(f"distortion_coeffs: [{D_TUMVI[0]!r}, ", "distortion_coeffs: [", 1),
         "cam0.intrinsics must be": good.replace("intrinsics: [", "intrinsics: [1, ", 1),
         "cam0.distortion_model 'omni'": good.replace("distortion_model: equidistant", "distortion_model: omni", 1),
-        "cam0.T_cam_imu rotation: not a rotation": _camchain(ref.rig, T_bad, D_FISH, chain=False),
+        "cam0.T_cam_imu rotation: not a rotation": _camchain(ref.rig, T_bad, D_TUMVI, chain=False),
         "missing cam1": good[:i1],
     }
     for what, text in broken.items():
