@@ -1,11 +1,12 @@
 """Stereo depth accuracy and speed (issue 5 targets).  Prints figures; asserts nothing.
 
-    .venv/bin/python benchmarks/bench_depth.py [--runs R] [--frames N]
+    .venv/bin/python benchmarks/bench_depth.py [--runs R] [--frames N] [--middlebury DIR] [--skip-sim]
 
-1. Middlebury 2003 ``cones`` and ``teddy`` (../shared/data/middlebury; im2 left, im6 right,
-   disp2 ground truth x4, 0 = unknown).  The pairs are already rectified, so SGBM runs on them
-   directly (grey images, 64 disparities, the same left-right check and speckle filter as for
-   keyframes).  Per scene: the bad-pixel rate (|d - gt| > 2 px) over all known pixels of the left
+1. Every Middlebury scene in ``--middlebury DIR`` (default ../shared/data/middlebury: ``cones``
+   and ``teddy``; the 2001/2003 layout with ``datasets.xml`` scale factors and the 2014 layout
+   with PFM ground truth, :mod:`stereopath.host.evaluation.middlebury`).  The pairs are already
+   rectified, so SGBM runs on them directly (grey images, the scene's disparity range rounded up
+   to 16, the same left-right check and speckle filter as for keyframes).  Per scene: the bad-pixel rate (|d - gt| > 2 px) over all known pixels of the left
    image, holes filled from the background side (Middlebury's convention for sparse methods;
    target <= 15 %), plus the rate over the pixels we do match, the rate counting holes as bad,
    and the density.
@@ -31,6 +32,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from stereopath.device.errors import StereopathError  # noqa: E402
+from stereopath.host.evaluation.middlebury import Scene, find_scenes, read_scene  # noqa: E402
 from stereopath.host.mapping.depth import (  # noqa: E402
     DEPTH_PRESETS, DepthConfig, StereoDepth, compute_disparity, fill_holes_background, make_matcher,
 )
@@ -39,16 +42,15 @@ DATA = ROOT.parent / "shared" / "data"
 MIDDLEBURY_CONFIG = DepthConfig(max_disparity_px=63, block_size=3, edge_max_rel_step=0.0)
 
 
-def middlebury_scene(scene_dir: Path, config: DepthConfig = MIDDLEBURY_CONFIG) -> dict[str, float]:
+def middlebury_scene(scene: Scene, config: DepthConfig = MIDDLEBURY_CONFIG) -> dict[str, float]:
     """Bad-pixel figures of one Middlebury scene (see the module doc)."""
-    left = cv2.imread(str(scene_dir / "im2.png"), cv2.IMREAD_GRAYSCALE)
-    right = cv2.imread(str(scene_dir / "im6.png"), cv2.IMREAD_GRAYSCALE)
-    gt = cv2.imread(str(scene_dir / "disp2.png"), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 4.0
-    nd = 64
-    disp = compute_disparity(left, right, config, nd)
-    known = gt > 0
+    nd = scene.num_disparities
+    config = dataclasses.replace(config, max_disparity_px=nd - 1)
+    disp = compute_disparity(scene.left, scene.right, config, nd)
+    gt = scene.gt
+    known = np.isfinite(gt)
     matched = np.isfinite(disp)
-    err = np.abs(np.where(matched, disp, 0.0) - gt)
+    err = np.abs(np.where(matched, disp, 0.0) - np.where(known, gt, 0.0))
     filled = fill_holes_background(disp)
     return {
         "bad_filled": float(np.mean(np.abs(filled - gt)[known] > 2.0)),
@@ -58,17 +60,24 @@ def middlebury_scene(scene_dir: Path, config: DepthConfig = MIDDLEBURY_CONFIG) -
     }
 
 
-def middlebury() -> None:
-    print("== Middlebury 2003 (bad pixels: |d - gt| > 2 px over known pixels of the left image)")
-    for name in ("cones", "teddy"):
-        d = DATA / "middlebury" / name
-        if not d.is_dir():
-            print(f"  {name}: not found at {d}")
+def middlebury(root: Path) -> None:
+    print(f"== Middlebury scenes in {root} (bad pixels: |d - gt| > 2 px over known pixels of the left image)")
+    dirs = find_scenes(root)
+    if not dirs:
+        print(f"  no scenes found in {root}")
+    for d in dirs:
+        try:
+            scene = read_scene(d)
+        except StereopathError as exc:
+            print(f"  {d.name}: skipped: {exc}")
             continue
-        r = middlebury_scene(d)
-        print(f"  {name:6s}: bad {100 * r['bad_filled']:5.2f} % (holes background-filled; target <= 15 %) | "
+        t0 = time.perf_counter()
+        r = middlebury_scene(scene)
+        ms = 1e3 * (time.perf_counter() - t0)
+        print(f"  {scene.name:10s} {scene.left.shape[1]}x{scene.left.shape[0]}, {scene.num_disparities} disparities: "
+              f"bad {100 * r['bad_filled']:5.2f} % (holes background-filled; target <= 15 %) | "
               f"matched pixels only {100 * r['bad_matched']:5.2f} % at density {100 * r['density']:.1f} % | "
-              f"holes counted as bad {100 * r['bad_holes_as_bad']:5.2f} %")
+              f"holes counted as bad {100 * r['bad_holes_as_bad']:5.2f} % | {ms:.0f} ms")
 
 
 def gt_depth_in_rect(depth0: np.ndarray, K0: np.ndarray, rect) -> np.ndarray:
@@ -147,8 +156,9 @@ def main() -> int:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--frames", type=int, default=12, help="simulated frames for the depth-error figure")
     ap.add_argument("--skip-sim", action="store_true")
+    ap.add_argument("--middlebury", default=str(DATA / "middlebury"), help="folder of Middlebury scenes")
     args = ap.parse_args()
-    middlebury()
+    middlebury(Path(args.middlebury))
     if not args.skip_sim:
         sim_accuracy(args.frames)
         speed(args.runs)

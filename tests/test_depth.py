@@ -183,16 +183,53 @@ def test_rectified_pose_composes_with_cam0_pose(sim_frames):
 @pytest.mark.realdata
 @pytest.mark.parametrize("scene", ["cones", "teddy"])
 def test_middlebury_bad_pixel_rate(data_dir, scene):
-    d = data_dir / "middlebury" / scene
-    left = cv2.imread(str(d / "im2.png"), cv2.IMREAD_GRAYSCALE)
-    right = cv2.imread(str(d / "im6.png"), cv2.IMREAD_GRAYSCALE)
-    gt = cv2.imread(str(d / "disp2.png"), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 4.0
-    cfg = DepthConfig(max_disparity_px=63, block_size=3, edge_max_rel_step=0.0)
-    disp = compute_disparity(left, right, cfg, 64)
-    known = gt > 0
+    from stereopath.host.evaluation.middlebury import read_scene
+
+    sc = read_scene(data_dir / "middlebury" / scene)
+    assert sc.num_disparities == 64  # cones / teddy: disparities up to 55 / 52.75 px (x4 in disp2.png)
+    cfg = DepthConfig(max_disparity_px=sc.num_disparities - 1, block_size=3, edge_max_rel_step=0.0)
+    disp = compute_disparity(sc.left, sc.right, cfg, sc.num_disparities)
+    gt = sc.gt
+    known = np.isfinite(gt)
     matched = np.isfinite(disp)
     assert np.mean(matched[known]) > 0.8
     bad_matched = np.mean(np.abs(disp[known & matched] - gt[known & matched]) > 2.0)
     bad_all = np.mean(np.abs(fill_holes_background(disp)[known] - gt[known]) > 2.0)
     assert bad_matched < 0.06
     assert bad_all <= 0.15
+
+
+@pytest.mark.realdata
+def test_middlebury_layouts_read_the_same_scene(data_dir, tmp_path):
+    """The 2014 layout (im0/im1, PFM disparity with infinity unknown, calib.txt's ndisp) and the
+    2003 layout's scale factors from datasets.xml give the same ground truth; a scene without a
+    scale factor, or a folder that is no scene, is refused by name."""
+    from stereopath.device.errors import DatasetError
+    from stereopath.host.evaluation.middlebury import find_scenes, read_scene
+
+    ref = read_scene(data_dir / "middlebury" / "cones")
+    raw = cv2.imread(str(data_dir / "middlebury" / "cones" / "disp2.png"), cv2.IMREAD_GRAYSCALE)
+    assert np.array_equal(np.isnan(ref.gt), raw == 0)
+    assert np.allclose(ref.gt[raw > 0], raw[raw > 0] / 4.0)
+    d = tmp_path / "cones2014"
+    d.mkdir()
+    cv2.imwrite(str(d / "im0.png"), ref.left)
+    cv2.imwrite(str(d / "im1.png"), ref.right)
+    cv2.imwrite(str(d / "disp0GT.pfm"), np.where(np.isnan(ref.gt), np.inf, ref.gt).astype(np.float32))
+    (d / "calib.txt").write_text("cam0=[450 0 225; 0 450 187; 0 0 1]\ndoffs=0\nbaseline=100\nndisp=100\n")
+    sc = read_scene(d)
+    assert np.array_equal(np.isnan(sc.gt), np.isnan(ref.gt)) and np.allclose(sc.gt[~np.isnan(sc.gt)], ref.gt[~np.isnan(ref.gt)])
+    assert sc.num_disparities == 112  # calib.txt's ndisp=100 rounded up to 16
+    # a 2003 scene the datasets.xml does not list, with its own file
+    e = tmp_path / "newscene"
+    e.mkdir()
+    for f in ("im2.png", "im6.png", "disp2.png"):
+        (e / f).write_bytes((data_dir / "middlebury" / "cones" / f).read_bytes())
+    with pytest.raises(DatasetError, match="no disparity scale factor for 'newscene'"):
+        read_scene(e)
+    (tmp_path / "datasets.xml").write_text('<opencv_storage><datasets>\n\tnewscene "8" "0"\n</datasets></opencv_storage>\n')
+    half = read_scene(e)
+    assert np.allclose(half.gt[raw > 0], raw[raw > 0] / 8.0) and half.num_disparities == 32
+    assert [p.name for p in find_scenes(tmp_path)] == ["cones2014", "newscene"]
+    with pytest.raises(DatasetError, match="not a Middlebury scene"):
+        read_scene(tmp_path)
