@@ -1,6 +1,8 @@
 """Graffiti viewpoint benchmark: SIFT vs the paper's modified ASIFT vs our fast presets vs OpenCV ASIFT.
 
-For img1 -> img2..img6 of the Oxford graffiti set prints keypoints, matches,
+For img1 -> img2..img6 of the Oxford graffiti set (or any Oxford-style set given with ``--set DIR``:
+``img1`` .. ``imgN`` as PNG, PPM, PGM or JPEG and the homographies ``H1toNp``, as the original
+text files or OpenCV XML) prints keypoints, matches,
 correct matches (within 3 px of the ground-truth homography) and time
 (detection of both images + matching; median of --reps runs, all presets
 measured in this process, interleaved, OpenCV at the same --threads for all).
@@ -10,7 +12,7 @@ checks the targets: on img1 -> img4 >= 1,000 correct matches in <= 20 % of the C
 time of OpenCV's default ASIFT (``full``), and on img1 -> img5 and img6 at least 3x
 SIFT's correct matches.
 
-    .venv/bin/python benchmarks/bench_features.py [--reps 3] [--pairs 2,3,4,5,6] [--threads N]
+    .venv/bin/python benchmarks/bench_features.py [--reps 3] [--pairs 2,3,4,5,6] [--threads N] [--set DIR]
 """
 
 from __future__ import annotations
@@ -26,10 +28,22 @@ sys.path.insert(0, str(ROOT))
 DATA = Path(os.environ.get("STEREOPATH_DATA", ROOT.parent / "shared" / "data")) / "affine" / "graf"
 
 
+def set_image(root: Path, n: int) -> Path | None:
+    """``imgN`` of an Oxford-style set in any of the formats the sets ship (the originals are PPM/PGM)."""
+    return next((root / f"img{n}{ext}" for ext in (".png", ".ppm", ".pgm", ".jpg") if (root / f"img{n}{ext}").is_file()),
+                None)
+
+
+def set_homography(root: Path, n: int) -> Path | None:
+    """``H1toNp`` (the original text file) or ``H1toNp.xml`` (OpenCV's copy)."""
+    return next((root / f"H1to{n}p{ext}" for ext in ("", ".xml", ".txt") if (root / f"H1to{n}p{ext}").is_file()), None)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reps", type=int, default=3)
-    ap.add_argument("--pairs", default="2,3,4,5,6")
+    ap.add_argument("--pairs", default=None, help="N of the pairs img1 -> imgN (default: every N with an image and H1toNp)")
+    ap.add_argument("--set", default=str(DATA), help="folder of an Oxford-style set (default: graffiti)")
     ap.add_argument("--presets", default="sift,paper,fast,fast_asym,full")
     ap.add_argument("--threads", type=int, default=0, help="OpenCV threads for every preset (0: OpenCV's default)")
     args = ap.parse_args()
@@ -41,18 +55,25 @@ def main() -> int:
 
     from stereopath.host.evaluation.features import compare_pair, load_homography
 
-    if not DATA.is_dir():
-        print(f"graffiti data not found at {DATA}")
+    root = Path(args.set)
+    if not root.is_dir():
+        print(f"image set not found at {root}")
         return 1
     presets = args.presets.split(",")
-    img1 = cv2.imread(str(DATA / "img1.png"), cv2.IMREAD_GRAYSCALE)
+    numbers = [int(x) for x in args.pairs.split(",")] if args.pairs else [
+        n for n in range(2, 100) if set_image(root, n) is not None and set_homography(root, n) is not None]
+    if set_image(root, 1) is None or not numbers:
+        print(f"{root}: no img1 and img2.. with H1to2p.. (PNG, PPM, PGM or JPEG; text or XML homographies)")
+        return 1
+    img1 = cv2.imread(str(set_image(root, 1)), cv2.IMREAD_GRAYSCALE)
+    print(f"set {root.name}: img1 -> img{', img'.join(map(str, numbers))}")
     print(f"OpenCV {cv2.__version__}, cv2 threads {cv2.getNumThreads()}, cpus {os.cpu_count()}, reps {args.reps}")
     compare_pair(img1, img1, "sift")  # warm up OpenCV's thread pool and allocators
 
     results: dict[tuple[int, str], dict] = {}
-    for n in [int(x) for x in args.pairs.split(",")]:
-        img = cv2.imread(str(DATA / f"img{n}.png"), cv2.IMREAD_GRAYSCALE)
-        H = load_homography(DATA / f"H1to{n}p.xml")
+    for n in numbers:
+        img = cv2.imread(str(set_image(root, n)), cv2.IMREAD_GRAYSCALE)
+        H = load_homography(set_homography(root, n))
         runs: dict[str, list[dict]] = {p: [] for p in presets}
         for _ in range(args.reps):  # interleave presets so load changes hit all alike
             for p in presets:
