@@ -1,6 +1,7 @@
 """Our `stereo` estimator side by side with ORB-SLAM3 on the same frames (issue 10).  Prints figures.
 
     .venv/bin/python benchmarks/bench_peers.py [--runs 3] [--cases kitti06,kitti06_s2,kitti06_s3,sim]
+        [--kitti SEQDIR] [--kitti-frames N]
         [--peer-venv DIR] [--vocab FILE] [--sim-frames N] [--threads N] [--rig RIG.yaml]
 
 Installs nothing.  ORB-SLAM3 runs only when its own environment exists (a virtual environment
@@ -11,7 +12,8 @@ are printed.
 
 Cases (all on the same frames for both systems, one process at a time):
 
-* ``kitti06``: KITTI 06 frames 0-50 at full rate;
+* ``kitti06``: KITTI 06 frames 0-50 at full rate (``--kitti SEQDIR``: another KITTI odometry sequence
+  in the same layout, ``--kitti-frames N``: its first N frames; the case keeps its name);
 * ``kitti06_s2`` / ``kitti06_s3``: the same frames taken every 2nd / 3rd frame (fast motion),
   as a KITTI folder of links written to a temporary directory;
 * ``sim``: the default simulated scan written by ``stereopath sim --out`` (an ASL session; ORB-SLAM3
@@ -72,15 +74,16 @@ def find_peer_python(arg: str | None) -> Path | None:
     return None
 
 
-def subsampled_kitti(src: Path, step: int, out: Path) -> Path:
-    """A KITTI odometry folder (sequences/NN + poses/NN.txt) with every ``step``-th frame, as links."""
+def subsampled_kitti(src: Path, step: int, out: Path, frames: int | None = None) -> Path:
+    """A KITTI odometry folder (sequences/NN + poses/NN.txt) with every ``step``-th frame of the first
+    ``frames`` (all when None), as links."""
     name = src.name
     seq = out / "sequences" / name
     for cam in ("image_0", "image_1"):
         (seq / cam).mkdir(parents=True, exist_ok=True)
     times = (src / "times.txt").read_text().split()
     poses = (src.parent.parent / "poses" / f"{name}.txt").read_text().splitlines()
-    n = min(len(times), len(list((src / "image_0").glob("*.png"))))
+    n = min(len(times), len(list((src / "image_0").glob("*.png"))), frames or len(times))
     keep = list(range(0, n, step))
     for j, i in enumerate(keep):
         for cam in ("image_0", "image_1"):
@@ -201,6 +204,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--kitti", default=None, help="KITTI odometry sequence folder for the kitti06 cases "
+                                                 "(default: the shared KITTI 06; poses/NN.txt two levels up)")
+    ap.add_argument("--kitti-frames", type=int, default=None, help="use only the first N frames of the sequence")
     ap.add_argument("--peer-venv", default=None)
     ap.add_argument("--vocab", default=None)
     ap.add_argument("--sim-frames", type=int, default=None, help="frames of the simulated scan (default: its own)")
@@ -245,14 +251,15 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="bench_peers_"))
     results: dict[str, dict[str, list]] = {}
     try:
-        kitti = D / "kitti_odometry" / "sequences" / "06"
+        kitti = Path(args.kitti) if args.kitti else D / "kitti_odometry" / "sequences" / "06"
         for case in cases:
             if case.startswith("kitti06"):
                 if not kitti.is_dir():
-                    print(f"{case}: no KITTI 06 under {D}; skipped")
+                    print(f"{case}: no KITTI sequence at {kitti}; skipped")
                     continue
                 step = 1 if case == "kitti06" else int(case[-1])
-                seq_dir = kitti if step == 1 else subsampled_kitti(kitti, step, tmp / case)
+                seq_dir = kitti if step == 1 and not args.kitti_frames else subsampled_kitti(
+                    kitti, step, tmp / case, args.kitti_frames)
                 gt = (str(seq_dir.parent.parent / "poses" / f"{seq_dir.name}.txt"), str(seq_dir / "times.txt"))
                 ours_spec, orb_source = f"kitti:{seq_dir}", f"kitti:{seq_dir}"
             else:
