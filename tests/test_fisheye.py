@@ -225,3 +225,95 @@ def test_camchain_without_t_cn_cnm1_and_broken_camchains(fisheye_session, tmp_pa
         with pytest.raises(CalibrationError, match=what.replace("(", r"\(")) as info:
             open_asl(m)
         assert str(chain) in str(info.value)
+
+
+# ---------------------------------------------------------------------------------------------
+# the device: a Kalibr camchain as source.rig_file (a fisheye rig calibrated with Kalibr)
+
+
+def test_rig_file_is_our_yaml_or_a_kalibr_camchain(fisheye_session, tmp_path):
+    from pathlib import Path
+
+    from stereopath.device.core.geometry import invert_pose
+    from stereopath.device.formats.rig_files import load_rig_file, load_rig_yaml
+
+    ours = Path(__file__).resolve().parents[1] / "firmware_cfg" / "rig_paper.yaml"
+    calib = load_rig_file(ours)
+    assert not calib.has_views and np.allclose(calib.rig.T, load_rig_yaml(ours).T)
+    ref = open_asl(fisheye_session[1] / "mav0")
+    chain = tmp_path / "camchain-imucam-box.yaml"
+    chain.write_text(_camchain(ref.rig, invert_pose(ref.rig.T_body_cam0), D_TUMVI))
+    calib = load_rig_file(chain)
+    assert calib.has_views and np.allclose(calib.rig.T, ref.rig.T, atol=1e-9)
+    assert np.allclose(calib.rig.T_body_cam0, ref.rig.T_body_cam0, atol=1e-9)
+    radtan = tmp_path / "camchain-radtan.yaml"
+    radtan.write_text(chain.read_text().replace("distortion_model: equidistant", "distortion_model: radtan"))
+    calib = load_rig_file(radtan)
+    assert not calib.has_views and np.allclose(calib.rig.cam0.dist, D_TUMVI)
+    with pytest.raises(CalibrationError, match="not found"):
+        load_rig_file(tmp_path / "nope.yaml")
+
+
+def test_replay_with_a_fisheye_rig_file_reads_the_images_through_its_views(fisheye_session, tmp_path):
+    """A session recorded with fisheye images under a pinhole rig.yaml (a box whose lens was not yet
+    calibrated), replayed with the Kalibr calibration as source.rig_file: the frames and the rig are
+    those of the correctly read fisheye data.  Giving a fisheye rig file for data already read through
+    its own fisheye calibration is refused."""
+    from stereopath.device.capture.sources import create_source
+    from stereopath.device.core.config import from_mapping
+    from stereopath.device.core.geometry import invert_pose
+    from stereopath.device.service.settings import SourceSettings
+
+    pin, fish = fisheye_session
+    ref = open_asl(fish / "mav0")
+    raw = tmp_path / "raw"
+    shutil.copytree(fish, raw)
+    shutil.copy(pin / "mav0" / "rig.yaml", raw / "mav0" / "rig.yaml")  # the wrong (pinhole) calibration
+    chain = tmp_path / "camchain-imucam-box.yaml"
+    chain.write_text(_camchain(ref.rig, invert_pose(ref.rig.T_body_cam0), D_TUMVI))
+    settings = from_mapping(SourceSettings, {"backend": "replay", "rig_file": str(chain),
+                                             "replay": {"count": 3, "start": 4}})
+    src = create_source(settings, sequence=open_source(f"session:{raw}"))
+    with src:
+        frames = list(src)
+        assert np.allclose(src.rig.cam0.K, ref.rig.cam0.K) and not np.any(src.rig.cam0.dist)
+    assert len(frames) == 3
+    for k, f in enumerate(frames):
+        want = ref.frame(4 + k)
+        assert np.array_equal(f.left, want.left) and np.array_equal(f.right, want.right)
+    src = create_source(settings, sequence=open_source(f"session:{fish}"))
+    with pytest.raises(CalibrationError, match="already reads"):
+        src.open()
+
+
+def test_picamera2_frames_go_through_the_fisheye_views_of_the_rig_file(tmp_path):
+    """The live path: a picamera2 pair (the fake, showing one textured pair) with a Kalibr fisheye
+    camchain as source.rig_file delivers every exposure through the views; without it, as captured."""
+    from stereopath.device.capture.sources import create_source
+    from stereopath.device.core.rig import make_camera, make_rig
+    from stereopath.device.formats.rig_files import load_rig_file
+    from tests.fakes.fake_picamera2 import FakeCameraWorld
+    from tests.fakes.standins import source_settings, take
+
+    K = np.array([[40.0, 0, 31.5], [0, 40.0, 23.5], [0, 0, 1]])
+    cams = [make_camera(n, K, np.zeros(5), (64, 48)) for n in ("cam0", "cam1")]
+    rig = make_rig(*cams, np.eye(3), [-0.06, 0, 0])
+    chain = tmp_path / "camchain.yaml"
+    chain.write_text(_camchain(rig, np.eye(4), D_FISH))
+    views = load_rig_file(chain).views
+    rng = np.random.default_rng(4)
+    pair = tuple(cv2.GaussianBlur(rng.uniform(0, 255, (48, 64)).astype(np.float32), (0, 0), 1.5).astype(np.uint8)
+                 for _ in range(2))
+    out = {}
+    for name, kw in (("raw", {}), ("views", {"rig_file": str(chain)})):
+        src = create_source(source_settings("picamera2", [64, 48], 500, **kw), api=FakeCameraWorld(images=[pair]).api())
+        with src:
+            out[name] = take(src, 4)
+            if name == "views":
+                assert np.allclose(src.rig.cam0.K, K) and not np.any(src.rig.cam0.dist)
+    raw = out["raw"][0]
+    assert {raw.left.tobytes(), raw.right.tobytes()} == {pair[0].tobytes(), pair[1].tobytes()}
+    for seen in out["views"]:
+        assert np.array_equal(seen.left, views[0].apply(raw.left))
+        assert np.array_equal(seen.right, views[1].apply(raw.right))
+        assert not np.array_equal(seen.left, raw.left)

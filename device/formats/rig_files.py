@@ -199,13 +199,17 @@ def kalibr_camchain_path(mav0: Path) -> Path | None:
 
 
 @dataclass(frozen=True)
-class AslCalibration:
-    """The rig of an ASL sequence as its images are read: ``rig`` is pinhole; ``views`` holds, for each
-    fisheye camera, the :class:`~stereopath.device.core.fisheye.PinholeView` its images go through."""
+class RigCalibration:
+    """A rig as its images are read: ``rig`` is pinhole; ``views`` holds, for each fisheye camera,
+    the :class:`~stereopath.device.core.fisheye.PinholeView` its images go through (None: as they are)."""
 
     rig: Rig
     views: tuple[PinholeView | None, PinholeView | None]
     source: str
+
+    @property
+    def has_views(self) -> bool:
+        return any(v is not None for v in self.views)
 
 
 def _as_pinhole(cam: CameraModel | FisheyeCamera, name: str) -> tuple[CameraModel, PinholeView | None]:
@@ -215,7 +219,7 @@ def _as_pinhole(cam: CameraModel | FisheyeCamera, name: str) -> tuple[CameraMode
     return cam, None
 
 
-def load_euroc_calibration(mav0: str | Path) -> AslCalibration:
+def load_euroc_calibration(mav0: str | Path) -> RigCalibration:
     """The rig of an ASL ``mav0`` folder: ``cam0/sensor.yaml`` and ``cam1/sensor.yaml`` (EuRoC), or when
     they carry no intrinsics (or are missing) a Kalibr camchain beside the data (see
     :func:`kalibr_camchain_path`).  Equidistant cameras come with their pinhole views."""
@@ -235,18 +239,48 @@ def load_euroc_calibration(mav0: str | Path) -> AslCalibration:
                                    f"and no Kalibr *camchain*.yaml in {m}, {m.parent} or {m.parent / 'dso'}")
         cam0, cam1, T_C1_C0, T_body = _kalibr_camchain(chain)
         source = str(chain)
+    return _calibration(cam0, cam1, T_C1_C0, T_body, source, name="euroc", where=str(m))
+
+
+def _calibration(cam0: Any, cam1: Any, T_C1_C0: np.ndarray, T_body: np.ndarray | None, source: str, name: str,
+                 where: str) -> RigCalibration:
+    """The pinhole rig of two cameras (fisheye ones through their views); errors name ``source``."""
     try:
         pin0, view0 = _as_pinhole(cam0, "cam0")
         pin1, view1 = _as_pinhole(cam1, "cam1")
-        rig = make_rig(pin0, pin1, T_C1_C0[:3, :3], T_C1_C0[:3, 3], name="euroc", T_body_cam0=T_body)
+        rig = make_rig(pin0, pin1, T_C1_C0[:3, :3], T_C1_C0[:3, 3], name=name, T_body_cam0=T_body)
     except CalibrationError as exc:
         raise CalibrationError(f"{source}: {exc}") from None
-    log.info("%s: calibration from %s", m, source)
-    for name, view in (("cam0", view0), ("cam1", view1)):
+    log.info("%s: calibration from %s", where, source)
+    for cam, view in (("cam0", view0), ("cam1", view1)):
         if view is not None:
             log.info("%s is an equidistant (fisheye) camera: its images are read through a pinhole view of the "
-                     "same K (+-%.0f x +-%.0f deg)", name, *view.half_fov_deg)
-    return AslCalibration(rig=rig, views=(view0, view1), source=source)
+                     "same K (+-%.0f x +-%.0f deg)", cam, *view.half_fov_deg)
+    return RigCalibration(rig=rig, views=(view0, view1), source=source)
+
+
+def is_kalibr_camchain(data: Any) -> bool:
+    """True for a parsed Kalibr camchain (``cam0`` a mapping with Kalibr's field names), not our rig YAML."""
+    c = data.get("cam0") if isinstance(data, dict) else None
+    return isinstance(c, dict) and ("distortion_coeffs" in c or "T_cam_imu" in c or "camera_model" in c)
+
+
+def load_rig_file(path: str | Path) -> RigCalibration:
+    """A rig file as the device's ``source.rig_file`` names it: our rig YAML (pinhole cameras), or a
+    Kalibr camchain (radial-tangential or equidistant cameras; a fisheye camera comes with its view)."""
+    import yaml
+
+    p = Path(path)
+    try:
+        data = yaml.safe_load(re.sub(r"^%YAML.*$", "", p.read_text(), count=1, flags=re.MULTILINE))
+    except FileNotFoundError:
+        raise CalibrationError(f"calibration file not found: {p}") from None
+    except yaml.YAMLError as exc:
+        raise CalibrationError(f"{p}: invalid YAML: {exc}") from None
+    if not is_kalibr_camchain(data):
+        return RigCalibration(rig=load_rig_yaml(p), views=(None, None), source=str(p))
+    cam0, cam1, T_C1_C0, T_body = _kalibr_camchain(p)
+    return _calibration(cam0, cam1, T_C1_C0, T_body, str(p), name=p.stem, where=str(p))
 
 
 def load_euroc_rig(mav0: str | Path) -> Rig:
@@ -254,7 +288,7 @@ def load_euroc_rig(mav0: str | Path) -> Rig:
     through its view, so a fisheye rig is refused here: open the data with
     :func:`stereopath.device.formats.asl.open_asl` (or use :func:`load_euroc_calibration`)."""
     calib = load_euroc_calibration(mav0)
-    if any(v is not None for v in calib.views):
+    if calib.has_views:
         raise CalibrationError(f"{calib.source}: fisheye cameras: their images must be read through their pinhole "
                                f"views (open the folder as a sequence, euroc:{mav0})")
     return calib.rig

@@ -117,7 +117,7 @@ class SourceSettings:
     pair_tolerance_us: int = 1000        # max |t_left - t_right| of a pair (µs); < half a frame
     timeout_s: float = 2.0               # no pair for this long -> CaptureError
     queue_size: int = 4                  # paired frames waiting for the consumer (oldest dropped)
-    rig_file: str = ""                   # rig YAML; "" = the backend's own (factory / dataset / sim)
+    rig_file: str = ""                   # rig YAML or Kalibr camchain; "" = the backend's own (factory / dataset / sim)
     picamera2: Picamera2Settings = field(default_factory=Picamera2Settings)
     depthai: DepthaiSettings = field(default_factory=DepthaiSettings)
     replay: ReplaySettings = field(default_factory=ReplaySettings)

@@ -82,6 +82,7 @@ class SourceBase:
         self._opened = False
         self._rig: Rig | None = None
         self._imu: Any = None
+        self._views: tuple[Any, Any] = (None, None)  # fisheye cameras: the pinhole views frames go through
 
     # lifecycle -------------------------------------------------------------------------
     def open(self) -> None:
@@ -110,7 +111,25 @@ class SourceBase:
     def __iter__(self) -> Iterator[StereoFrame]:
         if not self._opened:
             raise CaptureError(f"{self.name} source: iterate only after open() (or use 'with')")
-        return self._frames()
+        if self._views[0] is None and self._views[1] is None:
+            return self._frames()
+        return self._through_views(self._frames())
+
+    def _use_rig_file(self, calib: Any) -> None:
+        """Take a loaded rig file (:func:`load_rig_override`): its pinhole rig and its cameras' views."""
+        self._rig = calib.rig
+        self._views = calib.views
+
+    def _through_views(self, frames: Iterator[StereoFrame]) -> Iterator[StereoFrame]:
+        """The frames as the rig sees them: each fisheye camera's image through its pinhole view."""
+        v0, v1 = self._views
+        for f in frames:
+            for view, img in ((v0, f.left), (v1, f.right)):
+                if view is not None and (img.shape[1], img.shape[0]) != tuple(view.source.size):
+                    raise CaptureError(f"{self.name} source: a {img.shape[1]}x{img.shape[0]} image but the fisheye "
+                                       f"calibration is for {view.source.size[0]}x{view.source.size[1]}")
+            yield dataclasses.replace(f, left=f.left if v0 is None else v0.apply(f.left),
+                                      right=f.right if v1 is None else v1.apply(f.right))
 
     # properties ------------------------------------------------------------------------
     @property
@@ -142,10 +161,12 @@ class SourceBase:
         raise NotImplementedError
 
 
-def load_rig_override(path: str) -> Rig | None:
-    """The configured rig YAML, or None when ``path`` is empty."""
+def load_rig_override(path: str) -> Any:
+    """The configured rig file (:class:`~stereopath.device.formats.rig_files.RigCalibration`: our rig
+    YAML, or a Kalibr camchain whose fisheye cameras come with their pinhole views), or None when
+    ``path`` is empty."""
     if not path:
         return None
-    from stereopath.device.formats.rig_files import load_rig_yaml
+    from stereopath.device.formats.rig_files import load_rig_file
 
-    return load_rig_yaml(path)
+    return load_rig_file(path)

@@ -248,9 +248,11 @@ class Picamera2Source(SourceBase):
         if self._rig_arg is not None:
             self._rig = self._rig_arg
         else:
-            self._rig = load_rig_override(s.rig_file)
-            if self._rig is None:
+            calib = load_rig_override(s.rig_file)
+            if calib is None:
                 log.warning("picamera2: no rig calibration configured (source.rig_file)")
+            else:
+                self._use_rig_file(calib)
 
     def _make_callback(self, side: int, mapped_array: Any) -> Callable[[Any], None]:
         w, h = self._size  # the size libcamera chose, not necessarily the one asked for

@@ -295,8 +295,10 @@ class DepthaiSource(SourceBase):
             if self._rig_arg is not None:
                 self._rig = self._rig_arg
             else:
-                self._rig = load_rig_override(s.rig_file)
-                if self._rig is None:
+                calib = load_rig_override(s.rig_file)
+                if calib is not None:
+                    self._use_rig_file(calib)
+                else:
                     cal = p.getDefaultDevice().readCalibration()
                     rig_from_calibration(cal, dai, size)  # fail early on a calibration we cannot use
             p.start()

@@ -16,7 +16,7 @@ import logging
 import time
 from typing import Any, Callable, Iterator
 
-from stereopath.device.errors import CaptureError, DatasetError
+from stereopath.device.errors import CalibrationError, CaptureError, DatasetError
 from stereopath.device.core.frames import StereoFrame
 from stereopath.device.capture.imu.base import OfflineImu
 from stereopath.device.service.settings import ReplaySettings
@@ -76,7 +76,14 @@ class SequenceSource(SourceBase):
     def _open(self) -> None:
         seq = self._seq_arg if self._seq_arg is not None else self._load()
         self.sequence = seq
-        self._rig = load_rig_override(self._rig_file) or seq.rig
+        calib = load_rig_override(self._rig_file)
+        if calib is not None:
+            if calib.has_views and any(v is not None for v in getattr(seq, "views", (None, None))):
+                raise CalibrationError(f"{calib.source}: a fisheye calibration for images the sequence already reads "
+                                       f"through its own fisheye calibration: give one of the two")
+            self._use_rig_file(calib)  # the recorded images as the given calibration's cameras took them
+        else:
+            self._rig = seq.rig
         imu = getattr(seq, "imu", None)
         self._imu = OfflineImu(imu, self._lookahead) if imu is not None and len(imu) else None
 
