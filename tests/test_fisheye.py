@@ -7,6 +7,7 @@ f = 190 px, 10 cm baseline), warped into equidistant images with OpenCV's own ``
 fisheye dataset ships."""
 
 import shutil
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -232,8 +233,6 @@ def test_camchain_without_t_cn_cnm1_and_broken_camchains(fisheye_session, tmp_pa
 
 
 def test_rig_file_is_our_yaml_or_a_kalibr_camchain(fisheye_session, tmp_path):
-    from pathlib import Path
-
     from stereopath.device.core.geometry import invert_pose
     from stereopath.device.formats.rig_files import load_rig_file, load_rig_yaml
 
@@ -254,11 +253,10 @@ def test_rig_file_is_our_yaml_or_a_kalibr_camchain(fisheye_session, tmp_path):
         load_rig_file(tmp_path / "nope.yaml")
 
 
-def test_replay_with_a_fisheye_rig_file_reads_the_images_through_its_views(fisheye_session, tmp_path):
-    """A session recorded with fisheye images under a pinhole rig.yaml (a box whose lens was not yet
-    calibrated), replayed with the Kalibr calibration as source.rig_file: the frames and the rig are
-    those of the correctly read fisheye data.  Giving a fisheye rig file for data already read through
-    its own fisheye calibration is refused."""
+def test_replay_refuses_a_fisheye_rig_file(fisheye_session, tmp_path):
+    """Recorded images are either pinhole already (a session: the box recorded them through its views)
+    or read through their own lens model (a fisheye dataset): a fisheye rig file over them would
+    resample them twice, so replay refuses it (a configuration error of the service)."""
     from stereopath.device.capture.sources import create_source
     from stereopath.device.core.config import from_mapping
     from stereopath.device.core.geometry import invert_pose
@@ -266,24 +264,54 @@ def test_replay_with_a_fisheye_rig_file_reads_the_images_through_its_views(fishe
 
     pin, fish = fisheye_session
     ref = open_asl(fish / "mav0")
-    raw = tmp_path / "raw"
-    shutil.copytree(fish, raw)
-    shutil.copy(pin / "mav0" / "rig.yaml", raw / "mav0" / "rig.yaml")  # the wrong (pinhole) calibration
     chain = tmp_path / "camchain-imucam-box.yaml"
     chain.write_text(_camchain(ref.rig, invert_pose(ref.rig.T_body_cam0), D_TUMVI))
-    settings = from_mapping(SourceSettings, {"backend": "replay", "rig_file": str(chain),
-                                             "replay": {"count": 3, "start": 4}})
-    src = create_source(settings, sequence=open_source(f"session:{raw}"))
-    with src:
-        frames = list(src)
-        assert np.allclose(src.rig.cam0.K, ref.rig.cam0.K) and not np.any(src.rig.cam0.dist)
-    assert len(frames) == 3
-    for k, f in enumerate(frames):
-        want = ref.frame(4 + k)
-        assert np.array_equal(f.left, want.left) and np.array_equal(f.right, want.right)
-    src = create_source(settings, sequence=open_source(f"session:{fish}"))
-    with pytest.raises(CalibrationError, match="already reads"):
-        src.open()
+    settings = from_mapping(SourceSettings, {"backend": "replay", "rig_file": str(chain), "replay": {"count": 2}})
+    for spec in (f"session:{pin}", f"euroc:{fish}"):
+        src = create_source(settings, sequence=open_source(spec))
+        with pytest.raises(CalibrationError, match="cannot be replayed over recorded images"):
+            src.open()
+    # a pinhole rig file (our YAML) over the same data is taken as before
+    ok = from_mapping(SourceSettings, {"backend": "replay", "rig_file": str(pin / "mav0" / "rig.yaml"),
+                                       "replay": {"count": 2}})
+    with create_source(ok, sequence=open_source(f"session:{pin}")) as src:
+        assert len(list(src)) == 2 and np.allclose(src.rig.cam0.K, ref.rig.cam0.K)
+
+
+def test_a_rig_of_pinhole_views_says_so_in_its_file_and_in_the_refined_rig(tmp_path):
+    """A fisheye rig's pinhole rig carries the calibration it is a view of through rig.yaml (what the
+    recorder writes), and the refined rig of its sessions is advised for the host only."""
+    from stereopath.device.core.rig import make_camera, make_rig
+    from stereopath.device.formats.rig_files import load_rig_file, load_rig_yaml, save_rig_yaml
+    from stereopath.host.reprocess.rig_refine import comment, report_entry
+
+    K = np.array([[190.0, 0, 255.5], [0, 190.0, 255.5], [0, 0, 1]])
+    cams = [make_camera(n, K, np.zeros(5), (512, 512)) for n in ("cam0", "cam1")]
+    chain = tmp_path / "camchain.yaml"
+    chain.write_text(_camchain(make_rig(*cams, np.eye(3), [-0.1, 0, 0]), np.eye(4), D_TUMVI))
+    rig = load_rig_file(chain).rig
+    assert rig.views_of == str(chain)
+    save_rig_yaml(rig, tmp_path / "rig.yaml")
+    back = load_rig_yaml(tmp_path / "rig.yaml")
+    assert back.views_of == str(chain) and np.allclose(back.cam0.K, K)
+    entry = report_entry(back, {"disparity_offset_px": 0.2})
+    assert "not the device's source.rig_file" in entry["use"] and str(chain) in entry["use"]
+    assert "not the device's source.rig_file" in comment(back, 0.2, "s1")
+    plain = make_rig(*cams, np.eye(3), [-0.1, 0, 0])
+    assert plain.views_of == "" and "device configuration source.rig_file" in report_entry(
+        plain, {"disparity_offset_px": 0.2})["use"]
+
+
+def test_our_rig_yaml_is_never_taken_for_a_camchain(tmp_path):
+    import yaml
+
+    from stereopath.device.formats.rig_files import is_kalibr_camchain
+
+    ours = yaml.safe_load((Path(__file__).resolve().parents[1] / "firmware_cfg" / "rig_paper.yaml").read_text())
+    ours["cam0"]["camera_model"] = "pinhole"  # a note a user might add
+    ours["cam0"]["distortion_coeffs"] = [0, 0, 0, 0]
+    ours["cam0"]["resolution"] = [640, 480]
+    assert not is_kalibr_camchain(ours)
 
 
 def test_picamera2_frames_go_through_the_fisheye_views_of_the_rig_file(tmp_path):
@@ -317,3 +345,20 @@ def test_picamera2_frames_go_through_the_fisheye_views_of_the_rig_file(tmp_path)
         assert np.array_equal(seen.left, views[0].apply(raw.left))
         assert np.array_equal(seen.right, views[1].apply(raw.right))
         assert not np.array_equal(seen.left, raw.left)
+
+
+def test_picamera2_refuses_a_fisheye_rig_file_for_another_image_size(tmp_path):
+    from stereopath.device.capture.sources import create_source
+    from stereopath.device.core.rig import make_camera, make_rig
+    from tests.fakes.fake_picamera2 import FakeCameraWorld
+    from tests.fakes.standins import source_settings
+
+    K = np.array([[40.0, 0, 31.5], [0, 40.0, 23.5], [0, 0, 1]])
+    cams = [make_camera(n, K, np.zeros(5), (64, 48)) for n in ("cam0", "cam1")]
+    chain = tmp_path / "camchain.yaml"
+    chain.write_text(_camchain(make_rig(*cams, np.eye(3), [-0.06, 0, 0]), np.eye(4), D_FISH))
+    world = FakeCameraWorld()
+    src = create_source(source_settings("picamera2", [48, 48], 500, rig_file=str(chain)), api=world.api())
+    with pytest.raises(CalibrationError, match="calibrated at 64x48 but the picamera2 source delivers 48x48"):
+        src.open()
+    assert all(cam._thread is None or not cam._thread.is_alive() for cam in world.instances)  # cameras stopped

@@ -70,7 +70,11 @@ def pinhole_view(cam: FisheyeCamera, name: str) -> PinholeView:
     K = cam.K.copy()
     K[0, 1] = 0.0  # the pinhole model downstream has no skew
     pinhole = make_camera(name, K, np.zeros(5), cam.size)
-    map_x, map_y = cv2.fisheye.initUndistortRectifyMap(cam.K, cam.dist, np.eye(3), K, (w, h), cv2.CV_32FC1)
+    try:
+        map_x, map_y = cv2.fisheye.initUndistortRectifyMap(cam.K, cam.dist, np.eye(3), K, (w, h), cv2.CV_32FC1)
+    except cv2.error as exc:
+        raise CalibrationError(f"{name}: OpenCV cannot build the pinhole view of this {w}x{h} camera: "
+                               f"{str(exc).strip().splitlines()[-1]}") from None
     ok = np.isfinite(map_x) & np.isfinite(map_y)
     inside = ok & (map_x >= -0.5) & (map_x <= w - 0.5) & (map_y >= -0.5) & (map_y <= h - 0.5)
     outside = 1.0 - float(inside.mean())

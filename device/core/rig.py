@@ -107,6 +107,9 @@ class Rig:
     T: np.ndarray
     name: str = "rig"
     T_body_cam0: np.ndarray | None = None  # IMU/body frame <- cam0, when known
+    # the fisheye calibration these pinhole cameras are views of ("" = the lenses themselves are pinhole):
+    # images of such a rig were resampled (stereopath.device.core.fisheye), its K are the views'
+    views_of: str = ""
     _cache: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -263,7 +266,7 @@ def check_baseline_sign(R: np.ndarray, T: np.ndarray) -> None:
 
 
 def make_rig(cam0: CameraModel, cam1: CameraModel, R: Any, T: Any, name: str = "rig",
-             T_body_cam0: Any = None) -> Rig:
+             T_body_cam0: Any = None, views_of: str = "") -> Rig:
     """Validated :class:`Rig` from parts (``R``, ``T`` = ``T_cam1_cam0``, metres)."""
     R = validated_rotation("R", R)
     T = checked_array("T", T, (3,))
@@ -274,7 +277,7 @@ def make_rig(cam0: CameraModel, cam1: CameraModel, R: Any, T: Any, name: str = "
     if Tb is not None:
         Tb = Tb.copy()
         Tb[:3, :3] = validated_rotation("T_body_cam0 rotation", Tb[:3, :3])
-    return Rig(cam0=cam0, cam1=cam1, R=R, T=T, name=name, T_body_cam0=Tb)
+    return Rig(cam0=cam0, cam1=cam1, R=R, T=T, name=name, T_body_cam0=Tb, views_of=str(views_of))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -285,7 +288,8 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
     """Rig from our YAML schema (see ``firmware_cfg/rig_paper.yaml``)."""
     if not isinstance(data, dict):
         raise CalibrationError(f"{source}: expected a mapping at top level")
-    known = {"name", "units", "cam0", "cam1", "R_cam1_cam0", "T_cam1_cam0_m", "T_body_cam0", "comment", "source"}
+    known = {"name", "units", "cam0", "cam1", "R_cam1_cam0", "T_cam1_cam0_m", "T_body_cam0", "comment", "source",
+             "pinhole_views_of"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise CalibrationError(f"{source}: unknown key(s) {', '.join(unknown)}")
@@ -303,7 +307,8 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
         K = intrinsic_matrix(f"{source}: {cname}", c["intrinsics"])
         cams.append(make_camera(cname, K, c.get("distortion", [0, 0, 0, 0, 0]), c["image_size"]))
     return make_rig(cams[0], cams[1], data["R_cam1_cam0"], data["T_cam1_cam0_m"],
-                    name=str(data.get("name", Path(source).stem)), T_body_cam0=data.get("T_body_cam0"))
+                    name=str(data.get("name", Path(source).stem)), T_body_cam0=data.get("T_body_cam0"),
+                    views_of=str(data.get("pinhole_views_of") or ""))
 
 
 def rig_to_dict(rig: Rig) -> dict[str, Any]:
@@ -325,6 +330,8 @@ def rig_to_dict(rig: Rig) -> dict[str, Any]:
     }
     if rig.T_body_cam0 is not None:
         out["T_body_cam0"] = [[float(v) for v in row] for row in rig.T_body_cam0]
+    if rig.views_of:
+        out["pinhole_views_of"] = rig.views_of
     return out
 
 

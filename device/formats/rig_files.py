@@ -248,7 +248,8 @@ def _calibration(cam0: Any, cam1: Any, T_C1_C0: np.ndarray, T_body: np.ndarray |
     try:
         pin0, view0 = _as_pinhole(cam0, "cam0")
         pin1, view1 = _as_pinhole(cam1, "cam1")
-        rig = make_rig(pin0, pin1, T_C1_C0[:3, :3], T_C1_C0[:3, 3], name=name, T_body_cam0=T_body)
+        views_of = source if (view0 is not None or view1 is not None) else ""
+        rig = make_rig(pin0, pin1, T_C1_C0[:3, :3], T_C1_C0[:3, 3], name=name, T_body_cam0=T_body, views_of=views_of)
     except CalibrationError as exc:
         raise CalibrationError(f"{source}: {exc}") from None
     log.info("%s: calibration from %s", where, source)
@@ -260,9 +261,12 @@ def _calibration(cam0: Any, cam1: Any, T_C1_C0: np.ndarray, T_body: np.ndarray |
 
 
 def is_kalibr_camchain(data: Any) -> bool:
-    """True for a parsed Kalibr camchain (``cam0`` a mapping with Kalibr's field names), not our rig YAML."""
-    c = data.get("cam0") if isinstance(data, dict) else None
-    return isinstance(c, dict) and ("distortion_coeffs" in c or "T_cam_imu" in c or "camera_model" in c)
+    """True for a parsed Kalibr camchain (``cam0`` a mapping with Kalibr's ``resolution`` and
+    ``distortion_coeffs``), not our rig YAML (which has ``R_cam1_cam0`` and ``T_cam1_cam0_m``)."""
+    if not isinstance(data, dict) or "R_cam1_cam0" in data or "T_cam1_cam0_m" in data:
+        return False
+    c = data.get("cam0")
+    return isinstance(c, dict) and "resolution" in c and "distortion_coeffs" in c
 
 
 def load_rig_file(path: str | Path) -> RigCalibration:
@@ -275,6 +279,8 @@ def load_rig_file(path: str | Path) -> RigCalibration:
         data = yaml.safe_load(re.sub(r"^%YAML.*$", "", p.read_text(), count=1, flags=re.MULTILINE))
     except FileNotFoundError:
         raise CalibrationError(f"calibration file not found: {p}") from None
+    except UnicodeDecodeError:
+        raise CalibrationError(f"{p}: not a text file") from None
     except yaml.YAMLError as exc:
         raise CalibrationError(f"{p}: invalid YAML: {exc}") from None
     if not is_kalibr_camchain(data):

@@ -8,6 +8,11 @@ offset is the calibration the path was refined with; given to the device for the
 of the same rig (device configuration ``source.rig_file``), the on-board estimator triangulates
 with it and the offset no longer lengthens (or shortens) its path.
 
+A rig whose cameras are pinhole views of fisheye lenses (``Rig.views_of``: a box with a Kalibr
+fisheye camchain records its images through the views) keeps that camchain as its
+``source.rig_file``; the refined rig describes the views, so it is for ``--rig`` of ``host live`` /
+``host map`` and the report says so.
+
 A positive offset means the measured disparities were that much too small (points too far, the
 path too long), a negative one too large.  For a rig that is not rectified (distortion, rotated
 cameras) the shift is applied to the right camera's own principal point, exactly as the
@@ -42,7 +47,15 @@ def refined_rig(rig: Rig, offset_px: float) -> Rig:
     K1 = rig.cam1.K.copy()
     K1[0, 2] += float(offset_px)
     cam1 = make_camera("cam1", K1, rig.cam1.dist, rig.cam1.size)
-    return make_rig(rig.cam0, cam1, rig.R, rig.T, name=rig.name, T_body_cam0=rig.T_body_cam0)
+    return make_rig(rig.cam0, cam1, rig.R, rig.T, name=rig.name, T_body_cam0=rig.T_body_cam0, views_of=rig.views_of)
+
+
+def use_of(rig: Rig) -> str:
+    """Where the refined rig goes: the device's rig file, or only the host's (a fisheye box's views)."""
+    if rig.views_of:
+        return (f"--rig of host live / host map; not the device's source.rig_file: its cameras are pinhole views "
+                f"of the fisheye calibration {rig.views_of}, which the device keeps")
+    return "device configuration source.rig_file (or --rig of host live / host map) for later sessions of the same rig"
 
 
 def report_entry(rig: Rig, ba_stats: dict[str, Any]) -> dict[str, Any] | None:
@@ -52,8 +65,7 @@ def report_entry(rig: Rig, ba_stats: dict[str, Any]) -> dict[str, Any] | None:
         return None
     return {"file": RIG_REFINED_FILE, "disparity_offset_px": off,
             "cam1_cx_px": {"before": rig.cam1.cx, "after": rig.cam1.cx + off},
-            "use": "device configuration source.rig_file (or --rig of host live / host map) for later "
-                   "sessions of the same rig"}
+            "use": use_of(rig)}
 
 
 def comment(rig: Rig, offset_px: float, session: str) -> str:
@@ -64,7 +76,7 @@ def comment(rig: Rig, offset_px: float, session: str) -> str:
             f"{rig.cam1.cx + offset_px:.4f}):\n"
             f"the bundle adjustment found the pair's measured disparities {abs(offset_px):.4f} px {sense};\n"
             f"with this rig the device's estimator triangulates them corrected.\n"
-            f"use it for later sessions of the same rig: device configuration source.rig_file = <this file>")
+            f"use: {use_of(rig)}")
 
 
 def write_refined_rig(out: Path, rig: Rig, entry: dict[str, Any] | None, session: str) -> list[str]:
@@ -80,6 +92,5 @@ def write_refined_rig(out: Path, rig: Rig, entry: dict[str, Any] | None, session
     off = float(entry["disparity_offset_px"])
     save_rig_yaml(refined_rig(rig, off), path, comment=comment(rig, off, session))
     log.info("refined stereo calibration (right cx %+.3f px, the disparity offset the bundle adjustment applied) "
-             "written to %s: use it for later sessions of this rig as the device's source.rig_file (or --rig of "
-             "host live/map)", off, path)
+             "written to %s: use: %s", off, path, use_of(rig))
     return [RIG_REFINED_FILE]

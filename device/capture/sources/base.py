@@ -16,7 +16,7 @@ import threading
 from dataclasses import dataclass
 from typing import Any, Iterator, Protocol, runtime_checkable
 
-from stereopath.device.errors import CaptureError
+from stereopath.device.errors import CalibrationError, CaptureError
 from stereopath.device.core.frames import StereoFrame
 from stereopath.device.core.rig import Rig
 
@@ -115,8 +115,13 @@ class SourceBase:
             return self._frames()
         return self._through_views(self._frames())
 
-    def _use_rig_file(self, calib: Any) -> None:
-        """Take a loaded rig file (:func:`load_rig_override`): its pinhole rig and its cameras' views."""
+    def _use_rig_file(self, calib: Any, size: tuple[int, int] | None = None) -> None:
+        """Take a loaded rig file (:func:`load_rig_override`): its pinhole rig and its cameras' views,
+        refusing (:class:`CalibrationError`) views made for another image ``size`` than the source's."""
+        for cam, view in zip(("cam0", "cam1"), calib.views):
+            if view is not None and size is not None and tuple(view.source.size) != tuple(size):
+                raise CalibrationError(f"{calib.source}: {cam} is calibrated at {view.source.size[0]}x"
+                                       f"{view.source.size[1]} but the {self.name} source delivers {size[0]}x{size[1]}")
         self._rig = calib.rig
         self._views = calib.views
 

@@ -39,7 +39,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator
 
-from stereopath.device.errors import CaptureError
+from stereopath.device.errors import CalibrationError, CaptureError
 from stereopath.device.core.frames import StereoFrame
 from stereopath.device.core.rig import Rig
 from stereopath.device.service.settings import SourceSettings
@@ -179,6 +179,8 @@ class Picamera2Source(SourceBase):
 
     def _open(self) -> None:
         s = self.settings
+        # the rig file first: a calibration that cannot be used stops before any camera runs
+        calib = load_rig_override(s.rig_file) if self._rig_arg is None else None
         api = self._api()
         self._error = None
         self._last_ts = [None, None]
@@ -247,12 +249,14 @@ class Picamera2Source(SourceBase):
                  "software" if self._sync else "off")
         if self._rig_arg is not None:
             self._rig = self._rig_arg
+        elif calib is None:
+            log.warning("picamera2: no rig calibration configured (source.rig_file)")
         else:
-            calib = load_rig_override(s.rig_file)
-            if calib is None:
-                log.warning("picamera2: no rig calibration configured (source.rig_file)")
-            else:
-                self._use_rig_file(calib)
+            try:
+                self._use_rig_file(calib, self._size)
+            except CalibrationError:
+                self._close_cameras()
+                raise
 
     def _make_callback(self, side: int, mapped_array: Any) -> Callable[[Any], None]:
         w, h = self._size  # the size libcamera chose, not necessarily the one asked for

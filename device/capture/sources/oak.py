@@ -42,7 +42,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from stereopath.device.errors import CaptureError
+from stereopath.device.errors import CalibrationError, CaptureError
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import Rig, make_camera, make_rig
@@ -297,7 +297,7 @@ class DepthaiSource(SourceBase):
             else:
                 calib = load_rig_override(s.rig_file)
                 if calib is not None:
-                    self._use_rig_file(calib)
+                    self._use_rig_file(calib, size)
                 else:
                     cal = p.getDefaultDevice().readCalibration()
                     rig_from_calibration(cal, dai, size)  # fail early on a calibration we cannot use
@@ -313,7 +313,7 @@ class DepthaiSource(SourceBase):
                     else:
                         K[sock.name] = K_frame
                 self._rig = rig_from_calibration(cal, dai, size, intrinsics=K)
-        except CaptureError:
+        except (CaptureError, CalibrationError):  # a calibration we cannot use stays a calibration error
             self._stop_pipeline()
             raise
         except Exception as exc:

@@ -78,10 +78,11 @@ class SequenceSource(SourceBase):
         self.sequence = seq
         calib = load_rig_override(self._rig_file)
         if calib is not None:
-            if calib.has_views and any(v is not None for v in getattr(seq, "views", (None, None))):
-                raise CalibrationError(f"{calib.source}: a fisheye calibration for images the sequence already reads "
-                                       f"through its own fisheye calibration: give one of the two")
-            self._use_rig_file(calib)  # the recorded images as the given calibration's cameras took them
+            if calib.has_views:  # recorded images are pinhole already (a session) or read through their own lens model
+                raise CalibrationError(f"{calib.source}: a fisheye calibration cannot be replayed over recorded images: "
+                                       f"a session holds them as pinhole views already, and a fisheye dataset is read "
+                                       f"through its own calibration (sensor.yaml or a Kalibr camchain beside mav0)")
+            self._use_rig_file(calib)
         else:
             self._rig = seq.rig
         imu = getattr(seq, "imu", None)
