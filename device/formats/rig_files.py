@@ -25,24 +25,36 @@ from stereopath.device.formats.fileio import write_text_atomic
 log = logging.getLogger(__name__)
 
 
-def load_rig_yaml(path: str | Path) -> Rig:
-    """Load our rig YAML; any problem raises :class:`CalibrationError` naming the file and field."""
+def _read_yaml(path: Path, what: str) -> Any:
+    """A YAML file's content (an OpenCV ``%YAML`` header allowed); a missing, binary or invalid file
+    raises :class:`CalibrationError` naming it."""
     import yaml
 
-    p = Path(path)
     try:
-        text = p.read_text()
+        text = path.read_text()
     except FileNotFoundError:
-        raise CalibrationError(f"calibration file not found: {p}") from None
+        raise CalibrationError(f"{what} not found: {path}") from None
+    except UnicodeDecodeError:
+        raise CalibrationError(f"{path}: not a text file") from None
+    text = re.sub(r"^%YAML.*$", "", text, count=1, flags=re.MULTILINE)  # OpenCV-style header
     try:
-        data = yaml.safe_load(text)
+        return yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise CalibrationError(f"{p}: invalid YAML: {exc}") from None
+        raise CalibrationError(f"{path}: invalid YAML: {exc}") from None
+
+
+def _rig_from_yaml_data(p: Path, data: Any) -> Rig:
     try:
         return rig_from_dict(data, source=str(p))
     except CalibrationError as exc:
         msg = str(exc)
         raise CalibrationError(msg if msg.startswith(str(p)) else f"{p}: {msg}") from None
+
+
+def load_rig_yaml(path: str | Path) -> Rig:
+    """Load our rig YAML; any problem raises :class:`CalibrationError` naming the file and field."""
+    p = Path(path)
+    return _rig_from_yaml_data(p, _read_yaml(p, "calibration file"))
 
 
 def save_rig_yaml(rig: Rig, path: str | Path, comment: str | None = None) -> None:
@@ -88,17 +100,7 @@ def load_kitti_calib(path: str | Path, image_size: tuple[int, int]) -> Rig:
 
 
 def _euroc_sensor(path: Path, what: str = "EuRoC sensor file") -> dict[str, Any]:
-    import yaml
-
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise CalibrationError(f"{what} not found: {path}") from None
-    text = re.sub(r"^%YAML.*$", "", text, count=1, flags=re.MULTILINE)  # OpenCV-style header
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise CalibrationError(f"{path}: invalid YAML: {exc}") from None
+    data = _read_yaml(path, what)
     if not isinstance(data, dict):
         raise CalibrationError(f"{path}: expected a mapping")
     return data
@@ -143,8 +145,8 @@ def _pose(where: str, name: str, value: Any) -> np.ndarray:
     return T
 
 
-def _euroc_camera(name: str, path: Path) -> tuple[CameraModel | FisheyeCamera, np.ndarray]:
-    d = _euroc_sensor(path)
+def _euroc_camera(name: str, path: Path, d: dict[str, Any]) -> tuple[CameraModel | FisheyeCamera, np.ndarray]:
+    """Camera ``name`` from its parsed ``sensor.yaml`` ``d`` (read from ``path``)."""
     for key in ("T_BS", "intrinsics", "resolution", "distortion_coefficients"):
         if key not in d:
             raise CalibrationError(f"{path}: missing {key}")
@@ -156,10 +158,9 @@ def _euroc_camera(name: str, path: Path) -> tuple[CameraModel | FisheyeCamera, n
     return cam, T_BS
 
 
-def _kalibr_camchain(path: Path) -> tuple[Any, Any, np.ndarray, np.ndarray | None]:
-    """Kalibr ``camchain(-imucam).yaml``: the two cameras, ``T_cam1_cam0`` and ``T_body_cam0`` (None
-    without ``T_cam_imu``, i.e. a camera-only calibration)."""
-    d = _euroc_sensor(path, "Kalibr camchain")
+def _kalibr_camchain(path: Path, d: dict[str, Any]) -> tuple[Any, Any, np.ndarray, np.ndarray | None]:
+    """Kalibr ``camchain(-imucam).yaml`` (parsed ``d``, read from ``path``): the two cameras,
+    ``T_cam1_cam0`` and ``T_body_cam0`` (None without ``T_cam_imu``, i.e. a camera-only calibration)."""
     where = str(path)
     cams, T_cam_imu = [], []
     for name in ("cam0", "cam1"):
@@ -180,11 +181,6 @@ def _kalibr_camchain(path: Path) -> tuple[Any, Any, np.ndarray, np.ndarray | Non
         raise CalibrationError(f"{where}: cam1 has neither T_cn_cnm1 nor (with cam0) T_cam_imu")
     T_b_c0 = None if T_cam_imu[0] is None else invert_pose(T_cam_imu[0])
     return cams[0], cams[1], T_c1_c0, T_b_c0
-
-
-def _has_calibration(path: Path) -> bool:
-    """True when ``camN/sensor.yaml`` exists and carries intrinsics (some datasets ship it without)."""
-    return path.is_file() and "intrinsics" in _euroc_sensor(path)
 
 
 def kalibr_camchain_path(mav0: Path) -> Path | None:
@@ -225,19 +221,21 @@ def load_euroc_calibration(mav0: str | Path) -> RigCalibration:
     :func:`kalibr_camchain_path`).  Equidistant cameras come with their pinhole views."""
     m = Path(mav0)
     sensors = [m / "cam0" / "sensor.yaml", m / "cam1" / "sensor.yaml"]
-    if all(_has_calibration(p) for p in sensors):
-        cam0, T_B_C0 = _euroc_camera("cam0", sensors[0])
-        cam1, T_B_C1 = _euroc_camera("cam1", sensors[1])
+    # each read once; some datasets ship sensor files without a calibration
+    docs = [_euroc_sensor(p) if p.is_file() else None for p in sensors]
+    if all(d is not None and "intrinsics" in d for d in docs):
+        cam0, T_B_C0 = _euroc_camera("cam0", sensors[0], docs[0])
+        cam1, T_B_C1 = _euroc_camera("cam1", sensors[1], docs[1])
         T_body: np.ndarray | None = T_B_C0
         T_C1_C0 = invert_pose(T_B_C1) @ T_B_C0
         source = f"{sensors[0]}, {sensors[1]}"
     else:
         chain = kalibr_camchain_path(m)
         if chain is None:
-            missing = [str(p) for p in sensors if not _has_calibration(p)]
+            missing = [str(p) for p, d in zip(sensors, docs) if d is None or "intrinsics" not in d]
             raise CalibrationError(f"no calibration for {m}: {', '.join(missing)} missing or without intrinsics, "
                                    f"and no Kalibr *camchain*.yaml in {m}, {m.parent} or {m.parent / 'dso'}")
-        cam0, cam1, T_C1_C0, T_body = _kalibr_camchain(chain)
+        cam0, cam1, T_C1_C0, T_body = _kalibr_camchain(chain, _euroc_sensor(chain, "Kalibr camchain"))
         source = str(chain)
     return _calibration(cam0, cam1, T_C1_C0, T_body, source, name="euroc", where=str(m))
 
@@ -272,20 +270,11 @@ def is_kalibr_camchain(data: Any) -> bool:
 def load_rig_file(path: str | Path) -> RigCalibration:
     """A rig file as the device's ``source.rig_file`` names it: our rig YAML (pinhole cameras), or a
     Kalibr camchain (radial-tangential or equidistant cameras; a fisheye camera comes with its view)."""
-    import yaml
-
     p = Path(path)
-    try:
-        data = yaml.safe_load(re.sub(r"^%YAML.*$", "", p.read_text(), count=1, flags=re.MULTILINE))
-    except FileNotFoundError:
-        raise CalibrationError(f"calibration file not found: {p}") from None
-    except UnicodeDecodeError:
-        raise CalibrationError(f"{p}: not a text file") from None
-    except yaml.YAMLError as exc:
-        raise CalibrationError(f"{p}: invalid YAML: {exc}") from None
+    data = _read_yaml(p, "calibration file")  # read once, then taken as what it is
     if not is_kalibr_camchain(data):
-        return RigCalibration(rig=load_rig_yaml(p), views=(None, None), source=str(p))
-    cam0, cam1, T_C1_C0, T_body = _kalibr_camchain(p)
+        return RigCalibration(rig=_rig_from_yaml_data(p, data), views=(None, None), source=str(p))
+    cam0, cam1, T_C1_C0, T_body = _kalibr_camchain(p, data)
     return _calibration(cam0, cam1, T_C1_C0, T_body, str(p), name=p.stem, where=str(p))
 
 

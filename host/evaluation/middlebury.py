@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from stereopath.device.errors import DatasetError
+from stereopath.device.formats.images import read_gray
 
 DATASETS_XML = "datasets.xml"
 
@@ -35,15 +36,6 @@ class Scene:
     right: np.ndarray
     gt: np.ndarray  # float32 disparity of the left image, NaN = unknown
     num_disparities: int  # a multiple of 16 covering the scene's disparities (what SGBM searches)
-
-
-def _gray(path: Path) -> np.ndarray:
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise DatasetError(f"image not found or not decodable: {path}")
-    return img
 
 
 def read_scale_factors(path: Path) -> dict[str, tuple[float, float]]:
@@ -69,8 +61,8 @@ def _read_2003(d: Path) -> Scene:
     if d.name not in factors:
         raise DatasetError(f"{d}: no disparity scale factor for {d.name!r} in {d.parent / DATASETS_XML}")
     scale, unknown = factors[d.name]
-    left, right = _gray(d / "im2.png"), _gray(d / "im6.png")
-    raw = _gray(d / "disp2.png").astype(np.float32)
+    left, right = read_gray(d / "im2.png"), read_gray(d / "im6.png")
+    raw = read_gray(d / "disp2.png").astype(np.float32)
     gt = np.where(raw == unknown, np.nan, raw / scale).astype(np.float32)
     return _scene(d, left, right, gt, None)
 
@@ -90,7 +82,7 @@ def _read_2014(d: Path) -> Scene:
     if calib.is_file():
         m = re.search(r"^\s*ndisp\s*=\s*(\d+)\s*$", calib.read_text(), re.MULTILINE)
         ndisp = int(m.group(1)) if m else None
-    return _scene(d, _gray(d / "im0.png"), _gray(d / "im1.png"), gt, ndisp)
+    return _scene(d, read_gray(d / "im0.png"), read_gray(d / "im1.png"), gt, ndisp)
 
 
 def _scene(d: Path, left: np.ndarray, right: np.ndarray, gt: np.ndarray, ndisp: int | None) -> Scene:

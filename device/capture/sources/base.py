@@ -127,12 +127,8 @@ class SourceBase:
 
     def _through_views(self, frames: Iterator[StereoFrame]) -> Iterator[StereoFrame]:
         """The frames as the rig sees them: each fisheye camera's image through its pinhole view."""
-        v0, v1 = self._views
+        v0, v1 = self._views  # their image size was checked against the source's at open (_use_rig_file)
         for f in frames:
-            for view, img in ((v0, f.left), (v1, f.right)):
-                if view is not None and (img.shape[1], img.shape[0]) != tuple(view.source.size):
-                    raise CaptureError(f"{self.name} source: a {img.shape[1]}x{img.shape[0]} image but the fisheye "
-                                       f"calibration is for {view.source.size[0]}x{view.source.size[1]}")
             yield dataclasses.replace(f, left=f.left if v0 is None else v0.apply(f.left),
                                       right=f.right if v1 is None else v1.apply(f.right))
 
