@@ -85,3 +85,54 @@ def test_black_frames_fall_back_to_the_imu(sim):
     assert all(status[i] == "ok" for i in range(N) if i not in bad)
     m = evaluate(seq.groundtruth, run.trajectory)
     assert m["ate_rmse_m"] < 0.005  # the trajectory continues without a jump
+
+
+def test_a_keyframe_job_joined_while_the_keyframe_is_made_moves_its_pose_with_the_map(sim):
+    """A keyframe job can finish between the start of a frame (where results are joined) and that
+    frame's keyframe (whose submission joins finished jobs too).  Its correction moves the map and
+    the live poses; the keyframe's own pose and new points must move with them."""
+    import cv2
+
+    from stereopath.device.core.geometry import so3_exp
+    from stereopath.device.estimation.stereo_vo import StereoConfig, StereoEstimator
+
+    class LateJoins(StereoEstimator):  # every result is joined inside a keyframe's submission
+        inside = False
+
+        def _join_keyframe_job(self):
+            if self.inside:
+                super()._join_keyframe_job()
+
+        def _submit_keyframe_job(self, *args):
+            self.inside = True
+            try:
+                super()._submit_keyframe_job(*args)
+            finally:
+                self.inside = False
+
+        def _keyframe_job(self, *args):  # a 1 deg correction from every solved keyframe job
+            res = super()._keyframe_job(*args)
+            if res.T_refined is not None:
+                res.T_refined = res.T_refined.copy()
+                res.T_refined[:3, :3] = res.T_refined[:3, :3] @ so3_exp([0.0, np.radians(1.0), 0.0])
+            return res
+
+    seq, frames = sim
+    est = LateJoins(seq.rig, StereoConfig(background_keyframes=False))
+    K, dist = seq.rig.cam0.K, seq.rig.cam0.dist
+    worst, joined = 0.0, 0
+    imu = seq.imu
+    prev_t = int(imu.t_ns[0]) - 1
+    for f in frames:
+        before = est.counters["kf_corrections"]
+        e = est.process(f, imu.between(prev_t, f.t_ns))
+        prev_t = f.t_ns
+        if e.keyframe and est.counters["kf_corrections"] > before:
+            joined += 1
+            m = est._map
+            T_cw = np.linalg.inv(e.T_world_cam)
+            uv = cv2.projectPoints(m.X.reshape(-1, 1, 3), cv2.Rodrigues(T_cw[:3, :3])[0], T_cw[:3, 3], K, dist)[0]
+            worst = max(worst, float(np.median(np.linalg.norm(uv.reshape(-1, 2) - m.uv, axis=1))))
+    est.close()
+    assert joined >= 2
+    assert worst < 1.0  # the map's points where the keyframe's pose sees them (1 deg off: ~9 px)

@@ -57,7 +57,8 @@ from stereopath.device.estimation.keyframe_jobs import KeyframeJobs
 from stereopath.device.estimation.stereo_measure import StereoMeasure
 from stereopath.device.estimation.tracked_map import TrackedMap
 from stereopath.device.core.frames import ImuSamples, StereoFrame
-from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, so3_log
+from stereopath.device.core.geometry import (invert_pose, make_pose, project_to_se3, rotation_angle_deg, so3_exp,
+                                            so3_log)
 from stereopath.device.core.rig import Rig
 
 log = logging.getLogger(__name__)
@@ -312,11 +313,12 @@ class StereoEstimator(KeyframeJobs):
                 self.counters["relocalised"] += 1
                 self._map = TrackedMap()
                 self._new_keyframe(left, right, T_est)
-                return PoseEstimate(frame.seq, frame.t_ns, T_est, "ok", inliers=n_inl, keyframe=True,
+                return PoseEstimate(frame.seq, frame.t_ns, self._T_kf.copy(), "ok", inliers=n_inl, keyframe=True,
                                     note="relocalised")
             is_kf = self._need_keyframe(T_est, n_inl)
             if is_kf:
                 self._new_keyframe(left, right, T_est)
+                T_est = self._T_kf.copy()  # moved with the live state if a keyframe job was joined meanwhile
             return PoseEstimate(frame.seq, frame.t_ns, T_est, "ok", inliers=n_inl, keyframe=is_kf)
         # Vision failed (black frame, lens cap, no overlap, blur): fall back to the IMU rotation (or
         # constant velocity), flagged.  The map and the last good image are kept so the next good
@@ -328,6 +330,7 @@ class StereoEstimator(KeyframeJobs):
         if self._failures > cfg.max_failures_keep_map or len(m) < cfg.min_pnp_inliers:
             self._map = TrackedMap()
             n = self._new_keyframe(left, right, T_pred)
+            T_pred = self._T_kf.copy()
             if n >= cfg.min_pnp_inliers:
                 self._prev_left = left
                 is_kf = True
@@ -410,7 +413,11 @@ class StereoEstimator(KeyframeJobs):
             Xc_m = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
             if np.any(Xc_m[:, 2] > 0):
                 z0 = float(np.median(Xc_m[Xc_m[:, 2] > 0, 2]))
+        C_before = self._C.copy()
         self._submit_keyframe_job(left, right, T_world_cam, z0)
+        if not np.array_equal(C_before, self._C):
+            # a finished keyframe job was joined: it moved the map and the live poses, and this pose with them
+            T_world_cam = project_to_se3(self._C @ invert_pose(C_before)) @ T_world_cam
         # candidate new map points: corners away from the existing tracks
         need = cfg.max_points - len(m)
         mask = np.full(left.shape[:2], 255, np.uint8)
