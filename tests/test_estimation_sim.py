@@ -87,6 +87,39 @@ def test_black_frames_fall_back_to_the_imu(sim):
     assert m["ate_rmse_m"] < 0.005  # the trajectory continues without a jump
 
 
+def test_gyro_bias_is_measured_from_vision_when_the_recording_starts_in_motion(sim):
+    """No still IMU block before the first frame and a large gyro bias (EuRoC's size): vision measures
+    the bias within the first seconds, so the rotation bridged over a blackout stays true."""
+    from stereopath.device.core.frames import ImuSamples
+    from stereopath.device.core.geometry import rotation_angle_deg
+
+    seq, frames = sim
+    extra = np.array([0.02, -0.05, 0.08])  # rad/s on top of the simulated MEMS bias
+    t0 = frames[0].t_ns
+    imu = seq.imu.between(t0 - 1, int(seq.imu.t_ns[-1]))
+    imu = ImuSamples(imu.t_ns, imu.gyro_rad_s + extra, imu.accel_m_s2, imu.temp_c)
+    gap = range(70, 82)  # 0.6 s of black frames
+    broken = [type(f)(f.seq, f.t_ns, np.zeros_like(f.left), np.zeros_like(f.right), f.meta) if f.seq in gap else f
+              for f in frames]
+    true_bias = seq.imu_biases.gyro_rad_s[-1] + extra
+    G = seq.groundtruth.T_world_cam
+    gap_error = {}
+    for on in (True, False):
+        est = make_estimator("stereo", seq.rig, options={"estimate_gyro_bias": on})
+        run = run_estimator(est, iter(broken), imu)
+        status = {e.seq: e.status for e in run.estimates}
+        assert run.world_frame == "first_camera"
+        assert all(status[i] == "imu_only" for i in gap)
+        T = run.trajectory.T_world_cam
+        a = gap[0] - 1
+        gap_error[on] = max(rotation_angle_deg((G[a, :3, :3].T @ G[i, :3, :3]).T @ (T[a, :3, :3].T @ T[i, :3, :3]))
+                            for i in gap)
+        if on:
+            assert np.linalg.norm(est.gyro_bias_rad_s - true_bias) < 2e-3
+            assert all(status[i] == "ok" for i in range(N) if i not in gap)
+    assert gap_error[True] < 0.3 and gap_error[False] > 2.0  # 0.02 vs 3.4 deg when measured
+
+
 def test_a_keyframe_job_joined_while_the_keyframe_is_made_moves_its_pose_with_the_map(sim):
     """A keyframe job can finish between the start of a frame (where results are joined) and that
     frame's keyframe (whose submission joins finished jobs too).  Its correction moves the map and

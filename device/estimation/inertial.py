@@ -1,4 +1,4 @@
-"""Gyro integration, start-up bias and gravity from a still period.  Pure NumPy."""
+"""Gyro integration, start-up bias and gravity from a still period, the bias refined from vision.  Pure NumPy."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stereopath.device.core.frames import ImuSamples
-from stereopath.device.core.geometry import so3_exp
+from stereopath.device.core.geometry import so3_exp, so3_log
 
 GRAVITY_M_S2 = 9.80665
 
@@ -94,3 +94,74 @@ class GyroIntegrator:
         for d, wi in zip(dt, wm):
             R = R @ so3_exp(wi * d)
         return R
+
+
+class VisionGyroBias:
+    """The gyro bias refined from the camera's own rotation, one window of tracked frames at a time.
+
+    Over a window of ``window_s`` seconds of tracked frames, the gyro integrated with the current
+    bias ``b`` gives ``R_gyro`` and the tracked poses give ``R_vis`` (body frame, window start to
+    end).  With the true bias ``b + d`` the two differ by ``log(R_vis^T R_gyro) = A d``, where
+    ``A = sum_k R_(k->end)^T dt_k`` carries each step's bias error to the window's end (``A = T I``
+    without rotation).  Each window's ``d`` is fused by a Kalman update whose measurement noise is
+    the tracked rotation's error at both ends (``vision_sigma_rad``) through ``A``, with the bias as
+    a random walk; a window whose ``d`` is farther than ``gate_sigma`` standard deviations from the
+    prediction is rejected (a bad pose, a moving scene).  Pure compute: the caller keeps the
+    window's start pose, feeds the gyro step of every tracked frame and restarts the window when a
+    frame is not tracked."""
+
+    def __init__(self, bias_rad_s: np.ndarray | None, sigma_rad_s: float, window_s: float = 1.0,
+                 vision_sigma_rad: float = 1e-3, walk_rad_s2_rthz: float = 1e-4, gate_sigma: float = 4.0) -> None:
+        self.bias = np.zeros(3) if bias_rad_s is None else np.asarray(bias_rad_s, float).copy()
+        self.var = float(sigma_rad_s) ** 2
+        self.window_s = float(window_s)
+        self.vision_sigma_rad = float(vision_sigma_rad)
+        self.walk = float(walk_rad_s2_rthz)
+        self.gate_sigma = float(gate_sigma)
+        self.updates = 0
+        self.rejected = 0
+        self.restart()
+
+    @property
+    def sigma_rad_s(self) -> float:
+        return float(np.sqrt(self.var))
+
+    @property
+    def window_full(self) -> bool:
+        return self._T >= self.window_s
+
+    def restart(self) -> None:
+        """Forget the window's gyro steps (the caller starts it at a new tracked pose)."""
+        self._R_gyro, self._A, self._T = np.eye(3), np.zeros((3, 3)), 0.0
+
+    def add(self, R_step_body: np.ndarray, dt_s: float) -> None:
+        """The gyro's body rotation from the previous tracked frame to this one (current bias)."""
+        R_step_body = np.asarray(R_step_body, float)
+        self._A = R_step_body.T @ self._A + dt_s * np.eye(3)
+        self._R_gyro = self._R_gyro @ R_step_body
+        self._T += dt_s
+
+    def update(self, R_vis_body: np.ndarray) -> bool:
+        """Close the window with the tracked body rotation over it (start to end); True when the bias
+        was updated.  The window restarts either way."""
+        A, R_gyro, T = self._A, self._R_gyro, self._T
+        self.restart()
+        if T <= 0.0:
+            return False
+        e = so3_log(np.asarray(R_vis_body, float).T @ R_gyro)
+        try:
+            A_inv = np.linalg.inv(A)
+        except np.linalg.LinAlgError:
+            return False
+        d = A_inv @ e
+        meas_var = 2.0 * self.vision_sigma_rad**2 * float(np.max(np.linalg.eigvalsh(A_inv @ A_inv.T)))
+        prior_var = self.var + self.walk**2 * T
+        self.var = prior_var
+        if float(np.max(np.abs(d))) > self.gate_sigma * np.sqrt(prior_var + meas_var):
+            self.rejected += 1
+            return False
+        k = prior_var / (prior_var + meas_var)
+        self.bias = self.bias + k * d
+        self.var = (1.0 - k) * prior_var
+        self.updates += 1
+        return True

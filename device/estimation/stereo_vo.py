@@ -32,8 +32,12 @@ When it is first learned, the path measured with the prior is re-measured with i
 Works without an IMU (KITTI): the prior is then a constant-velocity model.
 At start-up a still IMU block before the first frame gives the gyro bias and
 gravity; the world frame is then gravity aligned (z up), else camera 1 at the
-first frame.  A frame that cannot be tracked is flagged (``imu_only`` with a
-gyro prior, else ``lost``) with the predicted pose; it is never reported ``ok``.
+first frame.  With ``estimate_gyro_bias`` (on by default) the bias is then refined from the
+tracked rotation over every second of tracked frames
+(:class:`~stereopath.device.estimation.inertial.VisionGyroBias`), so a recording that starts in
+motion (or a bias that drifts with temperature) still gets a true gyro prior.  A frame that
+cannot be tracked is flagged (``imu_only`` with a gyro prior, else ``lost``) with the predicted
+pose; it is never reported ``ok``.
 """
 
 from __future__ import annotations
@@ -47,7 +51,8 @@ import numpy as np
 from stereopath.device.core.config import check_range
 from stereopath.device.errors import ConfigError
 from stereopath.device.estimation.base import PoseEstimate, WorldFrame
-from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still, gravity_aligned_rotation
+from stereopath.device.estimation.inertial import (GyroIntegrator, VisionGyroBias, estimate_still,
+                                                   gravity_aligned_rotation)
 from stereopath.device.core.features import gray
 from stereopath.device.core.photometric import (GainOffset, correct_right, fit_gain_offset, measure_relation,
                                                 relation_matters)
@@ -62,6 +67,9 @@ from stereopath.device.core.geometry import (invert_pose, make_pose, project_to_
 from stereopath.device.core.rig import Rig
 
 log = logging.getLogger(__name__)
+
+STILL_BIAS_SIGMA_RAD_S = 2e-3  # the gyro bias measured still before the first frame (0.1 deg/s)
+UNKNOWN_BIAS_SIGMA_RAD_S = 0.1  # no still start: the bias is anything a MEMS gyro has (~6 deg/s)
 
 
 @dataclass(frozen=True)
@@ -95,6 +103,9 @@ class StereoConfig:
     pnp_reproj_px: float = 2.0
     min_pnp_inliers: int = 12
     use_imu: bool = True
+    # refine the gyro bias from the tracked rotation, window by window (gyro_bias_window_s of tracked frames)
+    estimate_gyro_bias: bool = True
+    gyro_bias_window_s: float = 1.0
     huber_px: float = 1.0
     max_failures_keep_map: int = 10  # failed frames in a row before the map restarts
     background_keyframes: bool = True  # keyframe ASIFT work on a worker thread (False: at the keyframe itself)
@@ -139,6 +150,7 @@ class StereoConfig:
         check_range("max_correction_deg", self.max_correction_deg, 0.0, 180.0)
         check_range("disparity_offset_px", self.disparity_offset_px, -10.0, 10.0)
         check_range("exposure_tolerance", self.exposure_tolerance, 0.0, 255.0)
+        check_range("gyro_bias_window_s", self.gyro_bias_window_s, 0.1, 60.0)
 
 
 class StereoEstimator(KeyframeJobs):
@@ -168,6 +180,9 @@ class StereoEstimator(KeyframeJobs):
         self._since_kf = 0
         self._failures = 0
         self._gyro: GyroIntegrator | None = None
+        self._bias: VisionGyroBias | None = None
+        self._gyro_step: tuple[np.ndarray, float] | None = None  # the gyro's body rotation over the last frame
+        self._T_bias_start: np.ndarray | None = None  # pose at the start of the bias window (a live pose)
         self._R_body_cam = None if rig.T_body_cam0 is None else rig.T_body_cam0[:3, :3]
         self._klt = dict(winSize=(self.cfg.klt_window, self.cfg.klt_window), maxLevel=self.cfg.klt_levels,
                          criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
@@ -181,7 +196,8 @@ class StereoEstimator(KeyframeJobs):
         self.counters = dict.fromkeys(
             "keyframes imu_only lost asift_matches kf_jobs kf_jobs_skipped kf_jobs_deferred asift_views kf_corrections"
             " retracked relocalised disparity_offset_pairs disparity_offset_unidentified"
-            " disparity_offset_path_corrections exposure_fits exposure_corrected_frames".split(), 0)
+            " disparity_offset_path_corrections exposure_fits exposure_corrected_frames gyro_bias_updates"
+            " gyro_bias_rejected".split(), 0)
         self.counters["right_gain_milli"], self.counters["right_offset_centi"] = 1000, 0
         self.counters["disparity_offset_mpx"] = int(round(1000 * self.cfg.disparity_offset_px))
 
@@ -209,6 +225,7 @@ class StereoEstimator(KeyframeJobs):
         dt = (frame.t_ns - self._t_prev) * 1e-9
         T_pred, have_rot_prior = self._predict(frame.t_ns, dt, imu)
         est = self._track(frame, left, right, T_pred, have_rot_prior)
+        self._refine_gyro_bias(est)
         self._T_prev_prev = self._T_world_cam
         self._T_world_cam = est.T_world_cam
         self._t_prev = frame.t_ns
@@ -223,6 +240,7 @@ class StereoEstimator(KeyframeJobs):
             still = estimate_still(imu)
             if still is not None:
                 self._gyro = GyroIntegrator(still.gyro_bias_rad_s)
+                bias0, sigma0 = still.gyro_bias_rad_s, STILL_BIAS_SIGMA_RAD_S
                 R_world_body = gravity_aligned_rotation(still.accel_mean_m_s2)
                 R_world_cam = R_world_body @ self._R_body_cam
                 self.world_frame = "gravity_aligned"
@@ -230,10 +248,15 @@ class StereoEstimator(KeyframeJobs):
                          np.round(still.gyro_bias_rad_s, 5), still.gravity_norm_m_s2)
             else:
                 self._gyro = GyroIntegrator(None)
-                log.warning("IMU not still before the first frame: no gyro bias, world frame = first camera")
+                bias0, sigma0 = None, UNKNOWN_BIAS_SIGMA_RAD_S
+                log.warning("IMU not still before the first frame: gyro bias unknown until vision measures it"
+                            " (estimate_gyro_bias), world frame = first camera")
             self._gyro.feed_and_integrate(imu, frame.t_ns, frame.t_ns)
+            if self.cfg.estimate_gyro_bias:
+                self._bias = VisionGyroBias(bias0, sigma0, window_s=self.cfg.gyro_bias_window_s)
         T = make_pose(R_world_cam, np.zeros(3))
         self._T_world_cam = T
+        self._T_bias_start = T.copy()
         self._t_prev = frame.t_ns
         self._prev_left = left
         if self.cfg.match_exposure:
@@ -262,6 +285,7 @@ class StereoEstimator(KeyframeJobs):
         have_rot = False
         if self._gyro is not None and self._R_body_cam is not None:
             R_b = self._gyro.feed_and_integrate(imu, self._t_prev, t_ns)
+            self._gyro_step = None if R_b is None else (R_b, dt)
             if R_b is not None:
                 Rbc = self._R_body_cam
                 R_rel = Rbc.T @ R_b @ Rbc
@@ -335,6 +359,32 @@ class StereoEstimator(KeyframeJobs):
                 self._prev_left = left
                 is_kf = True
         return PoseEstimate(frame.seq, frame.t_ns, T_pred, status, inliers=0, keyframe=is_kf, note=note)
+
+    def _refine_gyro_bias(self, est: PoseEstimate) -> None:
+        """Feed the bias window this frame's gyro step; close it with the tracked rotation when full.
+        A frame that is not tracked (or relocalised: a new map) restarts the window."""
+        if self._bias is None or self._R_body_cam is None:
+            return
+        if est.status != "ok" or est.note == "relocalised" or self._gyro_step is None or self._T_bias_start is None:
+            self._bias.restart()
+            self._T_bias_start = est.T_world_cam.copy() if est.status == "ok" else None
+            return
+        self._bias.add(*self._gyro_step)
+        if not self._bias.window_full:
+            return
+        Rbc = self._R_body_cam
+        R_vis_body = Rbc @ (self._T_bias_start[:3, :3].T @ est.T_world_cam[:3, :3]) @ Rbc.T
+        if self._bias.update(R_vis_body):
+            self._gyro.bias = self._bias.bias.copy()
+            self.counters["gyro_bias_updates"] = self._bias.updates
+            log.debug("gyro bias %s rad/s (+- %.5f)", np.round(self._bias.bias, 5), self._bias.sigma_rad_s)
+        self.counters["gyro_bias_rejected"] = self._bias.rejected
+        self._T_bias_start = est.T_world_cam.copy()
+
+    @property
+    def gyro_bias_rad_s(self) -> np.ndarray | None:
+        """The gyro bias in use (None without an IMU)."""
+        return None if self._gyro is None else self._gyro.bias.copy()
 
     def _need_keyframe(self, T_est: np.ndarray, n_inl: int) -> bool:
         """What the path needs: points to track, a view change ASIFT can still bridge, or age."""
