@@ -1,7 +1,7 @@
 """Our `stereo` estimator side by side with ORB-SLAM3 on the same frames (issue 10).  Prints figures.
 
-    .venv/bin/python benchmarks/bench_peers.py [--runs 3] [--cases kitti06,kitti06_s2,kitti06_s3,sim]
-        [--kitti SEQDIR] [--kitti-frames N]
+    .venv/bin/python benchmarks/bench_peers.py [--runs 3] [--cases kitti06,kitti06_s2,kitti06_s3,sim,euroc]
+        [--kitti SEQDIR] [--kitti-frames N] [--euroc MAV0DIR] [--euroc-frames N] [--peer-mode stereo-imu]
         [--peer-venv DIR] [--vocab FILE] [--sim-frames N] [--threads N] [--rig RIG.yaml]
 
 Installs nothing.  ORB-SLAM3 runs only when its own environment exists (a virtual environment
@@ -17,7 +17,15 @@ Cases (all on the same frames for both systems, one process at a time):
 * ``kitti06_s2`` / ``kitti06_s3``: the same frames taken every 2nd / 3rd frame (fast motion),
   as a KITTI folder of links written to a temporary directory;
 * ``sim``: the default simulated scan written by ``stereopath sim --out`` (an ASL session; ORB-SLAM3
-  rectifies it with OpenCV, ours reads it as recorded, with its IMU).
+  rectifies it with OpenCV, ours reads it as recorded, with its IMU);
+* ``euroc`` (only with ``--euroc MAV0DIR``): a stereo-inertial recording in the EuRoC/ASL layout with
+  ground truth (``state_groundtruth_estimate0`` or ``mocap0``, read by ours and written as TUM for
+  ORB-SLAM3's evaluation), its first ``--euroc-frames N`` frames if given.  Ours reads it with its IMU.
+  The peer runner rectifies radial-tangential cameras from ``cam0``/``cam1`` ``sensor.yaml``
+  only: for other recordings (a fisheye camchain) only our rows are printed.
+
+``--peer-mode stereo-imu`` runs ORB-SLAM3 stereo-inertial instead of stereo (the ``sim`` and ``euroc``
+cases; KITTI has no IMU and keeps stereo).
 
 Per system and case the medians over ``--runs`` runs of: end error (% of path), ATE RMSE (SE(3)
 alignment, ``stereopath eval``), median and p95 wall ms per frame (the estimator's call only),
@@ -47,7 +55,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-CASES = ("kitti06", "kitti06_s2", "kitti06_s3", "sim")
+CASES = ("kitti06", "kitti06_s2", "kitti06_s3", "sim", "euroc")
+DEFAULT_CASES = ("kitti06", "kitti06_s2", "kitti06_s3", "sim")
 
 
 def data_dir() -> Path:
@@ -100,9 +109,11 @@ def subsampled_kitti(src: Path, step: int, out: Path, frames: int | None = None)
 # ------------------------------------------------------------------------------------ systems
 
 
-def run_ours(spec: str, options: dict | None = None, rig_file: str | None = None) -> dict:
-    """One run of our `stereo` on ``spec`` (with ``rig_file``'s rig if given); CPU time of the whole
-    process over the frame loop."""
+def run_ours(spec: str, options: dict | None = None, rig_file: str | None = None, frames: int | None = None) -> dict:
+    """One run of our `stereo` on ``spec`` (with ``rig_file``'s rig if given; its first ``frames`` frames
+    if given); CPU time of the whole process over the frame loop."""
+    import itertools
+
     from stereopath.device.estimation.base import run_estimator
     from stereopath.device.estimation.registry import make_estimator
     from stereopath.host.evaluation.evaluate import evaluate
@@ -117,7 +128,8 @@ def run_ours(spec: str, options: dict | None = None, rig_file: str | None = None
     est = make_estimator("stereo", rig, options=options)
     decode = [0.0]
     cpu0 = time.process_time()
-    run = run_estimator(est, _timed(seq.frames(), decode), seq.imu)  # joins the keyframe worker before returning
+    source = seq.frames() if frames is None else itertools.islice(seq.frames(), frames)
+    run = run_estimator(est, _timed(source, decode), seq.imu)  # joins the keyframe worker before returning
     cpu = time.process_time() - cpu0
     m = evaluate(seq.groundtruth, run.trajectory)
     ms = sorted(run.frame_ms)
@@ -142,8 +154,11 @@ def _timed(frames, spent: list):
         yield frame
 
 
-def run_orb(py: Path, runner: Path, source: str, out: Path, vocab: str | None, gt: tuple[str, str] | None) -> dict:
-    cmd = [str(py), str(runner), source, "--out", str(out)]
+def run_orb(py: Path, runner: Path, source: str, out: Path, vocab: str | None, gt: tuple[str, str] | None,
+            mode: str = "stereo", frames: int | None = None) -> dict:
+    cmd = [str(py), str(runner), source, "--out", str(out), "--mode", mode]
+    if frames is not None:
+        cmd += ["--frames", str(frames)]
     if vocab:
         cmd += ["--vocab", vocab]
     if gt:
@@ -184,7 +199,8 @@ def print_table(results: dict) -> None:
                   f"{fmt(med(rows, 'cpu_ms'), '.1f')} | {tracked}/{rows[0]['frames']} |")
     print()
     for case, systems in results.items():
-        ours, orb = systems.get("stereo"), systems.get("ORB-SLAM3 stereo")
+        ours = systems.get("stereo")
+        orb = next((rows for name, rows in systems.items() if name.startswith("ORB-SLAM3")), None)
         if not ours or not orb:
             continue
         parts = []
@@ -203,10 +219,15 @@ def print_table(results: dict) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--cases", default=None, help=f"comma-separated, of {', '.join(CASES)} (default: "
+                                                  f"{', '.join(DEFAULT_CASES)}, and euroc with --euroc)")
     ap.add_argument("--kitti", default=None, help="KITTI odometry sequence folder for the kitti06 cases "
                                                  "(default: the shared KITTI 06; poses/NN.txt two levels up)")
     ap.add_argument("--kitti-frames", type=int, default=None, help="use only the first N frames of the sequence")
+    ap.add_argument("--euroc", default=None, help="an EuRoC/ASL mav0 folder with ground truth: adds the euroc case")
+    ap.add_argument("--euroc-frames", type=int, default=None, help="use only its first N frames")
+    ap.add_argument("--peer-mode", default="stereo", choices=["stereo", "stereo-imu"],
+                    help="ORB-SLAM3 stereo, or stereo-inertial on the cases with an IMU (sim, euroc)")
     ap.add_argument("--peer-venv", default=None)
     ap.add_argument("--vocab", default=None)
     ap.add_argument("--sim-frames", type=int, default=None, help="frames of the simulated scan (default: its own)")
@@ -227,7 +248,7 @@ def main() -> None:
             options[k] = json.loads(v)  # numbers, true/false
         except json.JSONDecodeError:
             options[k] = v
-    cases = [c for c in args.cases.split(",") if c]
+    cases = [c for c in (args.cases or ",".join(DEFAULT_CASES + (("euroc",) if args.euroc else ()))).split(",") if c]
     for c in cases:
         if c not in CASES:
             raise SystemExit(f"unknown case {c!r}; known: {', '.join(CASES)}")
@@ -262,6 +283,20 @@ def main() -> None:
                     kitti, step, tmp / case, args.kitti_frames)
                 gt = (str(seq_dir.parent.parent / "poses" / f"{seq_dir.name}.txt"), str(seq_dir / "times.txt"))
                 ours_spec, orb_source = f"kitti:{seq_dir}", f"kitti:{seq_dir}"
+            elif case == "euroc":
+                if not args.euroc or not Path(args.euroc).is_dir():
+                    print(f"{case}: give an EuRoC/ASL mav0 folder with --euroc; skipped")
+                    continue
+                from stereopath.device.formats.source import open_source
+                from stereopath.device.formats.tum import write_tum
+
+                seq = open_source(f"euroc:{args.euroc}")
+                if seq.groundtruth is None:
+                    print(f"{case}: {args.euroc} has no ground truth; skipped")
+                    continue
+                write_tum(tmp / "euroc_groundtruth.tum", seq.groundtruth)
+                gt = (str(tmp / "euroc_groundtruth.tum"), "")
+                ours_spec, orb_source = f"euroc:{args.euroc}", f"euroc:{args.euroc}"
             else:
                 sess = tmp / "sim0"
                 cmd = [str(Path(sys.executable).parent / "stereopath"), "sim", "--out", str(sess)]
@@ -270,13 +305,22 @@ def main() -> None:
                 subprocess.run(cmd, check=True, capture_output=True)
                 gt = (str(sess / "groundtruth.tum"), "")
                 ours_spec, orb_source = f"session:{sess}", f"session:{sess}"
-            results[case] = {"ORB-SLAM3 stereo": [], "stereo": []}
+            mode = args.peer_mode if case in ("sim", "euroc") else "stereo"
+            peer = "ORB-SLAM3 stereo-inertial" if mode == "stereo-imu" else "ORB-SLAM3 stereo"
+            frames = args.euroc_frames if case == "euroc" else None
+            results[case] = {peer: [], "stereo": []}
+            peer_py = py
             for r in range(args.runs):
-                if py is not None:
-                    row = run_orb(py, runner, orb_source, tmp / f"orb_{case}_{r}", vocab, gt)
-                    results[case]["ORB-SLAM3 stereo"].append(row)
-                    print(f"{case} run {r}: ORB-SLAM3 {json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()})}", flush=True)
-                row = run_ours(ours_spec, options, args.rig)
+                if peer_py is not None:
+                    try:
+                        row = run_orb(peer_py, runner, orb_source, tmp / f"orb_{case}_{r}", vocab, gt, mode, frames)
+                    except RuntimeError as exc:  # e.g. a recording the peer runner cannot rectify
+                        print(f"{case}: ORB-SLAM3 did not run ({exc}); ours only")
+                        peer_py = None
+                    else:
+                        results[case][peer].append(row)
+                        print(f"{case} run {r}: ORB-SLAM3 {json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()})}", flush=True)
+                row = run_ours(ours_spec, options, args.rig, frames)
                 results[case]["stereo"].append(row)
                 print(f"{case} run {r}: stereo    {json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()})}", flush=True)
         print_table(results)
