@@ -87,9 +87,9 @@ def test_black_frames_fall_back_to_the_imu(sim):
     assert m["ate_rmse_m"] < 0.005  # the trajectory continues without a jump
 
 
-def test_gyro_bias_is_measured_from_vision_when_the_recording_starts_in_motion(sim):
-    """No still IMU block before the first frame and a large gyro bias (EuRoC's size): vision measures
-    the bias within the first seconds, so the rotation bridged over a blackout stays true."""
+def test_gyro_bias_is_measured_from_vision_without_a_still_imu_block_before_the_first_frame(sim):
+    """No IMU block before the first frame and a large gyro bias (EuRoC's size): vision measures the
+    bias within the first seconds, so the rotation bridged over a blackout stays true."""
     from stereopath.device.core.frames import ImuSamples
     from stereopath.device.core.geometry import rotation_angle_deg
 
@@ -122,29 +122,31 @@ def test_gyro_bias_is_measured_from_vision_when_the_recording_starts_in_motion(s
 
 def test_a_keyframe_job_joined_while_the_keyframe_is_made_moves_its_pose_with_the_map(sim):
     """A keyframe job can finish between the start of a frame (where results are joined) and that
-    frame's keyframe (whose submission joins finished jobs too).  Its correction moves the map and
-    the live poses; the keyframe's own pose and new points must move with them."""
+    frame's keyframe (which joins finished jobs too).  Its correction moves the map and the live
+    poses; the keyframe's own pose, its new points and the job it submits must move with them."""
     import cv2
 
     from stereopath.device.core.geometry import so3_exp
     from stereopath.device.estimation.stereo_vo import StereoConfig, StereoEstimator
 
-    class LateJoins(StereoEstimator):  # every result is joined inside a keyframe's submission
+    class LateJoins(StereoEstimator):  # every result is joined while a keyframe is made
         inside = False
+        submitted: dict = {}
 
         def _join_keyframe_job(self):
             if self.inside:
                 super()._join_keyframe_job()
 
-        def _submit_keyframe_job(self, *args):
+        def _new_keyframe(self, *args):
             self.inside = True
             try:
-                super()._submit_keyframe_job(*args)
+                return super()._new_keyframe(*args)
             finally:
                 self.inside = False
 
-        def _keyframe_job(self, *args):  # a 1 deg correction from every solved keyframe job
-            res = super()._keyframe_job(*args)
+        def _keyframe_job(self, seq, left, right, T_tracked, *rest):  # a 1 deg correction from every solve
+            self.submitted[seq] = T_tracked.copy()
+            res = super()._keyframe_job(seq, left, right, T_tracked, *rest)
             if res.T_refined is not None:
                 res.T_refined = res.T_refined.copy()
                 res.T_refined[:3, :3] = res.T_refined[:3, :3] @ so3_exp([0.0, np.radians(1.0), 0.0])
@@ -153,13 +155,15 @@ def test_a_keyframe_job_joined_while_the_keyframe_is_made_moves_its_pose_with_th
     seq, frames = sim
     est = LateJoins(seq.rig, StereoConfig(background_keyframes=False))
     K, dist = seq.rig.cam0.K, seq.rig.cam0.dist
-    worst, joined = 0.0, 0
+    worst, joined, job_pose_error = 0.0, 0, 0.0
     imu = seq.imu
     prev_t = int(imu.t_ns[0]) - 1
     for f in frames:
         before = est.counters["kf_corrections"]
         e = est.process(f, imu.between(prev_t, f.t_ns))
         prev_t = f.t_ns
+        if e.keyframe and f.seq in est.submitted:  # the job was handed this keyframe's pose
+            job_pose_error = max(job_pose_error, float(np.abs(est.submitted[f.seq] - e.T_world_cam).max()))
         if e.keyframe and est.counters["kf_corrections"] > before:
             joined += 1
             m = est._map
@@ -167,5 +171,6 @@ def test_a_keyframe_job_joined_while_the_keyframe_is_made_moves_its_pose_with_th
             uv = cv2.projectPoints(m.X.reshape(-1, 1, 3), cv2.Rodrigues(T_cw[:3, :3])[0], T_cw[:3, 3], K, dist)[0]
             worst = max(worst, float(np.median(np.linalg.norm(uv.reshape(-1, 2) - m.uv, axis=1))))
     est.close()
-    assert joined >= 2
+    assert joined >= 2 and len(est.submitted) >= 3
     assert worst < 1.0  # the map's points where the keyframe's pose sees them (1 deg off: ~9 px)
+    assert job_pose_error < 1e-12  # the job submitted works from that same pose

@@ -120,18 +120,66 @@ def test_gyro_bias_from_vision_converges_while_turning():
 def test_gyro_bias_window_with_a_bad_pose_is_rejected_and_an_untracked_frame_restarts_it():
     bias = np.array([0.01, -0.02, 0.03])
     vb = VisionGyroBias(bias, 2e-3, window_s=1.0)  # known at start (a still block)
-    R_start = np.eye(3)
-    for k, (R_gyro, dt, R_true) in enumerate(_spin(bias, bias, 1.0)):
+    for R_gyro, dt, R_true in _spin(bias, bias, 1.0):
         vb.add(R_gyro, dt)
     assert vb.window_full
     # a tracked pose 3 deg off (a wrong relocalisation): 0.05 rad/s, 25 sigma of what is known
-    assert not vb.update(R_start.T @ R_true @ so3_exp([0.0, np.radians(3.0), 0.0]))
+    assert not vb.update(R_true @ so3_exp([0.0, np.radians(3.0), 0.0]))
     assert vb.rejected == 1 and np.allclose(vb.bias, bias)
     # restart drops the gyro steps gathered so far: nothing to compare at the next update
     vb.add(np.eye(3), 0.5)
     vb.restart()
     assert not vb.window_full and not vb.update(np.eye(3))
     assert vb.updates == 0
+
+
+def _bias_estimator(sigma0=0.1):
+    """A ``stereo`` estimator whose bias window is fed by hand (body frame = camera frame)."""
+    from stereopath.device.estimation.stereo_vo import StereoConfig, StereoEstimator
+
+    est = StereoEstimator(paper_rig(), StereoConfig(background_keyframes=False))
+    est._R_body_cam = np.eye(3)
+    est._gyro = GyroIntegrator(None)
+    est._bias = VisionGyroBias(None, sigma0)
+    est._T_bias_start = np.eye(4)
+    return est
+
+
+def _feed(est, bias_true, seconds, bad=None, correction_at=None, G=None):
+    """Frames of a turning camera through ``_refine_gyro_bias``: the gyro steps carry ``bias_true``, the
+    poses are true (after ``correction_at``, in the world the correction ``G`` moved), except frame
+    ``bad``: not tracked, with a pose 5 deg off."""
+    from stereopath.device.estimation.base import PoseEstimate
+
+    G_now = np.eye(4)
+    for k, (R_gyro, dt, R_true) in enumerate(_spin(bias_true, lambda: est._gyro.bias, seconds), start=1):
+        if k == correction_at:
+            est._apply_correction(G)  # a keyframe correction joined: the live state moves
+            G_now = G @ G_now
+        T = G_now @ make_pose(R_true, np.zeros(3))
+        status = "ok"
+        if k == bad:
+            T, status = make_pose(R_true @ so3_exp([0.0, np.radians(5.0), 0.0]), np.zeros(3)), "imu_only"
+        est._gyro_step = (R_gyro, dt)
+        est._refine_gyro_bias(PoseEstimate(k, k * 50_000_000, T, status))
+        est._T_world_cam = T
+
+
+def test_the_estimator_restarts_its_bias_window_where_tracking_breaks():
+    bias = np.array([0.01, -0.02, 0.03])
+    est = _bias_estimator()
+    _feed(est, bias, 4.0, bad=20)  # the first window would close on the untracked frame
+    assert est.stats()["gyro_bias_rejected"] == 0 and est.stats()["gyro_bias_updates"] == 2
+    assert np.linalg.norm(est.gyro_bias_rad_s - bias) < 2e-3
+
+
+def test_a_keyframe_correction_inside_a_bias_window_moves_its_start_with_the_live_state():
+    bias = np.array([0.01, -0.02, 0.03])
+    est = _bias_estimator()
+    G = make_pose(so3_exp([0.0, np.radians(1.0), 0.0]), [0.01, 0.0, 0.0])
+    _feed(est, bias, 3.0, correction_at=30, G=G)  # inside the second window
+    assert est.stats()["gyro_bias_rejected"] == 0 and est.stats()["gyro_bias_updates"] == 3
+    assert np.linalg.norm(est.gyro_bias_rad_s - bias) < 2e-3
 
 
 def _road_rig():

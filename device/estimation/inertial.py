@@ -78,13 +78,13 @@ class GyroIntegrator:
             ws.append(self._last_w)
         if block is not None and len(block):
             ts.extend(int(t) for t in block.t_ns)
-            ws.extend(block.gyro_rad_s - self.bias)
+            ws.extend(block.gyro_rad_s)
         if ts:
-            self._last_t, self._last_w = ts[-1], ws[-1]
+            self._last_t, self._last_w = ts[-1], ws[-1]  # as measured: the bias may change before it is used
         if len(ts) < 2 or ts[0] > t_prev + 5_000_000 or ts[-1] < t_cur - 5_000_000:
             return None
         t = np.array(ts, dtype=np.int64)
-        w = np.array(ws)
+        w = np.array(ws) - self.bias
         # resample the angular velocity at the interval ends and integrate midpoints
         knots = np.concatenate([[t_prev], t[(t > t_prev) & (t < t_cur)], [t_cur]])
         wk = np.stack([np.interp(knots, t, w[:, k]) for k in range(3)], axis=1)

@@ -191,6 +191,13 @@ class KeyframeJobs:
                 self._library = res.library
                 self._T_library = C_since @ res.T_library
 
+    def _join_keyframe_jobs_moving(self, T_world_cam: np.ndarray) -> np.ndarray:
+        """Join the jobs finished since the frame began, for a pose measured before the join: the
+        corrections move the map and the live poses, and this pose is returned moved with them."""
+        C0 = self._C.copy()
+        self._join_keyframe_job()
+        return T_world_cam if np.array_equal(C0, self._C) else rigid(self._C @ invert_pose(C0)) @ T_world_cam
+
     def _asift_matches(self, prev: Library, prev_X: np.ndarray, feats0, T_tracked: np.ndarray) -> np.ndarray:
         """(current, previous) index pairs of the keyframe's original view against the previous library."""
         from stereopath.device.core.matching import MatchConfig, match, match_guided
@@ -286,10 +293,11 @@ class KeyframeJobs:
         return rotation_angle_deg(self._T_asift[:3, :3].T @ T_world_cam[:3, :3]) >= cfg.asift_min_rotation_deg
 
     def _submit_keyframe_job(self, left, right, T_world_cam: np.ndarray, z0: float) -> None:
-        """Queue this keyframe's ASIFT work: one job running and one waiting at most (the newest wins)."""
+        """Queue this keyframe's ASIFT work: one job running and one waiting at most (the newest wins).
+        Finished jobs are joined before (:meth:`_join_keyframe_jobs_moving`), so that the queue and
+        ``T_world_cam`` are those of the live state."""
         if not self.cfg.use_asift_keyframes:
             return
-        self._join_keyframe_job()
         if not self._asift_needed(T_world_cam):
             self.counters["kf_jobs_deferred"] += 1
             return

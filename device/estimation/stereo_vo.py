@@ -62,13 +62,12 @@ from stereopath.device.estimation.keyframe_jobs import KeyframeJobs
 from stereopath.device.estimation.stereo_measure import StereoMeasure
 from stereopath.device.estimation.tracked_map import TrackedMap
 from stereopath.device.core.frames import ImuSamples, StereoFrame
-from stereopath.device.core.geometry import (invert_pose, make_pose, project_to_se3, rotation_angle_deg, so3_exp,
-                                            so3_log)
+from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, so3_log
 from stereopath.device.core.rig import Rig
 
 log = logging.getLogger(__name__)
 
-STILL_BIAS_SIGMA_RAD_S = 2e-3  # the gyro bias measured still before the first frame (0.1 deg/s)
+STILL_BIAS_SIGMA_RAD_S = 5e-4  # the gyro bias measured still before the first frame (0.03 deg/s)
 UNKNOWN_BIAS_SIGMA_RAD_S = 0.1  # no still start: the bias is anything a MEMS gyro has (~6 deg/s)
 
 
@@ -456,6 +455,9 @@ class StereoEstimator(KeyframeJobs):
         """Top up the map with new stereo points; hand the keyframe's ASIFT work to the worker."""
         cfg = self.cfg
         m = self._map
+        # a keyframe job that finished since this frame began moves the map and the live poses, and this
+        # pose with them (the pose that is returned, the new points and the job submitted below)
+        T_world_cam = self._join_keyframe_jobs_moving(T_world_cam)
         T_cw = invert_pose(T_world_cam)
         # right-image guess from the median depth of the current map (or a middle depth)
         z0 = self._default_depth()
@@ -463,11 +465,7 @@ class StereoEstimator(KeyframeJobs):
             Xc_m = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
             if np.any(Xc_m[:, 2] > 0):
                 z0 = float(np.median(Xc_m[Xc_m[:, 2] > 0, 2]))
-        C_before = self._C.copy()
         self._submit_keyframe_job(left, right, T_world_cam, z0)
-        if not np.array_equal(C_before, self._C):
-            # a finished keyframe job was joined: it moved the map and the live poses, and this pose with them
-            T_world_cam = project_to_se3(self._C @ invert_pose(C_before)) @ T_world_cam
         # candidate new map points: corners away from the existing tracks
         need = cfg.max_points - len(m)
         mask = np.full(left.shape[:2], 255, np.uint8)
