@@ -34,8 +34,8 @@ At start-up a still IMU block before the first frame gives the gyro bias and
 gravity; the world frame is then gravity aligned (z up), else camera 1 at the
 first frame.  With ``estimate_gyro_bias`` (on by default) the bias is then refined from the
 tracked rotation over every second of tracked frames
-(:class:`~stereopath.device.estimation.inertial.VisionGyroBias`), so a recording that starts in
-motion (or a bias that drifts with temperature) still gets a true gyro prior.  A frame that
+(:class:`~stereopath.device.estimation.inertial.VisionGyroBias`), so a recording without a still
+IMU block before its first frame (or a bias that drifts with temperature) still gets a true gyro prior.  A frame that
 cannot be tracked is flagged (``imu_only`` with a gyro prior, else ``lost``) with the predicted
 pose; it is never reported ``ok``.
 """
