@@ -38,8 +38,9 @@ class ReprocessPreset:
     refine_frames: bool = True  # motion-only refinement of the frames between keyframes
     frame_points: int = 300  # keypoints per neighbouring keyframe followed into each frame
     # IMU preintegration between keyframes (GTSAM back end): CombinedImuFactors with the recorded
-    # noise, velocity and bias unknowns, gravity direction estimated jointly; left out (with a
-    # warning) when the session has no IMU, no T_body_cam0 or no still start
+    # noise, velocity and bias unknowns, gravity direction estimated jointly (started from the still start,
+    # else from the path); left out (with a warning) when the session has no IMU or no T_body_cam0, or when
+    # its readings do not fit the path
     ba_imu: bool = True
     imu_rotation_priors: bool = False  # gyro-integrated relative rotations between keyframes as BA terms
     gyro_sigma_rad_per_sqrt_s: float = 0.002

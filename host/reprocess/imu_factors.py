@@ -17,7 +17,11 @@ frame, rotated by the first keyframe's pose) only as a starting point.  That mea
 accelerometer bias too (0.03 m/s^2 is a 3 mrad tilt), so the back end does not trust it: the
 held first pose is left free to tilt (:func:`stereopath.host.reprocess.gtsam_ba` rotates the
 solution back afterwards), i.e. the gravity direction is estimated jointly with the path and
-the biases.  The first bias prior: gyro from the still block, accelerometer 0.
+the biases.  The first bias prior: gyro from the still block, accelerometer 0.  A session with no
+still block before its first frame (EuRoC's IMU starts with its cameras) takes the gyro bias,
+gravity and the keyframe velocities from the path instead
+(:mod:`stereopath.device.estimation.inertial_init`), and is refused (EstimationError: the caller
+adjusts without the IMU) when the IMU's readings do not fit that path.
 """
 
 from __future__ import annotations
@@ -108,8 +112,11 @@ def imu_terms(seq: Any, t_kf: np.ndarray, T_world_cam: np.ndarray, noise: ImuNoi
               gravity_world: np.ndarray | None = None) -> ImuTerms:
     """Preintegrated IMU between consecutive keyframes (times ``t_kf``, poses ``T_world_cam``).
 
-    ``noise``: default :meth:`ImuNoise.of` the sequence; ``gravity_world``: default from the
-    still start.  EstimationError when the sequence has no IMU, no ``T_body_cam0`` or no still start."""
+    ``noise``: default :meth:`ImuNoise.of` the sequence; ``gravity_world``: default from the still
+    start, or, when the rig does not rest before its first frame, from the path itself
+    (:mod:`stereopath.device.estimation.inertial_init`: the gyro bias from the path's rotations,
+    gravity and the keyframe velocities from its positions).  EstimationError when the sequence has
+    no IMU or no ``T_body_cam0``, or when the path and the IMU disagree."""
     from stereopath.device.estimation.inertial import estimate_still
     from stereopath.host.reprocess.gtsam_ba import import_gtsam
 
@@ -118,17 +125,68 @@ def imu_terms(seq: Any, t_kf: np.ndarray, T_world_cam: np.ndarray, noise: ImuNoi
     if imu is None or not len(imu) or rig.T_body_cam0 is None:
         raise EstimationError("IMU preintegration needs an IMU stream and the rig's T_body_cam0")
     noise = noise or ImuNoise.of(seq)
+    T_world_cam = np.asarray(T_world_cam, float)
     still = estimate_still(imu.between(int(imu.t_ns[0]) - 1, int(seq.t_ns[0])))
-    if still is None:
-        raise EstimationError("IMU preintegration needs the rig still before the first frame (gravity, gyro bias)")
     R_cb = np.linalg.inv(np.asarray(rig.T_body_cam0, float))[:3, :3]
-    f_world = np.asarray(T_world_cam[0], float)[:3, :3] @ R_cb @ still.accel_mean_m_s2  # first kf ~ the still pose
-    if gravity_world is None:
+    if still is not None:
+        gyro_bias = np.asarray(still.gyro_bias_rad_s, float)
+    else:
+        gyro_bias = _gyro_bias_from_path(imu, t_kf, T_world_cam, R_cb)
+    bias0 = g.imuBias.ConstantBias(np.zeros(3), gyro_bias)
+    velocities = _velocities(t_kf, T_world_cam)
+    if gravity_world is not None:
+        gravity = np.asarray(gravity_world, float)
+    elif still is not None:
+        f_world = T_world_cam[0][:3, :3] @ R_cb @ still.accel_mean_m_s2  # first kf ~ the still pose
         gravity = -f_world / np.linalg.norm(f_world) * noise.gravity_m_s2
     else:
-        gravity = np.asarray(gravity_world, float)
-    params = _params(g, noise, gravity, rig.T_body_cam0)
-    bias0 = g.imuBias.ConstantBias(np.zeros(3), np.asarray(still.gyro_bias_rad_s, float))
+        # the increments do not depend on gravity (the parameters' gravity only enters the factors)
+        first = _preintegrate(g, _params(g, noise, np.array([0.0, 0.0, -noise.gravity_m_s2]), rig.T_body_cam0),
+                              bias0, imu, t_kf)
+        gravity, velocities = _gravity_from_path(t_kf, T_world_cam, first, noise, velocities)
+    pims = _preintegrate(g, _params(g, noise, gravity, rig.T_body_cam0), bias0, imu, t_kf)
+    return ImuTerms(pims, velocities, bias0, noise, gravity)
+
+
+# a path whose increments leave more than this (per keyframe interval) does not agree with its IMU
+MAX_GRAVITY_FIT_RMS_M_S = 0.5
+MAX_GRAVITY_NORM_ERROR = 0.1  # share of the accelerometer's 1 g
+
+
+def _gyro_bias_from_path(imu: Any, t_kf: np.ndarray, T_world_cam: np.ndarray, R_cb: np.ndarray) -> np.ndarray:
+    from stereopath.device.estimation.inertial_init import gyro_bias_from_path
+
+    fit = gyro_bias_from_path(imu, t_kf, T_world_cam[:, :3, :3] @ R_cb)
+    if fit is None:
+        raise EstimationError("IMU preintegration without a still start needs the IMU over at least two keyframe "
+                              "intervals (for the gyro bias)")
+    log.info("no still start: gyro bias %s rad/s from the path's rotations (%d intervals, residual %.2g rad)",
+             np.array2string(fit.bias_rad_s, precision=5), fit.intervals, fit.rms_rad)
+    return fit.bias_rad_s
+
+
+def _gravity_from_path(t_kf: np.ndarray, T_world_cam: np.ndarray, pims: list, noise: ImuNoise,
+                       velocities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gravity (scaled to the accelerometer's 1 g) and the keyframe velocities from the path."""
+    from stereopath.device.estimation.inertial_init import gravity_from_path
+
+    fit = gravity_from_path(t_kf, T_world_cam, [(i, j, pim.deltaPij(), pim.deltaVij()) for i, j, pim in pims])
+    if fit is None:
+        raise EstimationError("IMU preintegration without a still start needs at least two keyframe intervals "
+                              "with IMU samples (for gravity)")
+    norm = float(np.linalg.norm(fit.gravity_world))
+    if abs(norm - noise.gravity_m_s2) > MAX_GRAVITY_NORM_ERROR * noise.gravity_m_s2 or fit.rms_m_s > MAX_GRAVITY_FIT_RMS_M_S:
+        raise EstimationError(
+            f"the path and the IMU disagree: gravity from the path is {norm:.2f} m/s^2 (the accelerometer's 1 g is "
+            f"{noise.gravity_m_s2:.2f}), velocity residual {fit.rms_m_s:.3f} m/s per keyframe interval (check the "
+            "accelerometer's units and scale, and T_body_cam0)")
+    log.info("no still start: gravity %s m/s^2 from the path (%d intervals, residual %.3f m/s)",
+             np.array2string(fit.gravity_world, precision=3), fit.intervals, fit.rms_m_s)
+    v = np.where(np.isfinite(fit.velocities), fit.velocities, velocities)
+    return fit.gravity_world / norm * noise.gravity_m_s2, v
+
+
+def _preintegrate(g: Any, params: Any, bias0: Any, imu: Any, t_kf: np.ndarray) -> list:
     pims = []
     for i in range(len(t_kf) - 1):
         a, b = int(t_kf[i]), int(t_kf[i + 1])
@@ -145,4 +203,4 @@ def imu_terms(seq: Any, t_kf: np.ndarray, T_world_cam: np.ndarray, noise: ImuNoi
             if dt > 0:
                 pim.integrateMeasurement(0.5 * (acc[k] + acc[k + 1]), 0.5 * (gyr[k] + gyr[k + 1]), dt)
         pims.append((i, i + 1, pim))
-    return ImuTerms(pims, _velocities(t_kf, np.asarray(T_world_cam, float)), bias0, noise, gravity)
+    return pims

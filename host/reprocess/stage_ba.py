@@ -36,18 +36,28 @@ def settings(config: ReprocessPreset) -> dict[str, Any]:
             if k not in ("description", "tracks", "estimator_preset", "estimator_options")}
 
 
-def gyro_rotation_priors(seq: Any, t_kf: np.ndarray, sigma_rad_per_sqrt_s: float) -> list:
-    """Relative rotations between consecutive keyframes from the gyro (bias from the still start)."""
+def gyro_rotation_priors(seq: Any, t_kf: np.ndarray, sigma_rad_per_sqrt_s: float,
+                         T_kf: np.ndarray | None = None) -> list:
+    """Relative rotations between consecutive keyframes from the gyro (bias from the still start; without
+    one, from the keyframe path ``T_kf``; with neither, none: an unknown bias would bend the path)."""
     from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still
+    from stereopath.device.estimation.inertial_init import gyro_bias_from_path
     from stereopath.host.reprocess.ba_common import RotationPrior
 
     imu = getattr(seq, "imu", None)
     rig = seq.rig
     if imu is None or not len(imu) or rig.T_body_cam0 is None:
         return []
-    still = estimate_still(imu.between(int(imu.t_ns[0]) - 1, int(seq.t_ns[0])))
-    bias = None if still is None else still.gyro_bias_rad_s
     Rbc = np.asarray(rig.T_body_cam0)[:3, :3]
+    still = estimate_still(imu.between(int(imu.t_ns[0]) - 1, int(seq.t_ns[0])))
+    if still is not None:
+        bias = still.gyro_bias_rad_s
+    else:
+        fit = None if T_kf is None else gyro_bias_from_path(imu, t_kf, np.asarray(T_kf)[:, :3, :3] @ Rbc.T)
+        if fit is None:
+            log.warning("no gyro rotation priors: no still start and too short a path for the gyro bias")
+            return []
+        bias = fit.bias_rad_s
     out = []
     for i in range(len(t_kf) - 1):
         g = GyroIntegrator(bias)
@@ -202,7 +212,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     kf, T_kf = trk["kf_index"], trk["T_kf"]
     priors = []
     if config.imu_rotation_priors:
-        priors = gyro_rotation_priors(inputs.seq, est["t_ns"][kf], config.gyro_sigma_rad_per_sqrt_s)
+        priors = gyro_rotation_priors(inputs.seq, est["t_ns"][kf], config.gyro_sigma_rad_per_sqrt_s, T_kf)
     t0 = time.perf_counter()
     imu = imu_terms_of(config, inputs)
     try:
