@@ -106,6 +106,8 @@ def test_online_disparity_offset_is_estimated_bounded_and_used(data_dir):
     assert all(e.status == "ok" for e in out)
     assert est._offset.n >= 3 and est._offset.ready
     assert abs(est._offset.value) <= est._offset.bound
+    # from the third keyframe on, each estimate is solved over the last four keyframes
+    assert est.counters["disparity_offset_windows"] >= est.counters["keyframes"] - 3 >= 3
     # the fused value is what the triangulation and the pose refinement now remove
     assert est._geo.disparity_offset_px == est._offset.value != 0.0
     assert est.counters["disparity_offset_mpx"] == round(1000 * est._offset.value)

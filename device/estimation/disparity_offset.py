@@ -361,3 +361,151 @@ class PriorPath:
         log.info("offset %.3f px learned: the path since %d keyframes back moves %.4f m, %.3f deg", d0_new,
                  len(pairs), shift, ang)
         return project_to_se3(T_world_cam @ E @ invert_pose(T_world_cam))
+
+
+def offset_from_keyframes(views: list, motions: list, f: float, cx: float, cy: float, baseline_m: float,
+                          huber_px: float = 0.5, min_points: int = 30, iterations: int = 10,
+                          max_inflation: float | None = None) -> PairEstimate | None:
+    """The disparity offset from points observed in stereo at several keyframes (a window).
+
+    ``views[j]`` is ``(ids, obs)``: point ids and (n, 3) rectified ``(u, v, disparity)`` rows at keyframe
+    ``j``; ``motions[j]`` the initial ``(R, t)`` from keyframe 0 to keyframe ``j`` (``x_j = R x_0 + t``,
+    rectified frames; ``motions[0]`` is the identity and stays fixed).  Every point seen at two keyframes
+    or more is a free 3D point; every other motion and the offset are free (as
+    :func:`offset_from_two_keyframes`, of which this is the generalisation)."""
+    fb = f * baseline_m
+    K = len(views)
+    if K < 2:
+        return None
+    kf_of, id_of, M = [], [], []
+    for j, (ids, obs) in enumerate(views):
+        obs = np.asarray(obs, float).reshape(-1, 3)
+        ok = np.isfinite(obs).all(1) & (obs[:, 2] > 0)
+        kf_of.append(np.full(int(ok.sum()), j))
+        id_of.append(np.asarray(ids, np.int64)[ok])
+        M.append(obs[ok])
+    kf_of, id_of, M = np.concatenate(kf_of), np.concatenate(id_of), np.concatenate(M)
+    uniq, counts = np.unique(id_of, return_counts=True)
+    keep = uniq[counts >= 2]  # points measured at two keyframes or more
+    if len(keep) < min_points:
+        return None
+    sel = np.isin(id_of, keep)
+    kf_of, pt_of, M = kf_of[sel], np.searchsorted(keep, id_of[sel]), M[sel]
+    n_pts = len(keep)
+    R = [np.asarray(m[0], float).copy() for m in motions]
+    t = [np.asarray(m[1], float).reshape(3).copy() for m in motions]
+    ng = 6 * (K - 1) + 1
+    # observations grouped by point (sums per point by reduceat)
+    order = np.argsort(pt_of, kind="stable")
+    kf_of, pt_of, M = kf_of[order], pt_of[order], M[order]
+    starts = np.flatnonzero(np.r_[True, pt_of[1:] != pt_of[:-1]])
+    # points (x/z, y/z, 1/z) in keyframe 0's frame, from their first observation (the stable sort keeps
+    # each point's observations in keyframe order)
+    u, v, d = M[starts].T
+    zc = fb / np.maximum(d, 0.5)
+    Xc = np.column_stack([(u - cx) / f * zc, (v - cy) / f * zc, zc])
+    j0 = kf_of[starts]
+    Rs, ts = np.stack(R), np.stack(t)
+    X0 = np.einsum("nji,nj->ni", Rs[j0], Xc - ts[j0])  # R^T (Xc - t)
+    P = np.column_stack([X0[:, 0] / X0[:, 2], X0[:, 1] / X0[:, 2], 1.0 / np.maximum(X0[:, 2], 1e-6)])
+    d0 = 0.0
+    S = None
+    for it in range(iterations):
+        r, Jg, Jp, z = _window_system(R, t, d0, P, M, kf_of, pt_of, f, cx, cy, fb, ng)
+        w = _weights(r, z, huber_px)
+        Jgw = Jg * w[:, :, None]
+        Jpw = Jp * w[:, :, None]
+        Hgg = Jgw.reshape(-1, ng).T @ Jg.reshape(-1, ng)
+        bg = Jgw.reshape(-1, ng).T @ r.reshape(-1)
+        Hgp = np.add.reduceat(np.matmul(Jgw.transpose(0, 2, 1), Jp), starts, axis=0)  # (points, ng, 3)
+        Hpp = np.add.reduceat(np.matmul(Jpw.transpose(0, 2, 1), Jp), starts, axis=0) + 1e-9 * np.eye(3)
+        bp = np.add.reduceat(np.matmul(Jpw.transpose(0, 2, 1), r[:, :, None])[:, :, 0], starts, axis=0)
+        try:
+            Hpp_inv = np.linalg.inv(Hpp)
+            W = np.matmul(Hgp, Hpp_inv)
+            S = Hgg - W.transpose(1, 0, 2).reshape(ng, -1) @ Hgp.transpose(1, 0, 2).reshape(ng, -1).T \
+                + 1e-9 * np.eye(ng)
+            s = bg - W.transpose(1, 0, 2).reshape(ng, -1) @ bp.reshape(-1)
+            if it == 0 and max_inflation is not None:
+                inflation = float(np.linalg.inv(S)[-1, -1] * S[-1, -1])
+                if inflation > max_inflation:
+                    return PairEstimate(float("nan"), float("inf"), n_pts, 0.0, inflation)
+            dg = -np.linalg.solve(S, s)
+        except np.linalg.LinAlgError:
+            return None
+        dp = -np.matmul(Hpp_inv, (bp + np.matmul(Hgp.transpose(0, 2, 1), dg))[:, :, None])[:, :, 0]
+        for j in range(1, K):
+            o = 6 * (j - 1)
+            R[j] = so3_exp(dg[o + 3:o + 6]) @ R[j]
+            t[j] = t[j] + dg[o:o + 3]
+        d0 += float(dg[-1])
+        P = P + dp
+        P[:, 2] = np.maximum(P[:, 2], 1e-9)
+        # converged: the offset moves by less than 1e-4 px and the motions by micrometres / microradians
+        if abs(dg[-1]) < 1e-4 and np.abs(dg[:-1]).max(initial=0.0) < 1e-6:
+            break
+    r, _, _, z = _window_system(R, t, d0, P, M, kf_of, pt_of, f, cx, cy, fb, ng, jacobians=False)
+    inl = np.abs(r).max(1) < 3 * huber_px
+    n_obs_inl = int(inl.sum())
+    if S is None or len(np.unique(pt_of[inl])) < min_points:
+        return None
+    try:
+        cov = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        return None
+    dof = max(3 * n_obs_inl - 3 * len(np.unique(pt_of[inl])) - ng, 1)
+    s2 = float(np.sum(r[inl] ** 2) / dof)
+    var = cov[-1, -1] * max(s2, 1e-6)
+    if not np.isfinite(var) or var <= 0:
+        return None
+    inflation = float(max(cov[-1, -1] * S[-1, -1], 1.0))
+    return PairEstimate(float(d0), float(np.sqrt(var)), int(len(np.unique(pt_of[inl]))), 0.0, inflation)
+
+
+def _window_system(R, t, d0, P, M, kf_of, pt_of, f, cx, cy, fb, ng, jacobians=True):
+    """Residuals (o, 3) of every observation, and their Jacobians over (motions, d0) (o, 3, ng) and the point (o, 3, 3)."""
+    Ra = np.stack(R)[kf_of]
+    ta = np.stack(t)[kf_of]
+    Pp = P[pt_of]
+    X0 = np.column_stack([Pp[:, 0], Pp[:, 1], np.ones(len(Pp))]) / Pp[:, 2:3]
+    RX = np.matmul(Ra, X0[:, :, None])[:, :, 0]
+    Xj = RX + ta
+    z = np.maximum(Xj[:, 2], 1e-9)
+    r = np.column_stack([f * Xj[:, 0] / z + cx - M[:, 0], f * Xj[:, 1] / z + cy - M[:, 1], fb / z + d0 - M[:, 2]])
+    if not jacobians:
+        return r, None, None, z
+    n = len(z)
+    dproj = np.zeros((n, 3, 3))
+    dproj[:, 0, 0] = f / z
+    dproj[:, 0, 2] = -f * Xj[:, 0] / z**2
+    dproj[:, 1, 1] = f / z
+    dproj[:, 1, 2] = -f * Xj[:, 1] / z**2
+    dproj[:, 2, 2] = -fb / z**2
+    dX = np.zeros((n, 3, 6))
+    dX[:, :, :3] = np.eye(3)
+    dX[:, :, 3:] = -_skew_rows(RX)
+    Jpose = np.matmul(dproj, dX)
+    Jg = np.zeros((n, 3, ng))
+    moving = kf_of > 0
+    cols = 6 * (kf_of[moving] - 1)
+    for c in range(6):
+        Jg[np.flatnonzero(moving), :, cols + c] = Jpose[moving, :, c]
+    Jg[:, 2, -1] = 1.0
+    rho = Pp[:, 2]
+    dXA = np.zeros((n, 3, 3))
+    dXA[:, 0, 0] = dXA[:, 1, 1] = 1.0 / rho
+    dXA[:, 0, 2] = -Pp[:, 0] / rho**2
+    dXA[:, 1, 2] = -Pp[:, 1] / rho**2
+    dXA[:, 2, 2] = -1.0 / rho**2
+    Jp = np.matmul(np.matmul(dproj, Ra), dXA)
+    return r, Jg, Jp, z
+
+
+def offset_over_keyframes(rect, views: list, max_inflation: float | None = None) -> PairEstimate | None:
+    """:func:`offset_from_keyframes` for keyframe views ``(ids, rectified rows, T_world_cam)`` of a rig with
+    rectification ``rect``; the motions start from the poses."""
+    T0 = views[0][2]
+    motions = [_rectified_motion(rect, T0, T) for _, _, T in views]
+    motions[0] = (np.eye(3), np.zeros(3))
+    return offset_from_keyframes([(ids, obs) for ids, obs, _ in views], motions, rect.f, rect.P0[0, 2],
+                                 rect.P0[1, 2], rect.baseline_m, max_inflation=max_inflation)

@@ -43,6 +43,7 @@ pose; it is never reported ``ok``.
 from __future__ import annotations
 
 import logging
+from collections import deque
 from dataclasses import dataclass
 
 import cv2
@@ -53,11 +54,13 @@ from stereopath.device.errors import ConfigError
 from stereopath.device.estimation.base import PoseEstimate, WorldFrame
 from stereopath.device.estimation.inertial import (GyroIntegrator, VisionGyroBias, estimate_still,
                                                    gravity_aligned_rotation)
+from stereopath.device.core.blas_threads import one_blas_thread
 from stereopath.device.core.features import gray
 from stereopath.device.core.photometric import (GainOffset, correct_right, fit_gain_offset, measure_relation,
                                                 relation_matters)
 from stereopath.device.core.stereo import stereo_right, undistort_px
-from stereopath.device.estimation.disparity_offset import OffsetFilter, PriorPath, offset_between_keyframes
+from stereopath.device.estimation.disparity_offset import (OffsetFilter, PriorPath, offset_between_keyframes,
+                                                          offset_over_keyframes)
 from stereopath.device.estimation.keyframe_jobs import KeyframeJobs
 from stereopath.device.estimation.stereo_measure import StereoMeasure
 from stereopath.device.estimation.tracked_map import TrackedMap
@@ -118,6 +121,7 @@ class StereoConfig:
     # refine it on line from points seen in stereo at two keyframes, using only the pairs where the offset is
     # identifiable (OffsetFilter.max_inflation): an orbit around an object leaves it at the prior
     estimate_disparity_offset: bool = True
+    disparity_offset_keyframes: int = 4  # keyframes per offset solve: the last ones, every point seen at two of them
     # fit the right camera's grey levels to the left's on the stereo matches of every frame (the pose solve's)
     # and keyframe, and correct the right image when the median of the last five fits changes the matched
     # texture by more than exposure_tolerance grey levels
@@ -136,6 +140,7 @@ class StereoConfig:
         check_range("asift_view_min_tilt", self.asift_view_min_tilt, 1.0, 16.0)
         if self.asift_views not in ("predicted", "preset"):
             raise ConfigError(f"asift_views must be 'predicted' or 'preset', got {self.asift_views!r}")
+        check_range("disparity_offset_keyframes", self.disparity_offset_keyframes, 2, 20)
         check_range("klt_window", self.klt_window, 5, 61)
         check_range("klt_levels", self.klt_levels, 0, 6)
         check_range("track_klt_levels", self.track_klt_levels, 0, 6)
@@ -175,6 +180,8 @@ class StereoEstimator(KeyframeJobs):
         self._offset = OffsetFilter(prior=float(self.cfg.disparity_offset_px))
         # keyframe pairs measured with the prior offset, kept until the offset is first learned
         self._prior_path = PriorPath()
+        # the last keyframes' stereo observations (ids, rectified rows, pose) for the offset's window solve
+        self._offset_views: deque = deque(maxlen=self.cfg.disparity_offset_keyframes - 1)
         self._pending_G: np.ndarray | None = None
         self._since_kf = 0
         self._failures = 0
@@ -195,7 +202,7 @@ class StereoEstimator(KeyframeJobs):
         self.counters = dict.fromkeys(
             "keyframes imu_only lost asift_matches kf_jobs kf_jobs_skipped kf_jobs_deferred asift_views kf_corrections"
             " retracked relocalised disparity_offset_pairs disparity_offset_unidentified"
-            " disparity_offset_path_corrections exposure_fits exposure_corrected_frames gyro_bias_updates"
+            " disparity_offset_path_corrections disparity_offset_windows exposure_fits exposure_corrected_frames gyro_bias_updates"
             " gyro_bias_rejected".split(), 0)
         self.counters["right_gain_milli"], self.counters["right_offset_centi"] = 1000, 0
         self.counters["disparity_offset_mpx"] = int(round(1000 * self.cfg.disparity_offset_px))
@@ -212,6 +219,10 @@ class StereoEstimator(KeyframeJobs):
             pass
 
     def process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate:
+        with one_blas_thread():  # small matrices: BLAS's own threads would only spin
+            return self._process(frame, imu)
+
+    def _process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate:
         left, right = gray(frame.left), gray(frame.right)
         self._cur_seq = frame.seq
         if self._T_world_cam is None:
@@ -504,6 +515,9 @@ class StereoEstimator(KeyframeJobs):
         m.obs = np.vstack([m.obs, new_obs])
         m.obs_kf = np.concatenate([m.obs_kf, np.full(len(sel), self.counters["keyframes"], np.int64)])
         m.uv_kf = m.uv.copy()
+        if cfg.estimate_disparity_offset and cfg.disparity_offset_keyframes > 2:
+            at = m.obs_kf == self.counters["keyframes"]
+            self._offset_views.append((m.ids[at].copy(), m.obs[at].copy(), T_world_cam.copy()))
         self._since_kf = 0
         self._T_kf = T_world_cam.copy()
         self._n_at_kf = len(m)
@@ -587,8 +601,13 @@ class StereoEstimator(KeyframeJobs):
         kf = self.counters["keyframes"]
         both = m.obs_kf[idx] == kf - 1
         if self._T_kf is not None and both.sum() >= self.cfg.min_pnp_inliers:
-            est = offset_between_keyframes(self._geo.rect, m.obs[idx[both]], B[both], self._T_kf, T_world_cam,
-                                           self._offset.max_inflation)
+            if self.cfg.disparity_offset_keyframes > 2 and len(self._offset_views) >= 2:
+                est = offset_over_keyframes(self._geo.rect, list(self._offset_views) + [(m.ids[idx], B, T_world_cam)],
+                                            self._offset.max_inflation)
+                self.counters["disparity_offset_windows"] += 1
+            else:
+                est = offset_between_keyframes(self._geo.rect, m.obs[idx[both]], B[both], self._T_kf, T_world_cam,
+                                               self._offset.max_inflation)
             if not (learned_before := self._offset.ready):  # motions measured with the prior, for the correction
                 self._prior_path.add(kf, m.obs[idx[both]], B[both], self._T_kf, T_world_cam)
             used = self._offset.update(est)
