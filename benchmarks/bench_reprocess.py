@@ -1,6 +1,7 @@
 """Offline reprocessing (issues 5 and 13): ATE after reprocessing on the GTSAM back end, vision only and with the IMU.
 
     .venv/bin/python benchmarks/bench_reprocess.py [--runs R] [--preset NAME] [--skip-kitti] [--ablations]
+        [--imu-from-first-frame]
 
 1. The default simulated session (`stereopath sim`: 400 frames, written once into a temporary
    folder, not timed): ATE of the on-board `stereo` estimator (run in this process), then
@@ -24,6 +25,9 @@
    error after (targets: end-to-start <= 1 mm, ATE <= 0.5x on-board, 0 false loops).
 4. --ablations: GTSAM without the disparity offset, without the frame refinement, and the
    `quick` preset (tracks without affine views), on both sequences.
+5. --imu-from-first-frame: the simulated session recorded with its IMU cut at the first frame (no
+   still block before it, as EuRoC's): the preintegration's gyro bias, gravity and velocities then come
+   from the path (`device/estimation/inertial_init.py`).
 Prints figures; asserts nothing.
 """
 
@@ -249,6 +253,8 @@ def main() -> int:
     ap.add_argument("--reuse", action="store_true",
                     help="with --keep: compare the solvers on stages already stored there (no end-to-end run)")
     ap.add_argument("--keep", default=None, help="write into this folder instead of a temporary one")
+    ap.add_argument("--imu-from-first-frame", action="store_true",
+                    help="the simulated session recorded with its IMU cut at the first frame (no still start)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     base = REPROCESS_PRESETS[args.preset]
@@ -281,17 +287,37 @@ def main() -> int:
     return 0
 
 
+class ImuFromFirstFrame:
+    """A sequence whose IMU starts with its first frame (EuRoC's layout, or a box switched on in the hand)."""
+
+    def __init__(self, seq) -> None:
+        from stereopath.device.core.frames import ImuSamples
+
+        self._seq = seq
+        m = seq.imu.t_ns >= seq.t_ns[0]
+        self.imu = ImuSamples(seq.imu.t_ns[m], seq.imu.gyro_rad_s[m], seq.imu.accel_m_s2[m])
+
+    def __len__(self) -> int:
+        return len(self._seq)
+
+    def __getattr__(self, name: str):
+        return getattr(self._seq, name)
+
+
 def sim_figures(tmp: Path, args, base):
     """The default simulated session: on-board ATE, end-to-end reprocessing, the solver comparison."""
     from stereopath.device.sim.session import SimConfig, open_sim
 
-    session = tmp / "session"
+    cut = args.imu_from_first_frame
+    session = tmp / ("session_imu_from_first_frame" if cut else "session")
     if not (session / "mav0").is_dir():
         from stereopath.device.formats.recorder import record_sequence
 
-        record_sequence(open_sim(SimConfig()), session, config_dict={"source": "sim"})
+        sim = open_sim(SimConfig())
+        record_sequence(ImuFromFirstFrame(sim) if cut else sim, session, config_dict={"source": "sim"})
     seq = open_source(f"session:{session}")
-    print(f"simulated session: {len(seq)} frames, {seq.groundtruth.path_length_m():.2f} m")
+    print(f"simulated session: {len(seq)} frames, {seq.groundtruth.path_length_m():.2f} m"
+          + (", its IMU from the first frame on (no still block before it)" if cut else ""))
     ate_on, t_on = onboard_ate(seq)
     print(f"  on-board stereo ATE {mm(ate_on)} ({t_on:.1f} s)")
     if not (args.reuse and (tmp / "sim" / "stages" / "tracks.npz").is_file()):

@@ -151,6 +151,9 @@ def imu_terms(seq: Any, t_kf: np.ndarray, T_world_cam: np.ndarray, noise: ImuNoi
 # a path whose increments leave more than this (per keyframe interval) does not agree with its IMU
 MAX_GRAVITY_FIT_RMS_M_S = 0.5
 MAX_GRAVITY_NORM_ERROR = 0.1  # share of the accelerometer's 1 g
+# the gyro's rotations against the path's (per keyframe interval; the simulated scan leaves 2e-4 rad, a gyro
+# 1.3x too sensitive 4e-2 rad, one read in deg/s far more)
+MAX_GYRO_FIT_RMS_RAD = 0.02
 
 
 def _gyro_bias_from_path(imu: Any, t_kf: np.ndarray, T_world_cam: np.ndarray, R_cb: np.ndarray) -> np.ndarray:
@@ -160,6 +163,10 @@ def _gyro_bias_from_path(imu: Any, t_kf: np.ndarray, T_world_cam: np.ndarray, R_
     if fit is None:
         raise EstimationError("IMU preintegration without a still start needs the IMU over at least two keyframe "
                               "intervals (for the gyro bias)")
+    if fit.rms_rad > MAX_GYRO_FIT_RMS_RAD:
+        raise EstimationError(
+            f"the path and the IMU disagree: the gyro's rotations leave {fit.rms_rad:.3f} rad per keyframe interval "
+            "against the path's (check the gyro's units and scale, and T_body_cam0)")
     log.info("no still start: gyro bias %s rad/s from the path's rotations (%d intervals, residual %.2g rad)",
              np.array2string(fit.bias_rad_s, precision=5), fit.intervals, fit.rms_rad)
     return fit.bias_rad_s
@@ -171,8 +178,9 @@ def _gravity_from_path(t_kf: np.ndarray, T_world_cam: np.ndarray, pims: list, no
     from stereopath.device.estimation.inertial_init import gravity_from_path
 
     fit = gravity_from_path(t_kf, T_world_cam, [(i, j, pim.deltaPij(), pim.deltaVij()) for i, j, pim in pims])
-    if fit is None:
-        raise EstimationError("IMU preintegration without a still start needs at least two keyframe intervals "
+    # three intervals at least: with two, the solve is exactly determined and its residual says nothing
+    if fit is None or fit.intervals < 3:
+        raise EstimationError("IMU preintegration without a still start needs at least three keyframe intervals "
                               "with IMU samples (for gravity)")
     norm = float(np.linalg.norm(fit.gravity_world))
     if abs(norm - noise.gravity_m_s2) > MAX_GRAVITY_NORM_ERROR * noise.gravity_m_s2 or fit.rms_m_s > MAX_GRAVITY_FIT_RMS_M_S:
@@ -187,11 +195,15 @@ def _gravity_from_path(t_kf: np.ndarray, T_world_cam: np.ndarray, pims: list, no
 
 
 def _preintegrate(g: Any, params: Any, bias0: Any, imu: Any, t_kf: np.ndarray) -> list:
+    """One preintegration per keyframe interval the IMU covers (an interval it covers only in part is
+    left out: holding the first or last sample over the rest would make a wrong factor)."""
     pims = []
+    period = float(np.median(np.diff(imu.t_ns))) if len(imu) > 1 else 0.0
+    slack = max(5_000_000, 2 * period)  # the samples' own spacing at the interval's ends
     for i in range(len(t_kf) - 1):
         a, b = int(t_kf[i]), int(t_kf[i + 1])
         blk = imu.between(a - 1, b)
-        if len(blk) < 2:
+        if len(blk) < 2 or blk.t_ns[0] > a + slack or (b - blk.t_ns[-1]) > slack:
             continue
         pim = g.PreintegratedCombinedMeasurements(params, bias0)
         # samples are instantaneous values: integrate each interval with the mean of its two ends
