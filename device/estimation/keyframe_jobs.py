@@ -215,13 +215,6 @@ class KeyframeJobs:
         mt = match_guided(prev.feats, feats0, pred, self.cfg.guided_radius_px, self._match_cfg or MatchConfig())
         return np.asarray(mt.idx).reshape(-1, 2)[:, ::-1]
 
-    def _keyframe_job_one_blas(self, *args) -> KeyframeResult:
-        """The keyframe job on the worker thread, BLAS at one thread (:mod:`~stereopath.device.core.blas_threads`)."""
-        from stereopath.device.core.blas_threads import one_blas_thread
-
-        with one_blas_thread():
-            return self._keyframe_job(*args)
-
     def _keyframe_job(self, seq: int, left, right, T_tracked: np.ndarray, z0: float, X_map: np.ndarray,
                       uv_map: np.ndarray, prev_source, C_sub: np.ndarray) -> KeyframeResult:
         """Modified-ASIFT work of one keyframe (on the worker thread): the joint pose, then the library.
@@ -324,7 +317,7 @@ class KeyframeJobs:
         self.counters["kf_jobs"] += 1
         self._T_asift, self._asift_frame = T_world_cam.copy(), self._cur_seq
         if self._executor is not None:
-            fut = self._executor.submit(self._keyframe_job_one_blas, *args)
+            fut = self._executor.submit(self._keyframe_job, *args)
         else:
             fut = Ready(self._keyframe_job(*args))
         self._jobs.append(Job(fut, C_sub, prev))

@@ -54,7 +54,6 @@ from stereopath.device.errors import ConfigError
 from stereopath.device.estimation.base import PoseEstimate, WorldFrame
 from stereopath.device.estimation.inertial import (GyroIntegrator, VisionGyroBias, estimate_still,
                                                    gravity_aligned_rotation)
-from stereopath.device.core.blas_threads import one_blas_thread
 from stereopath.device.core.features import gray
 from stereopath.device.core.photometric import (GainOffset, correct_right, fit_gain_offset, measure_relation,
                                                 relation_matters)
@@ -219,10 +218,6 @@ class StereoEstimator(KeyframeJobs):
             pass
 
     def process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate:
-        with one_blas_thread():  # small matrices: BLAS's own threads would only spin
-            return self._process(frame, imu)
-
-    def _process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate:
         left, right = gray(frame.left), gray(frame.right)
         self._cur_seq = frame.seq
         if self._T_world_cam is None:
