@@ -164,13 +164,15 @@ def test_a_window_of_keyframes_is_the_pair_for_two_and_measures_the_offset_bette
     rng = np.random.default_rng(11)
     views, motions = _drive(rng, -0.2, 0.3, 2, seen=1.0)
     (ia, A), (ib, Bo) = views
+    Bo[:20, 2] += rng.uniform(3, 8, 20)  # gross disparity errors: the same points are left out by both
+    Bo[20:40, :2] += rng.uniform(0.8, 1.4, (20, 2))
     common = np.intersect1d(ia, ib)
     pair = offset_from_two_keyframes(A[np.searchsorted(ia, common)], Bo[np.searchsorted(ib, common)], *motions[1],
                                      F, CX, CY, B)
     win = offset_from_keyframes(views, motions, F, CX, CY, B)
     # the same solve (the window stops once the offset moves by less than 1e-4 px)
     assert win.d0 == pytest.approx(pair.d0, abs=1e-4) and win.sigma == pytest.approx(pair.sigma, rel=1e-3)
-    assert win.inflation == pytest.approx(pair.inflation, rel=1e-3)
+    assert win.inflation == pytest.approx(pair.inflation, rel=1e-3) and win.n_points == pair.n_points
     # the same drives seen as consecutive pairs and as windows of four (each started from a perturbed motion)
     err_pairs, err_windows, sig = [], [], []
     for trial in range(8):

@@ -113,6 +113,50 @@ def test_online_disparity_offset_is_estimated_bounded_and_used(data_dir):
     assert est.counters["disparity_offset_mpx"] == round(1000 * est._offset.value)
 
 
+def test_each_offset_estimate_is_solved_over_the_last_four_keyframes_stereo_observations(data_dir, monkeypatch):
+    """What the window solve gets: at each keyframe the views of the last three keyframes and this one, each
+    holding exactly the points measured in stereo there (new points and re-observed ones) with their rows
+    as measured at that keyframe; and what it returns is what the filter fuses."""
+    from stereopath.device.estimation import disparity_offset, stereo_vo
+
+    calls, fused = [], []
+    real_window, real_update = stereo_vo.offset_over_keyframes, disparity_offset.OffsetFilter.update
+
+    def window(rect, views, max_inflation=None):
+        out = real_window(rect, views, max_inflation)
+        calls.append(([(ids.copy(), rows.copy(), T.copy()) for ids, rows, T in views], out))
+        return out
+
+    def update(self, est):
+        fused.append(est)
+        return real_update(self, est)
+
+    monkeypatch.setattr(stereo_vo, "offset_over_keyframes", window)
+    monkeypatch.setattr(disparity_offset.OffsetFilter, "update", update)
+    rig, frames = _kitti_frames(data_dir, range(14))
+    est = StereoEstimator(rig, StereoConfig(kf_max_frames=2, background_keyframes=False, record_observations=True))
+    for f in frames:
+        est.process(f, None)
+    est.close()
+    obs = np.vstack(est.observations)  # (keyframe, point id, camera, u, v), undistorted = as measured on KITTI
+    poses = [T for _, T in est.keyframe_poses]
+    assert len(calls) >= 3 and [len(v) for v, _ in calls[:2]] == [3, 4] and all(len(v) == 4 for v, _ in calls[1:])
+    for views, out in calls:
+        assert any(out is e for e in fused)  # the window's estimate, not another
+        for n, (ids, rows, T) in enumerate(views):
+            k = next(i for i, P in enumerate(poses) if np.array_equal(P, T))
+            stereo = obs[(obs[:, 0] == k) & (obs[:, 2] == 1)]
+            if n < len(views) - 1:  # an earlier keyframe: every point measured in stereo there
+                assert sorted(ids) == sorted(stereo[:, 1].astype(int))
+            else:  # this keyframe, before its new points are made
+                earlier = obs[obs[:, 0] < k, 1]
+                assert set(ids) == set(stereo[np.isin(stereo[:, 1], earlier), 1].astype(int))
+            left = obs[(obs[:, 0] == k) & (obs[:, 2] == 0)]
+            ul = np.array([left[left[:, 1] == i][0, 3:] for i in ids])
+            ur = np.array([stereo[stereo[:, 1] == i][0, 3:] for i in ids])
+            np.testing.assert_allclose(rows, est._geo.rectified_observations(ul, ur), atol=1e-6)
+
+
 def test_the_path_measured_before_the_offset_was_learned_is_re_measured_once(data_dir):
     """KITTI's offset is learned after a few keyframes: the motion made until then with the prior is
     re-measured with it once, which brings the path closer to the truth than leaving it."""
@@ -134,7 +178,8 @@ def test_the_path_measured_before_the_offset_was_learned_is_re_measured_once(dat
 
 
 def test_online_disparity_offset_stays_at_the_prior_around_an_object():
-    """An orbit around the table objects cannot tell an offset from a turn: every pair is ignored."""
+    """An orbit around the table objects cannot tell an offset from a turn: every estimate is ignored (the
+    windows of four keyframes reach down to an inflation of 8.3 here, over the limit of 7)."""
     from stereopath.device.sim.session import open_sim
 
     seq = open_sim(seed=2, frames=60, trajectory="orbit")
@@ -144,7 +189,8 @@ def test_online_disparity_offset_stays_at_the_prior_around_an_object():
     est.close()
     assert all(e.status == "ok" for e in out)
     assert est.counters["disparity_offset_unidentified"] >= 5
-    assert est._offset.n < est._offset.min_pairs and est._geo.disparity_offset_px == 0.0
+    assert est._offset.n == 0 and est._geo.disparity_offset_px == 0.0
+    assert est.counters["disparity_offset_windows"] >= 5
     assert est.counters["disparity_offset_mpx"] == 0
     assert est.counters["disparity_offset_path_corrections"] == 0
 
