@@ -1,4 +1,4 @@
-"""On-line estimate of a constant stereo disparity offset from two keyframes (pure compute).
+"""On-line estimate of a constant stereo disparity offset from two or more keyframes (pure compute).
 
 A constant offset ``d0`` of the measured disparity (``d_measured = d_true + d0``: a yaw or
 principal-point error of the calibration, or a small bias of the right-image search) is
@@ -8,7 +8,9 @@ differently (depth ``f b / (d - d0)``).  :func:`offset_from_two_keyframes` is a 
 adjustment in the rectified frame: the relative pose (6), ``d0`` and each point (3), with
 pixel residuals (u, v, disparity at A and at B) under a Huber loss, the points eliminated
 by the Schur complement.  Errors stay in pixel space, so far
-points (where inverse-depth noise is large) do not bias it.
+points (where inverse-depth noise is large) do not bias it.  :func:`offset_from_keyframes` is the same
+over a window of keyframes (every motion but the first's free, every point seen at two of them or more);
+the estimator solves the last four (a window of two is the pair's solve).
 
 :class:`OffsetFilter` fuses the per-pair estimates slowly: information-weighted with a prior
 at zero, every estimate's variance floored (model errors: rolling motion, a few moving

@@ -23,7 +23,7 @@ A constant stereo disparity offset (a yaw or principal-point error of the
 calibration shows as one), ``disparity_offset_px``, is removed from every
 triangulation and from the right-image observations of the pose refinement.  With
 ``estimate_disparity_offset`` (on by default) it is refined on line from the points seen in
-stereo at two consecutive keyframes whose motion identifies it
+stereo at the last four keyframes (``disparity_offset_keyframes``) whose motion identifies it
 (:mod:`stereopath.device.estimation.disparity_offset`); when it changes, the tracked points
 restart their averaged triangulation at that keyframe (the earlier ones carry the old offset).
 When it is first learned, the path measured with the prior is re-measured with it once
@@ -117,8 +117,8 @@ class StereoConfig:
     max_correction_deg: float = 2.0  # larger keyframe corrections from the ASIFT solve are rejected
     kf_map_agreement: float = 0.8  # share of the tracked map that must stay inlier in the keyframe's ASIFT solve
     disparity_offset_px: float = 0.0  # a known stereo disparity offset (calibration): the prior of the estimate
-    # refine it on line from points seen in stereo at two keyframes, using only the pairs where the offset is
-    # identifiable (OffsetFilter.max_inflation): an orbit around an object leaves it at the prior
+    # refine it on line from points seen in stereo at the last keyframes, using only the estimates where the offset
+    # is identifiable (OffsetFilter.max_inflation): an orbit around an object leaves it at the prior
     estimate_disparity_offset: bool = True
     disparity_offset_keyframes: int = 4  # keyframes per offset solve: the last ones, every point seen at two of them
     # fit the right camera's grey levels to the left's on the stereo matches of every frame (the pose solve's)
@@ -511,6 +511,8 @@ class StereoEstimator(KeyframeJobs):
         m.obs_kf = np.concatenate([m.obs_kf, np.full(len(sel), self.counters["keyframes"], np.int64)])
         m.uv_kf = m.uv.copy()
         if cfg.estimate_disparity_offset and cfg.disparity_offset_keyframes > 2:
+            # the points measured in stereo here, as measured (no offset removed); the pose only starts the
+            # window's solve (its motions are unknowns), so a later keyframe correction does not stale it
             at = m.obs_kf == self.counters["keyframes"]
             self._offset_views.append((m.ids[at].copy(), m.obs[at].copy(), T_world_cam.copy()))
         self._since_kf = 0
