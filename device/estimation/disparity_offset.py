@@ -67,15 +67,7 @@ def _residuals(R, t, d0, P, A, B, f, cx, cy, fb):
 def _jacobians(R, P, XA, XB, z, f, fb):
     """Residual derivatives: global (n, 6, 7) over (dt, dtheta, d0), per point (n, 6, 3) over P."""
     n = len(z)
-    dproj = np.zeros((n, 3, 3))  # d(u, v, d)/d(XB)
-    dproj[:, 0, 0] = f / z
-    dproj[:, 0, 2] = -f * XB[:, 0] / z**2
-    dproj[:, 1, 1] = f / z
-    dproj[:, 1, 2] = -f * XB[:, 1] / z**2
-    dproj[:, 2, 2] = -fb / z**2
-    dX = np.zeros((n, 3, 6))
-    dX[:, :, :3] = np.eye(3)
-    dX[:, :, 3:] = -_skew_rows(XA @ R.T)  # d(exp(w) R XA)/dw = -[R XA]x
+    dproj, dX = _projection_and_motion_jacobians(XB, XA @ R.T, z, f, fb)
     Jg = np.zeros((n, 6, 7))
     Jg[:, 3:, :6] = np.einsum("nij,njk->nik", dproj, dX)
     Jg[:, 2, 6] = 1.0
@@ -91,6 +83,22 @@ def _jacobians(R, P, XA, XB, z, f, fb):
     Jp[:, 2, 2] = fb
     Jp[:, 3:] = np.einsum("nij,jk,nkl->nil", dproj, R, dXA)
     return Jg, Jp
+
+
+def _projection_and_motion_jacobians(X, RX, z, f, fb):
+    """``d(u, v, d)/dX`` (n, 3, 3) of rectified points ``X`` (depth ``z``), and ``dX/d(dt, dtheta)`` (n, 3, 6)
+    for ``X = exp(dtheta) R x + t + dt`` with ``RX = R x`` (``d(exp(w) R x)/dw = -[R x]x``)."""
+    n = len(z)
+    dproj = np.zeros((n, 3, 3))
+    dproj[:, 0, 0] = f / z
+    dproj[:, 0, 2] = -f * X[:, 0] / z**2
+    dproj[:, 1, 1] = f / z
+    dproj[:, 1, 2] = -f * X[:, 1] / z**2
+    dproj[:, 2, 2] = -fb / z**2
+    dX = np.zeros((n, 3, 6))
+    dX[:, :, :3] = np.eye(3)
+    dX[:, :, 3:] = -_skew_rows(RX)
+    return dproj, dX
 
 
 def _skew_rows(v: np.ndarray) -> np.ndarray:
@@ -482,15 +490,7 @@ def _window_system(R, t, d0, P, M, kf_of, pt_of, f, cx, cy, fb, ng, jacobians=Tr
     if not jacobians:
         return r, None, None, z
     n = len(z)
-    dproj = np.zeros((n, 3, 3))
-    dproj[:, 0, 0] = f / z
-    dproj[:, 0, 2] = -f * Xj[:, 0] / z**2
-    dproj[:, 1, 1] = f / z
-    dproj[:, 1, 2] = -f * Xj[:, 1] / z**2
-    dproj[:, 2, 2] = -fb / z**2
-    dX = np.zeros((n, 3, 6))
-    dX[:, :, :3] = np.eye(3)
-    dX[:, :, 3:] = -_skew_rows(RX)
+    dproj, dX = _projection_and_motion_jacobians(Xj, RX, z, f, fb)
     Jpose = np.matmul(dproj, dX)
     Jg = np.zeros((n, 3, ng))
     moving = kf_of > 0
