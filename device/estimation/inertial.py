@@ -83,17 +83,25 @@ class GyroIntegrator:
             self._last_t, self._last_w = ts[-1], ws[-1]  # as measured: the bias may change before it is used
         if len(ts) < 2 or ts[0] > t_prev + 5_000_000 or ts[-1] < t_cur - 5_000_000:
             return None
-        t = np.array(ts, dtype=np.int64)
-        w = np.array(ws) - self.bias
-        # resample the angular velocity at the interval ends and integrate midpoints
-        knots = np.concatenate([[t_prev], t[(t > t_prev) & (t < t_cur)], [t_cur]])
-        wk = np.stack([np.interp(knots, t, w[:, k]) for k in range(3)], axis=1)
+        wm, dt = midpoint_rates(np.array(ts, dtype=np.int64), np.array(ws) - self.bias, t_prev, t_cur)
         R = np.eye(3)
-        dt = np.diff(knots) * 1e-9
-        wm = 0.5 * (wk[1:] + wk[:-1])
         for d, wi in zip(dt, wm):
             R = R @ so3_exp(wi * d)
         return R
+
+
+def midpoint_rates(t_ns: np.ndarray, w: np.ndarray, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray]:
+    """Piecewise-linear angular velocity over ``[t0, t1]``: the mean rate of each step between the
+    sample times inside it (the ends resampled) and the steps' lengths in seconds."""
+    knots = np.concatenate([[t0], t_ns[(t_ns > t0) & (t_ns < t1)], [t1]])
+    wk = np.stack([np.interp(knots, t_ns, w[:, k]) for k in range(3)], axis=1)
+    return 0.5 * (wk[1:] + wk[:-1]), np.diff(knots) * 1e-9
+
+
+def carry_bias_jacobian(A: np.ndarray, R_step: np.ndarray, dt_s: float) -> np.ndarray:
+    """``A`` (the derivative of an integrated rotation's log by the gyro bias error, up to the end of the
+    previous step) after one more step ``R_step`` of ``dt_s`` seconds: ``R_step^T A + dt I``."""
+    return R_step.T @ A + dt_s * np.eye(3)
 
 
 class VisionGyroBias:
@@ -137,7 +145,7 @@ class VisionGyroBias:
     def add(self, R_step_body: np.ndarray, dt_s: float) -> None:
         """The gyro's body rotation from the previous tracked frame to this one (current bias)."""
         R_step_body = np.asarray(R_step_body, float)
-        self._A = R_step_body.T @ self._A + dt_s * np.eye(3)
+        self._A = carry_bias_jacobian(self._A, R_step_body, dt_s)
         self._R_gyro = self._R_gyro @ R_step_body
         self._T += dt_s
 

@@ -33,6 +33,7 @@ import numpy as np
 
 from stereopath.device.core.frames import ImuSamples
 from stereopath.device.core.geometry import so3_exp, so3_log
+from stereopath.device.estimation.inertial import carry_bias_jacobian, midpoint_rates
 
 
 @dataclass(frozen=True)
@@ -57,10 +58,7 @@ def _interval(imu: ImuSamples, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray
     blk = imu.between(t0 - 50_000_000, t1 + 50_000_000)
     if len(blk) < 2 or blk.t_ns[0] > t0 + 5_000_000 or blk.t_ns[-1] < t1 - 5_000_000:
         return None
-    t = blk.t_ns.astype(np.int64)
-    knots = np.concatenate([[t0], t[(t > t0) & (t < t1)], [t1]])
-    w = np.stack([np.interp(knots, t, blk.gyro_rad_s[:, k]) for k in range(3)], axis=1)
-    return 0.5 * (w[1:] + w[:-1]), np.diff(knots) * 1e-9
+    return midpoint_rates(blk.t_ns.astype(np.int64), blk.gyro_rad_s, t0, t1)
 
 
 def _integrate(wm: np.ndarray, dt: np.ndarray, bias: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -68,7 +66,7 @@ def _integrate(wm: np.ndarray, dt: np.ndarray, bias: np.ndarray) -> tuple[np.nda
     R, A = np.eye(3), np.zeros((3, 3))
     for w, d in zip(wm - bias, dt):
         step = so3_exp(w * d)
-        A = step.T @ A + d * np.eye(3)
+        A = carry_bias_jacobian(A, step, d)
         R = R @ step
     return R, A
 
