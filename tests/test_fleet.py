@@ -348,3 +348,31 @@ def test_idle_cpus_are_asked_of_ray_at_most_every_quarter_second(local_ray, monk
     assert idle() == 1.0 and idle() == 1.0 and len(asked) == 1
     clock[0] += 0.3
     assert idle() == 0.0 and len(asked) == 2
+
+
+def test_compare_takes_meshes_equal_up_to_vertex_order_and_duplicate_vertices(tmp_path):
+    """Marching cubes on several threads writes the vertices in another order, and a vertex it emits
+    twice may be used through either copy: the same model.  A triangle moved to another vertex is not."""
+    import numpy as np
+    import open3d as o3d
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [1, 1, 0], [2, 1, 0]], float)  # 3 and 4 equal
+    tri = np.array([[0, 1, 2], [1, 3, 2], [1, 5, 4]])
+
+    def write(d, verts, tris):
+        d.mkdir()
+        mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris))
+        assert o3d.io.write_triangle_mesh(str(d / "mesh.ply"), mesh)
+
+    write(tmp_path / "a", v, tri)
+    perm = np.array([5, 3, 4, 2, 1, 0])  # new vertex i is old vertex perm[i]
+    new_index = np.argsort(perm)
+    swapped = tri.copy()
+    swapped[1, 1], swapped[2, 2] = 4, 3  # each triangle through the other copy of the duplicate
+    write(tmp_path / "b", v[perm], new_index[swapped])
+    assert (tmp_path / "a" / "mesh.ply").read_bytes() != (tmp_path / "b" / "mesh.ply").read_bytes()
+    assert differences(tmp_path / "a", tmp_path / "b") == []
+    moved = tri.copy()
+    moved[2] = [1, 5, 2]
+    write(tmp_path / "c", v, moved)
+    assert differences(tmp_path / "a", tmp_path / "c") == ["mesh.ply: elements differ"]

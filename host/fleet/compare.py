@@ -59,6 +59,8 @@ def ply_canonical(path: Path) -> tuple[Any, Any]:
 
     Vertex rows are position, normal, colour, sorted; triangles are rewritten with the sorted
     vertex ranks, rotated to start at their smallest rank (orientation kept), and sorted.
+    Vertices whose rows are equal share one rank: marching cubes can emit the same vertex twice,
+    and which copy a triangle uses depends on the order the threads wrote them in, not on the model.
     """
     import numpy as np
     import open3d as o3d
@@ -75,7 +77,9 @@ def ply_canonical(path: Path) -> tuple[Any, Any]:
         tri = np.zeros((0, 3), np.int64)
     order = np.lexsort(v.T[::-1]) if len(v) else np.zeros(0, np.int64)
     rank = np.empty(len(v), np.int64)
-    rank[order] = np.arange(len(v))
+    if len(v):  # the rank of a row: how many distinct rows sort before it
+        vs = v[order]
+        rank[order] = np.cumsum(np.r_[False, np.any(vs[1:] != vs[:-1], axis=1)])
     t = rank[tri] if len(tri) else tri
     if len(t):
         shift = np.argmin(t, axis=1)
