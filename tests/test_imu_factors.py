@@ -251,3 +251,56 @@ def test_an_imu_that_starts_late_gives_factors_only_where_it_covers_the_keyframe
     vision = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0)
     fused = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0, imu=terms)
     assert _ate(fused.T_world_cam, T_cam0) <= _ate(vision.T_world_cam, T_cam0) * 1.001
+
+
+def _up_in_camera(R_world_cam: np.ndarray) -> np.ndarray:
+    """The world's up (+z) seen from the camera: what tilt a pose has, whatever its yaw."""
+    return np.asarray(R_world_cam)[..., :3, :3].swapaxes(-1, -2) @ np.array([0.0, 0.0, 1.0])
+
+
+def test_a_session_without_a_still_start_is_leveled_by_the_gravity_the_adjustment_measured(sim):
+    """Estimated in its first camera's world (no still start), adjusted with IMU factors: the stage
+    turns the poses, the points and the gravity into a z-up world, as a still start would have given."""
+    import json
+    from types import SimpleNamespace
+
+    from stereopath.device.estimation.inertial import gravity_aligned_rotation, leveling_rotation
+    from stereopath.host.reprocess.stage_ba import level_world
+
+    rig, t_kf, T_cam0, T_noisy, pts, obs = _visual_problem(sim)
+    fused = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0, imu=imu_terms(_moving(sim), t_kf, T_noisy))
+    g = ImuNoise.of(sim).gravity_m_s2
+    assert fused.gravity_world is not None and np.linalg.norm(fused.gravity_world) == pytest.approx(g)
+    kf = np.arange(0, len(sim), 8)
+    T_true = sim.groundtruth.T_world_cam[kf]
+    # before: the first camera's world (z along its optical axis: 113 deg from the truth's up here)
+    before = np.degrees(np.arccos(np.clip(np.sum(_up_in_camera(fused.T_world_cam) * _up_in_camera(T_true), 1), -1, 1)))
+    assert before.min() > 10
+    T_before, points_before = fused.T_world_cam.copy(), dict(fused.points)
+    T_frames = fused.T_world_cam.copy()
+    estimate = {"meta": np.array(json.dumps({"world_frame": "first_camera"}))}
+    turn = level_world(SimpleNamespace(seq=sim, results={"estimate": estimate}), fused, T_frames)
+    assert turn >= before[0] - 0.5  # the tilt, and a yaw
+    # after: every pose tilted as the truth is, within the accelerometer bias's ~0.1 deg
+    tilt = np.degrees(np.arccos(np.clip(np.sum(_up_in_camera(T_frames) * _up_in_camera(T_true), 1), -1, 1)))
+    assert tilt.max() < 0.3, tilt.max()
+    assert np.allclose(fused.T_world_cam, T_frames)
+    assert np.allclose(fused.gravity_world, [0.0, 0.0, -g], atol=1e-9)
+    # a rigid turn about the world's origin: each point seen from each pose as before
+    for k in (0, len(T_frames) - 1):
+        for i in list(points_before)[:20]:
+            a, b = invert_pose(T_frames[k]), invert_pose(T_before[k])
+            assert np.allclose(a[:3, :3] @ fused.points[i] + a[:3, 3], b[:3, :3] @ points_before[i] + b[:3, 3])
+    # the turn is the still start's world: a body at rest reading ``up`` gets gravity_aligned_rotation(up)
+    R_body_cam = np.asarray(sim.rig.T_body_cam0)[:3, :3]
+    R = leveling_rotation(T_before[0][:3, :3], R_body_cam, T_before[0][:3, :3] @ R_body_cam.T @ np.array([0, 0, -9.8]))
+    assert np.allclose(R @ T_before[0][:3, :3] @ R_body_cam.T, gravity_aligned_rotation(np.array([0.0, 0.0, 1.0])))
+    # a world already gravity aligned (a still start), or no gravity measured: nothing turns
+    estimate["meta"] = np.array(json.dumps({"world_frame": "gravity_aligned"}))
+    assert level_world(SimpleNamespace(seq=sim, results={"estimate": estimate}), fused, T_frames) is None
+    estimate["meta"] = np.array(json.dumps({"world_frame": "first_camera"}))
+    vision = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0)
+    T_vision = vision.T_world_cam.copy()
+    assert vision.gravity_world is None
+    assert level_world(SimpleNamespace(seq=sim, results={"estimate": estimate}), vision, T_vision) is None
+    assert np.array_equal(T_vision, vision.T_world_cam)

@@ -56,6 +56,15 @@ def gravity_aligned_rotation(accel_mean_body: np.ndarray) -> np.ndarray:
     return so3_exp(v / s * np.arctan2(s, c))
 
 
+def leveling_rotation(R_world_cam: np.ndarray, R_body_cam: np.ndarray, gravity_world: np.ndarray) -> np.ndarray:
+    """``R_new_world``: the rotation that takes a world in which gravity is ``gravity_world`` onto the
+    gravity-aligned world a still start would have given (z up, the yaw of
+    :func:`gravity_aligned_rotation` for the body at ``R_world_cam``, the camera's pose then)."""
+    R_world_body = np.asarray(R_world_cam, float) @ np.asarray(R_body_cam, float).T
+    up_body = R_world_body.T @ -np.asarray(gravity_world, float)  # what the accelerometer would read at rest
+    return gravity_aligned_rotation(up_body) @ R_world_body.T
+
+
 class GyroIntegrator:
     """Integrates bias-corrected gyro samples into body rotations between frame times.
 

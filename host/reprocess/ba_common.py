@@ -34,6 +34,7 @@ class BAResult:
     history: list[float] = field(default_factory=list)  # robust cost after each iteration
     disparity_offset_px: float = 0.0  # estimated right principal-point offset (0 unless estimated)
     imu_biases: np.ndarray | None = None  # (K, 6) accelerometer then gyro bias per pose (with IMU factors)
+    gravity_world: np.ndarray | None = None  # gravity (m/s^2) in the world of ``T_world_cam`` (with IMU factors)
     pixel_sigma_px: float | None = None  # the observations' measured noise (set where other factors weigh against them)
 
 

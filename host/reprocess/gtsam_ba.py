@@ -287,6 +287,7 @@ def _solve(rig: Rig, T: np.ndarray, points: dict[int, np.ndarray], obs: np.ndarr
         A = T[0] @ np.linalg.inv(T_new[0])
         T_new = np.einsum("ij,njk->nik", A, T_new)
         pts_new = {i: A[:3, :3] @ x + A[:3, 3] for i, x in pts_new.items()}
+        opts["gravity_world"] = A[:3, :3] @ np.asarray(imu.gravity_world, float)  # where the solve put it
         biases = np.full((len(T), 6), np.nan)
         for k in gr.imu_keys:
             biases[k] = values.atConstantBias(gr.B(k)).vector()
@@ -358,6 +359,7 @@ def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarra
         iters, history = iters + it2, history + h2
     res = _result(rig, T, pts, obs, offset, rms0, iters, history, outlier_px)
     res.imu_biases = opts.get("imu_biases")
+    res.gravity_world = opts.get("gravity_world")
     res.pixel_sigma_px = opts.get("pixel_sigma")
     return res
 

@@ -24,7 +24,7 @@ import numpy as np
 from stereopath.device.errors import EstimationError
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
 from stereopath.host.progress import Bar, progress_bar
-from stereopath.host.reprocess.store import json_array
+from stereopath.host.reprocess.store import json_array, meta
 
 log = logging.getLogger(__name__)
 
@@ -205,6 +205,29 @@ def refine_frames(config: ReprocessPreset, inputs: StageInputs, res, T_frames: n
     return n
 
 
+def level_world(inputs: StageInputs, res, T_frames: np.ndarray) -> float | None:
+    """A session estimated in its first camera's world (no still IMU start) whose bundle adjustment
+    measured gravity (IMU factors): the adjusted poses and points (``res``, in place) and every frame
+    (``T_frames``, in place) turned into the gravity-aligned world a still start gives, z up, so that
+    the model comes out upright.  Returns the turn in degrees, None when the world stays as it was."""
+    from stereopath.device.core.geometry import rotation_angle_deg
+    from stereopath.device.estimation.inertial import leveling_rotation
+
+    rig = inputs.seq.rig
+    if res.gravity_world is None or rig.T_body_cam0 is None \
+            or meta(inputs.results["estimate"], "meta").get("world_frame") != "first_camera":
+        return None
+    R = leveling_rotation(T_frames[0][:3, :3], np.asarray(rig.T_body_cam0)[:3, :3], res.gravity_world)
+    A = np.eye(4)
+    A[:3, :3] = R
+    T_frames[:] = A @ T_frames
+    res.T_world_cam = A @ res.T_world_cam
+    res.points = {i: R @ x for i, x in res.points.items()}
+    res.gravity_world = R @ res.gravity_world
+    log.info("world frame turned %.2f deg onto gravity (measured by the IMU factors)", rotation_angle_deg(R))
+    return round(float(rotation_angle_deg(R)), 3)
+
+
 def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     from stereopath.host.reprocess.ba_common import interpolate_corrections
 
@@ -227,6 +250,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     T_frames[kf] = res.T_world_cam
     t1 = time.perf_counter()
     n_refined = refine_frames(config, inputs, res, T_frames) if config.refine_frames else 0
+    leveled = level_world(inputs, res, T_frames)
     stats = {"poses": len(kf), "points": res.n_points, "observations": res.n_obs,
              "rms_before_px": res.rms_before_px, "rms_after_px": res.rms_after_px, "iterations": res.iterations,
              "inlier_fraction": res.inlier_fraction, "rotation_priors": len(priors),
@@ -236,6 +260,8 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
              "frame_refinement_seconds": round(time.perf_counter() - t1, 3),
              "loops": [lp.as_dict() for lp in loops_of(trk)],
              "imu": imu_report(imu, res, est["t_ns"][kf]),
+             "world_frame": "gravity_aligned" if leveled is not None else meta(est, "meta").get("world_frame"),
+             "leveled_deg": leveled,
              "end_to_start": {"reestimated": end_to_start(est["T_world_cam"]), "bundle_adjusted": end_to_start(T_frames)}}
     ids = np.fromiter(res.points.keys(), np.int64, len(res.points))
     return {
