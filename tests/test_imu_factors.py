@@ -278,9 +278,9 @@ def test_a_session_without_a_still_start_is_leveled_by_the_gravity_the_adjustmen
     assert before.min() > 10
     T_before, points_before = fused.T_world_cam.copy(), dict(fused.points)
     T_frames = fused.T_world_cam.copy()
-    estimate = {"meta": np.array(json.dumps({"world_frame": "first_camera"}))}
+    estimate = {"meta": np.array(json.dumps({"world_frame": "first_camera"})), "t_ns": t_kf}
     turn = level_world(SimpleNamespace(seq=sim, results={"estimate": estimate}), fused, T_frames)
-    assert turn >= before[0] - 0.5  # the tilt, and a yaw
+    assert turn["by"] == "imu_factors" and turn["deg"] >= before[0] - 0.5  # the tilt, and a yaw
     # after: every pose tilted as the truth is, within the accelerometer bias's ~0.1 deg
     tilt = np.degrees(np.arccos(np.clip(np.sum(_up_in_camera(T_frames) * _up_in_camera(T_true), 1), -1, 1)))
     assert tilt.max() < 0.3, tilt.max()
@@ -295,7 +295,8 @@ def test_a_session_without_a_still_start_is_leveled_by_the_gravity_the_adjustmen
     R_body_cam = np.asarray(sim.rig.T_body_cam0)[:3, :3]
     R = leveling_rotation(T_before[0][:3, :3], R_body_cam, T_before[0][:3, :3] @ R_body_cam.T @ np.array([0, 0, -9.8]))
     assert np.allclose(R @ T_before[0][:3, :3] @ R_body_cam.T, gravity_aligned_rotation(np.array([0.0, 0.0, 1.0])))
-    # a world already gravity aligned (a still start), or no gravity measured: nothing turns
+    # a world already gravity aligned (a still start), or no gravity measured (the rig never rests during
+    # the frames either): nothing turns
     estimate["meta"] = np.array(json.dumps({"world_frame": "gravity_aligned"}))
     assert level_world(SimpleNamespace(seq=sim, results={"estimate": estimate}), fused, T_frames) is None
     estimate["meta"] = np.array(json.dumps({"world_frame": "first_camera"}))
@@ -304,3 +305,68 @@ def test_a_session_without_a_still_start_is_leveled_by_the_gravity_the_adjustmen
     assert vision.gravity_world is None
     assert level_world(SimpleNamespace(seq=sim, results={"estimate": estimate}), vision, T_vision) is None
     assert np.array_equal(T_vision, vision.T_world_cam)
+
+
+def test_gravity_where_the_rig_rests_during_the_frames():
+    """A rig that rests after its cameras start (EuRoC's first seconds, a box put down to start a scan):
+    gravity from the IMU's mean specific force there, in the path's world; none where the path moves."""
+    from stereopath.device.estimation.inertial_init import gravity_from_still_frames
+    from stereopath.device.sim.session import SimConfig, open_sim
+
+    still = _moving(open_sim(SimConfig(frames=60, trajectory="still")))
+    R_bc = np.asarray(still.rig.T_body_cam0)[:3, :3]
+    T0inv = invert_pose(still.groundtruth.T_world_cam[0])
+    T_body = np.array([T0inv @ T for T in still.groundtruth.T_world_cam]) @ make_pose(R_bc.T, np.zeros(3))
+    g = gravity_from_still_frames(still.imu, still.t_ns, T_body)
+    g_true = T0inv[:3, :3] @ np.array([0.0, 0.0, -1.0])  # the first camera's world
+    tilt = np.degrees(np.arccos(g @ g_true / np.linalg.norm(g)))
+    assert tilt < 0.6, tilt  # the simulator's accelerometer bias (0.07 m/s^2: 0.4 deg) tilts it
+    assert np.linalg.norm(g) == pytest.approx(9.81, abs=0.2)
+    # a path that says the rig moves over every stretch (a 3 cm or 2 deg sawtooth of 0.15 s)
+    for shift, turn in ((0.03, 0.0), (0.0, 2.0)):
+        moved = T_body.copy()
+        frac = np.linspace(0, 20, len(moved)) % 1.0
+        moved[:, 0, 3] += shift * frac
+        moved[:, :3, :3] = np.array([so3_exp(np.array([0, np.radians(turn) * f, 0])) for f in frac]) @ moved[:, :3, :3]
+        assert gravity_from_still_frames(still.imu, still.t_ns, moved) is None
+    # vibration (EuRoC's rotors) averages out; readings that are not 1 g (another unit) are not gravity
+    rng = np.random.default_rng(1)
+    ImuSamples = type(still.imu)
+    shaken = ImuSamples(still.imu.t_ns, still.imu.gyro_rad_s + rng.normal(0, 0.08, still.imu.gyro_rad_s.shape),
+                        still.imu.accel_m_s2 + rng.normal(0, 0.5, still.imu.accel_m_s2.shape))
+    g_shaken = gravity_from_still_frames(shaken, still.t_ns, T_body)
+    assert np.degrees(np.arccos(g_shaken @ g / np.linalg.norm(g_shaken) / np.linalg.norm(g))) < 1.0  # sigma 0.2 deg
+    in_g = ImuSamples(still.imu.t_ns, still.imu.gyro_rad_s, still.imu.accel_m_s2 / 9.81)
+    assert gravity_from_still_frames(in_g, still.t_ns, T_body) is None
+    # the scan moves from its first quarter second on: never a still second
+    sim = open_sim(SimConfig())
+    T_arc = np.array([T0inv @ T for T in sim.groundtruth.T_world_cam]) @ make_pose(R_bc.T, np.zeros(3))
+    assert gravity_from_still_frames(_moving(sim).imu, sim.t_ns, T_arc) is None
+
+
+def test_euroc_is_leveled_where_it_rests_after_its_cameras_start(data_dir, tmp_path):
+    """The real EuRoC V1_01 head rests for its 95 frames and has no still IMU block before its first
+    frame and too few keyframes for IMU factors: the reprocessed path comes out z up all the same, its
+    tilt within a degree of the motion capture's (the accelerometer bias)."""
+    import json
+
+    from stereopath.device.core.geometry import quat_xyzw_to_matrix
+    from stereopath.device.formats import open_source
+    from stereopath.device.formats.tum import read_tum
+    from stereopath.host.reprocess.pipeline import reprocess_session
+
+    src = data_dir / "euroc_v1_01_head"
+    reprocess_session(str(src), tmp_path, progress=False, do_map=False)
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["world_frame"] == "gravity_aligned"
+    assert rep["extra"]["bundle_adjustment"]["leveled"]["by"] == "still_imu"
+    est = read_tum(tmp_path / "trajectory.tum")
+    gt = np.loadtxt(src / "groundtruth_tum.txt")
+    R_bc = open_source(f"euroc:{src}").rig.T_body_cam0[:3, :3]
+    tilts = []
+    for t, T in zip(est.t_ns[::10], est.T_world_cam[::10]):
+        k = int(np.argmin(np.abs(gt[:, 0] - t * 1e-9)))
+        up_true = (quat_xyzw_to_matrix(gt[k, 4:8]) @ R_bc).T @ [0.0, 0.0, 1.0]  # the motion capture's z is up
+        up_est = T[:3, :3].T @ [0.0, 0.0, 1.0]
+        tilts.append(np.degrees(np.arccos(np.clip(up_est @ up_true, -1, 1))))
+    assert max(tilts) < 1.0, tilts

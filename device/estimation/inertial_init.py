@@ -33,7 +33,7 @@ import numpy as np
 
 from stereopath.device.core.frames import ImuSamples
 from stereopath.device.core.geometry import so3_exp, so3_log
-from stereopath.device.estimation.inertial import carry_bias_jacobian, midpoint_rates
+from stereopath.device.estimation.inertial import GRAVITY_M_S2, carry_bias_jacobian, midpoint_rates
 
 
 @dataclass(frozen=True)
@@ -149,3 +149,40 @@ def gravity_from_path(t_kf: np.ndarray, T_world: np.ndarray, increments: list) -
     return GravityFit(x[-3:].copy(), v, len(increments),
                       float(np.sqrt(np.mean(np.sum((r[:, 0] * dts[:, None]) ** 2, axis=1)))),
                       float(np.sqrt(np.mean(np.sum(r[:, 1] ** 2, axis=1)))))
+
+
+STILL_WINDOW_S = 1.0  # IMU averaged over this long where the rig rests during the frames
+MAX_STILL_TURN_DEG = 0.5  # the path over such a stretch: it turns no more than this ...
+MAX_STILL_SHIFT_M = 0.01  # ... and moves no more than this
+MAX_STILL_ACCEL_DEV_M_S2 = 0.6  # the mean specific force there: 1 g within this
+
+
+def gravity_from_still_frames(imu: ImuSamples, t_ns: np.ndarray, T_world_body: np.ndarray,
+                              window_s: float = STILL_WINDOW_S) -> np.ndarray | None:
+    """Gravity (m/s^2, pointing down) in the world of the path ``T_world_body`` (body poses at the
+    frame times ``t_ns``), from the first stretch of ``window_s`` during the frames where the path
+    rests (it turns less than :data:`MAX_STILL_TURN_DEG` and moves less than :data:`MAX_STILL_SHIFT_M`):
+    the IMU's mean specific force there, taken into the world by the body's rotation at the
+    stretch's middle.  The path decides, not the IMU's own spread: a rig that rests may vibrate
+    (EuRoC's drone sits on the ground with its rotors turning: gyro spread up to 0.08 rad/s and 2
+    m/s^2 on the accelerometer, which averages out), and a box put down to start a scan rests too.
+    The mean must be 1 g within 0.6 m/s^2 (at least 50 samples).  The accelerometer bias tilts it
+    by ``|b_a| / 9.8`` rad.  None when the rig never rests for that long.  Stretches start every
+    half window."""
+    t_ns = np.asarray(t_ns, np.int64)
+    T = np.asarray(T_world_body, float)
+    w = int(window_s * 1e9)
+    for t0 in range(int(t_ns[0]), int(t_ns[-1]) - w + 1, max(w // 2, 1)):
+        frames = np.flatnonzero((t_ns >= t0) & (t_ns <= t0 + w))
+        if len(frames) < 2:
+            continue
+        R0, p0 = T[frames[0], :3, :3], T[frames[0], :3, 3]
+        turn = max(np.degrees(np.linalg.norm(so3_log(R0.T @ T[i, :3, :3]))) for i in frames)
+        shift = float(np.max(np.linalg.norm(T[frames, :3, 3] - p0, axis=1)))
+        if turn > MAX_STILL_TURN_DEG or shift > MAX_STILL_SHIFT_M:
+            continue
+        blk = imu.between(t0, t0 + w)
+        f = blk.accel_m_s2.mean(axis=0) if len(blk) >= 50 else None
+        if f is not None and abs(np.linalg.norm(f) - GRAVITY_M_S2) <= MAX_STILL_ACCEL_DEV_M_S2:
+            return -(T[frames[len(frames) // 2], :3, :3] @ f)
+    return None

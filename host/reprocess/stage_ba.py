@@ -205,27 +205,42 @@ def refine_frames(config: ReprocessPreset, inputs: StageInputs, res, T_frames: n
     return n
 
 
-def level_world(inputs: StageInputs, res, T_frames: np.ndarray) -> float | None:
-    """A session estimated in its first camera's world (no still IMU start) whose bundle adjustment
-    measured gravity (IMU factors): the adjusted poses and points (``res``, in place) and every frame
-    (``T_frames``, in place) turned into the gravity-aligned world a still start gives, z up, so that
-    the model comes out upright.  Returns the turn in degrees, None when the world stays as it was."""
+def level_world(inputs: StageInputs, res, T_frames: np.ndarray) -> dict[str, Any] | None:
+    """A session estimated in its first camera's world (no still IMU start) whose gravity is known
+    after all: measured by the bundle adjustment's IMU factors, else by the IMU where the rig rests
+    during the frames (:func:`~stereopath.device.estimation.inertial_init.gravity_from_still_frames`).
+    The adjusted poses and points (``res``, in place) and every frame (``T_frames``, in place) are
+    turned into the gravity-aligned world a still start gives, z up, so that the model comes out
+    upright.  Returns the turn (degrees) and what measured gravity; None when the world stays as it was."""
     from stereopath.device.core.geometry import rotation_angle_deg
     from stereopath.device.estimation.inertial import leveling_rotation
+    from stereopath.device.estimation.inertial_init import gravity_from_still_frames
 
-    rig = inputs.seq.rig
-    if res.gravity_world is None or rig.T_body_cam0 is None \
-            or meta(inputs.results["estimate"], "meta").get("world_frame") != "first_camera":
+    rig, imu = inputs.seq.rig, getattr(inputs.seq, "imu", None)
+    if rig.T_body_cam0 is None or meta(inputs.results["estimate"], "meta").get("world_frame") != "first_camera":
         return None
-    R = leveling_rotation(T_frames[0][:3, :3], np.asarray(rig.T_body_cam0)[:3, :3], res.gravity_world)
-    A = np.eye(4)
-    A[:3, :3] = R
+    R_body_cam = np.asarray(rig.T_body_cam0)[:3, :3]
+    gravity, by = res.gravity_world, "imu_factors"
+    if gravity is None and imu is not None and len(imu):
+        gravity, by = gravity_from_still_frames(imu, inputs.results["estimate"]["t_ns"], T_frames @ _rot4(R_body_cam.T)), "still_imu"
+    if gravity is None:
+        return None
+    R = leveling_rotation(T_frames[0][:3, :3], R_body_cam, gravity)
+    A = _rot4(R)
     T_frames[:] = A @ T_frames
     res.T_world_cam = A @ res.T_world_cam
     res.points = {i: R @ x for i, x in res.points.items()}
-    res.gravity_world = R @ res.gravity_world
-    log.info("world frame turned %.2f deg onto gravity (measured by the IMU factors)", rotation_angle_deg(R))
-    return round(float(rotation_angle_deg(R)), 3)
+    if res.gravity_world is not None:
+        res.gravity_world = R @ res.gravity_world
+    log.info("world frame turned %.2f deg onto gravity (measured by %s)", rotation_angle_deg(R),
+             "the IMU factors" if by == "imu_factors" else "the IMU where the rig rests")
+    return {"deg": round(float(rotation_angle_deg(R)), 3), "by": by}
+
+
+def _rot4(R: np.ndarray) -> np.ndarray:
+    A = np.eye(4)
+    A[:3, :3] = R
+    return A
 
 
 def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
@@ -261,7 +276,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
              "loops": [lp.as_dict() for lp in loops_of(trk)],
              "imu": imu_report(imu, res, est["t_ns"][kf]),
              "world_frame": "gravity_aligned" if leveled is not None else meta(est, "meta").get("world_frame"),
-             "leveled_deg": leveled,
+             "leveled": leveled,
              "end_to_start": {"reestimated": end_to_start(est["T_world_cam"]), "bundle_adjusted": end_to_start(T_frames)}}
     ids = np.fromiter(res.points.keys(), np.int64, len(res.points))
     return {
