@@ -304,6 +304,21 @@ class ImuFromFirstFrame:
         return getattr(self._seq, name)
 
 
+def up_error(path: Path, gt) -> str:
+    """How far the reprocessed path's vertical is from the ground truth's at each frame (z up in both)."""
+    import numpy as np
+
+    from stereopath.device.formats.tum import read_tum
+
+    est = read_tum(path)
+    idx = np.searchsorted(gt.t_ns, est.t_ns).clip(0, len(gt) - 1)
+    ok = gt.t_ns[idx] == est.t_ns
+    up = np.array([0.0, 0.0, 1.0])
+    a = np.degrees(np.arccos(np.clip(np.sum((est.T_world_cam[ok, :3, :3].transpose(0, 2, 1) @ up)
+                                             * (gt.T_world_cam[idx[ok], :3, :3].transpose(0, 2, 1) @ up), 1), -1, 1)))
+    return f"its up against the ground truth's over {int(ok.sum())} frames: median {np.median(a):.3f}, max {a.max():.3f} deg"
+
+
 def sim_figures(tmp: Path, args, base):
     """The default simulated session: on-board ATE, end-to-end reprocessing, the solver comparison."""
     from stereopath.device.sim.session import SimConfig, open_sim
@@ -327,6 +342,7 @@ def sim_figures(tmp: Path, args, base):
         print(f"  reprocess --preset {args.preset} end to end (GTSAM): {time.perf_counter() - t:.1f} s (estimate "
               f"{st['estimate']:.1f}, tracks {st['tracks']:.1f}, ba {st['ba']:.1f}, map {st['map']:.1f} s), "
               f"ATE {mm(res.report['ate_rmse_m'])}; target <= 180 s")
+        print(f"  world frame {res.report['world_frame']}; {up_error(tmp / 'sim' / 'trajectory.tum', seq.groundtruth)}")
     sim = open_sim(SimConfig())
     truth = (sim.imu.t_ns, sim.imu_biases.accel_m_s2, sim.imu_biases.gyro_rad_s)
     compare_solvers("sim", seq, tmp / "sim" / "stages", base, args.runs, ate_on, 1000, "mm",

@@ -35,3 +35,7 @@ class DatasetError(StereopathError):
 
 class EstimationError(StereopathError):
     """Motion estimation was asked to do something it cannot (e.g. no frames at all)."""
+
+
+class ImuMismatchError(EstimationError):
+    """The IMU's readings do not fit the camera path (units, scale, axes or T_body_cam0 wrong): not to be used."""

@@ -376,3 +376,13 @@ def test_compare_takes_meshes_equal_up_to_vertex_order_and_duplicate_vertices(tm
     moved[2] = [1, 5, 2]
     write(tmp_path / "c", v, moved)
     assert differences(tmp_path / "a", tmp_path / "c") == ["mesh.ply: elements differ"]
+    # a triangle written from another corner, through the other copy (same orientation); then reversed
+    write(tmp_path / "d", v, np.array([[1, 3, 5], [0, 1, 2]]))
+    write(tmp_path / "e", v, np.array([[0, 1, 2], [5, 1, 4]]))
+    assert differences(tmp_path / "d", tmp_path / "e") == []
+    write(tmp_path / "f", v, np.array([[0, 1, 2], [1, 5, 4]]))
+    assert differences(tmp_path / "d", tmp_path / "f") == ["mesh.ply: elements differ"]
+    # two copies of the smallest rank in one triangle: each rotation of it is the same triangle
+    write(tmp_path / "g", v, np.array([[3, 4, 5]]))
+    write(tmp_path / "h", v, np.array([[4, 5, 3]]))
+    assert differences(tmp_path / "g", tmp_path / "h") == []

@@ -158,7 +158,7 @@ MAX_STILL_ACCEL_DEV_M_S2 = 0.6  # the mean specific force there: 1 g within this
 
 
 def gravity_from_still_frames(imu: ImuSamples, t_ns: np.ndarray, T_world_body: np.ndarray,
-                              window_s: float = STILL_WINDOW_S) -> np.ndarray | None:
+                              tracked: np.ndarray | None = None, window_s: float = STILL_WINDOW_S) -> np.ndarray | None:
     """Gravity (m/s^2, pointing down) in the world of the path ``T_world_body`` (body poses at the
     frame times ``t_ns``), from the first stretch of ``window_s`` during the frames where the path
     rests (it turns less than :data:`MAX_STILL_TURN_DEG` and moves less than :data:`MAX_STILL_SHIFT_M`):
@@ -167,14 +167,18 @@ def gravity_from_still_frames(imu: ImuSamples, t_ns: np.ndarray, T_world_body: n
     (EuRoC's drone sits on the ground with its rotors turning: gyro spread up to 0.08 rad/s and 2
     m/s^2 on the accelerometer, which averages out), and a box put down to start a scan rests too.
     The mean must be 1 g within 0.6 m/s^2 (at least 50 samples).  The accelerometer bias tilts it
-    by ``|b_a| / 9.8`` rad.  None when the rig never rests for that long.  Stretches start every
-    half window."""
+    by ``|b_a| / 9.8`` rad.  ``tracked``: which frames' poses were measured (a predicted pose says
+    nothing about rest); a stretch needs every frame in it tracked and finite.  None when the rig
+    never rests for that long.  Stretches start every half window."""
     t_ns = np.asarray(t_ns, np.int64)
     T = np.asarray(T_world_body, float)
+    good = np.all(np.isfinite(T.reshape(len(T), -1)), axis=1)
+    if tracked is not None:
+        good &= np.asarray(tracked, bool)
     w = int(window_s * 1e9)
     for t0 in range(int(t_ns[0]), int(t_ns[-1]) - w + 1, max(w // 2, 1)):
         frames = np.flatnonzero((t_ns >= t0) & (t_ns <= t0 + w))
-        if len(frames) < 2:
+        if len(frames) < 2 or not good[frames].all():
             continue
         R0, p0 = T[frames[0], :3, :3], T[frames[0], :3, 3]
         turn = max(np.degrees(np.linalg.norm(so3_log(R0.T @ T[i, :3, :3]))) for i in frames)

@@ -61,6 +61,8 @@ def ply_canonical(path: Path) -> tuple[Any, Any]:
     vertex ranks, rotated to start at their smallest rank (orientation kept), and sorted.
     Vertices whose rows are equal share one rank: marching cubes can emit the same vertex twice,
     and which copy a triangle uses depends on the order the threads wrote them in, not on the model.
+    So this compares the geometry (which positions, normals and colours each triangle joins), not
+    which copies of a duplicated vertex the triangles share.
     """
     import numpy as np
     import open3d as o3d
@@ -81,11 +83,14 @@ def ply_canonical(path: Path) -> tuple[Any, Any]:
         vs = v[order]
         rank[order] = np.cumsum(np.r_[False, np.any(vs[1:] != vs[:-1], axis=1)])
     t = rank[tri] if len(tri) else tri
-    if len(t):
-        shift = np.argmin(t, axis=1)
-        idx = (np.arange(3)[None, :] + shift[:, None]) % 3
-        t = np.take_along_axis(t, idx, axis=1)
-        t = t[np.lexsort(t.T[::-1])]
+    if len(t):  # each triangle at its lexicographically smallest rotation (ranks may repeat in one)
+        best = t.copy()
+        for k in (1, 2):
+            c = np.roll(t, -k, axis=1)
+            less = (c[:, 0] < best[:, 0]) | ((c[:, 0] == best[:, 0]) & (
+                (c[:, 1] < best[:, 1]) | ((c[:, 1] == best[:, 1]) & (c[:, 2] < best[:, 2]))))
+            best[less] = c[less]
+        t = best[np.lexsort(best.T[::-1])]
     return v[order], t
 
 

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from stereopath.device.errors import EstimationError
+from stereopath.device.errors import EstimationError, ImuMismatchError
 
 log = logging.getLogger(__name__)
 
@@ -164,7 +164,7 @@ def _gyro_bias_from_path(imu: Any, t_kf: np.ndarray, T_world_cam: np.ndarray, R_
         raise EstimationError("IMU preintegration without a still start needs the IMU over at least two keyframe "
                               "intervals (for the gyro bias)")
     if fit.rms_rad > MAX_GYRO_FIT_RMS_RAD:
-        raise EstimationError(
+        raise ImuMismatchError(
             f"the path and the IMU disagree: the gyro's rotations leave {fit.rms_rad:.3f} rad per keyframe interval "
             "against the path's (check the gyro's units and scale, and T_body_cam0)")
     log.info("no still start: gyro bias %s rad/s from the path's rotations (%d intervals, residual %.2g rad)",
@@ -184,7 +184,7 @@ def _gravity_from_path(t_kf: np.ndarray, T_world_cam: np.ndarray, pims: list, no
                               "with IMU samples (for gravity)")
     norm = float(np.linalg.norm(fit.gravity_world))
     if abs(norm - noise.gravity_m_s2) > MAX_GRAVITY_NORM_ERROR * noise.gravity_m_s2 or fit.rms_m_s > MAX_GRAVITY_FIT_RMS_M_S:
-        raise EstimationError(
+        raise ImuMismatchError(
             f"the path and the IMU disagree: gravity from the path is {norm:.2f} m/s^2 (the accelerometer's 1 g is "
             f"{noise.gravity_m_s2:.2f}), velocity residual {fit.rms_m_s:.3f} m/s per keyframe interval (check the "
             "accelerometer's units and scale, and T_body_cam0)")

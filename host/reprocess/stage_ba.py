@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from stereopath.device.errors import EstimationError
+from stereopath.device.errors import EstimationError, ImuMismatchError
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
 from stereopath.host.progress import Bar, progress_bar
 from stereopath.host.reprocess.store import json_array, meta
@@ -86,17 +86,19 @@ def end_to_start(T: np.ndarray) -> dict[str, float]:
 
 
 def imu_terms_of(config: ReprocessPreset, inputs: StageInputs):
-    """Preintegrated IMU between the keyframes (None without ``ba_imu`` or usable IMU data)."""
+    """Preintegrated IMU between the keyframes, and whether the IMU may be used at all: (None, False)
+    without ``ba_imu`` or an IMU, or when its readings do not fit the path; (None, True) when it fits
+    but cannot give factors (too few keyframe intervals: a session that rests)."""
     from stereopath.host.reprocess.imu_factors import imu_terms
 
     if not config.ba_imu or getattr(inputs.seq, "imu", None) is None:
-        return None
+        return None, False
     est, trk = inputs.results["estimate"], inputs.results["tracks"]
     try:
-        return imu_terms(inputs.seq, est["t_ns"][trk["kf_index"]], trk["T_kf"])
+        return imu_terms(inputs.seq, est["t_ns"][trk["kf_index"]], trk["T_kf"]), True
     except EstimationError as exc:
         log.warning("bundle adjustment without the IMU: %s", exc)
-        return None
+        return None, not isinstance(exc, ImuMismatchError)
 
 
 def imu_report(terms, res, t_kf: np.ndarray) -> dict[str, Any] | None:
@@ -205,24 +207,29 @@ def refine_frames(config: ReprocessPreset, inputs: StageInputs, res, T_frames: n
     return n
 
 
-def level_world(inputs: StageInputs, res, T_frames: np.ndarray) -> dict[str, Any] | None:
+def level_world(inputs: StageInputs, res, T_frames: np.ndarray, imu_usable: bool = True) -> dict[str, Any] | None:
     """A session estimated in its first camera's world (no still IMU start) whose gravity is known
-    after all: measured by the bundle adjustment's IMU factors, else by the IMU where the rig rests
-    during the frames (:func:`~stereopath.device.estimation.inertial_init.gravity_from_still_frames`).
+    after all: measured by the bundle adjustment's IMU factors, else (``imu_usable``: the IMU was not
+    refused for disagreeing with the path, nor switched off) by the IMU where the rig rests during
+    tracked frames (:func:`~stereopath.device.estimation.inertial_init.gravity_from_still_frames`).
     The adjusted poses and points (``res``, in place) and every frame (``T_frames``, in place) are
     turned into the gravity-aligned world a still start gives, z up, so that the model comes out
-    upright.  Returns the turn (degrees) and what measured gravity; None when the world stays as it was."""
+    upright.  Returns the turn (degrees, and ``R_new_old``, which takes the estimate's and the
+    tracks' world to the new one), what measured gravity and gravity in the new world; None when the
+    world stays as it was."""
     from stereopath.device.core.geometry import rotation_angle_deg
     from stereopath.device.estimation.inertial import leveling_rotation
     from stereopath.device.estimation.inertial_init import gravity_from_still_frames
 
+    est = inputs.results["estimate"]
     rig, imu = inputs.seq.rig, getattr(inputs.seq, "imu", None)
-    if rig.T_body_cam0 is None or meta(inputs.results["estimate"], "meta").get("world_frame") != "first_camera":
+    if rig.T_body_cam0 is None or meta(est, "meta").get("world_frame") != "first_camera":
         return None
     R_body_cam = np.asarray(rig.T_body_cam0)[:3, :3]
     gravity, by = res.gravity_world, "imu_factors"
-    if gravity is None and imu is not None and len(imu):
-        gravity, by = gravity_from_still_frames(imu, inputs.results["estimate"]["t_ns"], T_frames @ _rot4(R_body_cam.T)), "still_imu"
+    if gravity is None and imu_usable and imu is not None and len(imu):
+        tracked = np.asarray(est["status"]) == 0 if "status" in est else None
+        gravity, by = gravity_from_still_frames(imu, est["t_ns"], T_frames @ _rot4(R_body_cam.T), tracked), "still_imu"
     if gravity is None:
         return None
     R = leveling_rotation(T_frames[0][:3, :3], R_body_cam, gravity)
@@ -234,7 +241,8 @@ def level_world(inputs: StageInputs, res, T_frames: np.ndarray) -> dict[str, Any
         res.gravity_world = R @ res.gravity_world
     log.info("world frame turned %.2f deg onto gravity (measured by %s)", rotation_angle_deg(R),
              "the IMU factors" if by == "imu_factors" else "the IMU where the rig rests")
-    return {"deg": round(float(rotation_angle_deg(R)), 3), "by": by}
+    return {"deg": round(float(rotation_angle_deg(R)), 3), "by": by, "R_new_old": R.tolist(),
+            "gravity_world": (R @ np.asarray(gravity, float)).tolist()}
 
 
 def _rot4(R: np.ndarray) -> np.ndarray:
@@ -252,7 +260,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     if config.imu_rotation_priors:
         priors = gyro_rotation_priors(inputs.seq, est["t_ns"][kf], config.gyro_sigma_rad_per_sqrt_s, T_kf)
     t0 = time.perf_counter()
-    imu = imu_terms_of(config, inputs)
+    imu, imu_usable = imu_terms_of(config, inputs)
     try:
         res = adjust_keyframes(config, inputs, priors, imu)
     except EstimationError as exc:
@@ -265,7 +273,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     T_frames[kf] = res.T_world_cam
     t1 = time.perf_counter()
     n_refined = refine_frames(config, inputs, res, T_frames) if config.refine_frames else 0
-    leveled = level_world(inputs, res, T_frames)
+    leveled = level_world(inputs, res, T_frames, imu_usable)
     stats = {"poses": len(kf), "points": res.n_points, "observations": res.n_obs,
              "rms_before_px": res.rms_before_px, "rms_after_px": res.rms_after_px, "iterations": res.iterations,
              "inlier_fraction": res.inlier_fraction, "rotation_priors": len(priors),
