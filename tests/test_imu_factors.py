@@ -419,6 +419,9 @@ def test_an_imu_refused_for_disagreeing_with_the_path_does_not_level_the_world(s
     frames = T.copy()
     assert stage_ba.level_world(SimpleNamespace(seq=still, results={"estimate": est}), res, frames, imu_usable=False) is None
     assert np.array_equal(frames, T)
+    # frames the estimator did not track (predicted poses) every half second: no stretch is known to rest
+    lost = dict(est, status=np.where(np.arange(len(T)) % 10 == 5, 2, 0))
+    assert stage_ba.level_world(SimpleNamespace(seq=still, results={"estimate": lost}), res, frames, imu_usable=True) is None
     out = stage_ba.level_world(SimpleNamespace(seq=still, results={"estimate": est}), res, frames, imu_usable=True)
     assert out["by"] == "still_imu" and np.allclose(np.asarray(out["R_new_old"]) @ T[0][:3, :3], frames[0][:3, :3])
     assert np.allclose(out["gravity_world"] / np.linalg.norm(out["gravity_world"]), [0, 0, -1], atol=1e-9)

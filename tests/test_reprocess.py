@@ -289,3 +289,20 @@ def test_html_report_without_ground_truth_says_so(tmp_path):
                                       "ate_ratio_vs_reestimated": None}}}
     html = render_html(rep, [])
     assert "No ground truth" in html and "not in the session" in html
+
+
+def test_a_stage_manifest_of_another_pipeline_version_is_started_afresh(tmp_path):
+    """Stages stored by an older pipeline are never reused (their keys hold the old version), so an
+    older manifest does not list them either, and the rewritten one carries today's version."""
+    import json
+
+    from stereopath.host.reprocess.store import MANIFEST, PIPELINE_VERSION, StageStore
+
+    entry = {"key": "k", "files": [], "seconds": 1.0, "settings": {}}
+    (tmp_path / MANIFEST).write_text(json.dumps({"format": "stereopath-reprocess", "version": PIPELINE_VERSION - 1,
+                                                 "stages": {"estimate": entry}}))
+    store = StageStore(tmp_path)
+    assert store.data["stages"] == {} and not store.done("estimate", "k")
+    store.finish("tracks", "t", [], 2.0, {})
+    assert json.loads((tmp_path / MANIFEST).read_text())["version"] == PIPELINE_VERSION
+    assert StageStore(tmp_path).done("tracks", "t")

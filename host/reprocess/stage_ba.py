@@ -87,8 +87,9 @@ def end_to_start(T: np.ndarray) -> dict[str, float]:
 
 def imu_terms_of(config: ReprocessPreset, inputs: StageInputs):
     """Preintegrated IMU between the keyframes, and whether the IMU may be used at all: (None, False)
-    without ``ba_imu`` or an IMU, or when its readings do not fit the path; (None, True) when it fits
-    but cannot give factors (too few keyframe intervals: a session that rests)."""
+    without ``ba_imu`` or an IMU, or when its readings were shown not to fit the path; (None, True)
+    when it was not refused but gives no factors (too few keyframe intervals, e.g. a session that
+    rests: then the checks against the path could not run either)."""
     from stereopath.host.reprocess.imu_factors import imu_terms
 
     if not config.ba_imu or getattr(inputs.seq, "imu", None) is None:
@@ -207,7 +208,7 @@ def refine_frames(config: ReprocessPreset, inputs: StageInputs, res, T_frames: n
     return n
 
 
-def level_world(inputs: StageInputs, res, T_frames: np.ndarray, imu_usable: bool = True) -> dict[str, Any] | None:
+def level_world(inputs: StageInputs, res, T_frames: np.ndarray, imu_usable: bool = False) -> dict[str, Any] | None:
     """A session estimated in its first camera's world (no still IMU start) whose gravity is known
     after all: measured by the bundle adjustment's IMU factors, else (``imu_usable``: the IMU was not
     refused for disagreeing with the path, nor switched off) by the IMU where the rig rests during

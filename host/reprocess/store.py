@@ -126,7 +126,11 @@ class StageStore:
             try:
                 d = json.loads(self.path.read_text())
                 if isinstance(d, dict) and isinstance(d.get("stages"), dict):
-                    self.data = d
+                    if d.get("version") == PIPELINE_VERSION:
+                        self.data = d
+                    else:  # its stages' keys hold the old version: none would be reused, none is listed
+                        log.info("%s was written by pipeline version %s (now %d): every stage is recomputed",
+                                 self.path, d.get("version"), PIPELINE_VERSION)
             except (json.JSONDecodeError, UnicodeDecodeError):
                 log.warning("%s is unreadable; all stages will be recomputed", self.path)
 
