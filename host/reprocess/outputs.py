@@ -146,8 +146,8 @@ def build_report(s: RunSummary) -> dict[str, Any]:
     return make_report(source=s.label, estimator="stereo+ba", frames=len(s.final),
                        frames_tracked=int(np.sum(s.est["status"] == 0)),
                        metrics=m_final if m_final and m_final.get("ate_rmse_m") is not None else None,
-                       frame_ms=s.est["frame_ms"], world_frame=meta(s.ba, "stats").get("world_frame") or info.get("world_frame", "first_camera"),
-                       extra=extra)
+                       frame_ms=s.est["frame_ms"], extra=extra,
+                       world_frame=meta(s.ba, "stats").get("world_frame") or info.get("world_frame", "first_camera"))
 
 
 def _plots(s: RunSummary, report: dict[str, Any]) -> list[str]:

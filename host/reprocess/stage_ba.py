@@ -230,7 +230,8 @@ def level_world(inputs: StageInputs, res, T_frames: np.ndarray, imu_usable: bool
     gravity, by = res.gravity_world, "imu_factors"
     if gravity is None and imu_usable and imu is not None and len(imu):
         tracked = np.asarray(est["status"]) == 0 if "status" in est else None
-        gravity, by = gravity_from_still_frames(imu, est["t_ns"], T_frames @ _rot4(R_body_cam.T), tracked), "still_imu"
+        T_world_body = T_frames @ _rot4(R_body_cam.T)
+        gravity, by = gravity_from_still_frames(imu, est["t_ns"], T_world_body, tracked), "still_imu"
     if gravity is None:
         return None
     R = leveling_rotation(T_frames[0][:3, :3], R_body_cam, gravity)
