@@ -218,7 +218,7 @@ def level_world(inputs: StageInputs, res, T_frames: np.ndarray, imu_usable: bool
     upright.  Returns the turn (degrees, and ``R_new_old``, which takes the estimate's and the
     tracks' world to the new one), what measured gravity and gravity in the new world; None when the
     world stays as it was."""
-    from stereopath.device.core.geometry import rotation_angle_deg
+    from stereopath.device.core.geometry import make_pose, rotation_angle_deg
     from stereopath.device.estimation.inertial import leveling_rotation
     from stereopath.device.estimation.inertial_init import gravity_from_still_frames
 
@@ -230,12 +230,12 @@ def level_world(inputs: StageInputs, res, T_frames: np.ndarray, imu_usable: bool
     gravity, by = res.gravity_world, "imu_factors"
     if gravity is None and imu_usable and imu is not None and len(imu):
         tracked = np.asarray(est["status"]) == 0 if "status" in est else None
-        T_world_body = T_frames @ _rot4(R_body_cam.T)
+        T_world_body = T_frames @ make_pose(R_body_cam.T, np.zeros(3))
         gravity, by = gravity_from_still_frames(imu, est["t_ns"], T_world_body, tracked), "still_imu"
     if gravity is None:
         return None
     R = leveling_rotation(T_frames[0][:3, :3], R_body_cam, gravity)
-    A = _rot4(R)
+    A = make_pose(R, np.zeros(3))
     T_frames[:] = A @ T_frames
     res.T_world_cam = A @ res.T_world_cam
     res.points = {i: R @ x for i, x in res.points.items()}
@@ -245,12 +245,6 @@ def level_world(inputs: StageInputs, res, T_frames: np.ndarray, imu_usable: bool
              "the IMU factors" if by == "imu_factors" else "the IMU where the rig rests")
     return {"deg": round(float(rotation_angle_deg(R)), 3), "by": by, "R_new_old": R.tolist(),
             "gravity_world": (R @ np.asarray(gravity, float)).tolist()}
-
-
-def _rot4(R: np.ndarray) -> np.ndarray:
-    A = np.eye(4)
-    A[:3, :3] = R
-    return A
 
 
 def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
