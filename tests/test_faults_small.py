@@ -5,10 +5,8 @@ from __future__ import annotations
 import logging
 import os
 import stat
-import threading
 import time
 
-import numpy as np
 import pytest
 
 from stereopath.device.wire.security import generate_keypair, make_demo_keys

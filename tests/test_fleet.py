@@ -5,7 +5,6 @@ stages, Ctrl-C and a rerun that recomputes nothing finished.  Ray runs locally w
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from pathlib import Path
 

@@ -1,7 +1,6 @@
 """host live --map: keyframes fused as they arrive, mesh refreshed, full model at the end."""
 
 import numpy as np
-import pytest
 
 from stereopath.device.core.geometry import matrix_to_quat_xyzw
 from stereopath.device.wire.protocol import Keyframe, decode_keyframe, encode_image, encode_keyframe, rig_reference

@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     def mm(v):
         return "n/a" if v is None else f"{v * 1000:.2f} mm"
 
-    print(f"stereopath demo: device and host ran as two processes over CURVE-encrypted loopback TCP")
+    print("stereopath demo: device and host ran as two processes over CURVE-encrypted loopback TCP")
     print(f"  {r['frames']} frames estimated on the device, {r['frames_tracked']} tracked "
           f"({r['estimator']}, world frame {r['world_frame']}); host received {x.get('poses_received')} poses "
           f"and {x.get('keyframes_received')} keyframes, {x.get('pose_seq_gaps')} pose gaps")
