@@ -362,3 +362,22 @@ def test_picamera2_refuses_a_fisheye_rig_file_for_another_image_size(tmp_path):
     with pytest.raises(CalibrationError, match="calibrated at 64x48 but the picamera2 source delivers 48x48"):
         src.open()
     assert all(cam._thread is None or not cam._thread.is_alive() for cam in world.instances)  # cameras stopped
+
+
+def test_picamera2_refuses_a_pinhole_rig_file_for_another_image_size(tmp_path):
+    """A pinhole rig YAML's image_size must be the size the cameras deliver, as a fisheye camera's is."""
+    from stereopath.device.capture.sources import create_source
+    from stereopath.device.core.rig import make_camera, make_rig
+    from stereopath.device.formats.rig_files import save_rig_yaml
+    from tests.fakes.fake_picamera2 import FakeCameraWorld
+    from tests.fakes.standins import source_settings
+
+    K = np.array([[40.0, 0, 31.5], [0, 40.0, 23.5], [0, 0, 1]])
+    cams = [make_camera(n, K, np.zeros(5), (128, 96)) for n in ("cam0", "cam1")]
+    path = tmp_path / "rig.yaml"
+    save_rig_yaml(make_rig(*cams, np.eye(3), [-0.06, 0, 0]), path)
+    world = FakeCameraWorld()
+    src = create_source(source_settings("picamera2", [64, 48], 500, rig_file=str(path)), api=world.api())
+    with pytest.raises(CalibrationError, match="cam0 is calibrated at 128x96 but the picamera2 source delivers 64x48"):
+        src.open()
+    assert all(cam._thread is None or not cam._thread.is_alive() for cam in world.instances)  # cameras stopped

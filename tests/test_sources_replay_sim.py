@@ -103,3 +103,32 @@ def test_sim_source_with_the_real_simulator():
     assert src.rig is not None
     if imu is not None:
         assert len(imu) > 0
+
+
+def _rig_file_at(tmp_path, size):
+    """The stand-in sequence's rig written as a rig YAML for cameras of ``size`` (same intrinsics)."""
+    from stereopath.device.core.rig import make_camera, make_rig
+    from stereopath.device.formats.rig_files import save_rig_yaml
+
+    rig = StandinSequence(n=2).rig
+    cams = [make_camera(n, c.K, c.dist, size) for n, c in (("cam0", rig.cam0), ("cam1", rig.cam1))]
+    path = tmp_path / f"rig_{size[0]}x{size[1]}.yaml"
+    save_rig_yaml(make_rig(*cams, rig.R, rig.T), path)
+    return path
+
+
+def test_replay_refuses_a_pinhole_rig_file_for_another_image_size(tmp_path):
+    from stereopath.device.errors import CalibrationError
+
+    seq = StandinSequence(n=4)
+    w, h = seq.rig.cam0.size
+    wrong = _rig_file_at(tmp_path, (2 * w, 2 * h))
+    src = create_source(from_mapping(SourceSettings, {"backend": "replay", "rig_file": str(wrong), "replay": {}}),
+                        sequence=seq)
+    with pytest.raises(CalibrationError, match=f"cam0 is calibrated at {2 * w}x{2 * h} but the replay source delivers {w}x{h}"):
+        src.open()
+    right = _rig_file_at(tmp_path, (w, h))  # the same rig at the images' size is taken
+    src = create_source(from_mapping(SourceSettings, {"backend": "replay", "rig_file": str(right), "replay": {}}),
+                        sequence=seq)
+    with src:
+        assert src.rig.cam0.size == (w, h) and len(list(src)) == 4

@@ -117,11 +117,15 @@ class SourceBase:
 
     def _use_rig_file(self, calib: Any, size: tuple[int, int] | None = None) -> None:
         """Take a loaded rig file (:func:`load_rig_override`): its pinhole rig and its cameras' views,
-        refusing (:class:`CalibrationError`) views made for another image ``size`` than the source's."""
-        for cam, view in zip(("cam0", "cam1"), calib.views):
-            if view is not None and size is not None and tuple(view.source.size) != tuple(size):
-                raise CalibrationError(f"{calib.source}: {cam} is calibrated at {view.source.size[0]}x"
-                                       f"{view.source.size[1]} but the {self.name} source delivers {size[0]}x{size[1]}")
+        refusing (:class:`CalibrationError`) a camera calibrated for another image ``size`` than the
+        source delivers (a fisheye camera's own size, or a pinhole camera's ``image_size``): its
+        intrinsics would not fit the images, and a session recorded with it could not be read back."""
+        cams = (calib.rig.cam0, calib.rig.cam1)
+        for name, view, cam in zip(("cam0", "cam1"), calib.views, cams):
+            calibrated = tuple(int(v) for v in (cam.size if view is None else view.source.size))
+            if size is not None and calibrated != tuple(size):
+                raise CalibrationError(f"{calib.source}: {name} is calibrated at {calibrated[0]}x{calibrated[1]} "
+                                       f"but the {self.name} source delivers {size[0]}x{size[1]}")
         self._rig = calib.rig
         self._views = calib.views
 

@@ -82,7 +82,8 @@ class SequenceSource(SourceBase):
                 raise CalibrationError(f"{calib.source}: a fisheye calibration cannot be replayed over recorded images: "
                                        f"a session holds them as pinhole views already, and a fisheye dataset is read "
                                        f"through its own calibration (sensor.yaml or a Kalibr camchain beside mav0)")
-            self._use_rig_file(calib)
+            own = getattr(seq, "rig", None)  # the recorded images' size (the sequence's own calibration)
+            self._use_rig_file(calib, None if own is None else tuple(own.cam0.size))
         else:
             self._rig = seq.rig
         imu = getattr(seq, "imu", None)
