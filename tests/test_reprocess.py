@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from pathlib import Path
 
@@ -306,3 +307,28 @@ def test_a_stage_manifest_of_another_pipeline_version_is_started_afresh(tmp_path
     store.finish("tracks", "t", [], 2.0, {})
     assert json.loads((tmp_path / MANIFEST).read_text())["version"] == PIPELINE_VERSION
     assert StageStore(tmp_path).done("tracks", "t")
+
+
+@pytest.mark.parametrize("damage", ["cut", "member", "directory"])
+def test_a_damaged_stage_file_reads_as_missing(tmp_path, damage, caplog):
+    """A stage file damaged on disk is recomputed (None, logged), never an exception that stops every resume."""
+    from stereopath.host.reprocess.store import json_array, load_npz, save_npz, stored_stats
+
+    path = tmp_path / "ba.npz"
+    save_npz(path, T=np.arange(4000.0).reshape(-1, 4), stats=json_array({"keyframes": 3}))
+    assert stored_stats(path) == {"keyframes": 3} and load_npz(path)["T"].shape == (1000, 4)
+    data = bytearray(path.read_bytes())
+    if damage == "cut":  # a copy cut short: the zip directory at the end is gone
+        data = data[:1000]
+    elif damage == "member":  # bytes flipped inside the first member's data: its CRC fails
+        start = data.index(b"\x93NUMPY") + 200
+        data[start:start + 64] = bytes(64)
+    else:  # the end of the central directory damaged
+        at = data.rindex(b"PK\x05\x06")
+        data[at:at + 4] = b"\xff" * 4
+    path.write_bytes(bytes(data))
+    caplog.set_level(logging.WARNING)
+    assert load_npz(path) is None
+    assert "unreadable" in caplog.text
+    # the stats are another member: they still read when only the first member is damaged
+    assert stored_stats(path) == ({"keyframes": 3} if damage == "member" else {})

@@ -14,6 +14,8 @@ import logging
 import os
 import shutil
 import time
+import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -58,12 +60,17 @@ def save_npz(path: Path, **arrays: Any) -> None:
         np.savez(tmp, **arrays)
 
 
+# what reading a damaged .npz raises: a file cut short or with a damaged directory (BadZipFile), a
+# damaged member (BadZipFile: bad CRC, zlib.error), a member cut short (EOFError, ValueError), not an npz at all
+UNREADABLE = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error)
+
+
 def load_npz(path: Path) -> dict[str, np.ndarray] | None:
     """The arrays of ``path``, or None (logged) when it cannot be read."""
     try:
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError, KeyError) as exc:
+    except UNREADABLE as exc:
         log.warning("%s unreadable (%s): recomputing", path, exc)
         return None
 
@@ -83,7 +90,7 @@ def stored_stats(path: Path) -> dict[str, Any]:
     try:
         with np.load(path, allow_pickle=False) as z:
             return json.loads(str(z["stats"]))
-    except (OSError, ValueError, KeyError):
+    except UNREADABLE:
         return {}
 
 
