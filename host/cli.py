@@ -1,7 +1,9 @@
 """The ``stereopath`` command line: one entry point, subcommands in ``host/commands``.
 
 Known errors (:class:`stereopath.device.errors.StereopathError`) are printed on one line
-and give exit code 2; anything else is a bug and keeps its traceback.
+and give exit code 2; a read or write the system refused (``OSError``: disk full, read-only
+file system, no permission) is printed on one line with exit code 74 (``EX_IOERR``; its
+traceback with ``-vv``); anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
@@ -87,6 +89,10 @@ def main(argv: list[str] | None = None) -> int:
     except StereopathError as exc:
         print(f"stereopath: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # the system refused a read or write (disk full, read-only, permission): not a bug
+        logging.getLogger("stereopath").debug("system error", exc_info=True)
+        print(f"stereopath: error: {exc}", file=sys.stderr)
+        return 74  # EX_IOERR
     except KeyboardInterrupt:
         print("stereopath: interrupted", file=sys.stderr)
         return 130

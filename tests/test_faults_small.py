@@ -6,6 +6,7 @@ import logging
 import os
 import stat
 import time
+from pathlib import Path
 
 import pytest
 
@@ -141,3 +142,63 @@ def test_host_store_is_private_by_default(tmp_path):
     finally:
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "live").stat().st_mode) == 0o700
+
+
+@pytest.mark.parametrize("argv", [
+    ["odometry", "sim", "--frames", "3"],
+    ["demo", "--frames", "3"],
+    ["host", "map", "."],
+    ["host", "reprocess", "."],
+])
+def test_out_in_a_folder_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys, monkeypatch, argv):
+    """A read-only or foreign --out is named before the work starts (the odometry used to estimate the whole
+    path first, then fail writing it)."""
+    from stereopath.device.formats import fileio
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    real = os.access
+    monkeypatch.setattr(fileio.os, "access", lambda p, mode, **kw: Path(p) != locked and real(p, mode, **kw))
+    for out in (locked, locked / "new" / "deeper"):
+        assert _cli(argv + ["--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and f"cannot write in {locked}" in err
+        assert list(locked.iterdir()) == []
+
+
+def test_a_refused_write_is_one_line_not_a_traceback(tmp_path, capsys, monkeypatch):
+    """An OSError (disk full, read-only file system) that reaches the command line is printed on one line."""
+    import errno
+
+    from stereopath.host.commands import sim
+
+    def full(args):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "s" / "x.png"))
+
+    monkeypatch.setattr(sim, "run", full)
+    assert _cli(["sim", "--out", str(tmp_path / "s"), "--frames", "2"]) == 74
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "No space left on device" in err and "x.png" in err
+
+
+def test_the_model_is_written_inside_its_folder(tmp_path, monkeypatch):
+    """write_map's temporary folder is inside the model folder (a mount point, or a parent that cannot be
+    written, works), a killed writer's leftover is removed, and only the four files remain."""
+    from stereopath.host.mapping import fusion, mapper, preview
+
+    out = tmp_path / "parent" / "model"
+    seen = []
+
+    def write(obj, path):
+        seen.append(path.parent.parent)
+        path.write_bytes(b"x")
+
+    for mod, name in ((fusion, "write_mesh"), (fusion, "write_cloud"), (preview, "write_png")):
+        monkeypatch.setattr(mod, name, write)
+    out.mkdir(parents=True)
+    (out / f"{mapper.MAP_TEMP_PREFIX}dead.tmp").mkdir()  # left by a writer that was killed
+    (out / "report.json").write_text("{}")
+    mapper.write_map(mapper.MapResult(mesh=None, cloud=None, preview=None, stats={"k": 1}), out)
+    assert seen == [out] * 3
+    assert sorted(p.name for p in out.iterdir()) == sorted([*mapper.MAP_FILES, "report.json"])
+    assert [p.name for p in out.parent.iterdir()] == ["model"]

@@ -68,12 +68,29 @@ def write_atomic(path: str | Path, data: bytes, fsync: bool = True, mode: int | 
 
 
 def check_out_folder(path: str | Path, option: str = "--out") -> None:
-    """Refuse an output folder path that names an existing file (before anything is computed)."""
+    """Refuse, before anything is computed, an output folder path that names an existing file, or
+    that cannot be written: the folder itself when it exists, else the nearest folder above it
+    that does (where it would be made) - read-only file system or no permission."""
     from stereopath.device.errors import ConfigError
 
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise ConfigError(f"{option} {p}: exists and is not a folder")
+    where = p.absolute()
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    if not where.is_dir():
+        raise ConfigError(f"{option} {p}: {where} is not a folder")
+    if not os.access(where, os.W_OK | os.X_OK):
+        why = "read-only file system" if _read_only_fs(where) else "no permission"
+        raise ConfigError(f"{option} {p}: cannot write in {where} ({why})")
+
+
+def _read_only_fs(path: Path) -> bool:
+    try:
+        return bool(os.statvfs(path).f_flag & os.ST_RDONLY)
+    except OSError:
+        return False
 
 
 def process_umask() -> int:

@@ -44,6 +44,7 @@ from stereopath.host.progress import progress_bar
 log = logging.getLogger(__name__)
 
 MAP_FILES = ("mesh.ply", "cloud.ply", "model.png", "map.json")
+MAP_TEMP_PREFIX = ".map-writing."  # the hidden folder write_map writes into, inside the model folder
 
 
 @dataclass(frozen=True)
@@ -290,9 +291,11 @@ def build_map(inp: MapInput, config: MapConfig, progress: bool | None = None,
 def write_map(result: MapResult, out_dir: str | Path) -> dict[str, Path]:
     """Write ``mesh.ply``, ``cloud.ply``, ``model.png``, ``map.json`` into ``out_dir``.
 
-    Everything is written into a temporary folder beside ``out_dir`` first; only when all four
-    files exist are they moved in (each move is an atomic rename).  ``out_dir`` may already exist
-    (other files in it are left alone).
+    Everything is written into a hidden temporary folder inside ``out_dir`` first (the same file
+    system, whether or not ``out_dir`` is a mount point, and nothing written beside it); only when
+    all four files exist are they moved in, each by an atomic rename, ``map.json`` last.
+    ``out_dir`` may already exist (other files in it are left alone).  A temporary folder left by
+    a writer that was killed is removed by the next write.
     """
     from stereopath.host.mapping.fusion import write_cloud, write_mesh
     from stereopath.host.mapping.preview import write_png
@@ -300,24 +303,19 @@ def write_map(result: MapResult, out_dir: str | Path) -> dict[str, Path]:
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise StereopathError(f"output {out} exists and is not a folder")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    from stereopath.device.formats.fileio import process_umask
-
-    tmp.chmod(0o777 & ~process_umask())  # mkdtemp makes 0700; the model folder gets what mkdir would give
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in out.glob(f"{MAP_TEMP_PREFIX}*.tmp"):
+        shutil.rmtree(stale, ignore_errors=True)
+    tmp = Path(tempfile.mkdtemp(prefix=MAP_TEMP_PREFIX, suffix=".tmp", dir=out))
     try:
         write_mesh(result.mesh, tmp / "mesh.ply")
         write_cloud(result.cloud, tmp / "cloud.ply")
         write_png(result.preview, tmp / "model.png")
         (tmp / "map.json").write_text(json.dumps(result.stats, indent=2, sort_keys=False) + "\n")
-        if not out.exists():
-            os.replace(tmp, out)
-        else:
-            for name in MAP_FILES:
-                os.replace(tmp / name, out / name)
+        for name in MAP_FILES:  # map.json, the last, says the model is complete
+            os.replace(tmp / name, out / name)
     finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(tmp, ignore_errors=True)
     return {name: out / name for name in MAP_FILES}
 
 
