@@ -128,6 +128,9 @@ class StereoConfig:
     exposure_tolerance: float = 4.0
 
     def __post_init__(self) -> None:
+        from stereopath.device.core.features import get_preset
+
+        get_preset(self.feature_preset)  # an unknown name is refused here, not by each keyframe's job
         check_range("max_points", self.max_points, 20, 20000)
         check_range("min_tracked", self.min_tracked, 8, self.max_points)
         check_range("kf_track_ratio", self.kf_track_ratio, 0.0, 1.0)
