@@ -57,6 +57,23 @@ def test_reprocess_with_bad_groundtruth_warns_and_writes_results(session, tmp_pa
     assert "ground truth not used" in capsys.readouterr().out
 
 
+def test_reprocess_with_a_damaged_onboard_path_and_manifest_warns_and_writes_results(session, tmp_path, caplog):
+    """The on-board path (before figures only) and the manifest (a description) damaged: the images and the
+    IMU are reprocessed as ever, each damage named in a warning."""
+    import logging
+
+    d = _copy(session, tmp_path)
+    (d / "trajectory.tum").write_text("0.0 0 0 0 0 0 0 1\ngarbage line\n0.1 0 0 0 0 0 0 1\n")
+    (d / "manifest.json").write_text('{"status": "closed", ')
+    out = tmp_path / "out"
+    caplog.set_level(logging.WARNING)
+    rc = _cli(["host", "reprocess", str(d), "--out", str(out), "--preset", "quick", "--no-map", "--no-progress"])
+    assert rc == 0
+    assert (out / "trajectory.tum").is_file() and (out / "report.html").is_file()
+    assert "on-board path not used" in caplog.text and "trajectory.tum:2" in caplog.text
+    assert "manifest.json: invalid JSON, ignored" in caplog.text
+
+
 # item 10 ----------------------------------------------------------------------------------------
 
 def test_odometry_skips_and_counts_a_bad_frame_and_strict_stops(session, tmp_path, capsys):

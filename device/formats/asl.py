@@ -147,8 +147,8 @@ def open_session(session_dir: str | Path) -> AslSequence:
     if mpath.is_file():
         try:
             seq.manifest = json.loads(mpath.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise DatasetError(f"{mpath}: invalid JSON: {exc}") from None
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:  # it only describes the recording:
+            log.warning("%s: invalid JSON, ignored (%s)", mpath, exc)  # the images and IMU are what count
         status = seq.manifest.get("status") if isinstance(seq.manifest, dict) else None
         if status == "recording":
             log.warning("%s: the session was not closed (the recorder stopped while recording)", d)

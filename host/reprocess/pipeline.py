@@ -246,7 +246,11 @@ def reprocess_session(session_dir: str | Path, out_dir: str | Path, preset: str 
 
     check_sequence_order(seq)  # exchanged left/right images: say so before any stage runs
     seq.strict = strict  # False: unreadable frames are skipped and counted (report extra.frames_skipped)
-    onboard = getattr(seq, "trajectory", None)
+    try:
+        onboard = getattr(seq, "trajectory", None)
+    except DatasetError as exc:  # only the before figures need it: the images are what is reprocessed
+        log.warning("on-board path not used (no before/after figures): %s", exc)
+        onboard = None
     return reprocess_sequence(seq, out_dir, preset=preset, do_map=do_map, map_preset=map_preset, force=force,
                               progress=progress, onboard=onboard, source_label=str(session_dir),
                               imu_priors=imu_priors, after_stage=after_stage)
