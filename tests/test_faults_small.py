@@ -215,3 +215,11 @@ def test_an_unknown_feature_preset_is_refused_before_the_odometry_runs(tmp_path,
     err = capsys.readouterr().err
     assert "Traceback" not in err and "unknown feature preset 'nope'" in err
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("frames", ["-3", "0", "1"])
+def test_odometry_refuses_fewer_than_two_frames(tmp_path, capsys, frames):
+    assert _cli(["odometry", "sim", "--frames", frames, "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and f"--frames must be at least 2 (a path needs two frames), got {frames}" in err
+    assert not (tmp_path / "o").exists()

@@ -34,6 +34,10 @@ def run(args: argparse.Namespace) -> int:
     from stereopath.device.formats.fileio import check_out_folder
 
     check_out_folder(args.out)
+    if args.frames is not None and args.frames < 2:
+        from stereopath.device.errors import ConfigError
+
+        raise ConfigError(f"--frames must be at least 2 (a path needs two frames), got {args.frames}")
     names = [n.strip() for n in args.compare.split(",")] if args.compare else [args.estimator]
     reports = {}
     for name in names:
