@@ -195,3 +195,43 @@ def test_calibrate_imu_cli_live_emulated(capsys):
     assert rc == 0
     bias_dps = [float(v) for v in text.split("rad/s  (")[1].split(" deg/s")[0].split(",")]
     assert np.allclose(bias_dps, [0.8, -0.5, 0.3], atol=0.05)     # the emulator's configured bias
+
+
+def test_calibrate_imu_out_is_checked_before_the_work(tmp_path, capsys):
+    from stereopath.host.cli import main
+
+    missing = f"session:{tmp_path / 'no-such-session'}"  # would fail too, but only after the --out check
+    assert main(["device", "calibrate-imu", missing, "--out", str(tmp_path)]) == 2
+    assert f"--out {tmp_path}: is a folder" in capsys.readouterr().err
+    (tmp_path / "afile").write_text("x")
+    assert main(["device", "calibrate-imu", missing, "--out", str(tmp_path / "afile" / "imu.yaml")]) == 2
+    assert "afile: exists and is not a folder" in capsys.readouterr().err
+
+
+def test_calibrate_imu_writes_into_a_new_folder_atomically(tmp_path, capsys):
+    import yaml
+
+    from stereopath.host.cli import main
+
+    out = tmp_path / "new" / "sub" / "imu.yaml"
+    assert main(["device", "calibrate-imu", "live", "--imu", "emulated", "--seconds", "0.5", "--out", str(out)]) == 0
+    assert "gyro_bias_rad_s" in yaml.safe_load(out.read_text())
+    assert sorted(p.name for p in out.parent.iterdir()) == ["imu.yaml"]  # no temporary file left
+
+
+@pytest.mark.parametrize("window", ["nan:nan", "0:inf", "-inf:1", "0:1e300"])
+def test_calibrate_imu_window_must_be_finite(window, capsys):
+    from stereopath.host.cli import main
+
+    assert main(["device", "calibrate-imu", "live", "--imu", "emulated", "--seconds", "0.2", f"--window={window}"]) == 2
+    assert "must be finite times" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("option, value", [("--seconds", "nan"), ("--seconds", "-1"), ("--min-still-s", "inf")])
+def test_calibrate_imu_durations_must_be_finite_and_positive(option, value, capsys):
+    from stereopath.host.cli import main
+
+    with pytest.raises(SystemExit) as info:
+        main(["device", "calibrate-imu", "live", "--imu", "emulated", option, value])
+    assert info.value.code == 2
+    assert f"argument {option}: must be a finite number of seconds above 0" in capsys.readouterr().err

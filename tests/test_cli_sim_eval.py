@@ -79,3 +79,28 @@ def test_sim_refuses_an_existing_session(tmp_path, capsys):
     assert main(["sim", "--out", str(tmp_path), "--frames", "1"]) == 2
     assert "not empty" in capsys.readouterr().err
     assert (tmp_path / "x").read_text() == "keep me"
+
+
+def test_eval_pose_file_mistakes_are_one_line(tmp_path, capsys):
+    good = tmp_path / "good.txt"
+    good.write_text("1 0 0 0.0 0 1 0 0 0 0 1 0\n1 0 0 0.1 0 1 0 0 0 0 1 0\n")
+    nan = tmp_path / "nan.txt"
+    nan.write_text("1 0 0 0.0 0 1 0 0 0 0 1 0\n1 0 0 nan 0 1 0 0 0 0 1 0\n")
+    assert main(["eval", "--gt", str(good), "--est", str(nan)]) == 2
+    assert "nan.txt:2: non-finite value" in capsys.readouterr().err
+    assert main(["eval", "--gt", str(tmp_path), "--est", str(good)]) == 2
+    assert "is a directory, expected a file" in capsys.readouterr().err
+    (tmp_path / "bin.tum").write_bytes(b"\xff\xfe\x00\x01" * 16)
+    assert main(["eval", "--gt", str(good), "--est", str(tmp_path / "bin.tum")]) == 2
+    assert "not a UTF-8 text file" in capsys.readouterr().err
+    assert main(["eval", "--gt", str(good), "--est", str(good), "--max-diff", "nan"]) == 2
+    assert "--max-diff must be positive, got nan" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-1"])
+def test_sim_reserve_mb_must_be_finite_and_not_negative(tmp_path, capsys, value):
+    with pytest.raises(SystemExit) as info:
+        main(["sim", "--out", str(tmp_path / "s"), "--frames", "1", f"--reserve-mb={value}"])
+    assert info.value.code == 2
+    assert "argument --reserve-mb: must be a finite number of megabytes" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()

@@ -53,3 +53,37 @@ def test_load_toml_errors(tmp_path):
     (tmp_path / "bad.toml").write_text("a = [")
     with pytest.raises(ConfigError, match="invalid TOML"):
         load_toml(tmp_path / "bad.toml")
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), float("-inf"), 10**400])
+def test_rejects_non_finite_floats_naming_the_key(value):
+    with pytest.raises(ConfigError, match=r"imu\.rate_hz must be a finite number"):
+        from_mapping(Outer, {"imu": {"rate_hz": value}})
+    with pytest.raises(ConfigError, match=r"views\[0\]\[1\] must be a finite number"):
+        from_mapping(Outer, {"views": [[1.0, value]]})
+
+
+def test_check_range_rejects_nan():
+    with pytest.raises(ConfigError, match="imu.rate_hz = nan"):
+        Inner(rate_hz=float("nan"))
+
+
+@pytest.mark.parametrize("section, key", [
+    ("source", "fps"), ("source", "timeout_s"), ("imu", "rate_hz"), ("recorder", "reserve_mb"),
+    ("timealign", "max_wait_ms"), ("selftest", "still_s"), ("selftest", "max_gyro_bias_dps"),
+])
+def test_device_toml_rejects_nan_and_inf(tmp_path, section, key):
+    from stereopath.device.service.settings import load_device_config
+    for text in ("nan", "inf", "-inf"):
+        path = tmp_path / "device.toml"
+        path.write_text(f"[{section}]\n{key} = {text}\n")
+        with pytest.raises(ConfigError, match=rf"{section}\.{key} must be a finite number"):
+            load_device_config(path)
+
+
+def test_load_toml_unreadable_files(tmp_path):
+    (tmp_path / "bin.toml").write_bytes(b"\x84\xff\x00 = 1\n")
+    with pytest.raises(ConfigError, match="bin.toml: not a UTF-8"):
+        load_toml(tmp_path / "bin.toml")
+    with pytest.raises(ConfigError, match="is a folder"):
+        load_toml(tmp_path)

@@ -319,3 +319,36 @@ def test_fuzz_decoders_10000_inputs():
     assert accepted_mutations < 1250  # most mutations are caught
     assert rejected.get("version", 0) >= 1000 * 0.5  # newer versions on channels that carry the type
     assert set(rejected) <= {"malformed", "too_large", "field", "type", "version", "image"}
+
+
+# ----------------------------------------------------------------------------- arithmetic errors
+
+
+def _session_obj() -> dict:
+    from stereopath.device.wire.protocol import encode_session, make_session_info
+    rig = paper_rig()
+    return _wire(encode_session(make_session_info("20250101T000000Z-abcdef", rig, rig_reference(rig))))
+
+
+def test_session_with_infinite_image_size_is_a_decode_error():
+    from stereopath.device.wire.protocol import SESSION_LIMITS
+    obj = _session_obj()
+    obj["cal"]["cam0"]["image_size"] = [math.inf, 480]
+    with pytest.raises(DecodeError, match="image_size") as info:
+        decode_message(_raw(obj), SESSION_LIMITS)
+    assert info.value.reason == "rig"
+
+
+def test_arithmetic_errors_in_validators_become_decode_errors(monkeypatch):
+    import stereopath.device.core.rig as rig_module
+    import stereopath.device.wire.protocol as protocol
+    from stereopath.device.wire.protocol import SESSION_LIMITS
+
+    def overflow(*args, **kwargs):
+        raise OverflowError("cannot convert float infinity to integer")
+
+    monkeypatch.setattr(rig_module, "rig_from_dict", overflow)  # rig_of imports it at call time
+    assert _reason(_raw(_session_obj()), SESSION_LIMITS) == "rig"
+    monkeypatch.setitem(protocol._DECODERS, "hello", overflow)
+    data = encode_hello(Hello("20250101T000000Z-abcdef", 1, 4))
+    assert _reason(data, CONTROL_LIMITS) == "field"

@@ -64,6 +64,33 @@ def test_validation_names_the_field(mutate, field):
         rig_from_dict(d)
 
 
+@pytest.mark.parametrize("size", [[float("inf"), 480], [640, float("nan")], [640.7, 480], [True, 480],
+                                  [480, 1.5], ["wide", 480]])
+def test_image_size_must_be_whole_pixels(size):
+    d = rig_to_dict(paper_rig())
+    d["cam1"]["image_size"] = size
+    with pytest.raises(CalibrationError, match=r"cam1\.image_size: expected \[width, height\] in whole pixels"):
+        rig_from_dict(d)
+
+
+def test_image_size_accepts_whole_floats_and_numpy_ints():
+    d = rig_to_dict(paper_rig())
+    d["cam0"]["image_size"] = [640.0, np.int64(480)]
+    d["cam1"]["image_size"] = ["640", 480]
+    rig = rig_from_dict(d)
+    assert rig.cam0.size == (640, 480) and rig.cam1.size == (640, 480)
+    assert all(type(v) is int for v in rig.cam0.size)
+
+
+def test_yaml_image_size_inf_is_a_calibration_error(tmp_path):
+    save_rig_yaml(paper_rig(), tmp_path / "rig.yaml")
+    text = (tmp_path / "rig.yaml").read_text()
+    assert "image_size: [640, 480]" in text
+    (tmp_path / "rig.yaml").write_text(text.replace("image_size: [640, 480]", "image_size: [.inf, 480]", 1))
+    with pytest.raises(CalibrationError, match="image_size"):
+        load_rig_yaml(tmp_path / "rig.yaml")
+
+
 def test_missing_and_broken_files(tmp_path):
     with pytest.raises(CalibrationError, match="not found"):
         load_rig_yaml(tmp_path / "nope.yaml")

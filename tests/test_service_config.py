@@ -119,3 +119,11 @@ def test_estimator_name_and_its_old_spelling(tmp_path):
     assert load_config(old, RunOptions()).estimator.name == "paper"
     with pytest.raises(ConfigError, match="preset"):
         load_config(both, RunOptions())
+
+
+@pytest.mark.parametrize("field,option", [("wait_for_host_s", "--wait-for-host"), ("drain_s", "--drain"),
+                                          ("duration_s", "--duration")])
+def test_run_options_refuse_nan(field, option):
+    """``--wait-for-host nan`` used to be taken (every comparison with nan is false)."""
+    with pytest.raises(ConfigError, match=option):
+        RunOptions(**{field: float("nan")})

@@ -46,3 +46,40 @@ def test_malformed_tum(tmp_path, text, match):
 def test_missing_file(tmp_path):
     with pytest.raises(DatasetError, match="not found"):
         read_trajectory(tmp_path / "nope.txt")
+
+
+KITTI_ROW = "1 0 0 0.0 0 1 0 0 0 0 1 0\n"
+
+
+def test_kitti_poses_reject_non_finite_values(tmp_path):
+    (tmp_path / "k.txt").write_text(KITTI_ROW + "1 0 0 nan 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(DatasetError, match=r"k\.txt:2: non-finite value"):
+        read_kitti_poses(tmp_path / "k.txt")
+    (tmp_path / "k.txt").write_text(KITTI_ROW + "1 0 0 0.1 0 1 0 0 0 0 1 -inf\n")
+    with pytest.raises(DatasetError, match=r"k\.txt:2: non-finite value"):
+        read_trajectory(tmp_path / "k.txt")
+
+
+@pytest.mark.parametrize("stamp", ["inf", "-Infinity", "nan", "1e30", "1e999999999"])
+def test_tum_timestamp_must_be_finite_and_fit_int64_ns(tmp_path, stamp):
+    (tmp_path / "t.tum").write_text(f"0 0 0 0 0 0 0 1\n{stamp} 0 0 0 0 0 0 1\n")
+    with pytest.raises(DatasetError, match=r"t\.tum:2: time .* not finite or outside"):
+        read_trajectory(tmp_path / "t.tum")
+
+
+def test_seconds_to_ns_range():
+    assert seconds_to_ns("9223372036.854775807") == 2**63 - 1
+    assert seconds_to_ns("-9223372036.854775808") == -2**63
+    with pytest.raises(ValueError):
+        seconds_to_ns("9223372036.854775808")
+    with pytest.raises(ValueError):
+        seconds_to_ns("inf")
+
+
+@pytest.mark.parametrize("reader", [read_trajectory, read_kitti_poses, read_tum])
+def test_folder_or_binary_pose_file_is_a_dataset_error(tmp_path, reader):
+    with pytest.raises(DatasetError, match="is a directory"):
+        reader(tmp_path)
+    (tmp_path / "b.tum").write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe" * 8)
+    with pytest.raises(DatasetError, match="not a UTF-8 text file"):
+        reader(tmp_path / "b.tum")

@@ -9,6 +9,12 @@ stretch (--window auto) or explicit times in seconds (--window T0:T1).
 from __future__ import annotations
 
 import argparse
+import math
+from pathlib import Path
+
+from stereopath.device.core.arg_types import finite_number
+
+MAX_ABS_TIME_S = 9.2e9  # int64 nanoseconds reach about 9.22e9 s either side of the clock's zero
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -16,8 +22,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--window", default=None,
                         help="frames | auto | T0:T1 (seconds, same clock as the data); default frames, "
                              "or auto when the source has no frames")
-    parser.add_argument("--min-still-s", type=float, default=2.0, help="shortest still window accepted (auto)")
-    parser.add_argument("--seconds", type=float, default=5.0, help="live: how long to read")
+    seconds = finite_number("seconds", allow_minimum=False)
+    parser.add_argument("--min-still-s", type=seconds, default=2.0, help="shortest still window accepted (auto)")
+    parser.add_argument("--seconds", type=seconds, default=5.0, help="live: how long to read")
     parser.add_argument("--config", default=None, help="device TOML (live: the [imu] section)")
     parser.add_argument("--imu", choices=("mpu6050", "emulated"), default=None, help="live: override imu.backend")
     parser.add_argument("--out", default=None, help="write the result as YAML here")
@@ -37,6 +44,8 @@ def _window(samples, frames_t, spec: str, min_still_s: float):
         a, b = (float(v) for v in spec.split(":"))
     except ValueError:
         raise CalibrationError(f"--window {spec!r}: expected frames, auto or T0:T1 in seconds") from None
+    if not all(math.isfinite(v) and abs(v) <= MAX_ABS_TIME_S for v in (a, b)):
+        raise CalibrationError(f"--window {spec!r}: T0 and T1 must be finite times within +-{MAX_ABS_TIME_S:g} s")
     if b <= a:
         raise CalibrationError(f"--window {spec!r}: T1 must be after T0")
     return int(round(a * 1e9)), int(round(b * 1e9))
@@ -73,12 +82,28 @@ def _live(args):
     return ImuSamples.concat(blocks), None
 
 
+def _check_out(out: str) -> Path:
+    """Refuse, before the IMU is read or anything computed, an --out that cannot be written:
+    an existing folder or other non-file, or a folder above it that is a file or not writable."""
+    from stereopath.device.errors import ConfigError
+    from stereopath.device.formats.fileio import check_out_folder
+
+    p = Path(out)
+    if p.is_dir():
+        raise ConfigError(f"--out {p}: is a folder; give the YAML file to write, e.g. {p / 'imu_calibration.yaml'}")
+    if p.exists() and not p.is_file():
+        raise ConfigError(f"--out {p}: exists and is not a regular file")
+    check_out_folder(p.parent, option=f"--out {p}: the folder")
+    return p
+
+
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from stereopath.device.core.calibration import imu_still_calibration
     from stereopath.device.errors import CalibrationError, DatasetError
 
+    out = _check_out(args.out) if args.out else None
     if args.source == "live":
         samples, frames_t = _live(args)
         window = args.window or "auto"
@@ -109,11 +134,14 @@ def run(args: argparse.Namespace) -> int:
     print(f"R_world_imu (gravity-aligned, yaw 0): tilt of IMU z from vertical {tilt:.2f} deg")
     for row in res.R_world_imu:
         print("  [" + ", ".join(f"{v:+.6f}" for v in row) + "]")
-    if args.out:
+    if out is not None:
         import yaml
 
-        with open(args.out, "w") as fh:
-            fh.write(f"# stereopath device calibrate-imu {args.source} (window {window})\n")
-            yaml.safe_dump(res.as_dict(), fh, sort_keys=False, default_flow_style=None)
-        print(f"wrote {args.out}")
+        from stereopath.device.formats.fileio import write_atomic
+
+        text = (f"# stereopath device calibrate-imu {args.source} (window {window})\n"
+                + yaml.safe_dump(res.as_dict(), sort_keys=False, default_flow_style=None))
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_atomic(out, text.encode("utf-8"))
+        print(f"wrote {out}")
     return 0

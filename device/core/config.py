@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import tomllib
 import types
 import typing
@@ -26,7 +27,9 @@ T = TypeVar("T")
 
 
 def check_range(key: str, value: float, lo: float | None = None, hi: float | None = None) -> None:
-    """Raise :class:`ConfigError` naming ``key`` unless ``lo <= value <= hi``."""
+    """Raise :class:`ConfigError` naming ``key`` unless ``lo <= value <= hi`` (NaN never is)."""
+    if value != value:
+        raise ConfigError(f"{key} = {value!r} is not a number")
     if (lo is not None and value < lo) or (hi is not None and value > hi):
         raise ConfigError(f"{key} = {value!r} is out of range [{lo}, {hi}]")
 
@@ -72,7 +75,13 @@ def _convert(key: str, tp: Any, value: Any) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{key} must be a number, got {value!r}")
-        return float(value)
+        try:
+            number = float(value)
+        except OverflowError:  # an integer too large for a float
+            number = math.inf
+        if not math.isfinite(number):
+            raise ConfigError(f"{key} must be a finite number, got {value!r}")
+        return number
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{key} must be an integer, got {value!r}")
@@ -122,15 +131,21 @@ def replace(obj: T, **changes: Any) -> T:
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:
-    """Parse a TOML file, turning syntax errors and missing files into ConfigError."""
+    """Parse a TOML file, turning syntax errors and unreadable or missing files into ConfigError."""
     p = Path(path)
     try:
         with p.open("rb") as fh:
             return tomllib.load(fh)
     except FileNotFoundError:
         raise ConfigError(f"configuration file not found: {p}") from None
+    except IsADirectoryError:
+        raise ConfigError(f"configuration file {p} is a folder, not a TOML file") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not a UTF-8 text (TOML) file: {exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: invalid TOML: {exc}") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read configuration file {p}: {exc.strerror or exc}") from None
 
 
 def as_dict(obj: Any) -> dict[str, Any]:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import operator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -201,11 +202,27 @@ def intrinsic_matrix(where: str, intr: Any) -> np.ndarray:
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
 
 
+def _whole_number(v: Any) -> int:
+    """``v`` as an int if it is a whole number (``640``, ``640.0``, ``"640"``); else ValueError/TypeError."""
+    if isinstance(v, (bool, np.bool_)):
+        raise TypeError("a boolean is not a size")
+    try:
+        return operator.index(v)  # int, numpy integer
+    except TypeError:
+        pass
+    if isinstance(v, str):
+        return int(v)
+    f = float(v)
+    if not f.is_integer():  # also rejects inf and nan
+        raise ValueError(f"{v!r} is not a whole number")
+    return int(f)
+
+
 def checked_size(name: str, size: Any) -> tuple[int, int]:
     try:
-        w, h = (int(v) for v in size)
+        w, h = (_whole_number(v) for v in size)
     except (TypeError, ValueError):
-        raise CalibrationError(f"{name}.image_size: expected [width, height], got {size!r}") from None
+        raise CalibrationError(f"{name}.image_size: expected [width, height] in whole pixels, got {size!r}") from None
     if w <= 0 or h <= 0:
         raise CalibrationError(f"{name}.image_size: must be positive, got {w}x{h}")
     return w, h

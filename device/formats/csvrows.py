@@ -62,11 +62,18 @@ def read_rows(path: Path, ncols: int | tuple[int, int], torn_tail_ok: bool = Tru
     return rows
 
 
+INT64_MIN, INT64_MAX = -2**63, 2**63 - 1
+
+
 def parse_int(path: Path, line: int, text: str, what: str = "timestamp") -> int:
+    """``text`` as an integer that fits int64 (timestamps are stored as int64 nanoseconds)."""
     try:
-        return int(text)
+        v = int(text)
     except ValueError:
         raise DatasetError(f"{path}:{line}: {what} is not an integer: {text!r}") from None
+    if not INT64_MIN <= v <= INT64_MAX:
+        raise DatasetError(f"{path}:{line}: {what} is out of the 64-bit integer range: {text!r}")
+    return v
 
 
 def parse_float(path: Path, line: int, text: str, what: str = "value") -> float:

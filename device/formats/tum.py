@@ -13,15 +13,28 @@ from pathlib import Path
 import numpy as np
 
 from stereopath.device.errors import DatasetError
-from stereopath.device.formats.csvrows import read_lines
+from stereopath.device.formats.csvrows import INT64_MAX, INT64_MIN, read_lines
 from stereopath.device.formats.fileio import write_text_atomic
 from stereopath.device.core.geometry import matrix_to_quat_xyzw
 from stereopath.device.core.trajectory import Trajectory
 
 
+_SECONDS_BOUND = Decimal(10) ** 10  # past int64 nanoseconds (about 9.2e9 s, 292 years either side of 1970)
+
+
 def seconds_to_ns(text: str) -> int:
-    """Exact conversion of a decimal seconds string to integer nanoseconds."""
-    return int((Decimal(text) * 1_000_000_000).to_integral_value())
+    """Exact conversion of a decimal seconds string to integer nanoseconds.
+
+    Raises ``decimal.InvalidOperation`` for text that is not a number and ``ValueError`` for a
+    time that is not finite or does not fit int64 nanoseconds.
+    """
+    d = Decimal(text)
+    if not d.is_finite() or d.copy_abs() > _SECONDS_BOUND:  # before any arithmetic: 1e999999999 overflows it
+        raise ValueError(f"time {text!r} s is not finite or outside the int64 nanosecond range")
+    ns = int((d * 1_000_000_000).to_integral_value())
+    if not INT64_MIN <= ns <= INT64_MAX:
+        raise ValueError(f"time {text!r} s is outside the int64 nanosecond range")
+    return ns
 
 
 def ns_to_seconds_str(t_ns: int) -> str:
@@ -62,8 +75,13 @@ def read_tum_poses(path: str | Path, torn_tail_ok: bool = False) -> Trajectory |
             raise DatasetError(f"{p}:{i}: expected 8 values (t tx ty tz qx qy qz qw), got {len(parts)}")
         try:
             t = seconds_to_ns(parts[0])
+        except InvalidOperation:
+            raise DatasetError(f"{p}:{i}: non-numeric value (timestamp {parts[0]!r})") from None
+        except ValueError as exc:
+            raise DatasetError(f"{p}:{i}: {exc}") from None
+        try:
             v = np.array([float(x) for x in parts[1:]])
-        except (InvalidOperation, ValueError):
+        except ValueError:
             raise DatasetError(f"{p}:{i}: non-numeric value") from None
         if not np.all(np.isfinite(v)) or np.linalg.norm(v[3:]) < 1e-9:
             raise DatasetError(f"{p}:{i}: non-finite value or zero quaternion")
@@ -83,20 +101,16 @@ def read_tum(path: str | Path) -> Trajectory:
 def read_kitti_poses(path: str | Path, t_ns: np.ndarray | None = None) -> Trajectory:
     """KITTI pose file (12 values a row).  Without ``t_ns`` the rows get 0.1 s steps."""
     p = Path(path)
-    try:
-        lines = p.read_text().splitlines()
-    except FileNotFoundError:
-        raise DatasetError(f"pose file not found: {p}") from None
     Ts = []
-    for i, line in enumerate(lines, 1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
+    for i, line in read_lines(p, torn_tail_ok=False):  # DatasetError: missing, a folder, not text
         try:
             v = np.array([float(x) for x in line.split()])
         except ValueError:
             raise DatasetError(f"{p}:{i}: non-numeric value") from None
         if v.size != 12:
             raise DatasetError(f"{p}:{i}: expected 12 values, got {v.size}")
+        if not np.all(np.isfinite(v)):
+            raise DatasetError(f"{p}:{i}: non-finite value")
         T = np.eye(4)
         T[:3, :] = v.reshape(3, 4)
         Ts.append(T)
@@ -109,20 +123,21 @@ def read_kitti_poses(path: str | Path, t_ns: np.ndarray | None = None) -> Trajec
     return Trajectory(np.asarray(t_ns), np.array(Ts))
 
 
+def pose_file_columns(path: str | Path) -> int:
+    """Values on the first data line of a pose file (12: KITTI, 8: TUM).
+
+    A missing file, a folder, a file that is not text or has no data line raise DatasetError.
+    """
+    p = Path(path)
+    lines = read_lines(p, torn_tail_ok=False)
+    if not lines:
+        raise DatasetError(f"{p}: no poses")
+    return len(lines[0][1].replace(",", " ").split())
+
+
 def read_trajectory(path: str | Path) -> Trajectory:
     """TUM or KITTI, decided by the number of columns of the first data line."""
     p = Path(path)
-    try:
-        with p.open() as fh:
-            for line in fh:
-                s = line.strip()
-                if s and not s.startswith("#"):
-                    n = len(s.replace(",", " ").split())
-                    break
-            else:
-                raise DatasetError(f"{p}: no poses")
-    except FileNotFoundError:
-        raise DatasetError(f"trajectory file not found: {p}") from None
-    if n == 12:
+    if pose_file_columns(p) == 12:
         return read_kitti_poses(p)
     return read_tum(p)

@@ -36,9 +36,9 @@ class RunOptions:
             raise ConfigError(f"--duration = {self.duration_s} must be > 0")
         if self.frames is not None and self.frames < 1:
             raise ConfigError(f"--frames = {self.frames} must be >= 1")
-        if self.drain_s is not None and self.drain_s < 0:
+        if self.drain_s is not None and not self.drain_s >= 0:  # also refuses nan
             raise ConfigError(f"--drain = {self.drain_s} must be >= 0")
-        if self.wait_for_host_s < 0:
+        if not self.wait_for_host_s >= 0:
             raise ConfigError(f"--wait-for-host = {self.wait_for_host_s} must be >= 0")
 
 

@@ -258,7 +258,7 @@ def rig_of(msg: SessionInfo) -> Any:
         return None
     try:
         rig = rig_from_dict(msg.rig, source=f"session {msg.session_id} rig")
-    except (CalibrationError, TypeError, ValueError) as exc:
+    except (CalibrationError, TypeError, ValueError, ArithmeticError) as exc:
         raise DecodeError("rig", f"session {msg.session_id}: invalid rig calibration: {exc}") from None
     ref = rig_reference(rig)
     if ref[1] != msg.rig_hash:
@@ -370,7 +370,7 @@ def decode_message(data: bytes, limits: Limits, allowed: tuple[str, ...] | None 
         return _DECODERS[msg_type](obj)
     except DecodeError:
         raise
-    except (KeyError, TypeError, ValueError) as exc:  # defensive: a validator missed a case
+    except (KeyError, TypeError, ValueError, ArithmeticError) as exc:  # defensive: a validator missed a case
         raise DecodeError("field", f"{msg_type}: {type(exc).__name__}: {exc}") from None
 
 

@@ -48,9 +48,15 @@ def generate_keypair(directory: str | Path, name: str, overwrite: bool = False) 
     require_curve()
     if not KEY_NAME_RE.match(name):
         raise ConfigError(f"key name {name!r} must match {KEY_NAME_RE.pattern}")
+    from stereopath.device.formats.fileio import check_out_folder
+
     d = Path(directory)
+    check_out_folder(d, option="key directory")  # a file in the way, or no write permission: ConfigError
     d.mkdir(parents=True, exist_ok=True)
     public, secret = d / f"{name}.key", d / f"{name}.key_secret"
+    for f in (public, secret):
+        if f.exists() and not f.is_file():
+            raise ConfigError(f"{f} exists and is not a key file (refusing to replace it)")
     if not overwrite and (public.exists() or secret.exists()):
         raise ConfigError(f"key files for {name!r} already exist in {d} (refusing to overwrite)")
     import tempfile

@@ -32,19 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _is_kitti(path: Path) -> bool:
-    from stereopath.device.errors import DatasetError
+    """12 values on the first data line; DatasetError for a missing file, a folder or binary data."""
+    from stereopath.device.formats.tum import pose_file_columns
 
-    try:
-        with path.open() as fh:
-            for line in fh:
-                s = line.strip()
-                if s and not s.startswith("#"):
-                    return len(s.replace(",", " ").split()) == 12
-    except FileNotFoundError:
-        raise DatasetError(f"trajectory file not found: {path}") from None
-    except UnicodeDecodeError:
-        raise DatasetError(f"{path}: not a text file") from None
-    raise DatasetError(f"{path}: no poses")
+    return pose_file_columns(path) == 12
 
 
 def read_any(path: Path, times_ns=None):
@@ -63,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     from stereopath.device.errors import DatasetError
     from stereopath.host.evaluation.evaluate import evaluate
 
-    if args.max_diff <= 0:
+    if not args.max_diff > 0:  # also refuses nan
         raise DatasetError(f"--max-diff must be positive, got {args.max_diff}")
     times = read_times(args.times) if args.times is not None else None
     gt = read_any(args.gt, times)

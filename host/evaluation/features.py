@@ -24,12 +24,16 @@ def load_homography(path: str | Path):
     head = p.read_text(errors="replace")[:64].lstrip()
     H = None
     if head.startswith("<?xml") or head.startswith("%YAML") or head.startswith("<opencv_storage"):
-        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
         try:
-            node = fs.getFirstTopLevelNode()
-            H = None if node is None or node.empty() else node.mat()
-        finally:
-            fs.release()
+            fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+            try:
+                node = fs.getFirstTopLevelNode()
+                H = None if node is None or node.empty() else node.mat()
+            finally:
+                fs.release()
+        except (cv2.error, SystemError) as exc:  # a parse error comes out of cv2.FileStorage as SystemError
+            detail = " ".join(str(exc.__cause__ or exc).split())[:200]
+            raise DatasetError(f"{p}: not a readable OpenCV XML/YAML matrix file ({detail})") from None
     else:
         try:
             H = np.loadtxt(p, dtype=float)
