@@ -375,3 +375,44 @@ def test_resend_after_host_lost_a_keyframe_is_deduplicated(tmp_path, keys):
     assert rx.stats.duplicates == 3 and rx.stats.sessions["sessD"].keyframe_duplicates == 3
     assert dev.stats()["keyframes_resent"] == 4
     assert_exactly_once(out, "sessD", dev.spool)
+
+
+def test_a_keyframe_the_host_did_not_acknowledge_is_not_taken_as_stored(tmp_path):
+    """Acks are per keyframe: a host that stored 0, 1, 3, 4, 5 but not 2 (its disk was full) holds up to 1,
+    the device's drain does not report every keyframe stored, and the host's next hello has 2-5 resent."""
+    from stereopath.device.wire.protocol import Ack, encode_ack
+
+    dev = make_device(tmp_path, None, "sessG")
+    n = 6
+    for i in range(n):
+        dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
+    assert dev.wait_spooled(n, 10)
+    ctx = zmq.Context()
+    d = ctx.socket(zmq.DEALER)
+    d.linger = 0
+    d.connect(dev.keyframe_endpoint)
+    got: list[int] = []
+
+    def receive() -> None:
+        if d.poll(20):
+            m = decode_message(d.recv(), KEYFRAME_LIMITS, ("keyframe", "status", "session"))
+            if isinstance(m, Keyframe):
+                got.append(m.seq)
+                if m.seq != 2 or got.count(2) > 1:  # the first copy of 2 could not be stored
+                    d.send(encode_ack(Ack("sessG", m.seq, 1)))
+
+    def acked() -> int:
+        return max((p["acked"] for p in dev.stats()["peers"]), default=-2)
+
+    try:
+        d.send(encode_hello(Hello(None, -1, 8)))
+        assert wait_for(lambda: sorted(got) == list(range(n)) and dev.stats()["acks"] >= n - 1, 10, between=receive)
+        time.sleep(0.2)
+        assert acked() == 1  # not 5: keyframe 2 is not on the host
+        d.send(encode_hello(Hello("sessG", 1, 8)))  # what the host's stall check sends
+        assert wait_for(lambda: acked() == n - 1, 10, between=receive)
+        assert got[n:] == [2, 3, 4, 5]  # resent from the hole
+    finally:
+        d.close(linger=0)
+        ctx.term()
+        dev.close()

@@ -55,7 +55,7 @@ def _conn_id(key: str, routing_id: bytes) -> str:
 
 
 class _Peer:
-    __slots__ = ("key", "conn", "routing_id", "next_seq", "credit", "acked", "max_sent", "connected",
+    __slots__ = ("key", "conn", "routing_id", "next_seq", "credit", "acked", "acked_above", "max_sent", "connected",
                  "last_heard", "bl_cursor", "bl_info_sent", "bl_inflight")
 
     def __init__(self, key: str, routing_id: bytes) -> None:
@@ -64,7 +64,8 @@ class _Peer:
         self.routing_id = routing_id
         self.next_seq = 0
         self.credit = 0
-        self.acked = -1
+        self.acked = -1  # the highest seq this host holds with every seq before it (acks are per keyframe)
+        self.acked_above: set[int] = set()  # acknowledged past a gap: a keyframe the host could not store
         self.max_sent = -1
         self.connected = True
         self.last_heard = time.monotonic()
@@ -172,10 +173,12 @@ class KeyframeServer:
             peer.last_heard = time.monotonic()
             acked = msg.acked_seq if msg.session_id == self.session_id else -1
             peer.acked = min(acked, self.spool.last_seq)
+            peer.acked_above.clear()
             peer.next_seq = peer.acked + 1
             peer.credit = min(msg.credit, self.config.max_credit)
             peer.restart_backlog()
             if peer.acked >= 0:
+                self.spool.release(peer.acked, upto=True)
                 self.spool.mark_acked(peer.acked, upto=True)
             log.info("host %s: hello (session %s, acked %d, credit %d) -> sending from seq %d",
                      key[:20], msg.session_id, msg.acked_seq, msg.credit, peer.next_seq)
@@ -194,8 +197,14 @@ class KeyframeServer:
         if isinstance(msg, Ack):
             self.stats["acks"] += 1
             if msg.session_id == self.session_id and msg.seq <= peer.max_sent:
-                peer.acked = max(peer.acked, msg.seq)
-                self.spool.release(peer.acked)  # stored on a host: what a full disk kept in memory can go
+                # an ack is for its own keyframe only: one the host could not store (its disk full) stays
+                # unacknowledged before it, to be resent after the host's next hello
+                if msg.seq > peer.acked:
+                    peer.acked_above.add(msg.seq)
+                    while peer.acked + 1 in peer.acked_above:
+                        peer.acked += 1
+                        peer.acked_above.discard(peer.acked)
+                self.spool.release(msg.seq)  # stored on a host: a copy a full disk kept in memory can go
                 self.spool.mark_acked(msg.seq)
             elif (msg.session_id, msg.seq) in peer.bl_inflight and self.backlog is not None:
                 peer.bl_inflight.discard((msg.session_id, msg.seq))

@@ -143,12 +143,13 @@ class KeyframeSpool:
         log.error("keyframe spool %s: disk full (%s): keyframes are held in memory until a host acknowledges "
                   "them (up to %.0f MiB), the reserve is kept", self.dir, why, self.max_memory_bytes / 2**20)
 
-    def release(self, acked_seq: int) -> None:
-        """A host acknowledged every keyframe up to ``acked_seq``: free the ones held in memory."""
+    def release(self, seq: int, upto: bool = False) -> None:
+        """A host stored keyframe ``seq`` (``upto``: every keyframe up to ``seq``): free it if it is held
+        in memory.  Only what a host acknowledged goes: a keyframe it could not store stays."""
         if not self._memory:
             return
         with self._mem_lock:
-            for s in [s for s in self._memory if s <= acked_seq]:
+            for s in ([s for s in self._memory if s <= seq] if upto else [seq] if seq in self._memory else []):
                 self.memory_bytes -= len(self._memory.pop(s))
                 self._released.add(s)
 
