@@ -208,3 +208,26 @@ def test_eval_on_a_path_that_never_moves_is_a_clear_error(session, tmp_path, cap
     write_tum(tmp_path / "line.tum", line)
     rc = _cli(["eval", "--gt", str(session / "groundtruth.tum"), "--est", str(tmp_path / "line.tum")])
     assert rc in (0, 2) and "Traceback" not in capsys.readouterr().err
+
+
+def test_outputs_never_replace_the_recording(session, tmp_path, capsys):
+    """--out naming the session itself would replace its on-board trajectory.tum (which no rerun can give back)
+    and, for the odometry, estimator.json: refused before any work, for one session, the fleet (DIR/<id>/ is the
+    session when DIR holds it) and the library call."""
+    from stereopath.device.errors import ConfigError
+    from stereopath.host.reprocess.pipeline import reprocess_session
+
+    from stereopath.host.fleet.sessions import session_id
+
+    d = tmp_path / session_id(session)  # a folder named as the fleet names its output folders
+    shutil.copytree(session, d)
+    (d / "trajectory.tum").write_text("0.0 0 0 0 0 0 0 1\n")
+    before = {p.name: p.read_bytes() for p in d.iterdir() if p.is_file()}
+    for argv in (["host", "reprocess", str(d), "--out", str(d)], ["odometry", f"session:{d}", "--out", str(d)],
+                 ["host", "reprocess", str(d), str(d), "--out", str(tmp_path), "--cpus", "1"]):
+        assert _cli(argv) == 2
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and f"is the input folder {d}" in err
+    with pytest.raises(ConfigError, match="is the input folder"):
+        reprocess_session(d, d / ".." / d.name)
+    assert {p.name: p.read_bytes() for p in d.iterdir() if p.is_file()} == before

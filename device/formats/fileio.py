@@ -12,7 +12,7 @@ import json
 import os
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterable, Iterator
 
 
 def fsync_dir(path: str | Path) -> None:
@@ -67,13 +67,19 @@ def write_atomic(path: str | Path, data: bytes, fsync: bool = True, mode: int | 
         fsync_dir(p.parent)
 
 
-def check_out_folder(path: str | Path, option: str = "--out") -> None:
-    """Refuse, before anything is computed, an output folder path that names an existing file, or
-    that cannot be written: the folder itself when it exists, else the nearest folder above it
-    that does (where it would be made) - read-only file system or no permission."""
+def check_out_folder(path: str | Path, option: str = "--out", inputs: Iterable[str | Path] = ()) -> None:
+    """Refuse, before anything is computed, an output folder path that names an existing file, that
+    is one of the ``inputs`` folders (the outputs would replace recorded files, e.g. a session's
+    on-board ``trajectory.tum``), or that cannot be written: the folder itself when it exists,
+    else the nearest folder above it that does (where it would be made) - read-only file system
+    or no permission."""
     from stereopath.device.errors import ConfigError
 
     p = Path(path)
+    for src in inputs:
+        if Path(src).is_dir() and p.resolve() == Path(src).resolve():
+            raise ConfigError(f"{option} {p}: is the input folder {src}; its recorded files would be replaced "
+                              f"(give another folder, e.g. {p.parent / (p.resolve().name + '-out')})")
     if p.exists() and not p.is_dir():
         raise ConfigError(f"{option} {p}: exists and is not a folder")
     where = p.absolute()

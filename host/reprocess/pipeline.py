@@ -238,9 +238,13 @@ def reprocess_session(session_dir: str | Path, out_dir: str | Path, preset: str 
     """``stereopath host reprocess``: a recorded session folder -> ``out_dir`` (see the module doc).
 
     The input is checked before anything is written: a missing or empty folder, a folder that is
-    not a session, missing calibration or fewer than two frames raise a
+    not a session, missing calibration, fewer than two frames, or an ``out_dir`` that is the
+    session folder itself or cannot be written raise a
     :class:`stereopath.device.errors.StereopathError` and leave ``out_dir`` untouched.
     """
+    from stereopath.device.formats.fileio import check_out_folder
+
+    check_out_folder(out_dir, option="output folder", inputs=[session_dir])  # never over the recording
     seq = open_session_checked(session_dir)
     from stereopath.device.core.stereo_order import check_sequence_order
 
