@@ -146,3 +146,27 @@ def test_device_disk_full_mid_run_loses_no_keyframe_reaching_a_host_and_exits_74
     assert stored_seqs(tmp_path / "host", service.session_id) == list(range(spooled))  # none lost
     on_disk = list((tmp_path / "s" / "keyframes").glob("*.kf"))
     assert len(on_disk) < spooled  # the rest never touched the reserve
+
+
+def test_the_recording_is_closed_before_the_drain_waits_for_hosts(tmp_path, monkeypatch):
+    """The end-of-run drain may wait up to stream.drain_s for hosts: the recording is already complete (rows
+    flushed, manifest closed) by then, so a kill during the drain loses no frame that was recorded."""
+    from stereopath.device.formats.asl import open_session
+    from stereopath.device.service import sinks
+    from stereopath.device.service.options import RunOptions, load_config
+    from stereopath.device.service.service import EXIT_OK, CaptureService
+    from tests.test_service_support import FakeEstimator
+
+    seen = {}
+
+    def drain(self, seconds, clock):
+        seen["manifest"] = json.loads((tmp_path / "s" / "manifest.json").read_text())
+        seen["frames"] = len(open_session(tmp_path / "s"))
+
+    monkeypatch.setattr(sinks.NoStreaming, "drain", drain)
+    cfg_path = write_toml(tmp_path / "device.toml", sim_tables(tmp_path, frames=12))
+    opts = RunOptions(out=str(tmp_path / "s"))
+    service = CaptureService(load_config(cfg_path, opts), opts, cfg_path, environ={}, estimator=FakeEstimator())
+    assert service.run() == EXIT_OK
+    assert seen["manifest"]["status"] == "closed" and seen["manifest"]["counts"]["frames"] == 12
+    assert seen["frames"] == 12

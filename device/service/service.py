@@ -89,6 +89,7 @@ class CaptureService:
         self.parts = Components()           # opened in _setup
         self.counters = PipelineCounters()  # written by the pipeline thread only
         self.pipeline: FramePipeline | None = None
+        self._recording_finished = False
         self.session_id = ""
         self.session_dir: Path | None = None
         self._session_dir_existed = True  # set in _setup; a failed start removes only a folder it created
@@ -362,6 +363,7 @@ class CaptureService:
         failure = self.pipeline.failure if self.pipeline is not None else None
         if failure is not None and self.exit_code == EXIT_OK:
             self._fail(failure)
+        self._finish_recording()  # before the drain, which may wait for hosts: a kill then loses nothing recorded
         self.parts.streaming.drain(self.cfg.stream.drain_s, self._clock)
         self._report_disk_full()
         self._teardown()
@@ -371,6 +373,22 @@ class CaptureService:
         c = self.counters
         log.info("session %s ended (%s): %d frames in, %d estimated, %d keyframes, recorder %s", self.session_id,
                  self.stop_reason, c.frames_in, c.frames_done, c.keyframes, self.parts.recording.state)
+
+    def _finish_recording(self) -> None:
+        """Ground truth, estimator summary, then the recording closed (rows flushed, manifest final); once."""
+        if self._recording_finished:
+            return
+        self._recording_finished = True
+        p = self.parts
+        p.recording.write_groundtruth(getattr(getattr(p.source, "session", None), "groundtruth", None))
+        summary = self.pipeline.estimator_summary() if self.pipeline is not None else None
+        if summary is not None:
+            p.recording.write_json("estimator.json", summary)
+        try:
+            p.recording.close()
+        except StereopathError as exc:
+            log.error("closing the recording: %s", exc)
+            self.exit_code = self.exit_code or EXIT_FAILURE
 
     def _report_disk_full(self) -> None:
         """A disk that filled up during the run is said once at the end, with what it cost, and exits 74."""
@@ -423,15 +441,7 @@ class CaptureService:
         """Close everything that was opened, in reverse order; each step is independent."""
         p = self.parts
         p.streaming.close()
-        p.recording.write_groundtruth(getattr(getattr(p.source, "session", None), "groundtruth", None))
-        summary = self.pipeline.estimator_summary() if self.pipeline is not None else None
-        if summary is not None:
-            p.recording.write_json("estimator.json", summary)
-        try:
-            p.recording.close()
-        except StereopathError as exc:
-            log.error("closing the recording: %s", exc)
-            self.exit_code = self.exit_code or EXIT_FAILURE
+        self._finish_recording()
         close = getattr(p.estimator, "close", None)
         if close is not None:
             close()
