@@ -275,3 +275,61 @@ def test_paper_rig_session_sensor_yaml_readable(tmp_path):
     e = load_euroc_rig(tmp_path / "p" / "mav0")
     np.testing.assert_allclose(e.T, rig.T, atol=1e-12)
     np.testing.assert_allclose(e.T_body_cam0, np.eye(4))
+
+
+def test_disk_full_on_an_image_keeps_the_rows_of_the_frames_already_on_disk(tmp_path, monkeypatch):
+    """ENOSPC while writing frame 5's image: frames 0-4 (images on disk, rows still queued) stay readable with
+    their IMU samples and poses, and the manifest counts what the files hold."""
+    rng = np.random.default_rng(5)
+    t = [0.0]
+    rec = SessionRecorder(tmp_path / "s", small_rig(), chunk_s=100.0, disk_usage=PLENTY, clock=lambda: t[0])
+    frames = make_frames(6, rng)
+    rec.add_imu(make_imu(30, rng))
+    for f in frames[:5]:
+        assert rec.add_frame(f)
+        rec.add_pose(f.t_ns, np.eye(4))
+    real = SessionRecorder._write_image
+
+    def full(path, blob):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(SessionRecorder, "_write_image", staticmethod(full))
+    assert rec.add_frame(frames[5]) is False
+    monkeypatch.setattr(SessionRecorder, "_write_image", staticmethod(real))
+    rec.close()
+    s = open_session(tmp_path / "s")
+    assert len(s) == 5 and len(s.imu) == 30 and len(s.trajectory) == 5
+    m = s.manifest
+    assert m["status"] == "stopped_low_disk" and m["counts"]["frames"] == 5 and m["counts"]["imu_samples"] == 30
+
+
+def test_rows_that_do_not_fit_are_cut_back_whole_and_taken_off_the_counts(tmp_path, monkeypatch):
+    """A row write cut short by a full disk leaves no half row (a later row would be glued onto it and the whole
+    file would no longer read); the frames it held are taken off the manifest's counts."""
+    rng = np.random.default_rng(6)
+    t = [0.0]
+    rec = SessionRecorder(tmp_path / "s", small_rig(), chunk_s=1.0, disk_usage=PLENTY, clock=lambda: t[0])
+    frames = make_frames(4, rng)
+    assert rec.add_frame(frames[0]) and rec.add_frame(frames[1])
+    rec.flush()
+    assert rec.add_frame(frames[2])
+    real_write = os.write
+    cam0 = rec._fds["cam0"]
+
+    def half_then_full(fd, data):
+        if fd == cam0:
+            if len(data) > 8:
+                return real_write(fd, bytes(data[: len(data) // 2]))
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(fd, data)
+
+    monkeypatch.setattr(recmod.os, "write", half_then_full)
+    t[0] = 2.0
+    assert rec.add_frame(frames[3]) is False
+    monkeypatch.setattr(recmod.os, "write", real_write)
+    rec.close()
+    text = (tmp_path / "s" / "mav0" / "cam0" / "data.csv").read_text()
+    assert text.endswith("\n") and all(len(line.split(",")) == 2 for line in text.splitlines()[1:])
+    s = open_session(tmp_path / "s")
+    assert len(s) == 2
+    assert s.manifest["counts"]["frames"] == 2 and s.manifest["counts"]["frames_lost_disk_full"] == 2

@@ -68,6 +68,20 @@ def _write_all(fd: int, data: bytes) -> None:
         view = view[n:]
 
 
+def _append_whole(fd: int, data: bytes) -> None:
+    """Append ``data`` (whole rows) or nothing: a write cut short (disk full) is cut back off the file,
+    so no half row is left for a later row to be glued onto."""
+    start = os.lseek(fd, 0, os.SEEK_END)
+    try:
+        _write_all(fd, data)
+    except OSError:
+        try:
+            os.ftruncate(fd, start)
+        except OSError:
+            pass
+        raise
+
+
 class SessionRecorder:
     """Records frames, IMU samples and estimated poses into ``out_dir`` (see module doc)."""
 
@@ -337,6 +351,7 @@ class SessionRecorder:
     def _io_failed(self, exc: OSError) -> None:
         if exc.errno in (errno.ENOSPC, errno.EDQUOT):
             log.error("session %s: disk full (%s); stopping", self.session_id, exc)
+            self._salvage_rows()
             self._close_fds()
             self.state = STOPPED_LOW_DISK
             self._finish_manifest()
@@ -386,11 +401,30 @@ class SessionRecorder:
         for key in FLUSH_ORDER:  # IMU first: a durable frame row has its IMU samples before it
             lines = self._pending.get(key)
             if lines:
-                self._pending[key] = []
                 fd = self._fds[key]
-                _write_all(fd, "".join(lines).encode())
+                _append_whole(fd, "".join(lines).encode())
+                self._pending[key] = []  # only once written: a failed write is tried again at the stop
                 os.fsync(fd)
         self._last_flush = self._clock()
+
+    def _salvage_rows(self) -> None:
+        """Disk full: the queued rows of frames whose images are already on disk are tried once more
+        (rows are small: the last page of a file often still takes them).  What cannot be written is
+        taken off the counts, so that the manifest says what the files hold."""
+        try:
+            if self._fds:
+                self._flush()
+        except OSError as exc:
+            log.error("session %s: disk full: the rows of the last %d frame(s) could not be written (%s)",
+                      self.session_id, len(self._pending.get("cam0", ())), exc)
+        lost = {"frames": len(self._pending.get("cam0", ())), "imu_samples": len(self._pending.get("imu", ())),
+                "poses": len(self._pending.get("traj", ()))}
+        for key, n in lost.items():
+            if n:
+                self.counts[key] -= n
+                self.counts[f"{key}_lost_disk_full"] = n
+        for key in self._pending:
+            self._pending[key] = []
 
     def _close_fds(self) -> None:
         for fd in self._pending_images:
