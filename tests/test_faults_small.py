@@ -223,3 +223,20 @@ def test_odometry_refuses_fewer_than_two_frames(tmp_path, capsys, frames):
     err = capsys.readouterr().err
     assert "Traceback" not in err and f"--frames must be at least 2 (a path needs two frames), got {frames}" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_cut_torn_tail(tmp_path):
+    from stereopath.device.formats.fileio import cut_torn_tail
+
+    p = tmp_path / "rows.txt"
+    assert cut_torn_tail(p) == 0  # missing
+    p.write_bytes(b"")
+    assert cut_torn_tail(p) == 0
+    p.write_bytes(b"a 1\nb 2\n")
+    assert cut_torn_tail(p) == 0 and p.read_bytes() == b"a 1\nb 2\n"
+    p.write_bytes(b"a 1\nb 2\nc")
+    assert cut_torn_tail(p) == 1 and p.read_bytes() == b"a 1\nb 2\n"
+    p.write_bytes(b"only a torn line")
+    assert cut_torn_tail(p) == 16 and p.read_bytes() == b""
+    p.write_bytes(b"x" * 100 + b"\n" + b"y" * 50)
+    assert cut_torn_tail(p, window=20) == 0 and p.stat().st_size == 151  # no newline in reach: not cut

@@ -416,3 +416,23 @@ def test_a_keyframe_the_host_did_not_acknowledge_is_not_taken_as_stored(tmp_path
         d.close(linger=0)
         ctx.term()
         dev.close()
+
+
+def test_poses_appended_after_a_torn_last_line_still_read(tmp_path):
+    """poses.tum whose last line a full disk or a power cut tore: the host cuts it before appending, so the
+    file reads (a glued line used to make every pose of it unreadable)."""
+    out = tmp_path / "out"
+    (out / "sessT").mkdir(parents=True)
+    (out / "sessT" / "poses.tum").write_text("0.000000001 0 0 0 0 0 0 1\n0.5 0.1 0.2 0.3 0 0 0.9")
+    dev = make_device(tmp_path, None, "sessT")
+    rx = _receiver(dev, None, out)
+    try:
+        assert wait_for(lambda: rx.live.connected, 5, between=lambda: rx.poll(0.02))
+        wait_for(lambda: False, 0.3, between=lambda: rx.poll(0.02))  # let the SUB subscription propagate
+        _stream(dev, rx, 10, 0)
+        assert wait_for(lambda: rx.stats.received["pose"] >= 5, 5, between=lambda: rx.poll(0.02))
+    finally:
+        rx.close()
+        dev.close()
+    traj = read_tum(out / "sessT" / "poses.tum")
+    assert len(traj) == 1 + rx.stats.received["pose"] and traj.t_ns[0] == 1

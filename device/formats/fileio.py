@@ -99,6 +99,31 @@ def _read_only_fs(path: Path) -> bool:
         return False
 
 
+def cut_torn_tail(path: str | Path, window: int = 1 << 16) -> int:
+    """Cut a last line that lacks its newline (a write cut short by a full disk or a power cut) off a
+    text file that is appended to, so that the next line does not join it; returns the bytes cut.
+    A missing or empty file is left alone; a file with no newline in its last ``window`` bytes is
+    left as it is (not a file of lines)."""
+    p = Path(path)
+    try:
+        with p.open("rb+") as fh:
+            size = fh.seek(0, os.SEEK_END)
+            if size == 0:
+                return 0
+            fh.seek(max(0, size - window))
+            tail = fh.read()
+            if tail.endswith(b"\n"):
+                return 0
+            nl = tail.rfind(b"\n")
+            if nl < 0 and size > window:
+                return 0
+            keep = size - len(tail) + nl + 1
+            fh.truncate(keep)
+            return size - keep
+    except FileNotFoundError:
+        return 0
+
+
 def process_umask() -> int:
     """The process umask, read without changing it where the system allows (Linux /proc)."""
     try:

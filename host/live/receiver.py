@@ -344,6 +344,10 @@ class Receiver(LinkControl):
                 self._tum.pop(next(iter(self._tum))).close()
             d = self.out / sid
             d.mkdir(parents=True, exist_ok=True)
+            from stereopath.device.formats.fileio import cut_torn_tail
+
+            if cut := cut_torn_tail(d / "poses.tum"):  # a full disk or a power cut tore the last line
+                log.warning("%s: cut a torn last line (%d bytes) before appending", d / "poses.tum", cut)
             fh = self._tum[sid] = (d / "poses.tum").open("a")
         return fh
 
