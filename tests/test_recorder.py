@@ -333,3 +333,22 @@ def test_rows_that_do_not_fit_are_cut_back_whole_and_taken_off_the_counts(tmp_pa
     s = open_session(tmp_path / "s")
     assert len(s) == 2
     assert s.manifest["counts"]["frames"] == 2 and s.manifest["counts"]["frames_lost_disk_full"] == 2
+
+
+def test_sensor_yaml_numbers_read_back_as_numbers(tmp_path, caplog):
+    """Python writes 2e-05, which YAML 1.1 reads as text: the IMU noise and any tiny pose entry must be written
+    so that they read back as numbers; sessions written before are still read (a numeric text is taken)."""
+    import yaml
+
+    from stereopath.device.formats.rig_files import MPU6050_NOISE, imu_sensor_yaml, load_imu_noise, yaml_float
+
+    for v in (2e-05, 1e-17, -1.5e-300, 3.0, 200.0, 0.1, float("inf"), float("nan")):
+        back = yaml.safe_load(yaml_float(v))
+        assert isinstance(back, float) and (back == v or (v != v and back != back))
+    p = tmp_path / "sensor.yaml"
+    p.write_text(imu_sensor_yaml(200.0, MPU6050_NOISE))
+    with caplog.at_level(logging.WARNING):
+        assert load_imu_noise(p) == {k: float(v) for k, v in MPU6050_NOISE.items()}
+    assert "not a positive number" not in caplog.text
+    p.write_text(p.read_text().replace(yaml_float(MPU6050_NOISE["gyroscope_random_walk"]), "2e-05"))
+    assert load_imu_noise(p)["gyroscope_random_walk"] == 2e-05  # an older session's text

@@ -8,6 +8,7 @@ The rig itself (cameras, extrinsics, rectification) is the pure model of
 from __future__ import annotations
 
 import logging
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -317,19 +318,34 @@ def load_imu_noise(path: str | Path) -> dict[str, float]:
     out: dict[str, float] = {}
     for k in IMU_NOISE_KEYS:
         v = data.get(k)
-        if isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0:
+        if isinstance(v, str):  # "2e-05": a number YAML 1.1 reads as text (sessions recorded before 2026-11-27)
+            try:
+                v = float(v)
+            except ValueError:
+                pass
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0:
             out[k] = float(v)
         elif v is not None:
             log.warning("%s: %s = %r is not a positive number: ignored", p, k, v)
     return out
 
 
+def yaml_float(v: Any) -> str:
+    """``v`` as YAML reads a float back: Python writes ``2e-05``, which YAML 1.1 (PyYAML, OpenCV's
+    ``%YAML:1.0``) reads as a string; ``2.0e-05`` it reads as a number."""
+    r = repr(float(v))
+    if r in ("inf", "-inf", "nan"):
+        return {"inf": ".inf", "-inf": "-.inf", "nan": ".nan"}[r]
+    mant, e, exp = r.partition("e")
+    return f"{mant}.0e{exp}" if e and "." not in mant else r
+
+
 def _yaml_list(values: Any) -> str:
-    return "[" + ", ".join(repr(float(v)) for v in values) + "]"
+    return "[" + ", ".join(yaml_float(v) for v in values) + "]"
 
 
 def _t_bs_block(T: np.ndarray) -> str:
-    rows = [", ".join(repr(float(v)) for v in row) for row in np.asarray(T, dtype=float)]
+    rows = [", ".join(yaml_float(v) for v in row) for row in np.asarray(T, dtype=float)]
     data = ",\n         ".join(rows)
     return f"T_BS:\n  cols: 4\n  rows: 4\n  data: [{data}]\n"
 
@@ -350,7 +366,7 @@ def camera_sensor_yaml(cam: Any, name: str, T_body_cam: np.ndarray, rate_hz: flo
         "# Sensor extrinsics wrt. the body-frame (the IMU frame).\n"
         + _t_bs_block(T_body_cam)
         + "\n# Camera specific definitions.\n"
-        f"rate_hz: {float(rate_hz)!r}\n"
+        f"rate_hz: {yaml_float(rate_hz)}\n"
         f"resolution: [{int(cam.size[0])}, {int(cam.size[1])}]\n"
         "camera_model: pinhole\n"
         f"intrinsics: {_yaml_list([cam.fx, cam.fy, cam.cx, cam.cy])} #fu, fv, cu, cv\n"
@@ -361,13 +377,13 @@ def camera_sensor_yaml(cam: Any, name: str, T_body_cam: np.ndarray, rate_hz: flo
 
 def imu_sensor_yaml(rate_hz: float, noise: dict[str, float]) -> str:
     """EuRoC ``imu0/sensor.yaml`` text (the body frame is the IMU frame)."""
-    lines = "".join(f"{k}: {float(v)!r}\n" for k, v in noise.items())
+    lines = "".join(f"{k}: {yaml_float(v)}\n" for k, v in noise.items())
     return (
         "%YAML:1.0\n"
         "sensor_type: imu\n"
         "comment: stereopath IMU (MPU-6050 class)\n\n"
         + _t_bs_block(np.eye(4))
-        + f"rate_hz: {float(rate_hz)!r}\n\n"
+        + f"rate_hz: {yaml_float(rate_hz)}\n\n"
         "# inertial sensor noise model parameters (static)\n"
         + lines
     )
