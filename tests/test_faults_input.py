@@ -231,3 +231,10 @@ def test_outputs_never_replace_the_recording(session, tmp_path, capsys):
     with pytest.raises(ConfigError, match="is the input folder"):
         reprocess_session(d, d / ".." / d.name)
     assert {p.name: p.read_bytes() for p in d.iterdir() if p.is_file()} == before
+
+
+def test_host_sessions_on_a_recorded_session_says_what_it_is(session, capsys):
+    """A device session folder is not a `host live` store: its mav0/ used to be listed as a session (exit 0)."""
+    assert _cli(["host", "sessions", str(session)]) == 2
+    err = capsys.readouterr().err
+    assert "is a session the device recorded, not the --out folder of `host live`" in err

@@ -18,8 +18,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from stereopath.device.errors import ConfigError
     from stereopath.host.live.receiver_sessions import session_states
 
+    if (Path(args.out) / "mav0").is_dir():
+        raise ConfigError(f"{args.out} is a session the device recorded, not the --out folder of `host live` "
+                          f"(read it with `stereopath host reprocess {args.out} --out DIR`)")
     states = session_states(args.out)
     shown = [s for s in states if s.state == "incomplete"] if args.incomplete else states
     if not shown:
