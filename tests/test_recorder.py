@@ -352,3 +352,57 @@ def test_sensor_yaml_numbers_read_back_as_numbers(tmp_path, caplog):
     assert "not a positive number" not in caplog.text
     p.write_text(p.read_text().replace(yaml_float(MPU6050_NOISE["gyroscope_random_walk"]), "2e-05"))
     assert load_imu_noise(p)["gyroscope_random_walk"] == 2e-05  # an older session's text
+
+
+def test_disk_full_on_an_image_fsync_writes_no_row_for_those_frames(tmp_path, monkeypatch):
+    """A durable row always points at a durable image: when the images' fsync fails, their frames' rows are not
+    written by the stop's salvage (the IMU rows are), and the counts say so."""
+    rng = np.random.default_rng(7)
+    t = [0.0]
+    rec = SessionRecorder(tmp_path / "s", small_rig(), chunk_s=1.0, disk_usage=PLENTY, clock=lambda: t[0])
+    frames = make_frames(3, rng)
+    rec.add_imu(make_imu(10, rng))
+    assert rec.add_frame(frames[0])
+    rec.flush()
+    assert rec.add_frame(frames[1])
+    real_fsync = os.fsync
+    row_fds = set(rec._fds.values())
+
+    def fsync(fd):  # the images' fsync fails (a full disk found at write-back), the rows' would not
+        if fd not in row_fds:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_fsync(fd)
+
+    monkeypatch.setattr(recmod.os, "fsync", fsync)
+    t[0] = 2.0
+    assert rec.add_frame(frames[2]) is False  # its flush fsyncs frames 1 and 2's images: fails
+    monkeypatch.setattr(recmod.os, "fsync", real_fsync)
+    rec.close()
+    s = open_session(tmp_path / "s")
+    assert len(s) == 1 and len(s.imu) == 10
+    assert s.manifest["counts"]["frames"] == 1 and s.manifest["counts"]["frames_lost_disk_full"] == 2
+
+
+def test_a_frame_whose_second_camera_row_is_cut_is_counted_lost(tmp_path, monkeypatch):
+    rng = np.random.default_rng(8)
+    t = [0.0]
+    rec = SessionRecorder(tmp_path / "s", small_rig(), chunk_s=1.0, disk_usage=PLENTY, clock=lambda: t[0])
+    frames = make_frames(3, rng)
+    assert rec.add_frame(frames[0])
+    rec.flush()
+    assert rec.add_frame(frames[1])
+    real_write = os.write
+    cam1 = rec._fds["cam1"]
+
+    def full_on_cam1(fd, data):
+        if fd == cam1:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(fd, data)
+
+    monkeypatch.setattr(recmod.os, "write", full_on_cam1)
+    t[0] = 2.0
+    assert rec.add_frame(frames[2]) is False  # cam0's rows of frames 1-2 are written, cam1's are not
+    monkeypatch.setattr(recmod.os, "write", real_write)
+    rec.close()
+    s = open_session(tmp_path / "s")
+    assert len(s) == 1 and s.manifest["counts"]["frames"] == 1 and s.manifest["counts"]["frames_lost_disk_full"] == 2

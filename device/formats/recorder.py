@@ -121,6 +121,7 @@ class SessionRecorder:
         self._fds: dict[str, int] = {}
         self._pending: dict[str, list[str]] = {}
         self._pending_images: list[int] = []
+        self._images_failed = False  # an image's fsync failed: the queued frames' rows are not written
         self._low_disk_logged = False
         self._closed = False
         self.state = RECORDING
@@ -339,10 +340,7 @@ class SessionRecorder:
 
     def _stop(self, state: str) -> None:
         try:
-            if self._fds:
-                self._flush()
-        except OSError as exc:
-            log.error("session %s: flushing while stopping failed: %s", self.session_id, exc)
+            self._salvage_rows()
         finally:
             self._close_fds()
         self.state = state
@@ -393,6 +391,11 @@ class SessionRecorder:
             try:
                 for fd in images:
                     os.fsync(fd)
+            except OSError:
+                # those images may not be on disk: their frames' rows must not be written (a durable row
+                # always points at a durable image); _salvage_rows drops them
+                self._images_failed = True
+                raise
             finally:
                 for fd in images:
                     os.close(fd)
@@ -411,13 +414,18 @@ class SessionRecorder:
         """Disk full: the queued rows of frames whose images are already on disk are tried once more
         (rows are small: the last page of a file often still takes them).  What cannot be written is
         taken off the counts, so that the manifest says what the files hold."""
+        dropped = 0
+        if self._images_failed:  # the queued frames' images may not be on disk: their rows go
+            dropped = self._unwritten_frames()
+            for cam in layout.CAMERAS:
+                self._pending[cam] = []
         try:
             if self._fds:
                 self._flush()
         except OSError as exc:
-            log.error("session %s: disk full: the rows of the last %d frame(s) could not be written (%s)",
-                      self.session_id, len(self._pending.get("cam0", ())), exc)
-        lost = {"frames": len(self._pending.get("cam0", ())), "imu_samples": len(self._pending.get("imu", ())),
+            log.error("session %s: the rows of the last %d frame(s) could not be written (%s)",
+                      self.session_id, self._unwritten_frames(), exc)
+        lost = {"frames": dropped + self._unwritten_frames(), "imu_samples": len(self._pending.get("imu", ())),
                 "poses": len(self._pending.get("traj", ()))}
         for key, n in lost.items():
             if n:
@@ -425,6 +433,10 @@ class SessionRecorder:
                 self.counts[f"{key}_lost_disk_full"] = n
         for key in self._pending:
             self._pending[key] = []
+
+    def _unwritten_frames(self) -> int:
+        """Frames whose row is still queued in either camera's file (a reader needs both)."""
+        return max(len(self._pending.get(cam, ())) for cam in layout.CAMERAS)
 
     def _close_fds(self) -> None:
         for fd in self._pending_images:
