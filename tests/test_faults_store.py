@@ -93,3 +93,42 @@ def test_host_disk_full_keeps_keyframes_unacked_until_space_returns(tmp_path, mo
         rx.close()
         dev.close()
     assert_exactly_once(out, "sessF", dev.spool)
+
+
+def test_a_keyframe_refused_by_a_full_host_disk_is_asked_for_again_as_soon_as_storing_works(tmp_path, monkeypatch):
+    """Keyframe 2 hits a full disk, 3 and later are stored: the host says hello at once (not after a stall of
+    stall_timeout_s, which the device's end-of-run drain would not wait for) and holds all of them."""
+    import errno
+
+    import numpy as np
+
+    from stereopath.host.live import store as store_mod
+    from stereopath.host.live.receiver import Receiver
+    from stereopath.host.live.receiver_config import ReceiverConfig
+    from tests.test_streaming_support import assert_exactly_once, make_device, small_images, wait_for
+
+    real = store_mod.write_atomic
+    refused = []
+
+    def once_full(path, data, *a, **k):
+        if "00000002" in str(path) and not refused:
+            refused.append(path)
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(path, data, *a, **k)
+
+    monkeypatch.setattr(store_mod, "write_atomic", once_full)
+    dev = make_device(tmp_path, None, "sessH")
+    out = tmp_path / "out"
+    rx = Receiver(ReceiverConfig(dev.pose_endpoint, dev.keyframe_endpoint, insecure=True, fsync=False,
+                                 heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
+                                 reconnect_ivl_max_ms=400, stall_timeout_s=60.0), out)
+    try:
+        for i in range(6):
+            assert dev.offer_keyframe(i, i * 50_000_000, np.eye(4), *small_images(i))
+        assert dev.wait_spooled(6, 10)
+        assert wait_for(lambda: rx.store.session("sessH").acked_seq == 5, 10, between=lambda: rx.poll(0.02))
+        assert refused and rx.stats.link["hellos"] >= 2 and rx.stats.link["rehellos_after_stall"] == 0
+    finally:
+        rx.close()
+        dev.close()
+    assert_exactly_once(out, "sessH", dev.spool)

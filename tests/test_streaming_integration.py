@@ -378,11 +378,13 @@ def test_resend_after_host_lost_a_keyframe_is_deduplicated(tmp_path, keys):
 
 
 def test_a_keyframe_the_host_did_not_acknowledge_is_not_taken_as_stored(tmp_path):
-    """Acks are per keyframe: a host that stored 0, 1, 3, 4, 5 but not 2 (its disk was full) holds up to 1,
-    the device's drain does not report every keyframe stored, and the host's next hello has 2-5 resent."""
+    """Acks are per keyframe: a host that stored 0, 1, 3, 4, 5 but not 2 (its disk was full) holds up to 1 (what
+    the device's drain looks at), the keyframes the device's full disk holds in memory from 2 on stay there,
+    and the host's next hello has 2-5 resent from memory."""
     from stereopath.device.wire.protocol import Ack, encode_ack
 
     dev = make_device(tmp_path, None, "sessG")
+    dev.spool.reserve_bytes = 2**62  # the device's disk is full: every keyframe waits in memory for a host
     n = 6
     for i in range(n):
         dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
@@ -409,9 +411,11 @@ def test_a_keyframe_the_host_did_not_acknowledge_is_not_taken_as_stored(tmp_path
         assert wait_for(lambda: sorted(got) == list(range(n)) and dev.stats()["acks"] >= n - 1, 10, between=receive)
         time.sleep(0.2)
         assert acked() == 1  # not 5: keyframe 2 is not on the host
+        assert dev.spool.memory_count == n - 2  # 0 and 1 freed; 2-5 kept for the resend
         d.send(encode_hello(Hello("sessG", 1, 8)))  # what the host's stall check sends
         assert wait_for(lambda: acked() == n - 1, 10, between=receive)
         assert got[n:] == [2, 3, 4, 5]  # resent from the hole
+        assert dev.spool.memory_count == 0
     finally:
         d.close(linger=0)
         ctx.term()

@@ -178,7 +178,7 @@ class KeyframeServer:
             peer.credit = min(msg.credit, self.config.max_credit)
             peer.restart_backlog()
             if peer.acked >= 0:
-                self.spool.release(peer.acked, upto=True)
+                self.spool.release(peer.acked)
                 self.spool.mark_acked(peer.acked, upto=True)
             log.info("host %s: hello (session %s, acked %d, credit %d) -> sending from seq %d",
                      key[:20], msg.session_id, msg.acked_seq, msg.credit, peer.next_seq)
@@ -204,7 +204,7 @@ class KeyframeServer:
                     while peer.acked + 1 in peer.acked_above:
                         peer.acked += 1
                         peer.acked_above.discard(peer.acked)
-                self.spool.release(msg.seq)  # stored on a host: a copy a full disk kept in memory can go
+                self.spool.release(peer.acked)  # held by a host: what a full disk kept in memory can go
                 self.spool.mark_acked(msg.seq)
             elif (msg.session_id, msg.seq) in peer.bl_inflight and self.backlog is not None:
                 peer.bl_inflight.discard((msg.session_id, msg.seq))

@@ -143,13 +143,14 @@ class KeyframeSpool:
         log.error("keyframe spool %s: disk full (%s): keyframes are held in memory until a host acknowledges "
                   "them (up to %.0f MiB), the reserve is kept", self.dir, why, self.max_memory_bytes / 2**20)
 
-    def release(self, seq: int, upto: bool = False) -> None:
-        """A host stored keyframe ``seq`` (``upto``: every keyframe up to ``seq``): free it if it is held
-        in memory.  Only what a host acknowledged goes: a keyframe it could not store stays."""
+    def release(self, acked_seq: int) -> None:
+        """A host holds every keyframe up to ``acked_seq`` (its contiguous acknowledgement): free the ones
+        held in memory.  A keyframe acknowledged past a gap stays until the gap is filled: the host's
+        next hello has everything from the gap resent, which must still be readable."""
         if not self._memory:
             return
         with self._mem_lock:
-            for s in ([s for s in self._memory if s <= seq] if upto else [seq] if seq in self._memory else []):
+            for s in [s for s in self._memory if s <= acked_seq]:
                 self.memory_bytes -= len(self._memory.pop(s))
                 self._released.add(s)
 

@@ -361,8 +361,10 @@ class Receiver(LinkControl):
             self._storage_failed(f"keyframe {kf.seq} of session {kf.session_id}", exc)
             return
         if self.storage_error is not None:
-            log.info("storing keyframes again (after: %s)", self.storage_error)
+            log.info("storing keyframes again (after: %s): hello, so the device resends the ones refused",
+                     self.storage_error)
             self.storage_error = None
+            self._hello_pending = True  # now, not after a stall: a run's end waits only stream.drain_s for hosts
         self.sessions.on_count(kf.session_id, kf.seq + 1)  # the device holds at least this many
         now = time.monotonic()
         with self.lock:
