@@ -240,3 +240,24 @@ def test_cut_torn_tail(tmp_path):
     assert cut_torn_tail(p) == 16 and p.read_bytes() == b""
     p.write_bytes(b"x" * 100 + b"\n" + b"y" * 50)
     assert cut_torn_tail(p, window=20) == 0 and p.stat().st_size == 151  # no newline in reach: not cut
+
+
+@pytest.mark.parametrize("argv,option", [
+    (["host", "live", "--device", "127.0.0.1:5999", "--insecure", "--out", "o", "--duration"], "--duration"),
+    (["host", "reprocess", "s", "--out", "o", "--task-cpus"], "--task-cpus"),
+    (["host", "reprocess", "s", "--out", "o", "--task-memory-gb"], "--task-memory-gb"),
+    (["features", "a.png", "b.png", "--tolerance"], "--tolerance"),
+    (["host", "map", "s", "--out", "o", "--voxel-mm"], "--voxel-mm"),
+    (["device", "calibrate-stereo", "d", "--square-mm"], "--square-mm"),
+    (["device", "calibrate-stereo", "d", "--square-mm", "20", "--max-rms"], "--max-rms"),
+    (["device", "run", "--duration"], "--duration"),
+    (["device", "run", "--wait-for-host"], "--wait-for-host"),
+    (["device", "run", "--drain"], "--drain"),
+])
+@pytest.mark.parametrize("value", ["nan", "inf", "-1"])
+def test_numeric_options_refuse_nan_inf_and_negatives(capsys, argv, option, value):
+    """nan passes every `value < 0` check (all comparisons with nan are false): each number is checked as parsed."""
+    with pytest.raises(SystemExit) as info:
+        _cli(argv + [value])
+    assert info.value.code == 2
+    assert f"argument {option}: must be a finite number" in capsys.readouterr().err

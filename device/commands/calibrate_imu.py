@@ -12,7 +12,7 @@ import argparse
 import math
 from pathlib import Path
 
-from stereopath.device.core.arg_types import finite_number
+from stereopath.device.commands.arg_types import finite_number
 
 MAX_ABS_TIME_S = 9.2e9  # int64 nanoseconds reach about 9.22e9 s either side of the clock's zero
 

@@ -10,16 +10,18 @@ import argparse
 import re
 from pathlib import Path
 
+from stereopath.device.commands.arg_types import finite_number
+
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images_dir", metavar="IMAGES_DIR", help="folder with left*/right* chessboard images")
     parser.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6)")
-    parser.add_argument("--square-mm", type=float, required=True, help="chessboard square size in millimetres")
+    parser.add_argument("--square-mm", type=finite_number("millimetres", allow_minimum=False), required=True, help="chessboard square size in millimetres")
     parser.add_argument("--out", default=None, help="write the rig YAML here")
     parser.add_argument("--name", default="calibrated", help="rig name stored in the YAML")
-    parser.add_argument("--max-rms", type=float, default=1.0,
+    parser.add_argument("--max-rms", type=finite_number("pixels", allow_minimum=False), default=1.0,
                         help="fail (exit 1) when the stereo RMS error exceeds this many pixels (default 1.0)")
 
 

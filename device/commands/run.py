@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import argparse
 
+from stereopath.device.commands.arg_types import finite_number
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", default=None, metavar="FILE",
@@ -28,16 +30,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="override imu.backend")
     parser.add_argument("--out", default=None, metavar="DIR",
                         help="session folder (must not exist or be empty; default: recorder.dir/<session id>)")
-    parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds of capture")
+    parser.add_argument("--duration", type=finite_number("seconds", allow_minimum=False), default=None, metavar="S", help="stop after S seconds of capture")
     parser.add_argument("--frames", type=int, default=None, metavar="N", help="stop after N stereo pairs")
     parser.add_argument("--no-stream", action="store_true", help="do not stream (overrides stream.enabled)")
     parser.add_argument("--insecure", action="store_true",
                         help="stream without CURVE (refused unless both endpoints are loopback)")
     parser.add_argument("--status-file", default=None, metavar="PATH",
                         help='override service.status_file ("" = none)')
-    parser.add_argument("--wait-for-host", type=float, default=0.0, metavar="S",
+    parser.add_argument("--wait-for-host", type=finite_number("seconds"), default=0.0, metavar="S",
                         help="before capturing, wait up to S s for a host to connect (so it sees every pose)")
-    parser.add_argument("--drain", type=float, default=None, metavar="S",
+    parser.add_argument("--drain", type=finite_number("seconds"), default=None, metavar="S",
                         help="override stream.drain_s: wait up to S s at the end for a host to ack every keyframe")
 
 

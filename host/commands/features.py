@@ -18,13 +18,15 @@ import json
 import sys
 from pathlib import Path
 
+from stereopath.device.commands.arg_types import finite_number
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("img1", nargs="?", help="first (earlier) image")
     p.add_argument("img2", nargs="?", help="second (later) image")
     p.add_argument("--preset", default="fast", help="feature preset (see --list-presets; default fast)")
     p.add_argument("--homography", metavar="H1toNp.xml", help="ground-truth homography IMG1 -> IMG2")
-    p.add_argument("--tolerance", type=float, default=3.0, help="pixel tolerance of a correct match (default 3)")
+    p.add_argument("--tolerance", type=finite_number("pixels", allow_minimum=False), default=3.0, help="pixel tolerance of a correct match (default 3)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--list-presets", action="store_true", help="list the feature presets and exit")
 

@@ -22,6 +22,8 @@ import signal
 import sys
 import threading
 
+from stereopath.device.commands.arg_types import finite_number
+
 log = logging.getLogger(__name__)
 
 
@@ -38,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     view.add_argument("--rerun-save", metavar="FILE.rrd", help="write the rerun recording to FILE.rrd")
     parser.add_argument("--rig", metavar="FILE.yaml",
                         help="rig calibration for the rerun camera frustum, and for --map when the device sends none")
-    parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    parser.add_argument("--duration", type=finite_number("seconds", allow_minimum=False), default=None, metavar="S", help="stop after S seconds")
     parser.add_argument("--window", type=int, default=8, help="keyframes in flight (credit window)")
     parser.add_argument("--no-fsync", action="store_true", help="do not fsync each stored keyframe")
     parser.add_argument("--map", action="store_true",

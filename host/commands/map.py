@@ -12,13 +12,15 @@ from __future__ import annotations
 
 import argparse
 
+from stereopath.device.commands.arg_types import finite_number
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", metavar="SESSION_OR_KEYFRAMES_DIR", help="session folder or stored keyframes folder")
     p.add_argument("--out", required=True, help="output folder (created; existing model files are replaced)")
     p.add_argument("--preset", default="object", choices=["object", "room"],
                    help="depth range, voxel size and keyframe spacing for object scans (4 mm) or rooms (2 cm)")
-    p.add_argument("--voxel-mm", type=float, default=None, help="TSDF voxel size in mm (default from the preset)")
+    p.add_argument("--voxel-mm", type=finite_number("millimetres", allow_minimum=False), default=None, help="TSDF voxel size in mm (default from the preset)")
     p.add_argument("--poses", default=None, help="TUM or KITTI pose file to use instead of trajectory.tum")
     p.add_argument("--rig", default=None, help="rig YAML for stored keyframes (default: rig.yaml beside them)")
     p.add_argument("--stride", type=int, default=None,

@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import argparse
 
+from stereopath.device.commands.arg_types import finite_number
+
 # stereopath.host.reprocess.pipeline.REPROCESS_PRESETS (kept here so that building the parser imports nothing heavy;
 # a test checks they agree)
 PRESET_NAMES = ("standard", "aligned", "quick", "paper", "full")
@@ -54,8 +56,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     f.add_argument("--ray", default=None, metavar="auto|ADDRESS",
                    help="'auto' starts a local Ray (the default with several sessions); HOST:PORT joins a cluster")
     f.add_argument("--cpus", type=int, default=None, metavar="N", help="CPUs of the local Ray (default: all)")
-    f.add_argument("--task-cpus", type=float, default=1.0, metavar="N", help="CPUs declared per session (default 1)")
-    f.add_argument("--task-memory-gb", type=float, default=None, metavar="GB",
+    f.add_argument("--task-cpus", type=finite_number("CPUs", allow_minimum=False), default=1.0, metavar="N", help="CPUs declared per session (default 1)")
+    f.add_argument("--task-memory-gb", type=finite_number("GB"), default=None, metavar="GB",
                    help="memory declared per session (default 1.0 with the dense model, 0.6 without)")
     f.add_argument("--max-in-flight", type=int, default=None, metavar="N",
                    help="sessions at a time (default: what the cluster's CPUs and memory hold)")

@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from stereopath.device.core.arg_types import finite_number
+from stereopath.device.commands.arg_types import finite_number
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
