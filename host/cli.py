@@ -1,20 +1,24 @@
 """The ``stereopath`` command line: one entry point, subcommands in ``host/commands``.
 
 Known errors (:class:`stereopath.device.errors.StereopathError`) are printed on one line
-and give exit code 2; a read or write the system refused (``OSError``: disk full, read-only
-file system, no permission) is printed on one line with exit code 74 (``EX_IOERR``; its
+and give exit code 2; a read or write the system refused (:data:`REFUSED_IO`: disk full, read-only
+file system, no permission, a failing disk) is printed on one line with exit code 74 (``EX_IOERR``; its
 traceback with ``-vv``); anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import importlib.util
 import logging
 import sys
 
 from stereopath.device.errors import StereopathError
+
+# the system refused a read or write: disk full, quota, read-only, permission, a failing disk
+REFUSED_IO = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO})
 
 # name -> (module, one-line help).  Groups map to a nested table.
 COMMANDS: dict[str, tuple[str, str] | dict[str, tuple[str, str]]] = {
@@ -89,7 +93,9 @@ def main(argv: list[str] | None = None) -> int:
     except StereopathError as exc:
         print(f"stereopath: error: {exc}", file=sys.stderr)
         return 2
-    except OSError as exc:  # the system refused a read or write (disk full, read-only, permission): not a bug
+    except OSError as exc:
+        if exc.errno not in REFUSED_IO:  # anything else (a missing file we should have checked...) is a bug
+            raise
         logging.getLogger("stereopath").debug("system error", exc_info=True)
         print(f"stereopath: error: {exc}", file=sys.stderr)
         return 74  # EX_IOERR

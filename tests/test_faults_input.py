@@ -238,3 +238,15 @@ def test_host_sessions_on_a_recorded_session_says_what_it_is(session, capsys):
     assert _cli(["host", "sessions", str(session)]) == 2
     err = capsys.readouterr().err
     assert "is a session the device recorded, not the --out folder of `host live`" in err
+
+
+def test_an_out_holding_a_recorded_session_is_refused(session, tmp_path, capsys):
+    """`odometry euroc:S/mav0 --out S` names the session by its mav0: the folder holding mav0/ is refused too."""
+    d = _copy(session, tmp_path)
+    before = {p.name: p.read_bytes() for p in d.iterdir() if p.is_file()}
+    for argv in (["odometry", f"euroc:{d / 'mav0'}", "--out", str(d)],
+                 ["host", "reprocess", str(session), "--out", str(d)]):
+        assert _cli(argv) == 2
+        err = capsys.readouterr().err
+        assert f"--out {d}: holds a recorded session (mav0/)" in err and f"{d}-out" in err
+    assert {p.name: p.read_bytes() for p in d.iterdir() if p.is_file()} == before

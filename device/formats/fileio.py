@@ -67,19 +67,24 @@ def write_atomic(path: str | Path, data: bytes, fsync: bool = True, mode: int | 
         fsync_dir(p.parent)
 
 
-def check_out_folder(path: str | Path, option: str = "--out", inputs: Iterable[str | Path] = ()) -> None:
+def check_out_folder(path: str | Path, option: str = "--out", inputs: Iterable[str | Path] = (),
+                     not_a_session: bool = False) -> None:
     """Refuse, before anything is computed, an output folder path that names an existing file, that
-    is one of the ``inputs`` folders (the outputs would replace recorded files, e.g. a session's
-    on-board ``trajectory.tum``), or that cannot be written: the folder itself when it exists,
-    else the nearest folder above it that does (where it would be made) - read-only file system
-    or no permission."""
+    is one of the ``inputs`` folders or (``not_a_session``) holds a recorded session (``mav0/``):
+    run outputs would replace recorded files, e.g. a session's on-board ``trajectory.tum``; or
+    that cannot be written: the folder itself when it exists, else the nearest folder above it
+    that does (where it would be made) - read-only file system or no permission."""
     from stereopath.device.errors import ConfigError
 
     p = Path(path)
+    other = p.resolve().parent / (p.resolve().name + "-out")
     for src in inputs:
         if Path(src).is_dir() and p.resolve() == Path(src).resolve():
             raise ConfigError(f"{option} {p}: is the input folder {src}; its recorded files would be replaced "
-                              f"(give another folder, e.g. {p.parent / (p.resolve().name + '-out')})")
+                              f"(give another folder, e.g. {other})")
+    if not_a_session and (p / "mav0").is_dir():
+        raise ConfigError(f"{option} {p}: holds a recorded session (mav0/); its recorded files would be replaced "
+                          f"(give another folder, e.g. {other})")
     if p.exists() and not p.is_dir():
         raise ConfigError(f"{option} {p}: exists and is not a folder")
     where = p.absolute()

@@ -33,7 +33,8 @@ def run(args: argparse.Namespace) -> int:
 
     from stereopath.device.formats.fileio import check_out_folder
 
-    check_out_folder(args.out, inputs=[args.source.split(":", 1)[1]] if ":" in args.source else [])
+    check_out_folder(args.out, inputs=[args.source.split(":", 1)[1]] if ":" in args.source else [],
+                     not_a_session=True)
     if args.frames is not None and args.frames < 2:
         from stereopath.device.errors import ConfigError
 

@@ -99,7 +99,8 @@ def run_fleet_command(args: argparse.Namespace) -> int:
     sessions = expand_sessions(args.session)
     check_out_folder(args.out)
     for s in sessions:  # DIR/<session id>/ is the session itself when DIR is the folder holding the sessions
-        check_out_folder(Path(args.out) / s.id, option=f"--out {args.out}: session {s.id}'s output", inputs=[s.path])
+        check_out_folder(Path(args.out) / s.id, option=f"--out {args.out}: session {s.id}'s output", inputs=[s.path],
+                         not_a_session=True)
     settings = ReprocessSettings(preset=args.preset, do_map=not args.no_map, map_preset=args.map_preset,
                                  imu_priors=args.imu_priors, force=args.force,
                                  strict=bool(getattr(args, "strict", False)))
@@ -142,7 +143,7 @@ def run_one(args: argparse.Namespace) -> int:
 
     from stereopath.device.formats.fileio import check_out_folder
 
-    check_out_folder(args.out, inputs=[args.session])
+    check_out_folder(args.out, inputs=[args.session], not_a_session=True)
     start = time.perf_counter()
     try:
         res = reprocess_session(args.session, args.out, preset=args.preset, do_map=not args.no_map,

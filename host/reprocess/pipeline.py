@@ -244,7 +244,7 @@ def reprocess_session(session_dir: str | Path, out_dir: str | Path, preset: str 
     """
     from stereopath.device.formats.fileio import check_out_folder
 
-    check_out_folder(out_dir, option="output folder", inputs=[session_dir])  # never over the recording
+    check_out_folder(out_dir, option="output folder", inputs=[session_dir], not_a_session=True)  # never over the recording
     seq = open_session_checked(session_dir)
     from stereopath.device.core.stereo_order import check_sequence_order
 
