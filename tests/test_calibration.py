@@ -235,3 +235,16 @@ def test_calibrate_imu_durations_must_be_finite_and_positive(option, value, caps
         main(["device", "calibrate-imu", "live", "--imu", "emulated", option, value])
     assert info.value.code == 2
     assert f"argument {option}: must be a finite number of seconds above 0" in capsys.readouterr().err
+
+
+def test_calibrate_stereo_out_is_checked_before_the_work(tmp_path, capsys):
+    from stereopath.host.cli import main
+
+    missing = str(tmp_path / "no-such-images")  # would fail too, but only after the --out check
+    assert main(["device", "calibrate-stereo", missing, "--square-mm", "25", "--out", str(tmp_path)]) == 2
+    assert f"--out {tmp_path}: is a folder; give the file to write, e.g. {tmp_path / 'rig.yaml'}" in \
+        capsys.readouterr().err
+    (tmp_path / "afile").write_text("x")
+    assert main(["device", "calibrate-stereo", missing, "--square-mm", "25",
+                 "--out", str(tmp_path / "afile" / "rig.yaml")]) == 2
+    assert "afile: exists and is not a folder" in capsys.readouterr().err

@@ -183,7 +183,8 @@ def test_a_refused_write_is_one_line_not_a_traceback(tmp_path, capsys, monkeypat
 
 def test_the_model_is_written_inside_its_folder(tmp_path, monkeypatch):
     """write_map's temporary folder is inside the model folder (a mount point, or a parent that cannot be
-    written, works), a killed writer's leftover is removed, and only the four files remain."""
+    written, works), a killed writer's old leftover is removed (not one another writer may be using), and
+    only the four files are added."""
     from stereopath.host.mapping import fusion, mapper, preview
 
     out = tmp_path / "parent" / "model"
@@ -196,11 +197,14 @@ def test_the_model_is_written_inside_its_folder(tmp_path, monkeypatch):
     for mod, name in ((fusion, "write_mesh"), (fusion, "write_cloud"), (preview, "write_png")):
         monkeypatch.setattr(mod, name, write)
     out.mkdir(parents=True)
-    (out / f"{mapper.MAP_TEMP_PREFIX}dead.tmp").mkdir()  # left by a writer that was killed
+    dead, busy = out / f"{mapper.MAP_TEMP_PREFIX}dead.tmp", out / f"{mapper.MAP_TEMP_PREFIX}busy.tmp"
+    dead.mkdir()  # left by a writer that was killed two hours ago
+    os.utime(dead, (time.time() - 7200, time.time() - 7200))
+    busy.mkdir()  # another writer's, now
     (out / "report.json").write_text("{}")
     mapper.write_map(mapper.MapResult(mesh=None, cloud=None, preview=None, stats={"k": 1}), out)
     assert seen == [out] * 3
-    assert sorted(p.name for p in out.iterdir()) == sorted([*mapper.MAP_FILES, "report.json"])
+    assert sorted(p.name for p in out.iterdir()) == sorted([*mapper.MAP_FILES, "report.json", busy.name])
     assert [p.name for p in out.parent.iterdir()] == ["model"]
 
 

@@ -9,12 +9,9 @@ stretch (--window auto) or explicit times in seconds (--window T0:T1).
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
 from stereopath.device.commands.arg_types import finite_number
-
-MAX_ABS_TIME_S = 9.2e9  # int64 nanoseconds reach about 9.22e9 s either side of the clock's zero
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,15 +37,22 @@ def _window(samples, frames_t, spec: str, min_still_s: float):
         return int(frames_t[0]), int(frames_t[-1])
     if spec == "auto":
         return detect_still_window(samples, min_duration_s=min_still_s)
+    from decimal import InvalidOperation
+
+    from stereopath.device.formats.tum import seconds_to_ns
+
+    parts = spec.split(":")
     try:
-        a, b = (float(v) for v in spec.split(":"))
-    except ValueError:
+        if len(parts) != 2:
+            raise InvalidOperation
+        a, b = (seconds_to_ns(v.strip()) for v in parts)
+    except InvalidOperation:
         raise CalibrationError(f"--window {spec!r}: expected frames, auto or T0:T1 in seconds") from None
-    if not all(math.isfinite(v) and abs(v) <= MAX_ABS_TIME_S for v in (a, b)):
-        raise CalibrationError(f"--window {spec!r}: T0 and T1 must be finite times within +-{MAX_ABS_TIME_S:g} s")
+    except ValueError:  # not finite, or beyond int64 nanoseconds
+        raise CalibrationError(f"--window {spec!r}: T0 and T1 must be finite times (int64 nanoseconds)") from None
     if b <= a:
         raise CalibrationError(f"--window {spec!r}: T1 must be after T0")
-    return int(round(a * 1e9)), int(round(b * 1e9))
+    return a, b
 
 
 def _live(args):
@@ -82,28 +86,15 @@ def _live(args):
     return ImuSamples.concat(blocks), None
 
 
-def _check_out(out: str) -> Path:
-    """Refuse, before the IMU is read or anything computed, an --out that cannot be written:
-    an existing folder or other non-file, or a folder above it that is a file or not writable."""
-    from stereopath.device.errors import ConfigError
-    from stereopath.device.formats.fileio import check_out_folder
-
-    p = Path(out)
-    if p.is_dir():
-        raise ConfigError(f"--out {p}: is a folder; give the YAML file to write, e.g. {p / 'imu_calibration.yaml'}")
-    if p.exists() and not p.is_file():
-        raise ConfigError(f"--out {p}: exists and is not a regular file")
-    check_out_folder(p.parent, option=f"--out {p}: the folder")
-    return p
-
-
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from stereopath.device.core.calibration import imu_still_calibration
     from stereopath.device.errors import CalibrationError, DatasetError
 
-    out = _check_out(args.out) if args.out else None
+    from stereopath.device.formats.fileio import check_out_file
+
+    out = check_out_file(args.out, example="imu_calibration.yaml") if args.out else None
     if args.source == "live":
         samples, frames_t = _live(args)
         window = args.window or "auto"

@@ -51,9 +51,13 @@ def run(args: argparse.Namespace) -> int:
     from stereopath.device.errors import CalibrationError
     from stereopath.device.formats.rig_files import save_rig_yaml
 
+    from stereopath.device.formats.fileio import check_out_file
+
     board = parse_board(args.board)
     if args.square_mm <= 0:
         raise CalibrationError(f"--square-mm must be positive, got {args.square_mm}")
+    if args.out:
+        check_out_file(args.out, example="rig.yaml")  # before the corners are searched in every pair
     pairs = find_pairs(Path(args.images_dir))
     left_c, right_c, size = [], [], None
     for key, lp, rp in pairs:

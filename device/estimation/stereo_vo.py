@@ -54,7 +54,7 @@ from stereopath.device.errors import ConfigError
 from stereopath.device.estimation.base import PoseEstimate, WorldFrame
 from stereopath.device.estimation.inertial import (GyroIntegrator, VisionGyroBias, estimate_still,
                                                    gravity_aligned_rotation)
-from stereopath.device.core.features import gray
+from stereopath.device.core.features import get_preset, gray
 from stereopath.device.core.photometric import (GainOffset, correct_right, fit_gain_offset, measure_relation,
                                                 relation_matters)
 from stereopath.device.core.stereo import stereo_right, undistort_px
@@ -128,8 +128,6 @@ class StereoConfig:
     exposure_tolerance: float = 4.0
 
     def __post_init__(self) -> None:
-        from stereopath.device.core.features import get_preset
-
         get_preset(self.feature_preset)  # an unknown name is refused here, not by each keyframe's job
         check_range("max_points", self.max_points, 20, 20000)
         check_range("min_tracked", self.min_tracked, 8, self.max_points)

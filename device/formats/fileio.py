@@ -97,6 +97,20 @@ def check_out_folder(path: str | Path, option: str = "--out", inputs: Iterable[s
         raise ConfigError(f"{option} {p}: cannot write in {where} ({why})")
 
 
+def check_out_file(path: str | Path, option: str = "--out", example: str = "out.yaml") -> Path:
+    """Refuse, before anything is computed, an output file path that is a folder or another non-file,
+    or whose folder is a file or cannot be written (see :func:`check_out_folder`)."""
+    from stereopath.device.errors import ConfigError
+
+    p = Path(path)
+    if p.is_dir():
+        raise ConfigError(f"{option} {p}: is a folder; give the file to write, e.g. {p / example}")
+    if p.exists() and not p.is_file():
+        raise ConfigError(f"{option} {p}: exists and is not a regular file")
+    check_out_folder(p.parent, option=f"{option} {p}: the folder")
+    return p
+
+
 def _read_only_fs(path: Path) -> bool:
     try:
         return bool(os.statvfs(path).f_flag & os.ST_RDONLY)
@@ -129,17 +143,6 @@ def cut_torn_tail(path: str | Path, window: int = 1 << 16) -> int:
         return 0
 
 
-def process_umask() -> int:
-    """The process umask, read without changing it where the system allows (Linux /proc)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("Umask:"):
-                return int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    mask = os.umask(0o022)  # no /proc: set and restore (not thread-safe, so only as a fallback)
-    os.umask(mask)
-    return mask
 def write_renamed_open(path: str | Path, data: bytes) -> int:
     """Write ``data`` through the temporary name and rename it now, returning the still open descriptor.
 

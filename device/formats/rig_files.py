@@ -63,6 +63,7 @@ def save_rig_yaml(rig: Rig, path: str | Path, comment: str | None = None) -> Non
 
     text = yaml.safe_dump(rig_to_dict(rig), sort_keys=False, default_flow_style=None)
     header = "".join(f"# {line}\n" for line in (comment or "").splitlines())
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(path, header + text)
 
 

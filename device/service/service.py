@@ -380,10 +380,13 @@ class CaptureService:
             return
         self._recording_finished = True
         p = self.parts
-        p.recording.write_groundtruth(getattr(getattr(p.source, "session", None), "groundtruth", None))
-        summary = self.pipeline.estimator_summary() if self.pipeline is not None else None
-        if summary is not None:
-            p.recording.write_json("estimator.json", summary)
+        try:  # the extras first; a failure there must not keep the recording from being closed
+            p.recording.write_groundtruth(getattr(getattr(p.source, "session", None), "groundtruth", None))
+            summary = self.pipeline.estimator_summary() if self.pipeline is not None else None
+            if summary is not None:
+                p.recording.write_json("estimator.json", summary)
+        except StereopathError as exc:
+            log.error("writing the recording's ground truth or estimator summary: %s", exc)
         try:
             p.recording.close()
         except StereopathError as exc:

@@ -89,10 +89,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_fleet_command(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from stereopath.host.fleet.progress import FleetProgress
     from stereopath.host.fleet.runner import FleetOptions, ReprocessSettings, run_fleet
     from stereopath.host.fleet.sessions import PathMap, expand_sessions
-    from pathlib import Path
 
     from stereopath.device.formats.fileio import check_out_folder
 

@@ -45,6 +45,7 @@ log = logging.getLogger(__name__)
 
 MAP_FILES = ("mesh.ply", "cloud.ply", "model.png", "map.json")
 MAP_TEMP_PREFIX = ".map-writing."  # the hidden folder write_map writes into, inside the model folder
+STALE_TEMP_S = 3600.0  # such a folder this old was left by a writer that was killed
 
 
 @dataclass(frozen=True)
@@ -295,7 +296,8 @@ def write_map(result: MapResult, out_dir: str | Path) -> dict[str, Path]:
     system, whether or not ``out_dir`` is a mount point, and nothing written beside it); only when
     all four files exist are they moved in, each by an atomic rename, ``map.json`` last.
     ``out_dir`` may already exist (other files in it are left alone).  A temporary folder left by
-    a writer that was killed is removed by the next write.
+    a writer that was killed is removed by a later write (once an hour old: another writer may be
+    using a newer one).
     """
     from stereopath.host.mapping.fusion import write_cloud, write_mesh
     from stereopath.host.mapping.preview import write_png
@@ -304,8 +306,12 @@ def write_map(result: MapResult, out_dir: str | Path) -> dict[str, Path]:
     if out.exists() and not out.is_dir():
         raise StereopathError(f"output {out} exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
-    for stale in out.glob(f"{MAP_TEMP_PREFIX}*.tmp"):
-        shutil.rmtree(stale, ignore_errors=True)
+    for stale in out.glob(f"{MAP_TEMP_PREFIX}*.tmp"):  # left by a killed writer (not one writing now)
+        try:
+            if time.time() - stale.stat().st_mtime > STALE_TEMP_S:
+                shutil.rmtree(stale, ignore_errors=True)
+        except OSError:
+            pass
     tmp = Path(tempfile.mkdtemp(prefix=MAP_TEMP_PREFIX, suffix=".tmp", dir=out))
     try:
         write_mesh(result.mesh, tmp / "mesh.ply")
