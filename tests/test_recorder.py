@@ -47,6 +47,14 @@ def make_imu(n, rng, temp=True):
                       rng.normal(size=(n, 3)) + [0, 0, 9.81], 25 + rng.normal(size=n) if temp else None)
 
 
+def clocked_recorder(out, chunk_s=1.0):
+    """A recorder on a plentiful disk whose flush clock the test sets (``t[0]``): rows are written when it
+    passes ``chunk_s``."""
+    t = [0.0]
+    return SessionRecorder(out, small_rig(), chunk_s=chunk_s, disk_usage=PLENTY, clock=lambda: t[0]), t
+
+
+
 def test_round_trip_layout_and_manifest(tmp_path):
     rng = np.random.default_rng(1)
     rig = small_rig()
@@ -138,8 +146,7 @@ def test_stops_cleanly_when_disk_runs_low(tmp_path, caplog):
 
 def test_disk_full_during_flush_stops(tmp_path, monkeypatch):
     rng = np.random.default_rng(3)
-    t = [0.0]
-    rec = SessionRecorder(tmp_path / "s", small_rig(), chunk_s=1.0, disk_usage=PLENTY, clock=lambda: t[0])
+    rec, t = clocked_recorder(tmp_path / "s")
     frames = make_frames(3, rng)
     rec.add_frame(frames[0])
     real = recmod._write_all
@@ -281,8 +288,7 @@ def test_disk_full_on_an_image_keeps_the_rows_of_the_frames_already_on_disk(tmp_
     """ENOSPC while writing frame 5's image: frames 0-4 (images on disk, rows still queued) stay readable with
     their IMU samples and poses, and the manifest counts what the files hold."""
     rng = np.random.default_rng(5)
-    t = [0.0]
-    rec = SessionRecorder(tmp_path / "s", small_rig(), chunk_s=100.0, disk_usage=PLENTY, clock=lambda: t[0])
+    rec, t = clocked_recorder(tmp_path / "s", chunk_s=100.0)
     frames = make_frames(6, rng)
     rec.add_imu(make_imu(30, rng))
     for f in frames[:5]:
@@ -303,32 +309,33 @@ def test_disk_full_on_an_image_keeps_the_rows_of_the_frames_already_on_disk(tmp_
     assert m["status"] == "stopped_low_disk" and m["counts"]["frames"] == 5 and m["counts"]["imu_samples"] == 30
 
 
-def test_rows_that_do_not_fit_are_cut_back_whole_and_taken_off_the_counts(tmp_path, monkeypatch):
+@pytest.mark.parametrize("cam,cut_short", [("cam0", True), ("cam1", False)])
+def test_rows_that_do_not_fit_are_cut_back_whole_and_taken_off_the_counts(tmp_path, monkeypatch, cam, cut_short):
     """A row write cut short by a full disk leaves no half row (a later row would be glued onto it and the whole
-    file would no longer read); the frames it held are taken off the manifest's counts."""
+    file would no longer read); a frame is lost when either camera's row is (cam0's rows written, cam1's not),
+    and the frames lost are taken off the manifest's counts."""
     rng = np.random.default_rng(6)
-    t = [0.0]
-    rec = SessionRecorder(tmp_path / "s", small_rig(), chunk_s=1.0, disk_usage=PLENTY, clock=lambda: t[0])
+    rec, t = clocked_recorder(tmp_path / "s")
     frames = make_frames(4, rng)
     assert rec.add_frame(frames[0]) and rec.add_frame(frames[1])
     rec.flush()
     assert rec.add_frame(frames[2])
     real_write = os.write
-    cam0 = rec._fds["cam0"]
+    fd_full = rec._fds[cam]
 
-    def half_then_full(fd, data):
-        if fd == cam0:
-            if len(data) > 8:
-                return real_write(fd, bytes(data[: len(data) // 2]))
-            raise OSError(errno.ENOSPC, "No space left on device")
-        return real_write(fd, data)
+    def full(fd, data):
+        if fd != fd_full:
+            return real_write(fd, data)
+        if cut_short and len(data) > 8:
+            return real_write(fd, bytes(data[: len(data) // 2]))
+        raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(recmod.os, "write", half_then_full)
+    monkeypatch.setattr(recmod.os, "write", full)
     t[0] = 2.0
     assert rec.add_frame(frames[3]) is False
     monkeypatch.setattr(recmod.os, "write", real_write)
     rec.close()
-    text = (tmp_path / "s" / "mav0" / "cam0" / "data.csv").read_text()
+    text = (tmp_path / "s" / "mav0" / cam / "data.csv").read_text()
     assert text.endswith("\n") and all(len(line.split(",")) == 2 for line in text.splitlines()[1:])
     s = open_session(tmp_path / "s")
     assert len(s) == 2
@@ -358,8 +365,7 @@ def test_disk_full_on_an_image_fsync_writes_no_row_for_those_frames(tmp_path, mo
     """A durable row always points at a durable image: when the images' fsync fails, their frames' rows are not
     written by the stop's salvage (the IMU rows are), and the counts say so."""
     rng = np.random.default_rng(7)
-    t = [0.0]
-    rec = SessionRecorder(tmp_path / "s", small_rig(), chunk_s=1.0, disk_usage=PLENTY, clock=lambda: t[0])
+    rec, t = clocked_recorder(tmp_path / "s")
     frames = make_frames(3, rng)
     rec.add_imu(make_imu(10, rng))
     assert rec.add_frame(frames[0])
@@ -381,28 +387,3 @@ def test_disk_full_on_an_image_fsync_writes_no_row_for_those_frames(tmp_path, mo
     s = open_session(tmp_path / "s")
     assert len(s) == 1 and len(s.imu) == 10
     assert s.manifest["counts"]["frames"] == 1 and s.manifest["counts"]["frames_lost_disk_full"] == 2
-
-
-def test_a_frame_whose_second_camera_row_is_cut_is_counted_lost(tmp_path, monkeypatch):
-    rng = np.random.default_rng(8)
-    t = [0.0]
-    rec = SessionRecorder(tmp_path / "s", small_rig(), chunk_s=1.0, disk_usage=PLENTY, clock=lambda: t[0])
-    frames = make_frames(3, rng)
-    assert rec.add_frame(frames[0])
-    rec.flush()
-    assert rec.add_frame(frames[1])
-    real_write = os.write
-    cam1 = rec._fds["cam1"]
-
-    def full_on_cam1(fd, data):
-        if fd == cam1:
-            raise OSError(errno.ENOSPC, "No space left on device")
-        return real_write(fd, data)
-
-    monkeypatch.setattr(recmod.os, "write", full_on_cam1)
-    t[0] = 2.0
-    assert rec.add_frame(frames[2]) is False  # cam0's rows of frames 1-2 are written, cam1's are not
-    monkeypatch.setattr(recmod.os, "write", real_write)
-    rec.close()
-    s = open_session(tmp_path / "s")
-    assert len(s) == 1 and s.manifest["counts"]["frames"] == 1 and s.manifest["counts"]["frames_lost_disk_full"] == 2
