@@ -265,3 +265,9 @@ def test_numeric_options_refuse_nan_inf_and_negatives(capsys, argv, option, valu
         _cli(argv + [value])
     assert info.value.code == 2
     assert f"argument {option}: must be a finite number" in capsys.readouterr().err
+
+
+def test_an_out_name_too_long_is_one_line(tmp_path, capsys):
+    assert _cli(["host", "reprocess", str(tmp_path), "--out", str(tmp_path / ("x" * 300))]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "File name too long" in err

@@ -132,3 +132,44 @@ def test_a_keyframe_refused_by_a_full_host_disk_is_asked_for_again_as_soon_as_st
         rx.close()
         dev.close()
     assert_exactly_once(out, "sessH", dev.spool)
+
+
+def test_a_keyframe_that_keeps_failing_does_not_set_off_a_resend_loop(tmp_path, monkeypatch):
+    """Keyframe 2 never fits: the duplicates the device resends after each hello are not taken as the disk
+    working again, and hellos for the refused keyframe come at most once a second (there were hundreds)."""
+    import errno
+    import time
+
+    import numpy as np
+
+    from stereopath.host.live import receiver as receiver_mod
+    from stereopath.host.live import store as store_mod
+    from stereopath.host.live.receiver import Receiver
+    from stereopath.host.live.receiver_config import ReceiverConfig
+    from tests.test_streaming_support import make_device, small_images, wait_for
+
+    real = store_mod.write_atomic
+
+    def never_2(path, data, *a, **k):
+        if "00000002" in str(path):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(path, data, *a, **k)
+
+    monkeypatch.setattr(store_mod, "write_atomic", never_2)
+    dev = make_device(tmp_path, None, "sessL")
+    rx = Receiver(ReceiverConfig(dev.pose_endpoint, dev.keyframe_endpoint, insecure=True, fsync=False,
+                                 heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
+                                 reconnect_ivl_max_ms=400, stall_timeout_s=60.0), tmp_path / "out")
+    try:
+        for i in range(6):
+            assert dev.offer_keyframe(i, i * 50_000_000, np.eye(4), *small_images(i))
+        assert dev.wait_spooled(6, 10)
+        start = time.monotonic()
+        wait_for(lambda: False, 3.0, between=lambda: rx.poll(0.02))
+        elapsed = time.monotonic() - start
+        assert rx.store.session("sessL").acked_seq == 1
+        assert rx.stats.link["hellos"] <= 2 + elapsed / receiver_mod.RECOVERY_HELLO_MIN_S
+        assert dev.stats()["keyframes_resent"] <= 4 * (1 + elapsed / receiver_mod.RECOVERY_HELLO_MIN_S)
+    finally:
+        rx.close()
+        dev.close()

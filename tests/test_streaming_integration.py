@@ -412,6 +412,7 @@ def test_a_keyframe_the_host_did_not_acknowledge_is_not_taken_as_stored(tmp_path
         time.sleep(0.2)
         assert acked() == 1  # not 5: keyframe 2 is not on the host
         assert dev.spool.memory_count == n - 2  # 0 and 1 freed; 2-5 kept for the resend
+        assert dev.spool.memory_unacked_count == 1  # only 2 would be lost if the device stopped now
         d.send(encode_hello(Hello("sessG", 1, 8)))  # what the host's stall check sends
         assert wait_for(lambda: acked() == n - 1, 10, between=receive)
         assert got[n:] == [2, 3, 4, 5]  # resent from the hole
@@ -440,3 +441,21 @@ def test_poses_appended_after_a_torn_last_line_still_read(tmp_path):
         dev.close()
     traj = read_tum(out / "sessT" / "poses.tum")
     assert len(traj) == 1 + rx.stats.received["pose"] and traj.t_ns[0] == 1
+
+
+def test_a_failed_pose_write_leaves_no_torn_line_even_if_the_host_stops_then(tmp_path):
+    """The torn tail a refused write leaves is cut at once, not only at the next append (the host may stop
+    while its disk is still full)."""
+    import errno
+
+    dev = make_device(tmp_path, None, "sessU")
+    out = tmp_path / "out"
+    rx = _receiver(dev, None, out)
+    try:
+        (out / "sessU").mkdir(parents=True)
+        (out / "sessU" / "poses.tum").write_text("0.000000001 0 0 0 0 0 0 1\n0.5 0.1 0.2")
+        rx._pose_write_failed("sessU", OSError(errno.ENOSPC, "No space left on device"))
+    finally:
+        rx.close()
+        dev.close()
+    assert len(read_tum(out / "sessU" / "poses.tum")) == 1

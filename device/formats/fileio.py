@@ -76,7 +76,15 @@ def check_out_folder(path: str | Path, option: str = "--out", inputs: Iterable[s
     that does (where it would be made) - read-only file system or no permission."""
     from stereopath.device.errors import ConfigError
 
-    p = Path(path)
+    try:
+        _check_out_folder(Path(path), option, inputs, not_a_session)
+    except OSError as exc:  # a name too long, a loop of links...: the path itself is unusable
+        raise ConfigError(f"{option} {path}: {exc.strerror or exc}") from None
+
+
+def _check_out_folder(p: Path, option: str, inputs: Iterable[str | Path], not_a_session: bool) -> None:
+    from stereopath.device.errors import ConfigError
+
     other = p.resolve().parent / (p.resolve().name + "-out")
     for src in inputs:
         if Path(src).is_dir() and p.resolve() == Path(src).resolve():

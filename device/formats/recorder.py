@@ -69,11 +69,13 @@ def _write_all(fd: int, data: bytes) -> None:
 
 
 def _append_whole(fd: int, data: bytes) -> None:
-    """Append ``data`` (whole rows) or nothing: a write cut short (disk full) is cut back off the file,
-    so no half row is left for a later row to be glued onto."""
+    """Append ``data`` (whole rows) durably or nothing: a write cut short or whose fsync fails (disk
+    full) is cut back off the file, so no half row is left for a later row to be glued onto, and no
+    row is counted that may not be on disk."""
     start = os.lseek(fd, 0, os.SEEK_END)
     try:
         _write_all(fd, data)
+        os.fsync(fd)
     except OSError:
         try:
             os.ftruncate(fd, start)
@@ -406,8 +408,7 @@ class SessionRecorder:
             if lines:
                 fd = self._fds[key]
                 _append_whole(fd, "".join(lines).encode())
-                self._pending[key] = []  # only once written: a failed write is tried again at the stop
-                os.fsync(fd)
+                self._pending[key] = []  # only once durable: a failed write is tried again at the stop
         self._last_flush = self._clock()
 
     def _salvage_rows(self) -> None:

@@ -399,8 +399,8 @@ class CaptureService:
         f = self.parts.streaming.status_fields()
         if rec_state != "stopped_low_disk" and not f.get("spool_disk_full"):
             return
-        msg = (f"disk full: recording {rec_state}; {f.get('keyframes_in_memory', 0)} keyframe(s) held in memory "
-               f"were not acknowledged by a host (lost now), {f.get('keyframes_failed', 0)} could not be kept")
+        msg = (f"disk full: recording {rec_state}; {f.get('keyframes_in_memory_unacked', 0)} keyframe(s) held in "
+               f"memory were not acknowledged by a host (lost now), {f.get('keyframes_failed', 0)} could not be kept")
         log.error("%s", msg)
         self.notifier.notify(STATUS=msg)
         if self.exit_code == EXIT_OK:

@@ -186,6 +186,7 @@ class StreamingSink(NoStreaming):
                 "keyframes_refused": s.get("keyframes_refused", 0),
                 "keyframes_failed": s.get("keyframes_failed", 0),
                 "spool_disk_full": s.get("spool_disk_full"), "keyframes_in_memory": s.get("keyframes_in_memory", 0),
+                "keyframes_in_memory_unacked": s.get("keyframes_in_memory_unacked", 0),
                 "backlog_keyframes": s.get("backlog_keyframes", 0), "backlog_sessions": s.get("backlog_sessions", 0)}
 
     def publish_health(self, status: dict[str, Any]) -> None:
@@ -214,8 +215,10 @@ class StreamingSink(NoStreaming):
                 return
             time.sleep(0.05)
         left = st.stats().get("backlog_keyframes", 0)
-        log.warning("stopping with keyframes not yet acknowledged by any host (they stay in %s%s; the next run "
-                    "offers them again)", st.spool.dir, f", and {left} of earlier sessions" if left else "")
+        in_memory = st.spool.memory_count
+        log.warning("stopping with keyframes not yet acknowledged by any host (those on disk stay in %s%s; the "
+                    "next run offers them again%s)", st.spool.dir, f", and {left} of earlier sessions" if left else "",
+                    f"; {in_memory} held in memory, the disk being full, do not" if in_memory else "")
 
     def close(self) -> None:
         self.streamer.close()

@@ -177,8 +177,15 @@ class KeyframeSpool:
 
     @property
     def memory_count(self) -> int:
-        """Keyframes held only in memory (not yet acknowledged by any host)."""
+        """Keyframes held only in memory (not yet freed: see :meth:`release`)."""
         return len(self._memory)
+
+    @property
+    def memory_unacked_count(self) -> int:
+        """Keyframes held only in memory that no host acknowledged (lost if the device stops now); those a
+        host acknowledged past a gap are held for a resend but are on that host."""
+        with self._mem_lock:
+            return sum(1 for s in self._memory if s > self.acked_seq and s not in self._acked_above)
 
     def read(self, seq: int) -> bytes:
         """The bytes of keyframe ``seq`` (raises :class:`DatasetError` if it is not spooled)."""

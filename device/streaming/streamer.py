@@ -204,6 +204,7 @@ class DeviceStreamer:
         out["spool_count"] = self.spool.count
         out["spool_disk_full"] = self.spool.disk_full
         out["keyframes_in_memory"] = self.spool.memory_count
+        out["keyframes_in_memory_unacked"] = self.spool.memory_unacked_count
         out["keyframes_held_in_memory"] = self.spool.held_in_memory
         out["keyframes_acked"] = self.spool.acked_seq + 1
         out.update(self.backlog.summary())

@@ -53,6 +53,8 @@ from stereopath.host.live.store import KeyframeStore, list_sessions
 
 log = logging.getLogger(__name__)
 
+RECOVERY_HELLO_MIN_S = 1.0  # seconds between hellos asking for refused keyframes once storing works again
+
 class Receiver(LinkControl):
     """Receives from one device into ``out_dir``; drive it with :meth:`poll` or :meth:`run`."""
 
@@ -85,6 +87,7 @@ class Receiver(LinkControl):
         self._pose_rate, self._kf_rate = EventRate(), EventRate()
         self._pose_window: collections.deque[tuple[float, int]] = collections.deque(maxlen=4096)
         self._hello_pending = False
+        self._hello_after: float | None = None  # a hello due then (storing works again after a refusal)
         self._last_progress = time.monotonic()
         self._next_stats = time.monotonic()
         self._auth_warned = False
@@ -140,7 +143,8 @@ class Receiver(LinkControl):
         if self.dealer in events:
             n += self._drain(self.dealer, "keyframe", 64)
         now = time.monotonic()
-        if self._hello_pending:
+        if self._hello_pending or (self._hello_after is not None and now >= self._hello_after):
+            self._hello_after = None
             self._send_hello()
         self._check_stall(now)
         self._update_live(now)
@@ -329,6 +333,12 @@ class Receiver(LinkControl):
                 fh.close()
             except OSError:
                 pass  # what the buffer held is lost with the write that failed
+        from stereopath.device.formats.fileio import cut_torn_tail
+
+        try:  # now, not only at the next append: the host may stop before the disk has room again
+            cut_torn_tail(self.out / sid / "poses.tum")
+        except OSError:
+            pass
         with self.lock:
             self.stats.link["poses_unsaved"] += 1
             first = self.stats.link["poses_unsaved"] == 1 or "poses" not in self._warned
@@ -360,11 +370,13 @@ class Receiver(LinkControl):
         except OSError as exc:  # disk full, read-only, ...: not acknowledged, so the device keeps it
             self._storage_failed(f"keyframe {kf.seq} of session {kf.session_id}", exc)
             return
-        if self.storage_error is not None:
+        if self.storage_error is not None and new:  # a duplicate writes nothing: it says nothing of the disk
             log.info("storing keyframes again (after: %s): hello, so the device resends the ones refused",
                      self.storage_error)
             self.storage_error = None
-            self._hello_pending = True  # now, not after a stall: a run's end waits only stream.drain_s for hosts
+            # soon, not after a stall (a run's end waits only stream.drain_s for hosts), but at most once per
+            # RECOVERY_HELLO_MIN_S: a keyframe that keeps failing must not have the device resend in a loop
+            self._hello_after = max(time.monotonic(), self._last_hello_at + RECOVERY_HELLO_MIN_S)
         self.sessions.on_count(kf.session_id, kf.seq + 1)  # the device holds at least this many
         now = time.monotonic()
         with self.lock:
