@@ -215,19 +215,21 @@ def test_outputs_never_replace_the_recording(session, tmp_path, capsys):
     and, for the odometry, estimator.json: refused before any work, for one session, the fleet (DIR/<id>/ is the
     session when DIR holds it) and the library call."""
     from stereopath.device.errors import ConfigError
-    from stereopath.host.reprocess.pipeline import reprocess_session
-
     from stereopath.host.fleet.sessions import session_id
+    from stereopath.host.reprocess.pipeline import reprocess_session
 
     d = tmp_path / session_id(session)  # a folder named as the fleet names its output folders
     shutil.copytree(session, d)
     (d / "trajectory.tum").write_text("0.0 0 0 0 0 0 0 1\n")
     before = {p.name: p.read_bytes() for p in d.iterdir() if p.is_file()}
-    for argv in (["host", "reprocess", str(d), "--out", str(d)], ["odometry", f"session:{d}", "--out", str(d)],
-                 ["host", "reprocess", str(d), str(d), "--out", str(tmp_path), "--cpus", "1"]):
+    for argv in (["host", "reprocess", str(d), "--out", str(d)], ["odometry", f"session:{d}", "--out", str(d)]):
         assert _cli(argv) == 2
         err = capsys.readouterr().err
         assert "Traceback" not in err and f"is the input folder {d}" in err
+    assert _cli(["host", "reprocess", str(d), str(d), "--out", str(tmp_path), "--cpus", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and f"output folder {d} is a recorded session" in err
+    assert f"e.g. {tmp_path.parent / 'reprocessed'}" in err  # another folder, not one inside the sessions'
     with pytest.raises(ConfigError, match="is the input folder"):
         reprocess_session(d, d / ".." / d.name)
     assert {p.name: p.read_bytes() for p in d.iterdir() if p.is_file()} == before
