@@ -40,6 +40,7 @@ from stereopath.device.errors import DatasetError
 from stereopath.device.wire.protocol import Ack, Credit, DecodeError, Hello, decode_control
 from stereopath.device.service.settings import StreamSettings
 from stereopath.device.wire.sockets import CurveKeys, bind_or_close, open_socket
+from stereopath.device.streaming.acks import ContiguousAcks
 from stereopath.device.streaming.backlog import Backlog
 from stereopath.device.streaming.spool import KeyframeSpool
 
@@ -55,7 +56,7 @@ def _conn_id(key: str, routing_id: bytes) -> str:
 
 
 class _Peer:
-    __slots__ = ("key", "conn", "routing_id", "next_seq", "credit", "acked", "acked_above", "max_sent", "connected",
+    __slots__ = ("key", "conn", "routing_id", "next_seq", "credit", "acks", "max_sent", "connected",
                  "last_heard", "bl_cursor", "bl_info_sent", "bl_inflight")
 
     def __init__(self, key: str, routing_id: bytes) -> None:
@@ -64,12 +65,16 @@ class _Peer:
         self.routing_id = routing_id
         self.next_seq = 0
         self.credit = 0
-        self.acked = -1  # the highest seq this host holds with every seq before it (acks are per keyframe)
-        self.acked_above: set[int] = set()  # acknowledged past a gap: a keyframe the host could not store
+        self.acks = ContiguousAcks()  # acks are per keyframe: a keyframe the host could not store leaves a gap
         self.max_sent = -1
         self.connected = True
         self.last_heard = time.monotonic()
         self.restart_backlog()
+
+    @property
+    def acked(self) -> int:
+        """The highest seq this host holds with every seq before it."""
+        return self.acks.acked
 
     def restart_backlog(self) -> None:
         self.bl_cursor = (0, -1)                    # (backlog session index, last seq sent)
@@ -172,8 +177,7 @@ class KeyframeServer:
             peer.connected = True
             peer.last_heard = time.monotonic()
             acked = msg.acked_seq if msg.session_id == self.session_id else -1
-            peer.acked = min(acked, self.spool.last_seq)
-            peer.acked_above.clear()
+            peer.acks.reset(min(acked, self.spool.last_seq), keep_above=False)
             peer.next_seq = peer.acked + 1
             peer.credit = min(msg.credit, self.config.max_credit)
             peer.restart_backlog()
@@ -199,11 +203,7 @@ class KeyframeServer:
             if msg.session_id == self.session_id and msg.seq <= peer.max_sent:
                 # an ack is for its own keyframe only: one the host could not store (its disk full) stays
                 # unacknowledged before it, to be resent after the host's next hello
-                if msg.seq > peer.acked:
-                    peer.acked_above.add(msg.seq)
-                    while peer.acked + 1 in peer.acked_above:
-                        peer.acked += 1
-                        peer.acked_above.discard(peer.acked)
+                peer.acks.add(msg.seq)
                 self.spool.release(peer.acked)  # held by a host: what a full disk kept in memory can go
                 self.spool.mark_acked(msg.seq)
             elif (msg.session_id, msg.seq) in peer.bl_inflight and self.backlog is not None:

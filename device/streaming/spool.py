@@ -35,6 +35,7 @@ from pathlib import Path
 from stereopath.device.errors import DatasetError
 from stereopath.device.formats import fileio
 from stereopath.device.formats.fileio import is_temp
+from stereopath.device.streaming.acks import ContiguousAcks
 
 log = logging.getLogger(__name__)
 
@@ -86,8 +87,7 @@ class KeyframeSpool:
                                f"({len(seqs)} files, last seq {seqs[-1]})")
         self._count = len(seqs)
         self.bytes_written = 0
-        self.acked_seq = read_acked(self.dir)
-        self._acked_above: set[int] = set()  # acknowledged seqs past a gap (bounded by what is in flight)
+        self._acks = ContiguousAcks(read_acked(self.dir))  # what hosts acknowledged, over the whole recording
 
     @property
     def count(self) -> int:
@@ -160,20 +160,18 @@ class KeyframeSpool:
         if seq <= self.acked_seq:
             return
         if upto:
-            self._acked_above = {s for s in self._acked_above if s > seq}
-            self.acked_seq = seq
-        else:
-            self._acked_above.add(seq)
-        before = self.acked_seq
-        while self.acked_seq + 1 in self._acked_above:
-            self.acked_seq += 1
-            self._acked_above.discard(self.acked_seq)
-        if self.acked_seq == before and not upto:
+            self._acks.reset(seq)
+        elif not self._acks.add(seq):
             return
         try:
             save_acked(self.dir, self.acked_seq)
         except OSError as exc:  # disk full: the next advance tries again; at worst a later run resends a few
             log.debug("keyframe spool %s: cannot record acked seq %d: %s", self.dir, self.acked_seq, exc)
+
+    @property
+    def acked_seq(self) -> int:
+        """The highest seq a host acknowledged with every seq before it (-1: none)."""
+        return self._acks.acked
 
     @property
     def memory_count(self) -> int:
@@ -185,7 +183,7 @@ class KeyframeSpool:
         """Keyframes held only in memory that no host acknowledged (lost if the device stops now); those a
         host acknowledged past a gap are held for a resend but are on that host."""
         with self._mem_lock:
-            return sum(1 for s in self._memory if s > self.acked_seq and s not in self._acked_above)
+            return sum(1 for s in self._memory if not self._acks.holds(s))
 
     def read(self, seq: int) -> bytes:
         """The bytes of keyframe ``seq`` (raises :class:`DatasetError` if it is not spooled)."""
