@@ -228,7 +228,7 @@ def test_outputs_never_replace_the_recording(session, tmp_path, capsys):
         assert "Traceback" not in err and f"is the input folder {d}" in err
     assert _cli(["host", "reprocess", str(d), str(d), "--out", str(tmp_path), "--cpus", "1"]) == 2
     err = capsys.readouterr().err
-    assert "Traceback" not in err and f"output folder {d} is a recorded session" in err
+    assert "Traceback" not in err and f"output folder {d}: is the input folder {d}" in err
     assert f"e.g. {tmp_path.parent / 'reprocessed'}" in err  # another folder, not one inside the sessions'
     with pytest.raises(ConfigError, match="is the input folder"):
         reprocess_session(d, d / ".." / d.name)

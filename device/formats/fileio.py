@@ -68,24 +68,26 @@ def write_atomic(path: str | Path, data: bytes, fsync: bool = True, mode: int | 
 
 
 def check_out_folder(path: str | Path, option: str = "--out", inputs: Iterable[str | Path] = (),
-                     not_a_session: bool = False) -> None:
+                     not_a_session: bool = False, instead: str | Path | None = None) -> None:
     """Refuse, before anything is computed, an output folder path that names an existing file, that
     is one of the ``inputs`` folders or (``not_a_session``) holds a recorded session (``mav0/``):
     run outputs would replace recorded files, e.g. a session's on-board ``trajectory.tum``; or
     that cannot be written: the folder itself when it exists, else the nearest folder above it
-    that does (where it would be made) - read-only file system or no permission."""
+    that does (where it would be made) - read-only file system or no permission.  ``instead``: the
+    folder a refusal suggests (default: ``<path>-out`` beside it)."""
     from stereopath.device.errors import ConfigError
 
     try:
-        _check_out_folder(Path(path), option, inputs, not_a_session)
+        _check_out_folder(Path(path), option, inputs, not_a_session, instead)
     except OSError as exc:  # a name too long, a loop of links...: the path itself is unusable
         raise ConfigError(f"{option} {path}: {exc.strerror or exc}") from None
 
 
-def _check_out_folder(p: Path, option: str, inputs: Iterable[str | Path], not_a_session: bool) -> None:
+def _check_out_folder(p: Path, option: str, inputs: Iterable[str | Path], not_a_session: bool,
+                      instead: str | Path | None) -> None:
     from stereopath.device.errors import ConfigError
 
-    other = p.resolve().parent / (p.resolve().name + "-out")
+    other = instead if instead is not None else p.resolve().parent / (p.resolve().name + "-out")
     for src in inputs:
         if Path(src).is_dir() and p.resolve() == Path(src).resolve():
             raise ConfigError(f"{option} {p}: is the input folder {src}; its recorded files would be replaced "

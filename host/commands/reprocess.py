@@ -95,17 +95,13 @@ def run_fleet_command(args: argparse.Namespace) -> int:
     from stereopath.host.fleet.runner import FleetOptions, ReprocessSettings, run_fleet
     from stereopath.host.fleet.sessions import PathMap, expand_sessions
 
-    from stereopath.device.errors import ConfigError
     from stereopath.device.formats.fileio import check_out_folder
 
     sessions = expand_sessions(args.session)
     check_out_folder(args.out)
     for s in sessions:  # DIR/<session id>/ is the session itself when DIR is the folder holding the sessions
-        out = Path(args.out) / s.id
-        if out.resolve() == s.path.resolve() or (out / "mav0").is_dir():
-            raise ConfigError(f"--out {args.out}: session {s.id}'s output folder {out} is a recorded session; its "
-                              f"recorded files would be replaced (give another folder, e.g. "
-                              f"{Path(args.out).resolve().parent / 'reprocessed'})")
+        check_out_folder(Path(args.out) / s.id, option=f"--out {args.out}: session {s.id}'s output folder",
+                         inputs=[s.path], not_a_session=True, instead=Path(args.out).resolve().parent / "reprocessed")
     settings = ReprocessSettings(preset=args.preset, do_map=not args.no_map, map_preset=args.map_preset,
                                  imu_priors=args.imu_priors, force=args.force,
                                  strict=bool(getattr(args, "strict", False)))

@@ -44,7 +44,7 @@ from stereopath.device.wire.protocol import KEYFRAME_LIMITS, POSE_LIMITS, SESSIO
 from stereopath.device.wire.security import load_host_keys
 from stereopath.device.wire.sockets import CurveKeys, open_socket, secure_channel
 from stereopath.device.formats.tum import ns_to_seconds_str
-from stereopath.device.formats.fileio import write_json_atomic
+from stereopath.device.formats.fileio import cut_torn_tail, write_json_atomic
 from stereopath.host.live.receiver_config import RECEIVER_JSON, ReceiverConfig
 from stereopath.host.live.receiver_link import LinkControl
 from stereopath.host.live.receiver_sessions import SessionCatalog, describe_incomplete
@@ -333,8 +333,6 @@ class Receiver(LinkControl):
                 fh.close()
             except OSError:
                 pass  # what the buffer held is lost with the write that failed
-        from stereopath.device.formats.fileio import cut_torn_tail
-
         try:  # now, not only at the next append: the host may stop before the disk has room again
             cut_torn_tail(self.out / sid / "poses.tum")
         except OSError:
@@ -354,8 +352,6 @@ class Receiver(LinkControl):
                 self._tum.pop(next(iter(self._tum))).close()
             d = self.out / sid
             d.mkdir(parents=True, exist_ok=True)
-            from stereopath.device.formats.fileio import cut_torn_tail
-
             if cut := cut_torn_tail(d / "poses.tum"):  # a full disk or a power cut tore the last line
                 log.warning("%s: cut a torn last line (%d bytes) before appending", d / "poses.tum", cut)
             fh = self._tum[sid] = (d / "poses.tum").open("a")
