@@ -19,10 +19,10 @@ def sim():
     return seq, frames
 
 
-def _run(sim, name, **kw):
+def _run(sim, name, n_frames=N, **kw):
     seq, frames = sim
     est = make_estimator(name, seq.rig, groundtruth=seq.groundtruth, **kw)
-    run = run_estimator(est, iter(frames), seq.imu)
+    run = run_estimator(est, iter(frames[:n_frames]), seq.imu)
     return run, evaluate(seq.groundtruth, run.trajectory)
 
 
@@ -54,13 +54,17 @@ def test_stereo_world_frame_is_gravity_aligned(sim, stereo_run):
 def test_paper_estimator_on_short_sim(sim):
     # Eq. 4 as written ignores the rotation between positions, which on an orbit costs about
     # depth x rotation per step; with that rotation removed the same pipeline must be accurate.
-    run, m = _run(sim, "paper", preset="fast_asym", options={"rotation_compensated": True})
-    assert len(run.estimates) == N // 4  # one position every frame_step = 4 frames
+    # The first 52 frames (the still start and 27 moving, 0.33 m): each position costs ~1.7 s of
+    # CPU (modified ASIFT at every step), and the two runs differ by a factor of ~45 already here.
+    n = 52
+    run, m = _run(sim, "paper", n_frames=n, preset="fast_asym", options={"rotation_compensated": True})
+    assert len(run.estimates) == n // 4  # one position every frame_step = 4 frames
     assert run.frames_tracked >= 0.9 * len(run.estimates)
+    assert m["path_length_m"] > 0.3
     assert m["end_error_m"] < 0.10 * m["path_length_m"]
-    as_written, m2 = _run(sim, "paper", preset="fast_asym")
-    assert len(as_written.estimates) == N // 4
-    assert m2["end_error_m"] > m["end_error_m"]  # the simplification of the paper shows
+    as_written, m2 = _run(sim, "paper", n_frames=n, preset="fast_asym")
+    assert len(as_written.estimates) == n // 4
+    assert m2["end_error_m"] > 10 * m["end_error_m"]  # the simplification of the paper shows
 
 
 def test_sfm_baseline_on_short_sim(sim):

@@ -154,19 +154,30 @@ def test_the_refined_rig_is_written_only_when_a_disparity_offset_was_applied(ful
 def test_resume_after_an_interruption(full_run, session, tmp_path):
     ref_out, ref, _ = full_run
     out = tmp_path / "out"
+    seen: list[str] = []
 
     def stop_after_ba(name: str) -> None:
+        seen.append(name)
         if name == "ba":
             raise KeyboardInterrupt
 
+    # the uninterrupted run's first two stages, as if an earlier run had stopped after them; this
+    # run computes the bundle adjustment and is stopped as it finishes
+    stages = out / "stages"
+    stages.mkdir(parents=True)
+    for name in ("estimate.npz", "tracks.npz"):
+        shutil.copy2(ref_out / "stages" / name, stages / name)
+    man = json.loads((ref_out / "stages" / "manifest.json").read_text())
+    man["stages"] = {k: v for k, v in man["stages"].items() if k in ("estimate", "tracks")}
+    (stages / "manifest.json").write_text(json.dumps(man))
     with pytest.raises(KeyboardInterrupt):
         reprocess_session(session, out, progress=False, after_stage=stop_after_ba)
-    stages = out / "stages"
+    assert seen == ["ba"]
     assert sorted(p.name for p in stages.iterdir()) == ["ba.npz", "estimate.npz", "manifest.json", "tracks.npz"]
     assert not (out / "trajectory.tum").exists()
     _no_temp_files(out)
     mt = _mtimes(stages)
-    seen: list[str] = []
+    seen.clear()
     res = reprocess_session(session, out, progress=False, after_stage=seen.append)
     assert seen == ["map"]  # the earlier stages were not recomputed
     assert res.stages == {"estimate": "reused", "tracks": "reused", "ba": "reused", "map": "computed"}

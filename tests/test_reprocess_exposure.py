@@ -139,8 +139,11 @@ def dark_session(tmp_path_factory) -> Path:
 def test_reprocessing_a_darker_right_camera_keeps_its_tracks(dark_session, tmp_path):
     """The same recorded frames with and without the matching: the stereo keypoints the tracks are
     built from, and the adjusted path's error."""
-    res = reprocess_session(dark_session, tmp_path / "on", do_map=False, progress=False)
-    off = dataclasses.replace(REPROCESS_PRESETS["standard"], match_exposure=False)
+    # plain SIFT keyframe features (preset 'quick', about half the time): the matching is the same
+    on = REPROCESS_PRESETS["quick"]
+    assert on.match_exposure
+    res = reprocess_session(dark_session, tmp_path / "on", preset=on, do_map=False, progress=False)
+    off = dataclasses.replace(on, match_exposure=False)
     res_off = reprocess_session(dark_session, tmp_path / "off", preset=off, do_map=False, progress=False)
     trk = res.report["extra"]["tracks"]
     trk_off = res_off.report["extra"]["tracks"]
