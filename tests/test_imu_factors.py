@@ -61,9 +61,18 @@ def _visual_problem(sim, every: int = 8, per_kf: int = 25, seed: int = 0):
     return rig, sim.t_ns[kf], T_true, T_noisy, pts_noisy, np.array(obs)
 
 
-def test_imu_factors_recover_the_simulated_biases_and_keep_the_path(sim):
+@pytest.fixture(scope="module")
+def visual(sim):
+    """``_visual_problem(sim)`` (its arrays read-only: the tests share it) and its vision-only adjustment."""
     rig, t_kf, T_true, T_noisy, pts, obs = _visual_problem(sim)
+    for a in (t_kf, T_true, T_noisy, obs, *pts.values()):
+        a.setflags(write=False)
     vision = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0)
+    return (rig, t_kf, T_true, T_noisy, pts, obs), vision
+
+
+def test_imu_factors_recover_the_simulated_biases_and_keep_the_path(sim, visual):
+    (rig, t_kf, T_true, T_noisy, pts, obs), vision = visual
     terms = imu_terms(sim, t_kf, T_noisy)
     assert terms.noise == ImuNoise.of(sim) and terms.noise.accel_random_walk == sim.imu_model.accel_bias_walk_m_s3_rthz
     fused = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0, imu=terms)
@@ -141,7 +150,7 @@ def test_imu_terms_need_an_imu_extrinsics_and_a_path_that_agrees_with_them(sim, 
         imu_terms(NoExtrinsics(), t_kf, T)
 
 
-def test_without_a_still_start_gravity_and_the_gyro_bias_come_from_the_path(sim):
+def test_without_a_still_start_gravity_and_the_gyro_bias_come_from_the_path(sim, visual):
     """The IMU starts with the first frame: the gyro bias from the path's rotations, gravity and the
     velocities from its positions, and the bundle adjustment then does what it does with a still start."""
     moving = _moving(sim)
@@ -159,11 +168,10 @@ def test_without_a_still_start_gravity_and_the_gyro_bias_come_from_the_path(sim)
     err = np.median(np.linalg.norm(terms.velocities - v_true, axis=1))
     assert err < 0.7 * np.median(np.linalg.norm(v_diff - v_true, axis=1)) and err < 0.013
     # in another world frame (the first camera's, as a session without a still start is estimated)
-    rig, t_kf, T_cam0, T_noisy, pts, obs = _visual_problem(sim)
+    (rig, t_kf, T_cam0, T_noisy, pts, obs), vision = visual
     terms = imu_terms(moving, t_kf, T_noisy)
     g_cam0 = sim.groundtruth.T_world_cam[0][:3, :3].T @ np.array([0.0, 0.0, -1.0])
     assert np.arccos(terms.gravity_world @ g_cam0 / np.linalg.norm(terms.gravity_world)) < 5e-3
-    vision = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0)
     fused = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0, imu=terms)
     assert _ate(fused.T_world_cam, T_cam0) <= _ate(vision.T_world_cam, T_cam0) * 1.001
     t_imu = sim.imu.t_ns
@@ -234,13 +242,13 @@ def test_gyro_rotation_priors_without_a_still_start_use_the_bias_from_the_path(s
     assert gyro_rotation_priors(moving, t_kf, 0.002) == []  # neither a still start nor a path: no priors
 
 
-def test_an_imu_that_starts_late_gives_factors_only_where_it_covers_the_keyframes(sim):
+def test_an_imu_that_starts_late_gives_factors_only_where_it_covers_the_keyframes(sim, visual):
     """The IMU starts after the 103rd frame, in motion: the interval it covers in part is left out (holding its
     first sample over the rest would be a wrong factor), the keyframes before it keep the path's velocities,
     and the adjustment is no worse than vision alone."""
     from stereopath.device.core.frames import ImuSamples
 
-    rig, t_kf, T_cam0, T_noisy, pts, obs = _visual_problem(sim)
+    (rig, t_kf, T_cam0, T_noisy, pts, obs), vision = visual
     m = sim.imu.t_ns >= sim.t_ns[103]
     late = _moving(sim)
     late.imu = ImuSamples(sim.imu.t_ns[m], sim.imu.gyro_rad_s[m], sim.imu.accel_m_s2[m])
@@ -248,7 +256,6 @@ def test_an_imu_that_starts_late_gives_factors_only_where_it_covers_the_keyframe
     first = int(np.searchsorted(t_kf, sim.t_ns[103]))  # the first keyframe after the IMU's start
     assert [i for i, _, _ in terms.pims] == list(range(first, len(t_kf) - 1))
     assert np.isfinite(terms.velocities).all()  # the keyframes no interval touches: central differences
-    vision = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0)
     fused = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0, imu=terms)
     assert _ate(fused.T_world_cam, T_cam0) <= _ate(vision.T_world_cam, T_cam0) * 1.001
 
@@ -258,7 +265,7 @@ def _up_in_camera(R_world_cam: np.ndarray) -> np.ndarray:
     return np.asarray(R_world_cam)[..., :3, :3].swapaxes(-1, -2) @ np.array([0.0, 0.0, 1.0])
 
 
-def test_a_session_without_a_still_start_is_leveled_by_the_gravity_the_adjustment_measured(sim):
+def test_a_session_without_a_still_start_is_leveled_by_the_gravity_the_adjustment_measured(sim, visual):
     """Estimated in its first camera's world (no still start), adjusted with IMU factors: the stage
     turns the poses, the points and the gravity into a z-up world, as a still start would have given."""
     import json
@@ -267,7 +274,7 @@ def test_a_session_without_a_still_start_is_leveled_by_the_gravity_the_adjustmen
     from stereopath.device.estimation.inertial import gravity_aligned_rotation, leveling_rotation
     from stereopath.host.reprocess.stage_ba import level_world
 
-    rig, t_kf, T_cam0, T_noisy, pts, obs = _visual_problem(sim)
+    (rig, t_kf, T_cam0, T_noisy, pts, obs), vision = visual
     g = ImuNoise.of(sim).gravity_m_s2
     g_true = sim.groundtruth.T_world_cam[0][:3, :3].T @ np.array([0.0, 0.0, -g])  # in the first camera's world
     # the adjustment starts from gravity 3 deg off and reports where it put it, in the world of its poses
@@ -305,7 +312,6 @@ def test_a_session_without_a_still_start_is_leveled_by_the_gravity_the_adjustmen
     estimate["meta"] = np.array(json.dumps({"world_frame": "gravity_aligned"}))
     assert level_world(SimpleNamespace(seq=sim, results={"estimate": estimate}), fused, T_frames) is None
     estimate["meta"] = np.array(json.dumps({"world_frame": "first_camera"}))
-    vision = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0)
     T_vision = vision.T_world_cam.copy()
     assert vision.gravity_world is None
     assert level_world(SimpleNamespace(seq=sim, results={"estimate": estimate}), vision, T_vision) is None
