@@ -147,14 +147,13 @@ def run_demo(out: str | Path, frames: int | None = None, seed: int = 0, timeout_
                         host.kill()
     report = _evaluate(out, session_dir, live_dir, f"sim:{seed}")
     if with_model:
-        t0 = time.perf_counter()
-        model = _build_model(session_dir, out)
-        timings["model_s"] = time.perf_counter() - t0
-        if model is not None:
-            report.setdefault("extra", {})["model"] = model
-            from stereopath.host.evaluation.report import write_report
+        from stereopath.host.evaluation.report import write_report
 
-            write_report(out / "report.json", report)
+        t0 = time.perf_counter()
+        model = model_or_error(session_dir, out)
+        timings["model_s"] = time.perf_counter() - t0
+        report.setdefault("extra", {})["model"] = model
+        write_report(out / "report.json", report)
     return DemoResult(out, session_dir, live_dir, report, time.perf_counter() - start, timings)
 
 
@@ -209,6 +208,16 @@ def _evaluate(out: Path, session_dir: Path, live_dir: Path, source: str) -> dict
     write_report(out / "report.json", report)
     plot_path(out / "path.png", gt, est, world_frame=summary["world_frame"])
     return report
+
+
+def model_or_error(session_dir: Path, out: Path) -> dict:
+    """:func:`_build_model`'s statistics, or ``{"error": why}`` when no model can be built (too little
+    depth in a short scan): the path and its evaluation stand, and the report says why there is no model."""
+    try:
+        return _build_model(session_dir, out)
+    except StereopathError as exc:
+        log.warning("no dense model: %s", exc)
+        return {"error": str(exc)}
 
 
 def _build_model(session_dir: Path, out: Path) -> dict:

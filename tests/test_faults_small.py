@@ -23,7 +23,7 @@ def _cli(argv):
 
 @pytest.mark.parametrize("argv", [
     ["odometry", "sim", "--frames", "3"],
-    ["demo", "--frames", "3"],
+    ["demo", "--frames", "8"],
     ["host", "live", "--device", "127.0.0.1:5999", "--insecure", "--duration", "0.1"],
     ["host", "map", "."],
     ["host", "reprocess", "."],
@@ -37,9 +37,11 @@ def test_out_naming_a_file_is_a_clear_error(tmp_path, capsys, argv):
     assert f.read_text() == "x"
 
 
-def test_demo_with_zero_frames_is_refused(tmp_path, capsys):
-    assert _cli(["demo", "--frames", "0", "--out", str(tmp_path / "d")]) == 2
-    assert "--frames" in capsys.readouterr().err
+@pytest.mark.parametrize("frames", ["0", "7"])
+def test_demo_with_too_few_frames_is_refused(tmp_path, capsys, frames):
+    # the simulated rig rests for its first 5 frames: 7 would leave two moving poses to evaluate
+    assert _cli(["demo", "--frames", frames, "--out", str(tmp_path / "d")]) == 2
+    assert f"--frames must be at least 8 (the simulated rig rests for its first 5 frames" in capsys.readouterr().err
     assert not (tmp_path / "d").exists()
 
 
@@ -146,7 +148,7 @@ def test_host_store_is_private_by_default(tmp_path):
 
 @pytest.mark.parametrize("argv", [
     ["odometry", "sim", "--frames", "3"],
-    ["demo", "--frames", "3"],
+    ["demo", "--frames", "8"],
     ["host", "map", "."],
     ["host", "reprocess", "."],
 ])

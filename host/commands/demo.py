@@ -3,8 +3,11 @@
 Runs the device (simulated cameras and IMU -> on-board path estimation -> recording ->
 streaming) and the host (live receiver) as two processes talking over loopback TCP with
 freshly generated CURVE keys, then evaluates the path the host received against the
-simulator's ground truth.  Writes OUT/trajectory.tum, OUT/groundtruth.tum, OUT/report.json,
-OUT/path.png, the device's recording in OUT/session/ and the host's store in OUT/live/.
+simulator's ground truth, and builds the dense model of the recorded session.  Writes
+OUT/trajectory.tum, OUT/groundtruth.tum, OUT/report.json, OUT/path.png, the model (OUT/mesh.ply,
+cloud.ply, model.png, map.json; unless --no-model), the device's recording in OUT/session/, the host's
+store in OUT/live/ and both processes' logs in OUT/logs/.  A model that cannot be built (too little
+depth) is reported and leaves the path's results as they are.
 """
 
 from __future__ import annotations
@@ -19,13 +22,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-model", action="store_true", help="skip the dense 3D model")
 
 
+def min_demo_frames() -> int:
+    """Frames the demo needs: the simulated scan's still start, then three poses that move."""
+    import math
+
+    from stereopath.device.sim.session import SimConfig
+    from stereopath.device.sim.trajectories import FIRST_FRAME_S, STILL_S
+
+    return math.ceil((STILL_S - FIRST_FRAME_S) * SimConfig().rate_hz) + 3
+
+
 def run(args: argparse.Namespace) -> int:
     from stereopath.device.errors import ConfigError
     from stereopath.device.formats.fileio import check_out_folder
     from stereopath.host.demo import run_demo
 
-    if args.frames is not None and args.frames < 2:
-        raise ConfigError(f"--frames must be at least 2 (a path needs two frames), got {args.frames}")
+    if args.frames is not None and args.frames < (least := min_demo_frames()):
+        raise ConfigError(f"--frames must be at least {least} (the simulated rig rests for its first "
+                          f"{least - 3} frames, and the evaluation aligns three moving poses), got {args.frames}")
     check_out_folder(args.out)
     res = run_demo(args.out, frames=args.frames, seed=args.seed, with_model=not args.no_model)
     r = res.report
@@ -44,6 +58,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"  estimator time per frame: median {r['median_frame_ms']:.1f} ms, p95 {r['p95_frame_ms']:.1f} ms; "
           f"demo wall time {res.wall_s:.1f} s")
     model = x.get("model")
-    files = "trajectory.tum, groundtruth.tum, report.json, path.png" + (", mesh.ply, cloud.ply, model.png" if model else "")
-    print(f"  wrote {res.out}/: {files}")
+    built = bool(model) and "error" not in model
+    if model and not built:
+        print(f"  no dense model: {model['error']}")
+    files = "trajectory.tum, groundtruth.tum, report.json, path.png" + (", mesh.ply, cloud.ply, model.png, map.json"
+                                                                         if built else "")
+    print(f"  wrote {res.out}/: {files}; the device's recording in session/, the host's store in live/")
     return 0

@@ -30,18 +30,22 @@ log = logging.getLogger(__name__)
 class KeyframeSelection:
     """Which frames become keyframes: every ``stride``-th frame with a pose (``stride > 0``), or
     (``stride = 0``) a new keyframe whenever the camera moved ``min_translation_m`` or turned
-    ``min_rotation_deg`` since the last one.  ``max_keyframes > 0`` thins the result evenly."""
+    ``min_rotation_deg`` since the last one, and at least ``min_keyframes`` spread evenly over the
+    frames when the camera moved less than that (a short or nearly still recording: the fusion keeps
+    only surfaces several keyframes saw).  ``max_keyframes > 0`` thins the result evenly."""
 
     stride: int = 0
     min_translation_m: float = 0.04
     min_rotation_deg: float = 5.0
     max_keyframes: int = 0
+    min_keyframes: int = 8
 
     def __post_init__(self) -> None:
         check_range("stride", self.stride, 0, 1_000_000)
         check_range("min_translation_m", self.min_translation_m, 0.0, 100.0)
         check_range("min_rotation_deg", self.min_rotation_deg, 0.0, 180.0)
         check_range("max_keyframes", self.max_keyframes, 0, 1_000_000)
+        check_range("min_keyframes", self.min_keyframes, 0, 1_000_000)
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,7 +88,9 @@ def select_keyframes(T_world_cam: np.ndarray, selection: KeyframeSelection) -> n
             if dt >= selection.min_translation_m or dr >= selection.min_rotation_deg:
                 keep.append(i)
                 last = T[i]
-        idx = np.array(keep)
+        if len(keep) < selection.min_keyframes:
+            keep += np.round(np.linspace(0, n - 1, min(n, selection.min_keyframes))).astype(int).tolist()
+        idx = np.unique(np.array(keep))
     if selection.max_keyframes and len(idx) > selection.max_keyframes:
         pick = np.unique(np.round(np.linspace(0, len(idx) - 1, selection.max_keyframes)).astype(int))
         idx = idx[pick]
