@@ -203,6 +203,19 @@ def test_resume_after_an_interruption(full_run, session, tmp_path):
     _no_temp_files(out)
 
 
+def test_the_session_named_another_way_reuses_the_stored_stages(full_run, session, tmp_path, monkeypatch):
+    """A relative path, a link and ``..`` name the same session: nothing is recomputed."""
+    ref_out = full_run[0]
+    (tmp_path / "link").symlink_to(session)
+    monkeypatch.chdir(session.parent)
+    for i, name in enumerate([Path(session.name), tmp_path / "link", session / "mav0" / ".."]):
+        out = tmp_path / f"out{i}"
+        shutil.copytree(ref_out / "stages", out / "stages")
+        res = reprocess_session(name, out, do_map=False, progress=False)
+        assert res.stages == {"estimate": "reused", "tracks": "reused", "ba": "reused", "map": "skipped"}, name
+        assert (out / "trajectory.tum").read_bytes() == (ref_out / "trajectory.tum").read_bytes()
+
+
 def test_ctrl_c_inside_a_stage_leaves_no_half_written_stage(session, tmp_path, monkeypatch):
     import stereopath.host.reprocess.tracks
 
