@@ -187,6 +187,44 @@ def test_calibrate_imu_cli(data_dir, tmp_path, capsys):
     assert main(["device", "calibrate-imu", f"euroc:{data_dir / 'euroc_v1_01_head'}", "--window", "5:3"]) == 2
 
 
+def test_calibrate_imu_refuses_a_window_in_which_the_unit_moved(tmp_path, capsys):
+    """The frames of a hand-held scan move: no bias or gravity from them; the still start before them gives both."""
+    from stereopath.device.formats.recorder import record_sequence
+    from stereopath.device.sim.session import SimConfig, open_sim
+    from stereopath.host.cli import main
+
+    sim = open_sim(SimConfig(frames=20))
+    record_sequence(sim, tmp_path / "s", config_dict={"source": "sim"})
+    src = f"session:{tmp_path / 's'}"
+    assert main(["device", "calibrate-imu", src, "--out", str(tmp_path / "imu.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert "the window frames (0.95 s): the unit was not still" in err and "--window auto" in err
+    assert not (tmp_path / "imu.yaml").exists()
+    assert main(["device", "calibrate-imu", src, "--window", "auto", "--min-still-s", "0.9",
+                 "--out", str(tmp_path / "imu.yaml")]) == 0
+    import yaml
+
+    bias = yaml.safe_load((tmp_path / "imu.yaml").read_text())["gyro_bias_rad_s"]
+    assert np.allclose(bias, sim.imu_biases.gyro_rad_s[0], atol=3e-4)  # the gyro's noise over 1 s: ~1e-4 rad/s
+    # the same check on explicit times that take in the first moves
+    assert main(["device", "calibrate-imu", src, "--window", "0.2:1.9"]) == 2
+    assert "the unit was not still" in capsys.readouterr().err
+
+
+def test_check_still_passes_vibration_and_refuses_a_turn():
+    from stereopath.device.core.calibration import check_still
+
+    rng = np.random.default_rng(0)
+    t = np.arange(0, 3_000_000_000, 5_000_000)
+    g = np.array([0.01, -0.02, 0.005]) + rng.normal(0, 0.025, (len(t), 3))  # a bias, vibration (EuRoC: 0.02-0.04)
+    a = np.array([0.0, 0.0, 9.81]) + rng.normal(0, 1.0, (len(t), 3))
+    check_still(ImuSamples(t, g, a), "vibrating")
+    turning = g.copy()
+    turning[len(t) // 2:, 2] += 0.05  # a slow turn (3 deg/s) in the second half
+    with pytest.raises(CalibrationError, match="turning: the unit was not still"):
+        check_still(ImuSamples(t, turning, a), "turning")
+
+
 def test_calibrate_imu_cli_live_emulated(capsys):
     from stereopath.host.cli import main
 

@@ -89,7 +89,7 @@ def _live(args):
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from stereopath.device.core.calibration import imu_still_calibration
+    from stereopath.device.core.calibration import check_still, imu_still_calibration
     from stereopath.device.errors import CalibrationError, DatasetError
 
     from stereopath.device.formats.fileio import check_out_file
@@ -113,6 +113,12 @@ def run(args: argparse.Namespace) -> int:
         window = args.window or ("frames" if frames_t is not None and len(frames_t) >= 2 else "auto")
     t0, t1 = _window(samples, frames_t, window, args.min_still_s)
     still = samples.between(t0 - 1, t1)
+    hint = ("hold the unit still and run again" if args.source == "live" else
+            "give a still stretch with --window auto (--min-still-s S for a shorter one) or --window T0:T1")
+    try:
+        check_still(still, f"the window {window} ({(t1 - t0) / 1e9:.2f} s)")
+    except CalibrationError as exc:
+        raise CalibrationError(f"{exc}; {hint}") from None
     res = imu_still_calibration(still)
     deg = np.rad2deg
     print(f"window: {window}  {res.samples} samples over {res.duration_s:.2f} s")

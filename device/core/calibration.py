@@ -176,9 +176,39 @@ def imu_still_calibration(samples: ImuSamples) -> ImuStillCalibration:
         samples=len(samples))
 
 
-def detect_still_window(samples: ImuSamples, min_duration_s: float = 2.0, block_s: float = 0.5,
-                        gyro_step_max: float = 0.01, accel_step_max: float = 0.3,
-                        gyro_std_max: float = 0.2, accel_std_max: float = 2.5) -> tuple[int, int]:
+# what "still" means for the IMU calibration (per block of STILL_BLOCK_S): the block means of the gyro (rad/s)
+# and the accelerometer (m/s^2) within these steps of each other, and each block's spread below these
+STILL_BLOCK_S, STILL_GYRO_STEP, STILL_ACCEL_STEP, STILL_GYRO_STD, STILL_ACCEL_STD = 0.5, 0.01, 0.3, 0.2, 2.5
+
+
+def check_still(samples: ImuSamples, what: str, block_s: float = STILL_BLOCK_S) -> None:
+    """:class:`CalibrationError` when ``samples`` were not taken at rest, by the criteria of
+    :func:`detect_still_window` (block means within ``STILL_GYRO_STEP`` / ``STILL_ACCEL_STEP`` of the
+    window's mean, each block's spread below ``STILL_GYRO_STD`` / ``STILL_ACCEL_STD``); ``what`` names
+    the window in the message."""
+    t = samples.t_ns
+    if len(t) < 10:
+        return  # imu_still_calibration refuses it with its own message
+    edges = np.arange(t[0], t[-1] + 1, int(block_s * 1e9))
+    idx = np.searchsorted(t, np.append(edges, t[-1] + 1))
+    blocks = [(i0, i1) for i0, i1 in zip(idx[:-1], idx[1:]) if i1 - i0 >= 5] or [(0, len(t))]
+    g = np.array([samples.gyro_rad_s[i0:i1].mean(axis=0) for i0, i1 in blocks])
+    a = np.array([samples.accel_m_s2[i0:i1].mean(axis=0) for i0, i1 in blocks])
+    g_std = max(float(samples.gyro_rad_s[i0:i1].std(axis=0).max()) for i0, i1 in blocks)
+    a_std = max(float(samples.accel_m_s2[i0:i1].std(axis=0).max()) for i0, i1 in blocks)
+    g_step = float(np.abs(g - g.mean(axis=0)).max())
+    a_step = float(np.abs(a - a.mean(axis=0)).max())
+    if g_step > STILL_GYRO_STEP or a_step > STILL_ACCEL_STEP or g_std > STILL_GYRO_STD or a_std > STILL_ACCEL_STD:
+        raise CalibrationError(
+            f"{what}: the unit was not still (its {block_s:g} s means of the gyro differ by up to {g_step:.4f} rad/s, "
+            f"of the accelerometer by {a_step:.3f} m/s^2; at rest they stay within {STILL_GYRO_STEP} and "
+            f"{STILL_ACCEL_STEP}; spread up to {g_std:.3f} rad/s and {a_std:.2f} m/s^2): the bias and gravity "
+            f"would be wrong")
+
+
+def detect_still_window(samples: ImuSamples, min_duration_s: float = 2.0, block_s: float = STILL_BLOCK_S,
+                        gyro_step_max: float = STILL_GYRO_STEP, accel_step_max: float = STILL_ACCEL_STEP,
+                        gyro_std_max: float = STILL_GYRO_STD, accel_std_max: float = STILL_ACCEL_STD) -> tuple[int, int]:
     """Longest still stretch of ``block_s`` blocks: (t0_ns, t1_ns).
 
     Stillness is judged on block *means*, so that vibration (motors, a hand) does not
