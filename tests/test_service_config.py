@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import stat
 from dataclasses import replace
@@ -127,3 +128,24 @@ def test_run_options_refuse_nan(field, option):
     """``--wait-for-host nan`` used to be taken (every comparison with nan is false)."""
     with pytest.raises(ConfigError, match=option):
         RunOptions(**{field: float("nan")})
+
+
+def test_device_status_keeps_stdout_for_the_report(tmp_path, capsys):
+    """`device status --json` prints JSON only (a script parses it); warnings and errors go to stderr."""
+    import time
+
+    from stereopath.host.cli import main
+
+    st = tmp_path / "status.json"
+    report = {"state": "running", "updated_unix": time.time(), "status_interval_s": 1.0}
+    st.write_text(json.dumps(report))
+    assert main(["device", "status", "--status-file", str(st), "--json"]) == 0
+    out = capsys.readouterr()
+    assert json.loads(out.out)["state"] == "running" and out.err == ""
+    st.write_text(json.dumps({**report, "updated_unix": time.time() - 600}))  # the service stopped writing it
+    assert main(["device", "status", "--status-file", str(st), "--json"]) == 1
+    out = capsys.readouterr()
+    assert json.loads(out.out)["state"] == "running" and "WARNING: the report is 6" in out.err
+    assert main(["device", "status", "--status-file", str(tmp_path / "none.json")]) == 1
+    out = capsys.readouterr()
+    assert out.out == "" and "the capture service is not running" in out.err

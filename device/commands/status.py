@@ -85,23 +85,25 @@ def render(status: dict, age_s: float) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     import json
+    import sys
     import time
     from pathlib import Path
 
     path = Path(_status_path(args))
     if not str(path) or str(path) == ".":
-        print("stereopath device status: service.status_file is empty (the service writes no status)")
+        print("stereopath device status: service.status_file is empty (the service writes no status)", file=sys.stderr)
         return 1
     try:
         status = json.loads(path.read_text())
     except FileNotFoundError:
-        print(f"no status at {path}: the capture service is not running (systemctl status stereopath-capture)")
+        print(f"no status at {path}: the capture service is not running (systemctl status stereopath-capture)",
+              file=sys.stderr)
         return 1
     except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
-        print(f"cannot read {path}: {exc}")
+        print(f"cannot read {path}: {exc}", file=sys.stderr)
         return 1
     if not isinstance(status, dict):
-        print(f"{path}: not a status report")
+        print(f"{path}: not a status report", file=sys.stderr)
         return 1
     age = max(0.0, time.time() - float(status.get("updated_unix") or 0.0))
     if args.json:
@@ -113,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
     interval = float(status.get("status_interval_s") or 1.0)
     stale = age > 3 * interval + 2.0
     if state in ("running", "waiting", "starting") and stale:
-        print(f"WARNING: the report is {age:.0f} s old: the service stopped updating it (hung or killed)")
+        print(f"WARNING: the report is {age:.0f} s old: the service stopped updating it (hung or killed)",
+              file=sys.stderr)
         return 1
     return 0 if state == "running" else 1
