@@ -9,14 +9,27 @@ from stereopath.device.formats.rig_files import load_euroc_rig, load_kitti_calib
 
 
 def test_paper_yaml_equals_builtin_rig(repo_root, caplog):
-    with caplog.at_level(logging.WARNING):
+    with caplog.at_level(logging.INFO):
         y = load_rig_yaml(repo_root / "firmware_cfg" / "rig_paper.yaml")
-    warnings = [r for r in caplog.records if "orthonormal" in r.getMessage()]
-    assert len(warnings) == 1  # Table 1's R is rounded: projected once, with a warning
+    notes = [r for r in caplog.records if "orthonormal" in r.getMessage()]
+    # Table 1's R is rounded (4 decimals): projected once, said at info level (nothing for a user to do)
+    assert len(notes) == 1 and notes[0].levelno == logging.INFO
+    assert notes[0].getMessage().startswith(f"rig {y.name!r}: R is not exactly orthonormal")
     r = paper_rig()
     assert np.allclose(y.R, r.R) and np.allclose(y.T, r.T) and np.allclose(y.cam0.K, r.cam0.K)
     assert np.allclose(y.T, [-0.047917, -0.000142, -0.013373])  # mm -> m
     assert np.allclose(y.R.T @ y.R, np.eye(3), atol=1e-12)
+
+
+def test_a_rotation_further_from_orthonormal_than_rounding_is_a_warning(caplog):
+    d = rig_to_dict(paper_rig())
+    R = np.asarray(d["R_cam1_cam0"], float)
+    d["R_cam1_cam0"] = (R + np.array([[0.0, 3e-3, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])).tolist()
+    with caplog.at_level(logging.INFO):
+        rig = rig_from_dict(d)
+    notes = [r for r in caplog.records if "orthonormal" in r.getMessage()]
+    assert len(notes) == 1 and notes[0].levelno == logging.WARNING
+    assert np.allclose(rig.R.T @ rig.R, np.eye(3), atol=1e-12)
 
 
 def test_rectification_of_paper_rig():

@@ -29,6 +29,7 @@ log = logging.getLogger(__name__)
 
 ORTHO_TOL = 1e-2  # |R^T R - I| (max element) above this is not a rotation
 ORTHO_SILENT = 1e-9  # below this R is taken as it is
+ORTHO_ROUNDED = 1e-3  # up to this R is a rotation written with rounded elements (projected, logged as info)
 
 
 @dataclass(frozen=True, eq=False)
@@ -253,10 +254,10 @@ def validated_rotation(name: str, R: Any) -> np.ndarray:
         raise CalibrationError(f"{name}: not a rotation (max |R^T R - I| = {err:.3g} > {ORTHO_TOL})")
     if err > ORTHO_SILENT:
         Rp = project_to_so3(R)
-        log.warning(
-            "%s is not exactly orthonormal (max |R^T R - I| = %.2e); projected onto SO(3), "
-            "largest element change %.2e", name, err, float(np.max(np.abs(Rp - R))),
-        )
+        # a rotation written with 4 decimals is off by up to ~5e-4: projected as a matter of course
+        log.log(logging.WARNING if err > ORTHO_ROUNDED else logging.INFO,
+                "%s is not exactly orthonormal (max |R^T R - I| = %.2e); projected onto SO(3), "
+                "largest element change %.2e", name, err, float(np.max(np.abs(Rp - R))))
         R = Rp
     return R
 
@@ -285,7 +286,7 @@ def check_baseline_sign(R: np.ndarray, T: np.ndarray) -> None:
 def make_rig(cam0: CameraModel, cam1: CameraModel, R: Any, T: Any, name: str = "rig",
              T_body_cam0: Any = None, views_of: str = "") -> Rig:
     """Validated :class:`Rig` from parts (``R``, ``T`` = ``T_cam1_cam0``, metres)."""
-    R = validated_rotation("R", R)
+    R = validated_rotation(f"rig {name!r}: R", R)
     T = checked_array("T", T, (3,))
     if np.linalg.norm(T) < 1e-6:
         raise CalibrationError("T: zero baseline (the two cameras coincide)")
@@ -293,7 +294,7 @@ def make_rig(cam0: CameraModel, cam1: CameraModel, R: Any, T: Any, name: str = "
     Tb = None if T_body_cam0 is None else checked_array("T_body_cam0", T_body_cam0, (4, 4))
     if Tb is not None:
         Tb = Tb.copy()
-        Tb[:3, :3] = validated_rotation("T_body_cam0 rotation", Tb[:3, :3])
+        Tb[:3, :3] = validated_rotation(f"rig {name!r}: T_body_cam0 rotation", Tb[:3, :3])
     return Rig(cam0=cam0, cam1=cam1, R=R, T=T, name=name, T_body_cam0=Tb, views_of=str(views_of))
 
 
