@@ -46,6 +46,12 @@ COMMANDS: dict[str, tuple[str, str] | dict[str, tuple[str, str]]] = {
     },
 }
 
+GROUP_HELP = {
+    "keys": "CURVE key pairs that encrypt and authenticate the link between a device and its hosts",
+    "host": "the laptop's side: live poses and keyframes, dense models, offline reprocessing, stored sessions",
+    "device": "the scanner box: the capture service, its installation and status, sensor checks and calibration",
+}
+
 
 def _add(sub: argparse._SubParsersAction, name: str, module: str, help_text: str) -> None:
     if importlib.util.find_spec(module) is None:  # command not built in this version
@@ -61,12 +67,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(prog="stereopath", description="Handheld stereo-inertial 3D scanner.")
     parser.add_argument("--version", action="version", version=f"stereopath {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="stereopath's debug messages too (-vv: the libraries' as well)")
     parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, entry in COMMANDS.items():
         if isinstance(entry, dict):
-            grp = sub.add_parser(name, help=f"{name} commands")
+            grp = sub.add_parser(name, help=GROUP_HELP[name], description=GROUP_HELP[name])
             gsub = grp.add_subparsers(dest=f"{name}_command", metavar="COMMAND")
             for sname, (module, help_text) in entry.items():
                 _add(gsub, sname, module, help_text)
@@ -77,8 +84,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def setup_logging(verbose: int, quiet: bool) -> None:
+    """Info by default; ``-q`` warnings and errors; ``-v`` stereopath's debug messages; ``-vv`` everyone's."""
     level = logging.WARNING if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    logging.getLogger("stereopath").setLevel(logging.DEBUG if verbose and not quiet else logging.NOTSET)
 
 
 def main(argv: list[str] | None = None) -> int:

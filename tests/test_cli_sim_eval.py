@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 
 import numpy as np
 import pytest
@@ -104,3 +105,19 @@ def test_sim_reserve_mb_must_be_finite_and_not_negative(tmp_path, capsys, value)
     assert info.value.code == 2
     assert "argument --reserve-mb: must be a finite number of megabytes" in capsys.readouterr().err
     assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.parametrize("argv, ours, root_at_most", [
+    ([], logging.INFO, logging.INFO), (["-v"], logging.DEBUG, logging.INFO), (["-vv"], logging.DEBUG, logging.DEBUG),
+    (["-q"], logging.WARNING, logging.WARNING),
+])
+def test_verbosity_options(argv, ours, root_at_most):
+    """-v shows stereopath's debug messages, -vv everyone's, -q only warnings; the default is info."""
+    import subprocess
+    import sys
+
+    code = ("import logging, sys; from stereopath.host.cli import build_parser, setup_logging; "
+            "a = build_parser().parse_args(sys.argv[1:] + ['sim', '--out', 'x']); setup_logging(a.verbose, a.quiet); "
+            "print(logging.getLogger('stereopath.device.core.rig').getEffectiveLevel(), logging.getLogger().level)")
+    out = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, check=True).stdout.split()
+    assert int(out[0]) == ours and int(out[1]) == root_at_most
