@@ -11,6 +11,7 @@ when the input is unusable.
 from __future__ import annotations
 
 import argparse
+import sys
 
 from stereopath.device.commands.arg_types import finite_number
 
@@ -53,5 +54,5 @@ def run(args: argparse.Namespace) -> int:
           f"total {t['total']:.1f} s -> {args.out}/mesh.ply, cloud.ply, model.png, map.json")
     if s.get("keyframes_skipped"):
         print(f"warning: skipped {s['keyframes_skipped']} unreadable keyframe(s) (listed in map.json; "
-              f"--strict stops instead)")
+              f"--strict stops instead)", file=sys.stderr)
     return 0

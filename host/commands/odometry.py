@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -57,8 +58,8 @@ def run(args: argparse.Namespace) -> int:
                   f"ATE {r['ate_rmse_m']} m, end error {r['end_error_m']} m, "
                   f"median {r['median_frame_ms']:.1f} ms/frame")
             if r["extra"].get("frames_skipped"):
-                print(f"{name}: skipped {r['extra']['frames_skipped']} unreadable frame(s) "
-                      f"(indexes in report.json; --strict stops instead)")
+                print(f"warning: {name}: skipped {r['extra']['frames_skipped']} unreadable frame(s) "
+                      f"(indexes in report.json; --strict stops instead)", file=sys.stderr)
         if len(names) > 1:
             print(format_table(reports))
     return 0

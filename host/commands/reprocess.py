@@ -27,6 +27,7 @@ cleanly: the same command resumes.  OUT/fleet.json and OUT/fleet.html summarise 
 from __future__ import annotations
 
 import argparse
+import sys
 
 from stereopath.device.commands.arg_types import finite_number
 
@@ -117,7 +118,7 @@ def run_fleet_command(args: argparse.Namespace) -> int:
         if progress is not None:
             progress.close()
         print(f"interrupted: finished stages are kept in {args.out}/<session id>/stages and the summary in "
-              f"{args.out}/fleet.json; run the same command again to resume")
+              f"{args.out}/fleet.json; run the same command again to resume", file=sys.stderr)
         return 130
     if progress is not None:
         progress.close()
@@ -152,7 +153,8 @@ def run_one(args: argparse.Namespace) -> int:
                                 progress=False if args.no_progress else None,
                                 strict=bool(getattr(args, "strict", False)))
     except KeyboardInterrupt:
-        print(f"interrupted: finished stages are kept in {args.out}/stages; run the same command again to resume")
+        print(f"interrupted: finished stages are kept in {args.out}/stages; run the same command again to resume",
+              file=sys.stderr)
         return 130
     wall = time.perf_counter() - start
     ba = res.report["extra"]["before_after"]
@@ -175,8 +177,8 @@ def run_one(args: argparse.Namespace) -> int:
         print(line)
     if res.report["extra"].get("frames_skipped"):
         print(f"warning: skipped {res.report['extra']['frames_skipped']} unreadable frame(s) "
-              f"(indexes in report.json; --strict stops instead)")
+              f"(indexes in report.json; --strict stops instead)", file=sys.stderr)
     if res.report["extra"].get("groundtruth_error"):
-        print(f"warning: ground truth not used: {res.report['extra']['groundtruth_error']}")
+        print(f"warning: ground truth not used: {res.report['extra']['groundtruth_error']}", file=sys.stderr)
     print(f"wrote {args.out}/" + ", ".join(res.files))
     return 0
