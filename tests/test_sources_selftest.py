@@ -87,3 +87,26 @@ def test_cli_selftest_with_the_simulator(capsys, tmp_path):
     assert "checks passed" in out and "FAIL" not in out and "IMU WHO_AM_I" in out
     cfgfile.write_text(f'[recorder]\ndir = "{tmp_path}"\nreserve_mb = 1e7\n')
     assert main(["device", "selftest", "--config", str(cfgfile), "--source", "sim", "--frames", "5"]) == 1
+
+
+def test_selftest_checks_the_installed_configuration_and_replays_with_the_recordings_imu(tmp_path, monkeypatch, capsys):
+    """Without --config the installed /etc/stereopath/device.toml is what is checked (as `device status`
+    reads it); --source replay:SPEC takes the recording's own IMU, as `device run` does."""
+    from stereopath.device.formats.recorder import record_sequence
+    from stereopath.device.service import settings
+    from stereopath.device.sim.session import SimConfig, open_sim
+    from stereopath.host.cli import main
+
+    toml = tmp_path / "device.toml"
+    toml.write_text(f'[source]\nbackend = "sim"\n[imu]\nbackend = "emulated"\n[selftest]\nframes = 12\n'
+                    f'[recorder]\ndir = "{tmp_path / "sessions"}"\n')
+    monkeypatch.setattr(settings, "INSTALLED_CONFIG", str(toml))
+    assert main(["device", "selftest"]) == 0
+    out = capsys.readouterr().out
+    assert "12 pairs" in out and f"({tmp_path / 'sessions'} does not exist yet)" in out
+    record_sequence(open_sim(SimConfig(frames=14)), tmp_path / "rec", config_dict={"source": "sim"})
+    main(["device", "selftest", "--source", f"replay:session:{tmp_path / 'rec'}"])
+    out = capsys.readouterr().out
+    assert "IMU rate" in out and "WHO_AM_I" not in out  # no MPU-6050 opened: the recording's samples
+    monkeypatch.setattr(settings, "INSTALLED_CONFIG", str(tmp_path / "absent.toml"))
+    assert settings.config_or_installed(None) is None and settings.config_or_installed("x.toml") == "x.toml"

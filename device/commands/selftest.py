@@ -15,9 +15,11 @@ from typing import Any
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", default=None, help="device TOML (default: built-in defaults)")
-    parser.add_argument("--source", choices=("picamera2", "depthai", "replay", "sim"), default=None,
-                        help="override source.backend (sim = simulator frames + emulated IMU)")
+    parser.add_argument("--config", default=None, metavar="FILE",
+                        help="device TOML (default: /etc/stereopath/device.toml if present, else built-in defaults)")
+    parser.add_argument("--source", default=None, metavar="SOURCE",
+                        help="override source.backend: picamera2 | depthai | sim (simulator frames with the emulated "
+                             "MPU-6050) | replay:SPEC (a recording, with its own IMU)")
     parser.add_argument("--imu", choices=("mpu6050", "emulated", "source", "none"), default=None,
                         help="override imu.backend")
     parser.add_argument("--frames", type=int, default=None, help="stereo pairs to capture (selftest.frames)")
@@ -35,11 +37,12 @@ def _free_disk_check(path: str, reserve_mb: float) -> Check:
     import shutil
     from pathlib import Path
 
-    p = Path(path).absolute()
+    want = p = Path(path).absolute()
     while not p.exists() and p != p.parent:
         p = p.parent
     free_mb = shutil.disk_usage(p).free / 1e6
-    return Check("free disk", free_mb >= reserve_mb, f"{free_mb:.0f} MB at {p}", f">= {reserve_mb:.0f} MB")
+    where = f"{free_mb:.0f} MB at {p}" + ("" if p == want else f" ({want} does not exist yet)")
+    return Check("free disk", free_mb >= reserve_mb, where, f">= {reserve_mb:.0f} MB")
 
 
 def _camera_checks(cfg: Any, source: Any, frames_wanted: int, imu_blocks: list) -> list[Check]:
@@ -204,17 +207,22 @@ def run(args: argparse.Namespace) -> int:
     import logging
 
     from stereopath.device.core.config import replace
-    from stereopath.device.service.settings import load_device_config
+    from stereopath.device.service.options import source_override
+    from stereopath.device.service.settings import config_or_installed, load_device_config
 
-    cfg = load_device_config(args.config)
+    cfg_path = config_or_installed(args.config)
+    logging.getLogger(__name__).info("configuration: %s", cfg_path or "built-in defaults")
+    cfg = load_device_config(cfg_path)
     src, imu_s, st = cfg.source, cfg.imu, cfg.selftest
     if args.source:
-        src = replace(src, backend=args.source)
+        src = source_override(src, args.source)
     if args.imu:
         imu_s = replace(imu_s, backend=args.imu)
-    elif args.source == "sim" and imu_s.backend == "mpu6050":
+    elif src.backend == "sim" and args.source and imu_s.backend == "mpu6050":
         imu_s = replace(imu_s, backend="emulated")
         logging.getLogger(__name__).info("--source sim: using the emulated MPU-6050")
+    elif src.backend == "replay" and args.source:
+        imu_s = replace(imu_s, backend="source")  # the recording's own IMU, as `device run --source replay:SPEC`
     if args.frames:
         st = replace(st, frames=args.frames)
     if src.backend == "sim" and src.sim.frames < st.frames:

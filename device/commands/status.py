@@ -18,18 +18,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print the raw status JSON")
 
 
-DEFAULT_CONFIG = "/etc/stereopath/device.toml"
-
-
 def _status_path(args: argparse.Namespace) -> str:
-    from pathlib import Path
-
-    from stereopath.device.service.settings import load_device_config
+    from stereopath.device.service.settings import config_or_installed, load_device_config
 
     if args.status_file is not None:
         return args.status_file
-    cfg_path = args.config or (DEFAULT_CONFIG if Path(DEFAULT_CONFIG).is_file() else None)
-    return load_device_config(cfg_path).service.status_file
+    return load_device_config(config_or_installed(args.config)).service.status_file
 
 
 def _fmt(value, unit: str = "", digits: int = 1) -> str:

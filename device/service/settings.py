@@ -377,6 +377,17 @@ def device_config_from_mapping(data: Mapping[str, Any]) -> DeviceConfig:
     return from_mapping(DeviceConfig, _upgrade(dict(data)))
 
 
+INSTALLED_CONFIG = "/etc/stereopath/device.toml"  # what `device install` writes and the service runs with
+
+
+def config_or_installed(path: str | Path | None) -> str | Path | None:
+    """``path`` when given, else the installed configuration when there is one (the commands that look at
+    the box as it runs: selftest, status), else ``None`` (built-in defaults)."""
+    if path is not None:
+        return path
+    return INSTALLED_CONFIG if Path(INSTALLED_CONFIG).is_file() else None
+
+
 def load_device_config(path: str | Path | None = None) -> DeviceConfig:
     """Defaults, overridden by the TOML file at ``path`` when given."""
     if path is None:
