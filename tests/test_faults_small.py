@@ -72,6 +72,20 @@ def test_live_exits_nonzero_when_the_device_refuses_its_key_and_device_logs_it(t
     assert len(refused) <= 2  # once per key and address, not once per reconnect attempt
 
 
+def test_host_live_that_never_hears_from_a_device_says_so(tmp_path, capsys):
+    """A wrong port (nothing listening): not a silent exit 0 that a script takes for an empty scan."""
+    import socket
+
+    with socket.socket() as s:  # a loopback port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    rc = _cli(["host", "live", "--device", f"127.0.0.1:{port}", "--insecure", "--out", str(tmp_path / "out"),
+               "--duration", "0.5", "--no-fsync"])
+    assert rc == 1
+    err = capsys.readouterr().err
+    assert f"nothing received from 127.0.0.1:{port} in 0." in err and "Traceback" not in err
+
+
 def test_secret_key_is_created_private(tmp_path, monkeypatch):
     def no_chmod(*a, **k):
         raise AssertionError("the secret key must not need a chmod")

@@ -12,6 +12,10 @@ maps each session with it (no --rig needed; a --rig that differs from the device
 warning and the device's is used).  Keyframes of an earlier device session that no host had
 (the device was killed) arrive after the live ones, into their own OUT/<session>/; sessions
 still missing keyframes are logged at start and at the end (and listed by `host sessions OUT`).
+
+Exit status: 0; 1 when keyframes could not be stored or mapped, or nothing at all came from the
+device (a wrong address or port, or no device running); 2 when the device refused this host's key
+or the handshake failed.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import logging
 import signal
 import sys
 import threading
+import time
 
 from stereopath.device.commands.arg_types import finite_number
 
@@ -92,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
     receiver = Receiver(config, args.out,
                         on_pose=rerun_view.on_pose if rerun_view else None,
                         on_keyframe=on_keyframe if (rerun_view or mapper) else None)
+    t0 = time.monotonic()
     try:
         receiver.run(duration_s=args.duration, stop=stop, on_tick=term.update)
     except KeyboardInterrupt:
@@ -108,11 +114,12 @@ def run(args: argparse.Namespace) -> int:
             rerun_view.close()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-    return _exit_status(receiver, mapper, models)
+    return _exit_status(receiver, mapper, models, args.device, time.monotonic() - t0)
 
 
-def _exit_status(receiver, mapper, models) -> int:
-    """Log the totals; 1 if keyframes could not be stored or mapped, 2 if the device let nothing through."""
+def _exit_status(receiver, mapper, models, device: str = "", listened_s: float = 0.0) -> int:
+    """Log the totals; 1 if keyframes could not be stored or mapped, or nothing at all came from the device
+    (not even its status, sent every second while it runs), 2 if the device let nothing through."""
     st = receiver.stats
     log.info("received %d poses, %d keyframes (%d duplicates), %d pose seq gaps, %d rejected; sessions: %s",
              st.received["pose"], st.received["keyframe"], st.duplicates, st.pose_seq_gaps, st.rejected,
@@ -135,4 +142,9 @@ def _exit_status(receiver, mapper, models) -> int:
         print("stereopath: error: no handshake with the device: nothing received (wrong device key, or CURVE "
               "on one side only?)", file=sys.stderr)
         return 2
+    if got == 0:
+        print(f"stereopath: error: nothing received from {device} in {listened_s:.1f} s, not even its status (a running "
+              f"device sends one every second): is `stereopath device run` running there (`stereopath device "
+              f"status` on the box), and are the address and ports right?", file=sys.stderr)
+        return 1
     return 0
