@@ -53,11 +53,23 @@ GROUP_HELP = {
 }
 
 
+class _DefaultsFormatter(argparse.HelpFormatter):
+    """Each option's default after its help, unless the help already names it (or there is none to name)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        if (not action.option_strings or any(action.default is v for v in (None, False, argparse.SUPPRESS))
+                or "default" in text.lower()):
+            return action.help
+        return f"{text} (default: %(default)s)".lstrip()
+
+
 def _add(sub: argparse._SubParsersAction, name: str, module: str, help_text: str) -> None:
     if importlib.util.find_spec(module) is None:  # command not built in this version
         return
     mod = importlib.import_module(module)
-    p = sub.add_parser(name, help=help_text, description=(mod.__doc__ or help_text).strip())
+    p = sub.add_parser(name, help=help_text, description=(mod.__doc__ or help_text).strip(),
+                       formatter_class=_DefaultsFormatter)
     mod.add_arguments(p)
     p.set_defaults(_run=mod.run)
 

@@ -101,6 +101,18 @@ def test_dry_run_changes_nothing(tmp_path):
     assert report.changed and list(tmp_path.iterdir()) == []
 
 
+def test_a_command_run_is_not_a_change_and_the_dry_run_says_what_is_not_there_yet(tmp_path, capsys):
+    """On the live root pip runs each time: a rerun still reports "already installed" when no file changed."""
+    from stereopath.device.service.installer import InstallReport
+    from stereopath.host.cli import main
+
+    rep = InstallReport(tmp_path, actions=[f"keep {tmp_path}/opt/stereopath/venv", "run pip install . into /opt/x"])
+    assert rep.changed == []
+    assert main(["device", "install", "--root", str(tmp_path), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "server.key (once installed)" in out and "would create" in out
+
+
 def test_half_a_key_pair_is_refused(tmp_path):
     (tmp_path / "etc/stereopath").mkdir(parents=True)
     (tmp_path / "etc/stereopath/server.key").write_text("public only\n")

@@ -41,8 +41,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"{'dry run: ' if args.dry_run else ''}{changed} change(s) under {report.root}"
           + ("" if changed else " (already installed)"))
     if report.device_public_key is not None:
-        print(f"device public key (copy it to each host as KEYS/device.key): {report.device_public_key}")
-    print("authorise a host: copy its public HOST.key into /etc/stereopath/clients/ and "
+        print(f"device public key (copy it to each host as KEYS/device.key): {report.device_public_key}"
+              + (" (once installed)" if args.dry_run and not report.device_public_key.exists() else ""))
+    more = "another host" if args.host_key else "a host"
+    print(f"authorise {more}: copy its public HOST.key into /etc/stereopath/clients/ and "
           f"`systemctl reload {UNIT_NAME}`" if str(report.root) == "/" else
           f"host keys go into {report.root}/etc/stereopath/clients/")
     print("firmware: append firmware_cfg/config.txt to /boot/firmware/config.txt and reboot")

@@ -7,10 +7,12 @@ hosts over ZeroMQ (CURVE unless --insecure, which only allows loopback endpoints
 systemd (Type=notify) it reports READY=1 once cameras, IMU and recorder work, pings the
 watchdog only while frames and IMU samples keep arriving, stops cleanly on SIGTERM and
 re-reads the configuration on SIGHUP.  Exit status: 0 after a stop or a bounded run, 1 on a
-capture failure, 78 on a bad configuration.
+capture failure, 74 when the disk filled (the session is closed with what fitted), 78 on a bad
+configuration.
 
-Without hardware: --source sim --frames 100 --out /tmp/s1 --no-stream (or --insecure with a
-configuration whose [stream] endpoints are loopback, e.g. tcp://127.0.0.1:5555).
+Without hardware: --source sim --frames 100 --out /tmp/s1 --no-stream --status-file "" (or --insecure
+with a configuration whose [stream] endpoints are loopback, e.g. tcp://127.0.0.1:5555; the status
+file's default folder, /run/stereopath, is the service's).
 """
 
 from __future__ import annotations

@@ -135,7 +135,8 @@ class InstallReport:
 
     @property
     def changed(self) -> list[str]:
-        return [a for a in self.actions if not a.startswith("keep ")]
+        """Files and folders created or updated (commands run, such as pip, are actions but not changes)."""
+        return [a for a in self.actions if not a.startswith(("keep ", "run "))]
 
 
 class Installer:

@@ -37,7 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="device address HOST[:PORT] (pose port, default 5555; keyframes on PORT+1)")
     parser.add_argument("--keyframe-port", type=int, default=None, help="keyframe port if not PORT+1")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
-    parser.add_argument("--keys", metavar="DIR", help="host key directory: one *.key_secret and device.key")
+    parser.add_argument("--keys", metavar="DIR", help="host key directory: one *.key_secret and device.key "
+                        "(required unless --insecure; `stereopath keys generate`)")
     parser.add_argument("--device-key", metavar="FILE", help="the device's public key if not KEYS/device.key")
     parser.add_argument("--insecure", action="store_true", help="plain TCP without CURVE (loopback addresses only)")
     view = parser.add_mutually_exclusive_group()

@@ -16,7 +16,9 @@ import sys
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("source", help="sim[:SEED] | kitti:SEQDIR | euroc:MAV0DIR | session:DIR")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--estimator", default="stereo", choices=["stereo", "paper", "sfm"])
+    p.add_argument("--estimator", default="stereo", choices=["stereo", "paper", "sfm"],
+                   help="stereo: ours (the on-board estimator); paper: the reference paper's method; sfm: a "
+                        "two-view baseline scaled by the ground truth")
     p.add_argument("--preset", default=None, help="feature preset (see `stereopath features --list-presets`)")
     p.add_argument("--frames", type=int, default=None, help="use only the first N frames")
     p.add_argument("--compare", default=None, help="comma-separated estimators to run and tabulate")

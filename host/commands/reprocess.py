@@ -43,7 +43,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True,
                    help="output folder (created; stages are kept in OUT/stages, or OUT/<session id>/stages in a fleet)")
     p.add_argument("--preset", default=DEFAULT_PRESET, choices=PRESET_NAMES,
-                   help=f"reprocessing settings (default {DEFAULT_PRESET}; see README)")
+                   help="reprocessing settings: standard (the default: modified ASIFT at every keyframe, tracks, "
+                        "bundle adjustment); aligned (every track aligned on one view: more precise for a well "
+                        "calibrated rig, ~10 s more); quick (plain SIFT tracks: about half the time, less accurate); "
+                        "paper (the paper's 25-view ASIFT: slow); full (OpenCV's reference ASIFT: slowest)")
     p.add_argument("--no-map", action="store_true", help="skip the dense model")
     p.add_argument("--map-preset", default="object", choices=["object", "room"],
                    help="depth range and voxel size of the model: object scans (4 mm) or rooms (2 cm)")

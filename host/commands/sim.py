@@ -14,7 +14,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, type=Path, help="session folder to create (must not exist or be empty)")
     parser.add_argument("--frames", type=int, default=None, metavar="N", help="number of stereo frames (default: the whole trajectory)")
     parser.add_argument("--seed", type=int, default=None, metavar="S", help="random seed of scene, noise and shake")
-    parser.add_argument("--trajectory", default=None, metavar="NAME", help="camera trajectory preset of the simulator")
+    from stereopath.device.sim.trajectories import TRAJECTORIES
+
+    parser.add_argument("--trajectory", default=None, choices=sorted(TRAJECTORIES),
+                        help="camera trajectory of the simulator (default: arc, the hand-held table-top scan)")
     parser.add_argument("--reserve-mb", type=finite_number("megabytes"), default=256.0, metavar="MB",
                         help="free disk space to keep; the recorder refuses to start or stops below it (default 256)")
 
