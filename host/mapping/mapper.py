@@ -119,7 +119,9 @@ class DenseMapper:
         self.depth_maps: list[Any] | None = [] if keep_depth else None
         self.reposed = 0
         self.timings = {"load": 0.0, "depth": 0.0, "fusion": 0.0}
-        log.info("dense mapping (%s): depth %s; fusion %s", config.preset, config.depth, config.fusion)
+        log.info("dense mapping (%s preset): depth %.2f-%.2f m, voxel %.1f mm", config.preset, config.depth.min_depth_m,
+                 config.depth.max_depth_m, config.fusion.voxel_m * 1e3)
+        log.debug("dense mapping settings: depth %s; fusion %s", config.depth, config.fusion)
 
     @property
     def keyframes(self) -> int:
