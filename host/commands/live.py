@@ -120,7 +120,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _exit_status(receiver, mapper, models, device: str = "", listened_s: float = 0.0) -> int:
     """Log the totals; 1 if keyframes could not be stored or mapped, or nothing at all came from the device
-    (not even its status, sent every second while it runs), 2 if the device let nothing through."""
+    (not even its status, sent every service.status_interval_s while it runs), 2 if the device let nothing
+    through."""
     st = receiver.stats
     log.info("received %d poses, %d keyframes (%d duplicates), %d pose seq gaps, %d rejected; sessions: %s",
              st.received["pose"], st.received["keyframe"], st.duplicates, st.pose_seq_gaps, st.rejected,
@@ -145,7 +146,7 @@ def _exit_status(receiver, mapper, models, device: str = "", listened_s: float =
         return 2
     if got == 0:
         print(f"stereopath: error: nothing received from {device} in {listened_s:.1f} s, not even its status (a running "
-              f"device sends one every second): is `stereopath device run` running there (`stereopath device "
-              f"status` on the box), and are the address and ports right?", file=sys.stderr)
+              f"device sends one every service.status_interval_s, 1 s by default): is `stereopath device run` running "
+              f"there (`stereopath device status` on the box), and are the address and ports right?", file=sys.stderr)
         return 1
     return 0
