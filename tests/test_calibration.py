@@ -187,7 +187,7 @@ def test_calibrate_imu_cli(data_dir, tmp_path, capsys):
     assert main(["device", "calibrate-imu", f"euroc:{data_dir / 'euroc_v1_01_head'}", "--window", "5:3"]) == 2
 
 
-def test_calibrate_imu_refuses_a_window_in_which_the_unit_moved(tmp_path, capsys):
+def test_calibrate_imu_refuses_a_window_in_which_the_unit_moved(tmp_path, capsys, caplog):
     """The frames of a hand-held scan move: no bias or gravity from them; the still start before them gives both."""
     from stereopath.device.formats.recorder import record_sequence
     from stereopath.device.sim.session import SimConfig, open_sim
@@ -196,16 +196,23 @@ def test_calibrate_imu_refuses_a_window_in_which_the_unit_moved(tmp_path, capsys
     sim = open_sim(SimConfig(frames=20))
     record_sequence(sim, tmp_path / "s", config_dict={"source": "sim"})
     src = f"session:{tmp_path / 's'}"
+    # the default window (the frames) moved; the still stretch before them is 1 s, shorter than --min-still-s
     assert main(["device", "calibrate-imu", src, "--out", str(tmp_path / "imu.yaml")]) == 2
     err = capsys.readouterr().err
-    assert "the window frames (0.95 s): the unit was not still" in err and "--window auto" in err
+    assert "the window frames (0.95 s): the unit was not still" in err
+    assert "and --window auto: no still period of at least 2.0 s found (longest 1.0 s)" in err
     assert not (tmp_path / "imu.yaml").exists()
-    assert main(["device", "calibrate-imu", src, "--window", "auto", "--min-still-s", "0.9",
-                 "--out", str(tmp_path / "imu.yaml")]) == 0
+    # with a shorter minimum the default falls back on that still stretch, and says so
+    assert main(["device", "calibrate-imu", src, "--min-still-s", "0.9", "--out", str(tmp_path / "imu.yaml")]) == 0
+    out = capsys.readouterr()
+    assert "using the still stretch --window auto found instead" in caplog.text and "window: auto" in out.out
     import yaml
 
     bias = yaml.safe_load((tmp_path / "imu.yaml").read_text())["gyro_bias_rad_s"]
     assert np.allclose(bias, sim.imu_biases.gyro_rad_s[0], atol=3e-4)  # the gyro's noise over 1 s: ~1e-4 rad/s
+    # a window the user names is not replaced
+    assert main(["device", "calibrate-imu", src, "--window", "frames", "--min-still-s", "0.9"]) == 2
+    assert "give a still stretch with --window auto" in capsys.readouterr().err
     # the same check on explicit times that take in the first moves
     assert main(["device", "calibrate-imu", src, "--window", "0.2:1.9"]) == 2
     assert "the unit was not still" in capsys.readouterr().err
@@ -223,6 +230,32 @@ def test_check_still_passes_vibration_and_refuses_a_turn():
     turning[len(t) // 2:, 2] += 0.05  # a slow turn (3 deg/s) in the second half
     with pytest.raises(CalibrationError, match="turning: the unit was not still"):
         check_still(ImuSamples(t, turning, a), "turning")
+    # a window ending 25 ms after a block's start: those 5 samples join the block (alone, their noisy mean
+    # refused still data)
+    for end in range(2_500_000_000 + 5_000_000, 2_500_000_000 + 50_000_000, 5_000_000):
+        m = t <= end
+        check_still(ImuSamples(t[m], g[m], a[m]), "tail")
+    # a window shorter than a block is cut into four: a turn speeding up within 0.45 s shows
+    m = t < 450_000_000
+    speeding = g[m].copy()
+    speeding[:, 2] += np.linspace(0.0, 0.3, m.sum())
+    with pytest.raises(CalibrationError, match="short: the unit was not still"):
+        check_still(ImuSamples(t[m], speeding, a[m]), "short")
+    check_still(ImuSamples(t[m], g[m], a[m]), "short and still")
+    with pytest.raises(CalibrationError, match="12 IMU samples are too few"):
+        check_still(ImuSamples(t[:12], g[:12], a[:12]), "tiny")
+
+
+@pytest.mark.realdata
+def test_euroc_rests_in_every_window_of_its_head(data_dir):
+    """EuRoC V1_01's first 4.7 s (on the ground, rotors turning): still whatever the window's end."""
+    from stereopath.device.core.calibration import check_still
+    from stereopath.device.formats import open_source
+
+    seq = open_source(f"euroc:{data_dir / 'euroc_v1_01_head'}")
+    t0 = int(seq.t_ns[0])
+    for end_s in np.arange(0.3, 4.7, 0.0125):
+        check_still(seq.imu.between(t0 - 1, t0 + int(end_s * 1e9)), f"{end_s:.4f} s")
 
 
 def test_calibrate_imu_cli_live_emulated(capsys):

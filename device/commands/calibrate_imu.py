@@ -9,9 +9,12 @@ stretch (--window auto) or explicit times in seconds (--window T0:T1).
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 
 from stereopath.device.commands.arg_types import finite_number
+
+log = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -113,12 +116,21 @@ def run(args: argparse.Namespace) -> int:
         window = args.window or ("frames" if frames_t is not None and len(frames_t) >= 2 else "auto")
     t0, t1 = _window(samples, frames_t, window, args.min_still_s)
     still = samples.between(t0 - 1, t1)
-    hint = ("hold the unit still and run again" if args.source == "live" else
-            "give a still stretch with --window auto (--min-still-s S for a shorter one) or --window T0:T1")
     try:
         check_still(still, f"the window {window} ({(t1 - t0) / 1e9:.2f} s)")
     except CalibrationError as exc:
-        raise CalibrationError(f"{exc}; {hint}") from None
+        if args.source == "live":
+            raise CalibrationError(f"{exc}; hold the unit still and run again") from None
+        if args.window is not None:
+            raise CalibrationError(f"{exc}; give a still stretch with --window auto (--min-still-s S for a "
+                                   f"shorter one) or --window T0:T1") from None
+        try:  # the default window (the frames of a hand-held scan) moved: the still stretch the IMU holds
+            t0, t1 = _window(samples, frames_t, "auto", args.min_still_s)
+        except CalibrationError as auto_exc:
+            raise CalibrationError(f"{exc}; and --window auto: {auto_exc} (--min-still-s S for a shorter "
+                                   f"one, or --window T0:T1)") from None
+        log.warning("%s; using the still stretch --window auto found instead", exc)
+        window, still = "auto", samples.between(t0 - 1, t1)
     res = imu_still_calibration(still)
     deg = np.rad2deg
     print(f"window: {window}  {res.samples} samples over {res.duration_s:.2f} s")

@@ -181,28 +181,45 @@ def imu_still_calibration(samples: ImuSamples) -> ImuStillCalibration:
 STILL_BLOCK_S, STILL_GYRO_STEP, STILL_ACCEL_STEP, STILL_GYRO_STD, STILL_ACCEL_STD = 0.5, 0.01, 0.3, 0.2, 2.5
 
 
+def _block_index(t_ns: np.ndarray, block_s: float) -> np.ndarray:
+    """Sample indexes where consecutive ``block_s`` blocks from the first sample start (the samples after
+    the last whole block's start are its own, shorter block's: callers drop it or merge it)."""
+    edges = np.arange(t_ns[0], t_ns[-1] + 1, max(1, int(block_s * 1e9)))
+    return np.searchsorted(t_ns, edges)
+
+
 def check_still(samples: ImuSamples, what: str, block_s: float = STILL_BLOCK_S) -> None:
     """:class:`CalibrationError` when ``samples`` were not taken at rest, by the criteria of
-    :func:`detect_still_window` (block means within ``STILL_GYRO_STEP`` / ``STILL_ACCEL_STEP`` of the
-    window's mean, each block's spread below ``STILL_GYRO_STD`` / ``STILL_ACCEL_STD``); ``what`` names
-    the window in the message."""
+    :func:`detect_still_window`: the means of ``block_s`` blocks within ``STILL_GYRO_STEP`` /
+    ``STILL_ACCEL_STEP`` of the window's mean, each block's spread below ``STILL_GYRO_STD`` /
+    ``STILL_ACCEL_STD``.  A window shorter than four blocks is cut into four, and a block mean may differ
+    by four times its own noise where that is more (short blocks, a vibrating unit); the samples after the
+    last whole block join it.  ``what`` names the window in the message."""
     t = samples.t_ns
-    if len(t) < 10:
-        return  # imu_still_calibration refuses it with its own message
-    edges = np.arange(t[0], t[-1] + 1, int(block_s * 1e9))
-    idx = np.searchsorted(t, np.append(edges, t[-1] + 1))
-    blocks = [(i0, i1) for i0, i1 in zip(idx[:-1], idx[1:]) if i1 - i0 >= 5] or [(0, len(t))]
-    g = np.array([samples.gyro_rad_s[i0:i1].mean(axis=0) for i0, i1 in blocks])
-    a = np.array([samples.accel_m_s2[i0:i1].mean(axis=0) for i0, i1 in blocks])
-    g_std = max(float(samples.gyro_rad_s[i0:i1].std(axis=0).max()) for i0, i1 in blocks)
-    a_std = max(float(samples.accel_m_s2[i0:i1].std(axis=0).max()) for i0, i1 in blocks)
-    g_step = float(np.abs(g - g.mean(axis=0)).max())
-    a_step = float(np.abs(a - a.mean(axis=0)).max())
-    if g_step > STILL_GYRO_STEP or a_step > STILL_ACCEL_STEP or g_std > STILL_GYRO_STD or a_std > STILL_ACCEL_STD:
+    if len(t) < 20:
+        raise CalibrationError(f"{what}: {len(t)} IMU samples are too few to tell whether the unit was still "
+                               f"(at least 20)")
+    block_s = min(block_s, (t[-1] - t[0]) / 4e9)
+    idx = _block_index(t, block_s)
+    bounds = list(zip(idx[:-1], idx[1:]))
+    bounds[-1] = (bounds[-1][0], len(t))  # the tail joins the last block
+    if min(i1 - i0 for i0, i1 in bounds) < 5:
+        raise CalibrationError(f"{what}: {len(t)} IMU samples are too few to tell whether the unit was still")
+
+    def test(x: np.ndarray, step_max: float, std_max: float) -> tuple[bool, float, float, float]:
+        means = np.array([x[i0:i1].mean(axis=0) for i0, i1 in bounds])
+        stds = np.array([x[i0:i1].std(axis=0).max() for i0, i1 in bounds])
+        allowed = max(step_max, 4.0 * float(np.median(stds)) / np.sqrt(min(i1 - i0 for i0, i1 in bounds)))
+        step = float(np.abs(means - means.mean(axis=0)).max())
+        return step <= allowed and float(stds.max()) <= std_max, step, allowed, float(stds.max())
+
+    g_ok, g_step, g_allowed, g_std = test(samples.gyro_rad_s, STILL_GYRO_STEP, STILL_GYRO_STD)
+    a_ok, a_step, a_allowed, a_std = test(samples.accel_m_s2, STILL_ACCEL_STEP, STILL_ACCEL_STD)
+    if not (g_ok and a_ok):
         raise CalibrationError(
-            f"{what}: the unit was not still (its {block_s:g} s means of the gyro differ by up to {g_step:.4f} rad/s, "
-            f"of the accelerometer by {a_step:.3f} m/s^2; at rest they stay within {STILL_GYRO_STEP} and "
-            f"{STILL_ACCEL_STEP}; spread up to {g_std:.3f} rad/s and {a_std:.2f} m/s^2): the bias and gravity "
+            f"{what}: the unit was not still (its {block_s:.2g} s means of the gyro differ by up to {g_step:.4f} rad/s, "
+            f"of the accelerometer by {a_step:.3f} m/s^2; at rest they stay within {g_allowed:.4f} and "
+            f"{a_allowed:.3f}; spread up to {g_std:.3f} rad/s and {a_std:.2f} m/s^2): the bias and gravity "
             f"would be wrong")
 
 
@@ -221,8 +238,7 @@ def detect_still_window(samples: ImuSamples, min_duration_s: float = 2.0, block_
     t = samples.t_ns
     if len(t) < 10:
         raise CalibrationError("still-window detection: too few samples")
-    edges = np.arange(t[0], t[-1] + 1, int(block_s * 1e9))
-    idx = np.searchsorted(t, edges)
+    idx = _block_index(t, block_s)
     best = (0, 0)
     run: list[int] = []   # block numbers of the current run
     g_sum = np.zeros(3)
