@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import stat
@@ -79,11 +80,37 @@ def test_host_live_that_never_hears_from_a_device_says_so(tmp_path, capsys):
     with socket.socket() as s:  # a loopback port nobody listens on
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    rc = _cli(["host", "live", "--device", f"127.0.0.1:{port}", "--insecure", "--out", str(tmp_path / "out"),
-               "--duration", "0.5", "--no-fsync"])
-    assert rc == 1
+    out = tmp_path / "out"
+    out.mkdir()  # an OUT an earlier run used: its counters are not this run's
+    (out / "receiver.json").write_text(json.dumps({"received": {"status": 3}, "link": {"connects": 1}}))
+    argv = ["host", "live", "--device", f"127.0.0.1:{port}", "--insecure", "--out", str(out), "--duration", "0.5",
+            "--no-fsync"]
+    assert _cli(argv) == 1
     err = capsys.readouterr().err
-    assert f"nothing received from 127.0.0.1:{port} in 0." in err and "Traceback" not in err
+    assert f"no connection to 127.0.0.1:{port} in 0." in err and "Traceback" not in err
+
+
+def test_host_live_connected_to_a_quiet_device_is_not_an_error(tmp_path, capsys, caplog):
+    """Connected (the keyframe socket's handshake), but nothing sent yet: a warning, exit 0."""
+    import zmq
+
+    ctx = zmq.Context.instance()
+    pub, router = ctx.socket(zmq.PUB), ctx.socket(zmq.ROUTER)
+    try:
+        port = pub.bind_to_random_port("tcp://127.0.0.1")
+        router.bind(f"tcp://127.0.0.1:{port + 1}")
+    except zmq.ZMQError:
+        pub.close(0)
+        router.close(0)
+        pytest.skip("the port after a random one is taken")
+    try:
+        rc = _cli(["host", "live", "--device", f"127.0.0.1:{port}", "--insecure", "--out", str(tmp_path / "out"),
+                   "--duration", "1.0", "--no-fsync"])
+    finally:
+        pub.close(0)
+        router.close(0)
+    assert rc == 0 and "no connection" not in capsys.readouterr().err
+    assert "connected to 127.0.0.1:%d, but nothing arrived" % port in caplog.text
 
 
 def test_secret_key_is_created_private(tmp_path, monkeypatch):

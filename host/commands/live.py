@@ -13,8 +13,8 @@ warning and the device's is used).  Keyframes of an earlier device session that 
 (the device was killed) arrive after the live ones, into their own OUT/<session>/; sessions
 still missing keyframes are logged at start and at the end (and listed by `host sessions OUT`).
 
-Exit status: 0; 1 when keyframes could not be stored or mapped, or nothing at all came from the
-device (a wrong address or port, or no device running); 2 when the device refused this host's key
+Exit status: 0; 1 when keyframes could not be stored or mapped, or no connection to the device
+was made (a wrong address or port, or no device running); 2 when the device refused this host's key
 or the handshake failed.
 """
 
@@ -99,6 +99,7 @@ def run(args: argparse.Namespace) -> int:
                         on_pose=rerun_view.on_pose if rerun_view else None,
                         on_keyframe=on_keyframe if (rerun_view or mapper) else None)
     t0 = time.monotonic()
+    before = _counts(receiver.stats)  # receiver.json's counters run on over restarts with the same OUT
     try:
         receiver.run(duration_s=args.duration, stop=stop, on_tick=term.update)
     except KeyboardInterrupt:
@@ -115,13 +116,19 @@ def run(args: argparse.Namespace) -> int:
             rerun_view.close()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-    return _exit_status(receiver, mapper, models, args.device, time.monotonic() - t0)
+    return _exit_status(receiver, mapper, models, args.device, time.monotonic() - t0, before)
 
 
-def _exit_status(receiver, mapper, models, device: str = "", listened_s: float = 0.0) -> int:
-    """Log the totals; 1 if keyframes could not be stored or mapped, or nothing at all came from the device
-    (not even its status, sent every service.status_interval_s while it runs), 2 if the device let nothing
-    through."""
+def _counts(stats) -> dict[str, int]:
+    """Messages of every kind received, and the link's counters (connects, refusals), so far."""
+    return {"messages": sum(stats.received.values()), **stats.link}
+
+
+def _exit_status(receiver, mapper, models, device: str = "", listened_s: float = 0.0,
+                 before: dict[str, int] | None = None) -> int:
+    """Log the totals; 1 if keyframes could not be stored or mapped, or this run never connected to the
+    device, 2 if the device let nothing through (its key refused, or no handshake).  ``before``: the counters
+    when this run started (:func:`_counts`)."""
     st = receiver.stats
     log.info("received %d poses, %d keyframes (%d duplicates), %d pose seq gaps, %d rejected; sessions: %s",
              st.received["pose"], st.received["keyframe"], st.duplicates, st.pose_seq_gaps, st.rejected,
@@ -135,18 +142,23 @@ def _exit_status(receiver, mapper, models, device: str = "", listened_s: float =
         print(f"stereopath: error: --map: none of the {mapper.rejected} keyframe(s) could be mapped (see the "
               f"warnings above: no calibration matching their rig); no model written", file=sys.stderr)
         return 1
-    got = st.received["pose"] + st.received["keyframe"] + st.received["status"]
-    if got == 0 and st.link["auth_failures"]:
+    now, before = _counts(st), before or {}
+    run = {k: v - before.get(k, 0) for k, v in now.items()}  # this run's
+    got = run["messages"]
+    if got == 0 and run["auth_failures"]:
         print("stereopath: error: the device refused this host's key: nothing received (add this host's public "
               "key to the device's clients folder)", file=sys.stderr)
         return 2
-    if got == 0 and st.link["handshake_failures"]:
+    if got == 0 and run["handshake_failures"]:
         print("stereopath: error: no handshake with the device: nothing received (wrong device key, or CURVE "
               "on one side only?)", file=sys.stderr)
         return 2
-    if got == 0:
-        print(f"stereopath: error: nothing received from {device} in {listened_s:.1f} s, not even its status (a running "
-              f"device sends one every service.status_interval_s, 1 s by default): is `stereopath device run` running "
-              f"there (`stereopath device status` on the box), and are the address and ports right?", file=sys.stderr)
+    if got == 0 and run["connects"] == 0:
+        print(f"stereopath: error: no connection to {device} in {listened_s:.1f} s: is `stereopath device run` "
+              f"running there (`stereopath device status` on the box), and are the address and ports right?",
+              file=sys.stderr)
         return 1
+    if got == 0:
+        log.warning("connected to %s, but nothing arrived in %.1f s, not even its status (sent every "
+                    "service.status_interval_s)", device, listened_s)
     return 0
