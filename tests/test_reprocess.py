@@ -204,7 +204,7 @@ def test_resume_after_an_interruption(full_run, session, tmp_path):
 
 
 def test_the_session_named_another_way_reuses_the_stored_stages(full_run, session, tmp_path, monkeypatch):
-    """A relative path, a link and ``..`` name the same session: nothing is recomputed."""
+    """A relative path, a link and ``..`` name the same session (its id): nothing is recomputed."""
     ref_out = full_run[0]
     (tmp_path / "link").symlink_to(session)
     monkeypatch.chdir(session.parent)
@@ -213,6 +213,7 @@ def test_the_session_named_another_way_reuses_the_stored_stages(full_run, sessio
         shutil.copytree(ref_out / "stages", out / "stages")
         res = reprocess_session(name, out, do_map=False, progress=False)
         assert res.stages == {"estimate": "reused", "tracks": "reused", "ba": "reused", "map": "skipped"}, name
+        assert res.report["source"].endswith(str(name))  # messages and the report name it as it was given
         assert (out / "trajectory.tum").read_bytes() == (ref_out / "trajectory.tum").read_bytes()
 
 

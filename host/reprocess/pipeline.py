@@ -225,9 +225,7 @@ def open_session_checked(session_dir: str | Path) -> Any:
         raise DatasetError(f"session folder not found: {d}")
     if d.is_dir() and not any(d.iterdir()):
         raise DatasetError(f"{d}: the session folder is empty")
-    # the resolved path: the stages' keys hold it, so that a session named by a relative path, through a
-    # link or with ``..`` reuses what was stored when it was named otherwise
-    seq = open_source(f"session:{d.resolve()}")
+    seq = open_source(f"session:{d}")
     if len(seq) < 2:
         raise DatasetError(f"{d}: {len(seq)} stereo frame(s); reprocessing needs at least two")
     return seq

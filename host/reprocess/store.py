@@ -107,14 +107,26 @@ def copy_atomic(src: Path, dst: Path) -> None:
             shutil.copyfile(src, tmp)
 
 
+def sequence_identity(seq: Any) -> str:
+    """Which recording ``seq`` is, whatever path names it: a session's id (its manifest), else its kind and
+    resolved path (a relative path, a link, ``..`` or a cluster node's own mount of it name the same one)."""
+    man = getattr(seq, "manifest", None)
+    sid = man.get("session_id") if isinstance(man, dict) else None
+    if isinstance(sid, str) and sid:
+        return f"session-id:{sid}"
+    kind, sep, path = str(getattr(seq, "spec", "")).partition(":")
+    return f"{kind}:{Path(path).resolve()}" if sep and path else f"{kind}{sep}{path}"
+
+
 def sequence_fingerprint(seq: Any) -> dict[str, Any]:
-    """What identifies a sequence's input data cheaply: spec, frame times, rig, IMU extent."""
+    """What identifies a sequence's input data cheaply: which recording (:func:`sequence_identity`), frame
+    times, rig, IMU extent."""
     from stereopath.device.core.rig import rig_to_dict
 
     t = np.asarray(seq.t_ns, np.int64)
     imu = getattr(seq, "imu", None)
     return {
-        "spec": str(getattr(seq, "spec", "")),
+        "recording": sequence_identity(seq),
         "frames": int(len(t)),
         "t_ns_sha": hashlib.sha256(t.tobytes()).hexdigest()[:16],
         "rig": stage_key(rig_to_dict(seq.rig)),
