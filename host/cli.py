@@ -59,7 +59,7 @@ class _DefaultsFormatter(argparse.HelpFormatter):
     def _get_help_string(self, action: argparse.Action) -> str | None:
         text = action.help or ""
         if (not action.option_strings or any(action.default is v for v in (None, False, argparse.SUPPRESS))
-                or "default" in text.lower()):
+                or action.default in ([], ()) or "default" in text.lower()):
             return action.help
         return f"{text} (default: %(default)s)".lstrip()
 

@@ -31,11 +31,22 @@ def test_demo_runs_device_and_host_and_reports(tmp_path, repo_root):
     assert report["extra"]["model"]["keyframes"] >= 8
 
 
-def test_a_model_that_cannot_be_built_leaves_the_path_results(tmp_path, caplog):
-    from stereopath.host.demo import model_or_error
+def test_a_model_that_cannot_be_built_leaves_the_path_results(tmp_path, monkeypatch, capsys, caplog):
+    """The shortest demo (the still start and two moving frames), its model failing: exit 0, the path's
+    results and the report say why there is no model."""
+    from stereopath.device.errors import StereopathError
+    from stereopath.host import demo
+    from stereopath.host.cli import main
 
-    session = tmp_path / "session"
-    (session / "mav0").mkdir(parents=True)  # no images, no path: nothing to map
-    model = model_or_error(session, tmp_path / "out")
-    assert set(model) == {"error"} and str(session) in model["error"]
+    def no_surface(session_dir, out):
+        raise StereopathError(f"{session_dir}: the fused volume holds no surface")
+
+    monkeypatch.setattr(demo, "_build_model", no_surface)
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--frames", "8"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["frames_tracked"] == 8 and report["ate_rmse_m"] < 0.005
+    assert report["extra"]["model"] == {"error": f"{out / 'session'}: the fused volume holds no surface"}
     assert "no dense model" in caplog.text
+    printed = capsys.readouterr().out
+    assert "wrote" in printed and "mesh.ply" not in printed and not (out / "mesh.ply").exists()

@@ -54,8 +54,8 @@ def test_stereo_world_frame_is_gravity_aligned(sim, stereo_run):
 def test_paper_estimator_on_short_sim(sim):
     # Eq. 4 as written ignores the rotation between positions, which on an orbit costs about
     # depth x rotation per step; with that rotation removed the same pipeline must be accurate.
-    # The first 52 frames (the still start and 27 moving, 0.33 m): each position costs ~1.7 s of
-    # CPU (modified ASIFT at every step), and the two runs differ by a factor of ~45 already here.
+    # The first 52 frames (6 still, then 46 moving; 0.33 m between the 13 positions it estimates): each
+    # position costs ~1.7 s of CPU (modified ASIFT at every step), and the two runs differ by ~45x here.
     n = 52
     run, m = _run(sim, "paper", n_frames=n, preset="fast_asym", options={"rotation_compensated": True})
     assert len(run.estimates) == n // 4  # one position every frame_step = 4 frames

@@ -40,9 +40,9 @@ def test_out_naming_a_file_is_a_clear_error(tmp_path, capsys, argv):
 
 @pytest.mark.parametrize("frames", ["0", "7"])
 def test_demo_with_too_few_frames_is_refused(tmp_path, capsys, frames):
-    # the simulated rig rests for its first 5 frames: 7 would leave two moving poses to evaluate
+    # the simulated rig rests for its first 6 frames: 7 would leave one moving pose to evaluate
     assert _cli(["demo", "--frames", frames, "--out", str(tmp_path / "d")]) == 2
-    assert f"--frames must be at least 8 (the simulated rig rests for its first 5 frames" in capsys.readouterr().err
+    assert f"--frames must be at least 8 (the simulated rig rests for its first 6 frames" in capsys.readouterr().err
     assert not (tmp_path / "d").exists()
 
 

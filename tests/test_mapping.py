@@ -56,13 +56,19 @@ def test_select_keyframes_by_stride_motion_and_cap():
     turning = np.array([_pose(0.0, 2.0 * i) for i in range(10)])  # rotation only, 2 deg steps
     assert select_keyframes(turning, KeyframeSelection(min_translation_m=1.0, min_rotation_deg=5.0,
                                                        min_keyframes=0)).tolist() == [0, 3, 6, 9]
-    # a short or nearly still recording: at least min_keyframes (default 8), spread evenly, plus the moves
+    # a short or nearly still recording: filled up to min_keyframes (default 8) in its longest gaps, the moves kept
     assert select_keyframes(turning, KeyframeSelection(min_translation_m=1.0, min_rotation_deg=5.0)).tolist() == \
-        [0, 1, 3, 4, 5, 6, 8, 9]
+        [0, 1, 2, 3, 4, 6, 7, 9]
     still = np.array([_pose(0.0) for _ in range(30)])
-    assert select_keyframes(still, KeyframeSelection()).tolist() == [0, 4, 8, 12, 17, 21, 25, 29]
+    assert select_keyframes(still, KeyframeSelection()).tolist() == [0, 3, 7, 10, 14, 21, 25, 29]
     assert select_keyframes(still[:5], KeyframeSelection()).tolist() == [0, 1, 2, 3, 4]
     assert select_keyframes(still, KeyframeSelection(min_keyframes=0)).tolist() == [0]
+    # seven keyframes by motion get one more, not eight
+    seven = select_keyframes(poses[:31], KeyframeSelection(min_translation_m=0.045, min_rotation_deg=90,
+                                                           min_keyframes=0))
+    assert seven.tolist() == [0, 5, 10, 15, 20, 25, 30]
+    assert select_keyframes(poses[:31], KeyframeSelection(min_translation_m=0.045,
+                                                          min_rotation_deg=90)).tolist() == [0, 2, 5, 10, 15, 20, 25, 30]
     capped = select_keyframes(poses, KeyframeSelection(stride=1, max_keyframes=4))
     assert capped.tolist() == [0, 16, 33, 49]
     assert len(select_keyframes(np.zeros((0, 4, 4)), KeyframeSelection())) == 0

@@ -22,14 +22,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-model", action="store_true", help="skip the dense 3D model")
 
 
-def min_demo_frames() -> int:
-    """Frames the demo needs: the simulated scan's still start, then three poses that move."""
+def still_demo_frames() -> int:
+    """Frames of the simulated scan's still start (the frame at its last instant too)."""
     import math
 
     from stereopath.device.sim.session import SimConfig
     from stereopath.device.sim.trajectories import FIRST_FRAME_S, STILL_S
 
-    return math.ceil((STILL_S - FIRST_FRAME_S) * SimConfig().rate_hz) + 3
+    return math.floor((STILL_S - FIRST_FRAME_S) * SimConfig().rate_hz + 1e-9) + 1
+
+
+def min_demo_frames() -> int:
+    """Frames the demo needs: the still start, then two poses that move (the evaluation aligns three
+    positions that are not all the same)."""
+    return still_demo_frames() + 2
 
 
 def run(args: argparse.Namespace) -> int:
@@ -39,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.frames is not None and args.frames < (least := min_demo_frames()):
         raise ConfigError(f"--frames must be at least {least} (the simulated rig rests for its first "
-                          f"{least - 3} frames, and the evaluation aligns three moving poses), got {args.frames}")
+                          f"{still_demo_frames()} frames, and the evaluation needs two poses that move), got {args.frames}")
     check_out_folder(args.out)
     res = run_demo(args.out, frames=args.frames, seed=args.seed, with_model=not args.no_model)
     r = res.report
@@ -58,9 +64,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"  estimator time per frame: median {r['median_frame_ms']:.1f} ms, p95 {r['p95_frame_ms']:.1f} ms; "
           f"demo wall time {res.wall_s:.1f} s")
     model = x.get("model")
-    built = bool(model) and "error" not in model
-    if model and not built:
-        print(f"  no dense model: {model['error']}")
+    built = bool(model) and "error" not in model  # (a model that failed was logged as a warning)
     files = "trajectory.tum, groundtruth.tum, report.json, path.png" + (", mesh.ply, cloud.ply, model.png, map.json"
                                                                          if built else "")
     print(f"  wrote {res.out}/: {files}; the device's recording in session/, the host's store in live/")

@@ -30,11 +30,9 @@ import argparse
 import sys
 
 from stereopath.device.commands.arg_types import finite_number
+from stereopath.host.reprocess.preset_names import DEFAULT_PRESET, PRESET_ABOUT
 
-# stereopath.host.reprocess.pipeline.REPROCESS_PRESETS (kept here so that building the parser imports nothing heavy;
-# a test checks they agree)
-PRESET_NAMES = ("standard", "aligned", "quick", "paper", "full")
-DEFAULT_PRESET = "standard"
+PRESET_NAMES = tuple(PRESET_ABOUT)  # REPROCESS_PRESETS' names (a test checks), without importing the pipeline
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -43,10 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True,
                    help="output folder (created; stages are kept in OUT/stages, or OUT/<session id>/stages in a fleet)")
     p.add_argument("--preset", default=DEFAULT_PRESET, choices=PRESET_NAMES,
-                   help="reprocessing settings: standard (the default: modified ASIFT at every keyframe, tracks, "
-                        "bundle adjustment); aligned (every track aligned on one view: more precise for a well "
-                        "calibrated rig, ~10 s more); quick (plain SIFT tracks: about half the time, less accurate); "
-                        "paper (the paper's 25-view ASIFT: slow); full (OpenCV's reference ASIFT: slowest)")
+                   help="reprocessing settings: " + "; ".join(f"{k}: {v}" for k, v in PRESET_ABOUT.items()))
     p.add_argument("--no-map", action="store_true", help="skip the dense model")
     p.add_argument("--map-preset", default="object", choices=["object", "room"],
                    help="depth range and voxel size of the model: object scans (4 mm) or rooms (2 cm)")

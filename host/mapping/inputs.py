@@ -30,9 +30,10 @@ log = logging.getLogger(__name__)
 class KeyframeSelection:
     """Which frames become keyframes: every ``stride``-th frame with a pose (``stride > 0``), or
     (``stride = 0``) a new keyframe whenever the camera moved ``min_translation_m`` or turned
-    ``min_rotation_deg`` since the last one, and at least ``min_keyframes`` spread evenly over the
-    frames when the camera moved less than that (a short or nearly still recording: the fusion keeps
-    only surfaces several keyframes saw).  ``max_keyframes > 0`` thins the result evenly."""
+    ``min_rotation_deg`` since the last one, filled up to ``min_keyframes`` (the last frame, then the
+    middle of the longest gap, again) when the camera moved less than that (a short or nearly still
+    recording: the fusion keeps only surfaces several keyframes saw).  ``max_keyframes > 0`` thins the
+    result evenly."""
 
     stride: int = 0
     min_translation_m: float = 0.04
@@ -88,9 +89,12 @@ def select_keyframes(T_world_cam: np.ndarray, selection: KeyframeSelection) -> n
             if dt >= selection.min_translation_m or dr >= selection.min_rotation_deg:
                 keep.append(i)
                 last = T[i]
-        if len(keep) < selection.min_keyframes:
-            keep += np.round(np.linspace(0, n - 1, min(n, selection.min_keyframes))).astype(int).tolist()
-        idx = np.unique(np.array(keep))
+        if len(keep) < selection.min_keyframes:  # fill the longest gaps (and take the last frame) up to the minimum
+            keep = sorted(set(keep) | {n - 1})
+            while len(keep) < min(n, selection.min_keyframes):
+                g = int(np.argmax(np.diff(keep)))
+                keep.insert(g + 1, keep[g] + (keep[g + 1] - keep[g]) // 2)
+        idx = np.array(keep)
     if selection.max_keyframes and len(idx) > selection.max_keyframes:
         pick = np.unique(np.round(np.linspace(0, len(idx) - 1, selection.max_keyframes)).astype(int))
         idx = idx[pick]

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from stereopath.host.reprocess.loops import LoopConfig
+from stereopath.host.reprocess.preset_names import DEFAULT_PRESET, PRESET_ABOUT
 from stereopath.host.reprocess.tracks import TrackConfig
 
 
@@ -55,33 +56,29 @@ _TRACK_GAPS = (1, 2, 3, 5, 8, 12, 16, 20)
 
 REPROCESS_PRESETS: dict[str, ReprocessPreset] = {
     "standard": ReprocessPreset(
-        "the on-board estimator again, then modified-ASIFT (preset 'fast_asym': original view + 4 tilted "
-        "views) at every keyframe, tracks over 20 keyframes, bundle adjustment, frame refinement",
+        PRESET_ABOUT["standard"],
         tracks=TrackConfig(feature_preset="fast_asym", max_features=0, window=20, gaps=_TRACK_GAPS),
     ),
     "aligned": ReprocessPreset(
-        "standard, with every track's observations aligned on one reference view (an affine window fit): "
-        "each keyframe then sees the same surface point, far more precisely than a detector; for a rig "
-        "whose stereo calibration is good (see README: on KITTI's rectified pair it is worse); ~10 s more",
+        PRESET_ABOUT["aligned"],
         tracks=TrackConfig(feature_preset="fast_asym", max_features=0, window=20, gaps=_TRACK_GAPS, align_window=21),
     ),
     "quick": ReprocessPreset(
-        "plain SIFT tracks (no affine views) over 20 keyframes: about half the time, less accurate",
+        PRESET_ABOUT["quick"],
         tracks=TrackConfig(feature_preset="fast_asym", original_view_only=True, max_features=0, window=20,
                            gaps=_TRACK_GAPS),
     ),
     "paper": ReprocessPreset(
-        "the paper's modified ASIFT (25 views) in the estimator and at every keyframe: slow",
+        PRESET_ABOUT["paper"],
         estimator_preset="paper",
         tracks=TrackConfig(feature_preset="paper", max_features=0, window=20, gaps=_TRACK_GAPS),
     ),
     "full": ReprocessPreset(
-        "OpenCV's reference ASIFT (cv2.AffineFeature) in the estimator and at every keyframe: slowest",
+        PRESET_ABOUT["full"],
         estimator_preset="full",
         tracks=TrackConfig(feature_preset="full", max_features=0, window=20, gaps=_TRACK_GAPS),
     ),
 }
-DEFAULT_PRESET = "standard"
 
 
 def resolve_preset(preset: "str | ReprocessPreset") -> tuple[str, ReprocessPreset]:
