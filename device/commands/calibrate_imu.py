@@ -3,7 +3,9 @@
 SOURCE is a recorded sequence (euroc:DIR, session:DIR) or "live" (the configured IMU,
 read for --seconds while the unit rests).  The window is the span of the recorded image
 frames (--window frames, the default for recordings), an automatically detected still
-stretch (--window auto) or explicit times in seconds (--window T0:T1).
+stretch (--window auto) or explicit times in seconds (--window T0:T1).  A window in which the
+unit moved is refused; when it was the default one (a hand-held scan's frames), the still
+stretch --window auto finds is used instead, with a warning.
 """
 
 from __future__ import annotations
