@@ -121,3 +121,18 @@ def test_verbosity_options(argv, ours, root_at_most):
             "print(logging.getLogger('stereopath.device.core.rig').getEffectiveLevel(), logging.getLogger().level)")
     out = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, check=True).stdout.split()
     assert int(out[0]) == ours and int(out[1]) == root_at_most
+
+
+def test_help_shows_each_options_default_once(capsys):
+    """A default is shown after the option's help unless the help names it; none for empty lists or flags."""
+    with pytest.raises(SystemExit):
+        main(["demo", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "simulation seed (default: 0)" in text  # a default of 0 is still a default
+    assert "(default: the full 5.12 m scan)" in text and "(default: the full 5.12 m scan) (default" not in text
+    assert "skip the dense 3D model (default" not in text  # a flag
+    with pytest.raises(SystemExit):
+        main(["device", "install", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(repeatable)" in text and "(default: [])" not in text
+    assert "(default: /usr/bin/python3)" in text
