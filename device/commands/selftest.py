@@ -207,22 +207,18 @@ def run(args: argparse.Namespace) -> int:
     import logging
 
     from stereopath.device.core.config import replace
-    from stereopath.device.service.options import source_override
+    from stereopath.device.service.options import RunOptions, apply_options
     from stereopath.device.service.settings import config_or_installed, load_device_config
 
     cfg_path = config_or_installed(args.config)
     logging.getLogger(__name__).info("configuration: %s", cfg_path or "built-in defaults")
-    cfg = load_device_config(cfg_path)
+    base = load_device_config(cfg_path)
+    cfg = apply_options(base, RunOptions(source=args.source, imu=args.imu))  # as `device run` applies them
     src, imu_s, st = cfg.source, cfg.imu, cfg.selftest
-    if args.source:
-        src = source_override(src, args.source)
-    if args.imu:
-        imu_s = replace(imu_s, backend=args.imu)
-    elif src.backend == "sim" and args.source and imu_s.backend == "mpu6050":
+    if args.source == "sim" and not args.imu and base.imu.backend == "mpu6050":
+        # not the simulator's own samples (what `device run` takes): the emulated chip, through the driver checked
         imu_s = replace(imu_s, backend="emulated")
         logging.getLogger(__name__).info("--source sim: using the emulated MPU-6050")
-    elif src.backend == "replay" and args.source:
-        imu_s = replace(imu_s, backend="source")  # the recording's own IMU, as `device run --source replay:SPEC`
     if args.frames:
         st = replace(st, frames=args.frames)
     if src.backend == "sim" and src.sim.frames < st.frames:
