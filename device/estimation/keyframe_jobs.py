@@ -23,7 +23,7 @@ from stereopath.device.core.geometry import invert_pose, project_to_se3 as rigid
 
 log = logging.getLogger(__name__)
 
-_LIVE_POSES = ("_T_world_cam", "_T_prev_prev", "_T_kf", "_T_library", "_T_asift", "_T_bias_start")
+_LIVE_POSES = ("_T_world_cam", "_T_prev_prev", "_T_prev_left", "_T_kf", "_T_library", "_T_asift", "_T_bias_start")
 MAX_SIMULATED_TILT = 4.0  # larger predicted view changes are simulated at this tilt (latitude ~76 deg)
 
 

@@ -58,6 +58,7 @@ from stereopath.device.core.features import get_preset, gray
 from stereopath.device.core.photometric import (GainOffset, correct_right, fit_gain_offset, measure_relation,
                                                 relation_matters)
 from stereopath.device.core.stereo import stereo_right, undistort_px
+from stereopath.device.core.scaled_klt import track_scaled
 from stereopath.device.estimation.disparity_offset import (OffsetFilter, PriorPath, offset_between_keyframes,
                                                           offset_over_keyframes)
 from stereopath.device.estimation.keyframe_jobs import KeyframeJobs
@@ -96,6 +97,10 @@ class StereoConfig:
     retry_klt_levels: int = 5  # deeper pyramid of the retry when tracking from the prediction fails
     relocalise: bool = True  # match SIFT against the last keyframe library when tracking fails
     fb_max_px: float = 0.6  # forward-backward KLT disagreement
+    # frame-to-frame tracking compares each point's window at the scale its predicted depth change gives,
+    # in rungs of (1 + klt_scale_step)^k (device/core/scaled_klt.py; 0 = plain KLT): driving or walking
+    # towards the scene grows near windows by 5-30 % a frame, which pulls plain KLT off the points
+    klt_scale_step: float = 0.05
     epipolar_max_dy_px: float = 1.0
     triangulation_max_px: float = 1.0
     min_depth_m: float = 0.1
@@ -146,6 +151,7 @@ class StereoConfig:
         check_range("track_klt_levels", self.track_klt_levels, 0, 6)
         check_range("seeded_stereo_levels", self.seeded_stereo_levels, 0, 6)
         check_range("fb_klt_levels", self.fb_klt_levels, 0, 8)
+        check_range("klt_scale_step", self.klt_scale_step, 0.0, 0.5)
         check_range("retry_klt_levels", self.retry_klt_levels, 0, 8)
         check_range("epipolar_max_dy_px", self.epipolar_max_dy_px, 0.1, 5.0)
         check_range("min_depth_m", self.min_depth_m, 0.01, self.max_depth_m)
@@ -172,6 +178,7 @@ class StereoEstimator(KeyframeJobs):
         self._t_prev: int | None = None
         self._dt_prev: float | None = None
         self._prev_left: np.ndarray | None = None
+        self._T_prev_left: np.ndarray | None = None  # the pose of the camera that took _prev_left (a live pose)
         self._exposure: GainOffset | None = None  # the right camera's grey levels -> the left's, when it matters
         self._right_raw: np.ndarray | None = None
         self._exposure_fits: list[GainOffset] = []  # the last fits (used or not)
@@ -264,7 +271,7 @@ class StereoEstimator(KeyframeJobs):
         self._T_world_cam = T
         self._T_bias_start = T.copy()
         self._t_prev = frame.t_ns
-        self._prev_left = left
+        self._prev_left, self._T_prev_left = left, T.copy()
         if self.cfg.match_exposure:
             # a first measurement of the two cameras' exposure on this frame's stereo matches
             xy = self._corners(left, np.full(left.shape[:2], 255, np.uint8), self.cfg.max_points)
@@ -338,7 +345,7 @@ class StereoEstimator(KeyframeJobs):
         self._since_kf += 1
         if T_est is not None:
             self._failures = 0
-            self._prev_left = left
+            self._prev_left, self._T_prev_left = left, T_est.copy()
             if relocalised:
                 self.counters["relocalised"] += 1
                 self._map = TrackedMap()
@@ -362,7 +369,7 @@ class StereoEstimator(KeyframeJobs):
             n = self._new_keyframe(left, right, T_pred)
             T_pred = self._T_kf.copy()
             if n >= cfg.min_pnp_inliers:
-                self._prev_left = left
+                self._prev_left, self._T_prev_left = left, T_pred.copy()
                 is_kf = True
         return PoseEstimate(frame.seq, frame.t_ns, T_pred, status, inliers=0, keyframe=is_kf, note=note)
 
@@ -412,6 +419,7 @@ class StereoEstimator(KeyframeJobs):
         ``T_pred`` seeds each point at its projection; ``None`` starts from the last positions."""
         m = self._map
         guess = m.uv.copy()
+        scale = np.ones(len(m.uv))
         if T_pred is not None:
             T_cw = invert_pose(T_pred)
             Xc = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
@@ -420,20 +428,19 @@ class StereoEstimator(KeyframeJobs):
                 pts = cv2.projectPoints(Xc[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
                                         self.rig.cam0.K, self.rig.cam0.dist)[0].reshape(-1, 2)
                 guess[front] = pts
-        klt = dict(self._klt, maxLevel=levels)
-        p0 = m.uv.reshape(-1, 1, 2).astype(np.float32)
-        g = guess.reshape(-1, 1, 2).astype(np.float32)
-        p1, st, _ = cv2.calcOpticalFlowPyrLK(self._prev_left, left, p0, g.copy(),
-                                             flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **klt)
-        # back from the new positions, seeded with the old ones: a true track converges there at once
-        pb, stb, _ = cv2.calcOpticalFlowPyrLK(left, self._prev_left, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-                                              **dict(klt, maxLevel=min(levels, self.cfg.fb_klt_levels)))
-        fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
+            if self.cfg.klt_scale_step > 0 and self._T_prev_left is not None:
+                # each point's window grows by its depth in the previous image over its predicted depth now
+                T_pw = invert_pose(self._T_prev_left)
+                z_prev = m.X @ T_pw[2, :3] + T_pw[2, 3]
+                known = front & (z_prev > 1e-3)
+                scale[known] = z_prev[known] / Xc[known, 2]
+        # forward, then back from the new positions seeded with the old ones: a true track converges there at once
+        p1, both, fb = track_scaled(self._prev_left, left, m.uv, guess, scale, self.cfg.klt_scale_step,
+                                    dict(self._klt, maxLevel=levels), min(levels, self.cfg.fb_klt_levels))
         w, h = self.rig.cam0.size
-        p1 = p1.reshape(-1, 2)
-        good = (st.ravel() == 1) & (stb.ravel() == 1) & (fb < self.cfg.fb_max_px)
+        good = both & (fb < self.cfg.fb_max_px)
         good &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
-        return p1.astype(np.float32), good
+        return p1, good
 
     def _relocalise(self, left, right, T_pred: np.ndarray) -> tuple[np.ndarray | None, int]:
         """The pose from SIFT matches against the newest keyframe library (no trust in the prediction)."""

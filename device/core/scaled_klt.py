@@ -1,0 +1,106 @@
+"""Frame-to-frame KLT with the previous image resampled at the scale each point is predicted to take.
+
+OpenCV's pyramidal KLT compares a window of the previous image with a window of the next one that
+is only shifted.  When the camera moves along its axis (driving, walking towards an object) a
+near point's surroundings grow or shrink from one frame to the next: by ``Z_prev / Z_next``, the
+ratio of its depths.  A window that changed its scale pulls the tracked position off the point,
+and not at random: the pull follows the texture around each point, so the positions carry an
+error that grows with the motion between the two frames.  Measured on KITTI 06 taken every 2nd
+frame (2.4 m between frames): the on-line disparity offset, which reads the scene's depth from
+the tracked points, learns -0.15 px where every frame gives -0.19, and the path's error doubles.
+
+:func:`track_scaled` groups the points by their predicted scale in steps of ``step`` (a
+geometric ladder: ``(1 + step) ** k``), and tracks each group whose scale is not 1 from the previous
+image resampled at that scale (``warpAffine`` of the region the group needs, the same region cut
+from the next image), so that each window is compared with one of nearly its own size.  The group
+at scale 1 is tracked exactly as :func:`cv2.calcOpticalFlowPyrLK` would, and so are all points
+when every scale is within half a step of 1 (a hand-held scan at 20 Hz): then nothing changes.
+Pure compute: images in, positions out.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+
+def scale_groups(scale: np.ndarray, step: float) -> np.ndarray:
+    """Each point's rung on the ladder ``(1 + step) ** k`` nearest its predicted ``scale`` (0: scale 1).
+
+    Scales that are not finite and positive count as 1 (no prediction); ``step <= 0`` puts every point on 0."""
+    s = np.asarray(scale, float)
+    k = np.zeros(len(s), np.int64)
+    if step <= 0 or len(s) == 0:
+        return k
+    ok = np.isfinite(s) & (s > 0)
+    k[ok] = np.round(np.log(np.clip(s[ok], 0.25, 4.0)) / math.log1p(step)).astype(np.int64)
+    return k
+
+
+def _forward_backward(prev, cur, p0, guess, klt: dict, fb_levels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """KLT ``prev`` -> ``cur`` from ``guess``, then back from the result to ``prev`` seeded at ``p0``:
+    (positions in ``cur``, both statuses set, backward disagreement in px)."""
+    p0 = p0.reshape(-1, 1, 2).astype(np.float32)
+    g = guess.reshape(-1, 1, 2).astype(np.float32)
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, g.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **klt)
+    pb, stb, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                                          **dict(klt, maxLevel=min(klt.get("maxLevel", 3), fb_levels)))
+    fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
+    return p1.reshape(-1, 2), (st.ravel() == 1) & (stb.ravel() == 1), fb
+
+
+def _crop(img: np.ndarray, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
+    """``img[y0:y1, x0:x1]``, the part outside the image filled by replicating its border."""
+    h, w = img.shape[:2]
+    if 0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h:
+        return np.ascontiguousarray(img[y0:y1, x0:x1])
+    return cv2.warpAffine(img, np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0]]), (x1 - x0, y1 - y0),
+                          flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+
+
+def track_scaled(prev: np.ndarray, cur: np.ndarray, p0: np.ndarray, guess: np.ndarray, scale: np.ndarray,
+                 step: float, klt: dict, fb_levels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Track points ``p0`` of ``prev`` into ``cur`` from ``guess`` (both (n, 2) pixels), the window of
+    each compared at its predicted ``scale`` (rungs of ``step``, see :func:`scale_groups`).
+
+    ``klt``: :func:`cv2.calcOpticalFlowPyrLK`'s ``winSize``, ``maxLevel`` and ``criteria``;
+    ``fb_levels``: the pyramid of the backward track (it starts at the known answer).  Returns the
+    positions in ``cur`` (float32), whether both tracks converged, and the backward track's
+    disagreement in pixels of ``prev``."""
+    p0 = np.asarray(p0, np.float32).reshape(-1, 2)
+    guess = np.asarray(guess, np.float32).reshape(-1, 2)
+    n = len(p0)
+    p1, ok, fb = np.zeros((n, 2), np.float32), np.zeros(n, bool), np.full(n, np.inf)
+    if n == 0:
+        return p1, ok, fb
+    rung = scale_groups(scale, step)
+    win = int(klt.get("winSize", (21, 21))[0])
+    margin = (win // 2 + 2) * 2 ** int(klt.get("maxLevel", 3)) + 2  # what the coarsest level reads around a point
+    h, w = cur.shape[:2]
+    for k in np.unique(rung):
+        idx = np.flatnonzero(rung == k)
+        if k == 0:
+            p1[idx], ok[idx], fb[idx] = _forward_backward(prev, cur, p0[idx], guess[idx], klt, fb_levels)
+            continue
+        s = (1.0 + step) ** int(k)
+        # the region of the next image the group needs (its guesses and where its points land at scale s)
+        pts = np.vstack([guess[idx], s * p0[idx] + (guess[idx] - s * p0[idx]).mean(0)])
+        x0 = int(math.floor(max(pts[:, 0].min() - margin, -margin)))
+        y0 = int(math.floor(max(pts[:, 1].min() - margin, -margin)))
+        x1 = int(math.ceil(min(pts[:, 0].max() + margin, w + margin)))
+        y1 = int(math.ceil(min(pts[:, 1].max() + margin, h + margin)))
+        x1, y1 = max(x1, x0 + 1), max(y1, y0 + 1)
+        size = (x1 - x0, y1 - y0)
+        # prev scaled by s about the group's mean point, placed so that the group lands near its guesses
+        c_prev, c_cur = p0[idx].mean(0), guess[idx].mean(0)
+        M = np.array([[s, 0.0, c_cur[0] - s * c_prev[0] - x0], [0.0, s, c_cur[1] - s * c_prev[1] - y0]])
+        prev_s = cv2.warpAffine(prev, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        cur_c = _crop(cur, x0, y0, x1, y1)
+        q0 = p0[idx] @ M[:, :2].T + M[:, 2]
+        q1, good, back = _forward_backward(prev_s, cur_c, q0, guess[idx] - (x0, y0), klt, fb_levels)
+        p1[idx] = q1 + (x0, y0)
+        ok[idx] = good
+        fb[idx] = back / s
+    return p1, ok, fb
