@@ -63,14 +63,56 @@ def test_a_magnified_view_is_tracked_onto_the_points_where_plain_klt_drifts_off(
     assert np.median(err) < 0.5 * np.median(err_plain)
 
 
-def test_points_whose_prediction_leaves_the_image_do_not_break_the_others():
+@pytest.mark.parametrize("wild", [(900.0, -400.0), (3000.0, -2000.0), (-1500.0, 900.0), (300.0, 40.0)])
+def test_a_point_predicted_far_off_does_not_break_the_others(wild):
+    """A point barely in front of the camera (or on a moving car) can be predicted anywhere, also
+    inside the image; the others of its group are tracked as if it were not there."""
     prev = _texture()
     cur, M = _zoomed(prev, 1.2, (240.0, 180.0))
-    p0 = np.array([[200.0, 150.0], [260.0, 200.0], [470.0, 20.0]], np.float32)
-    guess = p0 @ M[:, :2].T + M[:, 2]
-    guess[2] = (900.0, -400.0)  # predicted far outside the next image
-    p1, ok, fb = track_scaled(prev, cur, p0, guess, np.array([1.2, 1.2, 1.2]), 0.05, KLT, 1)
-    truth = p0[:2] @ M[:, :2].T + M[:, 2]
-    assert ok[:2].all() and np.linalg.norm(p1[:2] - truth, axis=1).max() < 0.2
-    p1, ok, fb = track_scaled(prev, cur, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0.05, KLT, 1)
-    assert p1.shape == (0, 2) and ok.shape == (0,)
+    for p0 in (np.array([[200.0, 150.0], [260.0, 200.0], [470.0, 20.0]], np.float32),
+               np.array([[200.0, 150.0], [470.0, 20.0]], np.float32)):
+        guess = p0 @ M[:, :2].T + M[:, 2]
+        guess[-1] = wild
+        p1, ok, fb = track_scaled(prev, cur, p0, guess, np.full(len(p0), 1.2), 0.05, KLT, 1)
+        truth = p0[:-1] @ M[:, :2].T + M[:, 2]
+        assert ok[:-1].all() and fb[:-1].max() < 0.1
+        assert np.linalg.norm(p1[:-1] - truth, axis=1).max() < 0.2
+
+
+def test_points_at_scale_one_are_tracked_as_before_beside_other_groups():
+    prev = _texture()
+    cur, _ = _zoomed(prev, 1.1, (240.0, 180.0))
+    p0 = cv2.goodFeaturesToTrack(prev, 150, 0.01, 8).reshape(-1, 2)
+    guess = p0 + 1.0
+    scale = np.where(np.arange(len(p0)) % 3 == 0, 1.0, 1.1)
+    scale[1::3] = 1.3
+    p1, ok, fb = track_scaled(prev, cur, p0, guess, scale, 0.05, KLT, 1)
+    one = scale == 1.0
+    q1, q_ok, q_fb = track_scaled(prev, cur, p0[one], guess[one], scale[one], 0.05, KLT, 1)
+    assert np.array_equal(p1[one], q1) and np.array_equal(ok[one], q_ok) and np.array_equal(fb[one], q_fb)
+
+
+def test_the_estimator_takes_0_or_a_step_of_at_least_1_percent():
+    from stereopath.device.errors import ConfigError
+    from stereopath.device.estimation.stereo_vo import StereoConfig
+
+    assert StereoConfig(klt_scale_step=0.0).klt_scale_step == 0.0
+    assert StereoConfig().klt_scale_step == 0.05
+    for bad in (1e-6, 0.005, -0.05, 0.6, float("nan")):
+        with pytest.raises(ConfigError, match="klt_scale_step"):
+            StereoConfig(klt_scale_step=bad)
+
+
+def test_the_previous_image_pose_moves_with_the_live_state():
+    """The scales compare each map point's depth in the previous image with its predicted depth now:
+    a keyframe correction that moves the map must move the previous image's pose with it."""
+    from stereopath.device.core.geometry import make_pose, so3_exp
+    from stereopath.device.core.rig import paper_rig
+    from stereopath.device.estimation.stereo_vo import StereoEstimator
+
+    est = StereoEstimator(paper_rig())
+    T = make_pose(so3_exp(np.array([0.0, 0.1, 0.0])), np.array([0.2, 0.0, 1.0]))
+    est._T_world_cam, est._T_prev_left = T.copy(), T.copy()
+    G = make_pose(so3_exp(np.array([0.0, 0.0, 0.02])), np.array([0.01, -0.02, 0.0]))
+    est._apply_correction(G)
+    assert np.allclose(est._T_prev_left, G @ T) and np.allclose(est._T_world_cam, est._T_prev_left)
