@@ -6,10 +6,9 @@ near point's surroundings grow or shrink from one frame to the next: by ``Z_prev
 ratio of its depths.  A window that changed its scale pulls the tracked position off the point
 (synthetic texture magnified by 15 / 30 %, tracked from a guess about a pixel off: a median 0.23 /
 0.67 px, ``tests/test_scaled_klt.py``), an error that grows with the motion between the two frames.
-Measured on KITTI 06 taken every 2nd
-frame (2.4 m between frames; the windows grow by 13 % at the median, the nearest by 40 % and
-more): the on-line disparity offset, which reads the scene's depth from the tracked points,
-learns -0.15 px where every frame gives -0.19, and the path's error doubles.
+Measured on KITTI 06 taken every 2nd frame (2.4 m between frames; the windows grow by 13 % at the
+median, the nearest by 40 % and more): the on-line disparity offset, which reads the scene's depth
+from the tracked points, learns -0.15 px where every frame gives -0.19, and the path's error doubles.
 
 :func:`track_scaled` groups the points by their predicted scale in steps of ``step`` (a
 geometric ladder: ``(1 + step) ** k``), and tracks each group whose scale is not 1 from the previous
