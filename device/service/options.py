@@ -46,7 +46,7 @@ def _with(obj: Any, **changes: Any) -> Any:
     return replace(obj, **changes) if changes else obj
 
 
-def source_override(src: Any, spec: str) -> Any:
+def _source_override(src: Any, spec: str) -> Any:
     """``src`` with the ``--source`` spec applied: sim | replay:SPEC | picamera2 | depthai."""
     if spec.startswith("replay:"):
         path = spec[len("replay:"):]
@@ -62,7 +62,7 @@ def apply_options(cfg: DeviceConfig, opts: RunOptions) -> DeviceConfig:
     """The configuration with the command-line overrides applied (validated like the file)."""
     src, imu = cfg.source, cfg.imu
     if opts.source is not None:
-        src = source_override(src, opts.source)
+        src = _source_override(src, opts.source)
         if opts.imu is None and src.recorded:
             imu = _with(imu, backend="source")  # the recording's / simulator's own IMU, on the frames' clock
     if opts.imu is not None:
