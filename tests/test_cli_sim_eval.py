@@ -43,7 +43,8 @@ def test_eval_errors_are_one_line(tmp_path, capsys):
 
 
 def test_sim_writes_a_session_that_reads_back_identically(tmp_path, capsys):
-    sim = pytest.importorskip("stereopath.device.sim.session", reason="the simulator is not built yet")
+    from stereopath.device.sim import session as sim
+
     out = tmp_path / "sess"
     assert main(["sim", "--out", str(out), "--frames", "4", "--seed", "3"]) == 0
     assert "4 stereo frames" in capsys.readouterr().out
@@ -75,7 +76,6 @@ def test_sim_writes_a_session_that_reads_back_identically(tmp_path, capsys):
 
 
 def test_sim_refuses_an_existing_session(tmp_path, capsys):
-    pytest.importorskip("stereopath.device.sim.session", reason="the simulator is not built yet")
     (tmp_path / "x").write_text("keep me")
     assert main(["sim", "--out", str(tmp_path), "--frames", "1"]) == 2
     assert "not empty" in capsys.readouterr().err

@@ -88,6 +88,23 @@ def test_rigidly_moved_estimate_has_zero_errors():
     assert res["path_length_m"] == pytest.approx(gt.path_length_m())
 
 
+def test_ate_is_the_rms_of_an_error_no_rigid_motion_can_explain():
+    """A hand-computed ATE: the camera at the 8 corners of a cube, each estimate off by 4 cm along
+    one axis with the sign x*y*z of its corner.  The errors sum to zero and are uncorrelated with
+    the positions, so the best rigid fit is the true one and the ATE is exactly 4 cm."""
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    sign = corners.prod(axis=1)
+    u = np.array([2.0, -1.0, 2.0]) / 3.0
+    gt = Trajectory(np.arange(8, dtype=np.int64) * 50_000_000, [make_pose(np.eye(3), c) for c in corners])
+    T = gt.T_world_cam.copy()
+    T[:, :3, 3] += 0.04 * sign[:, None] * u
+    G = make_pose(rot_z(0.7) @ rot_y(-0.2), [5.0, 1.0, -2.0])  # in another world frame
+    res = evaluate(gt, Trajectory(gt.t_ns, G @ T))
+    assert res["n_associated"] == 8
+    assert res["ate_rmse_m"] == pytest.approx(0.04, abs=1e-9)
+    assert res["end_error_m"] == pytest.approx(np.linalg.norm(0.04 * (sign[-1] - sign[0]) * u), abs=1e-9)
+
+
 def test_end_point_error_is_drift_after_first_pose_alignment():
     gt = _path()
     drift = np.linspace(0, 1, len(gt))[:, None] * np.array([0.03, -0.04, 0.0])  # 5 cm at the end

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-
 import pytest
 
 from stereopath.device.commands.selftest import format_table, run_selftest
@@ -75,7 +73,6 @@ def test_lost_camera_fails_the_pairing_check():
     assert not checks["frame pairing"].ok and "left camera" in checks["frame pairing"].value
 
 
-@pytest.mark.skipif(importlib.util.find_spec("stereopath.device.sim.session") is None, reason="simulator not available")
 def test_cli_selftest_with_the_simulator(capsys, tmp_path):
     from stereopath.host.cli import main
 
