@@ -297,11 +297,15 @@ def test_pieces_go_out_only_to_idle_cpus(local_ray):
     items = list(range(1, 9))
     want = [3 * i for i in items]
     busy, idle = RaySpreader(idle_cpus=lambda: 0.0), RaySpreader(idle_cpus=lambda: 1.0)
-    for sp in (busy, idle, RaySpreader()):  # the last asks Ray: this driver holds no CPU, both are idle
+    lead = RaySpreader(idle_cpus=lambda: 0.0, lead=True)  # the critical path queues pieces for freed CPUs
+    for sp in (busy, idle, lead, RaySpreader()):  # the last asks Ray: this driver holds no CPU, both are idle
         with spread_with(sp):
             assert parallel_map(operator.mul, 3, items) == want
-    assert busy.pieces == 0 and busy.cpu_s == 0.0  # nothing queued for a CPU that is not idle
+    assert busy.pieces == 0 and busy.cpu_s == 0.0
     assert 0 < idle.pieces < len(items)  # one out per piece run here while one CPU is idle
+    assert 0 < lead.pieces < len(items)
+    with spread_with(lead):
+        assert spare_cores()
     with spread_with(busy):
         assert not spare_cores()
     with spread_with(idle):
@@ -309,21 +313,27 @@ def test_pieces_go_out_only_to_idle_cpus(local_ray):
     assert not spare_cores()
 
 
-def test_the_costliest_estimated_session_goes_first_and_none_waits_for_pieces(local_ray, sessions, tmp_path):
-    """Once the estimates are in, a free slot takes the rest of the costliest session, and the next
-    slot the next costliest: no session is held back for a running one's pieces (a piece costs more
-    than the same work inside its session; pieces only take CPUs no session is left to take)."""
-    from stereopath.host.fleet.runner import SessionState, _Scheduler
+def test_the_costliest_session_leads_and_the_others_fill_its_serial_stages(local_ray, sessions, tmp_path):
+    """Critical path first: the costliest estimated session's rest starts first and leads; while it is
+    in its wide stage (tracks: independent pieces) on a cluster no wider than it can use, the other
+    rests wait (a task started then would hold a core for its whole run); once the lead's tracks
+    are stored they start, in its serial stages.  On a wide cluster nobody waits."""
+    from stereopath.host.fleet.runner import LEAD_WIDTH, SessionState, _Scheduler
 
     states = {s.path.name: SessionState(s, tmp_path / s.id) for s in expand_sessions([sessions])}
     a, b = states["a"], states["b"]
     a.first, b.first = {"keyframes": 9}, {"keyframes": 3}
     sched = _Scheduler(local_ray, list(states.values()), SETTINGS, FleetOptions(), None)
     sched.first, sched.rest = [], [b, a]
-    assert sched._next(2) == (a, "rest")
+    assert sched._next(2) == (a, "rest") and sched._leads(a, "rest")
     sched.inflight["a"], a.stored = (a, "rest"), ["estimate"]
-    assert sched._next(2) == (b, "rest")  # while a is in its tracks stage, b takes the other core
-    assert sched._next(2) is None and sched.rest == []
+    sched.lead_refs.add("a")
+    assert not sched._leads(b, "rest")  # a, running, costs more
+    assert sched._next(2) is None  # b waits for a's wide stage
+    assert sched._next(LEAD_WIDTH + 2) == (b, "rest")  # a wide cluster has cores for both
+    sched.rest = [b]
+    a.stored = ["estimate", "tracks"]
+    assert sched._next(2) == (b, "rest")  # a's serial stages leave a core
 
 
 def test_idle_cpus_are_asked_of_ray_at_most_every_quarter_second(local_ray, monkeypatch):

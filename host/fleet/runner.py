@@ -192,6 +192,12 @@ def submission_order(states: Sequence[SessionState]) -> list[SessionState]:
     return sorted(states, key=lambda st: -frame_count(st.session.path))
 
 
+# the lead session's stages that are mostly independent pieces (tracks: each keyframe's keypoints,
+# each gap's matching), and how many CPUs such a stage keeps busy (its gaps: the track window)
+WIDE_STAGES = ("tracks",)
+LEAD_WIDTH = 8
+
+
 def _cost(st: SessionState) -> tuple[int, int]:
     """What the rest of a session costs, from its estimate: keyframes (tracks and bundle adjustment
     grow with them), then frames."""
@@ -205,11 +211,9 @@ class _Scheduler:
     the session: its keyframes) and "rest" (tracks, ba, map, outputs).  A free slot takes the rest
     of the costliest estimated session once ``2 * slots`` sessions wait for theirs (or every first
     part has ended), else the next first part: the long sessions start early instead of running
-    alone at the end.  A new task starts only on a CPU that is idle; running sessions send pieces
-    only to CPUs that are idle too and queue none, so no session waits for another's pieces: a
-    piece costs more than the same work inside its session (it is sent, read and partly guessed
-    ahead), and pieces pay only on CPUs no session is left to take.  With ``force`` a session is
-    one task ("all": a split would reuse the later stages).
+    alone at the end.  The costliest rest running is the lead (its pieces go first to the CPUs that
+    other tasks free; :meth:`_held`); a new task starts only on a CPU that is idle.  With ``force``
+    a session is one task ("all": a split would reuse the later stages).
     """
 
     def __init__(self, ray: Any, states: list[SessionState], settings: ReprocessSettings, options: FleetOptions,
@@ -222,6 +226,7 @@ class _Scheduler:
         self.first = submission_order(states)  # sessions whose first task is still to start
         self.rest: list[SessionState] = []  # estimated sessions waiting for their second task
         self.inflight: dict[Any, tuple[SessionState, str]] = {}
+        self.lead_refs: set[Any] = set()  # the running rests that lead (see :meth:`_leads`)
         self.idle_cpus = IdleCpus(max_age_s=0.0)  # asked afresh: each answer may start a task
         self.board = ray.remote(num_cpus=0)(ProgressBoard).remote()
         self.task = ray.remote(reprocess_task)
@@ -238,24 +243,43 @@ class _Scheduler:
         estimating = any(p == "first" for _, p in self.inflight.values())
         if self.rest and (len(self.rest) >= 2 * slots or not (self.first or estimating)):
             st = max(self.rest, key=_cost)
-            self.rest.remove(st)
-            return st, "rest"
+            if not self._held(st, slots):
+                self.rest.remove(st)
+                return st, "rest"
         if self.first:
             return self.first.pop(0), ("first" if self.split else "all")
         return None
 
+    def _held(self, st: SessionState, slots: int) -> bool:
+        """Whether the rest of ``st`` waits for a lead's wide stage (:data:`WIDE_STAGES`) to end: on a
+        cluster no wider than the lead can use (:data:`LEAD_WIDTH`), a session started now would hold
+        a core the lead's pieces need, for its whole run; the lead's serial stages leave cores for it."""
+        wide = [o for ref, (o, p) in self.inflight.items() if ref in self.lead_refs
+                and any(w not in o.stored for w in WIDE_STAGES)]
+        return bool(wide) and not self._leads(st, "rest") and len(self.inflight) - len(wide) >= slots - LEAD_WIDTH
+
     def _idle(self) -> bool:
-        """Whether a CPU for one more session task is idle."""
+        """Whether a CPU for one more session task is idle: a CPU the lead session's queued pieces
+        take as soon as it is freed is not (the critical path first, see :class:`RaySpreader`)."""
         return self.idle_cpus() >= self.options.task_cpus
+
+    def _leads(self, st: SessionState, part: str) -> bool:
+        """Whether the rest of ``st`` is the fleet's critical path when it starts: no estimated session,
+        waiting for its rest or running it, costs more (:func:`_cost`)."""
+        running = [o for o, p in self.inflight.values() if p == "rest"]
+        return part == "rest" and all(_cost(o) <= _cost(st) for o in self.rest + running)
 
     def submit(self, slots: int) -> None:
         pm = self.options.path_map
         while len(self.inflight) < slots and (not self.inflight or self._idle()) and (nxt := self._next(slots)) is not None:
             st, part = nxt
+            lead = self._leads(st, part)
             ref = self.task.options(name=f"reprocess {st.session.id} ({part})", **self.task_opts).remote(
                 st.session.id, pm.to_worker(st.session.path), pm.to_worker(st.out), self.kwargs, self.board,
-                self.after_stage, self.threads, part, self.options.spread)
+                self.after_stage, self.threads, part, self.options.spread, lead)
             self.inflight[ref] = (st, part)
+            if lead:
+                self.lead_refs.add(ref)
             st.status, st.stage = "running", (STAGE_ORDER[1] if part == "rest" else STAGE_ORDER[0])
             st.started = st.started or time.time()
 
@@ -264,6 +288,7 @@ class _Scheduler:
         ready, _ = self.ray.wait(list(self.inflight), num_returns=1, timeout=timeout_s)
         for ref in ready:
             st, part = self.inflight.pop(ref)
+            self.lead_refs.discard(ref)
             try:
                 r = self.ray.get(ref)
             except self.ray.exceptions.RayError as exc:
@@ -292,6 +317,7 @@ class _Scheduler:
         for st in self.rest:
             st.status = "interrupted"
         self.inflight.clear()
+        self.lead_refs.clear()
         self.rest.clear()
 
 

@@ -187,21 +187,26 @@ class RaySpreader:
     sessions keep every core busy, every piece runs here: no task, no serialisation, no worker
     started, nothing done that a core was not free for.  At a batch's end the task waits for its
     pieces and Ray lends its CPU to them.  ``pieces`` counts the pieces sent out, ``cpu_s`` their
-    CPU seconds (the ones run here are in the task's own CPU time).  No piece is queued for a CPU
-    that is not idle: a session waiting to start takes a freed CPU, not another session's piece
-    (a piece costs more than the same work done inside its session).
+    CPU seconds (the ones run here are in the task's own CPU time).
+
+    ``lead``: the session the fleet waits for (the costliest running, its critical path) also keeps
+    up to ``queue_ahead`` pieces queued in Ray beyond the idle CPUs, so that a CPU another task
+    frees goes to the lead's next piece first (the driver starts a new session only on a CPU that
+    stays idle); the other sessions run in the cores the lead leaves idle (its serial stages).
     ``idle_cpus``: how many CPUs are idle now (default: the cluster's available CPUs, from Ray)."""
 
-    def __init__(self, retries: int = 3, idle_cpus: Callable[[], float] | None = None) -> None:
+    def __init__(self, retries: int = 3, idle_cpus: Callable[[], float] | None = None, lead: bool = False,
+                 queue_ahead: int = 2) -> None:
         import ray
 
         self.ray, self.pieces, self.cpu_s = ray, 0, 0.0
+        self.ahead = queue_ahead if lead else 0
         self.task = ray.remote(num_cpus=1, max_retries=retries)(run_piece)
         self.idle_cpus = idle_cpus or IdleCpus()
 
     def idle(self) -> bool:
-        """Whether a piece sent now would run at once (a CPU is idle)."""
-        return self.idle_cpus() >= 1.0
+        """Whether a piece sent now would run soon (an idle CPU, or the lead's turn at the next one)."""
+        return self.ahead > 0 or self.idle_cpus() >= 1.0
 
     def __call__(self, fn: Callable[[Any, Any], Any], shared: Any, items: list[Any]) -> list[Any]:
         out: list[Any] = [None] * len(items)
@@ -209,8 +214,8 @@ class RaySpreader:
         ref = None
         lo, hi = 0, len(items)  # this task takes pieces from the front, other CPUs from the back
         while lo < hi or pending:
-            # as many out as CPUs are idle, then one piece here
-            n = 0 if hi - lo < 2 else min(hi - lo - 1, int(self.idle_cpus()))
+            # as many out as CPUs are idle (the lead: and queued ahead), then one piece here
+            n = 0 if hi - lo < 2 else min(hi - lo - 1, max(int(self.idle_cpus()), self.ahead - len(pending)))
             for _ in range(n):
                 if ref is None:
                     ref = self.ray.put(shared)
@@ -241,7 +246,7 @@ def first_part(out_dir: str | Path, wall_s: float, cpu_s: float) -> dict[str, An
 
 def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any], board: Any = None,
                    after_stage: Callable[[str], None] | None = None, threads: int | None = None,
-                   part: str = "all", spread: bool = False) -> dict[str, Any]:
+                   part: str = "all", spread: bool = False, lead: bool = False) -> dict[str, Any]:
     """Reprocess one session (paths as this worker sees them); returns :func:`summarise`'s dict.
 
     ``settings``: keyword arguments of ``reprocess_session`` (preset, do_map, map_preset,
@@ -252,7 +257,7 @@ def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any
     :func:`first_part`'s dict (when it was already stored, the session runs to its end); or
     "rest": the session from its stored estimate (the driver runs "first" before it).
     ``spread``: the stages' independent pieces run as Ray tasks of their own on idle CPUs
-    (:class:`RaySpreader`).
+    (:class:`RaySpreader`); ``lead``: this session is the one the fleet waits for (its spreader's ``lead``).
     A :class:`StereopathError` (bad input) propagates: the driver reports the session failed.
     """
     from stereopath.host.reprocess.parallel import spread_with
@@ -278,7 +283,7 @@ def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any
         if part == "first" and name == "estimate":
             raise _Stop
 
-    spreader = RaySpreader() if spread else None
+    spreader = RaySpreader(lead=lead) if spread else None
     try:
         with spread_with(spreader):
             res = reprocess_session(session, out_dir, progress=False, after_stage=hook, **settings)
