@@ -43,9 +43,11 @@ def scale_groups(scale: np.ndarray, step: float) -> np.ndarray:
     return k
 
 
-def _forward_backward(prev, cur, p0, guess, klt: dict, fb_levels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """KLT ``prev`` -> ``cur`` from ``guess``, then back from the result to ``prev`` seeded at ``p0``:
-    (positions in ``cur``, both statuses set, backward disagreement in px)."""
+def forward_backward(prev, cur, p0, guess, klt: dict, fb_levels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """KLT ``prev`` -> ``cur`` from ``guess``, then back from the result to ``prev`` seeded at ``p0`` (a
+    true track converges there at once; ``fb_levels`` caps the backward pyramid): (positions in
+    ``cur``, both statuses set, backward disagreement in px).  Also the offline tracks' keyframe ->
+    frame step (``host/reprocess/tracks.py``)."""
     p0 = p0.reshape(-1, 1, 2).astype(np.float32)
     g = guess.reshape(-1, 1, 2).astype(np.float32)
     p1, st, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, g.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **klt)
@@ -104,12 +106,12 @@ def track_scaled(prev: np.ndarray, cur: np.ndarray, p0: np.ndarray, guess: np.nd
             plans.append((idx[inside], s, shift, (x0, y0, x1, y1)))
     idx = np.flatnonzero(rung == 0)
     if len(idx):
-        p1[idx], ok[idx], fb[idx] = _forward_backward(prev, cur, p0[idx], guess[idx], klt, fb_levels)
+        p1[idx], ok[idx], fb[idx] = forward_backward(prev, cur, p0[idx], guess[idx], klt, fb_levels)
     for idx, s, shift, (x0, y0, x1, y1) in plans:
         M = np.array([[s, 0.0, shift[0] - x0], [0.0, s, shift[1] - y0]])
         prev_s = cv2.warpAffine(prev, M, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         cur_c = _crop(cur, x0, y0, x1, y1)
-        q1, good, back = _forward_backward(prev_s, cur_c, p0[idx] @ M[:, :2].T + M[:, 2], guess[idx] - (x0, y0), klt,
+        q1, good, back = forward_backward(prev_s, cur_c, p0[idx] @ M[:, :2].T + M[:, 2], guess[idx] - (x0, y0), klt,
                                            fb_levels)
         p1[idx] = q1 + (x0, y0)
         ok[idx] = good

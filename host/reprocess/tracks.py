@@ -29,6 +29,7 @@ import numpy as np
 from stereopath.device.core.config import check_range
 from stereopath.device.core.features import gray
 from stereopath.device.core.stereo import stereo_right, triangulate, undistort_px
+from stereopath.device.core.scaled_klt import forward_backward
 from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import Rig
 from stereopath.device.errors import ConfigError
@@ -455,14 +456,9 @@ def frame_observations(rig: Rig, kf_left: np.ndarray, kf_xy: np.ndarray, kf_ids:
     guess = cv2.projectPoints(Xc.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K0, d0)[0].reshape(-1, 2)
     lk = dict(winSize=(cfg.klt_window, cfg.klt_window), maxLevel=cfg.seeded_klt_levels,
               criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 0.005))
-    p0 = xy.reshape(-1, 1, 2)
-    p1, st, _ = cv2.calcOpticalFlowPyrLK(kf_left, left, p0, guess.reshape(-1, 1, 2).astype(np.float32),
-                                         flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-    pb, stb, _ = cv2.calcOpticalFlowPyrLK(left, kf_left, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-    fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
-    p1 = p1.reshape(-1, 2)
+    p1, both, fb = forward_backward(kf_left, left, xy, guess, lk, cfg.seeded_klt_levels)
     w, h = rig.cam0.size
-    ok = (st.ravel() == 1) & (stb.ravel() == 1) & (fb < cfg.fb_max_px)
+    ok = both & (fb < cfg.fb_max_px)
     ok &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
     ids, p1, Xc = ids[ok], p1[ok], Xc[ok]
     if len(ids) == 0:
