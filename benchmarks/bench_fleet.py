@@ -23,6 +23,11 @@ each; written once, not timed), then:
    Each sequential run prints each session's wall and CPU, each fleet run each session's tasks
    (wall, CPU with its pieces, pieces sent out) and the CPU of every process by kind (the driver,
    Ray's daemons, the workers by the task they ran): where the fleet's extra CPU goes.
+   With --bound, each run also measures each session alone in a fresh process with every thread
+   pool at one thread (as in a fleet task), CPU of the pipeline call: no schedule on the 2 cores
+   can end before the sum of those over the cores (a session cannot do its work in less CPU than
+   single-threaded, and the fleet adds Ray's processes and the pieces' transfers to it), so
+   sum / cores / sequential wall is the lowest ratio any fleet could reach in that run.
 2. two-node cluster on loopback: `ray start --head` (1 CPU) and a second `ray start --address`
    (1 CPU, its own --temp-dir), the four sessions through `run_fleet(ray=ADDRESS)` with a path
    map (the workers see the sessions through another path, a symbolic link); which node ran each
@@ -212,6 +217,32 @@ def fleet_local(sessions, out: Path, settings: ReprocessSettings, on_update=None
     return ph, res
 
 
+ONE_THREAD = """
+import json, sys, time
+from stereopath.host.fleet.worker import limit_threads
+from stereopath.host.reprocess.pipeline import reprocess_session
+limit_threads(1)
+c0, w0 = time.process_time(), time.perf_counter()
+reprocess_session(sys.argv[1], sys.argv[2], preset=sys.argv[3], do_map=sys.argv[4] == "1", map_preset=sys.argv[5],
+                  progress=False, force=True)
+print(json.dumps({"cpu_s": time.process_time() - c0, "wall_s": time.perf_counter() - w0}))
+"""
+
+
+def one_thread_cpu(sessions, out: Path, settings: ReprocessSettings) -> list[float]:
+    """Each session alone in a fresh process, every pool at one thread: CPU seconds of the pipeline
+    call (the imports not counted, as in the sequential figures)."""
+    import json
+
+    cpu = []
+    for s in sessions:
+        r = subprocess.run([sys.executable, "-c", ONE_THREAD, str(s.path), str(out / s.id), settings.preset,
+                            "1" if settings.do_map else "0", settings.map_preset],
+                           capture_output=True, text=True, check=True, cwd=ROOT)
+        cpu.append(json.loads(r.stdout.strip().splitlines()[-1])["cpu_s"])
+    return cpu
+
+
 def thread_cpu_s() -> dict[int, float]:
     """CPU seconds of each thread of this process (/proc/self/task)."""
     tck, out = os.sysconf("SC_CLK_TCK"), {}
@@ -387,6 +418,8 @@ def main() -> int:
     ap.add_argument("--skip-ratio", action="store_true",
                     help="no fleet timing: one sequential run as the reference of the cluster and fault runs")
     ap.add_argument("--keep", default=None, help="work in this folder instead of a temporary one")
+    ap.add_argument("--bound", action="store_true",
+                    help="each run also times every session single-threaded: the lowest ratio any schedule could reach")
     ap.add_argument("--profile", action="store_true",
                     help="first: the costliest session (orbit) alone, per stage, with the default threads and with one")
     args = ap.parse_args()
@@ -410,7 +443,7 @@ def main() -> int:
             print("one session, per stage:")
             profile(sessions[2], tmp / "profile_default", settings, None)
             profile(sessions[2], tmp / "profile_one_thread", settings, 1)
-        seq_ph, fl_ph = [], []
+        seq_ph, fl_ph, bounds = [], [], []
         if args.skip_ratio:
             ph = sequential(sessions, tmp / "seq0", settings)
             print(f"  reference: {ph.line()}")
@@ -419,13 +452,19 @@ def main() -> int:
             print(f"  run {r + 1}: {ph.line()}")
             print(f"    per session: {'; '.join(ph.per_session)}")
             seq_ph.append(ph)
+            if args.bound:
+                cpu = one_thread_cpu(sessions, tmp / f"one{r}", settings)
+                bounds.append(sum(cpu) / CORES)
+                print(f"  run {r + 1}: one thread each, alone: CPU {' + '.join(f'{c:.1f}' for c in cpu)} = {sum(cpu):.1f} s;"
+                      f" over {CORES} cores {bounds[-1]:.1f} s = {bounds[-1] / seq_ph[-1].wall:.2f} of the sequential wall"
+                      f" (no schedule can be faster)")
             ph, res = fleet_local(sessions, tmp / f"fleet{r}", settings)
             print(f"  run {r + 1}: {ph.line()}; {res.counts()['done']} done; {check(tmp / f'seq{r}', tmp / f'fleet{r}', sessions)}")
             print("\n".join(session_lines(res)))
             print(f"    CPU by process: {ph.kinds()}")
             fl_ph.append(ph)
         if seq_ph:
-            report_ratio(seq_ph, fl_ph)
+            report_ratio(seq_ph, fl_ph, bounds)
         ref = tmp / "seq0"
         if not args.skip_cluster:
             print("two-node cluster on loopback:")
@@ -436,7 +475,7 @@ def main() -> int:
     return 0
 
 
-def report_ratio(seq_ph, fl_ph) -> None:
+def report_ratio(seq_ph, fl_ph, bounds=()) -> None:
     med = statistics.median
     sw, fw = med(p.wall for p in seq_ph), med(p.wall for p in fl_ph)
     sn, fn = med(p.wall * p.free_share for p in seq_ph), med(p.wall * p.free_share for p in fl_ph)
@@ -445,6 +484,10 @@ def report_ratio(seq_ph, fl_ph) -> None:
     print(f"CPU-normalised (wall x share of the cores other jobs left free): sequential {sn:.1f} s, "
           f"fleet {fn:.1f} s: ratio {fn / sn:.2f}")
     print(f"own CPU: sequential {sc:.1f} s, fleet {fc:.1f} s (x{fc / sc:.2f}: Ray's overhead and thread effects)")
+    if bounds:
+        b = med(bounds)
+        print(f"lowest possible (one-thread CPU of the four over {CORES} cores): {b:.1f} s, ratio {b / sw:.2f}; "
+              f"the fleet's wall is {fw / b:.2f}x that")
 
 
 if __name__ == "__main__":

@@ -313,27 +313,86 @@ def test_pieces_go_out_only_to_idle_cpus(local_ray):
     assert not spare_cores()
 
 
-def test_the_costliest_session_leads_and_the_others_fill_its_serial_stages(local_ray, sessions, tmp_path):
-    """Critical path first: the costliest estimated session's rest starts first and leads; while it is
-    in its wide stage (tracks: independent pieces) on a cluster no wider than it can use, the other
-    rests wait (a task started then would hold a core for its whole run); once the lead's tracks
-    are stored they start, in its serial stages.  On a wide cluster nobody waits."""
-    from stereopath.host.fleet.runner import LEAD_WIDTH, SessionState, _Scheduler
+def _estimated(states, **offline_keyframes):
+    for name, kf in offline_keyframes.items():
+        states[name].first = {"keyframes": 3, "offline_keyframes": kf, "frames": 100}
+
+
+def test_the_critical_session_leads_and_the_others_fill_its_serial_stages(local_ray, sessions, tmp_path):
+    """Critical path first: the costliest estimated session, when it costs more than a slot's share of
+    all the work, starts first and leads; while it is in its wide stage (tracks: independent pieces)
+    on a cluster no wider than it can use, the other rests wait as far as its serial stages leave
+    room for them (a task started then would hold a core for its whole run), and those beyond that
+    room start now (held, they would run on after the lead); once the lead's tracks are stored the
+    rest start.  On a wide cluster nobody waits."""
+    from stereopath.host.fleet.runner import LEAD_WIDTH, SERIAL_SHARE, SessionState, _cost, _Scheduler
 
     states = {s.path.name: SessionState(s, tmp_path / s.id) for s in expand_sessions([sessions])}
-    a, b = states["a"], states["b"]
-    a.first, b.first = {"keyframes": 9}, {"keyframes": 3}
+    a, b, c = states["a"], states["b"], states["c"]
+    _estimated(states, a=70, b=20, c=9)  # costs 71.8, 21.8, 10.8: a is more than half of the work
     sched = _Scheduler(local_ray, list(states.values()), SETTINGS, FleetOptions(), None)
-    sched.first, sched.rest = [], [b, a]
-    assert sched._next(2) == (a, "rest") and sched._leads(a, "rest")
+    sched.first, sched.rest = [], [b, c, a]
+    assert sched._next(2) == (a, "rest") and sched._leads(a, "rest", 2)
     sched.inflight["a"], a.stored = (a, "rest"), ["estimate"]
     sched.lead_refs.add("a")
-    assert not sched._leads(b, "rest")  # a, running, costs more
-    assert sched._next(2) is None  # b waits for a's wide stage
+    assert not sched._leads(b, "rest", 2)  # a, running, costs more
+    room = SERIAL_SHARE * _cost(a)
+    assert _cost(b) < room < _cost(b) + _cost(c)
+    # b and c would not fit into a's serial stages: the cheapest whose start makes the other fit starts now
+    assert sched._next(2) == (c, "rest")
+    assert sched._next(2) is None  # b fits: it waits for a's wide stage
     assert sched._next(LEAD_WIDTH + 2) == (b, "rest")  # a wide cluster has cores for both
     sched.rest = [b]
     a.stored = ["estimate", "tracks"]
     assert sched._next(2) == (b, "rest")  # a's serial stages leave a core
+    _estimated(states, b=25, c=24)  # neither alone makes the other fit: the costliest starts
+    sched.rest, a.stored = [b, c], ["estimate"]
+    assert _cost(c) > room and sched._next(2) == (b, "rest")
+
+
+def test_in_a_batch_of_similar_sessions_nobody_leads(local_ray, sessions, tmp_path):
+    """No session leads (no pieces queued ahead, nobody waits) when the costliest is less than a slot's
+    share of the work; sessions not yet estimated count at the mean cost of the estimated ones."""
+    from stereopath.host.fleet.runner import SessionState, _Scheduler
+
+    states = {s.path.name: SessionState(s, tmp_path / s.id) for s in expand_sessions([sessions])}
+    a, b, c = states["a"], states["b"], states["c"]
+    _estimated(states, a=60, b=55, c=58)
+    sched = _Scheduler(local_ray, list(states.values()), SETTINGS, FleetOptions(), None)
+    sched.first, sched.rest = [], [b, c, a]
+    assert not sched._leads(a, "rest", 2)
+    assert sched._leads(a, "rest", 4)  # on four slots a third of the work is the critical path
+    _estimated(states, a=70)
+    sched.rest, sched.first = [a], [b, c]  # b and c still to estimate: each counted at a's cost
+    assert not sched._leads(a, "rest", 2)
+    sched.first = []  # a alone: its pieces have the other core
+    assert sched._leads(a, "rest", 2) and not sched._leads(a, "first", 2)
+    # a running session counts what it has left: after its tracks, its serial stages
+    _estimated(states, b=50)
+    sched.rest, sched.inflight["a"], a.stored = [b], (a, "rest"), ["estimate"]
+    assert not sched._leads(b, "rest", 2)
+    a.stored = ["estimate", "tracks"]
+    assert sched._leads(b, "rest", 2)
+
+
+def test_first_part_guesses_the_offline_keyframes(fleet_run, sessions):
+    """The first task reports what the rest will cost: the offline keyframes guessed from cheap
+    corners, close to the ones the tracks stage chose, and the frames."""
+    import time
+
+    import numpy as np
+
+    from stereopath.host.fleet.worker import first_part, guess_offline_keyframes
+
+    out, _, _ = fleet_run
+    sid = _ids(sessions)["a"]
+    r = first_part(sessions / "a", out / sid, SETTINGS.preset, time.perf_counter(), time.process_time())
+    chosen = len(np.load(out / sid / "stages" / "tracks.npz")["kf_index"])
+    assert r["frames"] == 30 and r["status"] == "estimated"
+    assert chosen >= 3 and abs(r["offline_keyframes"] - chosen) <= max(2, 0.3 * chosen)
+    assert r["cpu_s"] >= 0 and r["wall_s"] >= 0
+    est = {"status": np.zeros(4, np.int8), "seq": np.arange(4), "T_world_cam": np.tile(np.eye(4), (4, 1, 1))}
+    assert guess_offline_keyframes(sessions / "c", est, SETTINGS.preset) is None  # its right images are gone
 
 
 def test_idle_cpus_are_asked_of_ray_at_most_every_quarter_second(local_ray, monkeypatch):

@@ -196,12 +196,32 @@ def submission_order(states: Sequence[SessionState]) -> list[SessionState]:
 # each gap's matching), and how many CPUs such a stage keeps busy (its gaps: the track window)
 WIDE_STAGES = ("tracks",)
 LEAD_WIDTH = 8
+# the rest of a session costs about one unit per offline keyframe (its keypoints, matching, bundle
+# adjustment) and one per FRAMES_PER_KEYFRAME frames (the per-frame work of tracks, ba and map): the
+# one-thread CPU of bench_fleet's eight sessions (100 and 400 frames, 9-73 keyframes, 18-135 s) is
+# 1.85 s per keyframe plus 0.033 s per frame, within 10 %
+FRAMES_PER_KEYFRAME = 56
+# the share of a keyframe-heavy session's rest that runs on one core after its wide stage (bundle
+# adjustment, fusion: 43 s of the orbit's 134 s in bench_fleet), and after its bundle adjustment
+SERIAL_SHARE = 0.35
+LEFT_AFTER = {"tracks": SERIAL_SHARE, "ba": SERIAL_SHARE / 3}
 
 
-def _cost(st: SessionState) -> tuple[int, int]:
-    """What the rest of a session costs, from its estimate: keyframes (tracks and bundle adjustment
-    grow with them), then frames."""
-    return int((st.first or {}).get("keyframes") or 0), frame_count(st.session.path)
+def _cost(st: SessionState) -> float:
+    """What the rest of a session costs, from its first part (:func:`~stereopath.host.fleet.worker.first_part`):
+    its offline keyframes as guessed (else its estimator's keyframes) and its frames."""
+    f = st.first or {}
+    kf = f.get("offline_keyframes")
+    kf = f.get("keyframes") if kf is None else kf
+    frames = f.get("frames")
+    frames = frame_count(st.session.path) if frames is None else frames
+    return float(kf or 0) + frames / FRAMES_PER_KEYFRAME
+
+
+def _left(st: SessionState) -> float:
+    """What is left of a session's rest by the stages it has stored (:func:`_cost` before its tracks)."""
+    done = [LEFT_AFTER[s] for s in LEFT_AFTER if s in st.stored]
+    return _cost(st) * min(done, default=1.0)
 
 
 class _Scheduler:
@@ -211,9 +231,11 @@ class _Scheduler:
     the session: its keyframes) and "rest" (tracks, ba, map, outputs).  A free slot takes the rest
     of the costliest estimated session once ``2 * slots`` sessions wait for theirs (or every first
     part has ended), else the next first part: the long sessions start early instead of running
-    alone at the end.  The costliest rest running is the lead (its pieces go first to the CPUs that
-    other tasks free; :meth:`_held`); a new task starts only on a CPU that is idle.  With ``force``
-    a session is one task ("all": a split would reuse the later stages).
+    alone at the end.  A rest that is the fleet's critical path (:meth:`_leads`) is the lead: its
+    pieces go first to the CPUs that other tasks free, and the other rests wait while it is in its
+    wide stage as far as its serial stages leave room for them (:meth:`_startable`).  A new task starts
+    only on a CPU that is idle.  With ``force`` a session is one task ("all": a split would reuse
+    the later stages).
     """
 
     def __init__(self, ray: Any, states: list[SessionState], settings: ReprocessSettings, options: FleetOptions,
@@ -242,38 +264,62 @@ class _Scheduler:
     def _next(self, slots: int) -> tuple[SessionState, str] | None:
         estimating = any(p == "first" for _, p in self.inflight.values())
         if self.rest and (len(self.rest) >= 2 * slots or not (self.first or estimating)):
-            st = max(self.rest, key=_cost)
-            if not self._held(st, slots):
+            st = self._startable(slots)
+            if st is not None:
                 self.rest.remove(st)
                 return st, "rest"
         if self.first:
             return self.first.pop(0), ("first" if self.split else "all")
         return None
 
-    def _held(self, st: SessionState, slots: int) -> bool:
-        """Whether the rest of ``st`` waits for a lead's wide stage (:data:`WIDE_STAGES`) to end: on a
-        cluster no wider than the lead can use (:data:`LEAD_WIDTH`), a session started now would hold
-        a core the lead's pieces need, for its whole run; the lead's serial stages leave cores for it."""
+    def _startable(self, slots: int) -> SessionState | None:
+        """The waiting rest to start now, None while they wait for a lead's wide stage.
+
+        The costliest, unless a lead is in its wide stage (:data:`WIDE_STAGES`) on a cluster no wider
+        than it can use (:data:`LEAD_WIDTH`): a session started then holds a core the lead's pieces
+        need for its whole run, and delays the lead by about its cost over the lead's cores.  The
+        lead's serial stages leave :data:`SERIAL_SHARE` of its cost on each core it does not use:
+        the rests wait as long as they fit there, and when they do not, the cheapest one whose start
+        makes the others fit starts now (else the costliest): held, they would run on after the lead."""
+        st = max(self.rest, key=_cost)
         wide = [o for ref, (o, p) in self.inflight.items() if ref in self.lead_refs
                 and any(w not in o.stored for w in WIDE_STAGES)]
-        return bool(wide) and not self._leads(st, "rest") and len(self.inflight) - len(wide) >= slots - LEAD_WIDTH
+        if not wide or self._leads(st, "rest", slots) or len(self.inflight) - len(wide) < slots - LEAD_WIDTH:
+            return st
+        room = SERIAL_SHARE * max(_cost(o) for o in wide) * max(slots - len(wide), 1)
+        excess = sum(_cost(o) for o in self.rest) - room
+        if excess <= 0:
+            return None
+        enough = [o for o in self.rest if _cost(o) >= excess]
+        return min(enough, key=_cost) if enough else st
 
     def _idle(self) -> bool:
         """Whether a CPU for one more session task is idle: a CPU the lead session's queued pieces
         take as soon as it is freed is not (the critical path first, see :class:`RaySpreader`)."""
         return self.idle_cpus() >= self.options.task_cpus
 
-    def _leads(self, st: SessionState, part: str) -> bool:
+    def _leads(self, st: SessionState, part: str, slots: int) -> bool:
         """Whether the rest of ``st`` is the fleet's critical path when it starts: no estimated session,
-        waiting for its rest or running it, costs more (:func:`_cost`)."""
-        running = [o for o, p in self.inflight.values() if p == "rest"]
-        return part == "rest" and all(_cost(o) <= _cost(st) for o in self.rest + running)
+        waiting for its rest or running it, costs more (:func:`_cost`; a running one: what it has
+        left, :func:`_left`), and it costs more than a slot's share of all the work left (the
+        sessions not yet estimated counted at the mean cost of the others).  In a batch of similar
+        sessions nobody leads: whole sessions fill the cores and pieces go only to idle ones."""
+        if part != "rest":
+            return False
+        running = [o for o, p in self.inflight.values() if p == "rest" and o is not st]
+        known = [_cost(o) for o in self.rest if o is not st] + [_left(o) for o in running]
+        mine = _cost(st)
+        if any(c > mine for c in known):
+            return False
+        unknown = len(self.first) + sum(1 for _, p in self.inflight.values() if p != "rest")
+        total = mine + sum(known) + unknown * (mine + sum(known)) / (1 + len(known))
+        return mine * slots > total
 
     def submit(self, slots: int) -> None:
         pm = self.options.path_map
         while len(self.inflight) < slots and (not self.inflight or self._idle()) and (nxt := self._next(slots)) is not None:
             st, part = nxt
-            lead = self._leads(st, part)
+            lead = self._leads(st, part, slots)
             ref = self.task.options(name=f"reprocess {st.session.id} ({part})", **self.task_opts).remote(
                 st.session.id, pm.to_worker(st.session.path), pm.to_worker(st.out), self.kwargs, self.board,
                 self.after_stage, self.threads, part, self.options.spread, lead)

@@ -234,14 +234,41 @@ class RaySpreader:
         return out
 
 
-def first_part(out_dir: str | Path, wall_s: float, cpu_s: float) -> dict[str, Any]:
-    """What the first part of a split session reports: its estimate's keyframes (the cost of the rest)."""
+def guess_offline_keyframes(session: str | Path, est: dict[str, Any], preset: str) -> int | None:
+    """How many offline keyframes the session's tracks stage will choose (what its rest costs), guessed
+    from cheap corners (:func:`~stereopath.host.reprocess.stage_tracks.guessed_keyframe_count`); None
+    when the session's frames cannot be read for it (the scheduler then goes by the estimator's keyframes)."""
+    from stereopath.device.errors import StereopathError
+    from stereopath.host.reprocess.config import resolve_preset
+    from stereopath.host.reprocess.pipeline import open_session_checked
+    from stereopath.host.reprocess.stage_tracks import guessed_keyframe_count
+
+    try:
+        seq = open_session_checked(session)
+        cfg = resolve_preset(preset)[1].tracks
+
+        def images_of(i: int) -> tuple[Any, Any]:
+            fr = seq.frame(int(est["seq"][i]))
+            return fr.left, fr.right
+
+        return guessed_keyframe_count(seq.rig, est, images_of, cfg)
+    except (StereopathError, KeyError) as exc:
+        log.warning("%s: offline keyframes not guessed (%s); scheduled by the estimator's keyframes", session, exc)
+        return None
+
+
+def first_part(session: str | Path, out_dir: str | Path, preset: str, t0: float, c0: float) -> dict[str, Any]:
+    """What the first part of a split session reports: its frames, its estimate's keyframes and the
+    offline keyframes guessed (:func:`guess_offline_keyframes`): what the rest will cost.  ``t0``, ``c0``:
+    the task's start (``perf_counter``, ``process_time``)."""
     from stereopath.host.reprocess.store import load_npz
 
     est = load_npz(Path(out_dir) / "stages" / "estimate.npz") or {}
     kf = est.get("keyframe")
-    return {"status": "estimated", "keyframes": None if kf is None else int(kf.sum()),
-            "stages": {"estimate": "computed"}, "wall_s": round(wall_s, 3), "cpu_s": round(cpu_s, 3)}
+    guess = guess_offline_keyframes(session, est, preset) if "status" in est else None
+    return {"status": "estimated", "frames": len(est.get("t_ns", ())), "keyframes": None if kf is None else int(kf.sum()),
+            "offline_keyframes": guess, "stages": {"estimate": "computed"},
+            "wall_s": round(time.perf_counter() - t0, 3), "cpu_s": round(time.process_time() - c0, 3)}
 
 
 def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any], board: Any = None,
@@ -288,7 +315,9 @@ def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any
         with spread_with(spreader):
             res = reprocess_session(session, out_dir, progress=False, after_stage=hook, **settings)
     except _Stop:
-        out = first_part(out_dir, time.perf_counter() - t0, time.process_time() - c0)
+        from stereopath.host.reprocess.preset_names import DEFAULT_PRESET
+
+        out = first_part(session, out_dir, settings.get("preset", DEFAULT_PRESET), t0, c0)
     else:  # CPU: this task's and its pieces'
         cpu_s = time.process_time() - c0 + (spreader.cpu_s if spreader else 0.0)
         out = summarise(res, time.perf_counter() - t0, cpu_s)
