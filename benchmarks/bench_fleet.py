@@ -455,9 +455,9 @@ def main() -> int:
             if args.bound:
                 cpu = one_thread_cpu(sessions, tmp / f"one{r}", settings)
                 bounds.append(sum(cpu) / CORES)
-                print(f"  run {r + 1}: one thread each, alone: CPU {' + '.join(f'{c:.1f}' for c in cpu)} = {sum(cpu):.1f} s;"
-                      f" over {CORES} cores {bounds[-1]:.1f} s = {bounds[-1] / seq_ph[-1].wall:.2f} of the sequential wall"
-                      f" (no schedule can be faster)")
+                each = " + ".join(f"{c:.1f}" for c in cpu)
+                print(f"  run {r + 1}: one thread each, alone: CPU {each} = {sum(cpu):.1f} s; over {CORES} cores "
+                      f"{bounds[-1]:.1f} s = {bounds[-1] / seq_ph[-1].wall:.2f} of the sequential wall (no schedule is faster)")
             ph, res = fleet_local(sessions, tmp / f"fleet{r}", settings)
             print(f"  run {r + 1}: {ph.line()}; {res.counts()['done']} done; {check(tmp / f'seq{r}', tmp / f'fleet{r}', sessions)}")
             print("\n".join(session_lines(res)))

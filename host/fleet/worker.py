@@ -266,8 +266,8 @@ def first_part(session: str | Path, out_dir: str | Path, preset: str, t0: float,
     est = load_npz(Path(out_dir) / "stages" / "estimate.npz") or {}
     kf = est.get("keyframe")
     guess = guess_offline_keyframes(session, est, preset) if "status" in est else None
-    return {"status": "estimated", "frames": len(est.get("t_ns", ())), "keyframes": None if kf is None else int(kf.sum()),
-            "offline_keyframes": guess, "stages": {"estimate": "computed"},
+    return {"status": "estimated", "frames": len(est.get("t_ns", ())), "offline_keyframes": guess,
+            "keyframes": None if kf is None else int(kf.sum()), "stages": {"estimate": "computed"},
             "wall_s": round(time.perf_counter() - t0, 3), "cpu_s": round(time.process_time() - c0, 3)}
 
 

@@ -82,8 +82,10 @@ def guessed_keyframe_count(rig, est: dict[str, np.ndarray], images_of, cfg) -> i
     session's tracks and bundle adjustment will cost, for a scheduler; never used for results.
     (On four simulated sessions: 10 / 15 / 73 / 9 guessed, 10 / 12 / 71 / 9 chosen.)"""
     ok = np.flatnonzero(est["status"] == 0)
-    if cfg.keyframe_parallax_deg <= 0 or len(ok) == 0:
-        return len(choose_keyframes(est)) if len(ok) else 0
+    if len(ok) == 0:
+        return 0
+    if cfg.keyframe_parallax_deg <= 0:  # the estimator's keyframes
+        return len(choose_keyframes(est))
     k, n = int(ok[0]), 1
     while k < ok[-1]:
         k = next_keyframe(rig, est, k, view_points(rig, *images_of(k), cfg), cfg)
