@@ -81,16 +81,11 @@ def guessed_keyframe_count(rig, est: dict[str, np.ndarray], images_of, cfg) -> i
     first tracked frame to the last (~20 ms a keyframe against ~0.8 s for its keypoints).  What a
     session's tracks and bundle adjustment will cost, for a scheduler; never used for results.
     (On four simulated sessions: 10 / 15 / 73 / 9 guessed, 10 / 12 / 71 / 9 chosen.)"""
-    ok = np.flatnonzero(est["status"] == 0)
-    if len(ok) == 0:
+    if not np.any(est["status"] == 0):
         return 0
     if cfg.keyframe_parallax_deg <= 0:  # the estimator's keyframes
         return len(choose_keyframes(est))
-    k, n = int(ok[0]), 1
-    while k < ok[-1]:
-        k = next_keyframe(rig, est, k, view_points(rig, *images_of(k), cfg), cfg)
-        n += 1
-    return n
+    return len(keyframes_by_view_change(rig, est, lambda i: view_points(rig, *images_of(i), cfg), cfg)[0])
 
 
 def keyframes_ahead(rig, est: dict[str, np.ndarray], images_of, cfg, progress=None) -> tuple[np.ndarray, list]:
