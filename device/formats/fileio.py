@@ -62,7 +62,11 @@ def write_atomic(path: str | Path, data: bytes, fsync: bool = True, mode: int | 
         tmp.unlink(missing_ok=True)
         raise
     os.close(fd)
-    os.replace(tmp, p)
+    try:
+        os.replace(tmp, p)
+    except BaseException:  # e.g. ``path`` is a directory: leave no temporary file behind
+        tmp.unlink(missing_ok=True)
+        raise
     if fsync:
         fsync_dir(p.parent)
 

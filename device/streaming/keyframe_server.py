@@ -5,7 +5,10 @@ Protocol (ZeroMQ Guide ch.7 "credit-based flow control" + ch.4 "disconnected rel
 * a host connects a DEALER and says ``hello(session, acked_seq, credit)``: the last session it
   stored keyframes of, the highest seq it holds contiguously from 0, and its window;
 * the server sends the spooled keyframes after ``acked_seq`` (or from 0 when the host knows
-  another session), one per unit of credit, never more than ``max_credit`` in flight;
+  another session), one per unit of credit, never more than ``max_credit`` in flight.  A hello's
+  ``acked_seq`` is taken only as far as that host key acknowledged keyframes it was sent in this
+  run; anything claimed beyond is sent again (the host stores it once), and only acknowledgements
+  advance what the spool records as delivered (``acked.json``, which a later run reads);
 * the host stores each keyframe, then answers ``ack(session, seq, credit=1)``;
 * after a reconnect the host says hello again and receives everything newer than what it holds,
   so it gets every keyframe exactly once (it deduplicates by (session, seq)).
@@ -39,6 +42,7 @@ from typing import Any, Callable
 from stereopath.device.errors import DatasetError
 from stereopath.device.wire.protocol import Ack, Credit, DecodeError, Hello, decode_control
 from stereopath.device.service.settings import StreamSettings
+from stereopath.device.wire.ratelog import RateLimitedLog
 from stereopath.device.wire.sockets import CurveKeys, bind_or_close, open_socket
 from stereopath.device.streaming.acks import ContiguousAcks
 from stereopath.device.streaming.backlog import Backlog
@@ -49,6 +53,7 @@ log = logging.getLogger(__name__)
 # a frame above this drops the connection in libzmq (it must leave room for the CURVE handshake);
 # control messages above CONTROL_LIMITS.max_message_bytes are rejected and counted by the decoder
 SOCKET_MAX_BYTES = 4096
+PEER_LOG_INTERVAL_S = 10.0  # at most one hello line per host key in this time (the rest are counted)
 
 
 def _conn_id(key: str, routing_id: bytes) -> str:
@@ -107,6 +112,8 @@ class KeyframeServer:
         self.endpoint = bind_or_close(self.sock, config.keyframe_endpoint)
         self._peers: dict[str, _Peer] = {}
         self._sent_by_key: dict[str, int] = {}  # highest seq sent to any connection of a key (bounded)
+        self._acked_by_key: dict[str, ContiguousAcks] = {}  # what each key acknowledged of what it was sent
+        self._peer_log = RateLimitedLog(log, PEER_LOG_INTERVAL_S)  # lines a peer's messages provoke
         self.stats: dict[str, int] = {
             "control_received": 0, "control_rejected": 0, "hellos": 0, "acks": 0, "credits": 0,
             "keyframes_sent": 0, "keyframes_resent": 0, "status_sent": 0, "status_dropped": 0,
@@ -146,7 +153,7 @@ class KeyframeServer:
             except DecodeError as exc:
                 self._reject(exc.reason, str(exc))
                 continue
-            self._handle(key, rid, msg)
+            self.handle(key, rid, msg)
         return handled
 
     def _peer_key(self, rid: bytes, frame: Any) -> str:
@@ -164,28 +171,39 @@ class KeyframeServer:
         self.rejected[reason] = self.rejected.get(reason, 0) + 1
         log.debug("rejected control message (%s): %s", reason, detail[:200])
 
-    def _handle(self, key: str, rid: bytes, msg: Hello | Ack | Credit) -> None:
+    def handle(self, key: str, rid: bytes, msg: Hello | Ack | Credit) -> None:
+        """One decoded control message from host ``key`` on its connection ``rid``."""
         peer = self._peers.get(_conn_id(key, rid))
         if isinstance(msg, Hello):
             self.stats["hellos"] += 1
             if peer is None:
                 same_key = sum(1 for p in self._peers.values() if p.key == key and p.connected)
                 if same_key:
-                    log.info("host %s: another connection with the same key (%d already connected); each gets "
-                             "every keyframe", key[:20], same_key)
+                    self._peer_log.log(logging.INFO, "same:" + key, "host %s: another connection with the same "
+                                       "key (%d already connected); each gets every keyframe", key[:20], same_key)
                 peer = self._add_peer(key, rid)
             peer.connected = True
             peer.last_heard = time.monotonic()
-            acked = msg.acked_seq if msg.session_id == self.session_id else -1
-            peer.acks.reset(min(acked, self.spool.last_seq), keep_above=False)
+            claimed = msg.acked_seq if msg.session_id == self.session_id else -1
+            # a claim counts only as far as this key acknowledged keyframes it was sent (an ack is checked
+            # against what was sent): a stale, corrupt or hostile hello can skip no keyframe, and the spool's
+            # record of what hosts hold advances on acknowledgements alone
+            verified = self._acked_by_key.get(key)
+            acked = min(claimed, self.spool.last_seq, -1 if verified is None else verified.acked)
+            peer.acks.reset(acked, keep_above=False)
             peer.next_seq = peer.acked + 1
             peer.credit = min(msg.credit, self.config.max_credit)
             peer.restart_backlog()
             if peer.acked >= 0:
                 self.spool.release(peer.acked)
-                self.spool.mark_acked(peer.acked, upto=True)
-            log.info("host %s: hello (session %s, acked %d, credit %d) -> sending from seq %d",
-                     key[:20], msg.session_id, msg.acked_seq, msg.credit, peer.next_seq)
+            if claimed > acked:
+                self._peer_log.log(logging.WARNING, "claim:" + key,
+                                   "host %s: hello says it holds keyframes up to %d of this session, but it "
+                                   "acknowledged only up to %d: sending from seq %d", key[:20], claimed, acked,
+                                   peer.next_seq)
+            self._peer_log.log(logging.INFO, "hello:" + key,
+                               "host %s: hello (session %s, acked %d, credit %d) -> sending from seq %d",
+                               key[:20], msg.session_id, msg.acked_seq, msg.credit, peer.next_seq)
             self._send_to(peer, self._status_fn(), status=True)
             if self._session_fn is not None and self._send_to(peer, self._session_fn()):
                 self.stats["session_sent"] += 1
@@ -204,6 +222,7 @@ class KeyframeServer:
                 # an ack is for its own keyframe only: one the host could not store (its disk full) stays
                 # unacknowledged before it, to be resent after the host's next hello
                 peer.acks.add(msg.seq)
+                self._key_acks(key).add(msg.seq)
                 self.spool.release(peer.acked)  # held by a host: what a full disk kept in memory can go
                 self.spool.mark_acked(msg.seq)
             elif (msg.session_id, msg.seq) in peer.bl_inflight and self.backlog is not None:
@@ -214,12 +233,20 @@ class KeyframeServer:
             self.stats["credits"] += 1
             peer.credit = min(peer.credit + msg.n, self.config.max_credit)
 
+    def _key_acks(self, key: str) -> ContiguousAcks:
+        acks = self._acked_by_key.pop(key, None) or ContiguousAcks()
+        self._acked_by_key[key] = acks  # most recently used last; bounded as the sent seqs are
+        while len(self._acked_by_key) > 4 * self.config.max_peers:
+            self._acked_by_key.pop(next(iter(self._acked_by_key)))
+        return acks
+
     def _add_peer(self, key: str, rid: bytes) -> _Peer:
         if len(self._peers) >= self.config.max_peers:
             oldest = min(self._peers.values(), key=lambda p: (p.connected, p.last_heard))
             del self._peers[oldest.conn]
             self.stats["peers_evicted"] += 1
-            log.warning("too many hosts (max %d): forgetting %s", self.config.max_peers, oldest.key[:20])
+            self._peer_log.log(logging.WARNING, "evict:" + oldest.key, "too many host connections (max %d): "
+                               "forgetting one of %s", self.config.max_peers, oldest.key[:20])
         peer = _Peer(key, rid)
         peer.max_sent = self._sent_by_key.get(key, -1)  # what this key had: later sends count as resends
         self._peers[peer.conn] = peer

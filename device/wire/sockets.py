@@ -85,3 +85,50 @@ def bind_or_close(sock: Any, endpoint: str) -> str:
         sock.close(linger=0)
         raise
     return sock.getsockopt_string(zmq.LAST_ENDPOINT)
+
+
+def zmtp_greeting(endpoint: str, timeout_s: float = 1.0) -> str:
+    """What answers at a ``tcp://host:port`` endpoint, read from the greeting a ZeroMQ peer sends.
+
+    ZMTP 3 (RFC 23): each side sends a 10-byte signature ``FF 00*8 7F`` and its major version as soon
+    as the TCP connection opens; once it has seen the other side's signature it sends the rest of its
+    64-byte greeting, whose bytes 12-31 name its security mechanism.  This sends a signature and
+    version only (nothing a peer could refuse), reads the peer's greeting and closes before any
+    handshake.  Returns ``"zmtp:<MECHANISM>"``
+    (``zmtp:CURVE``, ``zmtp:NULL``: a ZeroMQ peer), ``"no greeting"`` (the connection was accepted, then
+    closed or silent: a forwarder or tunnel with nothing behind it, or another program), ``"refused"``
+    (nothing listens) or ``"unknown"`` (not a TCP endpoint, or another error).
+    """
+    import socket
+
+    if not endpoint.startswith("tcp://"):
+        return "unknown"
+    host, _, port = endpoint[len("tcp://"):].rpartition(":")
+    host = host.strip("[]")
+    try:
+        conn = socket.create_connection((host, int(port)), timeout=timeout_s)
+    except ConnectionRefusedError:
+        return "refused"
+    except (OSError, ValueError):
+        return "unknown"
+    ours = b"\xff" + bytes(8) + b"\x7f" + bytes([3])  # signature and major version only: no mechanism to refuse
+    data = b""
+    with conn:
+        try:
+            conn.settimeout(timeout_s)
+            while len(data) < 64:
+                chunk = conn.recv(64 - len(data))
+                if not chunk:
+                    break
+                data += chunk
+                if len(data) >= 10 and len(data) - len(chunk) < 10:  # its signature seen: ours, in full
+                    if data[0] != 0xFF or data[9] != 0x7F:
+                        break
+                    conn.sendall(ours)
+        except OSError:  # a timeout, or a reset
+            pass
+    if len(data) < 10 or data[0] != 0xFF or data[9] != 0x7F:
+        return "no greeting"
+    if len(data) < 32:
+        return "zmtp:?"
+    return "zmtp:" + data[12:32].rstrip(b"\0").decode("ascii", "replace")

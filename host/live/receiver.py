@@ -49,11 +49,27 @@ from stereopath.host.live.receiver_config import RECEIVER_JSON, ReceiverConfig
 from stereopath.host.live.receiver_link import LinkControl
 from stereopath.host.live.receiver_sessions import SessionCatalog, describe_incomplete
 from stereopath.host.live.receiver_stats import EventRate, LiveState, ReceiverStats, SessionStats
-from stereopath.host.live.store import KeyframeStore, list_sessions
+from stereopath.host.live.store import STATE_NAME, KeyframeStore, list_sessions
 
 log = logging.getLogger(__name__)
 
 RECOVERY_HELLO_MIN_S = 1.0  # seconds between hellos asking for refused keyframes once storing works again
+HOST_FILES = (RECEIVER_JSON, STATE_NAME)  # what the host itself keeps in OUT beside the session folders
+
+
+def session_name_clash(out: Path, sid: str) -> str:
+    """Why ``OUT/<sid>`` cannot be a session folder ('' when it can): the name of one of the host's own
+    files, or of something in OUT that is not a folder (a user's file)."""
+    path = out / sid
+    if sid in HOST_FILES:
+        return f"its folder would be the host's own file {path}"
+    try:
+        if path.exists() and not path.is_dir():
+            return f"{path} exists and is not a session folder"
+    except OSError as exc:
+        return f"{path}: {exc.strerror or exc}"
+    return ""
+
 
 class Receiver(LinkControl):
     """Receives from one device into ``out_dir``; drive it with :meth:`poll` or :meth:`run`."""
@@ -92,7 +108,7 @@ class Receiver(LinkControl):
         self._next_stats = time.monotonic()
         self._auth_warned = False
         self._warned: set[str] = set()
-        self._known_sessions: set[str] = set(list_sessions(self.out))
+        self._known_sessions: set[str] = {s for s in list_sessions(self.out) if not session_name_clash(self.out, s)}
         self.storage_error: str | None = None  # set while keyframes cannot be stored (disk full)
         self._refused_since_hello = False  # a keyframe went unacknowledged: a later hello has it resent
         self._last_dealer_rx = self._last_hello_at = time.monotonic()
@@ -238,9 +254,9 @@ class Receiver(LinkControl):
             except DecodeError as exc:
                 self._reject(channel, exc.reason, str(exc))
                 continue
-            if not self._admit_session(msg.session_id):
-                self._reject(channel, "session_limit", f"session {msg.session_id!r}: over the limit of "
-                             f"{self.config.max_new_sessions} new sessions in this run")
+            refused = self._admit_session(msg.session_id)
+            if refused:
+                self._reject(channel, *refused)
                 continue
             if isinstance(msg, Pose):
                 self._handle_pose(msg)
@@ -252,29 +268,37 @@ class Receiver(LinkControl):
                 self._handle_session(msg)
         return n
 
-    def _admit_session(self, sid: str) -> bool:
-        """Known sessions always; a new one only while this run has accepted fewer than the limit.
+    def _admit_session(self, sid: str) -> tuple[str, str] | None:
+        """None for a session whose messages are taken, else ``(reason, message)`` for the rejection.
 
-        A device starts one session per run, so a flood of new ids (from a client holding the
-        device key) cannot fill the disk with folders.
+        Known sessions always; a new one only while this run has accepted fewer than the limit (a
+        device starts one session per run, so a flood of new ids from a client holding the device
+        key cannot fill the disk with folders), and only when its folder ``OUT/<session>`` can be
+        one: never the name of the host's own files, nor of anything in OUT that is not a folder.
         """
         with self.lock:
             if sid in self._known_sessions:
-                return True
+                return None
+            clash = session_name_clash(self.out, sid)
+            if clash:
+                return "session_id", f"device session {sid!r} not stored: {clash}"
             if self._new_sessions >= self.config.max_new_sessions:
-                return False
+                return "session_limit", (f"session {sid!r}: over the limit of {self.config.max_new_sessions} "
+                                         f"new sessions in this run")
             self._new_sessions += 1
             self._known_sessions.add(sid)
-            return True
+            return None
 
     def _reject(self, channel: str, reason: str, detail: str = "") -> None:
         with self.lock:
             st = self.stats
             st.rejected_by_reason[reason] = st.rejected_by_reason.get(reason, 0) + 1
             st.rejected_by_channel[channel] = st.rejected_by_channel.get(channel, 0) + 1
-            warn = reason in ("version", "session_limit") and reason not in self._warned
+            tag = f"{reason}:{detail}" if reason == "session_id" else reason  # once per clashing id
+            warn = reason in ("version", "session_limit", "session_id") and tag not in self._warned
+            if warn:
+                self._warned.add(tag)
         if warn:
-            self._warned.add(reason)
             log.warning("%s", detail)
         else:
             log.debug("rejected %s message (%s): %s", channel, reason, detail[:200])

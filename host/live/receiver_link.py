@@ -11,10 +11,12 @@ connection stays silent (no status, no keyframe), it says hello again.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from typing import Any, Callable
 
 from stereopath.device.wire.protocol import Hello, encode_hello
+from stereopath.device.wire.sockets import zmtp_greeting
 
 log = logging.getLogger("stereopath.host.live.receiver")  # one logger for the receiver's lines
 
@@ -70,9 +72,29 @@ class LinkControl:
                     log.warning("device refused this host's key (is its public key in the device's clients dir?)")
             else:
                 self.stats.link["handshake_failures"] += 1
-                if not self._auth_warned:
+                if not self._auth_warned:  # ask the endpoint itself what answers there (once)
                     self._auth_warned = True
-                    log.warning("handshake with the device failed (wrong device key, or CURVE on one side only?)")
+                    threading.Thread(target=self._explain_failed_handshake, name="stereopath-probe",
+                                     daemon=True).start()
+
+    def _explain_failed_handshake(self) -> None:
+        endpoint = self.config.keyframe_endpoint
+        answer = zmtp_greeting(endpoint)
+        if answer == "zmtp:NULL" and not self.config.insecure:
+            log.warning("handshake with %s failed: the device streams without CURVE (stream.insecure) and this "
+                        "host uses CURVE: CURVE on one side only", endpoint)
+        elif answer == "zmtp:CURVE" and self.config.insecure:
+            log.warning("handshake with %s failed: the device requires CURVE and this host runs --insecure: "
+                        "CURVE on one side only", endpoint)
+        elif answer == "zmtp:CURVE":
+            log.warning("the device at %s closed the CURVE handshake: the device public key this host uses "
+                        "is not that device's (check --device-key / the host's keys folder)", endpoint)
+        elif answer == "no greeting":
+            log.warning("something at %s accepts connections but does not answer as a stereopath device (no "
+                        "ZeroMQ greeting): a port forwarder or SSH tunnel whose device is gone, or another "
+                        "program on that port; retrying", endpoint)
+        else:
+            log.warning("handshake with %s failed (the endpoint answers: %s); retrying", endpoint, answer)
 
     def _send_hello(self) -> None:
         sid, acked = self.store.hello_state()
