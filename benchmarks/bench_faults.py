@@ -128,8 +128,8 @@ def _log_messages(logger: str, level: int):
 
 
 def _row(name: str, **kw) -> dict:
-    base = {"scenario": name, "kf_sent": "-", "kf_stored": "-", "kf_lost": "-", "poses_sent": "-",
-            "poses_stored": "-", "rc": "-", "message": ""}
+    base = {"scenario": name, "kf_sent": "-", "kf_stored": "-", "kf_lost": "-", "kf_dup": "-", "poses_sent": "-",
+            "poses_stored": "-", "rc": "-", "tracebacks": 0, "message": ""}
     base.update(kw)
     return base
 
@@ -433,6 +433,229 @@ def sc_live_map_shipped_rig(tmp: Path, mount: bool) -> dict:
                         f"(no --rig): {msg2[:70]}")
 
 
+class _Proxy:
+    """A TCP forwarder on loopback that can cut every connection (``drop``) or black-hole traffic for a
+    while (``partition``: nothing is forwarded and new connections wait) -- a flaky Wi-Fi link."""
+
+    def __init__(self, target_port: int) -> None:
+        import select
+
+        self._select = select
+        self.target = target_port
+        self.srv = socket.socket()
+        self.srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.srv.bind(("127.0.0.1", 0))
+        self.srv.listen(64)
+        self.port = self.srv.getsockname()[1]
+        self.blackhole = threading.Event()
+        self._pairs: list[tuple[socket.socket, socket.socket]] = []
+        self._lock = threading.Lock()
+        self._closed = False
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while not self._closed:
+            try:
+                client, _ = self.srv.accept()
+            except OSError:
+                return
+            threading.Thread(target=self._serve, args=(client,), daemon=True).start()
+
+    def _serve(self, client: socket.socket) -> None:
+        while self.blackhole.is_set() and not self._closed:  # a new connection waits out the partition
+            time.sleep(0.05)
+        try:
+            upstream = socket.create_connection(("127.0.0.1", self.target), timeout=2)
+        except OSError:
+            client.close()
+            return
+        with self._lock:
+            self._pairs.append((client, upstream))
+        socks = [client, upstream]
+        try:
+            while not self._closed:
+                if self.blackhole.is_set():
+                    time.sleep(0.05)
+                    continue
+                ready, _, _ = self._select.select(socks, [], [], 0.1)
+                for s in ready:
+                    data = s.recv(65536)
+                    if not data:
+                        return
+                    (upstream if s is client else client).sendall(data)
+        except OSError:
+            return
+        finally:
+            for s in socks:
+                s.close()
+            with self._lock:
+                if (client, upstream) in self._pairs:
+                    self._pairs.remove((client, upstream))
+
+    def drop(self) -> None:
+        with self._lock:
+            pairs = list(self._pairs)
+        for a, b in pairs:
+            for s in (a, b):
+                try:
+                    s.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+
+    def close(self) -> None:
+        self._closed = True
+        self.drop()
+        self.srv.close()
+
+
+def _exactly_once(out: Path, session: str, produced: int) -> tuple[int, int]:
+    """(keyframes of 0..produced-1 on no host, keyframes indexed more than once) in the host store."""
+    from stereopath.host.live.store import read_index
+
+    held = set(stored_seqs(out, session))
+    rows = [r["seq"] for r in read_index(out / session)] if (out / session).is_dir() else []
+    return len(set(range(produced)) - held), len(rows) - len(set(rows))
+
+
+def sc_partition(tmp: Path, mount: bool) -> dict:
+    """A 20 s network partition and 3 connection drops between host and device while keyframes flow."""
+    dev = make_device(tmp, None, "sessN")
+    proxies = [_Proxy(int(dev.pose_endpoint.rsplit(":", 1)[1])), _Proxy(int(dev.keyframe_endpoint.rsplit(":", 1)[1]))]
+    out = tmp / "host"
+    rx = _receiver_at(f"tcp://127.0.0.1:{proxies[0].port}", f"tcp://127.0.0.1:{proxies[1].port}", out)
+    n = 0
+    try:
+        def tick(k: int) -> None:
+            nonlocal n
+            for _ in range(k):
+                _offer(dev, n)
+                n += 1
+                rx.poll(0.05)
+        tick(5)
+        for _ in range(3):  # connections cut (a reset), keyframes keep coming
+            for p in proxies:
+                p.drop()
+            tick(5)
+        for p in proxies:
+            p.blackhole.set()
+        t_end = time.monotonic() + 20.0
+        while time.monotonic() < t_end:  # the partition: the scan goes on, nothing gets through
+            tick(1)
+            time.sleep(0.2)
+        for p in proxies:
+            p.blackhole.clear()
+        tick(5)
+        wait_for(lambda: len(stored_seqs(out, "sessN")) >= n, 40, between=lambda: rx.poll(0.05))
+        link = dict(rx.stats.link)
+    finally:
+        rx.close()
+        for p in proxies:
+            p.close()
+        dev.close()
+    lost, dup = _exactly_once(out, "sessN", n)
+    return _row("9 partition 20 s + 3 drops", kf_sent=n, kf_stored=len(stored_seqs(out, "sessN")), kf_lost=lost,
+                kf_dup=dup, rc="-", message=f"host link: {link.get('connects', 0)} connects, "
+                                            f"{link.get('disconnects', 0)} disconnects, {link.get('hellos', 0)} hellos")
+
+
+def sc_host_kill_loop(tmp: Path, mount: bool) -> dict:
+    """`host live` killed (-9) five times during one scan, restarted each time on the same --out."""
+    import signal
+
+    from tests.test_streaming_support import port_of
+
+    dev = make_device(tmp, None, "sessK")
+    out = tmp / "host"
+    argv = [sys.executable, "-m", "stereopath.host", "host", "live", "--device",
+            f"127.0.0.1:{port_of(dev.pose_endpoint)}", "--keyframe-port", str(port_of(dev.keyframe_endpoint)),
+            "--insecure", "--out", str(out), "--no-fsync"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    n, kills, tracebacks = 0, 0, 0
+    proc = None
+    try:
+        for _ in range(5):
+            proc = subprocess.Popen(argv + ["--duration", "60"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                                    stderr=subprocess.PIPE, text=True)
+            for _ in range(6):
+                _offer(dev, n)
+                n += 1
+                time.sleep(0.25)
+            os.kill(proc.pid, signal.SIGKILL)
+            _, err = proc.communicate(timeout=20)
+            tracebacks += "Traceback" in err
+            kills += 1
+        for _ in range(4):
+            _offer(dev, n)
+            n += 1
+        proc = subprocess.Popen(argv + ["--duration", "30"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        wait_for(lambda: len(stored_seqs(out, "sessK")) >= n, 30, step_s=0.2)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+        tracebacks += "Traceback" in err
+        rc = proc.returncode
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        dev.close()
+    lost, dup = _exactly_once(out, "sessK", n)
+    return _row("10 host kill -9 x5", kf_sent=n, kf_stored=len(stored_seqs(out, "sessK")), kf_lost=lost,
+                kf_dup=dup, rc=f"{kills} x -9, last {rc}", tracebacks=tracebacks,
+                message=f"{kills} kills, then a clean stop (rc {rc})")
+
+
+def sc_rogue_hello_device_kill(tmp: Path, mount: bool) -> dict:
+    """An authorised peer says hello claiming every keyframe (acked 2^32-1) without receiving any; the
+    device is then killed (-9) and restarted; an honest host connects."""
+    import zmq
+
+    from stereopath.device.streaming.spool import read_acked
+    from stereopath.device.wire.protocol import Hello, encode_hello
+    from tests.test_service_support import device_run, sim_tables, write_toml
+
+    stream = loopback_stream(spool_fsync=False)
+
+    def run(frames: int, *args: str) -> subprocess.Popen:
+        cfg = write_toml(tmp / "device.toml", sim_tables(tmp, frames=frames, rate_hz=20.0, stream=stream))
+        return device_run(["--config", str(cfg), *args])
+    sessions = tmp / "sessions"
+    first = run(400)
+    ctx = zmq.Context()
+    rogue = ctx.socket(zmq.DEALER)
+    rogue.setsockopt(zmq.LINGER, 0)
+    rogue.connect(stream["keyframe_endpoint"])
+    try:
+        wait_for(lambda: sessions.is_dir() and any(len(list(d.glob("keyframes/*.kf"))) >= 6
+                                                   for d in sessions.iterdir()), 60, step_s=0.1)
+        for _ in range(3):
+            rogue.send(encode_hello(Hello(next(sessions.iterdir()).name, 2**32 - 1, 16)))
+            time.sleep(0.3)
+        old = kill_9_once_spooled(first, sessions, 8)
+    finally:
+        rogue.close(0)
+        ctx.term()
+    killed = len(list((old / "keyframes").glob("*.kf")))
+    recorded_acked = read_acked(old / "keyframes")
+    second = run(40, "--wait-for-host", "60")
+    out = tmp / "host"
+    rx = _receiver_at(stream["pose_endpoint"], stream["keyframe_endpoint"], out)
+    try:
+        wait_for(lambda: second.poll() is not None, TIME_LIMIT_S - 10, between=lambda: rx.poll(0.05))
+        for _ in range(20):
+            rx.poll(0.02)
+    finally:
+        rx.close()
+        if second.poll() is None:
+            second.kill()
+    _, err = second.communicate()
+    lost, dup = _exactly_once(out, old.name, killed)
+    return _row("11 rogue hello, device kill -9", kf_sent=killed, kf_stored=len(stored_seqs(out, old.name)),
+                kf_lost=lost, kf_dup=dup, rc=f"kill -9 / restart {second.returncode}",
+                tracebacks=int("Traceback" in err),
+                message=f"acked.json after the rogue hello: {recorded_acked} (of {killed} spooled)")
+
+
 def _offer_frame(dev, i: int, f) -> None:
     t_end = time.monotonic() + 10
     while not dev.offer_keyframe(i, f.t_ns, f.meta["T_world_cam0"], f.left, f.right):
@@ -445,7 +668,8 @@ SCENARIOS = {
     "torn_index": sc_torn_index, "host_disk_full": sc_host_disk_full, "device_disk_full": sc_device_disk_full,
     "two_hosts": sc_two_hosts, "port_taken": sc_port_taken, "bad_groundtruth": sc_bad_groundtruth,
     "bad_frame": sc_bad_frame, "bad_rigs": sc_bad_rigs, "killed_device_spool": sc_killed_device_spool,
-    "live_map_shipped_rig": sc_live_map_shipped_rig,
+    "live_map_shipped_rig": sc_live_map_shipped_rig, "partition": sc_partition, "host_kill_loop": sc_host_kill_loop,
+    "rogue_hello_device_kill": sc_rogue_hello_device_kill,
 }
 
 
@@ -468,6 +692,8 @@ def main() -> int:
         except Exception as exc:  # a benchmark row, not a crash: say what failed
             row = _row(name, rc="ERROR", message=f"{type(exc).__name__}: {exc}"[:200])
         row["seconds"] = round(time.monotonic() - t0, 1)
+        if "TRACEBACK" in str(row.get("message", "")):
+            row["tracebacks"] = max(1, int(row.get("tracebacks") or 0))
         if row["seconds"] > TIME_LIMIT_S:
             row["rc"] = f"HANG? {row['rc']}"
         rows.append(row)
@@ -477,7 +703,8 @@ def main() -> int:
         print(json.dumps(rows, indent=1, default=str))
         return 0
     print(f"full disks: {'size-limited tmpfs (root)' if mount else 'injected ENOSPC'}")
-    cols = ("scenario", "kf_sent", "kf_stored", "kf_lost", "poses_sent", "poses_stored", "rc", "seconds")
+    cols = ("scenario", "kf_sent", "kf_stored", "kf_lost", "kf_dup", "poses_sent", "poses_stored", "rc", "tracebacks",
+            "seconds")
     widths = [max(len(c), *(len(str(r[c])) for r in rows)) for c in cols]
     print(" | ".join(c.ljust(w) for c, w in zip(cols, widths)))
     print("-+-".join("-" * w for w in widths))
