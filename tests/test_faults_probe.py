@@ -243,3 +243,22 @@ def test_an_insecure_host_against_a_curve_device_is_named_as_such(tmp_path, keys
         rx.close()
         dev.close()
     assert any("requires CURVE and this host runs --insecure" in m for m in msgs), msgs
+
+
+# ------------------------------------------------------------------ key files named for what they are
+
+def test_a_secret_key_that_is_a_fifo_or_a_folder_is_named_as_such(tmp_path):
+    import os
+
+    from stereopath.device.errors import ConfigError
+    from stereopath.device.wire.security import load_secret_keypair
+
+    fifo = tmp_path / "device.key_secret"
+    os.mkfifo(fifo)
+    with pytest.raises(ConfigError, match=r"is a FIFO \(named pipe\), not a regular file"):
+        load_secret_keypair(fifo)
+    (tmp_path / "dir.key_secret").mkdir()
+    with pytest.raises(ConfigError, match="is a directory, not a regular file"):
+        load_secret_keypair(tmp_path / "dir.key_secret")
+    with pytest.raises(ConfigError, match="key file not found"):
+        load_secret_keypair(tmp_path / "missing.key_secret")

@@ -79,12 +79,27 @@ def generate_keypair(directory: str | Path, name: str, overwrite: bool = False) 
     return public, secret
 
 
+def _file_kind(mode: int) -> str:
+    for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
 def _load_certificate(p: Path, what: str) -> tuple[bytes, bytes | None]:
     """``(public, secret or None)`` from a ZeroMQ certificate file; ConfigError names the file."""
     import zmq.auth
 
-    if not p.is_file():
-        raise ConfigError(f"CURVE {what} key file not found: {p}")
+    try:
+        mode = p.stat().st_mode  # (of the file a link points to)
+    except FileNotFoundError:
+        raise ConfigError(f"CURVE {what} key file not found: {p}") from None
+    except OSError as exc:
+        raise ConfigError(f"CURVE {what} key file {p}: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(mode):  # never opened: reading a FIFO would block the start for good
+        raise ConfigError(f"CURVE {what} key file {p} is {_file_kind(mode)}, not a regular file")
     try:
         return zmq.auth.load_certificate(str(p))
     except (ValueError, OSError) as exc:
