@@ -53,6 +53,7 @@ log = logging.getLogger(__name__)
 # a frame above this drops the connection in libzmq (it must leave room for the CURVE handshake);
 # control messages above CONTROL_LIMITS.max_message_bytes are rejected and counted by the decoder
 SOCKET_MAX_BYTES = 4096
+KEY_HISTORY_PER_PEER = 4  # host keys remembered (what each was sent and acknowledged) per connection slot
 PEER_LOG_INTERVAL_S = 10.0  # at most one hello line per host key in this time (the rest are counted)
 
 
@@ -113,6 +114,7 @@ class KeyframeServer:
         self._peers: dict[str, _Peer] = {}
         self._sent_by_key: dict[str, int] = {}  # highest seq sent to any connection of a key (bounded)
         self._acked_by_key: dict[str, ContiguousAcks] = {}  # what each key acknowledged of what it was sent
+        self._max_sent_any = -1  # the highest seq sent to any host
         self._peer_log = RateLimitedLog(log, PEER_LOG_INTERVAL_S)  # lines a peer's messages provoke
         self.stats: dict[str, int] = {
             "control_received": 0, "control_rejected": 0, "hellos": 0, "acks": 0, "credits": 0,
@@ -179,29 +181,31 @@ class KeyframeServer:
             if peer is None:
                 same_key = sum(1 for p in self._peers.values() if p.key == key and p.connected)
                 if same_key:
-                    self._peer_log.log(logging.INFO, "same:" + key, "host %s: another connection with the same "
+                    self._peer_log.log(logging.INFO, "same:" + key[:64], "host %s: another connection with the same "
                                        "key (%d already connected); each gets every keyframe", key[:20], same_key)
                 peer = self._add_peer(key, rid)
             peer.connected = True
             peer.last_heard = time.monotonic()
             claimed = msg.acked_seq if msg.session_id == self.session_id else -1
-            # a claim counts only as far as this key acknowledged keyframes it was sent (an ack is checked
-            # against what was sent): a stale, corrupt or hostile hello can skip no keyframe, and the spool's
-            # record of what hosts hold advances on acknowledgements alone
+            # a claim counts only as far as acknowledgements confirm it (each checked against what was sent):
+            # this key's own, or the spool's record of what hosts hold. A stale, corrupt or hostile hello can
+            # skip no keyframe, and that record advances on acknowledgements alone
             verified = self._acked_by_key.get(key)
-            acked = min(claimed, self.spool.last_seq, -1 if verified is None else verified.acked)
+            trusted = max(self.spool.acked_seq, -1 if verified is None else verified.acked)
+            acked = min(claimed, self.spool.last_seq, trusted)
             peer.acks.reset(acked, keep_above=False)
             peer.next_seq = peer.acked + 1
             peer.credit = min(msg.credit, self.config.max_credit)
             peer.restart_backlog()
             if peer.acked >= 0:
                 self.spool.release(peer.acked)
-            if claimed > acked:
-                self._peer_log.log(logging.WARNING, "claim:" + key,
-                                   "host %s: hello says it holds keyframes up to %d of this session, but it "
-                                   "acknowledged only up to %d: sending from seq %d", key[:20], claimed, acked,
-                                   peer.next_seq)
-            self._peer_log.log(logging.INFO, "hello:" + key,
+            log_key = key if key.startswith("curve:") else "insecure"  # a plain connection's key is new each time
+            if claimed > self._max_sent_any:  # beyond anything any host was sent: a stale or forged state
+                self._peer_log.log(logging.WARNING, "claim:" + log_key,
+                                   "host %s: hello says it holds keyframes up to %d of this session, of which "
+                                   "no host was sent more than %d: sending from seq %d", key[:20], claimed,
+                                   self._max_sent_any, peer.next_seq)
+            self._peer_log.log(logging.INFO, "hello:" + log_key,
                                "host %s: hello (session %s, acked %d, credit %d) -> sending from seq %d",
                                key[:20], msg.session_id, msg.acked_seq, msg.credit, peer.next_seq)
             self._send_to(peer, self._status_fn(), status=True)
@@ -235,17 +239,21 @@ class KeyframeServer:
 
     def _key_acks(self, key: str) -> ContiguousAcks:
         acks = self._acked_by_key.pop(key, None) or ContiguousAcks()
-        self._acked_by_key[key] = acks  # most recently used last; bounded as the sent seqs are
-        while len(self._acked_by_key) > 4 * self.config.max_peers:
-            self._acked_by_key.pop(next(iter(self._acked_by_key)))
+        self._acked_by_key[key] = acks
+        self._bound_history(self._acked_by_key)
         return acks
+
+    def _bound_history(self, history: dict[str, Any]) -> None:
+        """Forget the least recently updated keys of a per-key history (insertion order) beyond a bound."""
+        while len(history) > KEY_HISTORY_PER_PEER * self.config.max_peers:
+            history.pop(next(iter(history)))
 
     def _add_peer(self, key: str, rid: bytes) -> _Peer:
         if len(self._peers) >= self.config.max_peers:
             oldest = min(self._peers.values(), key=lambda p: (p.connected, p.last_heard))
             del self._peers[oldest.conn]
             self.stats["peers_evicted"] += 1
-            self._peer_log.log(logging.WARNING, "evict:" + oldest.key, "too many host connections (max %d): "
+            self._peer_log.log(logging.WARNING, "evict", "too many host connections (max %d): "
                                "forgetting one of %s", self.config.max_peers, oldest.key[:20])
         peer = _Peer(key, rid)
         peer.max_sent = self._sent_by_key.get(key, -1)  # what this key had: later sends count as resends
@@ -282,6 +290,10 @@ class KeyframeServer:
             sent = 0
             while peer.connected and peer.credit > 0 and peer.next_seq <= last and sent < burst:
                 seq = peer.next_seq
+                if self.spool.delivered_from_memory(seq):  # a host has it; it was never on disk (a full disk)
+                    peer.acks.add(seq)  # nothing to wait for from this host
+                    peer.next_seq += 1
+                    continue
                 try:
                     data = self.spool.read(seq)
                 except DatasetError as exc:
@@ -299,11 +311,11 @@ class KeyframeServer:
                 if seq <= peer.max_sent:
                     self.stats["keyframes_resent"] += 1
                 peer.max_sent = max(peer.max_sent, seq)
+                self._max_sent_any = max(self._max_sent_any, seq)
                 if self._sent_by_key.get(peer.key, -1) < seq:
                     self._sent_by_key.pop(peer.key, None)
                     self._sent_by_key[peer.key] = seq
-                    while len(self._sent_by_key) > 4 * self.config.max_peers:
-                        self._sent_by_key.pop(next(iter(self._sent_by_key)))
+                    self._bound_history(self._sent_by_key)
                 peer.next_seq = seq + 1
                 peer.credit -= 1
             if self.backlog is not None and peer.next_seq > last and sent < burst:

@@ -154,6 +154,11 @@ class KeyframeSpool:
                 self.memory_bytes -= len(self._memory.pop(s))
                 self._released.add(s)
 
+    def delivered_from_memory(self, seq: int) -> bool:
+        """True for a keyframe a host acknowledged while it was held in memory (a full disk): it is on that
+        host and nowhere on the device, so there is nothing to resend."""
+        return seq in self._released
+
     def mark_acked(self, seq: int, upto: bool = False) -> None:
         """A host stored keyframe ``seq`` (``upto``: every keyframe up to ``seq``); when that advances the
         contiguous acknowledged seq, record it (a later run offers only what follows)."""

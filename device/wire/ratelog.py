@@ -10,7 +10,14 @@ from __future__ import annotations
 import logging
 import time
 from collections import OrderedDict
+from dataclasses import dataclass
 from typing import Any, Callable
+
+
+@dataclass
+class _KeyState:
+    next_line_at: float  # the key's next line is logged from then on
+    held: int = 0        # lines held back since its last one
 
 
 class RateLimitedLog:
@@ -22,24 +29,24 @@ class RateLimitedLog:
         self.interval_s = float(interval_s)
         self.max_keys = int(max_keys)
         self._clock = clock
-        self._keys: OrderedDict[str, list[float | int]] = OrderedDict()  # key -> [next line allowed at, held]
+        self._keys: OrderedDict[str, _KeyState] = OrderedDict()
         self.suppressed = 0
 
     def log(self, level: int, key: str, msg: str, *args: Any) -> bool:
         """Log ``msg % args`` unless ``key`` had a line less than ``interval_s`` ago; True if it was logged."""
         now = self._clock()
         entry = self._keys.get(key)
-        if entry is not None and now < entry[0]:
-            entry[1] = int(entry[1]) + 1
+        if entry is not None and now < entry.next_line_at:
+            entry.held += 1
             self.suppressed += 1
             return False
-        held = 0 if entry is None else int(entry[1])
-        self._keys[key] = [now + self.interval_s, 0]
+        held = 0 if entry is None else entry.held
+        self._keys[key] = _KeyState(now + self.interval_s)
         self._keys.move_to_end(key)
         while len(self._keys) > self.max_keys:
             self._keys.popitem(last=False)
         if held:
-            msg += " (and %d more like it in the last %.0f s)"
-            args = (*args, held, self.interval_s)
+            msg += " (and %d more like it since the last)"
+            args = (*args, held)
         self._log.log(level, msg, *args)
         return True

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import socket
 from typing import Any, Callable, Mapping, Sequence
 
 log = logging.getLogger(__name__)
@@ -99,8 +100,6 @@ def zmtp_greeting(endpoint: str, timeout_s: float = 1.0) -> str:
     closed or silent: a forwarder or tunnel with nothing behind it, or another program), ``"refused"``
     (nothing listens) or ``"unknown"`` (not a TCP endpoint, or another error).
     """
-    import socket
-
     if not endpoint.startswith("tcp://"):
         return "unknown"
     host, _, port = endpoint[len("tcp://"):].rpartition(":")

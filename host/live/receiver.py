@@ -61,7 +61,7 @@ def session_name_clash(out: Path, sid: str) -> str:
     """Why ``OUT/<sid>`` cannot be a session folder ('' when it can): the name of one of the host's own
     files, or of something in OUT that is not a folder (a user's file)."""
     path = out / sid
-    if sid in HOST_FILES:
+    if sid.casefold() in HOST_FILES:  # (case-insensitive file systems too)
         return f"its folder would be the host's own file {path}"
     try:
         if path.exists() and not path.is_dir():
@@ -107,8 +107,10 @@ class Receiver(LinkControl):
         self._last_progress = time.monotonic()
         self._next_stats = time.monotonic()
         self._auth_warned = False
+        self._probe_next, self._probe_said = 0.0, ""
         self._warned: set[str] = set()
         self._known_sessions: set[str] = {s for s in list_sessions(self.out) if not session_name_clash(self.out, s)}
+        self._refused_sessions: dict[str, str] = {}  # session ids whose folder cannot be made, and why (bounded)
         self.storage_error: str | None = None  # set while keyframes cannot be stored (disk full)
         self._refused_since_hello = False  # a keyframe went unacknowledged: a later hello has it resent
         self._last_dealer_rx = self._last_hello_at = time.monotonic()
@@ -279,12 +281,18 @@ class Receiver(LinkControl):
         with self.lock:
             if sid in self._known_sessions:
                 return None
-            clash = session_name_clash(self.out, sid)
-            if clash:
-                return "session_id", f"device session {sid!r} not stored: {clash}"
+            refused = self._refused_sessions.get(sid)
+            if refused is not None:
+                return "session_id", refused
             if self._new_sessions >= self.config.max_new_sessions:
                 return "session_limit", (f"session {sid!r}: over the limit of {self.config.max_new_sessions} "
                                          f"new sessions in this run")
+            clash = session_name_clash(self.out, sid)
+            if clash:
+                if len(self._refused_sessions) >= 64:
+                    self._refused_sessions.pop(next(iter(self._refused_sessions)))
+                refused = self._refused_sessions[sid] = f"device session {sid!r} not stored: {clash}"
+                return "session_id", refused
             self._new_sessions += 1
             self._known_sessions.add(sid)
             return None

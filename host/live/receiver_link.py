@@ -19,6 +19,7 @@ from stereopath.device.wire.protocol import Hello, encode_hello
 from stereopath.device.wire.sockets import zmtp_greeting
 
 log = logging.getLogger("stereopath.host.live.receiver")  # one logger for the receiver's lines
+PROBE_INTERVAL_S = 30.0  # between probes of an endpoint whose handshakes keep failing
 
 
 class LinkControl:
@@ -34,6 +35,8 @@ class LinkControl:
     _zmq: Any
     _hello_pending: bool
     _auth_warned: bool
+    _probe_next: float  # when a failed handshake may be probed again
+    _probe_said: str    # the last reason logged
     _warned: set[str]
     _last_progress: float
     _last_hello_at: float
@@ -72,29 +75,34 @@ class LinkControl:
                     log.warning("device refused this host's key (is its public key in the device's clients dir?)")
             else:
                 self.stats.link["handshake_failures"] += 1
-                if not self._auth_warned:  # ask the endpoint itself what answers there (once)
-                    self._auth_warned = True
+                now = time.monotonic()
+                if now >= self._probe_next:  # ask the endpoint itself what answers there (again while it fails)
+                    self._probe_next = now + PROBE_INTERVAL_S
                     threading.Thread(target=self._explain_failed_handshake, name="stereopath-probe",
                                      daemon=True).start()
 
     def _explain_failed_handshake(self) -> None:
+        """Log why the handshake failed, from the endpoint's ZMTP greeting; a reason is said once in a row."""
         endpoint = self.config.keyframe_endpoint
         answer = zmtp_greeting(endpoint)
         if answer == "zmtp:NULL" and not self.config.insecure:
-            log.warning("handshake with %s failed: the device streams without CURVE (stream.insecure) and this "
-                        "host uses CURVE: CURVE on one side only", endpoint)
+            why = (f"handshake with {endpoint} failed: the device streams without CURVE (stream.insecure) and "
+                   f"this host uses CURVE: CURVE on one side only")
         elif answer == "zmtp:CURVE" and self.config.insecure:
-            log.warning("handshake with %s failed: the device requires CURVE and this host runs --insecure: "
-                        "CURVE on one side only", endpoint)
+            why = (f"handshake with {endpoint} failed: the device requires CURVE and this host runs --insecure: "
+                   f"CURVE on one side only")
         elif answer == "zmtp:CURVE":
-            log.warning("the device at %s closed the CURVE handshake: the device public key this host uses "
-                        "is not that device's (check --device-key / the host's keys folder)", endpoint)
+            why = (f"the device at {endpoint} closed the CURVE handshake: the device public key this host uses "
+                   f"is not that device's (check --device-key / the host's keys folder)")
         elif answer == "no greeting":
-            log.warning("something at %s accepts connections but does not answer as a stereopath device (no "
-                        "ZeroMQ greeting): a port forwarder or SSH tunnel whose device is gone, or another "
-                        "program on that port; retrying", endpoint)
+            why = (f"something at {endpoint} accepts connections but does not answer as a stereopath device (no "
+                   f"ZeroMQ greeting): a port forwarder or SSH tunnel whose device is gone, or another program "
+                   f"on that port; retrying")
         else:
-            log.warning("handshake with %s failed (the endpoint answers: %s); retrying", endpoint, answer)
+            why = f"handshake with {endpoint} failed (the endpoint answers: {answer}); retrying"
+        if why != self._probe_said:
+            self._probe_said = why
+            log.warning("%s", why)
 
     def _send_hello(self) -> None:
         sid, acked = self.store.hello_state()
