@@ -56,9 +56,9 @@ def test_failures_are_reported_in_the_table():
 
 def test_picamera2_pairing_and_rate_through_the_fake():
     cfg = config(source={"backend": "picamera2", "fps": 50.0, "exposure_us": 2000, "pair_tolerance_us": 500,
-                         "size": [32, 24]}, imu={"backend": "none"})
-    world = FakeCameraWorld(sync_ready_after=2)
-    world.cameras[1].drop = frozenset({6})
+                         "size": [32, 24], "picamera2": {"sync_frames": 30}}, imu={"backend": "none"})
+    world = FakeCameraWorld()
+    world.cameras[1].drop = frozenset({36})  # after SyncReady (30 frames, tests/fakes/standins.py)
     checks = by_name(run_selftest(cfg, source=create_source(cfg.source, api=world.api())))
     assert checks["frame pairing"].ok and checks["camera rate"].ok and "1 unpaired" in checks["frame pairing"].value
     assert checks["IMU"].ok and checks["IMU"].value == "none configured"
@@ -66,8 +66,9 @@ def test_picamera2_pairing_and_rate_through_the_fake():
 
 def test_lost_camera_fails_the_pairing_check():
     cfg = config(source={"backend": "picamera2", "fps": 50.0, "exposure_us": 2000, "pair_tolerance_us": 500,
-                         "size": [32, 24], "timeout_s": 0.3}, imu={"backend": "none"})
-    world = FakeCameraWorld(sync_ready_after=0)
+                         "size": [32, 24], "timeout_s": 0.3, "picamera2": {"sync_frames": 30}},
+                 imu={"backend": "none"})
+    world = FakeCameraWorld()
     world.cameras[0].disappear_after = 3
     checks = by_name(run_selftest(cfg, source=create_source(cfg.source, api=world.api())))
     assert not checks["frame pairing"].ok and "left camera" in checks["frame pairing"].value

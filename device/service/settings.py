@@ -47,6 +47,7 @@ class Picamera2Settings:
     left_id: str = ""            # libcamera camera Id of the left camera ("" = first listed)
     right_id: str = ""           # ... of the right camera ("" = second listed)
     sync: Literal["software", "off"] = "software"  # SyncMode server (left) / client (right)
+    sync_frames: int = 100       # SyncFrames: the server reports SyncReady after this many frames
     sensor_mode: int = -1        # index into Picamera2.sensor_modes (-1 = let libcamera choose)
     analogue_gain: float = 2.0   # locked analogue gain (identical on both cameras)
     colour_gains: tuple[float, float] = (1.9, 1.6)  # locked red/blue gains (AWB off; ignored on mono sensors)
@@ -57,6 +58,7 @@ class Picamera2Settings:
     def __post_init__(self) -> None:
         check_range("source.picamera2.analogue_gain", self.analogue_gain, 1.0, 64.0)
         check_range("source.picamera2.buffer_count", self.buffer_count, 2, 32)
+        check_range("source.picamera2.sync_frames", self.sync_frames, 1, 100000)
         check_range("source.picamera2.sensor_mode", self.sensor_mode, -1, 64)
         for i, g in enumerate(self.colour_gains):
             check_range(f"source.picamera2.colour_gains[{i}]", g, 0.0, 32.0)
