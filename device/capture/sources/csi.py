@@ -28,7 +28,11 @@ the timestamp tolerance alone.
 
 Cameras are chosen by libcamera ``Id``: ``Picamera2(n)`` takes the camera's position in
 ``Picamera2.global_camera_info()`` (sorted by ``Id`` in reverse, USB cameras last) and looks
-libcamera's ``Num`` up itself, so we pass that position, never ``Num``.  After
+libcamera's ``Num`` up itself, so we pass that position, never ``Num``.  Without
+``left_id``/``right_id`` the left camera is position 0: on a Raspberry Pi 5 the sensor on the
+CAM/DISP 0 connector (its Id holds ``rp1/i2c@88000``, which sorts after CAM/DISP 1's
+``rp1/i2c@80000``; see :data:`PI5_CONNECTORS`).  Other boards (CM4) are not mapped: name the
+Ids there, and check with ``device selftest --cover-left``.  After
 ``configure`` the main-stream size is read back from ``camera_config`` (libcamera may adjust
 it) and the luma is cut at that size.
 
@@ -104,6 +108,17 @@ def import_picamera2() -> Picamera2Api:
             f"picamera2 backend: cannot import picamera2/libcamera ({exc}); install "
             "python3-picamera2 with apt and create the venv with --system-site-packages") from None
     return Picamera2Api(Picamera2=Picamera2, MappedArray=MappedArray, controls=controls)
+
+
+# Raspberry Pi 5: the camera connectors' I2C buses in the sensor's libcamera Id (its device-tree
+# path, CameraSensorLegacy::generateId).  bcm2712-rpi-5-b.dts: i2c_csi_dsi0 = &i2c6 ("MIPI0
+# connector"), i2c_csi_dsi1 = &i2c4 ("MIPI1"); rp1.dtsi: i2c6 is i2c@88000, i2c4 is i2c@80000.
+PI5_CONNECTORS = {"/rp1/i2c@88000/": "CAM/DISP 0", "/rp1/i2c@80000/": "CAM/DISP 1"}
+
+
+def connector_of(camera_id: str) -> str | None:
+    """The Pi 5 connector a camera Id names, or None when the Id is not a Pi 5 CSI camera's."""
+    return next((name for key, name in PI5_CONNECTORS.items() if key in camera_id), None)
 
 
 def _error_chain(exc: BaseException) -> str:
@@ -331,6 +346,11 @@ class Picamera2Source(SourceBase):
         if (lo is not None and frames < lo) or (hi is not None and frames > hi):
             log.warning("picamera2: source.picamera2.sync_frames = %d is outside the %s..%s libcamera advertises; "
                         "it is applied anyway (the IPA takes any positive value)", frames, lo, hi)
+
+    @property
+    def camera_ids(self) -> tuple[str, str]:
+        """libcamera Ids of the cameras taken as left and right (after open)."""
+        return self._ids[0], self._ids[1]
 
     @property
     def first_pair_timeout_s(self) -> float:
