@@ -280,7 +280,7 @@ class Picamera2Source(SourceBase):
                 controls = dict(lock)
                 if role is not None:
                     controls["SyncMode"] = role
-                    if role is roles[0] and "SyncFrames" in (getattr(cam, "camera_controls", {}) or {}):
+                    if cam is self._cams[0] and "SyncFrames" in (getattr(cam, "camera_controls", {}) or {}):
                         controls["SyncFrames"] = int(s.picamera2.sync_frames)  # only the server's counts
                 kwargs: dict[str, Any] = dict(main={"size": tuple(s.size), "format": "YUV420"},
                                               buffer_count=s.picamera2.buffer_count, queue=False,
