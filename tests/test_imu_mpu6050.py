@@ -54,6 +54,38 @@ def test_clone_who_am_i_is_accepted_with_a_warning(caplog):
     assert "0x70" in caplog.text and "MPU-6500" in caplog.text
 
 
+@pytest.mark.parametrize("who, name", [(0x70, "MPU-6500"), (0x71, "MPU-9250")])
+def test_mpu6500_family_gets_its_filter_register_fifo_size_and_temperature(who, name):
+    drv, em, clk = make(rate=1000.0, dlpf=3, who=who, source=still_source(temp_c=31.5), temperature=True,
+                        read_period_ms=20)
+    drv.open()
+    assert drv.chip.name == name and drv.chip.fifo_bytes == 512
+    assert em.regs[R.ACCEL_CONFIG2] == 3 and em.regs[R.CONFIG] == 3     # accelerometer filter as the gyro's
+    got = run_polls(drv, clk, 5)
+    assert len(got) > 80 and np.allclose(got.temp_c, 31.5, atol=0.01)  # raw / 333.87 + 21, not raw / 340 + 36.53
+    clk.sleep(0.05)                                                     # 36 14-byte packets fill 512 bytes
+    drv.read()
+    assert drv.stats.overflows == 1 and em.fifo_overflows >= 1          # seen at 512 bytes, not 1024
+    after = run_polls(drv, clk, 3)
+    assert len(after) > 40 and np.allclose(after.temp_c, 31.5, atol=0.01)  # framing restored by the reset
+    drv.close()
+
+
+def test_mpu6500_refuses_what_it_cannot_do():
+    from stereopath.device.errors import ConfigError
+
+    drv, em, _ = make(rate=1000.0, dlpf=0, who=0x70)       # SMPLRT_DIV ignored without the DLPF
+    with pytest.raises(ConfigError, match=r"imu\.dlpf_cfg = 0 on the MPU-6500"):
+        drv.open()
+    drv, em, _ = make(rate=1000.0, dlpf=1, who=0x71, read_period_ms=40)  # fine for 1024 bytes, not for 512
+    with pytest.raises(ConfigError, match=r"imu\.read_period_ms = 40 .* 512-byte FIFO"):
+        drv.open()
+    drv, em, _ = make(rate=1000.0, dlpf=1, who=0x68, read_period_ms=40)
+    drv.open()
+    assert drv.chip.fifo_bytes == 1024 and em.regs[R.ACCEL_CONFIG2] == 0  # an MPU-6050 has no ACCEL_CONFIG2
+    drv.close()
+
+
 def test_unknown_who_am_i_names_the_value():
     drv, _, _ = make(who=0x12)
     with pytest.raises(CaptureError, match="WHO_AM_I = 0x12"):

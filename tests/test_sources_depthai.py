@@ -74,6 +74,7 @@ def test_pipeline_graph_matches_the_oak_d_mono_pair():
     for cam in world.cameras.values():
         assert cam.request["size"] == (64, 40) and cam.request["type"] == dai.ImgFrame.Type.GRAY8
         assert cam.request["fps"] == 100.0 and cam.request["resizeMode"] == dai.ImgResizeMode.CROP
+        assert cam.request["enableUndistortion"] is False     # the rig carries the distortion: raw images
         ctl = cam.initialControl
         assert ctl.getExposureTime() == dt.timedelta(microseconds=2000) and ctl.getSensitivity() == 800
     assert len(syncs) == 1 and syncs[0].getSyncThreshold() == dt.timedelta(milliseconds=3)
@@ -288,6 +289,30 @@ def test_real_library_behaviours_the_backend_relies_on():
     cal.setCameraIntrinsics(dai.CameraBoardSocket.CAM_B, [[800.0, 0, 640], [0, 800.0, 400], [0, 0, 1]], 1280, 800)
     # the width-only scaling that made the backend's K wrong at 640x480
     assert cal.getCameraIntrinsics(dai.CameraBoardSocket.CAM_B, 640, 480)[0][0] == pytest.approx(400.0)
+
+
+def test_real_request_output_takes_enable_undistortion():
+    import depthai as dai
+
+    doc = dai.node.Camera.requestOutput.__doc__
+    assert "enableUndistortion: Optional[bool] = None" in doc   # None leaves it to the device: we pass False
+
+
+def test_host_clock_steps_are_counted_and_frame_times_stay_increasing(caplog):
+    # at 100 fps: +25 ms from frame 10 on, then -35 ms from frame 20 on: frames 20-22 fall at or before
+    # frame 19's time (190, 200, 210 against 215 ms)
+    world = FakeOakWorld(clock_steps={10: 25_000_000, 20: -35_000_000})
+    src = create_source(settings(depthai={"queue_size": 64}), dai=world.module())
+    with caplog.at_level(logging.WARNING), src:
+        frames = take(src, 28)
+        st = src.stats
+    t = [f.t_ns for f in frames]
+    assert all(b > a for a, b in zip(t, t[1:]))
+    idx = [index_of(f.left) for f in frames]
+    assert idx == list(range(20)) + list(range(23, 31))
+    assert st.clock_steps == 2 and st.dropped_clock == 6 and st.dropped_unpaired == 0
+    steps = [r.getMessage() for r in caplog.records if "stepped by" in r.getMessage()]
+    assert len(steps) == 2 and "+25.00 ms" in steps[0] and "-35.00 ms" in steps[1]
 
 
 def test_timedelta_conversion_is_exact():

@@ -31,10 +31,11 @@ def assert_all_threads_stopped(world):
 
 
 def test_pairs_one_exposure_on_two_threads_and_releases_every_buffer():
-    world = FakeCameraWorld(sync_ready_after=4)
+    world = FakeCameraWorld()
     world.cameras[1].skew_ns = 40_000
-    world.cameras[1].drop = frozenset({9, 10})
-    world.cameras[0].drop = frozenset({14})
+    # grid slots after SyncReady (30 frames, tests/fakes/standins.py)
+    world.cameras[1].drop = frozenset({42, 43})
+    world.cameras[0].drop = frozenset({48})
     src = create_source(settings(), api=world.api())
     with src:
         frames = take(src, 20)
@@ -50,17 +51,18 @@ def test_pairs_one_exposure_on_two_threads_and_releases_every_buffer():
         assert f.meta["t_left_ns"] == f.meta["sensor_timestamp_left"] - 1_000_000
         assert f.t_ns == (f.meta["t_left_ns"] + f.meta["t_right_ns"]) // 2
         assert f.meta["skew_ns"] == 40_000
-    assert slots[0] >= 4 and not {9, 10, 14} & set(slots)
+    assert slots[0] >= 30 and not {42, 43, 48} & set(slots)
     assert all(b > a for a, b in zip(slots, slots[1:]))
-    assert stats.dropped_presync >= 2 * 4 - 2          # SyncReady false for the first grid slots
-    assert stats.dropped_unpaired >= 3                 # partners of 9, 10 and 14
+    assert stats.dropped_presync >= 2 * 30 - 2         # SyncReady false for the first SyncFrames frames
+    assert stats.dropped_unpaired >= 3                 # partners of 42, 43 and 48
     assert stats.dropped_sensor >= 3                   # timestamp gaps seen per camera
     assert stats.max_skew_ns == 40_000
     # two different camera threads, neither of them ours
     t0, t1 = world.callback_threads[0], world.callback_threads[1]
     assert len(t0) == 1 and len(t1) == 1 and t0 != t1 and threading.get_ident() not in t0 | t1
     assert world.start_order[:2] == [1, 0]             # sync client (right) first
-    c0, c1 = ({k: v for k, v in world.applied_controls[i].items() if k != "SyncMode"} for i in (0, 1))
+    c0, c1 = ({k: v for k, v in world.applied_controls[i].items() if k not in ("SyncMode", "SyncFrames")}
+              for i in (0, 1))
     assert c0 == c1 and c0["ExposureTime"] == 2000 and c0["FrameDurationLimits"] == (10000, 10000)
     roles = [cam.configured["controls"]["SyncMode"].name for cam in world.instances]
     assert roles == ["Server", "Client"]
@@ -111,7 +113,7 @@ def _libcamera_order_differs():
     """libcamera enumerates i2c@80000 first (Num 0); global_camera_info() sorts it second."""
     a = FakeCameraSpec("/base/axi/pcie@120000/rp1/i2c@80000/imx296@1a")
     b = FakeCameraSpec("/base/axi/pcie@120000/rp1/i2c@88000/imx296@1a")
-    world = FakeCameraWorld(cameras=[a, b], sync_ready_after=0)
+    world = FakeCameraWorld(cameras=[a, b])
     info = world.api().Picamera2.global_camera_info()
     assert [i["Num"] for i in info] == [1, 0]  # position and Num differ
     return world, a.id, b.id
@@ -150,7 +152,7 @@ def test_fake_mirrors_picamera2_numbering_and_errors():
 def test_luma_is_cut_at_the_size_libcamera_chose(caplog):
     # libcamera adjusts 64x48 down to 48x40 (Status.Adjusted); the luma must come from that size,
     # never from rows of the chroma planes below it
-    world = FakeCameraWorld(sync_ready_after=0, adjust_size=lambda s: (s[0] - 16, s[1] - 8))
+    world = FakeCameraWorld(adjust_size=lambda s: (s[0] - 16, s[1] - 8))
     with caplog.at_level(logging.WARNING, logger="stereopath.device.capture.sources.csi"):
         with Picamera2Source(settings(), api=world.api()) as src:
             frames = take(src, 3)
@@ -162,7 +164,7 @@ def test_luma_is_cut_at_the_size_libcamera_chose(caplog):
 
 
 def test_cameras_configured_at_different_sizes_are_refused():
-    world = FakeCameraWorld(sync_ready_after=0)
+    world = FakeCameraWorld()
     sizes = iter([(64, 48), (48, 48)])
     world.adjust_size = lambda s: next(sizes)
     with pytest.raises(CaptureError, match="left camera at 64x48 and the right one at 48x48"):
@@ -171,7 +173,7 @@ def test_cameras_configured_at_different_sizes_are_refused():
 
 
 def test_frames_without_sync_ready_are_not_taken_as_synchronised():
-    world = FakeCameraWorld(sync_ready_after=0)
+    world = FakeCameraWorld()
     api = world.api()
     real_process = api.Picamera2._process_request
 
@@ -188,21 +190,21 @@ def test_frames_without_sync_ready_are_not_taken_as_synchronised():
 
 
 def test_failed_buffers_never_reach_the_callback_and_callbacks_hold_the_camera_lock():
-    world = FakeCameraWorld(sync_ready_after=0)
-    world.cameras[0].failed = frozenset({3, 4})
+    world = FakeCameraWorld()
+    world.cameras[0].failed = frozenset({44, 45})  # after SyncReady (about slot 34)
     with Picamera2Source(settings(), api=world.api()) as src:
-        frames = take(src, 8)
+        frames = take(src, 16)
         st = src.stats
     slots = [decode_slot(f.left)[0] for f in frames]
-    assert not {3, 4} & set(slots) and world.failed_released[0] == 2
+    assert not {44, 45} & set(slots) and world.failed_released[0] == 2
     assert st.dropped_sensor >= 2 and st.dropped_unpaired >= 2
     assert world.callback_lock_held == {0: True, 1: True}
     assert_all_threads_stopped(world)
 
 
 def test_camera_disappearing_mid_run_raises_without_hanging():
-    world = FakeCameraWorld(sync_ready_after=0)
-    world.cameras[1].disappear_after = 8
+    world = FakeCameraWorld()
+    world.cameras[1].disappear_after = 40  # frames delivered, the ~30 before SyncReady included
     src = Picamera2Source(settings(), api=world.api())
     got = []
     t0 = time.monotonic()
@@ -211,7 +213,7 @@ def test_camera_disappearing_mid_run_raises_without_hanging():
             for f in src:
                 got.append(f)
     assert time.monotonic() - t0 < 5.0
-    assert 5 <= len(got) <= 8
+    assert 3 <= len(got) <= 10
     assert_all_threads_stopped(world)
 
 
@@ -242,7 +244,7 @@ def test_free_running_cameras_within_tolerance_pair(caplog):
 
 
 def test_slow_consumer_drops_oldest_pairs_and_buffers_stay_bounded():
-    world = FakeCameraWorld(sync_ready_after=0)
+    world = FakeCameraWorld()
     src = Picamera2Source(settings(queue_size=2), api=world.api())
     with src:
         it = iter(src)
@@ -257,7 +259,7 @@ def test_slow_consumer_drops_oldest_pairs_and_buffers_stay_bounded():
 
 
 def test_callback_error_reaches_the_consumer():
-    world = FakeCameraWorld(sync_ready_after=0)
+    world = FakeCameraWorld()
     src = Picamera2Source(settings(), api=world.api())
 
     class Broken:

@@ -56,18 +56,61 @@ def test_failures_are_reported_in_the_table():
 
 def test_picamera2_pairing_and_rate_through_the_fake():
     cfg = config(source={"backend": "picamera2", "fps": 50.0, "exposure_us": 2000, "pair_tolerance_us": 500,
-                         "size": [32, 24]}, imu={"backend": "none"})
-    world = FakeCameraWorld(sync_ready_after=2)
-    world.cameras[1].drop = frozenset({6})
+                         "size": [32, 24], "picamera2": {"sync_frames": 30}}, imu={"backend": "none"})
+    world = FakeCameraWorld()
+    world.cameras[1].drop = frozenset({36})  # after SyncReady (30 frames, tests/fakes/standins.py)
     checks = by_name(run_selftest(cfg, source=create_source(cfg.source, api=world.api())))
     assert checks["frame pairing"].ok and checks["camera rate"].ok and "1 unpaired" in checks["frame pairing"].value
     assert checks["IMU"].ok and checks["IMU"].value == "none configured"
 
 
+def _picamera2_config(**picamera2):
+    return config(source={"backend": "picamera2", "fps": 50.0, "exposure_us": 2000, "pair_tolerance_us": 500,
+                          "size": [32, 24], "picamera2": {"sync_frames": 30, **picamera2}},
+                  imu={"backend": "none"}, selftest={"frames": 4})
+
+
+def test_picamera2_selftest_shows_the_sync_state_and_the_left_camera():
+    cfg = _picamera2_config()
+    world = FakeCameraWorld()
+    checks = by_name(run_selftest(cfg, source=create_source(cfg.source, api=world.api())))
+    sync = checks["camera sync"]
+    assert sync.ok and "route via lo" in sync.value and "SyncFrames 30" in sync.value, sync
+    assert "SyncReady after" in sync.value and "max skew 0 us" in sync.value
+    left = checks["left camera"]
+    # the fake's Pi 5 Ids: position 0 of global_camera_info() is rp1/i2c@88000, the CAM/DISP 0 connector
+    assert left.ok and left.value.startswith(f"left {world.cameras[0].id} (CAM/DISP 0), right {world.cameras[1].id} "
+                                             "(CAM/DISP 1)"), left
+
+
+def test_picamera2_selftest_names_the_missing_route():
+    cfg = _picamera2_config()
+    world = FakeCameraWorld(multicast_route=False)
+    src = create_source(cfg.source, api=world.api(), route_reader=lambda: "Iface\tDestination\n")
+    checks = by_name(run_selftest(cfg, source=src))
+    assert not checks["camera open"].ok and "239.255.255.250" in checks["camera open"].value
+
+
+@pytest.mark.parametrize("covered, swap_ids, verdict", [
+    (0, False, "left image darker"), (0, True, "swapped"), (None, False, "neither image darker")])
+def test_cover_left_finds_swapped_cameras(covered, swap_ids, verdict):
+    import numpy as np
+
+    world = FakeCameraWorld()
+    bright, dark = np.full((24, 32), 180, np.uint8), np.full((24, 32), 20, np.uint8)
+    world.images = [tuple(dark if num == covered else bright for num in (0, 1))]  # by libcamera Num
+    ids = {"left_id": world.cameras[1].id, "right_id": world.cameras[0].id} if swap_ids else {}
+    cfg = _picamera2_config(**ids)
+    checks = by_name(run_selftest(cfg, source=create_source(cfg.source, api=world.api()), cover_left=True))
+    left = checks["left camera"]
+    assert left.ok == (verdict == "left image darker") and verdict in left.value, left
+
+
 def test_lost_camera_fails_the_pairing_check():
     cfg = config(source={"backend": "picamera2", "fps": 50.0, "exposure_us": 2000, "pair_tolerance_us": 500,
-                         "size": [32, 24], "timeout_s": 0.3}, imu={"backend": "none"})
-    world = FakeCameraWorld(sync_ready_after=0)
+                         "size": [32, 24], "timeout_s": 0.3, "picamera2": {"sync_frames": 30}},
+                 imu={"backend": "none"})
+    world = FakeCameraWorld()
     world.cameras[0].disappear_after = 3
     checks = by_name(run_selftest(cfg, source=create_source(cfg.source, api=world.api())))
     assert not checks["frame pairing"].ok and "left camera" in checks["frame pairing"].value

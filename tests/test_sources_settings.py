@@ -71,6 +71,21 @@ def test_imu_divider_and_output_rate():
     assert (s.output_rate_hz, s.smplrt_div) == (8000.0, 7)
 
 
+@pytest.mark.parametrize("table, ok", [
+    ({"rate_hz": 2666.6666666666665, "dlpf_cfg": 0, "read_period_ms": 10}, True),   # 8 kHz / 3, 12-byte packets
+    ({"rate_hz": 4000, "dlpf_cfg": 0, "read_period_ms": 10}, False),                # ~3 kHz is what 400 kHz carries
+    ({"rate_hz": 2666.6666666666665, "dlpf_cfg": 0, "read_period_ms": 10, "temperature": True}, False),
+    ({"rate_hz": 1000, "dlpf_cfg": 1, "i2c_khz": 100}, False),                       # 100 kHz: ~690 Hz
+    ({"rate_hz": 500, "dlpf_cfg": 1, "i2c_khz": 100}, True),
+])
+def test_imu_rate_is_capped_by_what_the_i2c_bus_carries(table, ok):
+    if ok:
+        from_mapping(ImuSettings, table)
+        return
+    with pytest.raises(ConfigError, match=r"imu\.rate_hz = .* kHz I2C bus .* carries about \d+ Hz"):
+        from_mapping(ImuSettings, table)
+
+
 def test_toml_overrides_only_what_it_names(tmp_path):
     p = tmp_path / "d.toml"
     p.write_text('[source]\nbackend = "sim"\nfps = 20.0\n[imu]\nbackend = "emulated"\n')

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from stereopath.device.capture.multicast_route import ROUTE_COMMAND
 from stereopath.device.service.installer import BACKEND_DROPINS, UNIT_NAME, Layout, install
 from tests.test_install import FakeVenv
 
@@ -41,9 +42,12 @@ def _installed_root(tmp_path: Path, backend: str | None = None, config_backend: 
         etc.mkdir(parents=True)
         (etc / "device.toml").write_text(f'[source]\nbackend = "{config_backend}"\n')
     install(root, venv=FakeVenv(), backend=backend)
-    # what the target system provides: /bin/kill for ExecReload=
+    # what the target system provides: /bin/kill for ExecReload=, iproute2's ip for the
+    # picamera2 drop-in's ExecStartPre=
     (root / "bin").mkdir()
     shutil.copy2(shutil.which("kill") or "/bin/kill", root / "bin" / "kill")
+    (root / "usr/sbin").mkdir(parents=True)
+    shutil.copy2(shutil.which("ip") or "/usr/sbin/ip", root / "usr/sbin" / "ip")
     return root
 
 
@@ -132,9 +136,13 @@ def test_every_backend_has_a_drop_in_that_adds_only_device_rules():
     root = UNIT.parent
     for backend, name in BACKEND_DROPINS.items():
         s = _settings((root / name).read_text())
+        pre = [v for sec, key, v in s if (sec, key) == ("Service", "ExecStartPre")]
+        s = [e for e in s if e[:2] != ("Service", "ExecStartPre")]
         assert {(sec, key) for sec, key, _ in s} <= {("Service", "DeviceAllow")}, (backend, s)
         assert {v.split()[0] for _, _, v in s} == CAMERA_DEVICES[backend]
         assert all(v.split()[1] == "rw" for _, _, v in s)
+        # picamera2 only: the software-sync multicast route, the same the service's refusal names
+        assert pre == ([f"-+/usr/sbin/{ROUTE_COMMAND}"] if backend == "picamera2" else []), (backend, pre)
 
 
 @pytest.mark.parametrize("backend", ["picamera2", "depthai", "sim"])

@@ -1,6 +1,8 @@
 """Check the configured sensors and print a pass/fail table (exit code 1 on any failure).
 
-Opens the stereo source and captures a few pairs (pairing, frame rate), opens the IMU
+Opens the stereo source and captures a few pairs (pairing, frame rate; for two CSI cameras
+also the software sync: the multicast route, frames until SyncReady, the skew; and which
+camera was taken as left, which ``--cover-left`` checks from the image brightness), opens the IMU
 (WHO_AM_I, sample rate, gaps) and reads a still period (gyro bias and noise, gravity
 magnitude: keep the unit still), and checks the free disk space of the recorder folder.
 On a machine without the hardware use --source sim: simulator frames with the emulated
@@ -23,6 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--imu", choices=("mpu6050", "emulated", "source", "none"), default=None,
                         help="override imu.backend")
     parser.add_argument("--frames", type=int, default=None, help="stereo pairs to capture (selftest.frames)")
+    parser.add_argument("--cover-left", action="store_true",
+                        help="hold a hand over the LEFT lens during the test: passes only if the left image is the "
+                             "darker one (catches swapped cameras)")
 
 
 @dataclass
@@ -45,7 +50,56 @@ def _free_disk_check(path: str, reserve_mb: float) -> Check:
     return Check("free disk", free_mb >= reserve_mb, where, f">= {reserve_mb:.0f} MB")
 
 
-def _camera_checks(cfg: Any, source: Any, frames_wanted: int, imu_blocks: list) -> list[Check]:
+COVERED_RATIO = 0.6  # --cover-left: the covered image's mean grey level below this share of the other's
+
+
+def _sync_check(cfg: Any, source: Any, stats: Any) -> Check | None:
+    """The picamera2 software sync: route, frames to SyncReady per camera, skew (None for other sources)."""
+    state = getattr(source, "sync_state", None)
+    if state is None:
+        return None
+    if state.mode != "software":
+        return Check("camera sync", True, f"off ({cfg.source.picamera2.sync}; no SyncMode or sync = \"off\")")
+    route = "no route" if state.route is None else ("route unknown" if state.route == "?" else f"route via {state.route}")
+    ready = ["-" if n is None else str(n) for n in state.frames_to_ready]
+    skew_us = stats.max_skew_ns / 1000
+    ok = state.route is not None and None not in state.frames_to_ready and \
+        stats.max_skew_ns <= cfg.source.pair_tolerance_us * 1000
+    return Check("camera sync", ok,
+                 f"software, {route}, SyncReady after {ready[0]} / {ready[1]} frames (SyncFrames {state.sync_frames}), "
+                 f"max skew {skew_us:.0f} us", f"<= {cfg.source.pair_tolerance_us} us")
+
+
+def _left_check(source: Any, luma: list[list[float]], cover_left: bool) -> Check | None:
+    """Which camera is left; with ``cover_left`` the left image must be the darker one."""
+    ids = getattr(source, "camera_ids", None)
+    named = ""
+    if ids is not None:
+        from stereopath.device.capture.sources.csi import connector_of
+
+        def say(camera_id: str) -> str:
+            where = connector_of(camera_id)
+            return camera_id + (f" ({where})" if where else "")
+
+        named = f"left {say(ids[0])}, right {say(ids[1])}"
+    if not cover_left:
+        return None if ids is None else Check("left camera", True, named, "--cover-left checks it")
+    if not luma[0] or not luma[1]:
+        return Check("left camera", False, (named + "; " if named else "") + "no frames to compare", "")
+    left, right = sum(luma[0]) / len(luma[0]), sum(luma[1]) / len(luma[1])
+    grey = f"mean grey left {left:.0f}, right {right:.0f}"
+    if left < COVERED_RATIO * right:
+        verdict, ok = "left image darker: left is left", True
+    elif right < COVERED_RATIO * left:
+        verdict, ok = "RIGHT image darker: left and right are swapped (swap source.picamera2.left_id/right_id)", False
+    else:
+        verdict, ok = "neither image darker: was the left lens covered?", False
+    value = "; ".join(x for x in (named, grey, verdict) if x)
+    return Check("left camera", ok, value, f"covered < {COVERED_RATIO:.0%} of the other")
+
+
+def _camera_checks(cfg: Any, source: Any, frames_wanted: int, imu_blocks: list,
+                   cover_left: bool = False) -> list[Check]:
     import numpy as np
 
     from stereopath.device.errors import StereopathError
@@ -53,6 +107,7 @@ def _camera_checks(cfg: Any, source: Any, frames_wanted: int, imu_blocks: list) 
     st = cfg.selftest
     checks: list[Check] = []
     t: list[int] = []
+    luma: list[list[float]] = [[], []]
     shapes_ok = True
     try:
         source.open()
@@ -65,6 +120,9 @@ def _camera_checks(cfg: Any, source: Any, frames_wanted: int, imu_blocks: list) 
             for frame in source:
                 t.append(int(frame.t_ns))
                 shapes_ok &= frame.left.shape == frame.right.shape and frame.left.size > 0
+                if cover_left:
+                    luma[0].append(float(np.mean(frame.left)))
+                    luma[1].append(float(np.mean(frame.right)))
                 imu = getattr(source, "imu", None)
                 if imu is not None:
                     imu_blocks.append(imu.read())
@@ -96,6 +154,9 @@ def _camera_checks(cfg: Any, source: Any, frames_wanted: int, imu_blocks: list) 
                             f"{nominal:.2f} fps +-{100 * st.rate_tolerance:.0f} %"))
     else:
         checks.append(Check("camera rate", False, f"only {len(t)} frames", ""))
+    for extra in (_sync_check(cfg, source, stats), _left_check(source, luma, cover_left)):
+        if extra is not None:
+            checks.append(extra)
     return checks
 
 
@@ -169,7 +230,7 @@ def _imu_checks(cfg: Any, imu: Any, blocks_from_source: list) -> list[Check]:
     return checks
 
 
-def run_selftest(cfg: Any, source: Any = None, imu: Any = None) -> list[Check]:
+def run_selftest(cfg: Any, source: Any = None, imu: Any = None, cover_left: bool = False) -> list[Check]:
     """All checks; ``source``/``imu`` (unopened) may be injected, otherwise built from ``cfg``."""
     from stereopath.device.errors import StereopathError
     from stereopath.device.capture.imu import create_imu
@@ -183,7 +244,7 @@ def run_selftest(cfg: Any, source: Any = None, imu: Any = None) -> list[Check]:
             checks.append(Check("camera open", False, str(exc)))
     imu_blocks: list = []
     if source is not None:
-        checks += _camera_checks(cfg, source, cfg.selftest.frames, imu_blocks)
+        checks += _camera_checks(cfg, source, cfg.selftest.frames, imu_blocks, cover_left)
     if imu is None and cfg.imu.backend not in ("none", "source"):
         try:
             imu = create_imu(cfg.imu)
@@ -224,7 +285,7 @@ def run(args: argparse.Namespace) -> int:
     if src.backend == "sim" and src.sim.frames < st.frames:
         src = replace(src, sim=replace(src.sim, frames=st.frames))
     cfg = replace(cfg, source=src, imu=imu_s, selftest=st)
-    checks = run_selftest(cfg)
+    checks = run_selftest(cfg, cover_left=args.cover_left)
     print(format_table(checks))
     failed = [c.name for c in checks if not c.ok]
     print(f"{len(checks) - len(failed)}/{len(checks)} checks passed" + (f"; FAILED: {', '.join(failed)}" if failed else ""))

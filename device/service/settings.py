@@ -47,6 +47,7 @@ class Picamera2Settings:
     left_id: str = ""            # libcamera camera Id of the left camera ("" = first listed)
     right_id: str = ""           # ... of the right camera ("" = second listed)
     sync: Literal["software", "off"] = "software"  # SyncMode server (left) / client (right)
+    sync_frames: int = 100       # SyncFrames: the server reports SyncReady after this many frames
     sensor_mode: int = -1        # index into Picamera2.sensor_modes (-1 = let libcamera choose)
     analogue_gain: float = 2.0   # locked analogue gain (identical on both cameras)
     colour_gains: tuple[float, float] = (1.9, 1.6)  # locked red/blue gains (AWB off; ignored on mono sensors)
@@ -57,6 +58,7 @@ class Picamera2Settings:
     def __post_init__(self) -> None:
         check_range("source.picamera2.analogue_gain", self.analogue_gain, 1.0, 64.0)
         check_range("source.picamera2.buffer_count", self.buffer_count, 2, 32)
+        check_range("source.picamera2.sync_frames", self.sync_frames, 1, 100000)
         check_range("source.picamera2.sensor_mode", self.sensor_mode, -1, 64)
         for i, g in enumerate(self.colour_gains):
             check_range(f"source.picamera2.colour_gains[{i}]", g, 0.0, 32.0)
@@ -155,6 +157,25 @@ class EmulatedImuSettings:
         check_range("imu.emulated.period_error_ppm", self.period_error_ppm, -50000.0, 50000.0)
 
 
+# I2C cost of reading the FIFO: 9 bits a byte (8 + ACK); per poll the FIFO_COUNT read (address
+# write, register, address read, 2 bytes), the FIFO burst's own 3 address/register bytes and
+# the INT_STATUS read (4 bytes); the bus is kept below this share of its time
+I2C_BITS_PER_BYTE = 9
+I2C_POLL_OVERHEAD_BYTES = 12
+I2C_USABLE_SHARE = 0.8
+
+
+def i2c_load_bits_per_s(rate_hz: float, packet_bytes: int, read_period_ms: float) -> float:
+    """Bus bits per second that reading ``rate_hz`` packets, polling every ``read_period_ms``, takes."""
+    return I2C_BITS_PER_BYTE * (rate_hz * packet_bytes + 1000.0 / read_period_ms * I2C_POLL_OVERHEAD_BYTES)
+
+
+def max_rate_on_bus(i2c_khz: float, packet_bytes: int, read_period_ms: float) -> float:
+    """The highest sample rate an ``i2c_khz`` bus carries within :data:`I2C_USABLE_SHARE`."""
+    spare = I2C_USABLE_SHARE * i2c_khz * 1000.0 / I2C_BITS_PER_BYTE - 1000.0 / read_period_ms * I2C_POLL_OVERHEAD_BYTES
+    return max(0.0, spare / packet_bytes)
+
+
 @dataclass(frozen=True)
 class ImuSettings:
     """MPU-6050 on I2C (or its emulator): ranges, filter, rate and bus recovery."""
@@ -173,6 +194,7 @@ class ImuSettings:
     reinit_attempts: int = 2             # re-initialisations before giving up
     latency_us: float = 0.0              # fixed read latency subtracted from fitted timestamps
     fit_window_s: float = 20.0           # span of the running sample-period fit
+    i2c_khz: float = 400.0               # the bus clock (config.txt dtparam=i2c_arm_baudrate), caps rate_hz
     emulated: EmulatedImuSettings = field(default_factory=EmulatedImuSettings)
 
     def __post_init__(self) -> None:
@@ -197,8 +219,17 @@ class ImuSettings:
         check_range("imu.reinit_attempts", self.reinit_attempts, 0, 10)
         check_range("imu.latency_us", self.latency_us, 0.0, 10000.0)
         check_range("imu.fit_window_s", self.fit_window_s, 1.0, 600.0)
+        check_range("imu.i2c_khz", self.i2c_khz, 10.0, 3400.0)
         # bytes per read must fit the 1024-byte FIFO with margin
         pkt = 14 if self.temperature else 12
+        load = i2c_load_bits_per_s(self.rate_hz, pkt, self.read_period_ms)
+        capacity = I2C_USABLE_SHARE * self.i2c_khz * 1000.0
+        if load > capacity:
+            most = max_rate_on_bus(self.i2c_khz, pkt, self.read_period_ms)
+            raise ConfigError(
+                f"imu.rate_hz = {self.rate_hz:g} needs {load / 1000:.0f} kbit/s of the {self.i2c_khz:g} kHz I2C bus "
+                f"({pkt}-byte packets); it carries about {most:.0f} Hz ({I2C_USABLE_SHARE:.0%} of its time): lower "
+                "imu.rate_hz, or raise the bus clock (dtparam=i2c_arm_baudrate) and imu.i2c_khz")
         fill_ms = 1024 // pkt / self.rate_hz * 1000.0
         if self.read_period_ms > 0.8 * fill_ms:
             raise ConfigError(

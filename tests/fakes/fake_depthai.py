@@ -26,7 +26,9 @@ What the stand-in device does, copied from the device's documented behaviour:
   aspect ratio, then scale; STRETCH = independent x/y scale; LETTERBOX = uniform scale and
   padding.  ``ImgFrame.getTransformation().getIntrinsicMatrix()`` is therefore depthai's
   answer for the frame, not ours.
-* frame timestamps (``dai::Clock`` = CLOCK_MONOTONIC) mark the end of exposure, with the
+* frame timestamps (``dai::Clock`` = CLOCK_MONOTONIC) mark the end of exposure (``clock_steps``
+  shifts ``getTimestamp`` from a frame on, as a time-sync update does; ``getTimestampDevice``
+  never steps), with the
   exposure in ``ImgFrame.cam.exposureTimeUs`` so ``getTimestamp(MIDDLE)`` is depthai's; the
   right camera may lag by ``right_skew_ns``; ``drop_left``/``drop_right`` frames never come;
   after ``disappear_after`` frames the device is lost: the node calls ``stopPipeline()``,
@@ -107,7 +109,8 @@ class _StubCamera(dai.node.ThreadedHostNode):
                       fps: float | None = None, enableUndistortion: Any = None, alphaScaling: Any = None) -> Any:
         if self.request is not None:
             raise RuntimeError("stand-in camera: one output per camera is all the backend needs")
-        self.request = {"size": (int(size[0]), int(size[1])), "type": type, "resizeMode": resizeMode, "fps": fps}
+        self.request = {"size": (int(size[0]), int(size[1])), "type": type, "resizeMode": resizeMode, "fps": fps,
+                        "enableUndistortion": enableUndistortion}
         return self.out
 
     def run(self) -> None:
@@ -146,7 +149,9 @@ class _StubCamera(dai.node.ThreadedHostNode):
                 cam = f.cam
                 cam.exposureTimeUs = exp_us
                 f.cam = cam
-                f.setTimestamp(_ts(t_end))
+                # getTimestamp: the host-synchronised clock, which steps where the time sync re-estimates
+                # the offset (clock_steps: frame index -> step from that frame on); the device clock does not
+                f.setTimestamp(_ts(t_end + sum(d for at, d in w.clock_steps.items() if k >= at)))
                 f.setTimestampDevice(_ts(t_end + 1234 * 10**9))
                 f.setTransformation(transform)
                 self.out.send(f)
@@ -246,6 +251,7 @@ class FakeOakWorld:
     drop_right: frozenset[int] = frozenset()
     disappear_after: int | None = None
     max_frames: int | None = None
+    clock_steps: dict[int, int] = field(default_factory=dict)  # frame index -> host-clock step (ns) from then on
     K_full: dict[str, list[list[float]]] = field(default_factory=lambda: {
         "CAM_B": [[800.0, 0.0, 640.0], [0.0, 800.0, 400.0], [0.0, 0.0, 1.0]],
         "CAM_C": [[802.0, 0.0, 636.0], [0.0, 801.0, 402.0], [0.0, 0.0, 1.0]],

@@ -30,10 +30,32 @@ function it copies:
   (``MappedArray.__enter__`` -> ``helpers._make_array_shared``).
 * ``set_controls`` rejects controls that are not advertised (``Controls.__setattr__``).
 
+Software sync, copied from libcamera (raspberrypi/libcamera,
+``src/ipa/rpi/controller/rpi/sync.cpp`` and ``src/ipa/rpi/common/ipa_base.cpp``; see
+:class:`_SyncAlgorithm`):
+
+* the server reports ``SyncReady`` once ``SyncFrames`` sensor frames have passed since it
+  started (``Sync::process``, server branch: ``framesRemaining = readyFrame_ - frameCount_``;
+  without the control the tuning file's ``"rpi.sync": {}`` keeps ``kDefaultReadyFrame`` = 100,
+  ``Sync::read``), and says so on every later frame (the ``syncReady_`` latch);
+* the server multicasts its "ready time" every ``sync_period`` (30, ``kDefaultSyncPeriod``)
+  frames; the client reports ``SyncReady`` False and no ``SyncTimer`` until it has a packet
+  (``timerKnown = clientSeenPacket_``), then becomes ready at the server's ready time;
+* with no IPv4 route to the group 239.255.255.250 the client's ``IP_ADD_MEMBERSHIP`` fails
+  (ENODEV), ``Sync::initialiseSocket`` closes the socket and ``Sync::process`` returns before
+  writing ``sync.status``: its frames carry neither ``SyncReady`` nor ``SyncTimer``, on every
+  frame; the server's ``sendto`` fails (ENETUNREACH, logged only), so it still becomes ready;
+* frames closer than 0.9 x ``controller_min_frame_duration`` (1/30 s,
+  ``defaultControllerMinimumFrameDurationUs`` in ``pipeline_base.cpp``) to the last frame the
+  controller ran on skip the controller (``IpaBase::prepareIsp``), and ``IpaBase::processStats``
+  then sets no ``SyncReady``/``SyncTimer`` (``libcameraMetadata_`` is cleared per frame in
+  ``IpaBase::applyControls``): above ~33 fps some frames carry no sync keys at all.  Which
+  frames are skipped depends on when each camera's IPA started (``skip_phase``).
+
 Emulated faults (per camera spec): a timestamp skew, frames that never arrive (``drop``),
-frames whose buffer failed (``failed``: dropped inside picamera2 before callbacks),
-``SyncReady`` false for the first ``sync_ready_after`` slots of the synchronised grid, and a
-camera that disappears after ``disappear_after`` frames.  Each frame's luma encodes its
+frames whose buffer failed (``failed``: dropped inside picamera2 before callbacks), the
+controller-skip phase (``skip_phase``) and a camera that disappears after
+``disappear_after`` frames; per world: no multicast route (``multicast_route``).  Each frame's luma encodes its
 grid slot and the camera's libcamera ``Num`` in the first row (``decode_slot``), so a test
 can tell which physical camera a frame came from.
 """
@@ -90,6 +112,8 @@ class FakeCameraSpec:
     disappear_after: int | None = None     # stop calling back after this many delivered frames
     present: bool = True                   # False: the camera cannot be acquired (in use / broken)
     callback_delay_s: float = 0.0          # time the fake's thread spends before the callback
+    skip_phase: int = 0                    # >0: the IPA ran its controller this many frames before the
+    #                                        first delivered one (which then may be skipped above 33 fps)
 
 
 def _no_adjust(size: tuple[int, int]) -> tuple[int, int]:
@@ -103,7 +127,10 @@ class FakeCameraWorld:
         FakeCameraSpec("/base/axi/pcie@120000/rp1/i2c@88000/imx296@1a", location=2),
         FakeCameraSpec("/base/axi/pcie@120000/rp1/i2c@80000/imx296@1a", location=2),
     ])
-    sync_ready_after: int = 5              # SyncReady false for the first N grid slots
+    tuning_ready_frame: int = 100          # "rpi.sync" ready_frame (kDefaultReadyFrame) when SyncFrames is unset
+    sync_period: int = 30                  # "rpi.sync" sync_period (kDefaultSyncPeriod): frames between packets
+    multicast_route: bool = True           # an IPv4 route to 239.255.255.250 exists (client can join the group)
+    controller_min_frame_duration_us: float = 1e6 / 30.0  # pipeline_base.cpp defaultControllerMinimumFrameDurationUs
     images: list[tuple[np.ndarray, np.ndarray]] | None = None  # pre-rendered (Num 0, Num 1) luma
     free_run_phase_ns: int = 7_000_000     # phase of the second camera when not synchronised
     max_frames: int | None = None          # stop every camera after this many slots
@@ -124,6 +151,8 @@ class FakeCameraWorld:
         self.instances: list["_FakePicamera2"] = []
         self.applied_controls: dict[int, dict[str, Any]] = {}
         self._yuv_cache: dict[tuple[int, int, int, int], np.ndarray] = {}
+        self.sync_packet_ready_ns: int | None = None  # the server's latest multicast "ready time"
+        self.sync_ready_slot: dict[int, int] = {}      # first grid slot each camera reported SyncReady
 
     def api(self) -> SimpleNamespace:
         world = self
@@ -162,6 +191,84 @@ def _sorted_info(cameras: list[FakeCameraSpec]) -> list[dict[str, Any]]:
     info = [{"Model": c.model, "Location": c.location, "Rotation": 0, "Id": c.id, "Num": i}
             for i, c in enumerate(cameras)]
     return sorted(info, key=lambda cam: ("/usb" not in cam["Id"], cam["Id"]), reverse=True)
+
+
+
+class _SyncAlgorithm:
+    """One camera's ``RPiController::Sync`` plus the IPA's controller skip, per frame.
+
+    ``status(slot, t_ns)`` returns the sync keys ``IpaBase::processStats`` would put in that
+    frame's metadata (an empty dict when it puts none).  Copied from raspberrypi/libcamera
+    ``src/ipa/rpi/controller/rpi/sync.cpp`` (``Sync::process``, ``Sync::initialiseSocket``,
+    ``Sync::reset``) and ``src/ipa/rpi/common/ipa_base.cpp`` (``IpaBase::prepareIsp``,
+    ``IpaBase::processStats``, ``IpaBase::applyControls`` for ``SYNC_FRAMES``).  The fake's
+    cameras already share one exposure grid, so the client's frame-length corrections are not
+    modelled: only when each side says it is ready, and which frames carry the keys.
+    """
+
+    def __init__(self, world: "FakeCameraWorld", role: "_SyncModeEnum", period_ns: int,
+                 sync_frames: int | None, skip_phase: int) -> None:
+        self.world = world
+        self.server = role == _SyncModeEnum.Server
+        self.period_ns = period_ns
+        # IpaBase::applyControls SYNC_FRAMES: "if (frames > 0) sync->setReadyFrame(frames)"
+        self.ready_frame = sync_frames if sync_frames and sync_frames > 0 else world.tuning_ready_frame
+        self.skip_phase = skip_phase
+        self.first_slot: int | None = None
+        self.last_run_ns: int | None = None
+        self.last_sent = 0
+        self.ready = False          # Sync::syncReady_: once true, stays true (Sync::reset clears it)
+        self.seen_packet = False    # Sync::clientSeenPacket_
+        self.server_ready_ns = 0
+
+    def controller_runs(self, t_ns: int) -> bool:
+        """IpaBase::prepareIsp: skip the controller when the frame is closer than 0.9 x the
+        controller's minimum frame duration to the last frame it ran on."""
+        if self.last_run_ns is None:
+            self.last_run_ns = t_ns - self.skip_phase * self.period_ns if self.skip_phase else None
+            if self.last_run_ns is None:
+                self.last_run_ns = t_ns
+                return True
+        if t_ns - self.last_run_ns < 0.9 * self.world.controller_min_frame_duration_us * 1000:
+            return False
+        self.last_run_ns = t_ns
+        return True
+
+    def status(self, slot: int, t_ns: int) -> dict[str, Any]:
+        world = self.world
+        if self.first_slot is None:
+            self.first_slot = slot
+            if self.server:  # a fresh sync session: no packet from an earlier run is valid
+                with world.lock:
+                    world.sync_packet_ready_ns = None
+        if not self.controller_runs(t_ns):
+            return {}
+        if not self.server and not world.multicast_route:
+            return {}  # Sync::initialiseSocket: IP_ADD_MEMBERSHIP fails, socket closed, no sync.status
+        frame_count = slot - self.first_slot  # frameCount_ plus the dropped frames it counts from the clock
+        if self.server:
+            # wallClockReadyTime = wallClockFrameTimestamp + framesRemaining * frameDurationEstimated_
+            ready_ns = t_ns + (self.ready_frame - frame_count) * self.period_ns
+            if frame_count - self.last_sent >= world.sync_period:
+                self.last_sent = frame_count
+                if world.multicast_route:  # otherwise sendto fails with ENETUNREACH: "Send error!" only
+                    with world.lock:
+                        world.sync_packet_ready_ns = ready_ns
+            if not self.ready and t_ns + self.period_ns // 2 > ready_ns:
+                self.ready = True
+            return {"SyncReady": self.ready, "SyncTimer": (ready_ns - t_ns) // 1000}
+        with world.lock:
+            packet = world.sync_packet_ready_ns
+        if packet is not None:
+            self.seen_packet = True
+            self.server_ready_ns = packet
+        md: dict[str, Any] = {}
+        if self.seen_packet:
+            md["SyncTimer"] = (self.server_ready_ns - t_ns) // 1000  # only once timerKnown
+            if not self.ready and t_ns + self.period_ns // 2 > self.server_ready_ns:
+                self.ready = True
+        md["SyncReady"] = self.ready
+        return md
 
 
 class _FakeRequest:
@@ -262,6 +369,7 @@ class _FakePicamera2:
         self.controls: dict[str, Any] = {}
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self.sync_algorithm: _SyncAlgorithm | None = None
         try:
             if not self.spec.present:
                 # libcamera src/py/libcamera/py_main.cpp, Camera.acquire: std::system_error(-ret,
@@ -278,8 +386,9 @@ class _FakePicamera2:
             "NoiseReductionMode": (0, 4, 0),
         }
         if self.spec.has_sync:
+            # ipa_base.cpp ipaControls: SyncMode ControlInfo({Off, Client}, Off), SyncFrames ControlInfo(100, 100000, 1000)
             cc["SyncMode"] = (0, 2, 0)
-            cc["SyncFrames"] = (1, 1000000, 100)
+            cc["SyncFrames"] = (100, 100000, 1000)
         if not self.spec.mono:
             cc["AwbEnable"] = (False, True, None)
             cc["ColourGains"] = (0.0, 32.0, None)
@@ -416,6 +525,10 @@ class _FakePicamera2:
         # synchronised cameras expose on one shared grid; free-running ones at a fixed phase offset
         base = t0 if synced else t0 + (world.free_run_phase_ns if self.num else 0)
         slot = max(0, -(-(now - base) // period))
+        sync = None
+        if synced:
+            sync = _SyncAlgorithm(world, sync_role, period, self.controls.get("SyncFrames"), spec.skip_phase)
+        self.sync_algorithm = sync
         delivered = 0
         tid = threading.get_ident()
         while not self._stop.is_set():
@@ -441,9 +554,12 @@ class _FakePicamera2:
                 "AnalogueGain": float(self.controls.get("AnalogueGain", 1.0)), "DigitalGain": 1.0,
                 "SensorTemperature": 40.0,
             }
-            if synced:
-                md["SyncReady"] = this >= world.sync_ready_after
-                md["SyncTimer"] = 0
+            if sync is not None:
+                keys = sync.status(this, int(t_frame) - spec.skew_ns)
+                md.update(keys)
+                if keys.get("SyncReady"):
+                    with world.lock:
+                        world.sync_ready_slot.setdefault(self.num, this)
             req = _FakeRequest(self, md, world.yuv_buffer(self.num, this, w, h, stride), ok=this not in spec.failed)
             if self._process_request(req, tid):
                 delivered += 1

@@ -59,7 +59,9 @@ def source_settings(backend: str, size: list[int], pair_tolerance_us: int, **kw)
 
     base = {"backend": backend, "fps": 100.0, "exposure_us": 2000, "pair_tolerance_us": pair_tolerance_us,
             "timeout_s": 0.4, "size": size}
-    sub = kw.pop(backend, {})
+    sub = dict(kw.pop(backend, {}))
+    if backend == "picamera2":  # libcamera's software sync start-up at its shortest (the client's first packet)
+        sub.setdefault("sync_frames", 30)
     base.update(kw)
     base[backend] = sub
     return from_mapping(SourceSettings, base)

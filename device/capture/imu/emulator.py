@@ -12,6 +12,9 @@ machine without the chip.  It behaves like the part as the driver sees it:
 * samples are produced while awake at ``(1 + SMPLRT_DIV) / (8 kHz or 1 kHz)`` stretched by
   ``period_error_ppm`` (the real clock is up to ~1 % off), from a ``source(k, t_ns)``
   giving SI values that are converted with the configured full-scale ranges;
+* an MPU-6500/9250 (``who_am_i`` 0x70/0x71) as :data:`~stereopath.device.capture.imu.mpu6050.CHIPS`
+  describes it: a 512-byte FIFO, its temperature formula, ``SMPLRT_DIV`` ignored with the DLPF
+  off (8 kHz); ``ACCEL_CONFIG2`` is an ordinary register;
 * a 1024-byte FIFO fed in register order (accel, temp, gyro per FIFO_EN): when full the
   oldest bytes are lost (framing broken) and INT_STATUS.FIFO_OFLOW is set if enabled in
   INT_ENABLE; reading INT_STATUS clears it; FIFO_RESET is honoured only while
@@ -125,6 +128,7 @@ class Mpu6050Emulator:
         self.source = source if source is not None else still_source()
         self.address = int(address)
         self.who_am_i_value = int(who_am_i)
+        self.chip = R.CHIPS.get(self.who_am_i_value, R.MPU6050_CHIP)
         self.period_error_ppm = float(period_error_ppm)
         self.bus_hz = float(bus_hz)
         self.disconnected = False
@@ -156,7 +160,8 @@ class Mpu6050Emulator:
     def period_ns(self) -> float:
         dlpf = self.regs[R.CONFIG] & 0x07
         base = 8000.0 if dlpf in (0, 7) else 1000.0
-        return (1 + self.regs[R.SMPLRT_DIV]) / base * 1e9 * (1.0 + self.period_error_ppm * 1e-6)
+        div = 0 if self.chip.divider_needs_dlpf and dlpf in (0, 7) else self.regs[R.SMPLRT_DIV]
+        return (1 + div) / base * 1e9 * (1.0 + self.period_error_ppm * 1e-6)
 
     def _awake(self) -> bool:
         return not self.regs[R.PWR_MGMT_1] & R.PWR_SLEEP
@@ -186,7 +191,7 @@ class Mpu6050Emulator:
         a_counts = np.clip(np.round(np.asarray(accel) / R.STANDARD_GRAVITY * accel_lsb), -32768, 32767)
         g_counts = np.clip(np.round(np.rad2deg(np.asarray(gyro)) * gyro_lsb), -32768, 32767)
         t_c = np.full(n, 30.0) if temp is None else np.asarray(temp, float)
-        t_counts = np.clip(np.round((t_c - R.TEMP_OFFSET_C) * R.TEMP_SCALE), -32768, 32767)
+        t_counts = np.clip(np.round(self.chip.temp_raw(t_c)), -32768, 32767)
         # data registers hold the latest sample
         last = np.concatenate([a_counts[-1], t_counts[-1:], g_counts[-1]]).astype(">i2").tobytes()
         self.regs[R.ACCEL_XOUT_H:R.ACCEL_XOUT_H + 14] = last
@@ -204,8 +209,8 @@ class Mpu6050Emulator:
                 cols.append(g_counts[:, j:j + 1])
         packets = np.concatenate(cols, axis=1).astype(">i2").tobytes()
         self.fifo += packets
-        if len(self.fifo) > R.FIFO_SIZE:
-            del self.fifo[:len(self.fifo) - R.FIFO_SIZE]   # the oldest bytes are lost
+        if len(self.fifo) > self.chip.fifo_bytes:
+            del self.fifo[:len(self.fifo) - self.chip.fifo_bytes]   # the oldest bytes are lost
             self.fifo_overflows += 1
             if self.regs[R.INT_ENABLE] & R.INT_FIFO_OFLOW:
                 self.regs[R.INT_STATUS] |= R.INT_FIFO_OFLOW
@@ -285,7 +290,7 @@ class Mpu6050Emulator:
             self.regs[reg] = value & ~R.USER_FIFO_RESET & 0xFF   # self-clearing
             return
         if reg == R.FIFO_R_W:
-            if len(self.fifo) < R.FIFO_SIZE:
+            if len(self.fifo) < self.chip.fifo_bytes:
                 self.fifo.append(value)
             return
         self.regs[reg] = value

@@ -1,9 +1,10 @@
 """InvenSense MPU-6050 over I2C (smbus2): FIFO burst reads, overflow recovery, fitted timestamps.
 
 Initialisation (:meth:`Mpu6050.open`): probe ``WHO_AM_I`` (0x68; the MPU-6500 and
-MPU-9250 clones' 0x70 / 0x71 are accepted with a warning; anything else is a
+MPU-9250's 0x70 / 0x71 are handled as those chips, see :data:`CHIPS`; anything else is a
 :class:`CaptureError` naming the value read), device reset, wake with the X-gyro PLL as
-clock, DLPF, sample-rate divider, gyro/accel full-scale ranges (all from
+clock, DLPF (on the MPU-6500/9250 also the accelerometer's own ``ACCEL_CONFIG2``),
+sample-rate divider, gyro/accel full-scale ranges (all from
 :class:`~stereopath.device.service.settings.ImuSettings`), FIFO overflow interrupt, FIFO reset and enable
 with accel + gyro (12-byte packets; 14 with temperature).  The written configuration is
 read back and compared.
@@ -13,8 +14,9 @@ Each :meth:`Mpu6050.read` is one poll:
 1. ``FIFO_COUNT`` is read as one 2-byte burst starting at the high byte (reading
    FIFO_COUNT_H latches both bytes); the host time right after it is the observation
    for the timestamp fit;
-2. a count of 1024 or more means the FIFO overflowed: its oldest bytes are gone and,
-   1024 not being a multiple of 12, so is the packet framing.  The FIFO is reset and a
+2. a count of the FIFO's size (1024 bytes; 512 on the MPU-6500/9250) or more means it
+   overflowed: its oldest bytes are gone and, the size not being a multiple of 12, so is
+   the packet framing.  The FIFO is reset and a
    gap recorded;
 3. otherwise the whole packets present are read with ``i2c_rdwr`` (write register
    0x74, repeated start, read) in chunks of at most 8192 bytes (the Linux i2c-dev limit
@@ -46,7 +48,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from stereopath.device.errors import CaptureError
+from stereopath.device.errors import CaptureError, ConfigError
 from stereopath.device.core.frames import ImuSamples
 from stereopath.device.capture.imu.period_fit import PeriodFit
 from stereopath.device.service.settings import ImuSettings
@@ -58,6 +60,7 @@ SMPLRT_DIV = 0x19
 CONFIG = 0x1A
 GYRO_CONFIG = 0x1B
 ACCEL_CONFIG = 0x1C
+ACCEL_CONFIG2 = 0x1D     # MPU-6500/9250 only: A_DLPF_CFG (bits 2:0), ACCEL_FCHOICE_B (bit 3)
 FIFO_EN = 0x23
 INT_PIN_CFG = 0x37
 INT_ENABLE = 0x38
@@ -97,8 +100,47 @@ TEMP_SCALE = 340.0
 TEMP_OFFSET_C = 36.53
 
 
+@dataclass(frozen=True)
+class ChipModel:
+    """What differs between the parts that answer WHO_AM_I (the driver's registers are common).
+
+    From the Linux driver ``drivers/iio/imu/inv_mpu6050``: ``hw_info[].fifo_size`` (1024 /
+    512 bytes), ``.temp`` (MPU-6050 offset 12420 and scale 2941176 nano-degC, i.e.
+    raw / 340 + 36.53; MPU-6500 7011 and 2995178, i.e. raw / 333.87 + 21), and
+    ``inv_mpu6050_set_lpf_regs`` (MPU-6500 and later also write the DLPF value to
+    ``ACCEL_CONFIG_2`` = 0x1D).  The MPU-6500/9250 register map: ``SMPLRT_DIV`` is only
+    effective with the DLPF on (0 < DLPF_CFG < 7).
+    """
+
+    name: str
+    fifo_bytes: int
+    temp_lsb_per_c: float
+    temp_offset_c: float
+    accel_config2: bool       # the accelerometer low-pass filter has its own register
+    divider_needs_dlpf: bool  # SMPLRT_DIV ignored with DLPF_CFG 0 (8 kHz FIFO)
+
+    def temp_c(self, raw: np.ndarray) -> np.ndarray:
+        return np.asarray(raw, float) / self.temp_lsb_per_c + self.temp_offset_c
+
+    def temp_raw(self, temp_c: np.ndarray) -> np.ndarray:
+        return (np.asarray(temp_c, float) - self.temp_offset_c) * self.temp_lsb_per_c
+
+
+MPU6050_CHIP = ChipModel("MPU-6050", FIFO_SIZE, TEMP_SCALE, TEMP_OFFSET_C, False, False)
+CHIPS = {
+    WHO_AM_I_MPU6050: MPU6050_CHIP,
+    0x70: ChipModel("MPU-6500", 512, 333.87, 21.0, True, True),
+    0x71: ChipModel("MPU-9250", 512, 333.87, 21.0, True, True),
+}
+
+
+def fifo_fill_ms(fifo_bytes: int, packet_bytes: int, rate_hz: float) -> float:
+    """How long the FIFO takes to fill with whole packets at ``rate_hz``."""
+    return fifo_bytes // packet_bytes / rate_hz * 1000.0
+
+
 def temp_raw_to_c(raw: np.ndarray) -> np.ndarray:
-    return np.asarray(raw, float) / TEMP_SCALE + TEMP_OFFSET_C
+    return MPU6050_CHIP.temp_c(raw)
 
 
 @dataclass
@@ -142,6 +184,7 @@ class Mpu6050:
         self.stats = Mpu6050Stats()
         self.gaps: list[tuple[int, int]] = []
         self.who_am_i: int | None = None
+        self.chip = MPU6050_CHIP
         self._fit = PeriodFit(self.nominal_period_ns, window_ns=int(settings.fit_window_s * 1e9),
                               min_span=max(20, int(settings.rate_hz * 0.5)))
         self._seg_count = 0
@@ -175,7 +218,7 @@ class Mpu6050:
             self._close_bus()
             raise CaptureError(f"{self.where}: {exc.what} failed after {self.settings.retries} retries: "
                                f"{exc.exc} (wiring, address, pull-ups?)") from None
-        except CaptureError:
+        except (CaptureError, ConfigError):
             self._close_bus()
             raise
         self._opened = True
@@ -237,12 +280,11 @@ class Mpu6050:
         s = self.settings
         who = self._read_byte(WHO_AM_I, "WHO_AM_I read")
         self.who_am_i = self.stats.who_am_i = who
-        if who in WHO_AM_I_CLONES:
-            log.warning("%s: WHO_AM_I = %#04x (%s, not an MPU-6050); accel/gyro/FIFO registers are "
-                        "compatible, continuing", self.where, who, WHO_AM_I_CLONES[who])
-        elif who != WHO_AM_I_MPU6050:
+        chip = CHIPS.get(who)
+        if chip is None:
             raise CaptureError(f"{self.where}: WHO_AM_I = {who:#04x}, expected 0x68 (MPU-6050) "
                                "or 0x70/0x71 (MPU-6500/9250): wrong chip or address")
+        self._use_chip(chip)
         self._write_byte(PWR_MGMT_1, PWR_RESET, "device reset")
         self._sleep(0.1)
         config = (
@@ -254,6 +296,8 @@ class Mpu6050:
             (INT_PIN_CFG, 0x00, "INT_PIN_CFG"),
             (INT_ENABLE, INT_FIFO_OFLOW, "INT_ENABLE"),
         )
+        if self.chip.accel_config2:  # the same filter setting as the gyro's, as Linux's driver writes it
+            config += ((ACCEL_CONFIG2, s.dlpf_cfg, "ACCEL_CONFIG2 (accelerometer DLPF)"),)
         for reg, value, what in config:
             self._write_byte(reg, value, what)
         self._sleep(0.01)
@@ -262,6 +306,24 @@ class Mpu6050:
             if got != value:
                 raise CaptureError(f"{self.where}: {what} reads back {got:#04x} after writing {value:#04x}")
         self._start_fifo("initialisation")
+
+    def _use_chip(self, chip: ChipModel) -> None:
+        """Take the part's FIFO size, temperature formula and filter register, or refuse what it cannot do."""
+        s = self.settings
+        if chip is not self.chip:
+            log.warning("%s: WHO_AM_I = %#04x: an %s, not an MPU-6050: %d-byte FIFO, temperature raw / %.2f + %g "
+                        "degC%s", self.where, self.who_am_i, chip.name, chip.fifo_bytes, chip.temp_lsb_per_c,
+                        chip.temp_offset_c, ", accelerometer low-pass in ACCEL_CONFIG2" if chip.accel_config2 else "")
+        if chip.divider_needs_dlpf and s.dlpf_cfg == 0:
+            raise ConfigError(f"imu.dlpf_cfg = 0 on the {chip.name} at i2c-{s.bus} address {self.addr:#04x}: its "
+                              "SMPLRT_DIV only works with the low-pass filter on, so imu.rate_hz cannot be set; "
+                              "use imu.dlpf_cfg 1..6")
+        fill_ms = fifo_fill_ms(chip.fifo_bytes, self.packet_bytes, s.rate_hz)
+        if s.read_period_ms > 0.8 * fill_ms:
+            raise ConfigError(f"imu.read_period_ms = {s.read_period_ms:g} lets the {chip.name}'s {chip.fifo_bytes}-byte "
+                              f"FIFO overflow: it fills in {fill_ms:.0f} ms at {s.rate_hz:g} Hz; poll at most every "
+                              f"{0.8 * fill_ms:.0f} ms")
+        self.chip = chip
 
     def _start_fifo(self, why: str) -> None:
         """Disable, reset and re-enable the FIFO; a new timing segment starts now."""
@@ -295,7 +357,7 @@ class Mpu6050:
         t_obs = self._clock_ns()
         count = (raw[0] << 8) | raw[1]
         self.stats.max_fifo_bytes = max(self.stats.max_fifo_bytes, count)
-        if count >= FIFO_SIZE:
+        if count >= self.chip.fifo_bytes:
             self._recover("FIFO overflow (count %d)" % count)
             return ImuSamples.empty()
         n = count // pkt
@@ -337,7 +399,7 @@ class Mpu6050:
         words = np.frombuffer(data, dtype=">i2").reshape(len(t), self.packet_bytes // 2).astype(np.int32)
         accel = words[:, 0:3] * self.accel_scale
         if self.settings.temperature:
-            temp = temp_raw_to_c(words[:, 3])
+            temp = self.chip.temp_c(words[:, 3])
             gyro = words[:, 4:7] * self.gyro_scale
         else:
             temp = None

@@ -31,7 +31,8 @@ def create_source(settings: SourceSettings, **inject: Any) -> StereoSource:
     if backend == "picamera2":
         from stereopath.device.capture.sources.csi import Picamera2Source
 
-        return Picamera2Source(settings, api=inject.get("api"), rig=inject.get("rig"))
+        route = {"route_reader": inject["route_reader"]} if "route_reader" in inject else {}
+        return Picamera2Source(settings, api=inject.get("api"), rig=inject.get("rig"), **route)
     if backend == "depthai":
         from stereopath.device.capture.sources.oak import DepthaiSource
 

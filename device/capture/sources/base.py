@@ -35,6 +35,8 @@ class SourceStats:
     dropped_presync: int = 0    # frames before the cameras reported SyncReady
     dropped_overflow: int = 0   # frames or pairs dropped because a bounded buffer was full
     dropped_sensor: int = 0     # frames the sensor itself skipped (sequence-number gaps)
+    dropped_clock: int = 0      # frames of pairs dropped because the frame clock stepped back before them
+    clock_steps: int = 0        # steps of the frame clock seen against the frame period (depthai host sync)
     max_skew_ns: int = 0        # largest |t_left - t_right| among delivered pairs
     last_skew_ns: int = 0       # |t_left - t_right| of the latest pair or near-miss
 

@@ -5,14 +5,34 @@ pinned to one value, a fixed ``ExposureTime`` and ``AnalogueGain`` (picamera2 tu
 non-zero value into manual exposure/gain) and, on colour sensors, fixed ``ColourGains``
 with AWB off.  Where the platform offers libcamera's software sync (``SyncMode`` in
 ``camera_controls``) the left camera is the server and the right one the client; the
-client is started first, and frames before ``SyncReady`` are dropped (counted in
-``dropped_presync``; a frame without the key counts as not ready, as in picamera2's own
-``capture_sync_request``).  Without it the cameras run free and pairing relies on the
-timestamp tolerance alone.
+client is started first.  Software sync, as libcamera's ``src/ipa/rpi/controller/rpi/sync.cpp``
+and ``src/ipa/rpi/common/ipa_base.cpp`` implement it:
+
+* the server gets ``SyncFrames`` (``source.picamera2.sync_frames``) and reports ``SyncReady``
+  after that many frames; the client after the server's "ready time", which it learns from a
+  UDP multicast packet the server sends every 30 frames (``Sync::process``).  The first pair
+  is therefore waited for ``max(sync_frames, 30) / fps + timeout_s``
+  (:meth:`Picamera2Source.first_pair_timeout_s`), later pairs ``timeout_s``;
+* each camera is taken as synchronised from its first frame with ``SyncReady`` True on: the
+  key is only the start signal (picamera2's ``capture_sync_request`` uses it to find the first
+  synced request, and libcamera's ``syncReady_`` never falls back).  Frames before it are
+  dropped (``dropped_presync``).  Above ~33 fps the IPA skips its controller on alternate
+  frames (``IpaBase::prepareIsp``) and those frames carry no ``SyncReady`` at all, so a
+  missing key never means "not ready" once a camera was ready;
+* the multicast needs an IPv4 route to 239.255.255.250 (:mod:`..multicast_route`); without
+  one the client never reports ``SyncReady``, so opening refuses with a :class:`ConfigError`
+  naming the route (the service exits 78) instead of timing out later.
+
+Without ``SyncMode`` (or with ``sync = "off"``) the cameras run free and pairing relies on
+the timestamp tolerance alone.
 
 Cameras are chosen by libcamera ``Id``: ``Picamera2(n)`` takes the camera's position in
 ``Picamera2.global_camera_info()`` (sorted by ``Id`` in reverse, USB cameras last) and looks
-libcamera's ``Num`` up itself, so we pass that position, never ``Num``.  After
+libcamera's ``Num`` up itself, so we pass that position, never ``Num``.  Without
+``left_id``/``right_id`` the left camera is position 0: on a Raspberry Pi 5 the sensor on the
+CAM/DISP 0 connector (its Id holds ``rp1/i2c@88000``, which sorts after CAM/DISP 1's
+``rp1/i2c@80000``; see :data:`PI5_CONNECTORS`).  Other boards (CM4) are not mapped: name the
+Ids there, and check with ``device selftest --cover-left``.  After
 ``configure`` the main-stream size is read back from ``camera_config`` (libcamera may adjust
 it) and the luma is cut at that size.
 
@@ -34,17 +54,19 @@ define the same way.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator
 
-from stereopath.device.errors import CalibrationError, CaptureError
+from stereopath.device.errors import CalibrationError, CaptureError, ConfigError
 from stereopath.device.core.frames import StereoFrame
 from stereopath.device.core.rig import Rig
 from stereopath.device.service.settings import SourceSettings
 from stereopath.device.capture.sources.base import SourceBase, load_rig_override
 from stereopath.device.capture.pairing import LEFT, RIGHT, SIDE_NAMES, FramePairer
+from stereopath.device.capture.multicast_route import ROUTE_COMMAND, SYNC_GROUP, multicast_route, read_proc_net_route
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +77,17 @@ PICAMERA2_NAMES = (
     "Picamera2.close", "MappedArray",
 )
 LIBCAMERA_NAMES = ("controls.rpi.SyncModeEnum.Server", "controls.rpi.SyncModeEnum.Client")
+SYNC_PERIOD_FRAMES = 30  # sync.cpp kDefaultSyncPeriod: the server multicasts every 30 frames
+
+
+@dataclass
+class SyncState:
+    """What the software sync did: for ``device selftest`` and the logs."""
+
+    mode: str = "off"                          # "software" | "off"
+    route: str | None = None                   # interface of the route to the sync group (None: none)
+    sync_frames: int = 0                       # SyncFrames given to the server
+    frames_to_ready: list[int | None] = dataclasses.field(default_factory=lambda: [None, None])  # per camera
 
 
 @dataclass
@@ -77,6 +110,17 @@ def import_picamera2() -> Picamera2Api:
     return Picamera2Api(Picamera2=Picamera2, MappedArray=MappedArray, controls=controls)
 
 
+# Raspberry Pi 5: the camera connectors' I2C buses in the sensor's libcamera Id (its device-tree
+# path, CameraSensorLegacy::generateId).  bcm2712-rpi-5-b.dts: i2c_csi_dsi0 = &i2c6 ("MIPI0
+# connector"), i2c_csi_dsi1 = &i2c4 ("MIPI1"); rp1.dtsi: i2c6 is i2c@88000, i2c4 is i2c@80000.
+PI5_CONNECTORS = {"/rp1/i2c@88000/": "CAM/DISP 0", "/rp1/i2c@80000/": "CAM/DISP 1"}
+
+
+def connector_of(camera_id: str) -> str | None:
+    """The Pi 5 connector a camera Id names, or None when the Id is not a Pi 5 CSI camera's."""
+    return next((name for key, name in PI5_CONNECTORS.items() if key in camera_id), None)
+
+
 def _error_chain(exc: BaseException) -> str:
     """An error with its causes: picamera2 raises a generic "Camera __init__ sequence did not
     complete." and chains the real reason (camera busy, not found) as ``__cause__``."""
@@ -95,8 +139,14 @@ class Picamera2Source(SourceBase):
     name = "picamera2"
 
     def __init__(self, settings: SourceSettings, api: Picamera2Api | Callable[[], Picamera2Api] | None = None,
-                 rig: Rig | None = None) -> None:
+                 rig: Rig | None = None, route_reader: Callable[[], str] | None = None) -> None:
         super().__init__()
+        self._route_reader = route_reader
+        self._ready = [False, False]       # per camera: reported SyncReady once (libcamera's syncReady_)
+        self._seen = [0, 0]                # frames each camera delivered before it was ready
+        self._last_cb_ns: list[int | None] = [None, None]  # monotonic time of each camera's latest callback
+        self._settled = False              # start-up drops moved from unpaired to presync (first pair made)
+        self.sync_state = SyncState()
         self.settings = settings
         self._api_arg = api
         self._rig_arg = rig
@@ -204,10 +254,15 @@ class Picamera2Source(SourceBase):
         if s.picamera2.sync == "software" and not has_sync:
             log.warning("picamera2: this platform has no SyncMode control; the cameras run free "
                         "and frames are paired by timestamp within %d us only", s.pair_tolerance_us)
+        self._ready, self._seen, self._last_cb_ns = [False, False], [0, 0], [None, None]
+        self._settled = False
+        self.sync_state = SyncState(mode="software" if self._sync else "off")
         roles = (None, None)
         if self._sync:
+            self._check_route()
             enum = api.controls.rpi.SyncModeEnum
             roles = (enum.Server, enum.Client)
+            self._check_sync_frames(self._cams[0])
         try:
             for cam, role in zip(self._cams, roles):
                 sensor = None
@@ -225,6 +280,8 @@ class Picamera2Source(SourceBase):
                 controls = dict(lock)
                 if role is not None:
                     controls["SyncMode"] = role
+                    if cam is self._cams[0] and "SyncFrames" in (getattr(cam, "camera_controls", {}) or {}):
+                        controls["SyncFrames"] = int(s.picamera2.sync_frames)  # only the server's counts
                 kwargs: dict[str, Any] = dict(main={"size": tuple(s.size), "format": "YUV420"},
                                               buffer_count=s.picamera2.buffer_count, queue=False,
                                               controls=controls)
@@ -258,6 +315,52 @@ class Picamera2Source(SourceBase):
                 self._close_cameras()
                 raise
 
+    def _check_route(self) -> None:
+        """Refuse software sync without a route to the multicast group (see module doc)."""
+        try:
+            iface = multicast_route(SYNC_GROUP, self._route_reader or read_proc_net_route)
+        except OSError as exc:
+            log.warning("picamera2: cannot read the IPv4 routing table (%s); assuming a route to %s exists",
+                        exc, SYNC_GROUP)
+            self.sync_state.route = "?"
+            return
+        self.sync_state.route = iface
+        if iface is None:
+            self._close_cameras()
+            raise ConfigError(
+                f"picamera2: software sync needs an IPv4 route to the multicast group {SYNC_GROUP} and there is "
+                f"none (no network interface up?): add one with `{ROUTE_COMMAND}` (the capture service's "
+                "ExecStartPre= does) or set source.picamera2.sync = \"off\"")
+        log.info("picamera2: software sync multicast to %s goes through %s", SYNC_GROUP, iface)
+
+    def _check_sync_frames(self, server: Any) -> None:
+        frames = int(self.settings.picamera2.sync_frames)
+        self.sync_state.sync_frames = frames
+        info = (getattr(server, "camera_controls", {}) or {}).get("SyncFrames")
+        if info is None:
+            log.warning("picamera2: the sync server has no SyncFrames control; libcamera's tuning file decides "
+                        "when it is ready (100 frames by default) and the first pair is waited for %.1f s",
+                        self.first_pair_timeout_s)
+            return
+        lo, hi = info[0], info[1]
+        if (lo is not None and frames < lo) or (hi is not None and frames > hi):
+            log.warning("picamera2: source.picamera2.sync_frames = %d is outside the %s..%s libcamera advertises; "
+                        "it is applied anyway (the IPA takes any positive value)", frames, lo, hi)
+
+    @property
+    def camera_ids(self) -> tuple[str, str]:
+        """libcamera Ids of the cameras taken as left and right (after open)."""
+        return self._ids[0], self._ids[1]
+
+    @property
+    def first_pair_timeout_s(self) -> float:
+        """How long the first pair may take: the sync start-up plus the usual timeout."""
+        s = self.settings
+        if not self._sync:
+            return float(s.timeout_s)
+        frames = max(int(s.picamera2.sync_frames), SYNC_PERIOD_FRAMES) + 2  # +2: a skipped controller frame
+        return frames / float(s.fps) + float(s.timeout_s)
+
     def _make_callback(self, side: int, mapped_array: Any) -> Callable[[Any], None]:
         w, h = self._size  # the size libcamera chose, not necessarily the one asked for
         frame_ns = self.settings.frame_duration_us * 1000
@@ -266,11 +369,20 @@ class Picamera2Source(SourceBase):
 
         def on_request(request: Any) -> None:  # runs on this camera's picamera2 thread
             try:
+                self._last_cb_ns[side] = time.monotonic_ns()
                 md = request.get_metadata()
-                # as picamera2's own capture_sync_request: no SyncReady means not (yet) synchronised
-                if self._sync and not md.get("SyncReady", False):
-                    self._count(dropped_presync=1)
-                    return
+                if self._sync and not self._ready[side]:
+                    # picamera2's capture_sync_request: the first request with SyncReady True is the
+                    # first synchronised one; libcamera's Sync::syncReady_ stays set from then on, and
+                    # frames whose controller run was skipped carry no key at all (ipa_base.cpp)
+                    if not md.get("SyncReady", False):
+                        self._seen[side] += 1
+                        self._count(dropped_presync=1)
+                        return
+                    self._ready[side] = True
+                    self.sync_state.frames_to_ready[side] = self._seen[side]
+                    log.info("picamera2: %s camera reported SyncReady after %d frames (SyncTimer %s us)",
+                             SIDE_NAMES[side], self._seen[side], md.get("SyncTimer", "absent"))
                 with mapped_array(request, "main", write=False) as m:
                     luma = m.array[:h, :w].copy()
                 ts = int(md["SensorTimestamp"])
@@ -280,6 +392,8 @@ class Picamera2Source(SourceBase):
                 self._last_ts[side] = ts
                 self._count(**{counter: 1})
                 pairer.push(side, ts, (ts, md, luma))
+                if self._sync and not self._settled:
+                    self._settle_startup()
             except Exception as exc:  # never let anything escape into picamera2's event loop
                 if self._error is None:
                     self._error = CaptureError(f"picamera2: {SIDE_NAMES[side]} camera callback failed: {exc!r}")
@@ -298,15 +412,17 @@ class Picamera2Source(SourceBase):
         pairer = self._pairer
         seq = 0
         last_progress = time.monotonic()
+        timeout_s = self.first_pair_timeout_s  # until the first pair; then source.timeout_s
         while self._opened:
             if self._error is not None:
                 raise self._error
             got = pairer.get(min(0.05, s.timeout_s))
             if got is None:
-                if time.monotonic() - last_progress > s.timeout_s:
-                    raise CaptureError(self._diagnose())
+                if time.monotonic() - last_progress > timeout_s:
+                    raise CaptureError(self._diagnose(timeout_s))
                 continue
             last_progress = time.monotonic()
+            timeout_s = s.timeout_s
             (tl, mdl, left), (tr, mdr, right), skew = got
             ml, mr = self._mid_exposure_ns(tl, mdl), self._mid_exposure_ns(tr, mdr)
             with self._stats_lock:
@@ -323,10 +439,24 @@ class Picamera2Source(SourceBase):
             yield StereoFrame(seq=seq, t_ns=(ml + mr) // 2, left=left, right=right, meta=meta)
             seq += 1
 
-    def _diagnose(self) -> str:
+    def _settle_startup(self) -> None:
+        """Once the first pair is made: frames one camera sent before the other was ready are start-up frames.
+
+        The cameras rarely report SyncReady on the same frame (above ~33 fps each skips the
+        controller on its own alternate frames), so the one ready first sends a frame or two the
+        pairer cannot match; they count as ``dropped_presync``, not as lost partners."""
+        with self._stats_lock:
+            if self._settled or not self._stats.paired:
+                return
+            self._settled = True
+            self._stats.dropped_presync += self._stats.dropped_unpaired
+            self._stats.dropped_unpaired = 0
+
+    def _diagnose(self, timeout_s: float) -> str:
         s, p = self.settings, self._pairer
         now = time.monotonic_ns()
-        ages = [None if a is None else (now - a) / 1e9 for a in p.last_arrival_ns]
+        # any frame counts here, before SyncReady too: a camera that stops calling back is gone
+        ages = [None if a is None else (now - a) / 1e9 for a in self._last_cb_ns]
         st = self.stats
         for side in (LEFT, RIGHT):
             if ages[side] is None or ages[side] > s.timeout_s:
@@ -335,11 +465,18 @@ class Picamera2Source(SourceBase):
                     since = "never delivered a frame" if ages[side] is None else f"delivered no frame for {ages[side]:.1f} s"
                     return (f"picamera2: {SIDE_NAMES[side]} camera ({self._ids[side]}) {since} while the "
                             f"{SIDE_NAMES[1 - side]} one keeps running: disconnected or stalled?")
+        if self._sync and not all(self._ready) and st.dropped_presync:
+            waiting = [SIDE_NAMES[k] for k in (LEFT, RIGHT) if not self._ready[k]]
+            msg = (f"picamera2: the {' and '.join(waiting)} camera{'s' if len(waiting) > 1 else ''} never reported "
+                   f"SyncReady ({st.dropped_presync} frames dropped in {timeout_s:.1f} s, SyncFrames "
+                   f"{s.picamera2.sync_frames})")
+            if not self._ready[RIGHT]:
+                msg += (f": the sync client (right) never heard the server's multicast on {SYNC_GROUP}; check the "
+                        f"IPv4 route to it (`ip route get {SYNC_GROUP}`; `{ROUTE_COMMAND}` adds one) and that "
+                        "AF_INET is allowed")
+            return msg
         if all(a is None or a > s.timeout_s for a in ages):
-            if st.dropped_presync and not (st.frames_left or st.frames_right):
-                return (f"picamera2: the cameras never reported SyncReady ({st.dropped_presync} frames dropped "
-                        f"in {s.timeout_s:.1f} s): is the sync server running and AF_INET allowed?")
-            return f"picamera2: no frames from either camera for {s.timeout_s:.1f} s (cameras stopped or disconnected?)"
+            return f"picamera2: no frames from either camera for {timeout_s:.1f} s (cameras stopped or disconnected?)"
         return (f"picamera2: both cameras deliver frames but none pair within +-{s.pair_tolerance_us} us "
                 f"(last skew {p.last_skew_ns / 1000:.0f} us): are they synchronised (source.picamera2.sync) "
                 f"and at the same frame rate?")

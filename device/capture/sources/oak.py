@@ -2,10 +2,26 @@
 
 The two mono sensors are hardware-synchronised (FSYNC); a ``Sync`` node groups their
 frames within ``sync_threshold_ms`` and emits only synchronised groups.  Frame time is
-``ImgFrame.getTimestamp(CameraExposureOffset.MIDDLE)``: the host-synchronised
-``dai::Clock`` (std::chrono::steady_clock = CLOCK_MONOTONIC) at mid-exposure.  A group
-whose two mid-exposure times differ by more than ``source.pair_tolerance_us`` is dropped
-(``dropped_unpaired``); gaps in the left sequence numbers count as ``dropped_sensor``.
+``ImgFrame.getTimestamp(CameraExposureOffset.MIDDLE)``: the device's capture time carried
+into the host-synchronised ``dai::Clock`` (std::chrono::steady_clock = CLOCK_MONOTONIC) at
+mid-exposure, so it shares its clock with an IMU read on this machine (the MPU-6050 backend)
+and with the OAK's own IMU reports.  A group whose two mid-exposure times differ by more
+than ``source.pair_tolerance_us`` is dropped (``dropped_unpaired``); gaps in the left
+sequence numbers count as ``dropped_sensor``.
+
+That clock is not guaranteed monotonic: depthai documents ``getTimestampDevice()`` (the
+device's own clock) as the one to use "when monotonicity is required", and the host time
+offset is re-estimated by XLink's time sync while running, so ``getTimestamp()`` can step.
+What a step does: both frames of an exposure are converted with the same offset, so pairing
+is unaffected, except a pair straddling the update, whose skew then equals the step (dropped
+by the tolerance if larger).  Relative to an IMU on the host clock the camera times shift by
+the step.  Steps are detected against the sequence numbers and the frame period
+(``clock_steps``, one warning each); a pair that would go back in time is dropped
+(``dropped_clock``) so frame times stay increasing.
+
+Outputs are requested with ``enableUndistortion=False``: the images stay as the sensor saw
+them (cropped and scaled), since the rig carries the EEPROM's distortion coefficients and
+undistortion would apply them twice.
 
 Intrinsics: ``Camera.requestOutput(size)`` resizes with ``ImgResizeMode.CROP`` (its
 default): the sensor image is cropped, centred, to the output's aspect ratio and then
@@ -275,7 +291,8 @@ class DepthaiSource(SourceBase):
             cams, outs = [], []
             for sock in (dai.CameraBoardSocket.CAM_B, dai.CameraBoardSocket.CAM_C):
                 cam = p.create(dai.node.Camera).build(sock)
-                outs.append(cam.requestOutput(size, type=dai.ImgFrame.Type.GRAY8, fps=float(s.fps)))
+                outs.append(cam.requestOutput(size, type=dai.ImgFrame.Type.GRAY8, fps=float(s.fps),
+                                              enableUndistortion=False))
                 cam.initialControl.setManualExposure(int(s.exposure_us), int(ds.iso))
                 cams.append(cam)
             sync = p.create(dai.node.Sync)
@@ -328,6 +345,10 @@ class DepthaiSource(SourceBase):
         tol_ns = s.pair_tolerance_us * 1000
         seq = 0
         last_seq: int | None = None
+        last_t: int | None = None      # mid time of the last delivered pair
+        ref_t: int | None = None       # mid time and left sequence number of the last pair seen:
+        ref_seq: int | None = None     # where the next one is expected, to see clock steps
+        period_ns = int(round(1e9 / float(s.fps)))
         last_progress = time.monotonic()
         while self._opened:
             group, self._first = self._first, None
@@ -362,6 +383,19 @@ class DepthaiSource(SourceBase):
                 with self._stats_lock:
                     self._stats.last_skew_ns = skew
                 continue
+            t_mid = (tl + tr) // 2
+            if ref_t is not None and ref_seq is not None:
+                step = t_mid - (ref_t + (sn - ref_seq) * period_ns)
+                back = last_t is not None and t_mid <= last_t
+                if abs(step) > period_ns // 2:
+                    self._count(clock_steps=1)
+                    log.warning("depthai: the host-synchronised frame clock stepped by %+.2f ms (XLink time sync "
+                                "re-estimated the device offset)%s", step / 1e6,
+                                "; pairs dropped until frame times pass the last one" if back else "")
+            ref_t, ref_seq = t_mid, sn
+            if last_t is not None and t_mid <= last_t:
+                self._count(dropped_clock=2)
+                continue
             left, right = np.asarray(lf.getFrame()), np.asarray(rf.getFrame())
             if left.ndim == 3:
                 left, right = left[..., 0], right[..., 0]
@@ -372,7 +406,8 @@ class DepthaiSource(SourceBase):
                 self._stats.last_skew_ns = skew
             meta = {"source": self.name, "t_left_ns": tl, "t_right_ns": tr, "skew_ns": skew,
                     "sequence_num": sn, "exposure_us": s.exposure_us}
-            yield StereoFrame(seq=seq, t_ns=(tl + tr) // 2, left=left, right=right, meta=meta)
+            last_t = t_mid
+            yield StereoFrame(seq=seq, t_ns=t_mid, left=left, right=right, meta=meta)
             seq += 1
 
     def _first_group(self, timeout_s: float) -> Any:
