@@ -109,7 +109,7 @@ def test_client_without_multicast_names_the_route_when_the_check_passed():
     real = api.Picamera2._process_request
 
     def spy(self, req, tid):
-        if self.num == world.cameras.index(world.cameras[1]) and "SyncReady" in req._metadata:
+        if self is world.instances[1] and "SyncReady" in req._metadata:
             seen_keys.append(self.num)
         return real(self, req, tid)
 
@@ -240,3 +240,16 @@ def test_fake_skips_the_controller_above_33_fps_and_without_a_route():
     assert all("SyncReady" in m for m in md)
     md = _run_sync(FakeCameraWorld(multicast_route=False), _SyncModeEnum.Client, 30.0, 20)
     assert md == [{}] * 20
+
+
+def test_a_sync_start_longer_than_the_unit_allows_is_refused_before_systemd_kills_it():
+    """1000 SyncFrames (libcamera's advertised default) at 15 fps: 67 s, past TimeoutStartSec=60."""
+    from stereopath.device.errors import ConfigError
+
+    slow = shipped_source(fps=15.0, picamera2=replace(shipped_source().picamera2, sync_frames=1000))
+    src = create_source(slow, api=FakeCameraWorld().api(), route_reader=with_route())
+    with pytest.raises(ConfigError, match=r"sync_frames = 1000 at 15 fps.*TimeoutStartSec"):
+        with src:
+            pass
+    unit = (Path(__file__).resolve().parents[1] / "systemd" / "stereopath-capture.service").read_text()
+    assert "TimeoutStartSec=60" in unit  # START_BUDGET_S leaves 15 s of it for the rest of the start

@@ -142,7 +142,8 @@ def test_every_backend_has_a_drop_in_that_adds_only_device_rules():
         assert {v.split()[0] for _, _, v in s} == CAMERA_DEVICES[backend]
         assert all(v.split()[1] == "rw" for _, _, v in s)
         # picamera2 only: the software-sync multicast route, the same the service's refusal names
-        assert pre == ([f"-+/usr/sbin/{ROUTE_COMMAND}"] if backend == "picamera2" else []), (backend, pre)
+        want = ROUTE_COMMAND.replace("ip route add", "ip route replace")  # (idempotent; ip found on the unit's PATH)
+        assert pre == ([f"-+{want}"] if backend == "picamera2" else []), (backend, pre)
 
 
 @pytest.mark.parametrize("backend", ["picamera2", "depthai", "sim"])

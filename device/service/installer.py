@@ -23,7 +23,7 @@ media-controller and DMA-heap nodes for ``picamera2``, USB device nodes
 (``char-usb_device``) for ``depthai``, nothing for ``replay`` and ``sim``.  The
 ``picamera2`` drop-in also adds, before each start, a host route for libcamera's
 software-sync multicast group through the loopback interface (``ExecStartPre=`` with
-``ip route add 239.255.255.250/32 dev lo``), which a box with no network up lacks.  Run the
+``ip route replace 239.255.255.250/32 dev lo``), which a box with no network up lacks.  Run the
 installer again after changing ``source.backend``.
 
 Every step first looks at what is there and only changes what differs, so running it again

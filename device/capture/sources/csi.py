@@ -68,6 +68,8 @@ from stereopath.device.capture.sources.base import SourceBase, load_rig_override
 from stereopath.device.capture.pairing import LEFT, RIGHT, SIDE_NAMES, FramePairer
 from stereopath.device.capture.multicast_route import ROUTE_COMMAND, SYNC_GROUP, multicast_route, read_proc_net_route
 
+START_BUDGET_S = 45.0  # the first pair must come within this (systemd/stereopath-capture.service: TimeoutStartSec=60)
+
 log = logging.getLogger(__name__)
 
 # names this backend uses, checked against the real libraries when they are installed
@@ -336,6 +338,11 @@ class Picamera2Source(SourceBase):
     def _check_sync_frames(self, server: Any) -> None:
         frames = int(self.settings.picamera2.sync_frames)
         self.sync_state.sync_frames = frames
+        if self.first_pair_timeout_s > START_BUDGET_S:
+            raise ConfigError(
+                f"source.picamera2.sync_frames = {frames} at {self.settings.fps:g} fps: the first synchronised pair "
+                f"may take {self.first_pair_timeout_s:.0f} s, and the capture unit's TimeoutStartSec gives the "
+                f"start {START_BUDGET_S:.0f} s at most (lower sync_frames, or raise the frame rate)")
         info = (getattr(server, "camera_controls", {}) or {}).get("SyncFrames")
         if info is None:
             log.warning("picamera2: the sync server has no SyncFrames control; libcamera's tuning file decides "
