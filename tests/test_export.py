@@ -305,3 +305,36 @@ def test_cli_export_and_its_errors(reprocessed, tmp_path, capsys):
     assert "neither a `host reprocess` output" in capsys.readouterr().err
     assert main(["host", "export", str(reprocessed), "--format", "colmap", "--out", str(tmp_path / "c")]) == 2
     assert "not empty" in capsys.readouterr().err
+
+
+def test_live_mcap_sink_records_poses_and_keyframes_as_they_arrive(session, tmp_path):
+    """`host live --mcap`: poses from one thread and keyframes from another, read back equal."""
+    import threading
+
+    from stereopath.device.core.geometry import matrix_to_quat_xyzw
+    from stereopath.device.formats.source import open_source
+    from stereopath.device.wire.messages import Pose
+    from stereopath.device.wire.protocol import make_keyframe, rig_reference
+    from stereopath.host.live.mcap_sink import McapSink
+
+    seq = open_source(f"session:{session}")
+    gt = seq.groundtruth
+    sink = McapSink(tmp_path / "live.mcap", rig_for=lambda sid: seq.rig)
+    poses = [Pose("sessM", i, int(gt.t_ns[i]), tuple(gt.T_world_cam[i][:3, 3]),
+                  tuple(matrix_to_quat_xyzw(gt.T_world_cam[i][:3, :3]))) for i in range(len(gt))]
+    kfs = [make_keyframe("sessM", k, 4 * k, int(gt.t_ns[4 * k]), gt.T_world_cam[4 * k], seq.frame(4 * k).left,
+                         seq.frame(4 * k).right, rig_reference(seq.rig), enc) for k, enc in enumerate(["jpg", "png", "png"])]
+    th = threading.Thread(target=lambda: [sink.on_pose(p) for p in poses])
+    th.start()
+    for kf in kfs:
+        sink.on_keyframe(kf, True)
+    sink.on_keyframe(kfs[0], False)  # a duplicate is not recorded again
+    th.join()
+    counts = sink.close()
+    got = _read_mcap(tmp_path / "live.mcap")
+    assert counts["pose"] == len(got["/pose"]) == len(gt) and counts["cam0"] == len(got["/cam1/image"]) == 3
+    assert [t for t, _ in got["/pose"]] == gt.t_ns.tolist()
+    assert np.allclose([_pose(m) for _, m in got["/pose"]], gt.T_world_cam, atol=1e-6)
+    assert [m.format for _, m in got["/cam0/image"]] == ["jpeg", "png", "png"]
+    assert got["/cam1/image"][2][1].data == kfs[2].right.data
+    assert sum(1 for _, m in got["/tf"] if m.child_frame_id == "cam1") == 1
