@@ -10,7 +10,7 @@ or a `host live` store (the keyframes as received).
   nerfstudio  OUT/transforms.json (OpenGL camera axes, per-frame intrinsics), OUT/images/ and
               OUT/sparse_pc.ply (the points, for splatfacto's initialisation)
   mcap        OUT/scan.mcap: the path (/tf, /pose), both cameras' images, the IMU and the points in
-              Foxglove's schemas
+              Foxglove's schemas; with --ros2, OUT/rosbag2/ in ROS 2 message types instead
 
 OUT must be a new or empty folder (--force replaces it); it is written in a temporary folder beside
 it and renamed when complete.
@@ -31,6 +31,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--session", default=None,
                    help="the recorded session of a reprocessed RESULT (default: the one its report.json names)")
     p.add_argument("--text", action="store_true", help="colmap: write the model as text (.txt) instead of binary")
+    p.add_argument("--ros2", action="store_true",
+                   help="mcap: a ROS 2 bag (OUT/rosbag2/, MCAP storage) in ROS 2 types: sensor_msgs/Image, Imu, "
+                        "nav_msgs/Odometry, tf2_msgs/TFMessage")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -41,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
 
     out = args.out or str(Path(args.result).resolve().parent / f"{Path(args.result).resolve().name}-{args.format}")
     s = export_result(args.result, out, args.format, force=args.force, progress=False if args.no_progress else None,
-                      session=args.session, text=args.text)
+                      session=args.session, text=args.text, ros2=args.ros2)
     if args.format == "mcap":
         counts = ", ".join(f"{k} {v}" for k, v in s["messages"].items())
         print(f"{s['source_kind']} {args.result} -> {out}/{s['file']}: {counts} messages")
