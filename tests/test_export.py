@@ -373,3 +373,69 @@ def test_ros2_bag_decodes_with_the_mcap_ros2_decoder(reprocessed, source, tmp_pa
     assert len(got["/imu0"]) == int(within.sum()) and got["/imu0"][0][2].orientation_covariance[0] == -1
     (_, _, static), = got["/tf_static"]
     assert static.transforms[0].child_frame_id == "cam1"
+
+
+@pytest.mark.realdata
+def test_euroc_frames_with_their_lens_round_trip(data_dir, tmp_path):
+    """EuRoC's radial-tangential cameras: the keyframe images are written undistorted onto K, so a point's
+    pinhole projection (what the observations are) lands where the lens put it in the original image, and
+    pycolmap and transforms.json give back the projections."""
+    import cv2
+    import pycolmap
+
+    from stereopath.device.core.geometry import invert_pose
+    from stereopath.device.formats.source import open_source
+    from stereopath.host.export.colmap import export_colmap
+    from stereopath.host.export.conventions import T_world_cam1, project_opengl, project_pinhole
+    from stereopath.host.export.nerfstudio import export_nerfstudio
+    from stereopath.host.export.result import ExportKeyframe, ExportSource
+
+    seq = open_source(f"euroc:{data_dir / 'euroc_v1_01_head' / 'mav0'}")
+    rig, gt = seq.rig, seq.groundtruth
+    assert np.any(rig.cam0.dist != 0)
+    frames = [0, 40, 80]
+    t_gt = np.asarray(gt.t_ns)
+    T = [gt.T_world_cam[int(np.argmin(np.abs(t_gt - seq.t_ns[i])))] for i in frames]
+    kfs = [ExportKeyframe(k, i, int(seq.t_ns[i]), T[k], (lambda i=i: (seq.frame(i).left, seq.frame(i).right)))
+           for k, i in enumerate(frames)]
+    rng = np.random.default_rng(1)
+    X_cam = np.column_stack([rng.uniform(-0.8, 0.8, 300), rng.uniform(-0.5, 0.5, 300), rng.uniform(2.0, 3.0, 300)])
+    X = X_cam @ T[0][:3, :3].T + T[0][:3, 3]
+    rows = []
+    for k, Tk in enumerate(T):
+        for cam, Tc, K in ((0, Tk, rig.cam0.K), (1, T_world_cam1(Tk, rig.R, rig.T), rig.cam1.K)):
+            uv, front = project_pinhole(K, Tc, X)
+            inside = front & (uv[:, 0] > 20) & (uv[:, 0] < 730) & (uv[:, 1] > 20) & (uv[:, 1] < 460)
+            ids = np.flatnonzero(inside)
+            rows.append(np.column_stack([np.full(len(ids), k), ids, np.full(len(ids), cam), uv[ids], np.ones(len(ids))]))
+    obs = np.vstack(rows)
+    src = ExportSource("reprocessed", data_dir, rig, np.array([k.t_ns for k in kfs]), np.array(T), kfs,
+                       point_ids=np.arange(len(X)), point_xyz=X, observations=obs)
+    (tmp_path / "c").mkdir()
+    export_colmap(src, tmp_path / "c", progress=False)
+    rec = pycolmap.Reconstruction(str(tmp_path / "c" / "sparse" / "0"))
+    assert np.abs(_colmap_residuals(rec)).max() < 1e-6
+    (tmp_path / "n").mkdir()
+    export_nerfstudio(src, tmp_path / "n", progress=False)
+    meta = json.loads((tmp_path / "n" / "transforms.json").read_text())
+    for f in meta["frames"]:
+        k, cam = f["keyframe"], int(f["camera"][-1])
+        sel = (obs[:, 0] == k) & (obs[:, 2] == cam)
+        uv, _ = project_opengl((f["fl_x"], f["fl_y"]), (f["cx"], f["cy"]), np.array(f["transform_matrix"]),
+                               X[obs[sel, 1].astype(int)])
+        assert np.abs(uv - obs[sel, 3:5]).max() < 1e-6
+    # the undistorted image at a point's pinhole pixel shows what the original shows at its lens pixel
+    written = cv2.imread(str(tmp_path / "c" / "images" / "cam0" / f"{kfs[1].t_ns}.png"), cv2.IMREAD_GRAYSCALE)
+    original = seq.frame(frames[1]).left
+    Xc = X @ invert_pose(T[1])[:3, :3].T + invert_pose(T[1])[:3, 3]
+    Xc = Xc[Xc[:, 2] > 0]
+    lens, _ = cv2.projectPoints(Xc, np.zeros(3), np.zeros(3), rig.cam0.K, rig.cam0.dist)
+    pin, _ = project_pinhole(rig.cam0.K, np.eye(4), Xc)
+    lens = lens.reshape(-1, 2)
+    ok = (pin[:, 0] > 5) & (pin[:, 0] < 745) & (pin[:, 1] > 5) & (pin[:, 1] < 475) & \
+         (lens[:, 0] > 5) & (lens[:, 0] < 745) & (lens[:, 1] > 5) & (lens[:, 1] < 475)
+    a = cv2.remap(written, pin[ok, 0].astype(np.float32).reshape(-1, 1), pin[ok, 1].astype(np.float32).reshape(-1, 1),
+                  cv2.INTER_LINEAR).astype(float).ravel()
+    b = cv2.remap(original, lens[ok, 0].astype(np.float32).reshape(-1, 1), lens[ok, 1].astype(np.float32).reshape(-1, 1),
+                  cv2.INTER_LINEAR).astype(float).ravel()
+    assert ok.sum() > 100 and np.mean(np.abs(a - b)) < 3.0 < np.mean(np.abs(a - np.roll(b, 7)))
