@@ -439,3 +439,21 @@ def test_euroc_frames_with_their_lens_round_trip(data_dir, tmp_path):
     b = cv2.remap(original, lens[ok, 0].astype(np.float32).reshape(-1, 1), lens[ok, 1].astype(np.float32).reshape(-1, 1),
                   cv2.INTER_LINEAR).astype(float).ravel()
     assert ok.sum() > 100 and np.mean(np.abs(a - b)) < 3.0 < np.mean(np.abs(a - np.roll(b, 7)))
+
+
+def test_nerfstudio_of_a_recorded_session_takes_keyframes_by_motion(session, tmp_path):
+    from stereopath.device.formats.source import open_source
+    from stereopath.device.formats.tum import write_tum
+    from stereopath.host.export.run import export_result
+
+    rec = tmp_path / "recorded"
+    shutil.copytree(session, rec)
+    seq = open_source(f"session:{rec}")
+    write_tum(rec / "trajectory.tum", seq.groundtruth)
+    s = export_result(rec, tmp_path / "n", "nerfstudio", progress=False)
+    meta = json.loads((tmp_path / "n" / "transforms.json").read_text())
+    assert 2 <= s["keyframes"] < len(seq) and len(meta["frames"]) == 2 * s["keyframes"]
+    assert "ply_file_path" not in meta and not (tmp_path / "n" / "sparse_pc.ply").exists()  # no points: random init
+    with pytest.raises(DatasetError, match="no bundle-adjusted points"):
+        export_result(rec, tmp_path / "c", "colmap", progress=False)
+    assert not (tmp_path / "c").exists()

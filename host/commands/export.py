@@ -1,19 +1,16 @@
-"""Export a scan for other tools: COLMAP, nerfstudio (Gaussian splatting, NeRF) or MCAP (Foxglove).
+"""Export a scan for other tools: COLMAP, nerfstudio (Gaussian splatting, NeRF) or MCAP (Foxglove, ROS 2).
 
-RESULT is a `host reprocess` output (the refined keyframe poses, bundle-adjusted points and their
-observations; the images come from the session it names), a recorded session (its on-board path)
-or a `host live` store (the keyframes as received).
-
-  colmap      OUT/sparse/0/*.bin (one rig of two pinhole cameras, a frame per keyframe, the points
-              with their observations and colours) and OUT/images/cam0|cam1/<t_ns>.png; needs points
-              (a reprocessed output)
-  nerfstudio  OUT/transforms.json (OpenGL camera axes, per-frame intrinsics), OUT/images/ and
-              OUT/sparse_pc.ply (the points, for splatfacto's initialisation)
-  mcap        OUT/scan.mcap: the path (/tf, /pose), both cameras' images, the IMU and the points in
-              Foxglove's schemas; with --ros2, OUT/rosbag2/ in ROS 2 message types instead
-
-OUT must be a new or empty folder (--force replaces it); it is written in a temporary folder beside
-it and renamed when complete.
+RESULT is a `host reprocess` output (the refined keyframe poses, the bundle-adjusted points and their
+observations; the images are read from the session its report.json names, or --session), a recorded
+session (its on-board path) or a `host live` store (the keyframes as received).  colmap writes
+OUT/sparse/0/*.bin (one rig of two pinhole cameras, a frame per keyframe, the points with their
+observations and colours) and OUT/images/cam0|cam1/<t_ns>.png, undistorted; it needs points (a
+reprocessed output).  nerfstudio writes OUT/transforms.json (OpenGL camera axes, per-frame
+intrinsics), the same images and OUT/sparse_pc.ply (the points, splatfacto's initialisation).  mcap
+writes OUT/scan.mcap: the path (/tf, /pose), both cameras' images, the IMU and the points in
+Foxglove's schemas; with --ros2, a ROS 2 bag OUT/rosbag2/ in ROS 2 message types instead.  OUT must be
+a new or empty folder (--force replaces it); it is written in a temporary folder beside it and
+renamed when complete.
 """
 
 from __future__ import annotations

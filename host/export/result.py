@@ -10,8 +10,8 @@ the bundle-adjusted points and their observations.
   and the session it was made from (``report.json: source``, or ``session=``), whose images and
   IMU are read.  The right camera's principal point carries the adjusted disparity offset, as in
   the adjustment.
-* a recorded session (``RESULT/mav0``): its on-board path (``trajectory.tum``); every tracked frame
-  is a keyframe; no points.
+* a recorded session (``RESULT/mav0``): its on-board path (``trajectory.tum``) at every frame; the
+  keyframes are chosen by camera motion as ``host map`` chooses them (4 cm or 5 degrees); no points.
 * a ``host live`` store (a folder of ``kf_*.msgpack`` with ``index.csv``, or the ``host live``
   output holding one session): the keyframes as received, their poses and the rig the device sent.
 """
@@ -187,7 +187,7 @@ def _indexed(read: Callable[[int], Any] | None, frames: np.ndarray) -> Callable[
 
 
 def _session(p: Path) -> ExportSource:
-    from stereopath.host.mapping.inputs import associate_poses
+    from stereopath.host.mapping.inputs import KeyframeSelection, associate_poses, select_keyframes
     from stereopath.host.reprocess.pipeline import open_session_checked
 
     seq = open_session_checked(p)
@@ -200,7 +200,9 @@ def _session(p: Path) -> ExportSource:
     idx, poses = associate_poses(t, traj, tol)
     if not len(idx):
         raise DatasetError(f"RESULT {p}: no frame has a pose in trajectory.tum")
-    kfs = [ExportKeyframe(k, int(i), int(t[i]), poses[k], _loader(seq, int(i))) for k, i in enumerate(idx)]
+    chosen = select_keyframes(poses, KeyframeSelection())
+    kfs = [ExportKeyframe(k, int(idx[j]), int(t[idx[j]]), poses[j], _loader(seq, int(idx[j])))
+           for k, j in enumerate(chosen)]
     world = (getattr(seq, "manifest", None) or {}).get("world_frame", "first_camera")
     return ExportSource("session", p, seq.rig, t[idx], poses, kfs, imu=seq.imu, world_frame=str(world),
                         frame_images=_indexed(_file_images(seq), idx),
