@@ -457,3 +457,29 @@ def test_nerfstudio_of_a_recorded_session_takes_keyframes_by_motion(session, tmp
     with pytest.raises(DatasetError, match="no bundle-adjusted points"):
         export_result(rec, tmp_path / "c", "colmap", progress=False)
     assert not (tmp_path / "c").exists()
+
+
+@pytest.mark.realdata
+def test_euroc_recording_to_mcap_round_trip(data_dir, tmp_path):
+    """The shared EuRoC frames as a recorded session (its mav0 linked, the ground truth standing in for an
+    on-board path): the MCAP holds every frame's original image bytes, the IMU and the poses."""
+    from stereopath.device.formats.source import open_source
+    from stereopath.device.formats.tum import write_tum
+    from stereopath.host.export.run import export_result
+    from stereopath.host.mapping.inputs import associate_poses
+
+    rec = tmp_path / "euroc"
+    rec.mkdir()
+    (rec / "mav0").symlink_to(data_dir / "euroc_v1_01_head" / "mav0")
+    gt = open_source(f"euroc:{data_dir / 'euroc_v1_01_head' / 'mav0'}").groundtruth
+    write_tum(rec / "trajectory.tum", gt)
+    seq = open_source(f"session:{rec}")
+    export_result(rec, tmp_path / "m", "mcap", progress=False)
+    got = _read_mcap(tmp_path / "m" / "scan.mcap")
+    idx, poses = associate_poses(seq.t_ns, gt, 25_000_000)
+    assert len(idx) == len(seq) and [t for t, _ in got["/pose"]] == seq.t_ns.tolist()
+    assert np.allclose([_pose(m) for _, m in got["/pose"]], poses, atol=1e-6)
+    a, b = seq.image_paths(10)
+    assert got["/cam0/image"][10][1].data == a.read_bytes() and got["/cam1/image"][10][1].data == b.read_bytes()
+    t = seq.t_ns
+    assert len(got["/imu"]) == int(np.sum((seq.imu.t_ns >= t[0]) & (seq.imu.t_ns <= t[-1]))) > 100
