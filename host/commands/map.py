@@ -4,8 +4,11 @@ SESSION_OR_KEYFRAMES_DIR is a session folder (with mav0/; poses from its traject
 --poses FILE) or a keyframes folder written by `host live` (kf_*.msgpack + index.csv; the rig
 calibration comes from a rig.yaml beside them or --rig).  Stereo depth (semi-global matching with
 a left-right check) of each keyframe is fused into a TSDF volume; OUT gets mesh.ply, cloud.ply,
-model.png (a rendered preview) and map.json (counts, voxel size, timings).  Nothing is written
-when the input is unusable.
+model.png (a rendered preview) and map.json (counts, voxel size, timings, and preset_choice: which
+preset was used and why).  --preset auto (the default) chooses object, room or large_room from a
+survey of a few keyframes' stereo depth: object when the surfaces within 2 m are a good share of
+the view and at most 1.6 m across, else room or large_room by how far the scene reaches.  Nothing is
+written when the input is unusable.
 """
 
 from __future__ import annotations
