@@ -489,3 +489,13 @@ def test_euroc_recording_to_mcap_round_trip(data_dir, tmp_path):
     assert got["/cam0/image"][10][1].data == a.read_bytes() and got["/cam1/image"][10][1].data == b.read_bytes()
     t = seq.t_ns
     assert len(got["/imu"]) == int(np.sum((seq.imu.t_ns >= t[0]) & (seq.imu.t_ns <= t[-1]))) > 100
+
+
+def test_live_mcap_never_overwrites_an_earlier_recording(tmp_path, capsys):
+    from stereopath.host.cli import main
+
+    old = tmp_path / "earlier.mcap"
+    old.write_bytes(b"an earlier recording")
+    assert main(["host", "live", "--device", "127.0.0.1:5555", "--out", str(tmp_path / "out"), "--insecure",
+                 "--mcap", str(old)]) == 2
+    assert "exists; give a new file name" in capsys.readouterr().err and old.read_bytes() == b"an earlier recording"

@@ -78,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
         from stereopath.device.formats.fileio import check_out_file
 
         mcap_path = check_out_file(args.mcap, option="--mcap", example="live.mcap")
+        if mcap_path.exists():  # an earlier recording is never overwritten
+            raise ConfigError(f"--mcap {mcap_path}: exists; give a new file name")
     rig = None
     if args.rig:
         from stereopath.device.formats.rig_files import load_rig_yaml
