@@ -499,3 +499,16 @@ def test_live_mcap_never_overwrites_an_earlier_recording(tmp_path, capsys):
     assert main(["host", "live", "--device", "127.0.0.1:5555", "--out", str(tmp_path / "out"), "--insecure",
                  "--mcap", str(old)]) == 2
     assert "exists; give a new file name" in capsys.readouterr().err and old.read_bytes() == b"an earlier recording"
+
+
+def test_reprocessed_result_read_with_another_session_is_refused(reprocessed, tmp_path):
+    from stereopath.device.formats.recorder import record_sequence
+    from stereopath.device.sim.session import SimConfig, open_sim
+    from stereopath.host.export.run import export_result
+
+    other = tmp_path / "other"
+    record_sequence(open_sim(SimConfig(frames=6, seed=3)), other, config_dict={"source": "sim"})
+    with pytest.raises(DatasetError, match="not the recording"):
+        export_result(reprocessed, tmp_path / "o", "nerfstudio", progress=False, session=other)
+    with pytest.raises(DatasetError, match="give --session"):
+        export_result(reprocessed, tmp_path / "o", "nerfstudio", progress=False, session=tmp_path / "gone")

@@ -151,8 +151,10 @@ def _reprocessed(p: Path, session: str | Path | None) -> ExportSource:
     if not Path(session).is_dir():
         raise DatasetError(f"RESULT {p} was made from {session}, which is not there any more; give --session")
     seq = open_session_checked(session)
-    if len(est["seq"]) and int(np.max(est["seq"])) >= len(seq):
-        raise DatasetError(f"{session}: {len(seq)} frames, fewer than the reprocessed output used")
+    frames_used = np.asarray(est["seq"], np.int64)
+    if len(frames_used) and (int(np.max(frames_used)) >= len(seq)
+                             or not np.array_equal(np.asarray(seq.t_ns, np.int64)[frames_used], est["t_ns"])):
+        raise DatasetError(f"{session}: not the recording RESULT {p} was made from (its frame times differ)")
     stats = meta(ba, "stats")
     if stats.get("skipped"):
         raise DatasetError(f"RESULT {p}: its bundle adjustment was skipped ({stats['skipped']}); nothing to export")
