@@ -35,6 +35,7 @@ COMMANDS: dict[str, tuple[str, str] | dict[str, tuple[str, str]]] = {
         "map": ("stereopath.host.commands.map", "dense 3D model (mesh, cloud, preview) from a session or stored keyframes"),
         "reprocess": ("stereopath.host.commands.reprocess", "re-estimate a recorded session offline, bundle adjust, and map"),
         "sessions": ("stereopath.host.commands.sessions", "list the sessions `host live` stored and which are incomplete"),
+        "export": ("stereopath.host.commands.export", "export a scan for COLMAP, nerfstudio / Gaussian splatting or MCAP (Foxglove)"),
     },
     "device": {
         "selftest": ("stereopath.device.commands.selftest", "check the configured sensors and print pass/fail"),

@@ -222,9 +222,10 @@ def model_or_error(session_dir: Path, out: Path) -> dict:
 
 def _build_model(session_dir: Path, out: Path) -> dict:
     """Dense model of the recorded session at the on-board poses: OUT/mesh.ply, cloud.ply, model.png."""
-    from stereopath.host.mapping.mapper import map_path, map_preset
+    from stereopath.host.mapping.mapper import AUTO, map_path
 
-    result = map_path(session_dir, out, map_preset("object"), progress=False)
+    result = map_path(session_dir, out, AUTO, progress=False)  # the preset chosen from the stereo depth
     st = result.stats
-    keep = ("keyframes", "keyframes_used", "voxel_size_m", "vertices", "triangles", "points", "seconds")
+    keep = ("keyframes", "keyframes_used", "voxel_size_m", "vertices", "triangles", "points", "seconds",
+            "preset_choice")
     return {k: v for k, v in st.items() if k in keep or not isinstance(v, (list, dict))}

@@ -29,7 +29,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("stereopath.device.commands", "stereopath.device"),
     ("stereopath.host.progress",),
     ("stereopath.host.evaluation", "stereopath.host.mapping", "stereopath.host.live", "stereopath.host.reprocess",
-     "stereopath.host.fleet"),
+     "stereopath.host.fleet", "stereopath.host.export"),
     ("stereopath.host.commands", "stereopath.host"),
 ]
 # What the pure core must not import: I/O libraries and our own I/O layers.

@@ -343,13 +343,19 @@ def test_live_command_writes_rerun_recording(tmp_path, keys):
     try:
         rc = stereopath_cli(["host", "live", "--device", f"127.0.0.1:{port_of(dev.pose_endpoint)}",
                         "--keyframe-port", str(port_of(dev.keyframe_endpoint)), "--keys", str(keys.host_keys_dir),
-                        "--out", str(tmp_path / "out"), "--rerun-save", str(rrd), "--duration", "2", "--no-fsync"])
+                        "--out", str(tmp_path / "out"), "--rerun-save", str(rrd), "--duration", "2", "--no-fsync",
+                        "--mcap", str(tmp_path / "live.mcap")])
     finally:
         stop.set()
         th.join()
         dev.close()
     assert rc == 0
     assert rrd.is_file() and rrd.stat().st_size > 1000
+    from mcap.reader import make_reader
+
+    with open(tmp_path / "live.mcap", "rb") as fh:  # --mcap: the stream as it arrived, complete at the end
+        topics = [ch.topic for _, ch, _ in make_reader(fh).iter_messages()]
+    assert topics.count("/pose") >= 10 and topics.count("/cam0/image") == topics.count("/cam1/image") >= 1
     assert len(stored_seqs(tmp_path / "out", "sessR")) >= 1
     assert (tmp_path / "out" / "sessR" / "poses.tum").stat().st_size > 0
 

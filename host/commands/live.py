@@ -52,6 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--map", action="store_true",
                         help="build the dense model as keyframes arrive (with the device's rig); mesh refreshed every "
                              "--map-every")
+    parser.add_argument("--mcap", metavar="FILE.mcap", default=None,
+                        help="also record the stream as it arrives into an MCAP file (poses, keyframe images, rig) "
+                             "for Foxglove; complete when the command ends")
     parser.add_argument("--map-every", type=int, default=10, metavar="N", help="refresh the live mesh every N keyframes")
 
 
@@ -70,6 +73,13 @@ def run(args: argparse.Namespace) -> int:
     config = ReceiverConfig(pose_endpoint=pose_ep, keyframe_endpoint=kf_ep, insecure=args.insecure,
                             keys_dir=args.keys, device_key=args.device_key, window=args.window,
                             fsync=not args.no_fsync)
+    mcap_path = None
+    if getattr(args, "mcap", None):
+        from stereopath.device.formats.fileio import check_out_file
+
+        mcap_path = check_out_file(args.mcap, option="--mcap", example="live.mcap")
+        if mcap_path.exists():  # an earlier recording is never overwritten
+            raise ConfigError(f"--mcap {mcap_path}: exists; give a new file name")
     rig = None
     if args.rig:
         from stereopath.device.formats.rig_files import load_rig_yaml
@@ -86,18 +96,32 @@ def run(args: argparse.Namespace) -> int:
                             on_mesh=getattr(rerun_view, "on_mesh", None) if rerun_view else None,
                             rig_for=lambda sid: receiver.sessions.rig(sid))
 
+    sink = None
+    if mcap_path is not None:
+        from stereopath.host.live.mcap_sink import McapSink
+
+        sink = McapSink(mcap_path, rig_for=lambda sid: receiver.sessions.rig(sid) or rig)
+
     def on_keyframe(kf, new):
         if rerun_view is not None:
             rerun_view.on_keyframe(kf, new)
         if mapper is not None:
             mapper.on_keyframe(kf, new)
+        if sink is not None:
+            sink.on_keyframe(kf, new)
+
+    def on_pose(pose):
+        if rerun_view is not None:
+            rerun_view.on_pose(pose)
+        if sink is not None:
+            sink.on_pose(pose)
     stop = threading.Event()
     previous = signal.signal(signal.SIGTERM, lambda *_: stop.set()) \
         if threading.current_thread() is threading.main_thread() else None
     term = TerminalView()
     receiver = Receiver(config, args.out,
-                        on_pose=rerun_view.on_pose if rerun_view else None,
-                        on_keyframe=on_keyframe if (rerun_view or mapper) else None)
+                        on_pose=on_pose if (rerun_view or sink) else None,
+                        on_keyframe=on_keyframe if (rerun_view or mapper or sink) else None)
     t0 = time.monotonic()
     before = _counts(receiver.stats)  # receiver.json's counters run on over restarts with the same OUT
     try:
@@ -114,6 +138,9 @@ def run(args: argparse.Namespace) -> int:
                 log.info("dense model of session %s: %s", session, folder)
         if rerun_view is not None:
             rerun_view.close()
+        if sink is not None:
+            counts = sink.close()
+            log.info("--mcap %s: %d poses, %d keyframes recorded", mcap_path, counts["pose"], counts["cam0"])
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
     return _exit_status(receiver, mapper, models, args.device, time.monotonic() - t0, before)

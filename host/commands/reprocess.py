@@ -30,6 +30,7 @@ import argparse
 import sys
 
 from stereopath.device.commands.arg_types import finite_number
+from stereopath.host.commands.map import MAP_PRESET_CHOICES
 from stereopath.host.reprocess.preset_names import DEFAULT_PRESET, PRESET_ABOUT
 
 PRESET_NAMES = tuple(PRESET_ABOUT)  # REPROCESS_PRESETS' names (a test checks), without importing the pipeline
@@ -43,8 +44,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default=DEFAULT_PRESET, choices=PRESET_NAMES,
                    help="reprocessing settings: " + "; ".join(f"{k}: {v}" for k, v in PRESET_ABOUT.items()))
     p.add_argument("--no-map", action="store_true", help="skip the dense model")
-    p.add_argument("--map-preset", default="object", choices=["object", "room"],
-                   help="depth range and voxel size of the model: object scans (4 mm) or rooms (2 cm)")
+    p.add_argument("--map-preset", default="auto", choices=MAP_PRESET_CHOICES,
+                   help="depth range and voxel size of the model: object scans (4 mm), rooms (2 cm), large rooms "
+                        "(5 cm), or auto: chosen from the keyframes' stereo depth (default: auto; map.json says why)")
     p.add_argument("--imu-priors", action="store_true",
                    help="add gyro-integrated rotations between keyframes to the bundle adjustment")
     p.add_argument("--force", action="store_true", help="recompute every stage even when stored ones match")

@@ -75,7 +75,7 @@ class ReprocessSettings:
 
     preset: str = "standard"
     do_map: bool = True
-    map_preset: str = "object"
+    map_preset: str = "auto"
     imu_priors: bool = False
     force: bool = False  # recompute every stored stage (first attempt of each task only)
     strict: bool = False  # stop a session at its first unreadable frame (default: skip it, counted)

@@ -114,6 +114,8 @@ DEPTH_PRESETS: dict[str, DepthConfig] = {
     "object": DepthConfig(min_depth_m=0.25, max_depth_m=2.0, block_size=5, edge_max_rel_step=0.03, erode_px=1),
     # rooms: 0.4-6 m; far points have coarse depth, so a larger block and less cleaning
     "room": DepthConfig(min_depth_m=0.4, max_depth_m=6.0, block_size=7, edge_max_rel_step=0.05, erode_px=1),
+    # halls and large rooms: 0.5-15 m (stereo depth error grows with the square of the depth)
+    "large_room": DepthConfig(min_depth_m=0.5, max_depth_m=15.0, block_size=7, edge_max_rel_step=0.05, erode_px=1),
 }
 
 

@@ -61,6 +61,7 @@ FUSION_PRESETS: dict[str, FusionConfig] = {
     # truncation 6 voxels (24 mm, 12 cm for rooms): wide enough to average the stereo depth noise
     "object": FusionConfig(voxel_m=0.004, trunc_voxels=6.0, max_depth_m=2.0),
     "room": FusionConfig(voxel_m=0.02, trunc_voxels=6.0, max_depth_m=6.0, initial_blocks=5000),
+    "large_room": FusionConfig(voxel_m=0.05, trunc_voxels=6.0, max_depth_m=15.0, initial_blocks=5000),
 }
 
 

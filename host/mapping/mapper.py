@@ -68,7 +68,12 @@ MAP_PRESETS: dict[str, MapConfig] = {
                         keyframes=KeyframeSelection(min_translation_m=0.04, min_rotation_deg=5.0), preset="object"),
     "room": MapConfig(depth=DEPTH_PRESETS["room"], fusion=FUSION_PRESETS["room"],
                       keyframes=KeyframeSelection(min_translation_m=0.15, min_rotation_deg=10.0), preset="room"),
+    "large_room": MapConfig(depth=DEPTH_PRESETS["large_room"], fusion=FUSION_PRESETS["large_room"],
+                            keyframes=KeyframeSelection(min_translation_m=0.3, min_rotation_deg=10.0),
+                            preset="large_room"),
 }
+AUTO = "auto"  # the preset chosen from the keyframes' stereo depth (stereopath.host.mapping.auto_preset)
+PRESET_CHOICES = (AUTO, *MAP_PRESETS)
 
 
 def map_preset(name: str, voxel_mm: float | None = None, **keyframe_changes: Any) -> MapConfig:
@@ -327,23 +332,63 @@ def write_map(result: MapResult, out_dir: str | Path) -> dict[str, Path]:
     return {name: out / name for name in MAP_FILES}
 
 
-def map_sequence(seq: Any, trajectory: Trajectory, out_dir: str | Path | None, config: MapConfig,
+def auto_config(rig: Rig, keyframes_for: Callable[[KeyframeSelection], list[Any]], voxel_mm: float | None = None,
+                **keyframe_changes: Any) -> tuple[MapConfig, dict[str, Any]]:
+    """The preset :mod:`stereopath.host.mapping.auto_preset` chooses for the keyframes
+    ``keyframes_for(selection)`` gives (surveyed with the object preset's finer keyframe spacing), with
+    ``voxel_mm`` and the keyframe changes applied; and the ``preset_choice`` entry of map.json."""
+    from stereopath.host.mapping.auto_preset import ORDER, choose_preset
+
+    survey_cfg = map_preset("object", **keyframe_changes)
+    choice = choose_preset(rig, keyframes_for(survey_cfg.keyframes), {k: MAP_PRESETS[k].depth.max_depth_m for k in ORDER})
+    return map_preset(choice.preset, voxel_mm=voxel_mm, **keyframe_changes), {"asked": AUTO, **choice.as_dict()}
+
+
+def asked_choice(config: MapConfig) -> dict[str, Any]:
+    """The ``preset_choice`` entry of map.json for a preset given by name."""
+    return {"asked": config.preset, "preset": config.preset, "reason": "given (--map-preset)"}
+
+
+def map_sequence(seq: Any, trajectory: Trajectory, out_dir: str | Path | None, config: MapConfig | str,
                  progress: bool | None = None, source: str = "") -> MapResult:
     """Map any sequence (``rig``, ``t_ns``, ``frame(i)``) with the poses of ``trajectory``; write the
-    model into ``out_dir`` when given.  (For reprocessing and the demo.)"""
-    inp = keyframes_from_sequence(seq, trajectory, config.keyframes, source=source or str(getattr(seq, "spec", "")))
+    model into ``out_dir`` when given.  (For reprocessing and the demo.)  ``config`` may be
+    :data:`AUTO`: the preset is chosen from the keyframes' stereo depth."""
+    source = source or str(getattr(seq, "spec", ""))
+    if isinstance(config, str) and config == AUTO:
+        config, choice = auto_config(seq.rig, lambda sel: keyframes_from_sequence(seq, trajectory, sel,
+                                                                                  source=source).keyframes)
+    else:
+        config = map_preset(config) if isinstance(config, str) else config
+        choice = asked_choice(config)
+    inp = keyframes_from_sequence(seq, trajectory, config.keyframes, source=source)
     result = build_map(inp, config, progress=progress)
+    result.stats["preset_choice"] = choice
     if out_dir is not None:
         write_map(result, out_dir)
     return result
 
 
-def map_path(path: str | Path, out_dir: str | Path, config: MapConfig, poses: str | Path | None = None,
-             rig: str | Path | None = None, progress: bool | None = None, strict: bool = False) -> MapResult:
+def map_path(path: str | Path, out_dir: str | Path, config: MapConfig | str, poses: str | Path | None = None,
+             rig: str | Path | None = None, progress: bool | None = None, strict: bool = False,
+             voxel_mm: float | None = None, **keyframe_changes: Any) -> MapResult:
     """``stereopath host map``: open a session or keyframes folder, build the model, write it.
 
-    Unreadable keyframes or frames are skipped and counted unless ``strict``."""
-    inp = open_map_input(path, config.keyframes, poses=poses, rig=rig, strict=strict)
+    ``config``: a MapConfig, or a preset name (with ``voxel_mm`` and ``keyframe_changes`` applied),
+    :data:`AUTO` choosing it from the keyframes' stereo depth.  Unreadable keyframes or frames are
+    skipped and counted unless ``strict``."""
+    if isinstance(config, str) and config == AUTO:
+        survey_sel = map_preset("object", **keyframe_changes).keyframes
+        first = open_map_input(path, survey_sel, poses=poses, rig=rig, strict=strict)
+        config, choice = auto_config(first.rig, lambda sel: first.keyframes, voxel_mm, **keyframe_changes)
+        inp = first if config.keyframes == survey_sel else open_map_input(path, config.keyframes, poses=poses,
+                                                                          rig=rig, strict=strict)
+    else:
+        if isinstance(config, str):
+            config = map_preset(config, voxel_mm=voxel_mm, **keyframe_changes)
+        choice = asked_choice(config)
+        inp = open_map_input(path, config.keyframes, poses=poses, rig=rig, strict=strict)
     result = build_map(inp, config, progress=progress, strict=strict)
+    result.stats["preset_choice"] = choice
     write_map(result, out_dir)
     return result

@@ -166,7 +166,7 @@ class _Runner:
 
 
 def reprocess_sequence(seq: Any, out_dir: str | Path, preset: str | ReprocessPreset = DEFAULT_PRESET,
-                       do_map: bool = True, map_preset: str = "object", force: bool = False,
+                       do_map: bool = True, map_preset: str = "auto", force: bool = False,
                        progress: bool | None = None, onboard: Trajectory | None = None,
                        source_label: str | None = None, imu_priors: bool = False,
                        after_stage: Callable[[str], None] | None = None) -> ReprocessResult:
@@ -184,9 +184,9 @@ def reprocess_sequence(seq: Any, out_dir: str | Path, preset: str | ReprocessPre
         preset_name += "+imu"
     map_cfg = None
     if do_map:
-        from stereopath.host.mapping.mapper import map_preset as _map_preset
+        from stereopath.host.mapping.mapper import AUTO, map_preset as _map_preset
 
-        map_cfg = _map_preset(map_preset)
+        map_cfg = AUTO if map_preset == AUTO else _map_preset(map_preset)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise StereopathError(f"output {out} exists and is not a folder")
@@ -232,7 +232,7 @@ def open_session_checked(session_dir: str | Path) -> Any:
 
 
 def reprocess_session(session_dir: str | Path, out_dir: str | Path, preset: str | ReprocessPreset = DEFAULT_PRESET,
-                      do_map: bool = True, map_preset: str = "object", force: bool = False,
+                      do_map: bool = True, map_preset: str = "auto", force: bool = False,
                       progress: bool | None = None, imu_priors: bool = False,
                       after_stage: Callable[[str], None] | None = None, strict: bool = False) -> ReprocessResult:
     """``stereopath host reprocess``: a recorded session folder -> ``out_dir`` (see the module doc).

@@ -1,6 +1,7 @@
 """Stage ``map``: the dense model with the refined path (:func:`stereopath.host.mapping.mapper.map_sequence`).
 
-``run(config, inputs)``: ``config`` the mapper's settings (``map_preset(name)``); ``inputs.extra``
+``run(config, inputs)``: ``config`` the mapper's settings (``map_preset(name)``, or ``"auto"``: the
+preset chosen from the keyframes' stereo depth, recorded in map.json); ``inputs.extra``
 holds ``trajectory`` (the refined path), ``dst`` (the stage folder, rewritten) and ``label``.
 Outputs: the files :data:`MODEL_FILES` in ``dst``.
 """
@@ -20,7 +21,7 @@ MODEL_FILES = ("mesh.ply", "cloud.ply", "model.png", "map.json")
 
 
 def settings(config: Any) -> dict[str, Any]:
-    return dataclasses.asdict(config)
+    return {"preset": config} if isinstance(config, str) else dataclasses.asdict(config)
 
 
 def run(config: Any, inputs: StageInputs) -> list[str]:
