@@ -31,6 +31,48 @@ ORTHO_TOL = 1e-2  # |R^T R - I| (max element) above this is not a rotation
 ORTHO_SILENT = 1e-9  # below this R is taken as it is
 ORTHO_ROUNDED = 1e-3  # up to this R is a rotation written with rounded elements (projected, logged as info)
 
+# Physical plausibility of a calibration.  A focal length f (pixels) across w pixels sees a field of view of
+# 2 atan(w / 2f): below half a degree no hand-held scan holds a target in view (a 2,000 mm lens on a
+# full-frame sensor still sees 1 deg), above 170 deg a pinhole image cannot hold it (the image plane runs to
+# infinity at 180 deg; a fisheye camera is read through a pinhole view of at most that).  The principal
+# point is where the optical axis meets the image: inside it.  A stereo baseline under 1 mm gives no depth
+# at any range, over 10 m no two cameras on one rig overlap at scanning distance.
+FOV_MIN_DEG = 0.5
+FOV_MAX_DEG = 170.0
+BASELINE_MIN_M = 1e-3
+BASELINE_MAX_M = 10.0
+DISTORTION_MAX = 1e4  # |coefficient|: OpenCV's rational and thin-prism terms stay in the tens
+
+
+def focal_range_px(pixels: int) -> tuple[float, float]:
+    """The focal lengths (pixels) that see between :data:`FOV_MAX_DEG` and :data:`FOV_MIN_DEG` across ``pixels``."""
+    lo = pixels / (2.0 * np.tan(np.radians(FOV_MAX_DEG) / 2.0))
+    hi = pixels / (2.0 * np.tan(np.radians(FOV_MIN_DEG) / 2.0))
+    return float(lo), float(hi)
+
+
+def check_plausible_camera(name: str, K: np.ndarray, size: tuple[int, int]) -> None:
+    """Refuse focal lengths whose field of view is outside [FOV_MIN_DEG, FOV_MAX_DEG] and a principal point
+    outside the image; the message names the field, the value and the range."""
+    w, h = size
+    for label, f, pixels, axis in (("fx", K[0, 0], w, "width"), ("fy", K[1, 1], h, "height")):
+        lo, hi = focal_range_px(pixels)
+        if not lo <= f <= hi:
+            raise CalibrationError(
+                f"{name}.K: {label} = {f:.6g} px is implausible for an image {pixels} px in {axis}: a field of "
+                f"view between {FOV_MIN_DEG:g} and {FOV_MAX_DEG:g} deg needs {lo:.4g} to {hi:.4g} px")
+    for label, c, pixels in (("cx", K[0, 2], w), ("cy", K[1, 2], h)):
+        if not 0.0 <= c <= pixels:
+            raise CalibrationError(f"{name}.K: principal point {label} = {c:.6g} px lies outside the image "
+                                   f"(0 to {pixels} px)")
+
+
+def check_plausible_baseline(T: np.ndarray) -> None:
+    b = float(np.linalg.norm(T))
+    if not BASELINE_MIN_M <= b <= BASELINE_MAX_M:
+        raise CalibrationError(f"T: baseline {b:.6g} m is implausible (a stereo rig's is between "
+                               f"{BASELINE_MIN_M * 1000:g} mm and {BASELINE_MAX_M:g} m; T is in metres)")
+
 
 @dataclass(frozen=True, eq=False)
 class CameraModel:
@@ -240,7 +282,11 @@ def make_camera(name: str, K: Any, dist: Any, size: Any) -> CameraModel:
         raise CalibrationError(f"{name}.distortion: expected 4, 5, 8, 12 or 14 coefficients, got {d.size}")
     if not np.all(np.isfinite(d)):
         raise CalibrationError(f"{name}.distortion: contains non-finite values")
-    return CameraModel(K=K, dist=d, size=checked_size(name, size))
+    if np.any(np.abs(d) > DISTORTION_MAX):
+        raise CalibrationError(f"{name}.distortion: a coefficient beyond +-{DISTORTION_MAX:g}: {d.tolist()}")
+    wh = checked_size(name, size)
+    check_plausible_camera(name, K, wh)
+    return CameraModel(K=K, dist=d, size=wh)
 
 
 def validated_rotation(name: str, R: Any) -> np.ndarray:
@@ -290,6 +336,7 @@ def make_rig(cam0: CameraModel, cam1: CameraModel, R: Any, T: Any, name: str = "
     T = checked_array("T", T, (3,))
     if np.linalg.norm(T) < 1e-6:
         raise CalibrationError("T: zero baseline (the two cameras coincide)")
+    check_plausible_baseline(T)
     check_baseline_sign(R, T)
     Tb = None if T_body_cam0 is None else checked_array("T_body_cam0", T_body_cam0, (4, 4))
     if Tb is not None:
