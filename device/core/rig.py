@@ -41,6 +41,7 @@ FOV_MIN_DEG = 0.5
 FOV_MAX_DEG = 170.0
 BASELINE_MIN_M = 1e-3
 BASELINE_MAX_M = 10.0
+MAX_IMAGE_SIDE = 65536  # px: past any camera sensor (the largest are ~20,000 px across)
 DISTORTION_MAX = 1e4  # |coefficient|: OpenCV's rational and thin-prism terms stay in the tens
 
 
@@ -213,7 +214,7 @@ def _compute_rectification(rig: Rig, alpha: float) -> Rectification:
 def checked_array(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
     try:
         a = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond any float
         raise CalibrationError(f"{name}: not numeric: {value!r}") from None
     if a.size == int(np.prod(shape)) and a.shape != shape:
         a = a.reshape(shape)
@@ -240,7 +241,7 @@ def intrinsic_matrix(where: str, intr: Any) -> np.ndarray:
         raise CalibrationError(f"{where}.intrinsics must be [fx, fy, cx, cy], got {intr!r}")
     try:
         fx, fy, cx, cy = (float(v) for v in intr)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CalibrationError(f"{where}.intrinsics must be numbers, got {intr!r}") from None
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
 
@@ -264,10 +265,12 @@ def _whole_number(v: Any) -> int:
 def checked_size(name: str, size: Any) -> tuple[int, int]:
     try:
         w, h = (_whole_number(v) for v in size)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CalibrationError(f"{name}.image_size: expected [width, height] in whole pixels, got {size!r}") from None
     if w <= 0 or h <= 0:
         raise CalibrationError(f"{name}.image_size: must be positive, got {w}x{h}")
+    if w > MAX_IMAGE_SIDE or h > MAX_IMAGE_SIDE:
+        raise CalibrationError(f"{name}.image_size: {w}x{h} is implausible (at most {MAX_IMAGE_SIDE} px a side)")
     return w, h
 
 
@@ -276,7 +279,7 @@ def make_camera(name: str, K: Any, dist: Any, size: Any) -> CameraModel:
     K = checked_intrinsics(name, K)
     try:
         d = np.asarray(dist if dist is not None else np.zeros(5), dtype=float).reshape(-1)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CalibrationError(f"{name}.distortion: not numeric: {dist!r}") from None
     if d.size not in (4, 5, 8, 12, 14):
         raise CalibrationError(f"{name}.distortion: expected 4, 5, 8, 12 or 14 coefficients, got {d.size}")

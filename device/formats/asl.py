@@ -147,7 +147,7 @@ def open_session(session_dir: str | Path) -> AslSequence:
     if mpath.is_file():
         try:
             seq.manifest = json.loads(mpath.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:  # it only describes the recording:
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:  # it only describes the recording:
             log.warning("%s: invalid JSON, ignored (%s)", mpath, exc)  # the images and IMU are what count
         status = seq.manifest.get("status") if isinstance(seq.manifest, dict) else None
         if status == "recording":

@@ -44,6 +44,8 @@ def _read_yaml(path: Path, what: str) -> Any:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise CalibrationError(f"{path}: invalid YAML: {exc}") from None
+    except RecursionError:  # PyYAML composes nested collections recursively
+        raise CalibrationError(f"{path}: invalid YAML: collections nested too deeply") from None
 
 
 def _rig_from_yaml_data(p: Path, data: Any) -> Rig:
