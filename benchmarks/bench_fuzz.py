@@ -362,6 +362,9 @@ def build_workspace(w: Path, session_frames: int = 8) -> list[Target]:
                cheap=False),
         Target("session_groundtruth", "S/groundtruth.tum", "text",
                lambda w, o: ["odometry", f"session:{w / 'S'}", "--frames", "3", *out_arg(o)], cheap=False),
+        Target("session_groundtruth_reprocess", "S/groundtruth.tum", "text",
+               lambda w, o: ["host", "reprocess", str(w / "S"), "--preset", "quick", "--no-map", "--no-progress",
+                             *out_arg(o)], cheap=False),
         Target("session_png", first_png, "png",
                lambda w, o: ["device", "selftest", "--config", str(w / "cfg/rig.toml"), "--source",
                              f"replay:session:{w / 'S'}", "--imu", "none", "--frames", "2"]),
@@ -415,9 +418,11 @@ def build_workspace(w: Path, session_frames: int = 8) -> list[Target]:
         (w / "C" / "camchain-imucam.yaml").write_text(_kalibr_from_euroc(w / "E" / "mav0"))
         (w / "cfg" / "chain.toml").write_text(f'[source]\nrig_file = "{w / "C" / "camchain-imucam.yaml"}"\n'
                                               f'[stream]\nenabled = false\n')
-        targets += [Target("kalibr_camchain", "C/camchain-imucam.yaml", "yaml", lambda w, o: [
-            "device", "selftest", "--config", str(w / "cfg/chain.toml"), "--source", f"replay:euroc:{w / 'C/mav0'}",
-            "--imu", "none", "--frames", "2"])]
+        targets += [Target("kalibr_camchain", "C/camchain-imucam.yaml", "yaml",
+                           lambda w, o: ["device", "calibrate-imu", f"euroc:{w / 'C/mav0'}"]),
+                    Target("kalibr_camchain_device", "C/camchain-imucam.yaml", "yaml", lambda w, o: [
+                        "device", "selftest", "--config", str(w / "cfg/chain.toml"), "--source",
+                        f"replay:euroc:{w / 'C/mav0'}", "--imu", "none", "--frames", "2"], cheap=False)]
     return targets
 
 
@@ -457,6 +462,7 @@ class FuzzResult:
     hangs: list[Finding] = field(default_factory=list)
     exit_codes: dict[str, int] = field(default_factory=dict)
     per_target: dict[str, int] = field(default_factory=dict)
+    seconds_per_target: dict[str, float] = field(default_factory=dict)
     seconds: float = 0.0
 
 
@@ -534,7 +540,9 @@ def fuzz(targets: list[Target], workspace: Path, seed: int = 0, max_inputs: int 
             path.write_bytes(data)
             shutil.rmtree(scratch, ignore_errors=True)
             scratch.mkdir()
+            t_in = time.perf_counter()
             outcome, detail, where = run_one(t.argv(workspace, scratch / "o"), handler)
+            res.seconds_per_target[t.name] = res.seconds_per_target.get(t.name, 0.0) + time.perf_counter() - t_in
             res.tried += 1
             res.per_target[t.name] = res.per_target.get(t.name, 0) + 1
             if outcome == "ok":

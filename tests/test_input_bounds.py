@@ -334,3 +334,34 @@ def test_recorder_dir_that_is_a_file(tmp_path, capsys):
     cfg.write_text(f'[recorder]\ndir = "{afile / "below"}"\n')
     assert run_service(cfg, RunOptions(source="sim", frames=2, stream=False, status_file="")) == EXIT_CONFIG
     assert afile.read_text() == "keep"
+
+
+# found by benchmarks/bench_fuzz.py ------------------------------------------------------------------------
+
+def test_fuzz_findings_end_in_one_line(session, tmp_path, capsys):
+    """An integer beyond any float in a rig, YAML and JSON nested too deeply, and poses none of which is near a
+    frame's time: each was a traceback (OverflowError, RecursionError, ValueError)."""
+    from stereopath.device.formats.asl import open_session
+    from stereopath.device.formats.rig_files import load_rig_file, load_rig_yaml
+
+    d = _paper_yaml()
+    d["cam0"]["intrinsics"][0] = int("9" * 400)
+    (tmp_path / "int.yaml").write_text(yaml.safe_dump(d))
+    with pytest.raises(CalibrationError, match=r"int\.yaml: cam0\.intrinsics must be numbers"):
+        load_rig_yaml(tmp_path / "int.yaml")
+    d = _paper_yaml()
+    d["cam0"]["image_size"] = [int("9" * 400), 480]
+    (tmp_path / "size.yaml").write_text(yaml.safe_dump(d))
+    with pytest.raises(CalibrationError, match=r"cam0\.image_size"):
+        load_rig_yaml(tmp_path / "size.yaml")
+    (tmp_path / "deep.yaml").write_text("cam0: " + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(CalibrationError, match=r"deep\.yaml: invalid YAML: collections nested too deeply"):
+        load_rig_file(tmp_path / "deep.yaml")
+    s = _copy(session, tmp_path)
+    (s / "manifest.json").write_text('{"a": ' + "[" * 100000 + "]" * 100000 + "}")
+    assert len(open_session(s)) == FRAMES  # the manifest only describes the recording: ignored, with a warning
+    late = tmp_path / "late.tum"
+    late.write_text("".join(f"{1000 + i}.0 0 0 0 0 0 0 1\n" for i in range(5)))  # no pose near any frame
+    assert _cli(["host", "map", str(session), "--poses", str(late), "--out", str(tmp_path / "m"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "stereopath: error:" in err

@@ -295,6 +295,8 @@ def make_camera(name: str, K: Any, dist: Any, size: Any) -> CameraModel:
 def validated_rotation(name: str, R: Any) -> np.ndarray:
     """Check that ``R`` is (nearly) a rotation; project a nearly orthonormal one onto SO(3)."""
     R = checked_array(name, R, (3, 3))
+    if float(np.max(np.abs(R))) > 1.0 + ORTHO_TOL:  # before any product: 1e308 squared overflows
+        raise CalibrationError(f"{name}: not a rotation (an element is {float(np.max(np.abs(R))):.3g}, beyond +-1)")
     err = float(np.max(np.abs(R.T @ R - np.eye(3))))
     det = float(np.linalg.det(R))
     if det <= 0:
