@@ -227,6 +227,31 @@ def test_device_toml_errors_are_configuration_errors(tmp_path, capsys):
         assert "Traceback" not in err and "configuration error" in err, (name, err[-500:])
 
 
+def test_a_fifo_as_device_toml_is_refused_without_blocking(tmp_path):
+    import threading
+
+    from stereopath.device.core.config import load_toml
+
+    fifo = tmp_path / "device.toml"
+    os.mkfifo(fifo)
+    got: list[BaseException] = []
+
+    def load() -> None:
+        try:
+            load_toml(fifo)
+        except BaseException as exc:  # noqa: BLE001 - handed to the test
+            got.append(exc)
+
+    t = threading.Thread(target=load, daemon=True)
+    t.start()
+    t.join(5.0)
+    if t.is_alive():  # blocked in open(): a writer releases it
+        fd = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
+        os.close(fd)
+        t.join(5.0)
+    assert got and isinstance(got[0], ConfigError) and "not a regular file" in str(got[0])
+
+
 # item 7: --out ----------------------------------------------------------------------------------------
 
 def test_out_refuses_root_and_recorded_sessions_for_every_command(session, tmp_path, capsys):
