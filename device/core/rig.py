@@ -69,7 +69,8 @@ def check_plausible_camera(name: str, K: np.ndarray, size: tuple[int, int]) -> N
 
 
 def check_plausible_baseline(T: np.ndarray) -> None:
-    b = float(np.linalg.norm(T))
+    big = float(np.max(np.abs(T)))
+    b = big * float(np.linalg.norm(T / big)) if big > 0 else 0.0  # scaled: 1e308 squared overflows
     if not BASELINE_MIN_M <= b <= BASELINE_MAX_M:
         raise CalibrationError(f"T: baseline {b:.6g} m is implausible (a stereo rig's is between "
                                f"{BASELINE_MIN_M * 1000:g} mm and {BASELINE_MAX_M:g} m; T is in metres)")
@@ -339,7 +340,7 @@ def make_rig(cam0: CameraModel, cam1: CameraModel, R: Any, T: Any, name: str = "
     """Validated :class:`Rig` from parts (``R``, ``T`` = ``T_cam1_cam0``, metres)."""
     R = validated_rotation(f"rig {name!r}: R", R)
     T = checked_array("T", T, (3,))
-    if np.linalg.norm(T) < 1e-6:
+    if float(np.max(np.abs(T))) < 1e-6:
         raise CalibrationError("T: zero baseline (the two cameras coincide)")
     check_plausible_baseline(T)
     check_baseline_sign(R, T)
