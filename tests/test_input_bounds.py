@@ -390,3 +390,17 @@ def test_fuzz_findings_end_in_one_line(session, tmp_path, capsys):
     assert _cli(["host", "map", str(session), "--poses", str(late), "--out", str(tmp_path / "m"), "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "Traceback" not in err and "stereopath: error:" in err
+
+
+def test_a_rounded_kitti_rotation_is_projected_not_a_traceback(tmp_path, capsys):
+    """A KITTI rotation within the reader's 1e-2 of orthonormal but beyond evo's 1e-6 (a LieAlgebraException)."""
+    rows = []
+    for i in range(10):
+        a = 0.05 * i
+        c, s = np.cos(a), np.sin(a)
+        rows.append([c, -s, 0, 0.1 * i, s, c, 0, 0.02 * i * i, 0, 0, 1, 0.01 * i])
+    (tmp_path / "est.txt").write_text("".join(" ".join(f"{v:.9f}" for v in r) + "\n" for r in rows))
+    rows[3][1] += 0.002
+    (tmp_path / "gt.txt").write_text("".join(" ".join(f"{v:.9f}" for v in r) + "\n" for r in rows))
+    assert _cli(["eval", "--gt", str(tmp_path / "gt.txt"), "--est", str(tmp_path / "est.txt")]) == 0
+    assert "Traceback" not in capsys.readouterr().err

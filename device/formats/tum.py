@@ -15,7 +15,7 @@ import numpy as np
 from stereopath.device.errors import DatasetError
 from stereopath.device.formats.csvrows import INT64_MAX, INT64_MIN, read_lines
 from stereopath.device.formats.fileio import write_text_atomic
-from stereopath.device.core.geometry import matrix_to_quat_xyzw
+from stereopath.device.core.geometry import matrix_to_quat_xyzw, project_to_so3
 from stereopath.device.core.trajectory import Trajectory
 
 
@@ -52,14 +52,18 @@ def check_quaternion(path: Path, line: int, q: np.ndarray) -> None:
                            f"1 +- {QUAT_NORM_TOL})")
 
 
-def check_rotation(path: Path, line: int, R: np.ndarray) -> None:
-    """Refuse a 3x3 block that is not (nearly) a rotation: |R^T R - I| within :data:`ROTATION_TOL`, det > 0."""
+def checked_rotation(path: Path, line: int, R: np.ndarray) -> np.ndarray:
+    """``R`` when it is (nearly) a rotation: |R^T R - I| within :data:`ROTATION_TOL`, det > 0; a rotation
+    written with rounded elements beyond what the evaluation takes as a rotation (1e-6) is projected onto SO(3)."""
     if not np.all(np.isfinite(R)) or float(np.max(np.abs(R))) > 1.0 + ROTATION_TOL:
         raise DatasetError(f"{path}:{line}: rotation has an element beyond +-1: not a rotation matrix")
     err = float(np.max(np.abs(R.T @ R - np.eye(3))))
     if err > ROTATION_TOL or np.linalg.det(R) <= 0:
         raise DatasetError(f"{path}:{line}: not a rotation matrix (max |R^T R - I| = {err:.3g}, "
                            f"det = {np.linalg.det(R):.3g})")
+    if np.allclose(R.T @ R, np.eye(3), atol=1e-6) and abs(np.linalg.det(R) - 1.0) <= 1e-6:
+        return R  # as written: what the evaluation (evo's is_so3) takes as a rotation is not changed
+    return project_to_so3(R)
 
 
 def seconds_to_ns(text: str) -> int:
@@ -153,7 +157,7 @@ def read_kitti_poses(path: str | Path, t_ns: np.ndarray | None = None) -> Trajec
             raise DatasetError(f"{p}:{i}: non-finite value")
         T = np.eye(4)
         T[:3, :] = v.reshape(3, 4)
-        check_rotation(p, i, T[:3, :3])
+        T[:3, :3] = checked_rotation(p, i, T[:3, :3])
         check_position(p, i, T[:3, 3])
         Ts.append(T)
     if not Ts:
