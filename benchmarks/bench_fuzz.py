@@ -382,7 +382,16 @@ def build_workspace(w: Path, session_frames: int = 8) -> list[Target]:
     for p in index:
         targets.append(Target(f"store_{p.stem}", p.relative_to(w).as_posix(), "json" if p.suffix == ".json" else
                               "text", lambda w, o: ["host", "sessions", str(w / "live")], restore="live"))
-    # third-party data: a KITTI sequence, an EuRoC recording, the same with a Kalibr camchain
+    # third-party data: chessboard pairs, a KITTI sequence, an EuRoC recording, the same with a Kalibr camchain
+    board = DATA / "stereo_calib_chessboard"
+    if board.is_dir():
+        (w / "B").mkdir()
+        for k in ("01", "02", "03", "04", "05", "06"):
+            for side in ("left", "right"):
+                shutil.copy(board / f"{side}{k}.jpg", w / "B" / f"{side}{k}.jpg")
+        targets.append(Target("chessboard_jpg", "B/right03.jpg", "png", lambda w, o: [
+            "device", "calibrate-stereo", str(w / "B"), "--board", "9x6", "--square-mm", "25", "--out",
+            str(o / "rig.yaml")], cheap=False))
     kitti = DATA / "kitti_odometry" / "sequences" / "06"
     if kitti.is_dir():
         K = w / "K" / "sequences" / "06"
