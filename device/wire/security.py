@@ -242,7 +242,7 @@ def make_demo_keys(root: str | Path, host_name: str = "host") -> DemoKeys:
     dev_pub, dev_sec = generate_keypair(r / "device", "device", overwrite=True)
     host_pub, host_sec = generate_keypair(r / "host", host_name, overwrite=True)
     clients = r / "device" / "clients"
-    clients.mkdir(parents=True, exist_ok=True)
+    clients.mkdir(mode=0o755, parents=True, exist_ok=True)  # never group-writable, whatever the umask
     shutil.copy(host_pub, clients / host_pub.name)
     shutil.copy(dev_pub, r / "host" / "device.key")
     return DemoKeys(r, dev_sec, clients, r / "host", host_sec, r / "host" / "device.key")
