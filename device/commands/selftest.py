@@ -1,4 +1,4 @@
-"""Check the configured sensors and print a pass/fail table (exit code 1 on any failure).
+"""Check the configured sensors and print a pass/fail table (exit code 1 on any failure, 78 on a bad configuration).
 
 Opens the stereo source and captures a few pairs (pairing, frame rate; for two CSI cameras
 also the software sync: the multicast route, frames until SyncReady, the skew; and which
@@ -43,9 +43,15 @@ def _free_disk_check(path: str, reserve_mb: float) -> Check:
     from pathlib import Path
 
     want = p = Path(path).absolute()
-    while not p.exists() and p != p.parent:
-        p = p.parent
-    free_mb = shutil.disk_usage(p).free / 1e6
+    try:
+        while not p.exists() and p != p.parent:
+            p = p.parent
+        if not p.is_dir():  # sessions are folders made in it: a file there (or above it) takes none
+            return Check("free disk", False, f"{p} is not a folder" + ("" if p == want else f" (above {want})"),
+                         "recorder.dir: a folder")
+        free_mb = shutil.disk_usage(p).free / 1e6
+    except OSError as exc:
+        return Check("free disk", False, f"{want}: {exc.strerror or exc}", "recorder.dir: a folder")
     where = f"{free_mb:.0f} MB at {p}" + ("" if p == want else f" ({want} does not exist yet)")
     return Check("free disk", free_mb >= reserve_mb, where, f">= {reserve_mb:.0f} MB")
 
@@ -242,6 +248,8 @@ def run_selftest(cfg: Any, source: Any = None, imu: Any = None, cover_left: bool
             source = create_source(cfg.source)
         except StereopathError as exc:
             checks.append(Check("camera open", False, str(exc)))
+        except OSError as exc:  # a source.rig_file or recording path the system cannot look at
+            checks.append(Check("camera open", False, f"{exc.strerror or exc}: {str(exc.filename)[:100]}"))
     imu_blocks: list = []
     if source is not None:
         checks += _camera_checks(cfg, source, cfg.selftest.frames, imu_blocks, cover_left)
@@ -266,15 +274,23 @@ def format_table(checks: list[Check]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     import logging
+    import sys
 
     from stereopath.device.core.config import replace
-    from stereopath.device.service.options import RunOptions, apply_options
+    from stereopath.device.errors import ConfigError
+    from stereopath.device.service.service import EXIT_CONFIG
+    from stereopath.device.service.options import RunOptions, apply_options, check_rig_file
     from stereopath.device.service.settings import config_or_installed, load_device_config
 
     cfg_path = config_or_installed(args.config)
     logging.getLogger(__name__).info("configuration: %s", cfg_path or "built-in defaults")
-    base = load_device_config(cfg_path)
-    cfg = apply_options(base, RunOptions(source=args.source, imu=args.imu))  # as `device run` applies them
+    try:
+        base = load_device_config(cfg_path)
+        cfg = apply_options(base, RunOptions(source=args.source, imu=args.imu))  # as `device run` applies them
+        check_rig_file(cfg)
+    except ConfigError as exc:  # the exit status `device run` gives a bad configuration (EX_CONFIG)
+        print(f"stereopath: configuration error: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
     src, imu_s, st = cfg.source, cfg.imu, cfg.selftest
     if args.source == "sim" and not args.imu and base.imu.backend == "mpu6050":
         # not the simulator's own samples (what `device run` takes): the emulated chip, through the driver checked

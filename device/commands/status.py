@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"no status at {path}: the capture service is not running (systemctl status stereopath-capture)",
               file=sys.stderr)
         return 1
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
         print(f"cannot read {path}: {exc}", file=sys.stderr)
         return 1
     if not isinstance(status, dict):

@@ -134,8 +134,12 @@ def load_toml(path: str | Path) -> dict[str, Any]:
     """Parse a TOML file, turning syntax errors and unreadable or missing files into ConfigError."""
     p = Path(path)
     try:
+        if p.exists() and not p.is_dir() and not p.is_file():  # a FIFO or a device would block or never end
+            raise ConfigError(f"configuration file {p} is not a regular file")
         with p.open("rb") as fh:
             return tomllib.load(fh)
+    except RecursionError:  # tomllib parses nested arrays and inline tables recursively
+        raise ConfigError(f"{p}: invalid TOML: arrays or inline tables nested too deeply") from None
     except FileNotFoundError:
         raise ConfigError(f"configuration file not found: {p}") from None
     except IsADirectoryError:

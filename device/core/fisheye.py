@@ -20,7 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from stereopath.device.core.rig import CameraModel, checked_array, checked_intrinsics, checked_size, make_camera
+from stereopath.device.core.rig import DISTORTION_MAX, CameraModel, check_plausible_camera, checked_array, checked_intrinsics, \
+    checked_size, make_camera
 from stereopath.device.errors import CalibrationError
 
 # A view whose pixels fall outside the fisheye image more than this is refused; below it the few
@@ -42,7 +43,11 @@ def make_fisheye_camera(name: str, K: Any, dist: Any, size: Any) -> FisheyeCamer
     if dist is None:
         raise CalibrationError(f"{name}.distortion: missing (an equidistant camera has k1, k2, k3, k4)")
     d = checked_array(f"{name}.distortion", dist, (4,))
-    return FisheyeCamera(K=checked_intrinsics(name, K), dist=d, size=checked_size(name, size))
+    if np.any(np.abs(d) > DISTORTION_MAX):
+        raise CalibrationError(f"{name}.distortion: a coefficient beyond +-{DISTORTION_MAX:g}: {d.tolist()}")
+    K, wh = checked_intrinsics(name, K), checked_size(name, size)
+    check_plausible_camera(name, K, wh)
+    return FisheyeCamera(K=K, dist=d, size=wh)
 
 
 @dataclass(frozen=True, eq=False)

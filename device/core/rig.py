@@ -31,6 +31,50 @@ ORTHO_TOL = 1e-2  # |R^T R - I| (max element) above this is not a rotation
 ORTHO_SILENT = 1e-9  # below this R is taken as it is
 ORTHO_ROUNDED = 1e-3  # up to this R is a rotation written with rounded elements (projected, logged as info)
 
+# Physical plausibility of a calibration.  A focal length f (pixels) across w pixels sees a field of view of
+# 2 atan(w / 2f): below half a degree no hand-held scan holds a target in view (a 2,000 mm lens on a
+# full-frame sensor still sees 1 deg), above 170 deg a pinhole image cannot hold it (the image plane runs to
+# infinity at 180 deg; a fisheye camera is read through a pinhole view of at most that).  The principal
+# point is where the optical axis meets the image: inside it.  A stereo baseline under 1 mm gives no depth
+# at any range, over 10 m no two cameras on one rig overlap at scanning distance.
+FOV_MIN_DEG = 0.5
+FOV_MAX_DEG = 170.0
+BASELINE_MIN_M = 1e-3
+BASELINE_MAX_M = 10.0
+MAX_IMAGE_SIDE = 65536  # px: past any camera sensor (the largest are ~20,000 px across)
+DISTORTION_MAX = 1e4  # |coefficient|: OpenCV's rational and thin-prism terms stay in the tens
+
+
+def focal_range_px(pixels: int) -> tuple[float, float]:
+    """The focal lengths (pixels) that see between :data:`FOV_MAX_DEG` and :data:`FOV_MIN_DEG` across ``pixels``."""
+    lo = pixels / (2.0 * np.tan(np.radians(FOV_MAX_DEG) / 2.0))
+    hi = pixels / (2.0 * np.tan(np.radians(FOV_MIN_DEG) / 2.0))
+    return float(lo), float(hi)
+
+
+def check_plausible_camera(name: str, K: np.ndarray, size: tuple[int, int]) -> None:
+    """Refuse focal lengths whose field of view is outside [FOV_MIN_DEG, FOV_MAX_DEG] and a principal point
+    outside the image; the message names the field, the value and the range."""
+    w, h = size
+    for label, f, pixels, axis in (("fx", K[0, 0], w, "width"), ("fy", K[1, 1], h, "height")):
+        lo, hi = focal_range_px(pixels)
+        if not lo <= f <= hi:
+            raise CalibrationError(
+                f"{name}.K: {label} = {f:.6g} px is implausible for an image {pixels} px in {axis}: a field of "
+                f"view between {FOV_MIN_DEG:g} and {FOV_MAX_DEG:g} deg needs {lo:.4g} to {hi:.4g} px")
+    for label, c, pixels in (("cx", K[0, 2], w), ("cy", K[1, 2], h)):
+        if not 0.0 <= c <= pixels:
+            raise CalibrationError(f"{name}.K: principal point {label} = {c:.6g} px lies outside the image "
+                                   f"(0 to {pixels} px)")
+
+
+def check_plausible_baseline(T: np.ndarray) -> None:
+    big = float(np.max(np.abs(T)))
+    b = big * float(np.linalg.norm(T / big)) if big > 0 else 0.0  # scaled: 1e308 squared overflows
+    if not BASELINE_MIN_M <= b <= BASELINE_MAX_M:
+        raise CalibrationError(f"T: baseline {b:.6g} m is implausible (a stereo rig's is between "
+                               f"{BASELINE_MIN_M * 1000:g} mm and {BASELINE_MAX_M:g} m; T is in metres)")
+
 
 @dataclass(frozen=True, eq=False)
 class CameraModel:
@@ -171,7 +215,7 @@ def _compute_rectification(rig: Rig, alpha: float) -> Rectification:
 def checked_array(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
     try:
         a = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond any float
         raise CalibrationError(f"{name}: not numeric: {value!r}") from None
     if a.size == int(np.prod(shape)) and a.shape != shape:
         a = a.reshape(shape)
@@ -198,7 +242,7 @@ def intrinsic_matrix(where: str, intr: Any) -> np.ndarray:
         raise CalibrationError(f"{where}.intrinsics must be [fx, fy, cx, cy], got {intr!r}")
     try:
         fx, fy, cx, cy = (float(v) for v in intr)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CalibrationError(f"{where}.intrinsics must be numbers, got {intr!r}") from None
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
 
@@ -222,10 +266,12 @@ def _whole_number(v: Any) -> int:
 def checked_size(name: str, size: Any) -> tuple[int, int]:
     try:
         w, h = (_whole_number(v) for v in size)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CalibrationError(f"{name}.image_size: expected [width, height] in whole pixels, got {size!r}") from None
     if w <= 0 or h <= 0:
         raise CalibrationError(f"{name}.image_size: must be positive, got {w}x{h}")
+    if w > MAX_IMAGE_SIDE or h > MAX_IMAGE_SIDE:
+        raise CalibrationError(f"{name}.image_size: {w}x{h} is implausible (at most {MAX_IMAGE_SIDE} px a side)")
     return w, h
 
 
@@ -234,18 +280,24 @@ def make_camera(name: str, K: Any, dist: Any, size: Any) -> CameraModel:
     K = checked_intrinsics(name, K)
     try:
         d = np.asarray(dist if dist is not None else np.zeros(5), dtype=float).reshape(-1)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CalibrationError(f"{name}.distortion: not numeric: {dist!r}") from None
     if d.size not in (4, 5, 8, 12, 14):
         raise CalibrationError(f"{name}.distortion: expected 4, 5, 8, 12 or 14 coefficients, got {d.size}")
     if not np.all(np.isfinite(d)):
         raise CalibrationError(f"{name}.distortion: contains non-finite values")
-    return CameraModel(K=K, dist=d, size=checked_size(name, size))
+    if np.any(np.abs(d) > DISTORTION_MAX):
+        raise CalibrationError(f"{name}.distortion: a coefficient beyond +-{DISTORTION_MAX:g}: {d.tolist()}")
+    wh = checked_size(name, size)
+    check_plausible_camera(name, K, wh)
+    return CameraModel(K=K, dist=d, size=wh)
 
 
 def validated_rotation(name: str, R: Any) -> np.ndarray:
     """Check that ``R`` is (nearly) a rotation; project a nearly orthonormal one onto SO(3)."""
     R = checked_array(name, R, (3, 3))
+    if float(np.max(np.abs(R))) > 1.0 + ORTHO_TOL:  # before any product: 1e308 squared overflows
+        raise CalibrationError(f"{name}: not a rotation (an element is {float(np.max(np.abs(R))):.3g}, beyond +-1)")
     err = float(np.max(np.abs(R.T @ R - np.eye(3))))
     det = float(np.linalg.det(R))
     if det <= 0:
@@ -288,8 +340,9 @@ def make_rig(cam0: CameraModel, cam1: CameraModel, R: Any, T: Any, name: str = "
     """Validated :class:`Rig` from parts (``R``, ``T`` = ``T_cam1_cam0``, metres)."""
     R = validated_rotation(f"rig {name!r}: R", R)
     T = checked_array("T", T, (3,))
-    if np.linalg.norm(T) < 1e-6:
+    if float(np.max(np.abs(T))) < 1e-6:
         raise CalibrationError("T: zero baseline (the two cameras coincide)")
+    check_plausible_baseline(T)
     check_baseline_sign(R, T)
     Tb = None if T_body_cam0 is None else checked_array("T_body_cam0", T_body_cam0, (4, 4))
     if Tb is not None:

@@ -37,7 +37,7 @@ from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.rig import Rig
 from stereopath.device.core.fisheye import PinholeView
 from stereopath.device.formats.rig_files import load_euroc_calibration, load_rig_yaml
-from stereopath.device.formats.tum import Trajectory, read_tum, read_tum_poses
+from stereopath.device.formats.tum import Trajectory, check_position, check_quaternion, read_tum, read_tum_poses
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +147,7 @@ def open_session(session_dir: str | Path) -> AslSequence:
     if mpath.is_file():
         try:
             seq.manifest = json.loads(mpath.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:  # it only describes the recording:
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:  # it only describes the recording:
             log.warning("%s: invalid JSON, ignored (%s)", mpath, exc)  # the images and IMU are what count
         status = seq.manifest.get("status") if isinstance(seq.manifest, dict) else None
         if status == "recording":
@@ -234,8 +234,8 @@ def _read_euroc_state_csv(path: Path) -> Trajectory:
         t = parse_int(path, line, f[0])
         v = [parse_float(path, line, x) for x in f[1:8]]
         row = [*v[:3], v[4], v[5], v[6], v[3]]  # q w, x, y, z -> x, y, z, w
-        if np.linalg.norm(row[3:]) < 1e-9:
-            raise DatasetError(f"{path}:{line}: zero quaternion")
+        check_position(path, line, np.array(row[:3]))
+        check_quaternion(path, line, np.array(row[3:]))
         ts.append(t)
         Ts.append(row)
     if not ts:

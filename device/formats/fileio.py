@@ -72,19 +72,54 @@ def write_atomic(path: str | Path, data: bytes, fsync: bool = True, mode: int | 
 
 
 def check_out_folder(path: str | Path, option: str = "--out", inputs: Iterable[str | Path] = (),
-                     not_a_session: bool = False, instead: str | Path | None = None) -> None:
+                     not_a_session: bool = True, instead: str | Path | None = None) -> None:
     """Refuse, before anything is computed, an output folder path that names an existing file, that
-    is one of the ``inputs`` folders or (``not_a_session``) holds a recorded session (``mav0/``):
-    run outputs would replace recorded files, e.g. a session's on-board ``trajectory.tum``; or
-    that cannot be written: the folder itself when it exists, else the nearest folder above it
-    that does (where it would be made) - read-only file system or no permission.  ``instead``: the
-    folder a refusal suggests (default: ``<path>-out`` beside it)."""
+    is one of the ``inputs`` folders, the file system root, a recorded session (``mav0/``) or a folder
+    inside one (:func:`check_out_location`): run outputs would replace recorded files, e.g. a session's
+    on-board ``trajectory.tum``; or that cannot be written: the folder itself when it exists, else the
+    nearest folder above it that does (where it would be made) - read-only file system or no permission.
+    ``instead``: the folder a refusal suggests (default: ``<path>-out`` beside it).  ``not_a_session``
+    is kept for callers; every output folder is held to the session rule."""
     from stereopath.device.errors import ConfigError
 
     try:
         _check_out_folder(Path(path), option, inputs, not_a_session, instead)
     except OSError as exc:  # a name too long, a loop of links...: the path itself is unusable
         raise ConfigError(f"{option} {path}: {exc.strerror or exc}") from None
+
+
+def recorded_session_around(path: str | Path) -> Path | None:
+    """The recorded session (a folder holding ``mav0/``: ours, EuRoC's, TUM VI's) that ``path`` is or lies
+    in, symbolic links resolved; None when there is none."""
+    here = Path(path).resolve()
+    for folder in (here, *here.parents):
+        if (folder / "mav0").is_dir():
+            return folder
+    return None
+
+
+def check_out_location(path: str | Path, option: str = "--out", instead: str | Path | None = None) -> None:
+    """The rules every command that writes applies to where it writes, before anything is computed: never the
+    file system root, never a recorded session (a folder holding ``mav0/``) nor a folder inside one (a
+    run's files would mix with, or replace, what was recorded).  ``instead``: the folder a refusal suggests.
+    OSError (a name too long...) is the caller's: :func:`check_out_folder` turns it into a ConfigError."""
+    from stereopath.device.errors import ConfigError
+
+    p = Path(path)
+    here = p.resolve()
+    if here == Path(here.anchor):
+        raise ConfigError(f"{option} {p}: is the file system root; the rule: outputs go into a folder of their own "
+                          f"(give one, e.g. /tmp/stereopath-out)")
+    session = recorded_session_around(here)
+    if session is None:
+        return
+    other = instead if instead is not None else session.parent / (session.name + "-out")
+    if session == here:
+        raise ConfigError(f"{option} {p}: holds a recorded session (mav0/); the rule: outputs never go into a "
+                          f"recorded session, its recorded files would be replaced (give another folder, e.g. "
+                          f"{other})")
+    raise ConfigError(f"{option} {p}: is inside the recorded session {session}; the rule: outputs never go into a "
+                      f"recorded session or a folder of it (give a folder outside it, e.g. {other})")
 
 
 def _check_out_folder(p: Path, option: str, inputs: Iterable[str | Path], not_a_session: bool,
@@ -96,9 +131,7 @@ def _check_out_folder(p: Path, option: str, inputs: Iterable[str | Path], not_a_
         if Path(src).is_dir() and p.resolve() == Path(src).resolve():
             raise ConfigError(f"{option} {p}: is the input folder {src}; its recorded files would be replaced "
                               f"(give another folder, e.g. {other})")
-    if not_a_session and (p / "mav0").is_dir():
-        raise ConfigError(f"{option} {p}: holds a recorded session (mav0/); its recorded files would be replaced "
-                          f"(give another folder, e.g. {other})")
+    check_out_location(p, option, instead=instead)
     if p.exists() and not p.is_dir():
         raise ConfigError(f"{option} {p}: exists and is not a folder")
     where = p.absolute()
@@ -117,10 +150,13 @@ def check_out_file(path: str | Path, option: str = "--out", example: str = "out.
     from stereopath.device.errors import ConfigError
 
     p = Path(path)
-    if p.is_dir():
-        raise ConfigError(f"{option} {p}: is a folder; give the file to write, e.g. {p / example}")
-    if p.exists() and not p.is_file():
-        raise ConfigError(f"{option} {p}: exists and is not a regular file")
+    try:
+        if p.is_dir():
+            raise ConfigError(f"{option} {p}: is a folder; give the file to write, e.g. {p / example}")
+        if p.exists() and not p.is_file():
+            raise ConfigError(f"{option} {p}: exists and is not a regular file")
+    except OSError as exc:  # a name too long, a loop of links...
+        raise ConfigError(f"{option} {p}: {exc.strerror or exc}") from None
     check_out_folder(p.parent, option=f"{option} {p}: the folder")
     return p
 

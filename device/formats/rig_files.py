@@ -37,11 +37,15 @@ def _read_yaml(path: Path, what: str) -> Any:
         raise CalibrationError(f"{what} not found: {path}") from None
     except UnicodeDecodeError:
         raise CalibrationError(f"{path}: not a text file") from None
+    except OSError as exc:  # a folder, a name too long, a loop of links, no permission
+        raise CalibrationError(f"{what} {str(path)[:200]}: cannot be read: {exc.strerror or exc}") from None
     text = re.sub(r"^%YAML.*$", "", text, count=1, flags=re.MULTILINE)  # OpenCV-style header
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise CalibrationError(f"{path}: invalid YAML: {exc}") from None
+    except RecursionError:  # PyYAML composes nested collections recursively
+        raise CalibrationError(f"{path}: invalid YAML: collections nested too deeply") from None
 
 
 def _rig_from_yaml_data(p: Path, data: Any) -> Rig:
@@ -76,6 +80,10 @@ def load_kitti_calib(path: str | Path, image_size: tuple[int, int]) -> Rig:
         lines = p.read_text().splitlines()
     except FileNotFoundError:
         raise CalibrationError(f"KITTI calibration not found: {p}") from None
+    except UnicodeDecodeError:
+        raise CalibrationError(f"{p}: not a text file") from None
+    except OSError as exc:
+        raise CalibrationError(f"KITTI calibration {p}: cannot be read: {exc.strerror or exc}") from None
     mats: dict[str, np.ndarray] = {}
     for i, line in enumerate(lines, 1):
         if not line.strip():
@@ -95,10 +103,13 @@ def load_kitti_calib(path: str | Path, image_size: tuple[int, int]) -> Rig:
     P1 = mats["P1"].reshape(3, 4)
     if P1[0, 0] <= 0:
         raise CalibrationError(f"{p}: P1: focal length must be positive")
-    baseline = -P1[0, 3] / P1[0, 0]
-    cam0 = make_camera("cam0", P0[:, :3], np.zeros(5), image_size)
-    cam1 = make_camera("cam1", P1[:, :3], np.zeros(5), image_size)
-    return make_rig(cam0, cam1, np.eye(3), [-baseline, 0.0, 0.0], name="kitti")
+    try:
+        baseline = -P1[0, 3] / P1[0, 0]
+        cam0 = make_camera("P0", P0[:, :3], np.zeros(5), image_size)
+        cam1 = make_camera("P1", P1[:, :3], np.zeros(5), image_size)
+        return make_rig(cam0, cam1, np.eye(3), [-baseline, 0.0, 0.0], name="kitti")
+    except CalibrationError as exc:
+        raise CalibrationError(f"{p}: {exc}") from None
 
 
 def _euroc_sensor(path: Path, what: str = "EuRoC sensor file") -> dict[str, Any]:

@@ -15,11 +15,55 @@ import numpy as np
 from stereopath.device.errors import DatasetError
 from stereopath.device.formats.csvrows import INT64_MAX, INT64_MIN, read_lines
 from stereopath.device.formats.fileio import write_text_atomic
-from stereopath.device.core.geometry import matrix_to_quat_xyzw
+from stereopath.device.core.geometry import matrix_to_quat_xyzw, project_to_so3
 from stereopath.device.core.trajectory import Trajectory
 
 
 _SECONDS_BOUND = Decimal(10) ** 10  # past int64 nanoseconds (about 9.2e9 s, 292 years either side of 1970)
+
+# Physical sanity of a pose read from a file.  A hand-held scan, a drone or a car stays within 1,000 km of
+# where its path starts, and a value beyond that (1e308 fits a float) would overflow the alignment's sums
+# of squares.  A quaternion written with two decimals is within 1 % of unit length: 5 % is a typo or a
+# column in the wrong place.  A rotation matrix written with six digits is orthonormal within 1e-5.
+POSITION_BOUND_M = 1e6
+QUAT_NORM_TOL = 0.05
+ROTATION_TOL = 1e-2  # max |R^T R - I|, as for a rig's rotation
+
+
+def check_position(path: Path, line: int, p_m: np.ndarray) -> None:
+    """Refuse a non-finite position or one farther than :data:`POSITION_BOUND_M` from the origin."""
+    if not np.all(np.isfinite(p_m)):
+        raise DatasetError(f"{path}:{line}: non-finite position")
+    if float(np.max(np.abs(p_m))) > POSITION_BOUND_M:
+        raise DatasetError(f"{path}:{line}: position {np.max(np.abs(p_m)):.3g} m from the origin is beyond the "
+                           f"{POSITION_BOUND_M:.0e} m a trajectory may reach (a wrong unit or a damaged value?)")
+
+
+def check_quaternion(path: Path, line: int, q: np.ndarray) -> None:
+    """Refuse a quaternion that is not finite or not within :data:`QUAT_NORM_TOL` of unit length."""
+    if not np.all(np.isfinite(q)):
+        raise DatasetError(f"{path}:{line}: non-finite quaternion")
+    big = float(np.max(np.abs(q)))
+    n = big if big > 2.0 else float(np.linalg.norm(q))  # (1e308)^2 overflows; its largest element says enough
+    if n < 1e-9:
+        raise DatasetError(f"{path}:{line}: zero quaternion")
+    if abs(n - 1.0) > QUAT_NORM_TOL:
+        raise DatasetError(f"{path}:{line}: quaternion of length {n:.4g}, not a rotation (a unit quaternion is "
+                           f"1 +- {QUAT_NORM_TOL})")
+
+
+def checked_rotation(path: Path, line: int, R: np.ndarray) -> np.ndarray:
+    """``R`` when it is (nearly) a rotation: |R^T R - I| within :data:`ROTATION_TOL`, det > 0; a rotation
+    written with rounded elements beyond what the evaluation takes as a rotation (1e-6) is projected onto SO(3)."""
+    if not np.all(np.isfinite(R)) or float(np.max(np.abs(R))) > 1.0 + ROTATION_TOL:
+        raise DatasetError(f"{path}:{line}: rotation has an element beyond +-1: not a rotation matrix")
+    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if err > ROTATION_TOL or np.linalg.det(R) <= 0:
+        raise DatasetError(f"{path}:{line}: not a rotation matrix (max |R^T R - I| = {err:.3g}, "
+                           f"det = {np.linalg.det(R):.3g})")
+    if np.allclose(R.T @ R, np.eye(3), atol=1e-6) and abs(np.linalg.det(R) - 1.0) <= 1e-6:
+        return R  # as written: what the evaluation (evo's is_so3) takes as a rotation is not changed
+    return project_to_so3(R)
 
 
 def seconds_to_ns(text: str) -> int:
@@ -83,8 +127,8 @@ def read_tum_poses(path: str | Path, torn_tail_ok: bool = False) -> Trajectory |
             v = np.array([float(x) for x in parts[1:]])
         except ValueError:
             raise DatasetError(f"{p}:{i}: non-numeric value") from None
-        if not np.all(np.isfinite(v)) or np.linalg.norm(v[3:]) < 1e-9:
-            raise DatasetError(f"{p}:{i}: non-finite value or zero quaternion")
+        check_position(p, i, v[:3])
+        check_quaternion(p, i, v[3:])
         ts.append(t)
         rows.append(v)
     return Trajectory.from_pose_rows(ts, rows) if ts else None
@@ -113,6 +157,8 @@ def read_kitti_poses(path: str | Path, t_ns: np.ndarray | None = None) -> Trajec
             raise DatasetError(f"{p}:{i}: non-finite value")
         T = np.eye(4)
         T[:3, :] = v.reshape(3, 4)
+        T[:3, :3] = checked_rotation(p, i, T[:3, :3])
+        check_position(p, i, T[:3, 3])
         Ts.append(T)
     if not Ts:
         raise DatasetError(f"{p}: no poses")

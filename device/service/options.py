@@ -106,7 +106,34 @@ def _check_keys(cfg: DeviceConfig, environ: Mapping[str, str] | None) -> None:
 
 
 def check_config(cfg: DeviceConfig, environ: Mapping[str, str] | None = None) -> None:
-    """Checks that need the file system (key files, calibration, recording); ConfigError names the key."""
+    """Checks that need the file system (key files, calibration, recording); ConfigError names the key.
+
+    A path the system cannot look at (a name too long, a loop of links, no permission) is a ConfigError too."""
+    try:
+        _check_config(cfg, environ)
+    except OSError as exc:
+        where = f" {_short(str(exc.filename))}" if exc.filename else ""
+        raise ConfigError(f"cannot use the path{where}: {exc.strerror or exc}") from None
+
+
+def _short(path: str, keep: int = 100) -> str:
+    """``repr(path)``, its middle cut when it is long (a message stays one readable line)."""
+    return repr(path) if len(path) <= keep else f"{path[:keep // 2]!r}...{path[-keep // 2:]!r} ({len(path)} characters)"
+
+
+def _check_recorder_dir(cfg: DeviceConfig) -> None:
+    """``recorder.dir`` (where sessions are made) must be a folder, or not exist yet under a folder."""
+    d = Path(cfg.recorder.dir)
+    if d.exists() and not d.is_dir():
+        raise ConfigError(f"recorder.dir = {cfg.recorder.dir!r}: exists and is not a folder")
+    above = d.absolute()
+    while not above.exists() and above != above.parent:
+        above = above.parent
+    if not above.is_dir():
+        raise ConfigError(f"recorder.dir = {cfg.recorder.dir!r}: {above} is not a folder")
+
+
+def _check_config(cfg: DeviceConfig, environ: Mapping[str, str] | None) -> None:
     if cfg.stream.enabled and not cfg.stream.insecure:
         _check_keys(cfg, environ)
     if cfg.stream.enabled and cfg.stream.insecure:
@@ -117,12 +144,24 @@ def check_config(cfg: DeviceConfig, environ: Mapping[str, str] | None = None) ->
                 check_loopback_endpoint(getattr(cfg.stream, key))
             except ConfigError as exc:
                 raise ConfigError(f"stream.{key}: {exc}") from None
-    if cfg.source.rig_file and not Path(cfg.source.rig_file).is_file():
-        raise ConfigError(f"source.rig_file = {cfg.source.rig_file!r}: file not found")
+    check_rig_file(cfg)
+    if cfg.recorder.enabled:
+        _check_recorder_dir(cfg)
     if cfg.source.backend == "replay" and not cfg.source.replay.path:
         raise ConfigError("source.replay.path is empty: name the recording (session:DIR, euroc:DIR or kitti:DIR)")
     if cfg.imu.backend == "source" and cfg.source.backend == "picamera2":
         raise ConfigError("imu.backend = 'source' but the picamera2 cameras have no IMU of their own")
+
+
+def check_rig_file(cfg: DeviceConfig) -> None:
+    """``source.rig_file``, when set, names a file the system can look at (ConfigError names the key)."""
+    if cfg.source.rig_file:
+        try:
+            found = Path(cfg.source.rig_file).is_file()
+        except OSError as exc:  # a name too long, a loop of links
+            raise ConfigError(f"source.rig_file = {_short(cfg.source.rig_file)}: {exc.strerror or exc}") from None
+        if not found:
+            raise ConfigError(f"source.rig_file = {_short(cfg.source.rig_file)}: file not found")
 
 
 def flat(mapping: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:

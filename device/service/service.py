@@ -202,6 +202,10 @@ class CaptureService:
                  json.dumps(as_dict(cfg), separators=(",", ":"), default=str))
         self.session_id = new_session_id()
         self.session_dir = Path(self.options.out) if self.options.out else Path(cfg.recorder.dir) / self.session_id
+        from stereopath.device.formats.fileio import check_out_folder
+
+        # never the root, a recorded session or a folder of one; nor a file or a folder that cannot be written
+        check_out_folder(self.session_dir, option="--out" if self.options.out else "recorder.dir/<session id>")
         self._session_dir_existed = self.session_dir.exists()
         if self.session_dir.exists() and (not self.session_dir.is_dir() or any(self.session_dir.iterdir())):
             raise ConfigError(f"--out {self.session_dir}: exists and is not empty (a session is never overwritten; "

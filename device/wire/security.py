@@ -112,10 +112,44 @@ def load_secret_keypair(path: str | Path) -> tuple[bytes, bytes]:
     public, secret = _load_certificate(p, "secret")
     if not secret:
         raise ConfigError(f"{p} holds no secret key (is it the public .key file?)")
-    mode = p.stat().st_mode
-    if mode & (stat.S_IRGRP | stat.S_IROTH):
-        log.warning("secret key %s is readable by group/others (chmod 600 it)", p)
+    check_secret_mode(p)
     return public, secret
+
+
+def check_secret_mode(path: str | Path) -> None:
+    """Refuse a secret key file that group or others may read or write (OpenSSH refuses such a private key).
+
+    A symbolic link is judged by the file it points to: that file's mode is what guards the key."""
+    p = Path(path)
+    try:
+        target = p.resolve(strict=True)
+        mode = target.stat().st_mode
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot check the secret key's permissions: {exc.strerror or exc}") from None
+    if mode & 0o077:
+        via = "" if target == p.absolute() else f" (through the link {p})"
+        raise ConfigError(f"secret key {target}{via} is accessible by group/others (mode {stat.S_IMODE(mode):04o}); "
+                          f"a secret key must be private: chmod 600 {_quoted(target)}")
+
+
+def _quoted(path: Path) -> str:
+    import shlex
+
+    return shlex.quote(str(path))
+
+
+def check_clients_dir_mode(clients_dir: str | Path) -> None:
+    """Refuse an authorised-hosts folder, or a host key in it, that group or others may write: whoever can
+    write there authorises a host at the next start (OpenSSH refuses such an authorized_keys)."""
+    d = Path(clients_dir)
+    items = [d] + sorted(d.glob("*.key"))
+    for item in items:
+        target = item.resolve()
+        mode = target.stat().st_mode
+        if mode & (stat.S_IWGRP | stat.S_IWOTH):
+            what = "authorised host key folder" if item == d else "authorised host key"
+            raise ConfigError(f"{what} {target} is writable by group/others (mode {stat.S_IMODE(mode):04o}): "
+                              f"anyone who can write there could authorise a host; chmod go-w {_quoted(target)}")
 
 
 def load_public_key(path: str | Path) -> bytes:
@@ -128,6 +162,7 @@ def authorized_keys(clients_dir: str | Path) -> list[Path]:
     d = Path(clients_dir)
     if not d.is_dir():
         raise ConfigError(f"authorised host key directory not found: {d}")
+    check_clients_dir_mode(d)
     keys = sorted(d.glob("*.key"))
     if not keys:
         raise ConfigError(f"no authorised host keys (*.key) in {d}: no host could connect")
@@ -222,7 +257,7 @@ def make_demo_keys(root: str | Path, host_name: str = "host") -> DemoKeys:
     dev_pub, dev_sec = generate_keypair(r / "device", "device", overwrite=True)
     host_pub, host_sec = generate_keypair(r / "host", host_name, overwrite=True)
     clients = r / "device" / "clients"
-    clients.mkdir(parents=True, exist_ok=True)
+    clients.mkdir(mode=0o755, parents=True, exist_ok=True)  # never group-writable, whatever the umask
     shutil.copy(host_pub, clients / host_pub.name)
     shutil.copy(dev_pub, r / "host" / "device.key")
     return DemoKeys(r, dev_sec, clients, r / "host", host_sec, r / "host" / "device.key")

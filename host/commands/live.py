@@ -69,6 +69,10 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and args.duration <= 0:
         raise ConfigError(f"--duration must be positive, got {args.duration}")
     check_out_folder(args.out)
+    if args.rerun_save:
+        from stereopath.device.formats.fileio import check_out_file
+
+        check_out_file(args.rerun_save, option="--rerun-save", example="live.rrd")
     pose_ep, kf_ep = endpoints_from_address(args.device, args.keyframe_port)
     config = ReceiverConfig(pose_endpoint=pose_ep, keyframe_endpoint=kf_ep, insecure=args.insecure,
                             keys_dir=args.keys, device_key=args.device_key, window=args.window,

@@ -27,11 +27,13 @@ def run(args: argparse.Namespace) -> int:
     import time
 
     from stereopath.device.errors import ConfigError
+    from stereopath.device.formats.fileio import check_out_folder
     from stereopath.device.formats.recorder import record_sequence
     from stereopath.device.sim.session import SimConfig, open_sim
 
     if args.frames is not None and args.frames < 1:
         raise ConfigError(f"--frames must be at least 1, got {args.frames}")
+    check_out_folder(args.out)
     chosen = {k: v for k, v in (("frames", args.frames), ("seed", args.seed), ("trajectory", args.trajectory))
               if v is not None}
     cfg = SimConfig(**chosen)

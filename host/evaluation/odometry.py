@@ -15,6 +15,17 @@ from stereopath.host.progress import Bar
 log = logging.getLogger(__name__)
 
 
+def optional_groundtruth(seq) -> tuple[Trajectory | None, str | None]:
+    """(the sequence's ground truth or None, why it is unusable): a bad optional ground truth only drops
+    the errors against it (the estimate and its outputs are written all the same)."""
+    from stereopath.device.errors import StereopathError
+
+    try:
+        return getattr(seq, "groundtruth", None), None
+    except StereopathError as exc:
+        return None, str(exc)
+
+
 def _frames(seq, limit: int | None):
     it = seq.frames()
     return it if limit is None else itertools.islice(it, limit)
@@ -26,7 +37,10 @@ def estimate_sequence(seq, estimator: str = "stereo", preset: str | None = None,
         from stereopath.device.core.stereo_order import check_sequence_order
 
         check_sequence_order(seq)
-    gt = getattr(seq, "groundtruth", None)
+    if estimator == "sfm":  # its step lengths come from the ground truth: an unusable one stops it
+        gt = getattr(seq, "groundtruth", None)
+    else:  # a hint only (the simulator's first pose); a bad one is reported with the results
+        gt, _ = optional_groundtruth(seq)
     est = make_estimator(estimator, seq.rig, preset=preset, groundtruth=gt, options=options)
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
     with Bar(total, f"{estimator} odometry", None if progress else False, unit="frame") as tick:
@@ -37,7 +51,9 @@ def report_for(run: EstimateRun, seq, source_label: str) -> tuple[dict, Trajecto
     from stereopath.host.evaluation.evaluate import evaluate
     from stereopath.host.evaluation.report import make_report
 
-    gt = getattr(seq, "groundtruth", None)
+    gt, gt_error = optional_groundtruth(seq)
+    if gt_error is not None:
+        log.warning("ground truth unusable, results written without errors against it: %s", gt_error)
     metrics = evaluate(gt, run.trajectory) if gt is not None else None
     report = make_report(
         source=source_label, estimator=run.estimator, frames=int(run.extra.get("frames_in", len(run.estimates))),
@@ -47,6 +63,8 @@ def report_for(run: EstimateRun, seq, source_label: str) -> tuple[dict, Trajecto
     report.setdefault("extra", {}).update({"estimator_stats": run.extra})
     skipped = list(getattr(seq, "skipped_frames", None) or [])
     report["extra"]["frames_skipped"] = len(skipped)
+    if gt_error is not None:
+        report["extra"]["groundtruth_error"] = gt_error
     if skipped:
         report["extra"]["skipped_frame_indexes"] = skipped[:1000]
     return report, gt

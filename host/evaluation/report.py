@@ -109,8 +109,10 @@ def read_report(path: str | Path) -> dict[str, Any]:
         data = json.loads(p.read_text())
     except FileNotFoundError:
         raise DatasetError(f"report not found: {p}") from None
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{p}: invalid JSON: {exc}") from None
+    except RecursionError:
+        raise DatasetError(f"{p}: invalid JSON: nested too deeply") from None
     missing = [k for k in REPORT_KEYS if k not in data] if isinstance(data, dict) else list(REPORT_KEYS)
     if missing:
         raise DatasetError(f"{p}: not a stereopath report (missing {', '.join(missing)})")

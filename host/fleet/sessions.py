@@ -41,7 +41,7 @@ def session_id(d: Path) -> str:
         man = json.loads((d / "manifest.json").read_text())
         if isinstance(man, dict) and isinstance(man.get("session_id"), str):
             sid = man["session_id"]
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         pass
     sid = _UNSAFE.sub("_", sid or d.name).strip("._") or "session"
     return sid

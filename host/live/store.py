@@ -252,7 +252,7 @@ class KeyframeStore:
                 sid = json.loads(state.read_text()).get("last_session")
                 if isinstance(sid, str) and SESSION_ID_RE.match(sid):
                     self._last_session = sid
-            except (OSError, ValueError, AttributeError) as exc:
+            except (OSError, ValueError, AttributeError, RecursionError) as exc:
                 log.warning("ignoring unreadable %s: %s", state, exc)
 
     def session(self, session_id: str) -> SessionKeyframes:

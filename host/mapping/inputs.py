@@ -116,7 +116,7 @@ def associate_poses(frame_t_ns: np.ndarray, traj: Trajectory, max_dt_ns: int) ->
     dt = np.abs(tt_s[j] - ft)
     ok = dt <= max_dt_ns
     poses = np.asarray(traj.T_world_cam)[order][j[ok]]
-    finite = np.all(np.isfinite(poses.reshape(len(poses), -1)), axis=1)
+    finite = np.all(np.isfinite(poses), axis=(1, 2))  # (0, 4, 4) when no pose is near a frame
     idx = np.nonzero(ok)[0][finite]
     return idx.astype(np.int64), poses[finite]
 
