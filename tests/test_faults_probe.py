@@ -262,3 +262,13 @@ def test_a_secret_key_that_is_a_fifo_or_a_folder_is_named_as_such(tmp_path):
         load_secret_keypair(tmp_path / "dir.key_secret")
     with pytest.raises(ConfigError, match="key file not found"):
         load_secret_keypair(tmp_path / "missing.key_secret")
+
+
+def test_a_damaged_acked_record_offers_everything_again(tmp_path):
+    """acked.json nested too deep (or not JSON): read as 'nothing acknowledged', so the keyframes are offered."""
+    from stereopath.device.streaming.spool import ACKED_NAME, read_acked
+
+    (tmp_path / ACKED_NAME).write_text("[" * 100_000 + "]" * 100_000)
+    assert read_acked(tmp_path) == -1
+    (tmp_path / ACKED_NAME).write_text('{"acked_seq": true}')
+    assert read_acked(tmp_path) == -1

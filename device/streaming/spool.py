@@ -48,7 +48,7 @@ def read_acked(directory: str | Path) -> int:
     """The highest seq of the spool ``directory`` a host acknowledged (-1: none, or no readable record)."""
     try:
         v = json.loads((Path(directory) / ACKED_NAME).read_text()).get("acked_seq", -1)
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, AttributeError, RecursionError):  # (RecursionError: nesting too deep)
         return -1
     return v if isinstance(v, int) and not isinstance(v, bool) and v >= -1 else -1
 
