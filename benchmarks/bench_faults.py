@@ -553,7 +553,7 @@ def sc_partition(tmp: Path, mount: bool) -> dict:
             p.close()
         dev.close()
     lost, dup = _exactly_once(out, "sessN", n)
-    return _row("9 partition 20 s + 3 drops", kf_sent=n, kf_stored=len(stored_seqs(out, "sessN")), kf_lost=lost,
+    return _row("11 partition 20 s + 3 drops", kf_sent=n, kf_stored=len(stored_seqs(out, "sessN")), kf_lost=lost,
                 kf_dup=dup, rc="-", message=f"host link: {link.get('connects', 0)} connects, "
                                             f"{link.get('disconnects', 0)} disconnects, {link.get('hellos', 0)} hellos")
 
@@ -600,7 +600,7 @@ def sc_host_kill_loop(tmp: Path, mount: bool) -> dict:
             proc.communicate()
         dev.close()
     lost, dup = _exactly_once(out, "sessK", n)
-    return _row("10 host kill -9 x5", kf_sent=n, kf_stored=len(stored_seqs(out, "sessK")), kf_lost=lost,
+    return _row("12 host kill -9 x5", kf_sent=n, kf_stored=len(stored_seqs(out, "sessK")), kf_lost=lost,
                 kf_dup=dup, rc=f"{kills} x -9, last {rc}", tracebacks=tracebacks,
                 message=f"{kills} kills, then a clean stop (rc {rc})")
 
@@ -650,7 +650,7 @@ def sc_rogue_hello_device_kill(tmp: Path, mount: bool) -> dict:
             second.kill()
     _, err = second.communicate()
     lost, dup = _exactly_once(out, old.name, killed)
-    return _row("11 rogue hello, device kill -9", kf_sent=killed, kf_stored=len(stored_seqs(out, old.name)),
+    return _row("13 rogue hello, device kill -9", kf_sent=killed, kf_stored=len(stored_seqs(out, old.name)),
                 kf_lost=lost, kf_dup=dup, rc=f"kill -9 / restart {second.returncode}",
                 tracebacks=int("Traceback" in err),
                 message=f"acked.json after the rogue hello: {recorded_acked} (of {killed} spooled)")
