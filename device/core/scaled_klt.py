@@ -4,11 +4,8 @@ OpenCV's pyramidal KLT compares a window of the previous image with a window of 
 is only shifted.  When the camera moves along its axis (driving, walking towards an object) a
 near point's surroundings grow or shrink from one frame to the next: by ``Z_prev / Z_next``, the
 ratio of its depths.  A window that changed its scale pulls the tracked position off the point
-(synthetic texture magnified by 15 / 30 %, tracked from a guess about a pixel off: a median 0.23 /
-0.67 px, ``tests/test_scaled_klt.py``), an error that grows with the motion between the two frames.
-Measured on KITTI 06 taken every 2nd frame (2.4 m between frames; the windows grow by 13 % at the
-median, the nearest by 40 % and more): the on-line disparity offset, which reads the scene's depth
-from the tracked points, learns -0.15 px where every frame gives -0.19, and the path's error doubles.
+(``tests/test_scaled_klt.py``), an error that grows with the motion between the two frames and
+biases what is read from the tracks (the on-line disparity offset, the scale of the path).
 
 :func:`track_scaled` groups the points by their predicted scale in steps of ``step`` (a
 geometric ladder: ``(1 + step) ** k``), and tracks each group whose scale is not 1 from the previous

@@ -24,11 +24,8 @@ small turn of the camera also does: the two are nearly the same unknown.  Each p
 carries its *variance inflation* (``cov(d0)`` with the motion free over ``1 / info(d0)`` with the
 motion known, i.e. ``1 / (1 - rho^2)`` with ``rho`` the multiple correlation of the offset with
 the six motion parameters); the filter ignores pairs whose inflation says the motion could
-absorb most of the offset.  Measured (two-keyframe estimates from the true motion as the
-start): driving forward (KITTI 06) 3-12, an orbit around an object (simulated scan) 28-280,
-where the estimates spread by +-0.2 px around a truth of 0 although the measurements are
-unbiased (0.004 px with the true motion held fixed): tiny systematic tracking errors pass
-into the offset along the near-degenerate direction.
+absorb most of the offset: there, tiny systematic tracking errors pass into the offset along the
+near-degenerate direction.  Design and reasons: docs/architecture.md, "Disparity offset".
 """
 
 from __future__ import annotations
@@ -284,9 +281,8 @@ class OffsetFilter:
     prior_sigma: float = 0.15  # px: without evidence the offset stays near the prior
     floor_sigma: float = 0.1  # px: no single pair is trusted more than this
     max_sigma: float = 0.2  # px: poorer estimates are ignored
-    # estimates whose motion could absorb > 6/7 (86 %) of the offset's information are ignored: windows of four
-    # keyframes measured 3.1-6.7 driving forward (KITTI 06 at every 1st-3rd frame), 8.3-135 on the simulated
-    # orbits, loop and arcs (pairs: 3-12 and 14.8-280)
+    # estimates whose motion could absorb > 6/7 of the offset's information are ignored: driving forward
+    # stays below, orbits and slides past a scene lie far above
     max_inflation: float = 7.0
     gate_sigma: float = 3.0  # estimates farther than this many sigmas (combined) from the value are ignored
     bound: float = 1.0  # px: |offset - prior| never exceeds this

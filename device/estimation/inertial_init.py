@@ -22,7 +22,7 @@ on-board estimate) stands in for the rest.
   force.  It says how well the increments fit (``rms_m_s``), and the size of ``g`` is known, so the
   caller can refuse readings that do not fit the path (another unit or scale) instead of using them.
   It does not see a time offset between the IMU and the cameras of a slow hand-held path: gravity
-  dominates the specific force (0.1 s off still gives gravity within 0.1 deg on the simulated scan).
+  dominates the specific force.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The default ``stereo`` estimator: metric stereo visual-inertial odometry.
 
-Per frame (see docs/architecture.md, "Estimators"), a bounded amount of work:
+Per frame (see docs/architecture.md, "The on-board estimator"), a bounded amount of work:
 
 1. gyro integration since the previous frame gives the rotation prior (and the
    fallback when vision fails: the frame is flagged ``imu_only``);
@@ -27,7 +27,7 @@ stereo at the last four keyframes (``disparity_offset_keyframes``) whose motion 
 (:mod:`stereopath.device.estimation.disparity_offset`); when it changes, the tracked points
 restart their averaged triangulation at that keyframe (the earlier ones carry the old offset).
 When it is first learned, the path measured with the prior is re-measured with it once
-(:class:`~stereopath.device.estimation.disparity_offset.PriorPath`; KITTI 06: 4 cm after six frames).
+(:class:`~stereopath.device.estimation.disparity_offset.PriorPath`).
 
 Works without an IMU (KITTI): the prior is then a constant-velocity model.
 At start-up a still IMU block before the first frame gives the gyro bias and
@@ -76,7 +76,7 @@ UNKNOWN_BIAS_SIGMA_RAD_S = 0.1  # no still start: the bias is anything a MEMS gy
 
 @dataclass(frozen=True)
 class StereoConfig:
-    feature_preset: str = "onboard"  # modified-ASIFT preset used at keyframes (`fast`: 1.4x the CPU, see README)
+    feature_preset: str = "onboard"  # modified-ASIFT preset used at keyframes (`fast` costs more CPU for no gain here)
     use_asift_keyframes: bool = True
     max_points: int = 400  # map points kept for tracking (the frame loop's cost grows with them)
     new_corner_spacing_px: int = 14
@@ -98,8 +98,8 @@ class StereoConfig:
     relocalise: bool = True  # match SIFT against the last keyframe library when tracking fails
     fb_max_px: float = 0.6  # forward-backward KLT disagreement
     # frame-to-frame tracking compares each point's window at the scale its predicted depth change gives,
-    # in rungs of (1 + klt_scale_step)^k (device/core/scaled_klt.py; 0 = plain KLT): driving grows near
-    # windows by 10-40 % a frame and more (KITTI every 2nd frame: median 13 %), which pulls plain KLT off the points
+    # in rungs of (1 + klt_scale_step)^k (device/core/scaled_klt.py; 0 = plain KLT): moving along the
+    # optical axis grows near windows from frame to frame, which pulls plain KLT off the points
     klt_scale_step: float = 0.05
     epipolar_max_dy_px: float = 1.0
     triangulation_max_px: float = 1.0
@@ -555,11 +555,9 @@ class StereoEstimator(KeyframeJobs):
         """Take one fit into the median of the last five; None (not identifiable) changes nothing."""
         if rel is None:
             return
-        # one fit is noisy (KITTI: gain +-3 %, single fits up to 6.5 levels where their neighbours give 2-4):
-        # the median of the last five (a fit at every tracked frame, on the pose solve's right-image matches,
-        # and one at each keyframe): a quarter of a second at 20 Hz, so two AGCs that disagree more
-        # from moment to moment are followed (measured at keyframes only, the correction lagged half a
-        # swing behind a right camera whose gain swung +-25 % within 2.5 s, and did more harm than good)
+        # one fit is noisy: the median of the last five (a fit at every tracked frame, on the pose solve's
+        # right-image matches, and one at each keyframe), a quarter of a second at 20 Hz, so two AGCs that
+        # disagree from moment to moment are followed; fits at keyframes alone would lag behind them
         self._exposure_fits = (self._exposure_fits + [rel])[-5:]
         med = np.median([(f.gain, f.offset, f.change) for f in self._exposure_fits], axis=0)
         rel = GainOffset(float(med[0]), float(med[1]), rel.n, float(med[2]))

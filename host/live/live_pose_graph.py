@@ -9,9 +9,8 @@ a new keyframe is a constant-time update, a loop re-solves the variables between
 After a loop the update is repeated (each one is a Gauss-Newton step on the relinearised part)
 until the poses move by less than ``tol_m`` / ``tol_rad``.  A pose is relinearised only once its
 change passes :data:`RELINEARIZE` (0.03 mm, 0.03 mrad), so the solution stays within a few tenths of
-a millimetre of the graph's optimum (``tests/test_live_pose_graph.py``; a TSDF voxel is 4 mm).  On
-a 2,000-keyframe scan with a loop every 10 keyframes it costs 0.82x the CPU of re-solving the batch
-at every loop, a loop's corrected poses arriving in 0.74x the time (``benchmarks/bench_live_loops.py``).
+a millimetre of the graph's optimum (``tests/test_live_pose_graph.py``; a TSDF voxel is 4 mm).
+``benchmarks/bench_live_loops.py`` compares it with re-solving the batch at every loop.
 
 A keyframe that has to be forgotten (:meth:`LivePoseGraph.rebuild`) rebuilds the graph: iSAM2
 cannot take a variable out.  Pure computation: no I/O.

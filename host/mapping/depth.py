@@ -11,10 +11,9 @@ Pipeline for one stereo pair (:meth:`StereoDepth.compute`):
    disparity at ``round(x - d)`` agrees within ``lr_max_diff_px`` (this removes occlusions and
    most mismatches).  The kept disparity is the mean of the left one and the right one at
    ``x - d``: the only vertical aggregation path of SGBM's fast 3-way mode runs top to bottom,
-   which makes disparities on slanted surfaces (a table seen from above) lag by about 0.1 px
-   (measured on the simulator: -0.11 px, 1-2 mm at 1 m); in the upside-down pass the lag has the
-   opposite sign, so the mean cancels it at no extra cost (residual +0.03 px, as the 8-path
-   mode, which is three times slower);
+   which makes disparities on slanted surfaces (a table seen from above) lag by about 0.1 px;
+   in the upside-down pass the lag has the opposite sign, so the mean cancels it at no extra
+   cost (as well as the much slower 8-path mode does);
 4. speckle filtering (small connected blobs of disparity are dropped), pixels outside the
    rectified image area (black after remapping) are dropped, optional depth-edge cleaning
    (pixels next to a relative depth step) and erosion of every valid region by ``erode_px``

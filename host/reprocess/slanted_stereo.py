@@ -6,10 +6,9 @@ the translational least-squares estimate is the disparity at the window's *gradi
 centroid*, not at its centre.  Perspective compresses the texture of a receding surface, so the
 far side of a window holds more gradient energy than the near side and the centroid leans to the
 far side: the disparity comes out systematically too small.  Near a depth edge the same window
-also mixes the background into a foreground point's match.  On the simulated table scan the
-right-image KLT match of points at 0.4-1.2 m is +0.014-0.019 px off (median), far points are not,
-and bundle adjustment turns that into a path 4e-4 too long (a constant disparity offset cannot
-model an error that grows with the disparity).
+also mixes the background into a foreground point's match.  Bundle adjustment turns that bias of
+near points into a path slightly too long (a constant disparity offset cannot model an error that
+grows with the disparity).
 
 :func:`refine_slanted` starts from the translational match and fits, per point, the right-image
 position as an affine function of the window offset in x (the two slants) plus a vertical shift,
@@ -25,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-# points per block: a block's windows stay in the CPU caches (~1,000 points: 40 % less CPU than all at once)
+# points per block: a block's windows stay in the CPU caches
 BLOCK = 1024
 
 

@@ -3,9 +3,8 @@
 A track's observations are keypoints detected independently in each keyframe.  A detector's
 position is repeatable only to a fraction of a pixel, and not at all under a change of viewpoint:
 a blob on a surface seen at a slant is found at the centre of its *image*, which perspective moves
-from view to view.  On the simulated table scan the keypoints of one track, lifted to the surface
-with the true depth, scatter by 0.27 px (median, as seen from the keyframes), five times the
-stereo matches' error; bundle adjustment averages that noise into the path.
+from view to view.  The keypoints of one track, lifted to the surface with the true depth, scatter by several
+times the stereo matches' error; bundle adjustment averages that noise into the path.
 
 :func:`align_tracks` takes one observation of each track as its reference (the middle keyframe of
 the track, so the viewpoint changes least) and moves every other observation to where the

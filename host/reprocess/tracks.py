@@ -1,8 +1,7 @@
 """Feature tracks over keyframes for offline bundle adjustment (drift-free observations).
 
-The on-board estimator tracks its map points frame to frame with KLT.  Chained KLT drifts: on the
-simulated scan a track is off by about 0.25 px after one keyframe interval and 0.8 px after ten,
-and that drift is smooth in time, so bundle adjustment on those observations bends the path
+The on-board estimator tracks its map points frame to frame with KLT.  Chained KLT drifts by a
+fraction of a pixel per keyframe interval, and that drift is smooth in time, so bundle adjustment on those observations bends the path
 instead of straightening it.  Here every keyframe gets fresh detections instead:
 
 1. :func:`stereo_features`: SIFT keypoints (or any :mod:`stereopath.device.core.features` preset) of the left
