@@ -5,7 +5,7 @@ One ``GenericProjectionFactorCal3_S2`` per observation row ``(pose, point id, ca
 works, rectified or not), each with a robust noise model (Huber or Cauchy on the pixel error,
 sigma = 1 px / weight); the first ``n_fixed`` poses held by a tight prior (the gauge; scale comes
 from the right camera through the calibrated baseline); Levenberg-Marquardt over the whole batch
-(GTSAM's sparse multifrontal Cholesky, METIS ordering).  Options:
+(sequential Cholesky, the points eliminated first in a fixed order).  Options:
 
 - rotation priors (gyro integration between keyframes): a ``BetweenFactorPose3`` whose
   translation part is free (sigma 1 km);
