@@ -55,7 +55,8 @@ def plot_reprojection(path: str | Path, pair_ids: list[str], per_view_px: np.nda
         ax.bar(x + width / 2, per_view[:, 1], width, label="right camera", color="tab:orange")
     ax.axhline(rms_px, color="k", lw=1.2, ls="--", label=f"stereo RMS {rms_px:.3f} px")
     if max_rms_px is not None:
-        ax.axhline(max_rms_px, color="tab:red", lw=1.0, ls=":", label=f"--max-rms {max_rms_px:g} px (limit on the stereo RMS)")
+        ax.axhline(max_rms_px, color="tab:red", lw=1.0, ls=":",
+                   label=f"--max-rms {max_rms_px:g} px (limit on the stereo RMS)")
     ax.set_xticks(x)
     ax.set_xticklabels(pair_ids, rotation=45 if len(pair_ids) > 12 else 0)
     ax.set_xlabel("image pair")
