@@ -84,10 +84,11 @@ HEADER = """# Benchmarks
 <!-- Written by benchmarks/write_table.py from benchmarks/results/*.json: edit those, not this page. -->
 
 One row per figure: the latest value measured, its target, the command that measured it and the
-machine. CPU and wall times depend on the machine and on what else runs on it; ratios against
-ORB-SLAM3 or OpenCV's ASIFT are taken in the same run, so they compare across machines better than
-the times themselves. Refresh a row by running its command with `--json-out benchmarks/results/NAME.json`,
-then `python benchmarks/write_table.py`.
+machine (with its 1-minute load average when the run ended). CPU and wall times depend on the
+machine and on what else runs on it; ratios against ORB-SLAM3 or OpenCV's ASIFT are taken in the
+same run, so they compare across machines better than the times themselves. Refresh a row by
+running its command with `--json-out benchmarks/results/NAME.json`, then
+`python benchmarks/write_table.py`.
 
 """
 
