@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_peers.py [--runs 3] [--cases kitti06,kitti06_s2,kitti06_s3,sim,euroc]
         [--kitti SEQDIR] [--kitti-frames N] [--euroc MAV0DIR] [--euroc-frames N] [--peer-mode stereo-imu]
-        [--peer-venv DIR] [--vocab FILE] [--sim-frames N] [--threads N] [--rig RIG.yaml]
+        [--peer-venv DIR] [--vocab FILE] [--sim-frames N] [--threads N] [--rig RIG.yaml] [--json-out FILE]
 
 Installs nothing.  ORB-SLAM3 runs only when its own environment exists (a virtual environment
 with `pyorbslam3`, default `../peer-venv` or `../../peer-venv` beside the repository, or
@@ -216,6 +216,27 @@ def print_table(results: dict) -> None:
                   f"{live:.1f} CPU ms/frame")
 
 
+def json_figures(results: dict) -> dict:
+    """Per case: our medians, frames lost, and the ratios ours / ORB-SLAM3 of the same run."""
+    out: dict = {}
+    for case, systems in results.items():
+        ours = systems.get("stereo")
+        orb = next((rows for name, rows in systems.items() if name.startswith("ORB-SLAM3")), None)
+        if not ours:
+            continue
+        out[f"peers.{case}.end_error_pct"] = med(ours, "end_pct")
+        out[f"peers.{case}.ate_m"] = med(ours, "ate_m")
+        out[f"peers.{case}.median_ms"] = med(ours, "median_ms")
+        out[f"peers.{case}.p95_ms"] = med(ours, "p95_ms")
+        out[f"peers.{case}.cpu_ms"] = med(ours, "cpu_ms")
+        out[f"peers.{case}.frames_lost"] = max(r["frames"] - r["tracked"] for r in ours)
+        if orb:
+            for key, name in (("ate_m", "ate_ratio"), ("cpu_ms", "cpu_ratio")):
+                a, b = med(ours, key), med(orb, key)
+                out[f"peers.{case}.{name}"] = a / b if a is not None and b else None
+    return out
+
+
 def _positive(text: str) -> int:
     n = int(text)
     if n < 1:
@@ -242,6 +263,8 @@ def main() -> None:
     ap.add_argument("--no-peer", action="store_true", help="our rows only")
     ap.add_argument("--option", action="append", default=[], help="stereo config KEY=VALUE (ours)")
     ap.add_argument("--rig", default=None, help="rig YAML for ours instead of the source's (e.g. rig_refined.yaml)")
+    ap.add_argument("--json-out", metavar="FILE", help="also write the medians and ratios as JSON "
+                                                        "(benchmarks/write_table.py)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     import cv2
@@ -335,6 +358,10 @@ def main() -> None:
                 results[case]["stereo"].append(row)
                 print(f"{case} run {r}: stereo    {json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()})}", flush=True)
         print_table(results)
+        if args.json_out:
+            from results_file import write_results
+
+            write_results(args.json_out, "bench_peers.py", json_figures(results))
         print("targets: CPU ms <= 1.0x ORB-SLAM3, ATE <= ORB-SLAM3's, end error <= 1 % (KITTI 06, sim); "
               "every 2nd/3rd frame: 0 lost, end error <= 2 %; sim median <= 25 ms, p95 <= 50 ms")
     finally:

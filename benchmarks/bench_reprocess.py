@@ -1,7 +1,7 @@
 """Offline reprocessing (issues 5 and 13): ATE after reprocessing on the GTSAM back end, vision only and with the IMU.
 
     .venv/bin/python benchmarks/bench_reprocess.py [--runs R] [--preset NAME] [--skip-kitti] [--ablations]
-        [--imu-from-first-frame]
+        [--imu-from-first-frame] [--json-out FILE]
 
 1. The default simulated session (`stereopath sim`: 400 frames, written once into a temporary
    folder, not timed): ATE of the on-board `stereo` estimator (run in this process), then
@@ -255,8 +255,12 @@ def main() -> int:
     ap.add_argument("--keep", default=None, help="write into this folder instead of a temporary one")
     ap.add_argument("--imu-from-first-frame", action="store_true",
                     help="the simulated session recorded with its IMU cut at the first frame (no still start)")
+    ap.add_argument("--json-out", metavar="FILE",
+                    help="also write the simulated session's figures (on-board and reprocessed ATE, end-to-end "
+                         "time) as JSON (benchmarks/write_table.py)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
+    figures: dict = {}
     base = REPROCESS_PRESETS[args.preset]
 
     with tempfile.TemporaryDirectory(prefix="bench_reprocess_") as tmp_name:
@@ -269,7 +273,7 @@ def main() -> int:
             return 0
         sequences = []
         if not args.skip_sim:
-            sequences.append(sim_figures(tmp, args, base))
+            sequences.append(sim_figures(tmp, args, base, figures))
         if not args.skip_kitti:
             if KITTI.is_dir():
                 kseq = open_source(f"kitti:{KITTI}")
@@ -284,6 +288,10 @@ def main() -> int:
                 print(f"KITTI data not found at {KITTI}: skipped")
         if args.ablations:
             ablations(tmp, base, sequences)
+    if args.json_out:
+        from results_file import write_results
+
+        write_results(args.json_out, "bench_reprocess.py", figures)
     return 0
 
 
@@ -319,8 +327,9 @@ def up_error(path: Path, gt) -> str:
     return f"its up against the ground truth's over {int(ok.sum())} frames: median {np.median(a):.3f}, max {a.max():.3f} deg"
 
 
-def sim_figures(tmp: Path, args, base):
-    """The default simulated session: on-board ATE, end-to-end reprocessing, the solver comparison."""
+def sim_figures(tmp: Path, args, base, figures: dict):
+    """The default simulated session: on-board ATE, end-to-end reprocessing, the solver comparison.
+    The first two go into ``figures`` too (for --json-out)."""
     from stereopath.device.sim.session import SimConfig, open_sim
 
     cut = args.imu_from_first_frame
@@ -335,11 +344,17 @@ def sim_figures(tmp: Path, args, base):
           + (", its IMU from the first frame on (no still block before it)" if cut else ""))
     ate_on, t_on = onboard_ate(seq)
     print(f"  on-board stereo ATE {mm(ate_on)} ({t_on:.1f} s)")
+    key = "reprocess.sim_imu_from_first_frame" if cut else "reprocess.sim"
+    figures[f"{key}.ate_onboard_m"] = ate_on
     if not (args.reuse and (tmp / "sim" / "stages" / "tracks.npz").is_file()):
         t = time.perf_counter()
         res = reprocess_session(session, tmp / "sim", preset=base, progress=False, force=True)
         st = res.seconds
-        print(f"  reprocess --preset {args.preset} end to end (GTSAM): {time.perf_counter() - t:.1f} s (estimate "
+        wall = time.perf_counter() - t
+        if args.preset == "standard":
+            figures.update({f"{key}.ate_after_m": res.report["ate_rmse_m"], f"{key}.end_to_end_s": wall,
+                            f"{key}.ate_ratio": res.report["ate_rmse_m"] / ate_on})
+        print(f"  reprocess --preset {args.preset} end to end (GTSAM): {wall:.1f} s (estimate "
               f"{st['estimate']:.1f}, tracks {st['tracks']:.1f}, ba {st['ba']:.1f}, map {st['map']:.1f} s), "
               f"ATE {mm(res.report['ate_rmse_m'])}; target <= 180 s")
         print(f"  world frame {res.report['world_frame']}; {up_error(tmp / 'sim' / 'trajectory.tum', seq.groundtruth)}")

@@ -6,7 +6,7 @@ with motion blur, and with exposure drift).  Each figure is the median over ``--
 of ``--frames`` frames spread along the arc.  A reference operation (one bilinear ``cv2.remap`` of a
 640x480 image) is timed too so that figures from different machines can be compared.
 
-    .venv/bin/python benchmarks/bench_sim.py [--runs 5] [--frames 40]
+    .venv/bin/python benchmarks/bench_sim.py [--runs 5] [--frames 40] [--json-out FILE]
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--frames", type=int, default=40, help="frames per run, spread over the 400-frame arc")
+    ap.add_argument("--json-out", metavar="FILE", help="also write the figures as JSON (benchmarks/write_table.py)")
     args = ap.parse_args()
 
     import cv2
@@ -77,12 +78,12 @@ def main() -> int:
             wall, c = _time_frames(s, indices)
             times[label].append(wall)
             cpu[label].append(c)
-    results = {}
+    results, cpu_ms = {}, {}
     print(f"\nstereo 640x480, median of {args.runs} interleaved runs x {len(indices)} frames:")
     for label, _ in rows:
         ms = statistics.median(times[label]) * 1e3
         results[label] = 1e3 / ms
-        cms = statistics.median(cpu[label]) * 1e3
+        cms = cpu_ms[label] = statistics.median(cpu[label]) * 1e3
         print(f"  {label:32s} {1e3 / ms:7.1f} frames/s  {ms:6.2f} ms/frame  ({ms / ref_ms:6.1f} x reference remap)"
               f"   CPU {cms:6.2f} ms/frame (all threads)")
     try:
@@ -92,6 +93,14 @@ def main() -> int:
     print(f"load average during the run: {load} (other processes share the 2 cores; wall figures drop with load)")
     fps = results["default (noise 2 DN)"]
     print(f"\ntarget >= 30 stereo frames/s: {'MET' if fps >= 30 else 'NOT MET'} ({fps:.1f}/s, {fps / 30:.2f} x target)")
+    if args.json_out:
+        from results_file import write_results
+
+        write_results(args.json_out, "bench_sim.py", {
+            "sim.frames_per_s": fps,
+            "sim.cpu_ms_per_frame": cpu_ms["default (noise 2 DN)"],
+            "sim.motion_blur_frames_per_s": results["motion blur (5 sub-frames)"],
+        })
     return 0
 
 

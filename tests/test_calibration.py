@@ -287,7 +287,8 @@ def test_calibrate_imu_writes_into_a_new_folder_atomically(tmp_path, capsys):
     out = tmp_path / "new" / "sub" / "imu.yaml"
     assert main(["device", "calibrate-imu", "live", "--imu", "emulated", "--seconds", "0.5", "--out", str(out)]) == 0
     assert "gyro_bias_rad_s" in yaml.safe_load(out.read_text())
-    assert sorted(p.name for p in out.parent.iterdir()) == ["imu.yaml"]  # no temporary file left
+    # the calibration and its plot, no temporary file left
+    assert sorted(p.name for p in out.parent.iterdir()) == ["imu.yaml", "imu_still_window.png"]
 
 
 @pytest.mark.parametrize("window", ["nan:nan", "0:inf", "-inf:1", "0:1e300"])

@@ -5,7 +5,9 @@ read for --seconds while the unit rests).  The window is the span of the recorde
 frames (--window frames, the default for recordings), an automatically detected still
 stretch (--window auto) or explicit times in seconds (--window T0:T1).  A window in which the
 unit moved is refused; when it was the default one (a hand-held scan's frames), the still
-stretch --window auto finds is used instead, with a warning.
+stretch --window auto finds is used instead, with a warning.  The gyro and accelerometer norms
+with the window shaded are drawn to ``--plot FILE`` (by default ``<out>_still_window.png`` beside
+``--out``).
 """
 
 from __future__ import annotations
@@ -30,6 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", default=None, help="device TOML (live: the [imu] section)")
     parser.add_argument("--imu", choices=("mpu6050", "emulated"), default=None, help="live: override imu.backend")
     parser.add_argument("--out", default=None, help="write the result as YAML here")
+    parser.add_argument("--plot", default=None, metavar="FILE.png",
+                        help="write the norms of gyro and accelerometer with the still window shaded here (default "
+                             "with --out: <out>_still_window.png beside it; needs matplotlib, skipped without it)")
+    parser.add_argument("--no-plot", action="store_true", help="do not write the plot")
 
 
 def _window(samples, frames_t, spec: str, min_still_s: float):
@@ -100,6 +106,12 @@ def run(args: argparse.Namespace) -> int:
     from stereopath.device.formats.fileio import check_out_file
 
     out = check_out_file(args.out, example="imu_calibration.yaml") if args.out else None
+    plot = None
+    if not args.no_plot and (args.plot or out is not None):
+        from stereopath.device.commands.calibration_plots import default_plot_path
+
+        plot = check_out_file(args.plot or default_plot_path(out, "still_window"), option="--plot",
+                              example="still_window.png")
     if args.source == "live":
         samples, frames_t = _live(args)
         window = args.window or "auto"
@@ -155,4 +167,11 @@ def run(args: argparse.Namespace) -> int:
         out.parent.mkdir(parents=True, exist_ok=True)
         write_atomic(out, text.encode("utf-8"))
         print(f"wrote {out}")
+    if plot is not None:
+        from stereopath.device.commands.calibration_plots import plot_still_window
+
+        frames_span = (int(frames_t[0]), int(frames_t[-1])) if frames_t is not None and len(frames_t) >= 2 else None
+        why_not = plot_still_window(plot, samples.t_ns, samples.gyro_rad_s, samples.accel_m_s2, (t0, t1), window,
+                                    frames_span)
+        print(f"plot skipped: {why_not}" if why_not else f"wrote {plot}")
     return 0

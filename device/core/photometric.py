@@ -1,21 +1,13 @@
 """The brightness relation between the two cameras of a rig, measured on stereo matches (pure compute).
 
-Pyramidal KLT assumes the same brightness at a point in both images.  Two cameras that set their
-exposure and gain independently (two picamera2 modules each with its own AGC, the EuRoC rig: its
-right images are ~14 grey levels darker with ~8 % more contrast) break that assumption: the
-left-to-right search fails its forward-backward check on points it would otherwise match (EuRoC
-V1_01's first frame: 87 of 265 corners matched as captured, 154 with the right image corrected by the fit, measured in two passes: see :func:`measure_relation`).
-
-The relation is an affine map of grey levels, ``left ~ gain * right + offset``, fitted on the
-mean intensities of small patches around points already matched in stereo (so it measures the
-cameras, not what only one of them sees: whole-image statistics differ by up to 6 grey levels and
-7 % contrast between KITTI's views, whose cameras agree).  :func:`fit_gain_offset` fits it robustly;
-:func:`relation_matters` says whether it changes the matched texture's grey levels by more than a
-tolerance (only then is the right image corrected, so a rig whose cameras agree runs on its images
-as captured).  The default, 4 grey levels, is where KLT starts to care: on Middlebury's cones and
-teddy (ground-truth disparity), the right image shifted by 2-4 levels leaves the share of corners
-matched within 1 px unchanged to 2 points, shifted by 8 levels it costs 10-14 points;
-:func:`correct_right` applies it with a lookup table.
+KLT assumes a point is as bright in both images; two cameras with their own exposure control break that.
+The relation is an affine map of grey levels, ``left ~ gain * right + offset``, fitted on the mean
+intensities of small patches around points already matched in stereo, so it measures the cameras and
+not what only one of them sees.  :func:`fit_gain_offset` fits it robustly (a symmetric line, outliers
+dropped), :func:`measure_relation` measures a pair with no earlier fit in two passes,
+:func:`relation_matters` says whether it changes the matched texture by more than a tolerance (4 grey
+levels by default), and :func:`correct_right` applies it with a lookup table.
+See docs/architecture.md, "Two cameras, two exposures".
 """
 
 from __future__ import annotations

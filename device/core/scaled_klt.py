@@ -1,25 +1,13 @@
 """Frame-to-frame KLT with the previous image resampled at the scale each point is predicted to take.
 
-OpenCV's pyramidal KLT compares a window of the previous image with a window of the next one that
-is only shifted.  When the camera moves along its axis (driving, walking towards an object) a
-near point's surroundings grow or shrink from one frame to the next: by ``Z_prev / Z_next``, the
-ratio of its depths.  A window that changed its scale pulls the tracked position off the point
-(synthetic texture magnified by 15 / 30 %, tracked from a guess about a pixel off: a median 0.23 /
-0.67 px, ``tests/test_scaled_klt.py``), an error that grows with the motion between the two frames.
-Measured on KITTI 06 taken every 2nd frame (2.4 m between frames; the windows grow by 13 % at the
-median, the nearest by 40 % and more): the on-line disparity offset, which reads the scene's depth
-from the tracked points, learns -0.15 px where every frame gives -0.19, and the path's error doubles.
-
-:func:`track_scaled` groups the points by their predicted scale in steps of ``step`` (a
-geometric ladder: ``(1 + step) ** k``), and tracks each group whose scale is not 1 from the previous
-image resampled at that scale (``warpAffine`` of the region the group needs, shifted by the group's
-median offset to its predictions, and the same region cut from the next image), so that each
-window is compared with one of nearly its own size.  The group at scale 1 is tracked exactly as
-:func:`cv2.calcOpticalFlowPyrLK` would, and so are all points when every scale is within half a
-step of 1 (a hand-held scan at 20 Hz mostly is): then nothing changes.  So are the points that
-have nothing to gain: those predicted outside the next image, and those whose prediction moves
-unlike their group's so far that they fall off its region (a point barely in front of the camera,
-a moving car).  Pure compute: images in, positions out.
+Pyramidal KLT compares windows that are only shifted; when the camera moves along its axis a near
+point's surroundings scale by ``Z_prev / Z_next`` between frames, which pulls the tracked position off
+the point (``tests/test_scaled_klt.py``).  :func:`track_scaled` groups the points by predicted scale in
+rungs of ``(1 + step) ** k`` and tracks each group whose scale is not 1 from the previous image's region
+resampled at that scale (placed by the group's median offset), against the same region of the next
+image.  The group at scale 1, points predicted outside the next image and points that move unlike their
+group are tracked exactly as :func:`cv2.calcOpticalFlowPyrLK` would.  Pure compute: images in,
+positions out.  See docs/architecture.md, "The on-board estimator".
 """
 
 from __future__ import annotations

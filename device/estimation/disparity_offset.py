@@ -1,34 +1,13 @@
 """On-line estimate of a constant stereo disparity offset from two or more keyframes (pure compute).
 
-A constant offset ``d0`` of the measured disparity (``d_measured = d_true + d0``: a yaw or
-principal-point error of the calibration, or a small bias of the right-image search) is
-invisible in one stereo pair but not in two: a point seen in stereo at keyframe A and again
-at keyframe B must move rigidly with the camera, and an offset bends near and far points
-differently (depth ``f b / (d - d0)``).  :func:`offset_from_two_keyframes` is a small bundle
-adjustment in the rectified frame: the relative pose (6), ``d0`` and each point (3), with
-pixel residuals (u, v, disparity at A and at B) under a Huber loss, the points eliminated
-by the Schur complement.  Errors stay in pixel space, so far
-points (where inverse-depth noise is large) do not bias it.  :func:`offset_from_keyframes` is the same
-over a window of keyframes (every motion but the first's free, every point seen at two of them or more);
-the estimator solves the last four (a window of two is the pair's solve).
-
-:class:`OffsetFilter` fuses the per-pair estimates slowly: information-weighted with a prior
-at zero, every estimate's variance floored (model errors: rolling motion, a few moving
-points), estimates far from the current value gated out once there is a value, and the
-result bounded.  A wrong estimate therefore moves the offset by a fraction of a pixel at most.
-
-Identifiability: an offset is separable from the motion only when the motion bends near and far
-points differently.  Sideways motion past a scene (an orbit around an object) moves every point
-by ``t d / b``, and an offset changes that by ``-t d0 / b``, the same for every point, which a
-small turn of the camera also does: the two are nearly the same unknown.  Each pair estimate
-carries its *variance inflation* (``cov(d0)`` with the motion free over ``1 / info(d0)`` with the
-motion known, i.e. ``1 / (1 - rho^2)`` with ``rho`` the multiple correlation of the offset with
-the six motion parameters); the filter ignores pairs whose inflation says the motion could
-absorb most of the offset.  Measured (two-keyframe estimates from the true motion as the
-start): driving forward (KITTI 06) 3-12, an orbit around an object (simulated scan) 28-280,
-where the estimates spread by +-0.2 px around a truth of 0 although the measurements are
-unbiased (0.004 px with the true motion held fixed): tiny systematic tracking errors pass
-into the offset along the near-degenerate direction.
+An offset ``d0`` (``d_measured = d_true + d0``: a yaw or principal-point error of the calibration) is
+invisible in one stereo pair, but a point seen in stereo at two keyframes must move rigidly with the
+camera, and an offset bends near and far points differently.  :func:`offset_from_two_keyframes` is a
+small bundle adjustment in the rectified frame (relative pose, ``d0``, points; pixel residuals, Huber,
+points eliminated by the Schur complement); :func:`offset_from_keyframes` the same over a window.
+:class:`OffsetFilter` fuses the estimates slowly and bounded, and ignores those whose *variance
+inflation* (the offset's variance with the motion free over that with it known) says the motion could
+absorb the offset.  Design and reasons: docs/architecture.md, "Disparity offset".
 """
 
 from __future__ import annotations
@@ -284,9 +263,8 @@ class OffsetFilter:
     prior_sigma: float = 0.15  # px: without evidence the offset stays near the prior
     floor_sigma: float = 0.1  # px: no single pair is trusted more than this
     max_sigma: float = 0.2  # px: poorer estimates are ignored
-    # estimates whose motion could absorb > 6/7 (86 %) of the offset's information are ignored: windows of four
-    # keyframes measured 3.1-6.7 driving forward (KITTI 06 at every 1st-3rd frame), 8.3-135 on the simulated
-    # orbits, loop and arcs (pairs: 3-12 and 14.8-280)
+    # estimates whose motion could absorb > 6/7 of the offset's information are ignored: driving forward
+    # stays below, orbits and slides past a scene lie far above
     max_inflation: float = 7.0
     gate_sigma: float = 3.0  # estimates farther than this many sigmas (combined) from the value are ignored
     bound: float = 1.0  # px: |offset - prior| never exceeds this

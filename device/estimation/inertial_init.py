@@ -1,28 +1,14 @@
 """The IMU's start-up unknowns from a metric camera path, for a recording with no still start.  Pure NumPy.
 
-A rig that rests before its first frame gives the gyro bias and gravity by averaging
-(:func:`~stereopath.device.estimation.inertial.estimate_still`).  EuRoC's IMU starts with its
-cameras, and a box switched on in the hand never rests: there the stereo path (metric, from the
-on-board estimate) stands in for the rest.
-
-* :func:`gyro_bias_from_path`: the gyro integrated between consecutive keyframes against the
-  path's rotations.  With the bias ``b + d``, ``log(R_vis^T R_gyro(b)) = A d`` where
-  ``A = sum_k R_(k->end)^T dt_k`` carries each sample's bias error to the interval's end (the model
-  of :class:`~stereopath.device.estimation.inertial.VisionGyroBias`); all intervals are stacked
-  into one least-squares problem, re-integrated at the new bias and solved again.
-* :func:`gravity_from_path`: with the preintegrated increments ``dR, dp, dv`` of each keyframe
-  interval (in the first keyframe's frame, gravity left out), the path's positions ``p`` and
-  rotations ``R`` give, for ``dt`` between keyframes ``i`` and ``j``,
-
-      p_j = p_i + v_i dt + g dt^2 / 2 + R_i dp        v_j = v_i + g dt + R_i dv,
-
-  linear in the velocities ``v`` and gravity ``g`` (world frame): one least-squares solve.  The
-  accelerometer bias is left at zero (it tilts ``g`` by ``|b_a| / 9.8`` rad: 3 mrad for 0.03 m/s^2);
-  the back end refines both.  The solve needs no motion: on a still rig it is the mean specific
-  force.  It says how well the increments fit (``rms_m_s``), and the size of ``g`` is known, so the
-  caller can refuse readings that do not fit the path (another unit or scale) instead of using them.
-  It does not see a time offset between the IMU and the cameras of a slow hand-held path: gravity
-  dominates the specific force (0.1 s off still gives gravity within 0.1 deg on the simulated scan).
+A rig that rests before its first frame gives the gyro bias and gravity by averaging; one switched on in
+the hand (or EuRoC's, whose IMU starts with its cameras) never rests, so the stereo path stands in.
+:func:`gyro_bias_from_path`: the gyro integrated between keyframes against the path's rotations, all
+intervals in one least-squares problem, re-integrated and solved again.  :func:`gravity_from_path`: the
+preintegrated increments against the path's positions, ``p_j = p_i + v_i dt + g dt^2 / 2 + R_i dp``,
+``v_j = v_i + g dt + R_i dv``: one linear solve for the velocities and gravity (accelerometer bias left
+at zero; the back end refines both).  It reports how well the increments fit, so the caller can refuse
+readings that do not fit the path.  A time offset between IMU and cameras on a slow hand-held path is
+not seen (gravity dominates).  See docs/architecture.md, "Reprocessing".
 """
 
 from __future__ import annotations

@@ -1,14 +1,12 @@
 """The keyframe worker of the ``stereo`` estimator: modified-ASIFT work off the frame loop.
 
-A keyframe's ASIFT work runs on one worker thread with a queue of one running and one
-waiting job (a newer keyframe replaces the waiting one): the keyframe's affine views are
-detected, its original-view SIFT is matched against the previous keyframe library (all
-views, each with a stereo 3D point) around the positions predicted by the tracked pose,
-and the keyframe pose is solved jointly from those matches and the tracked map points;
-then the keyframe's own library is built.  The frame loop joins the result at the first
-frame after it is ready and never waits for it: the correction of the keyframe pose is
-applied to the live state (current pose and map) as one rigid motion, mapped through the
-corrections applied since the job was submitted.
+One worker thread, one job running and one waiting (a newer keyframe replaces the waiting one): the
+keyframe's affine views are detected, its SIFT matched against the previous keyframe's library around
+the positions the tracked pose predicts, the keyframe pose solved from those matches and the tracked
+map, and the keyframe's own library built.  The frame loop joins the result at the first frame after it
+is ready and never waits: the correction moves the live state (pose and map) as one rigid motion, mapped
+through the corrections applied since the job was submitted.
+See docs/architecture.md, "The on-board estimator".
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The reference paper's estimator (steps 1-5 of docs/architecture.md), as written.
+"""The reference paper's estimator (steps 1-5 of docs/architecture.md, "The reference paper's method"), as written.
 
 Per camera and consecutive pair (P-1, P): SIFT (original view) of P-1 against
 modified-ASIFT features of P, RANSAC fundamental matrix (10,000 iterations in

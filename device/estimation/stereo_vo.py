@@ -1,43 +1,13 @@
-"""The default ``stereo`` estimator: metric stereo visual-inertial odometry.
+"""The default ``stereo`` estimator: metric stereo visual-inertial odometry, a bounded amount of work per frame.
 
-Per frame (see docs/architecture.md, "Estimators"), a bounded amount of work:
-
-1. gyro integration since the previous frame gives the rotation prior (and the
-   fallback when vision fails: the frame is flagged ``imu_only``);
-2. map points (3D, world frame, from stereo) are tracked into the new left image by
-   pyramidal KLT seeded with the predicted pose, checked backward from the new positions;
-   when that fails the track is retried with a deeper pyramid from the last positions,
-   and then the frame is relocalised against the last keyframe's features;
-3. PnP RANSAC on the 2D-3D matches, then Levenberg-Marquardt on the reprojection error
-   in both cameras (the right-image observations found by KLT on the rectified rows);
-4. keyframes are chosen by what the path needs: too few tracked points left (absolute, or
-   a share of the map at the last keyframe), a rotation the next modified-ASIFT match must
-   bridge, or age - not by pixel flow, which driving produces on every frame.  A keyframe
-   tops the map up with new stereo points (corners away from the tracks, left/right by
-   KLT on the same rectified row, positive disparity) - that is all the frame loop does.
-
-The modified-ASIFT work of a keyframe runs off the frame loop on a worker thread
-(:mod:`stereopath.device.estimation.keyframe_jobs`); the frame loop never waits for it.
-
-A constant stereo disparity offset (a yaw or principal-point error of the
-calibration shows as one), ``disparity_offset_px``, is removed from every
-triangulation and from the right-image observations of the pose refinement.  With
-``estimate_disparity_offset`` (on by default) it is refined on line from the points seen in
-stereo at the last four keyframes (``disparity_offset_keyframes``) whose motion identifies it
-(:mod:`stereopath.device.estimation.disparity_offset`); when it changes, the tracked points
-restart their averaged triangulation at that keyframe (the earlier ones carry the old offset).
-When it is first learned, the path measured with the prior is re-measured with it once
-(:class:`~stereopath.device.estimation.disparity_offset.PriorPath`; KITTI 06: 4 cm after six frames).
-
-Works without an IMU (KITTI): the prior is then a constant-velocity model.
-At start-up a still IMU block before the first frame gives the gyro bias and
-gravity; the world frame is then gravity aligned (z up), else camera 1 at the
-first frame.  With ``estimate_gyro_bias`` (on by default) the bias is then refined from the
-tracked rotation over every second of tracked frames
-(:class:`~stereopath.device.estimation.inertial.VisionGyroBias`), so a recording without a still
-IMU block before its first frame (or a bias that drifts with temperature) still gets a true gyro prior.  A frame that
-cannot be tracked is flagged (``imu_only`` with a gyro prior, else ``lost``) with the predicted
-pose; it is never reported ``ok``.
+Per frame: the gyro (else a constant-velocity model) predicts the pose; the map points are tracked
+into the left image by KLT at their predicted scale, checked backward, retried with a deeper pyramid,
+else the frame is relocalised; PnP RANSAC seeds the pose and Levenberg-Marquardt refines it on the
+reprojection error in both cameras.  Keyframes are chosen by what the path needs and top up the map
+with stereo points; their modified-ASIFT work runs off the frame loop
+(:mod:`~stereopath.device.estimation.keyframe_jobs`).  The disparity offset, the cameras' exposure and
+the gyro bias are refined on line.  A frame that cannot be tracked is flagged ``imu_only`` or ``lost``
+with the predicted pose, never ``ok``.  Design and reasons: docs/architecture.md, "The on-board estimator".
 """
 
 from __future__ import annotations
@@ -76,7 +46,7 @@ UNKNOWN_BIAS_SIGMA_RAD_S = 0.1  # no still start: the bias is anything a MEMS gy
 
 @dataclass(frozen=True)
 class StereoConfig:
-    feature_preset: str = "onboard"  # modified-ASIFT preset used at keyframes (`fast`: 1.4x the CPU, see README)
+    feature_preset: str = "onboard"  # modified-ASIFT preset used at keyframes (`fast` costs more CPU for no gain here)
     use_asift_keyframes: bool = True
     max_points: int = 400  # map points kept for tracking (the frame loop's cost grows with them)
     new_corner_spacing_px: int = 14
@@ -98,8 +68,8 @@ class StereoConfig:
     relocalise: bool = True  # match SIFT against the last keyframe library when tracking fails
     fb_max_px: float = 0.6  # forward-backward KLT disagreement
     # frame-to-frame tracking compares each point's window at the scale its predicted depth change gives,
-    # in rungs of (1 + klt_scale_step)^k (device/core/scaled_klt.py; 0 = plain KLT): driving grows near
-    # windows by 10-40 % a frame and more (KITTI every 2nd frame: median 13 %), which pulls plain KLT off the points
+    # in rungs of (1 + klt_scale_step)^k (device/core/scaled_klt.py; 0 = plain KLT): moving along the
+    # optical axis grows near windows from frame to frame, which pulls plain KLT off the points
     klt_scale_step: float = 0.05
     epipolar_max_dy_px: float = 1.0
     triangulation_max_px: float = 1.0
@@ -555,11 +525,9 @@ class StereoEstimator(KeyframeJobs):
         """Take one fit into the median of the last five; None (not identifiable) changes nothing."""
         if rel is None:
             return
-        # one fit is noisy (KITTI: gain +-3 %, single fits up to 6.5 levels where their neighbours give 2-4):
-        # the median of the last five (a fit at every tracked frame, on the pose solve's right-image matches,
-        # and one at each keyframe): a quarter of a second at 20 Hz, so two AGCs that disagree more
-        # from moment to moment are followed (measured at keyframes only, the correction lagged half a
-        # swing behind a right camera whose gain swung +-25 % within 2.5 s, and did more harm than good)
+        # one fit is noisy: the median of the last five (a fit at every tracked frame, on the pose solve's
+        # right-image matches, and one at each keyframe), a quarter of a second at 20 Hz, so two AGCs that
+        # disagree from moment to moment are followed; fits at keyframes alone would lag behind them
         self._exposure_fits = (self._exposure_fits + [rel])[-5:]
         med = np.median([(f.gain, f.offset, f.change) for f in self._exposure_fits], axis=0)
         rel = GainOffset(float(med[0]), float(med[1]), rel.n, float(med[2]))

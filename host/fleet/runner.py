@@ -197,12 +197,11 @@ def submission_order(states: Sequence[SessionState]) -> list[SessionState]:
 WIDE_STAGES = ("tracks",)
 LEAD_WIDTH = 8
 # the rest of a session costs about one unit per offline keyframe (its keypoints, matching, bundle
-# adjustment) and one per FRAMES_PER_KEYFRAME frames (the per-frame work of tracks, ba and map): the
-# one-thread CPU of bench_fleet's eight sessions (100 and 400 frames, 9-73 keyframes, 18-135 s) is
-# 1.85 s per keyframe plus 0.033 s per frame, within 10 %
+# adjustment) and one per FRAMES_PER_KEYFRAME frames (the per-frame work of tracks, ba and map),
+# fitted on the one-thread CPU of bench_fleet's sessions
 FRAMES_PER_KEYFRAME = 56
 # the share of a keyframe-heavy session's rest that runs on one core after its wide stage (bundle
-# adjustment, fusion: 43 s of the orbit's 134 s in bench_fleet), and after its bundle adjustment
+# adjustment, fusion), and after its bundle adjustment
 SERIAL_SHARE = 0.35
 LEFT_AFTER = {"tracks": SERIAL_SHARE, "ba": SERIAL_SHARE / 3}
 

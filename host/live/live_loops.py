@@ -1,17 +1,13 @@
 """Loop closure while scanning (``host live --map``): keyframes re-posed when the path comes back.
 
-Each keyframe that reaches the live map gets stereo keypoints (plain SIFT, original view only:
-a few tenths of a second) and its on-board pose.  The new keyframe is checked against the earlier
-ones close to it in space (on the current, corrected path) and far enough back in the sequence,
-with the offline back end's verification (:func:`stereopath.host.reprocess.loops.verify_pair`:
-PnP RANSAC on stereo points, consistent scale, agreement with the path within its possible
-drift; a repeated texture elsewhere is rejected).  The keyframe poses live in a pose graph solved
-incrementally with iSAM2 (:class:`stereopath.host.live.live_pose_graph.LivePoseGraph`): the
-on-board relative motion between consecutive keyframes, with a drift-per-metre uncertainty, plus
-every loop so far; a new keyframe is a small update, and an accepted loop re-estimates the poses
-between its ends, so the loop's correction is spread along the path.  Keyframes after the last
-loop follow the last corrected one by their on-board motion.  The caller re-poses its fused
-keyframes (:meth:`stereopath.host.mapping.mapper.DenseMapper.repose`).
+Each keyframe gets stereo SIFT keypoints and its on-board pose, and is checked against earlier keyframes
+near it on the corrected path and far enough back, with the offline verification
+(:func:`stereopath.host.reprocess.loops.verify_pair`).  The keyframe poses live in a pose graph solved
+incrementally (:class:`stereopath.host.live.live_pose_graph.LivePoseGraph`): the on-board relative
+motion with a drift-per-metre uncertainty, plus every loop; an accepted loop spreads its correction
+along the path, and later keyframes follow the last corrected one by their on-board motion.  The caller
+re-poses its fused keyframes (:meth:`stereopath.host.mapping.mapper.DenseMapper.repose`).
+See docs/architecture.md, "A keyframe on the host".
 """
 
 from __future__ import annotations

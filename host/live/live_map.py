@@ -1,20 +1,13 @@
 """Live incremental mapping for ``stereopath host live --map``.
 
-Keyframes are handed over by the receiver thread and fused on a worker thread (depth + TSDF
-take about 0.1 s per keyframe), so receiving never waits on mapping.  Every ``every``
-keyframes the current mesh is written to ``OUT/<session>/model/mesh.ply`` (atomically) and
-shown in rerun when a view is open; at the end the whole model (mesh, cloud, preview,
-map.json) is written for each session.
-
-Loop closure (``loops``, on by default): each keyframe is also checked for a return to an earlier
-part of the path (:class:`stereopath.host.live.live_loops.LiveLoopCloser`).  When a loop closes,
-every fused keyframe is re-posed on the corrected path and the TSDF is **re-integrated** from the
-kept depth maps (not deformed), and the mesh is refreshed at once, so the closed loop is in the
-very next mesh; later keyframes are fused at their corrected poses.
-
-Each session is mapped with the rig its keyframes were taken with: the device's own (``rig_for``,
-the rig the receiver stored from the device's session message), else the given ``rig`` when its
-hash matches the keyframes'.  A given rig that differs from the device's is named in one warning.
+Keyframes handed over by the receiver thread are fused on a worker thread (depth + TSDF), so receiving
+never waits on mapping.  Every ``every`` keyframes the mesh is written to ``OUT/<session>/model/mesh.ply``
+(atomically) and shown in rerun; at the end each session's whole model is written.  With ``loops`` (on
+by default) a closed loop (:class:`stereopath.host.live.live_loops.LiveLoopCloser`) re-poses every fused
+keyframe and re-integrates the TSDF from the kept depth maps, and the mesh is refreshed at once.  Each
+session is mapped with the rig its keyframes were taken with: the device's own (``rig_for``), else the
+given ``rig`` when its hash matches; a given rig that differs from the device's is named in one warning.
+See docs/architecture.md, "A keyframe on the host".
 """
 
 from __future__ import annotations

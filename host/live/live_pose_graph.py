@@ -1,20 +1,13 @@
 """The live map's pose graph, solved incrementally (GTSAM's iSAM2) as keyframes and loops arrive.
 
-``host live --map`` keeps one pose per keyframe, tied to the previous one by the on-board relative
-motion (a drift-per-metre uncertainty, :func:`stereopath.host.reprocess.gtsam_ba.odometry_factor`)
-and to earlier keyframes by every verified loop (a robust relative-pose factor).  Re-solving that
-graph in one batch at every loop costs time that grows with the scan; iSAM2 (Kaess et al. 2012)
-keeps the factorisation and re-eliminates only the part of the Bayes tree a new factor touches:
-a new keyframe is a constant-time update, a loop re-solves the variables between its two ends.
-After a loop the update is repeated (each one is a Gauss-Newton step on the relinearised part)
-until the poses move by less than ``tol_m`` / ``tol_rad``.  A pose is relinearised only once its
-change passes :data:`RELINEARIZE` (0.03 mm, 0.03 mrad), so the solution stays within a few tenths of
-a millimetre of the graph's optimum (``tests/test_live_pose_graph.py``; a TSDF voxel is 4 mm).  On
-a 2,000-keyframe scan with a loop every 10 keyframes it costs 0.82x the CPU of re-solving the batch
-at every loop, a loop's corrected poses arriving in 0.74x the time (``benchmarks/bench_live_loops.py``).
-
-A keyframe that has to be forgotten (:meth:`LivePoseGraph.rebuild`) rebuilds the graph: iSAM2
-cannot take a variable out.  Pure computation: no I/O.
+One pose per keyframe, tied to the previous one by the on-board relative motion (a drift-per-metre
+uncertainty, :func:`stereopath.host.reprocess.gtsam_ba.odometry_factor`) and to earlier keyframes by
+every verified loop (a robust relative-pose factor).  iSAM2 keeps the factorisation and re-eliminates
+only the part of the Bayes tree a new factor touches; after a loop the update is repeated until the
+poses move by less than ``tol_m`` / ``tol_rad``, and a pose is relinearised once its change passes
+:data:`RELINEARIZE`, so the solution stays within a few tenths of a millimetre of the optimum
+(``tests/test_live_pose_graph.py``; ``benchmarks/bench_live_loops.py`` compares it with the batch).
+Forgetting a keyframe (:meth:`LivePoseGraph.rebuild`) rebuilds the graph.  Pure computation: no I/O.
 """
 
 from __future__ import annotations

@@ -122,11 +122,14 @@ class RerunView:
         self._pinhole_size: dict[str, tuple[int, int]] = {}
         self._next_path = 0.0
         self._t0: dict[str, int] = {}
+        self._last_t_ns: dict[str, int] = {}  # each session's latest device time (for the mapper thread's meshes)
         self._lock = threading.Lock()  # on_pose and on_keyframe come from different receiver threads
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)  # camera convention: x right, y down, z forward
 
     def _time(self, sid: str, t_ns: int) -> None:
+        """Set device_time for what this thread logs next (rerun's time is per thread)."""
         t0 = self._t0.setdefault(sid, t_ns)
+        self._last_t_ns[sid] = max(t_ns, self._last_t_ns.get(sid, t_ns))
         self.rec.set_time("device_time", duration=(t_ns - t0) * 1e-9)
 
     def on_pose(self, pose: Pose) -> None:
@@ -170,6 +173,8 @@ class RerunView:
 
         v, f, c = mesh_arrays(mesh)
         with self._lock:
+            if session_id in self._last_t_ns:  # on the device_time timeline too, at the latest pose or keyframe
+                self._time(session_id, self._last_t_ns[session_id])
             kw = {} if c is None else {"vertex_colors": c}
             self.rec.log(f"world/{session_id}/model", self.rr.Mesh3D(vertex_positions=v, triangle_indices=f, **kw))
 

@@ -1,34 +1,14 @@
 """Dense stereo depth on rectified keyframes: semi-global matching with a left-right check.
 
-Pipeline for one stereo pair (:meth:`StereoDepth.compute`):
-
-1. rectify both images with the rig's rectification (``stereopath.device.core.rig.Rig.rectification``);
-2. OpenCV ``StereoSGBM`` disparity of the left image, and of the right image by running the same
-   matcher on the pair turned by 180 degrees (``rot180(right)`` as reference, ``rot180(left)``
-   as target: mirrored, so disparities stay positive, and upside down).  Both images are padded
-   on the left by the disparity range so that the first columns are matched too;
-3. left-right consistency: a left pixel ``x`` with disparity ``d`` is kept only when the right
-   disparity at ``round(x - d)`` agrees within ``lr_max_diff_px`` (this removes occlusions and
-   most mismatches).  The kept disparity is the mean of the left one and the right one at
-   ``x - d``: the only vertical aggregation path of SGBM's fast 3-way mode runs top to bottom,
-   which makes disparities on slanted surfaces (a table seen from above) lag by about 0.1 px
-   (measured on the simulator: -0.11 px, 1-2 mm at 1 m); in the upside-down pass the lag has the
-   opposite sign, so the mean cancels it at no extra cost (residual +0.03 px, as the 8-path
-   mode, which is three times slower);
-4. speckle filtering (small connected blobs of disparity are dropped), pixels outside the
-   rectified image area (black after remapping) are dropped, optional depth-edge cleaning
-   (pixels next to a relative depth step) and erosion of every valid region by ``erode_px``
-   (SGBM smears foreground disparities a pixel or two over the background at silhouettes);
-5. ``depth = f * B / d`` (``f``, ``B`` of the rectified pair), kept inside
-   ``[min_depth_m, max_depth_m]``.
-
-Depth is returned in the **rectified left camera frame**.  Its orientation differs from camera 0
-by the rectifying rotation ``R0`` (rectified <- cam0), returned as :attr:`DepthMap.R_rect_cam0`,
-so the pose of the rectified camera is ``T_world_rect = T_world_cam0 @ [R0^T | 0]``
-(:meth:`DepthMap.pose_world_rect`).
-
-Disparities are float32 pixels with NaN where invalid; depths are float32 metres with 0 where
-invalid (Open3D's convention for missing depth).
+:meth:`StereoDepth.compute`: rectify; OpenCV ``StereoSGBM`` on the pair and again on the pair turned by
+180 degrees (``rot180(right)`` as reference: the right image's disparity), both padded so the first
+columns are matched; keep a pixel when both agree within ``lr_max_diff_px`` and take their mean (SGBM's
+fast mode aggregates top to bottom only, which makes slanted surfaces lag by about 0.1 px; the turned
+pass lags the other way, so the mean cancels it); drop speckles, the black border of the rectified image,
+optionally depth edges, and erode each region by ``erode_px``; ``depth = f * B / d`` within
+``[min_depth_m, max_depth_m]``.  Depth is in the **rectified left camera frame**
+(``T_world_rect = T_world_cam0 @ [R0^T | 0]``, :meth:`DepthMap.pose_world_rect`); disparities are float32
+px with NaN where invalid, depths float32 metres with 0 where invalid (Open3D's convention).
 """
 
 from __future__ import annotations

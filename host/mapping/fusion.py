@@ -2,8 +2,7 @@
 
 Backend: Open3D's tensor :class:`open3d.t.geometry.VoxelBlockGrid` on the CPU (a sparse
 voxel-block hash map).  The legacy ``ScalableTSDFVolume`` of the Open3D build we use returns empty
-meshes, and the block grid is fast enough (about 40 colour keyframes/s at 640x480 with 4 mm
-voxels on two cores, see ``benchmarks/bench_fusion.py``).
+meshes, and the block grid is fast enough (``benchmarks/bench_fusion.py``).
 
 Conventions: depth maps are metres along the camera's z axis (0 = no depth), ``K`` is the
 3x3 intrinsic matrix of the camera the depth belongs to, and poses are ``T_world_cam``

@@ -1,21 +1,12 @@
 """The recorded right images in the left camera's grey levels, for the offline stages (tracks, ba, map).
 
-Two cameras that set their exposure independently (two picamera2 modules each with its own AGC,
-the EuRoC rig) record the same surface at different grey levels, and every right-image search
-that assumes equal brightness (the tracks' stereo KLT, the frame refinement's right-image
-observations, the dense model's block matching) loses matches it would otherwise make.  The
-on-board estimator measures and corrects this as it runs (``StereoConfig.match_exposure``);
-:class:`ExposureMatchedSequence` does the same for a recorded session, so that reprocessing
-sees the images the on-board estimator saw.
-
-The relation ``left ~ gain * right + offset`` (:mod:`stereopath.device.core.photometric`) is
-fitted on a fixed grid of frames (every ``stride``-th): corners of the left image matched in
-the right as recorded (stereo KLT with its forward-backward check).  Frame ``i`` uses the median
-of the fits at the ``span`` grid frames nearest to it (exposure drifts slowly and one frame's fit
-is noisy), and its right image is corrected only when that relation changes the matched texture
-by more than ``tolerance`` grey levels; otherwise it is returned as recorded.  The fits depend on
-the images only, never on which frames were asked for first, so every stage, process and Ray
-worker sees the same corrected frames.
+Two cameras that set their exposure independently record the same surface at different grey levels,
+and every right-image search that assumes equal brightness loses matches.  The on-board estimator
+corrects this as it runs (``StereoConfig.match_exposure``); :class:`ExposureMatchedSequence` does the
+same for a recorded session: ``left ~ gain * right + offset`` (:mod:`stereopath.device.core.photometric`)
+fitted on every ``stride``-th frame, each frame using the median of the ``span`` nearest fits and
+corrected only above ``tolerance`` grey levels.  The fits depend on the images only, so every stage,
+process and Ray worker sees the same frames.  See docs/architecture.md, "Two cameras, two exposures".
 """
 
 from __future__ import annotations

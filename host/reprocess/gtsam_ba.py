@@ -1,27 +1,14 @@
 """Bundle adjustment on GTSAM: keyframe poses and points on the reprojection error in both cameras.
 
 One ``GenericProjectionFactorCal3_S2`` per observation row ``(pose, point id, cam, u, v[, weight])``
-(the right camera through ``body_P_sensor`` = the rig's ``T_cam0_cam1``, so any calibrated rig
-works, rectified or not), each with a robust noise model (Huber or Cauchy on the pixel error,
-sigma = 1 px / weight); the first ``n_fixed`` poses held by a tight prior (the gauge; scale comes
-from the right camera through the calibrated baseline); Levenberg-Marquardt over the whole batch
-(GTSAM's sparse multifrontal Cholesky, METIS ordering).  Options:
-
-- rotation priors (gyro integration between keyframes): a ``BetweenFactorPose3`` whose
-  translation part is free (sigma 1 km);
-- the disparity offset (a horizontal offset of the right principal point, a constant disparity
-  error that scales the whole path): the right camera's calibration becomes one shared
-  ``Cal3_S2`` unknown with only ``u0`` free (tight priors on the rest); each keyframe then has a
-  right-camera pose unknown tied to its left pose by the rig (a tight ``BetweenFactorPose3``), and
-  the right observations are ``GeneralSFMFactor2Cal3_S2`` factors.  An estimate smaller than
-  ``disparity_offset_min_px``, or than :data:`OFFSET_SIGNIFICANCE` standard errors (its marginal
-  from the solved problem, where that can be computed: a short session with little parallax cannot
-  tell an offset from the depths), is not applied (the problem is solved again without it).
-
-The motion-only refinement of the frames between keyframes (one 6-unknown problem per frame on
-fixed points) is :func:`stereopath.host.reprocess.stage_ba.refine_frame`.  GTSAM is imported when a
-function runs (``pip install 'stereopath[host]'``).
-Pure computation: no I/O.
+(the right camera through ``body_P_sensor`` = the rig's ``T_cam0_cam1``: any calibrated rig), each
+with a robust noise model (sigma = 1 px / weight); the first ``n_fixed`` poses held by a tight prior;
+Levenberg-Marquardt over the batch (sequential Cholesky, points eliminated first in a fixed order).
+Options: rotation priors (``BetweenFactorPose3`` with a free translation), and the disparity offset as
+one shared right-camera ``Cal3_S2`` unknown (only ``u0`` free; right observations as
+``GeneralSFMFactor2Cal3_S2``), applied only above ``disparity_offset_min_px`` and
+:data:`OFFSET_SIGNIFICANCE` standard errors.  GTSAM is imported when a function runs.  Pure
+computation.  See docs/architecture.md, "Reprocessing".
 """
 
 from __future__ import annotations
@@ -153,8 +140,7 @@ class _Graph:
     def add_observations(self, obs: np.ndarray) -> None:
         g, add = self.g, self.graph.add
         w = obs[:, 5] if obs.shape[1] > 5 else np.ones(len(obs))
-        # keys, pixels and noise models prepared in bulk: the loop only constructs factors (half the
-        # time of unpacking each row; ~0.3 s per 100k observations)
+        # keys, pixels and noise models prepared in bulk: the loop only constructs factors
         xk = _keys("x", obs[:, 0])
         rk = _keys("r", obs[:, 0])
         lk = _keys("l", obs[:, 1])
@@ -222,10 +208,8 @@ def _optimize(gr: _Graph, max_iterations: int, on_iteration=None, relative_tol: 
               ) -> tuple[Any, int, list[float]]:
     """Levenberg-Marquardt from ``gr.values``; (values, iterations, error after each iteration).
 
-    Points eliminated first (:func:`_points_first`), sequential Cholesky: on the simulated scan
-    (57 keyframes, 58k points, 447k observations, disparity offset unknown) one elimination costs
-    1.5 s CPU, against 2.8 s multifrontal and 4.8 s with METIS ordering (COLAMD's ordering alone
-    takes 26 s)."""
+    Points eliminated first (:func:`_points_first`), sequential Cholesky: cheaper than multifrontal
+    or a METIS / COLAMD ordering on these problems, and a fixed order keeps results repeatable."""
     g = gr.g
     params = g.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)

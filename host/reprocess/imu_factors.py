@@ -1,27 +1,13 @@
 """IMU preintegration between keyframes for the GTSAM back end (stereo-inertial bundle adjustment).
 
-Between consecutive keyframes the IMU samples are preintegrated
-(``PreintegratedCombinedMeasurements``: rotation, velocity and position increments with their
-covariance, first-order bias correction) into one ``CombinedImuFactor`` on the two keyframes'
-poses, velocities and biases; the bias is a variable per keyframe with a random walk between
-them.  The graph's poses are camera poses: the preintegration parameters carry the IMU's pose in
-the camera (``body_P_sensor`` = inverse of the rig's ``T_body_cam0``), so the lever arm and the
-axes' rotation are accounted for.
-
-Noise: what the session records in ``imu0/sensor.yaml`` (the simulator writes the noise it
-draws and ``gravity_m_s2``, the 1 g of its accelerometer's units; a device session the MPU-6050
-figures of :data:`stereopath.device.formats.rig_files.MPU6050_NOISE`, and standard gravity).
-
-Gravity: its direction is taken from the still start (the mean specific force before the first
-frame, rotated by the first keyframe's pose) only as a starting point.  That mean holds the
-accelerometer bias too (0.03 m/s^2 is a 3 mrad tilt), so the back end does not trust it: the
-held first pose is left free to tilt (:func:`stereopath.host.reprocess.gtsam_ba` rotates the
-solution back afterwards), i.e. the gravity direction is estimated jointly with the path and
-the biases.  The first bias prior: gyro from the still block, accelerometer 0.  A session with no
-still block before its first frame (EuRoC's IMU starts with its cameras) takes the gyro bias,
-gravity and the keyframe velocities from the path instead
-(:mod:`stereopath.device.estimation.inertial_init`), and is refused (EstimationError: the caller
-adjusts without the IMU) when the IMU's readings do not fit that path.
+The samples between consecutive keyframes are preintegrated (``PreintegratedCombinedMeasurements``)
+into one ``CombinedImuFactor`` on the two keyframes' poses, velocities and biases (a bias per keyframe,
+a random walk between them); the IMU's pose in the camera (``body_P_sensor``) carries the lever arm.
+Noise: what the session records in ``imu0/sensor.yaml``.  Gravity's direction from the still start is
+only a starting point (it holds the accelerometer bias too): the held first pose is free to tilt, so
+gravity is estimated jointly.  A session with no still start takes its starting values from the path
+(:mod:`stereopath.device.estimation.inertial_init`) and is refused (``EstimationError``: the caller
+adjusts without the IMU) when the readings do not fit it.  See docs/architecture.md, "Reprocessing".
 """
 
 from __future__ import annotations

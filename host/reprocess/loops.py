@@ -1,27 +1,13 @@
 """Loop closure between keyframes: candidates, geometric verification, loop constraints.
 
-A loop is a pair of keyframes ``(i, j)``, ``j - i > min_separation`` (farther apart than the
-track window, so the tracks do not already tie them), that see the same part of the scene:
-
-1. **candidates, close in space**: camera centres within ``max_distance_m`` and viewing
-   directions within ``max_angle_deg`` on the estimated path (drift is small compared with
-   these);
-2. **and in appearance**: descriptor matches of the keyframes' stereo keypoints (the same
-   modified-ASIFT features as the tracks; Lowe's ratio test, mutual) number at least
-   ``min_matches``; the best ``candidates_per_keyframe`` per keyframe are verified;
-3. **geometric verification with stereo points**: PnP RANSAC of keyframe i's stereo 3D points
-   on keyframe j's pixels (``cv2.solvePnPRansac``, then Levenberg-Marquardt refinement on the
-   inliers); accepted with at least ``min_inliers`` inliers making ``min_inlier_ratio`` of the
-   matches, a **consistent scale** (the inliers' stereo 3D points of keyframe j, against
-   keyframe i's moved by the PnP pose: median distance ratio within ``scale_tolerance`` of 1
-   and median 3D disagreement below ``max_3d_error``, as a fraction of depth), and a relative
-   pose that agrees with the estimated path within the drift it could have accumulated
-   (``drift_per_m`` times the path length between them, at least ``min_drift_m``, and
-   ``max_rotation_deg``).  A repeated texture elsewhere in the scene fails the last test: its
-   PnP pose puts the camera where the copy is, not where the path is.
-
-Each accepted loop becomes a relative-pose constraint ``T_ci_cj`` with a standard deviation
-from the PnP residuals (:class:`Loop`).  Pure computation on arrays: no I/O.
+A loop is a pair of keyframes ``(i, j)``, ``j - i > min_separation``, that see the same part of the
+scene: camera centres within ``max_distance_m`` and viewing directions within ``max_angle_deg`` on the
+estimated path, at least ``min_matches`` descriptor matches (the best ``candidates_per_keyframe`` per
+keyframe verified), then PnP RANSAC of keyframe i's stereo points on keyframe j's pixels with enough
+inliers, a consistent scale between the two keyframes' stereo points, and a relative pose within the
+drift the path could have accumulated (a repeated texture elsewhere fails this).  Each accepted loop is
+a relative-pose constraint ``T_ci_cj`` with a deviation from the PnP residuals (:class:`Loop`).  Pure
+computation on arrays.  See docs/architecture.md, "Reprocessing".
 """
 
 from __future__ import annotations

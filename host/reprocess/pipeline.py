@@ -1,22 +1,13 @@
 """Offline reprocessing of a recorded session: re-estimate, bundle adjust, map, report.
 
-Stages, one module each (``run(config, inputs) -> outputs``), every result written atomically
-into ``OUT/stages/`` and recorded in ``OUT/stages/manifest.json`` with a key (a hash of its
-inputs and settings); a rerun reuses every stage whose key and files are still there and
-recomputes the rest:
-
-1. ``estimate`` (:mod:`~stereopath.host.reprocess.stage_estimate`, ``estimate.npz``): the
-   ``stereo`` estimator over every frame;
-2. ``tracks`` (:mod:`~stereopath.host.reprocess.stage_tracks`, ``tracks.npz``): modified-ASIFT
-   keypoints at every keyframe matched into tracks;
-3. ``ba`` (:mod:`~stereopath.host.reprocess.stage_ba`, ``ba.npz``): bundle adjustment of the
-   keyframes, then every other frame;
-4. ``map`` (:mod:`~stereopath.host.reprocess.stage_map`, ``map/``): the dense model.
-
-Then the outputs (:mod:`~stereopath.host.reprocess.outputs`): ``trajectory.tum``,
-``report.json``, ``path.png``, ``errors.png`` (with ground truth), the model files and
-``report.html``.  Ctrl-C between or inside stages leaves only finished stages behind (each
-stage's files appear by rename only when complete, and the manifest is updated after them).
+Stages, one module each (``run(config, inputs) -> outputs``): ``estimate``, ``tracks``, ``ba``, ``map``
+(:mod:`~stereopath.host.reprocess.stage_estimate` and its neighbours).  Every result is written
+atomically into ``OUT/stages/`` and recorded in ``OUT/stages/manifest.json`` with a key (a hash of its
+inputs and settings); a rerun reuses every stage whose key and files are still there.  Then the outputs
+(:mod:`~stereopath.host.reprocess.outputs`): ``trajectory.tum``, ``report.json``, ``path.png``,
+``errors.png``, the model files and ``report.html``.  Ctrl-C leaves only finished stages behind (files
+appear by rename when complete, the manifest is updated after them).
+See docs/architecture.md, "Reprocessing", and docs/reprocess.md.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ PRESET_ABOUT: dict[str, str] = {
                 "views) at every keyframe, tracks over 20 keyframes, bundle adjustment, frame refinement",
     "aligned": "standard, with every track's observations aligned on one reference view (an affine window fit): "
                "each keyframe then sees the same surface point, far more precisely than a detector; for a rig "
-               "whose stereo calibration is good (see README: on KITTI's rectified pair it is worse); ~10 s more",
+               "whose stereo calibration is good (see docs/architecture.md: on KITTI's rectified pair it is worse); ~10 s more",
     "quick": "plain SIFT tracks (no affine views) over 20 keyframes: about half the time, less accurate",
     "paper": "the paper's modified ASIFT (25 views) in the estimator and at every keyframe: slow",
     "full": "OpenCV's reference ASIFT (cv2.AffineFeature) in the estimator and at every keyframe: slowest",

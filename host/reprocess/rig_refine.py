@@ -1,22 +1,13 @@
 """The stereo calibration refined by reprocessing, for the device: ``OUT/rig_refined.yaml``.
 
-The bundle adjustment (:mod:`stereopath.host.reprocess.gtsam_ba`) can estimate one constant
-disparity error of the pair as a horizontal shift of the right camera's principal point: its
-right camera is ``Cal3_S2`` with ``cx1 + offset``.  When the adjustment applied such an offset
-(it passed ``ba_disparity_offset_min_px``), the session's rig with ``cam1.cx`` moved by that
-offset is the calibration the path was refined with; given to the device for the next sessions
-of the same rig (device configuration ``source.rig_file``), the on-board estimator triangulates
-with it and the offset no longer lengthens (or shortens) its path.
-
-A rig whose cameras are pinhole views of fisheye lenses (``Rig.views_of``: a box with a Kalibr
-fisheye camchain records its images through the views) keeps that camchain as its
-``source.rig_file``; the refined rig describes the views, so it is for ``--rig`` of ``host live`` /
-``host map`` and the report says so.
-
-A positive offset means the measured disparities were that much too small (points too far, the
-path too long), a negative one too large.  For a rig that is not rectified (distortion, rotated
-cameras) the shift is applied to the right camera's own principal point, exactly as the
-adjustment modelled it.
+The bundle adjustment (:mod:`stereopath.host.reprocess.gtsam_ba`) can estimate one constant disparity
+error of the pair as a shift of the right camera's principal point (``cx1 + offset``).  When it applied
+such an offset, the session's rig with ``cam1.cx`` moved by it is written; given to the device for the
+next sessions of the same rig (``source.rig_file``), the on-board estimator triangulates with it.  A
+positive offset means the measured disparities were too small (points too far, the path too long).  A
+rig of pinhole views of fisheye lenses (``Rig.views_of``) keeps its camchain on the device: the refined
+rig is then for ``--rig`` of ``host live`` / ``host map``, and the report says so.
+See docs/reprocess.md, "Refined rig".
 """
 
 from __future__ import annotations

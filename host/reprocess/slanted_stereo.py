@@ -1,31 +1,20 @@
 """Stereo correspondences refined with a slanted window (offline, sub-pixel, unbiased on slanted surfaces).
 
-A translational window (KLT) assumes the disparity is constant over the window.  On a surface
-seen at a slant the disparity is an affine function of the pixel, ``d(x) = d0 + a dx + b dy``, and
-the translational least-squares estimate is the disparity at the window's *gradient-energy
-centroid*, not at its centre.  Perspective compresses the texture of a receding surface, so the
-far side of a window holds more gradient energy than the near side and the centroid leans to the
-far side: the disparity comes out systematically too small.  Near a depth edge the same window
-also mixes the background into a foreground point's match.  On the simulated table scan the
-right-image KLT match of points at 0.4-1.2 m is +0.014-0.019 px off (median), far points are not,
-and bundle adjustment turns that into a path 4e-4 too long (a constant disparity offset cannot
-model an error that grows with the disparity).
-
-:func:`refine_slanted` starts from the translational match and fits, per point, the right-image
-position as an affine function of the window offset in x (the two slants) plus a vertical shift,
-with the brightness offset and gain left free (zero-mean residual, the warped patch scaled to
-the template's contrast).  The solver is inverse-compositional Gauss-Newton: the Jacobian and
-its normal matrix come from the left template once, each iteration samples the right image
-(bilinear with exact weights) and updates the points that still move.  The vertical mapping
-stays a shift: the two cameras' rows differ only by the small rectifying rotation.  Pure NumPy
-and OpenCV on arrays; the images are grey ``(h, w)``, the pixels ``(n, 2)``.
+A translational window (KLT) measures the disparity at its *gradient-energy centroid*, not its centre;
+on a surface seen at a slant perspective packs more texture into the far side, so near points come out
+too far and the path too long, an error a constant disparity offset cannot model.
+:func:`refine_slanted` starts from the translational match and fits, per point, the right-image position
+as an affine function of the window offset in x plus a vertical shift, brightness gain and offset free,
+by inverse-compositional Gauss-Newton (the template's Jacobian computed once; bilinear sampling with
+exact weights).  Pure NumPy and OpenCV on arrays: grey images ``(h, w)``, pixels ``(n, 2)``.
+See docs/architecture.md, "Reprocessing".
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-# points per block: a block's windows stay in the CPU caches (~1,000 points: 40 % less CPU than all at once)
+# points per block: a block's windows stay in the CPU caches
 BLOCK = 1024
 
 

@@ -22,9 +22,7 @@ STATUS = ("ok", "imu_only", "lost")
 # run, or a fleet worker) gives the same path to the last bit.  The on-board service keeps it
 # on its worker thread.  The disparity offset is not refined on line: the bundle adjustment
 # estimates it from every keyframe at once, and an on-line value that changes part-way through
-# (the points re-triangulated each time) only hands it a start whose scale drifts (KITTI 06 0-50:
-# ATE after 0.0296 m with the on-line offset, 0.0195 m without; the simulated orbit leaves it at
-# its prior either way)
+# (the points re-triangulated each time) only hands it a start whose scale drifts
 OFFLINE_OPTIONS = {"background_keyframes": False, "estimate_disparity_offset": False}
 
 

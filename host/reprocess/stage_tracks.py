@@ -78,9 +78,8 @@ def keyframes_by_view_change(rig, est: dict[str, np.ndarray], features_of, cfg, 
 def guessed_keyframe_count(rig, est: dict[str, np.ndarray], images_of, cfg) -> int:
     """How many offline keyframes this stage will choose, guessed the way :func:`keyframes_ahead`
     guesses ahead: the rule of :func:`next_keyframe` on cheap corners (:func:`view_points`) from the
-    first tracked frame to the last (~20 ms a keyframe against ~0.8 s for its keypoints).  What a
-    session's tracks and bundle adjustment will cost, for a scheduler; never used for results.
-    (On four simulated sessions: 10 / 15 / 73 / 9 guessed, 10 / 12 / 71 / 9 chosen.)"""
+    first tracked frame to the last (a small fraction of the keypoints' cost).  What a
+    session's tracks and bundle adjustment will cost, for a scheduler; never used for results."""
     if not np.any(est["status"] == 0):
         return 0
     if cfg.keyframe_parallax_deg <= 0:  # the estimator's keyframes

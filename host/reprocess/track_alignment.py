@@ -1,22 +1,13 @@
 """Track observations aligned on one reference view (offline): every keyframe sees the same surface point.
 
-A track's observations are keypoints detected independently in each keyframe.  A detector's
-position is repeatable only to a fraction of a pixel, and not at all under a change of viewpoint:
-a blob on a surface seen at a slant is found at the centre of its *image*, which perspective moves
-from view to view.  On the simulated table scan the keypoints of one track, lifted to the surface
-with the true depth, scatter by 0.27 px (median, as seen from the keyframes), five times the
-stereo matches' error; bundle adjustment averages that noise into the path.
-
-:func:`align_tracks` takes one observation of each track as its reference (the middle keyframe of
-the track, so the viewpoint changes least) and moves every other observation to where the
-reference window lands: the window is mapped by an affine warp, started from the warp that the
-estimated poses predict for a surface facing the reference camera, and fitted by
-inverse-compositional Gauss-Newton (:func:`refine_affine`: six warp parameters, brightness gain
-and offset free).  The observation's right-image match moves alike and is refined again with the
-slanted window (:mod:`stereopath.host.reprocess.slanted_stereo`; KLT where that is off), so each
-observation stays a stereo observation of the same surface point.  Observations whose fit does not settle, or that move
-further than a detector could be off, are dropped, and tracks left with fewer than two
-observations with them.  Pure computation on the images handed in.
+A detector finds a blob on a surface seen at a slant at the centre of its *image*, which perspective
+moves from view to view, so a track's independent detections scatter and bundle adjustment averages
+that into the path.  :func:`align_tracks` takes each track's middle keyframe as its reference and moves
+every other observation to where the reference window lands: an affine warp started from the one the
+poses predict, fitted by inverse-compositional Gauss-Newton (:func:`refine_affine`, gain and offset
+free); the right-image match moves alike and is refined with the slanted window.  Observations whose fit
+does not settle or that move too far are dropped.  Pure computation on the images handed in.
+See docs/architecture.md, "Reprocessing" (the ``aligned`` preset).
 """
 
 from __future__ import annotations

@@ -1,21 +1,13 @@
 """Feature tracks over keyframes for offline bundle adjustment (drift-free observations).
 
-The on-board estimator tracks its map points frame to frame with KLT.  Chained KLT drifts: on the
-simulated scan a track is off by about 0.25 px after one keyframe interval and 0.8 px after ten,
-and that drift is smooth in time, so bundle adjustment on those observations bends the path
-instead of straightening it.  Here every keyframe gets fresh detections instead:
-
-1. :func:`stereo_features`: SIFT keypoints (or any :mod:`stereopath.device.core.features` preset) of the left
-   image, located in the right image by pyramidal KLT (seeded by a depth guess, checked forward-
-   backward and on the rectified rows), triangulated in the left camera;
-2. :func:`build_tracks`: each keyframe is matched with the next ``window`` keyframes by
-   descriptor matching *guided* by the estimated poses (a keypoint's stereo point is projected
-   into the later keyframe and matched only within ``radius_px``), the matches are joined into
-   tracks (union-find), tracks holding two keypoints of one keyframe are dropped, and each track's
-   point starts at the mean of its stereo points in the world.
-
-Each observation is then an independent detection, so its error does not grow with the track's
-age.  Pure computation apart from the images handed in.
+Chained on-board KLT drifts smoothly in time, and bundle adjustment on such observations bends the path.
+Here every keyframe gets fresh detections: :func:`stereo_features` (a feature preset's keypoints of the
+left image, located in the right image by KLT seeded by a depth guess, checked forward-backward and on
+the rectified rows, triangulated) and :func:`build_tracks` (each keyframe matched with the next
+``window`` keyframes, guided by the estimated poses within ``radius_px``, joined by union-find; tracks
+holding two keypoints of one keyframe dropped).  Each observation is an independent detection, so its
+error does not grow with the track's age.  Pure computation apart from the images handed in.
+See docs/architecture.md, "Reprocessing".
 """
 
 from __future__ import annotations
