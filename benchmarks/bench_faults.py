@@ -98,6 +98,20 @@ def _receiver_at(pose_endpoint: str, keyframe_endpoint: str, out: Path, **kw):
     return Receiver(cfg, out)
 
 
+def _receive_until_exit(proc: subprocess.Popen, stream: dict, out: Path) -> str:
+    """A host receiving into ``out`` until the ``device run`` child ``proc`` ends; its stderr."""
+    rx = _receiver_at(stream["pose_endpoint"], stream["keyframe_endpoint"], out)
+    try:
+        wait_for(lambda: proc.poll() is not None, TIME_LIMIT_S - 10, between=lambda: rx.poll(0.05))
+        for _ in range(20):
+            rx.poll(0.02)
+    finally:
+        rx.close()
+        if proc.poll() is None:
+            proc.kill()
+    return proc.communicate()[1]
+
+
 def _offer(dev, i: int, **image_size) -> None:
     """Offer keyframe ``i``, waiting while the device's spool queue is full (a burst faster than its
     writer is refused by design; these scenarios measure what happens after the device took it)."""
@@ -384,16 +398,7 @@ def sc_killed_device_spool(tmp: Path, mount: bool) -> dict:
     killed = len(list((old / "keyframes").glob("*.kf")))
     second = run(40, "--wait-for-host", "60")
     out = tmp / "host"
-    rx = _receiver_at(stream["pose_endpoint"], stream["keyframe_endpoint"], out)
-    try:
-        wait_for(lambda: second.poll() is not None, TIME_LIMIT_S - 10, between=lambda: rx.poll(0.05))
-        for _ in range(20):
-            rx.poll(0.02)
-    finally:
-        rx.close()
-        if second.poll() is None:
-            second.kill()
-    _, err = second.communicate()
+    err = _receive_until_exit(second, stream, out)
     stored = len(stored_seqs(out, old.name))
     left = len(list((old / "keyframes").glob("*.kf")))
     states = {st.session_id: st.state for st in session_states(out)}
@@ -639,16 +644,7 @@ def sc_rogue_hello_device_kill(tmp: Path, mount: bool) -> dict:
     recorded_acked = read_acked(old / "keyframes")
     second = run(40, "--wait-for-host", "60")
     out = tmp / "host"
-    rx = _receiver_at(stream["pose_endpoint"], stream["keyframe_endpoint"], out)
-    try:
-        wait_for(lambda: second.poll() is not None, TIME_LIMIT_S - 10, between=lambda: rx.poll(0.05))
-        for _ in range(20):
-            rx.poll(0.02)
-    finally:
-        rx.close()
-        if second.poll() is None:
-            second.kill()
-    _, err = second.communicate()
+    err = _receive_until_exit(second, stream, out)
     lost, dup = _exactly_once(out, old.name, killed)
     return _row("13 rogue hello, device kill -9", kf_sent=killed, kf_stored=len(stored_seqs(out, old.name)),
                 kf_lost=lost, kf_dup=dup, rc=f"kill -9 / restart {second.returncode}",

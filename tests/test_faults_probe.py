@@ -211,38 +211,22 @@ def test_a_dead_tunnel_is_named_as_such_not_as_a_wrong_key(tmp_path, keys, caplo
     assert not any("device public key" in m for m in msgs), msgs
 
 
-def test_a_wrong_device_key_is_named_as_such(tmp_path, keys, caplog):
-    other = make_demo_keys(tmp_path / "other")
-    dev = make_device(tmp_path, keys, "sessK")
-    rx = _receiver_at(dev.keyframe_endpoint, keys, tmp_path / "out", device_key=other.device_public)
+@pytest.mark.parametrize("device_curve, host_curve, wrong_key, waited, said", [
+    (True, True, True, "closed the CURVE handshake", "is not that device's"),
+    (False, True, False, "CURVE on one side only", "streams without CURVE"),
+    (True, False, False, "CURVE on one side only", "requires CURVE and this host runs --insecure"),
+], ids=["wrong device key", "device without CURVE", "host without CURVE"])
+def test_a_failed_handshake_is_named_for_what_it_is(tmp_path, keys, caplog, device_curve, host_curve, wrong_key,
+                                                     waited, said):
+    other = make_demo_keys(tmp_path / "other").device_public if wrong_key else None
+    dev = make_device(tmp_path, keys if device_curve else None, "sessK")
+    rx = _receiver_at(dev.keyframe_endpoint, keys if host_curve else None, tmp_path / "out", device_key=other)
     try:
-        msgs = _warnings_until(rx, caplog, "closed the CURVE handshake")
+        msgs = _warnings_until(rx, caplog, waited)
     finally:
         rx.close()
         dev.close()
-    assert any("is not that device's" in m for m in msgs), msgs
-
-
-def test_curve_on_one_side_only_is_named_as_such(tmp_path, keys, caplog):
-    dev = make_device(tmp_path, None, "sessP")  # the device runs without CURVE
-    rx = _receiver_at(dev.keyframe_endpoint, keys, tmp_path / "out")
-    try:
-        msgs = _warnings_until(rx, caplog, "CURVE on one side only")
-    finally:
-        rx.close()
-        dev.close()
-    assert any("streams without CURVE" in m for m in msgs), msgs
-
-
-def test_an_insecure_host_against_a_curve_device_is_named_as_such(tmp_path, keys, caplog):
-    dev = make_device(tmp_path, keys, "sessQ")
-    rx = _receiver_at(dev.keyframe_endpoint, None, tmp_path / "out")
-    try:
-        msgs = _warnings_until(rx, caplog, "CURVE on one side only")
-    finally:
-        rx.close()
-        dev.close()
-    assert any("requires CURVE and this host runs --insecure" in m for m in msgs), msgs
+    assert any(said in m for m in msgs), msgs
 
 
 # ------------------------------------------------------------------ key files named for what they are

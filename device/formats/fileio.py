@@ -132,16 +132,26 @@ def _check_out_folder(p: Path, option: str, inputs: Iterable[str | Path], not_a_
             raise ConfigError(f"{option} {p}: is the input folder {src}; its recorded files would be replaced "
                               f"(give another folder, e.g. {other})")
     check_out_location(p, option, instead=instead)
+    where = folder_or_parent(p, f"{option} {p}")
+    if not os.access(where, os.W_OK | os.X_OK):
+        why = "read-only file system" if _read_only_fs(where) else "no permission"
+        raise ConfigError(f"{option} {p}: cannot write in {where} ({why})")
+
+
+def folder_or_parent(path: str | Path, what: str) -> Path:
+    """The folder ``path`` is, or the nearest existing folder it would be made in (ConfigError, naming
+    ``what``, when ``path`` or that nearest existing ancestor is not a folder)."""
+    from stereopath.device.errors import ConfigError
+
+    p = Path(path)
     if p.exists() and not p.is_dir():
-        raise ConfigError(f"{option} {p}: exists and is not a folder")
+        raise ConfigError(f"{what}: exists and is not a folder")
     where = p.absolute()
     while not where.exists() and where != where.parent:
         where = where.parent
     if not where.is_dir():
-        raise ConfigError(f"{option} {p}: {where} is not a folder")
-    if not os.access(where, os.W_OK | os.X_OK):
-        why = "read-only file system" if _read_only_fs(where) else "no permission"
-        raise ConfigError(f"{option} {p}: cannot write in {where} ({why})")
+        raise ConfigError(f"{what}: {where} is not a folder")
+    return where
 
 
 def check_out_file(path: str | Path, option: str = "--out", example: str = "out.yaml") -> Path:

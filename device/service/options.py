@@ -123,14 +123,9 @@ def _short(path: str, keep: int = 100) -> str:
 
 def _check_recorder_dir(cfg: DeviceConfig) -> None:
     """``recorder.dir`` (where sessions are made) must be a folder, or not exist yet under a folder."""
-    d = Path(cfg.recorder.dir)
-    if d.exists() and not d.is_dir():
-        raise ConfigError(f"recorder.dir = {cfg.recorder.dir!r}: exists and is not a folder")
-    above = d.absolute()
-    while not above.exists() and above != above.parent:
-        above = above.parent
-    if not above.is_dir():
-        raise ConfigError(f"recorder.dir = {cfg.recorder.dir!r}: {above} is not a folder")
+    from stereopath.device.formats.fileio import folder_or_parent
+
+    folder_or_parent(cfg.recorder.dir, f"recorder.dir = {cfg.recorder.dir!r}")
 
 
 def _check_config(cfg: DeviceConfig, environ: Mapping[str, str] | None) -> None:
