@@ -11,11 +11,10 @@
    preintegration factors, the default), R times each, alternating, on the same stored estimate
    and tracks: median ATE, median wall and CPU seconds (all threads) of the stage, the ratios to
    the first variant, and the IMU biases estimated against the simulator's truth.
-   (The hand-written solver GTSAM replaced was measured in the same run before it was deleted:
-   README, "Figures".)
+   (The hand-written solver GTSAM replaced: its figures are in CHANGELOG.md.)
 2. KITTI 06 frames 0-50 (no map): the vision-only variant (KITTI has no IMU).
-   Then (both sequences) the tracks and ba stages with the offline keyframes and keyframe-match check
-   of before session 4 (the estimator's keyframes, no depth allowance) and today's (keyframes by
+   Then (both sequences) the tracks and ba stages with the earlier offline keyframes and keyframe-match
+   check (the estimator's keyframes, no depth allowance) and today's (keyframes by
    viewpoint change, matches allowed their stereo depth's uncertainty), on the same re-estimate.
 3. --loop N: a session on the `loop` trajectory (N frames): on-board ATE and end-to-start error
    (target >= 10 mm; --loop-seed picks the session's seed, --loop-seeds S adds the on-board figures
@@ -116,7 +115,7 @@ def compare_solvers(name: str, seq, stages: Path, base, runs: int, ate_on: float
         print_bias_recovery(name, stats["gtsam+imu"]["imu"], *bias_truth)
 
 
-# the offline keyframes and match check before issue 13's session 4: the estimator's keyframes,
+# the earlier offline keyframes and match check (issue 13): the estimator's keyframes,
 # a keyframe match verified against its stereo point's position only (no depth allowance)
 TRACKS_BEFORE = {"keyframe_parallax_deg": 0.0, "verify_depth_sigmas": 0.0}
 
