@@ -14,8 +14,9 @@ import yaml
 
 from stereopath.device.errors import CalibrationError, ConfigError, DatasetError
 
+from tests.test_faults_input import FRAMES, _copy, session  # noqa: F401  (a 12-frame simulated recording)
+
 ROOT = Path(__file__).resolve().parents[1]
-FRAMES = 12
 
 
 def _cli(argv: list[str]) -> int:
@@ -24,20 +25,6 @@ def _cli(argv: list[str]) -> int:
     return main(argv)
 
 
-@pytest.fixture(scope="module")
-def session(tmp_path_factory) -> Path:
-    from stereopath.device.formats.recorder import record_sequence
-    from stereopath.device.sim.session import SimConfig, open_sim
-
-    d = tmp_path_factory.mktemp("bounds") / "session"
-    record_sequence(open_sim(SimConfig(frames=FRAMES)), d, config_dict={"source": "sim"})
-    return d
-
-
-def _copy(session: Path, tmp_path: Path) -> Path:
-    d = tmp_path / "session"
-    shutil.copytree(session, d)
-    return d
 
 
 def _huge_tum(src: Path, dst: Path, line: int = 2) -> Path:
