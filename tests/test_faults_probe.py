@@ -256,3 +256,15 @@ def test_a_damaged_acked_record_offers_everything_again(tmp_path):
     assert read_acked(tmp_path) == -1
     (tmp_path / ACKED_NAME).write_text('{"acked_seq": true}')
     assert read_acked(tmp_path) == -1
+
+
+def test_json_nested_too_deep_is_invalid_json_like_any_other(tmp_path):
+    import json
+
+    from stereopath.device.formats.fileio import load_json
+
+    (tmp_path / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(json.JSONDecodeError, match="nested too deeply"):
+        load_json(tmp_path / "deep.json")
+    (tmp_path / "ok.json").write_text('{"a": [1, 2]}')
+    assert load_json(tmp_path / "ok.json") == {"a": [1, 2]}

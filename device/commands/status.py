@@ -83,17 +83,19 @@ def run(args: argparse.Namespace) -> int:
     import time
     from pathlib import Path
 
+    from stereopath.device.formats.fileio import load_json
+
     path = Path(_status_path(args))
     if not str(path) or str(path) == ".":
         print("stereopath device status: service.status_file is empty (the service writes no status)", file=sys.stderr)
         return 1
     try:
-        status = json.loads(path.read_text())
+        status = load_json(path)
     except FileNotFoundError:
         print(f"no status at {path}: the capture service is not running (systemctl status stereopath-capture)",
               file=sys.stderr)
         return 1
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
         print(f"cannot read {path}: {exc}", file=sys.stderr)
         return 1
     if not isinstance(status, dict):

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from stereopath.device.formats import layout
+from stereopath.device.formats.fileio import load_json
 from stereopath.device.formats.sequence import SequenceBase
 from stereopath.device.formats.csvrows import parse_float, parse_int, read_rows
 from stereopath.device.formats.images import read_gray
@@ -146,8 +147,8 @@ def open_session(session_dir: str | Path) -> AslSequence:
     mpath = d / layout.MANIFEST
     if mpath.is_file():
         try:
-            seq.manifest = json.loads(mpath.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:  # it only describes the recording:
+            seq.manifest = load_json(mpath)
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:  # it only describes the recording:
             log.warning("%s: invalid JSON, ignored (%s)", mpath, exc)  # the images and IMU are what count
         status = seq.manifest.get("status") if isinstance(seq.manifest, dict) else None
         if status == "recording":

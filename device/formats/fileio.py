@@ -251,6 +251,16 @@ def replacing(path: str | Path, fsync: bool = False, mode: int | None = None) ->
         fsync_dir(p.parent)
 
 
+def load_json(path: str | Path) -> Any:
+    """A JSON file's value; nesting too deep for the parser is a :class:`json.JSONDecodeError` like any
+    other invalid JSON (a ValueError, as is undecodable text), so callers catch one family."""
+    text = Path(path).read_text()
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise json.JSONDecodeError("nested too deeply", text[:64], 0) from None
+
+
 def write_text_atomic(path: str | Path, text: str, fsync: bool = True, mode: int | None = None) -> None:
     """:func:`write_atomic` of UTF-8 text."""
     write_atomic(path, text.encode("utf-8"), fsync=fsync, mode=mode)

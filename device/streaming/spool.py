@@ -47,8 +47,8 @@ _NAME_RE = re.compile(r"^(\d{8,10})\.kf$")
 def read_acked(directory: str | Path) -> int:
     """The highest seq of the spool ``directory`` a host acknowledged (-1: none, or no readable record)."""
     try:
-        v = json.loads((Path(directory) / ACKED_NAME).read_text()).get("acked_seq", -1)
-    except (OSError, ValueError, AttributeError, RecursionError):  # (RecursionError: nesting too deep)
+        v = fileio.load_json(Path(directory) / ACKED_NAME).get("acked_seq", -1)
+    except (OSError, ValueError, AttributeError):
         return -1
     return v if isinstance(v, int) and not isinstance(v, bool) and v >= -1 else -1
 

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from stereopath.device.formats.fileio import write_text_atomic
+from stereopath.device.formats.fileio import load_json, write_text_atomic
 
 REPORT_KEYS = (
     "source",
@@ -106,13 +106,11 @@ def read_report(path: str | Path) -> dict[str, Any]:
 
     p = Path(path)
     try:
-        data = json.loads(p.read_text())
+        data = load_json(p)
     except FileNotFoundError:
         raise DatasetError(f"report not found: {p}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{p}: invalid JSON: {exc}") from None
-    except RecursionError:
-        raise DatasetError(f"{p}: invalid JSON: nested too deeply") from None
     missing = [k for k in REPORT_KEYS if k not in data] if isinstance(data, dict) else list(REPORT_KEYS)
     if missing:
         raise DatasetError(f"{p}: not a stereopath report (missing {', '.join(missing)})")

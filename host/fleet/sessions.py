@@ -8,7 +8,6 @@ sub-folders are sessions, or a glob pattern (expanded here, so a quoted pattern 
 from __future__ import annotations
 
 import glob
-import json
 import os
 import re
 from collections.abc import Sequence
@@ -16,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from stereopath.device.errors import ConfigError, DatasetError
+from stereopath.device.formats.fileio import load_json
 
 _GLOB_CHARS = re.compile(r"[*?\[]")
 _UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
@@ -38,10 +38,10 @@ def session_id(d: Path) -> str:
     """The recorder's ``session_id`` from ``manifest.json``, else the folder name (file-name safe)."""
     sid = None
     try:
-        man = json.loads((d / "manifest.json").read_text())
+        man = load_json(d / "manifest.json")
         if isinstance(man, dict) and isinstance(man.get("session_id"), str):
             sid = man["session_id"]
-    except (OSError, ValueError, RecursionError):
+    except (OSError, ValueError):
         pass
     sid = _UNSAFE.sub("_", sid or d.name).strip("._") or "session"
     return sid

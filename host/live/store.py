@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from stereopath.device.errors import DatasetError, ProtocolError
-from stereopath.device.formats.fileio import is_temp, write_atomic, write_text_atomic
+from stereopath.device.formats.fileio import is_temp, load_json, write_atomic, write_text_atomic
 from stereopath.device.wire.protocol import SESSION_ID_RE, Keyframe, decode_keyframe
 
 log = logging.getLogger(__name__)
@@ -249,10 +249,10 @@ class KeyframeStore:
         state = self.root / STATE_NAME
         if state.is_file():
             try:
-                sid = json.loads(state.read_text()).get("last_session")
+                sid = load_json(state).get("last_session")
                 if isinstance(sid, str) and SESSION_ID_RE.match(sid):
                     self._last_session = sid
-            except (OSError, ValueError, AttributeError, RecursionError) as exc:
+            except (OSError, ValueError, AttributeError) as exc:
                 log.warning("ignoring unreadable %s: %s", state, exc)
 
     def session(self, session_id: str) -> SessionKeyframes:
