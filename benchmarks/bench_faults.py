@@ -98,6 +98,16 @@ def _receiver_at(pose_endpoint: str, keyframe_endpoint: str, out: Path, **kw):
     return Receiver(cfg, out)
 
 
+def _sim_device(tmp: Path, stream: dict):
+    """``run(frames, *args)``: a `device run` child on the simulated rig streaming on ``stream``."""
+    from tests.test_service_support import device_run, sim_tables, write_toml
+
+    def run(frames: int, *args: str) -> subprocess.Popen:
+        cfg = write_toml(tmp / "device.toml", sim_tables(tmp, frames=frames, rate_hz=20.0, stream=stream))
+        return device_run(["--config", str(cfg), *args])
+    return run
+
+
 def _receive_until_exit(proc: subprocess.Popen, stream: dict, out: Path) -> str:
     """A host receiving into ``out`` until the ``device run`` child ``proc`` ends; its stderr."""
     rx = _receiver_at(stream["pose_endpoint"], stream["keyframe_endpoint"], out)
@@ -385,13 +395,9 @@ def sc_killed_device_spool(tmp: Path, mount: bool) -> dict:
     """`device run` killed (-9) mid-session before any host acknowledged its keyframes; a new run
     (waiting for a host) and a host: the earlier session's keyframes reach the host, the device deletes them."""
     from stereopath.host.live.receiver_sessions import session_states
-    from tests.test_service_support import device_run, sim_tables, write_toml
-
     stream = loopback_stream(spool_fsync=False)
 
-    def run(frames: int, *args: str) -> subprocess.Popen:
-        cfg = write_toml(tmp / "device.toml", sim_tables(tmp, frames=frames, rate_hz=20.0, stream=stream))
-        return device_run(["--config", str(cfg), *args])
+    run = _sim_device(tmp, stream)
     sessions = tmp / "sessions"
     first = run(400)
     old = kill_9_once_spooled(first, sessions, 8)
@@ -617,13 +623,9 @@ def sc_rogue_hello_device_kill(tmp: Path, mount: bool) -> dict:
 
     from stereopath.device.streaming.spool import read_acked
     from stereopath.device.wire.protocol import Hello, encode_hello
-    from tests.test_service_support import device_run, sim_tables, write_toml
-
     stream = loopback_stream(spool_fsync=False)
 
-    def run(frames: int, *args: str) -> subprocess.Popen:
-        cfg = write_toml(tmp / "device.toml", sim_tables(tmp, frames=frames, rate_hz=20.0, stream=stream))
-        return device_run(["--config", str(cfg), *args])
+    run = _sim_device(tmp, stream)
     sessions = tmp / "sessions"
     first = run(400)
     ctx = zmq.Context()
