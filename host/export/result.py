@@ -214,9 +214,9 @@ def _session(p: Path) -> ExportSource:
 def _live_folder(p: Path) -> Path | None:
     """The keyframes folder of a ``host live`` store at ``p`` (the folder itself, ``p/keyframes`` or the
     one session's ``p/<session>/keyframes``); None when there is none, DatasetError when several."""
-    from stereopath.host.mapping.inputs import _keyframe_folder
+    from stereopath.host.mapping.inputs import keyframe_folder
 
-    found = _keyframe_folder(p)
+    found = keyframe_folder(p)
     if found is not None:
         return found
     subs = [d / "keyframes" for d in sorted(p.iterdir()) if d.is_dir() and (d / "keyframes").is_dir()]

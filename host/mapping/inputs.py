@@ -170,7 +170,7 @@ def session_input(session_dir: str | Path, selection: KeyframeSelection, poses: 
     return keyframes_from_sequence(seq, traj, selection, kind="session", source=str(d), poses_source=poses_source)
 
 
-def _keyframe_folder(path: Path) -> Path | None:
+def keyframe_folder(path: Path) -> Path | None:
     """The ``keyframes`` folder for ``path`` (itself, or its ``keyframes`` child), or None."""
     for cand in (path, path / "keyframes"):
         if cand.is_dir() and ((cand / "index.csv").is_file() or any(cand.glob("kf_*.msgpack"))):
@@ -190,7 +190,7 @@ def keyframes_input(path: str | Path, selection: KeyframeSelection | None = None
     from stereopath.host.live.store import load_keyframe
 
     p = Path(path)
-    kdir = _keyframe_folder(p)
+    kdir = keyframe_folder(p)
     if kdir is None:
         raise DatasetError(f"{p}: no stored keyframes (expected index.csv or kf_*.msgpack files)")
     files = sorted(kdir.glob("kf_*.msgpack"))
@@ -251,7 +251,7 @@ def open_map_input(path: str | Path, selection: KeyframeSelection, poses: str | 
         raise DatasetError(f"{p} is not a folder (expected a session or a keyframes folder)")
     if (p / "mav0").is_dir():
         return session_input(p, selection, poses)
-    if _keyframe_folder(p) is not None:
+    if keyframe_folder(p) is not None:
         if poses is not None:
             raise ConfigError("--poses applies to sessions; stored keyframes carry their own poses")
         # stored keyframes are already spaced by the device: every one by default, max_keyframes still applies
