@@ -24,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stereopath.device.core.config import from_mapping  # noqa: E402
-from stereopath.device.service.settings import SourceSettings  # noqa: E402
+from stereopath.device.settings import SourceSettings  # noqa: E402
 from stereopath.device.capture.sources.csi import Picamera2Source  # noqa: E402
 from tests.fakes.fake_picamera2 import FakeCameraWorld  # noqa: E402
 

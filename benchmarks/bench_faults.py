@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault("STEREOPATH_DATA", str(ROOT.parent / "shared" / "data"))
 
-from tests.test_streaming_support import free_ports, kill_9_once_spooled, loopback_stream, make_device, small_images, stored_seqs, \
+from tests.device.test_streaming_support import free_ports, kill_9_once_spooled, loopback_stream, make_device, small_images, stored_seqs, \
     wait_for, write_or_enospc  # noqa: E402
 
 TIME_LIMIT_S = 90.0  # per scenario: a scenario that takes longer counts as a hang
@@ -100,7 +100,7 @@ def _receiver_at(pose_endpoint: str, keyframe_endpoint: str, out: Path, **kw):
 
 def _sim_device(tmp: Path, stream: dict):
     """``run(frames, *args)``: a `device run` child on the simulated rig streaming on ``stream``."""
-    from tests.test_service_support import device_run, sim_tables, write_toml
+    from tests.device.test_service_support import device_run, sim_tables, write_toml
 
     def run(frames: int, *args: str) -> subprocess.Popen:
         cfg = write_toml(tmp / "device.toml", sim_tables(tmp, frames=frames, rate_hz=20.0, stream=stream))
@@ -243,7 +243,7 @@ def sc_device_disk_full(tmp: Path, mount: bool) -> dict:
     from stereopath.device.service.options import RunOptions, load_config
     from stereopath.device.service.service import CaptureService
     from stereopath.host.live.receiver import Receiver, ReceiverConfig
-    from tests.test_service_support import FakeEstimator, sim_tables, write_toml
+    from tests.device.test_service_support import FakeEstimator, sim_tables, write_toml
 
     stream = loopback_stream(drain_s=5.0)
     if not mount:
@@ -313,7 +313,7 @@ def sc_two_hosts(tmp: Path, mount: bool) -> dict:
 
 
 def sc_port_taken(tmp: Path, mount: bool) -> dict:
-    from tests.test_service_support import sim_tables, write_toml
+    from tests.device.test_service_support import sim_tables, write_toml
 
     blocker = socket.socket()
     blocker.bind(("127.0.0.1", 0))
@@ -385,7 +385,7 @@ def sc_bad_rigs(tmp: Path, mount: bool) -> dict:
 
 
 def _rig_cfg(tmp: Path, rig: Path) -> Path:
-    from tests.test_service_support import write_toml
+    from tests.device.test_service_support import write_toml
 
     return write_toml(tmp / "rigdev.toml", {"source": {"rig_file": str(rig)}, "recorder": {"dir": str(tmp / "rec")},
                                             "service": {"status_file": ""}})
@@ -419,7 +419,7 @@ def sc_live_map_shipped_rig(tmp: Path, mount: bool) -> dict:
     """`host live --map --rig firmware_cfg/rig_paper.yaml` against a device on another rig (the simulator's)."""
     from stereopath.device.formats.source import open_source
     from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
-    from tests.test_streaming_support import device_config, port_of
+    from tests.device.test_streaming_support import device_config, port_of
 
     seq = open_source("sim:0", frames=60)
     dev = DeviceStreamer(device_config(None), KeyframeSpool(tmp / "spool", fsync=False), "sessM", rig=seq.rig,
@@ -573,7 +573,7 @@ def sc_host_kill_loop(tmp: Path, mount: bool) -> dict:
     """`host live` killed (-9) five times during one scan, restarted each time on the same --out."""
     import signal
 
-    from tests.test_streaming_support import port_of
+    from tests.device.test_streaming_support import port_of
 
     dev = make_device(tmp, None, "sessK")
     out = tmp / "host"

@@ -30,7 +30,7 @@ from stereopath.device.core.config import from_mapping  # noqa: E402
 from stereopath.device.core.frames import ImuSamples  # noqa: E402
 from stereopath.device.capture.imu import mpu6050 as R  # noqa: E402
 from stereopath.device.capture.imu.mpu6050 import Mpu6050  # noqa: E402
-from stereopath.device.service.settings import ImuSettings  # noqa: E402
+from stereopath.device.settings import ImuSettings  # noqa: E402
 from tests.fakes.fake_smbus import Mpu6050Emulator, SimClock, counting_source, decode_index  # noqa: E402
 
 DURATION_S = 60.0

@@ -7,10 +7,10 @@ A long hand-held scan as `host live --map` sees it: N keyframes walking T turns 
 on-board estimate drifts), and from the second turn on a verified loop every K keyframes back to
 the same place one turn earlier (its relative pose the true one).  Fed in arrival order to
 
-* ``isam2``: :class:`stereopath.host.live.live_pose_graph.LivePoseGraph` (what the live map uses):
+* ``isam2``: :class:`stereopath.host.backend.pose_graph.LivePoseGraph` (what the live map uses):
   one iSAM2 update per keyframe, a loop settled by a few more;
 * ``batch``: the whole graph re-solved by Levenberg-Marquardt
-  (:func:`stereopath.host.reprocess.gtsam_ba.pose_graph`) at every loop (what it did before).
+  (:func:`stereopath.host.backend.gtsam_ba.pose_graph`) at every loop (what it did before).
 
 Per variant: CPU seconds of the whole feed (process time, all threads), the time from a loop's
 arrival to its corrected poses (median, p95, max over the loops), the last loop's, and the final
@@ -33,9 +33,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from stereopath.device.core.geometry import invert_pose, make_pose, so3_exp  # noqa: E402
-from stereopath.host.live.live_pose_graph import LivePoseGraph  # noqa: E402
-from stereopath.host.reprocess import gtsam_ba  # noqa: E402
-from stereopath.host.reprocess.loops import Loop  # noqa: E402
+from stereopath.host.backend.pose_graph import LivePoseGraph  # noqa: E402
+from stereopath.host.backend import gtsam_ba  # noqa: E402
+from stereopath.host.backend.loops import Loop  # noqa: E402
 
 
 def scan(n: int, turns: int, every: int, seed: int = 0):

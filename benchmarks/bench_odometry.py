@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from stereopath.device.estimation.base import run_estimator  # noqa: E402
-from stereopath.device.estimation.registry import make_estimator  # noqa: E402
+from stereopath.host.evaluation.baselines import make_estimator  # noqa: E402
 from stereopath.host.evaluation.evaluate import evaluate  # noqa: E402
 from stereopath.device.formats.source import open_source  # noqa: E402
 

@@ -176,7 +176,7 @@ def false_loops(seq, stages: Path) -> tuple[int, float, float]:
     import numpy as np
 
     from stereopath.device.core.geometry import invert_pose, rotation_angle_deg
-    from stereopath.host.reprocess.loops import loops_from_array
+    from stereopath.host.backend.loops import loops_from_array
 
     trk, est = np.load(stages / "tracks.npz"), np.load(stages / "estimate.npz")
     gt = seq.groundtruth

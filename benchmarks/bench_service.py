@@ -62,7 +62,7 @@ def run_service_once(frames: int, estimator: str, tmp: Path) -> dict:
 def run_reference_once(frames: int, estimator: str) -> dict:
     from stereopath.device.estimation.base import run_estimator
     from stereopath.device.estimation.registry import make_estimator
-    from stereopath.device.service.settings import SimSettings, SourceSettings
+    from stereopath.device.settings import SimSettings, SourceSettings
     from stereopath.device.capture.sources import create_source
 
     src = create_source(SourceSettings(backend="sim", sim=SimSettings(frames=frames, seed=0)))

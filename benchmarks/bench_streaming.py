@@ -113,7 +113,7 @@ def kf_count(out: Path, session: str) -> int:
 
 
 def device_role(args: argparse.Namespace) -> int:
-    from stereopath.device.service.settings import KeySettings, StreamSettings
+    from stereopath.device.settings import KeySettings, StreamSettings
     from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
 
     pairs, _ = load_pairs()

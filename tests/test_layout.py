@@ -21,13 +21,14 @@ FOLDERS = {"device": "stereopath.device", "host": "stereopath.host"}
 LAYERS: list[tuple[str, ...]] = [
     ("stereopath.device.errors", "stereopath.device.core"),
     # the simulator is pure synthesis; the typed configuration schema reads only core.config
-    ("stereopath.device.sim", "stereopath.device.service.settings"),
+    ("stereopath.device.sim", "stereopath.device.settings"),
     ("stereopath.device.wire", "stereopath.device.formats"),
     ("stereopath.device.estimation", "stereopath.device.capture"),
     ("stereopath.device.streaming",),
     ("stereopath.device.service",),
     ("stereopath.device.commands", "stereopath.device"),
     ("stereopath.host.progress",),
+    ("stereopath.host.backend",),
     ("stereopath.host.evaluation", "stereopath.host.mapping", "stereopath.host.live", "stereopath.host.reprocess",
      "stereopath.host.fleet", "stereopath.host.export"),
     ("stereopath.host.commands", "stereopath.host"),

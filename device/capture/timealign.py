@@ -33,7 +33,7 @@ from stereopath.device.core.frames import ImuSamples, StereoFrame
 PREROLL_NS = 2_000_000_000  # IMU samples before the first frame handed to it
 
 if TYPE_CHECKING:
-    from stereopath.device.service.settings import TimeAlignSettings
+    from stereopath.device.settings import TimeAlignSettings
 
 log = logging.getLogger(__name__)
 

@@ -71,7 +71,7 @@ def _live(args):
 
     from stereopath.device.core.frames import ImuSamples
     from stereopath.device.capture.imu import create_imu
-    from stereopath.device.service.settings import load_device_config
+    from stereopath.device.settings import load_device_config
 
     cfg = load_device_config(args.config)
     settings = cfg.imu

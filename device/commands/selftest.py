@@ -280,7 +280,7 @@ def run(args: argparse.Namespace) -> int:
     from stereopath.device.errors import ConfigError
     from stereopath.device.service.service import EXIT_CONFIG
     from stereopath.device.service.options import RunOptions, apply_options, check_rig_file
-    from stereopath.device.service.settings import config_or_installed, load_device_config
+    from stereopath.device.settings import config_or_installed, load_device_config
 
     cfg_path = config_or_installed(args.config)
     logging.getLogger(__name__).info("configuration: %s", cfg_path or "built-in defaults")

@@ -19,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _status_path(args: argparse.Namespace) -> str:
-    from stereopath.device.service.settings import config_or_installed, load_device_config
+    from stereopath.device.settings import config_or_installed, load_device_config
 
     if args.status_file is not None:
         return args.status_file

@@ -2,7 +2,7 @@
 
 Pyramidal KLT compares windows that are only shifted; when the camera moves along its axis a near
 point's surroundings scale by ``Z_prev / Z_next`` between frames, which pulls the tracked position off
-the point (``tests/test_scaled_klt.py``).  :func:`track_scaled` groups the points by predicted scale in
+the point (``tests/device/test_scaled_klt.py``).  :func:`track_scaled` groups the points by predicted scale in
 rungs of ``(1 + step) ** k`` and tracks each group whose scale is not 1 from the previous image's region
 resampled at that scale (placed by the group's median offset), against the same region of the next
 image.  The group at scale 1, points predicted outside the next image and points that move unlike their
@@ -35,7 +35,7 @@ def forward_backward(prev, cur, p0, guess, klt: dict, fb_levels: int) -> tuple[n
     """KLT ``prev`` -> ``cur`` from ``guess``, then back from the result to ``prev`` seeded at ``p0`` (a
     true track converges there at once; ``fb_levels`` caps the backward pyramid): (positions in
     ``cur``, both statuses set, backward disagreement in px).  Also the offline tracks' keyframe ->
-    frame step (``host/reprocess/tracks.py``)."""
+    frame step (``host/backend/tracks.py``)."""
     p0 = p0.reshape(-1, 1, 2).astype(np.float32)
     g = guess.reshape(-1, 1, 2).astype(np.float32)
     p1, st, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, g.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **klt)

@@ -16,7 +16,7 @@ from stereopath.device.core.config import as_dict
 from stereopath.device.core.frames import median_rate_hz
 from stereopath.device.errors import CalibrationError, ConfigError
 from stereopath.device.service.options import secret_key_path
-from stereopath.device.service.settings import DeviceConfig
+from stereopath.device.settings import DeviceConfig
 from stereopath.device.service.sinks import NoRecording, NoStreaming, RecordingSink, StreamingSink
 
 log = logging.getLogger(__name__)
@@ -138,8 +138,7 @@ def open_components(cfg: DeviceConfig, session_dir: Path, session_id: str, *, so
     c.imu = open_imu(cfg, c.source, imu_inject or {})
     cam_hz, imu_hz = nominal_rates(cfg, c.source)
     if estimator is None:
-        gt = getattr(getattr(c.source, "session", None), "groundtruth", None)
-        estimator = make_estimator(cfg.estimator.name, c.source.rig, groundtruth=gt)
+        estimator = make_estimator(cfg.estimator.name, c.source.rig)
     c.estimator = estimator
     c.monitor = RateMonitor(None if cfg.source.recorded else cam_hz, imu_hz if cfg.imu.polled else None,
                             cfg.timealign.gap_factor)

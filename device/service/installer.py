@@ -383,7 +383,7 @@ class Installer:
         if self.backend is not None:
             backend = self.backend
         else:
-            from stereopath.device.service.settings import load_device_config
+            from stereopath.device.settings import load_device_config
 
             cfg = self.path(f"{self.layout.etc_dir}/device.toml")
             if not cfg.is_file():  # dry run on a fresh root: the file that would be installed

@@ -10,7 +10,7 @@ from typing import Any, Mapping
 
 from stereopath.device.core.config import as_dict, replace
 from stereopath.device.errors import ConfigError
-from stereopath.device.service.settings import DeviceConfig, load_device_config
+from stereopath.device.settings import DeviceConfig, load_device_config
 
 CREDENTIAL_NAME = "server.key_secret"     # LoadCredential= name of the device's CURVE secret key
 SOURCE_CHOICES = ("sim", "picamera2", "depthai", "replay")

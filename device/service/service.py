@@ -1,6 +1,6 @@
 """The capture service: ``source -> time align -> estimate -> (record, stream)`` with a systemd lifecycle.
 
-One configuration file (:mod:`stereopath.device.service.settings`) describes the whole run; the same code path
+One configuration file (:mod:`stereopath.device.settings`) describes the whole run; the same code path
 serves the simulator, a replayed recording and the real cameras.  Threads:
 
 * the **pipeline thread** pulls stereo pairs from the source, drains the IMU, attaches the
@@ -58,7 +58,7 @@ from stereopath.device.service.components import Components, open_components
 from stereopath.device.service.options import RunOptions, apply_live, check_config, load_config, split_changes
 from stereopath.device.service.pipeline import FramePipeline, PipelineCounters
 from stereopath.device.service.sdnotify import Notifier
-from stereopath.device.service.settings import DeviceConfig
+from stereopath.device.settings import DeviceConfig
 from stereopath.device.service.status import StatusReporter, status_line
 from stereopath.device.service.watchdog import Watchdog
 

@@ -41,7 +41,7 @@ from typing import Any, Callable
 
 from stereopath.device.errors import DatasetError
 from stereopath.device.wire.protocol import Ack, Credit, DecodeError, Hello, decode_control
-from stereopath.device.service.settings import StreamSettings
+from stereopath.device.settings import StreamSettings
 from stereopath.device.wire.ratelog import RateLimitedLog
 from stereopath.device.wire.sockets import CurveKeys, bind_or_close, open_socket
 from stereopath.device.streaming.acks import ContiguousAcks

@@ -18,7 +18,7 @@ import logging
 import threading
 from typing import Any
 
-from stereopath.device.service.settings import StreamSettings
+from stereopath.device.settings import StreamSettings
 from stereopath.device.wire.sockets import CurveKeys, bind_or_close, open_socket
 
 log = logging.getLogger(__name__)

@@ -41,7 +41,7 @@ from stereopath.device.wire.protocol import HEALTH_FIELDS, DeviceHealth, Status,
     decode_session, encode_pose, encode_session, encode_status, make_keyframe, make_session_info, pose_from_matrix, rig_reference
 from stereopath.device.streaming.backlog import Backlog, find_backlog, write_marker
 from stereopath.device.streaming import health
-from stereopath.device.service.settings import KeySettings, StreamSettings
+from stereopath.device.settings import KeySettings, StreamSettings
 from stereopath.device.streaming.keyframe_server import KeyframeServer
 from stereopath.device.streaming.pose_publisher import PosePublisher
 from stereopath.device.wire.security import load_secret_keypair, start_authenticator

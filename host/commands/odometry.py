@@ -14,9 +14,11 @@ import sys
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from stereopath.host.evaluation.baselines import ESTIMATORS
+
     p.add_argument("source", help="sim[:SEED] | kitti:SEQDIR | euroc:MAV0DIR | session:DIR")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--estimator", default="stereo", choices=["stereo", "paper", "sfm"],
+    p.add_argument("--estimator", default="stereo", choices=list(ESTIMATORS),
                    help="stereo: ours (the on-board estimator); paper: the reference paper's method; sfm: a "
                         "two-view baseline scaled by the ground truth")
     p.add_argument("--preset", default=None, help="feature preset (see `stereopath features --list-presets`)")

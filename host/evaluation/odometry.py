@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from stereopath.device.estimation.base import EstimateRun, run_estimator
-from stereopath.device.estimation.registry import make_estimator
+from stereopath.host.evaluation.baselines import make_estimator
 from stereopath.device.formats.tum import Trajectory, write_tum
 from stereopath.host.progress import Bar
 

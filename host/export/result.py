@@ -125,7 +125,7 @@ def ba_observations(rig: Rig, T_kf: np.ndarray, point_ids: np.ndarray, point_xyz
                     offset_px: float, outlier_px: float) -> np.ndarray:
     """The observation rows of the adjusted points that the adjustment keeps: in front of their camera,
     within ``outlier_px`` of the adjusted projection, and of points still seen from two keyframes."""
-    from stereopath.host.reprocess.ba_common import reprojection_residuals, select_observations
+    from stereopath.host.backend.ba_common import reprojection_residuals, select_observations
 
     points = {int(i): x for i, x in zip(point_ids, point_xyz)}
     obs = select_observations(obs, points, 1)

@@ -153,7 +153,7 @@ def limit_threads(n: int, tbb: bool = True) -> None:
 
 
 def run_piece(fn: Callable[[Any, Any], Any], shared: Any, item: Any) -> Any:
-    """One piece of a stage's :func:`~stereopath.host.reprocess.parallel.parallel_map`, as a Ray task
+    """One piece of a stage's :func:`~stereopath.host.backend.parallel.parallel_map`, as a Ray task
     of one CPU: every pool of its worker at one thread (as in the stage it came from: one BLAS
     thread, so the same bits), then ``fn(shared, item)``; returns it with the CPU seconds it took."""
     limit_threads(1, tbb=False)
@@ -180,7 +180,7 @@ class IdleCpus:
 
 
 class RaySpreader:
-    """A spreader for :func:`~stereopath.host.reprocess.parallel.spread_with`: the calling task runs
+    """A spreader for :func:`~stereopath.host.backend.parallel.spread_with`: the calling task runs
     pieces itself, in order from the front, while pieces from the back go out as Ray tasks of one
     CPU (``shared`` put once into the object store, read by reference) onto the cluster's idle CPUs
     (Ray's available resources); the results come back in the order of the items.  When other
@@ -287,7 +287,7 @@ def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any
     (:class:`RaySpreader`); ``lead``: this session is the one the fleet waits for (its spreader's ``lead``).
     A :class:`StereopathError` (bad input) propagates: the driver reports the session failed.
     """
-    from stereopath.host.reprocess.parallel import spread_with
+    from stereopath.host.backend.parallel import spread_with
     from stereopath.host.reprocess.pipeline import reprocess_session
 
     if threads is not None:

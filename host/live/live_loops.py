@@ -2,8 +2,8 @@
 
 Each keyframe gets stereo SIFT keypoints and its on-board pose, and is checked against earlier keyframes
 near it on the corrected path and far enough back, with the offline verification
-(:func:`stereopath.host.reprocess.loops.verify_pair`).  The keyframe poses live in a pose graph solved
-incrementally (:class:`stereopath.host.live.live_pose_graph.LivePoseGraph`): the on-board relative
+(:func:`stereopath.host.backend.loops.verify_pair`).  The keyframe poses live in a pose graph solved
+incrementally (:class:`stereopath.host.backend.pose_graph.LivePoseGraph`): the on-board relative
 motion with a drift-per-metre uncertainty, plus every loop; an accepted loop spreads its correction
 along the path, and later keyframes follow the last corrected one by their on-board motion.  The caller
 re-poses its fused keyframes (:meth:`stereopath.host.mapping.mapper.DenseMapper.repose`).
@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from stereopath.device.core.rig import Rig
-from stereopath.host.live.live_pose_graph import LivePoseGraph
+from stereopath.host.backend.pose_graph import LivePoseGraph
 
 log = logging.getLogger(__name__)
 
@@ -27,8 +27,8 @@ class LiveLoopCloser:
     """Loop detection and pose-graph correction over one session's keyframes, in arrival order."""
 
     def __init__(self, rig: Rig, loops: Any = None, features: Any = None) -> None:
-        from stereopath.host.reprocess.loops import LoopConfig
-        from stereopath.host.reprocess.tracks import TrackConfig
+        from stereopath.host.backend.loops import LoopConfig
+        from stereopath.host.backend.tracks import TrackConfig
 
         self.rig = rig
         self.cfg = loops or LoopConfig()
@@ -55,7 +55,7 @@ class LiveLoopCloser:
 
     def add(self, left: np.ndarray, right: np.ndarray, T_world_cam: np.ndarray) -> bool:
         """Take one keyframe; True when it closed a loop (every pose of :meth:`poses` may have moved)."""
-        from stereopath.host.reprocess.tracks import stereo_features
+        from stereopath.host.backend.tracks import stereo_features
 
         feats = stereo_features(self.rig, left, right, self.track_cfg)
         self.feats.append(feats)
@@ -86,7 +86,7 @@ class LiveLoopCloser:
 
     def _check(self, j: int):
         """The best verified loop between keyframe ``j`` and an earlier keyframe, or None."""
-        from stereopath.host.reprocess.loops import descriptor_matches, candidate_pairs, verify_pair
+        from stereopath.host.backend.loops import descriptor_matches, candidate_pairs, verify_pair
 
         T = self.poses()
         pairs = [i for i, jj in candidate_pairs(T, self.cfg) if jj == j]

@@ -38,7 +38,7 @@ from stereopath.device.formats.tum import Trajectory
 from stereopath.host.mapping.depth import DEPTH_PRESETS, DepthConfig, StereoDepth
 from stereopath.host.mapping.fusion import FUSION_PRESETS, FusionConfig, TsdfVolume
 from stereopath.host.mapping.inputs import KeyframeSelection, MapInput, keyframes_from_sequence, open_map_input
-from stereopath.host.reprocess.parallel import parallel_map
+from stereopath.host.backend.parallel import parallel_map
 from stereopath.host.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -243,7 +243,7 @@ DEPTH_BATCH = 8  # keyframes loaded and their depth computed together before the
 
 
 def _depth_map(depth: StereoDepth, images: tuple[np.ndarray, np.ndarray]) -> Any:
-    """One keyframe's depth map (a piece of :func:`~stereopath.host.reprocess.parallel.parallel_map`)."""
+    """One keyframe's depth map (a piece of :func:`~stereopath.host.backend.parallel.parallel_map`)."""
     return depth.compute(images[0], images[1])
 
 

@@ -12,9 +12,9 @@ from typing import Any
 
 import numpy as np
 
-from stereopath.host.reprocess.loops import LoopConfig
+from stereopath.host.backend.loops import LoopConfig
 from stereopath.host.reprocess.preset_names import DEFAULT_PRESET, PRESET_ABOUT
-from stereopath.host.reprocess.tracks import TrackConfig
+from stereopath.host.backend.tracks import TrackConfig
 
 
 @dataclass(frozen=True)

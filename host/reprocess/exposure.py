@@ -34,10 +34,10 @@ PROBE_SPACING_PX = 12
 
 def probe_relation(rig, left: np.ndarray, right: np.ndarray, cfg) -> GainOffset | None:
     """The grey-level relation of one recorded pair: left-image corners searched in the right image by
-    stereo KLT (``cfg``: a :class:`~stereopath.host.reprocess.tracks.TrackConfig`, its KLT settings
+    stereo KLT (``cfg``: a :class:`~stereopath.host.backend.tracks.TrackConfig`, its KLT settings
     and depth guess), measured by :func:`~stereopath.device.core.photometric.measure_relation`;
     None when not identifiable."""
-    from stereopath.host.reprocess.tracks import right_guess_at_depth
+    from stereopath.host.backend.tracks import right_guess_at_depth
 
     left, right = gray(left), gray(right)
     c = cv2.goodFeaturesToTrack(left, maxCorners=PROBE_CORNERS, qualityLevel=PROBE_QUALITY,

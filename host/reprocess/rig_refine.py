@@ -1,6 +1,6 @@
 """The stereo calibration refined by reprocessing, for the device: ``OUT/rig_refined.yaml``.
 
-The bundle adjustment (:mod:`stereopath.host.reprocess.gtsam_ba`) can estimate one constant disparity
+The bundle adjustment (:mod:`stereopath.host.backend.gtsam_ba`) can estimate one constant disparity
 error of the pair as a shift of the right camera's principal point (``cx1 + offset``).  When it applied
 such an offset, the session's rig with ``cam1.cx`` moved by it is written; given to the device for the
 next sessions of the same rig (``source.rig_file``), the on-board estimator triangulates with it.  A

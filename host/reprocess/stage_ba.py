@@ -1,6 +1,6 @@
 """Stage ``ba``: bundle adjustment of the keyframe poses and track points, then every other frame.
 
-The keyframes: :func:`stereopath.host.reprocess.gtsam_ba.bundle_adjust` on GTSAM (reprojection
+The keyframes: :func:`stereopath.host.backend.gtsam_ba.bundle_adjust` on GTSAM (reprojection
 error in both cameras, robust loss; the rig's constant disparity error estimated too and applied
 when it exceeds ``ba_disparity_offset_min_px``; the verified loops; IMU preintegration between
 keyframes when the session has a usable IMU; optional gyro rotation priors), outlier removal and
@@ -42,7 +42,7 @@ def gyro_rotation_priors(seq: Any, t_kf: np.ndarray, sigma_rad_per_sqrt_s: float
     one, from the keyframe path ``T_kf``; with neither, none: an unknown bias would bend the path)."""
     from stereopath.device.estimation.inertial import GyroIntegrator, estimate_still
     from stereopath.device.estimation.inertial_init import gyro_bias_from_path
-    from stereopath.host.reprocess.ba_common import RotationPrior
+    from stereopath.host.backend.ba_common import RotationPrior
 
     imu = getattr(seq, "imu", None)
     rig = seq.rig
@@ -72,7 +72,7 @@ def gyro_rotation_priors(seq: Any, t_kf: np.ndarray, sigma_rad_per_sqrt_s: float
 
 def loops_of(trk: dict[str, np.ndarray]) -> list:
     """The verified loops stored by the tracks stage."""
-    from stereopath.host.reprocess.loops import loops_from_array
+    from stereopath.host.backend.loops import loops_from_array
 
     return loops_from_array(trk["loops"]) if "loops" in trk else []
 
@@ -90,7 +90,7 @@ def imu_terms_of(config: ReprocessPreset, inputs: StageInputs):
     without ``ba_imu`` or an IMU, or when its readings were shown not to fit the path; (None, True)
     when it was not refused but gives no factors (too few keyframe intervals, e.g. a session that
     rests: then the checks against the path could not run either)."""
-    from stereopath.host.reprocess.imu_factors import imu_terms
+    from stereopath.host.backend.imu_factors import imu_terms
 
     if not config.ba_imu or getattr(inputs.seq, "imu", None) is None:
         return None, False
@@ -117,7 +117,7 @@ def imu_report(terms, res, t_kf: np.ndarray) -> dict[str, Any] | None:
 
 def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list, imu=None):
     """Bundle adjustment of the keyframes (a ``BAResult``); EstimationError when there is too little."""
-    from stereopath.host.reprocess.gtsam_ba import bundle_adjust
+    from stereopath.host.backend.gtsam_ba import bundle_adjust
 
     trk = inputs.results["tracks"]
     points = {int(i): x for i, x in zip(trk["point_ids"], trk["point_xyz"])}
@@ -138,7 +138,7 @@ def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list,
 def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.ndarray,
                 is_kf: np.ndarray) -> list[np.ndarray]:
     """Observations of the adjusted points in every non-keyframe (KLT from its two keyframes)."""
-    from stereopath.host.reprocess.tracks import frame_observations
+    from stereopath.host.backend.tracks import frame_observations
 
     seq, est, trk = inputs.seq, inputs.results["estimate"], inputs.results["tracks"]
     kf, offs = trk["kf_index"], trk["kf_offsets"]
@@ -248,7 +248,7 @@ def level_world(inputs: StageInputs, res, T_frames: np.ndarray, imu_usable: bool
 
 
 def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
-    from stereopath.host.reprocess.ba_common import interpolate_corrections
+    from stereopath.host.backend.ba_common import interpolate_corrections
 
     est, trk = inputs.results["estimate"], inputs.results["tracks"]
     kf, T_kf = trk["kf_index"], trk["T_kf"]

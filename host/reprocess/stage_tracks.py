@@ -1,14 +1,14 @@
 """Stage ``tracks``: modified-ASIFT keypoints with stereo 3D points at every keyframe of the
 estimate, matched between keyframes up to ``window`` apart (guided by the estimated poses) and
-joined into tracks (:mod:`stereopath.host.reprocess.tracks`), and loops between keyframes far
-apart in the sequence found and verified on the same keypoints (:mod:`stereopath.host.reprocess.loops`).
+joined into tracks (:mod:`stereopath.host.backend.tracks`), and loops between keyframes far
+apart in the sequence found and verified on the same keypoints (:mod:`stereopath.host.backend.loops`).
 
 These fresh detections replace the estimator's chained KLT tracks, whose drift grows with track
 age and would bend the path in bundle adjustment.  Outputs (``tracks.npz``): the keyframes'
 frame indices ``kf_index`` and poses ``T_kf``, ``observations`` rows, the tracks' first 3D
 points (``point_ids``, ``point_xyz``) and every keyframe's keypoints (``kf_offsets``,
 ``kf_ids``, ``kf_xy``) for the frame refinement, ``loops`` (rows of
-:func:`~stereopath.host.reprocess.loops.loops_to_array`), plus ``stats``.
+:func:`~stereopath.host.backend.loops.loops_to_array`), plus ``stats``.
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ import logging
 import numpy as np
 
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
-from stereopath.host.reprocess.loops import detect_loops, loops_to_array
-from stereopath.host.reprocess.parallel import parallel_map, spare_cores, spreading
+from stereopath.host.backend.loops import detect_loops, loops_to_array
+from stereopath.host.backend.parallel import parallel_map, spare_cores, spreading
 from stereopath.host.progress import Bar
 from stereopath.host.reprocess.store import json_array
 
@@ -46,7 +46,7 @@ def next_keyframe(rig, est: dict[str, np.ndarray], k: int, points, cfg) -> int:
     """The keyframe after keyframe ``k`` (frame index): the last tracked frame that sees ``points`` (frame
     ``k``'s stereo points) within ``cfg.keyframe_parallax_deg`` and ``cfg.keyframe_motion_px``
     (:func:`tracks.view_change`), at least the next tracked frame."""
-    from stereopath.host.reprocess.tracks import view_change
+    from stereopath.host.backend.tracks import view_change
 
     ok, T = np.flatnonzero(est["status"] == 0), est["T_world_cam"]
     later = ok[ok > k]
@@ -148,7 +148,7 @@ def view_points(rig, left: np.ndarray, right: np.ndarray, cfg):
     import cv2
 
     from stereopath.device.core.features import Features, gray
-    from stereopath.host.reprocess.tracks import KeyframeFeatures, stereo_points
+    from stereopath.host.backend.tracks import KeyframeFeatures, stereo_points
 
     left, right = gray(left), gray(right)
     c = cv2.goodFeaturesToTrack(left, maxCorners=VIEW_CORNERS, qualityLevel=VIEW_CORNER_QUALITY,
@@ -173,14 +173,14 @@ def _empty(est: dict[str, np.ndarray], kf: np.ndarray, reason: str) -> dict[str,
 
 def _keyframe_features(shared: tuple, images: tuple[np.ndarray, np.ndarray]):
     """One keyframe's stereo keypoints (a piece of :func:`parallel_map`; ``shared`` = rig, track config)."""
-    from stereopath.host.reprocess.tracks import stereo_features
+    from stereopath.host.backend.tracks import stereo_features
 
     rig, cfg = shared
     return stereo_features(rig, images[0], images[1], cfg)
 
 
 def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
-    from stereopath.host.reprocess import tracks as tracks_mod
+    from stereopath.host.backend import tracks as tracks_mod
 
     seq, est = inputs.seq, inputs.results["estimate"]
     cfg = config.tracks
@@ -213,7 +213,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     n_gaps = len([g for g in (cfg.gaps or range(1, cfg.window + 1)) if 1 <= g <= cfg.window])
     align = None
     if cfg.align_window:  # every track's observations moved onto its reference view's surface point
-        from stereopath.host.reprocess.track_alignment import align_tracks
+        from stereopath.host.backend.track_alignment import align_tracks
 
         images = [images_of(i) for i in kf]
         align = functools.partial(align_tracks, seq.rig, [a for a, _ in images], [b for _, b in images], T_kf, cfg)

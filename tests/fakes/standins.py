@@ -55,7 +55,7 @@ class StandinSequence:
 def source_settings(backend: str, size: list[int], pair_tolerance_us: int, **kw):
     """A validated SourceSettings for a fake-backed source test (fast frame rate, short timeout)."""
     from stereopath.device.core.config import from_mapping
-    from stereopath.device.service.settings import SourceSettings
+    from stereopath.device.settings import SourceSettings
 
     base = {"backend": backend, "fps": 100.0, "exposure_us": 2000, "pair_tolerance_us": pair_tolerance_us,
             "timeout_s": 0.4, "size": size}

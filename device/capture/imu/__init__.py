@@ -12,7 +12,7 @@ from typing import Any
 
 from stereopath.device.errors import ConfigError
 from stereopath.device.capture.imu.base import ImuSource, OfflineImu, PollingImuReader
-from stereopath.device.service.settings import ImuSettings
+from stereopath.device.settings import ImuSettings
 
 __all__ = ["ImuSource", "OfflineImu", "PollingImuReader", "create_imu"]
 

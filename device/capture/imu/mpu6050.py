@@ -5,7 +5,7 @@ MPU-9250's 0x70 / 0x71 are handled as those chips, see :data:`CHIPS`; anything e
 :class:`CaptureError` naming the value read), device reset, wake with the X-gyro PLL as
 clock, DLPF (on the MPU-6500/9250 also the accelerometer's own ``ACCEL_CONFIG2``),
 sample-rate divider, gyro/accel full-scale ranges (all from
-:class:`~stereopath.device.service.settings.ImuSettings`), FIFO overflow interrupt, FIFO reset and enable
+:class:`~stereopath.device.settings.ImuSettings`), FIFO overflow interrupt, FIFO reset and enable
 with accel + gyro (12-byte packets; 14 with temperature).  The written configuration is
 read back and compared.
 
@@ -51,7 +51,7 @@ import numpy as np
 from stereopath.device.errors import CaptureError, ConfigError
 from stereopath.device.core.frames import ImuSamples
 from stereopath.device.capture.imu.period_fit import PeriodFit
-from stereopath.device.service.settings import ImuSettings
+from stereopath.device.settings import ImuSettings
 
 log = logging.getLogger(__name__)
 

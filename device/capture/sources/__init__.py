@@ -19,7 +19,7 @@ from __future__ import annotations
 from typing import Any
 
 from stereopath.device.errors import ConfigError
-from stereopath.device.service.settings import SourceSettings
+from stereopath.device.settings import SourceSettings
 from stereopath.device.capture.sources.base import SourceBase, SourceStats, StereoSource
 
 __all__ = ["SourceBase", "SourceStats", "StereoSource", "create_source"]

@@ -63,7 +63,7 @@ from typing import Any, Callable, Iterator
 from stereopath.device.errors import CalibrationError, CaptureError, ConfigError
 from stereopath.device.core.frames import StereoFrame
 from stereopath.device.core.rig import Rig
-from stereopath.device.service.settings import SourceSettings
+from stereopath.device.settings import SourceSettings
 from stereopath.device.capture.sources.base import SourceBase, load_rig_override
 from stereopath.device.capture.pairing import LEFT, RIGHT, SIDE_NAMES, FramePairer
 from stereopath.device.capture.multicast_route import ROUTE_COMMAND, SYNC_GROUP, multicast_route, read_proc_net_route

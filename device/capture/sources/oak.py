@@ -62,7 +62,7 @@ from stereopath.device.errors import CalibrationError, CaptureError
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import Rig, make_camera, make_rig
-from stereopath.device.service.settings import SourceSettings
+from stereopath.device.settings import SourceSettings
 from stereopath.device.capture.sources.base import SourceBase, load_rig_override
 
 log = logging.getLogger(__name__)

@@ -19,7 +19,7 @@ from typing import Any, Callable, Iterator
 from stereopath.device.errors import CalibrationError, CaptureError, DatasetError
 from stereopath.device.core.frames import StereoFrame
 from stereopath.device.capture.imu.base import OfflineImu
-from stereopath.device.service.settings import ReplaySettings
+from stereopath.device.settings import ReplaySettings
 from stereopath.device.capture.sources.base import SourceBase, load_rig_override
 
 log = logging.getLogger(__name__)

@@ -15,7 +15,7 @@ import logging
 from typing import Any, Callable
 
 from stereopath.device.capture.sources.replay import SequenceSource
-from stereopath.device.service.settings import SimSettings
+from stereopath.device.settings import SimSettings
 
 log = logging.getLogger(__name__)
 

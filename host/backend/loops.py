@@ -1,0 +1,181 @@
+"""Loop closure between keyframes: candidates, geometric verification, loop constraints.
+
+A loop is a pair of keyframes ``(i, j)``, ``j - i > min_separation``, that see the same part of the
+scene: camera centres within ``max_distance_m`` and viewing directions within ``max_angle_deg`` on the
+estimated path, at least ``min_matches`` descriptor matches (the best ``candidates_per_keyframe`` per
+keyframe verified), then PnP RANSAC of keyframe i's stereo points on keyframe j's pixels with enough
+inliers, a consistent scale between the two keyframes' stereo points, and a relative pose within the
+drift the path could have accumulated (a repeated texture elsewhere fails this).  Each accepted loop is
+a relative-pose constraint ``T_ci_cj`` with a deviation from the PnP residuals (:class:`Loop`).  Pure
+computation on arrays.  See docs/architecture.md, "Reprocessing".
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from stereopath.device.core.geometry import invert_pose, rotation_angle_deg
+from stereopath.device.core.rig import Rig
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    enabled: bool = True
+    min_separation: int = 25  # keyframes (more than the track window)
+    max_distance_m: float = 0.3
+    max_angle_deg: float = 35.0
+    min_matches: int = 40
+    candidates_per_keyframe: int = 1
+    nearest_checked: int = 3  # appearance is scored for the spatially nearest candidates only
+    ransac_px: float = 2.0
+    min_inliers: int = 40
+    min_inlier_ratio: float = 0.3
+    scale_tolerance: float = 0.03
+    max_3d_error: float = 0.02  # median |X_j - T X_i| / depth of the inliers
+    drift_per_m: float = 0.02  # accepted disagreement with the estimated path per metre travelled
+    min_drift_m: float = 0.02
+    max_rotation_deg: float = 5.0
+
+
+@dataclass(frozen=True)
+class Loop:
+    i: int  # keyframe indices, i < j
+    j: int
+    T_ci_cj: np.ndarray  # (4, 4) measured relative pose (camera j in camera i)
+    inliers: int
+    matches: int
+    sigma_rot_rad: float
+    sigma_trans_m: float
+    correction_m: float  # |translation of T_ci_cj - estimated relative translation|
+
+    def as_dict(self) -> dict:
+        return {"kf_i": self.i, "kf_j": self.j, "inliers": self.inliers, "matches": self.matches,
+                "correction_mm": round(1000 * self.correction_m, 3),
+                "sigma_rot_deg": float(np.degrees(self.sigma_rot_rad)), "sigma_trans_mm": 1000 * self.sigma_trans_m}
+
+
+def candidate_pairs(T_world_cam: np.ndarray, cfg: LoopConfig) -> list[tuple[int, int]]:
+    """Keyframe pairs far apart in the sequence but close in space and viewing direction (for each
+    keyframe its ``nearest_checked`` nearest, nearest first)."""
+    C = T_world_cam[:, :3, 3]
+    z = T_world_cam[:, :3, 2]
+    out = []
+    cos_max = np.cos(np.radians(cfg.max_angle_deg))
+    for i in range(len(C)):
+        j = np.arange(i + cfg.min_separation + 1, len(C))
+        if not len(j):
+            break
+        d = np.linalg.norm(C[j] - C[i], axis=1)
+        near = np.flatnonzero((d < cfg.max_distance_m) & (z[j] @ z[i] > cos_max))
+        near = near[np.argsort(d[near], kind="stable")][:cfg.nearest_checked]
+        out += [(i, int(k)) for k in j[near]]
+    return out
+
+
+def descriptor_matches(a, b) -> np.ndarray:
+    from stereopath.device.core.matching import MatchConfig, match
+
+    return match(a.feats, b.feats, MatchConfig(ratio=0.8, mutual=True, per_view=False)).idx
+
+
+def _pnp(rig: Rig, X_i: np.ndarray, uv_j: np.ndarray, cfg: LoopConfig):
+    """T_cj_ci from 3D points in camera i and pixels in camera j, with the inlier indices (or None)."""
+    import cv2
+
+    K = rig.cam0.K
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(X_i.astype(np.float64), uv_j.astype(np.float64), K, None,
+                                             reprojectionError=cfg.ransac_px, confidence=0.999, iterationsCount=500,
+                                             flags=cv2.SOLVEPNP_EPNP)
+    if not ok or inl is None or len(inl) < cfg.min_inliers:
+        return None
+    inl = inl.ravel()
+    rvec, tvec = cv2.solvePnPRefineLM(X_i[inl].astype(np.float64), uv_j[inl].astype(np.float64), K, None, rvec, tvec)
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rvec)[0]
+    T[:3, 3] = tvec.ravel()
+    proj = (X_i @ T[:3, :3].T + T[:3, 3])
+    z = np.maximum(proj[:, 2], 1e-9)
+    px = proj[:, :2] / z[:, None] * [K[0, 0], K[1, 1]] + K[:2, 2]
+    err = np.linalg.norm(px - uv_j, axis=1)
+    inl = np.flatnonzero((err < cfg.ransac_px) & (proj[:, 2] > 0))
+    return T, inl, err
+
+
+def verify_pair(rig: Rig, a, b, T_wi: np.ndarray, T_wj: np.ndarray, path_m: float, cfg: LoopConfig,
+                i: int = 0, j: int = 1, m: np.ndarray | None = None) -> tuple[Loop | None, str]:
+    """Geometric verification of keyframes ``a`` (i) and ``b`` (j) with their descriptor matches ``m``
+    (computed when None); (the loop or None, the reason)."""
+    m = descriptor_matches(a, b) if m is None else m
+    if len(m) < cfg.min_matches:
+        return None, f"{len(m)} matches"
+    X_i, uv_j, X_j = a.X_cam[m[:, 0]], b.uv0[m[:, 1]], b.X_cam[m[:, 1]]
+    res = _pnp(rig, X_i, uv_j, cfg)
+    if res is None:
+        return None, "PnP failed"
+    T_ji, inl, err = res
+    if len(inl) < cfg.min_inliers or len(inl) < cfg.min_inlier_ratio * len(m):
+        return None, f"{len(inl)} inliers of {len(m)}"
+    Xi_in_j = X_i[inl] @ T_ji[:3, :3].T + T_ji[:3, 3]
+    scale = np.median(np.linalg.norm(X_j[inl], axis=1) / np.maximum(np.linalg.norm(Xi_in_j, axis=1), 1e-9))
+    err3d = np.median(np.linalg.norm(X_j[inl] - Xi_in_j, axis=1) / np.maximum(X_j[inl, 2], 1e-9))
+    if abs(scale - 1) > cfg.scale_tolerance or err3d > cfg.max_3d_error:
+        return None, f"inconsistent scale {scale:.3f} / 3D error {err3d:.3f}"
+    T_ij = invert_pose(T_ji)
+    T_ij_est = invert_pose(T_wi) @ T_wj
+    corr = float(np.linalg.norm(T_ij[:3, 3] - T_ij_est[:3, 3]))
+    rot = rotation_angle_deg(T_ij[:3, :3].T @ T_ij_est[:3, :3])
+    if corr > max(cfg.min_drift_m, cfg.drift_per_m * path_m) or rot > cfg.max_rotation_deg:
+        return None, f"disagrees with the path by {1000 * corr:.1f} mm / {rot:.2f} deg"
+    f = rig.cam0.K[0, 0]
+    px = max(float(np.sqrt(np.mean(err[inl] ** 2))), 0.3)
+    s_rot = px / f / np.sqrt(len(inl)) * 2.0
+    s_t = s_rot * float(np.median(X_i[inl, 2]))
+    return Loop(i, j, T_ij, int(len(inl)), int(len(m)), s_rot, s_t, corr), "accepted"
+
+
+def detect_loops(rig: Rig, kfs: list, T_world_cam: np.ndarray, cfg: LoopConfig = LoopConfig()) -> list[Loop]:
+    """Verified loops among the keyframes ``kfs`` (:class:`~stereopath.host.backend.tracks.KeyframeFeatures`)."""
+    if not cfg.enabled or len(kfs) < 2:
+        return []
+    T_world_cam = np.asarray(T_world_cam, float)
+    C = T_world_cam[:, :3, 3]
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(C, axis=0), axis=1))])
+    by_i: dict[int, list[int]] = {}
+    for i, j in candidate_pairs(T_world_cam, cfg):
+        by_i.setdefault(i, []).append(j)
+    loops = []
+    for i, js in by_i.items():
+        # appearance: the candidates with the most descriptor matches first
+        scored = sorted(((descriptor_matches(kfs[i], kfs[j]), j) for j in js), key=lambda mj: -len(mj[0]))
+        for m, j in scored[:cfg.candidates_per_keyframe]:
+            if len(m) < cfg.min_matches:
+                continue
+            loop, why = verify_pair(rig, kfs[i], kfs[j], T_world_cam[i], T_world_cam[j], along[j] - along[i], cfg,
+                                    i, j, m)
+            log.debug("loop candidate %d-%d: %s", i, j, why)
+            if loop is not None:
+                loops.append(loop)
+    log.info("loop closure: %d candidate pairs, %d loops accepted", sum(map(len, by_i.values())), len(loops))
+    return loops
+
+
+_COLS = 7  # i, j, inliers, matches, sigma_rot, sigma_trans, correction; then T_ci_cj (16)
+
+
+def loops_to_array(loops: list[Loop]) -> np.ndarray:
+    """(L, 23) rows for a stage file."""
+    if not loops:
+        return np.zeros((0, _COLS + 16))
+    return np.array([[lp.i, lp.j, lp.inliers, lp.matches, lp.sigma_rot_rad, lp.sigma_trans_m, lp.correction_m,
+                      *np.asarray(lp.T_ci_cj, float).ravel()] for lp in loops])
+
+
+def loops_from_array(a: np.ndarray) -> list[Loop]:
+    a = np.asarray(a, float).reshape(-1, _COLS + 16)
+    return [Loop(int(r[0]), int(r[1]), r[_COLS:].reshape(4, 4), int(r[2]), int(r[3]), float(r[4]), float(r[5]),
+                 float(r[6])) for r in a]
