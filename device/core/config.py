@@ -4,7 +4,9 @@ One precedence rule everywhere: dataclass defaults < configuration file <
 command line.  :func:`from_mapping` builds a (possibly nested) frozen
 dataclass from a plain mapping (a parsed TOML/YAML table), checking every key
 and type and naming the offending key in the :class:`ConfigError`.
-Range checks live in each dataclass's ``__post_init__`` and raise through
+A field's range is declared once, with the field (:func:`ranged`), and
+checked by :func:`check_ranges` from the dataclass's ``__post_init__``; checks
+that relate several fields stay in ``__post_init__`` and raise through
 :func:`check_range`.
 """
 
@@ -32,6 +34,37 @@ def check_range(key: str, value: float, lo: float | None = None, hi: float | Non
         raise ConfigError(f"{key} = {value!r} is not a number")
     if (lo is not None and value < lo) or (hi is not None and value > hi):
         raise ConfigError(f"{key} = {value!r} is out of range [{lo}, {hi}]")
+
+
+def ranged(default: Any, lo: float | None = None, hi: float | None = None) -> Any:
+    """A dataclass field whose value (or each element of a tuple value) must lie in ``[lo, hi]``; None is
+    always allowed (it means "off" or "automatic" where a field's type admits it)."""
+    return dataclasses.field(default=default, metadata={"range": (lo, hi)})
+
+
+def field_range(cls: Any, name: str) -> tuple[float | None, float | None] | None:
+    """The ``(lo, hi)`` declared for ``cls.name`` by :func:`ranged`, or None."""
+    for f in dataclasses.fields(cls):
+        if f.name == name:
+            return f.metadata.get("range")
+    raise KeyError(name)
+
+
+def check_ranges(obj: Any, prefix: str = "") -> None:
+    """Check every field of ``obj`` declared with :func:`ranged`; errors name ``prefix + field``."""
+    for f in dataclasses.fields(obj):
+        bounds = f.metadata.get("range")
+        if bounds is None:
+            continue
+        value = getattr(obj, f.name)
+        if value is None:
+            continue
+        key = f"{prefix}{f.name}"
+        if isinstance(value, (tuple, list)):
+            for i, v in enumerate(value):
+                check_range(f"{key}[{i}]", v, *bounds)
+        else:
+            check_range(key, value, *bounds)
 
 
 def _convert(key: str, tp: Any, value: Any) -> Any:

@@ -2,7 +2,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from stereopath.device.core.config import check_range, from_mapping, load_toml, replace
+from stereopath.device.core.config import check_range, check_ranges, field_range, from_mapping, load_toml, ranged, replace
 from stereopath.device.errors import ConfigError
 
 
@@ -87,3 +87,28 @@ def test_load_toml_unreadable_files(tmp_path):
         load_toml(tmp_path / "bin.toml")
     with pytest.raises(ConfigError, match="is a folder"):
         load_toml(tmp_path)
+
+
+@dataclass(frozen=True)
+class _Ranged:
+    depth_m: float = ranged(5.0, 0.1, 100.0)
+    levels: tuple[int, ...] = ranged((1, 2), 1, 8)
+    cap: int | None = ranged(None, 1)
+    free: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "section.")
+
+
+def test_ranges_are_declared_once_with_the_field():
+    assert field_range(_Ranged, "depth_m") == (0.1, 100.0)
+    assert field_range(_Ranged, "free") is None
+    assert from_mapping(_Ranged, {"depth_m": 0.1, "levels": [8], "cap": 3, "free": -9.0}).cap == 3
+    for data, match in (({"depth_m": 0.05}, r"section\.depth_m = 0\.05 is out of range \[0\.1, 100\.0\]"),
+                        ({"levels": [1, 9]}, r"section\.levels\[1\] = 9"),
+                        ({"cap": 0}, r"section\.cap = 0"),
+                        ({"depth_m": float("nan")}, "depth_m")):
+        with pytest.raises(ConfigError, match=match):
+            from_mapping(_Ranged, data)
+    with pytest.raises(ConfigError, match="depth_m"):
+        replace(_Ranged(), depth_m=1e6)
