@@ -26,9 +26,9 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Mapping
+from typing import Literal, Mapping
 
-from stereopath.device.core.config import check_range, from_mapping, load_toml
+from stereopath.device.core.config import check_range, check_ranges, from_mapping, load_toml, ranged
 from stereopath.device.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -47,38 +47,30 @@ class Picamera2Settings:
     left_id: str = ""            # libcamera camera Id of the left camera ("" = first listed)
     right_id: str = ""           # ... of the right camera ("" = second listed)
     sync: Literal["software", "off"] = "software"  # SyncMode server (left) / client (right)
-    sync_frames: int = 100       # SyncFrames: the server reports SyncReady after this many frames
-    sensor_mode: int = -1        # index into Picamera2.sensor_modes (-1 = let libcamera choose)
-    analogue_gain: float = 2.0   # locked analogue gain (identical on both cameras)
-    colour_gains: tuple[float, float] = (1.9, 1.6)  # locked red/blue gains (AWB off; ignored on mono sensors)
-    buffer_count: int = 6        # request buffers per camera
+    sync_frames: int = ranged(100, 1, 100000)  # SyncFrames: the server reports SyncReady after this many frames
+    sensor_mode: int = ranged(-1, -1, 64)      # index into Picamera2.sensor_modes (-1 = let libcamera choose)
+    analogue_gain: float = ranged(2.0, 1.0, 64.0)  # locked analogue gain (identical on both cameras)
+    colour_gains: tuple[float, float] = ranged((1.9, 1.6), 0.0, 32.0)  # locked red/blue gains (AWB off; ignored on mono sensors)
+    buffer_count: int = ranged(6, 2, 32)       # request buffers per camera
     timestamp_is: Literal["readout_start", "exposure_start"] = "readout_start"
     # what SensorTimestamp marks; mid-exposure = SensorTimestamp -/+ ExposureTime/2
 
     def __post_init__(self) -> None:
-        check_range("source.picamera2.analogue_gain", self.analogue_gain, 1.0, 64.0)
-        check_range("source.picamera2.buffer_count", self.buffer_count, 2, 32)
-        check_range("source.picamera2.sync_frames", self.sync_frames, 1, 100000)
-        check_range("source.picamera2.sensor_mode", self.sensor_mode, -1, 64)
-        for i, g in enumerate(self.colour_gains):
-            check_range(f"source.picamera2.colour_gains[{i}]", g, 0.0, 32.0)
+        check_ranges(self, "source.picamera2.")
 
 
 @dataclass(frozen=True)
 class DepthaiSettings:
     """OAK-D mono pair (CAM_B left, CAM_C right) through depthai v3."""
 
-    iso: int = 400               # manual sensitivity (ISO) with the fixed exposure
-    sync_threshold_ms: float = 5.0  # Sync node grouping threshold
+    iso: int = ranged(400, 100, 1600)          # manual sensitivity (ISO) with the fixed exposure
+    sync_threshold_ms: float = ranged(5.0, 0.1, 50.0)  # Sync node grouping threshold
     imu: bool = True             # also stream the OAK's own IMU
-    imu_rate_hz: int = 200       # BMI270 rounds down to 25/50/100/200/250 Hz
-    queue_size: int = 8          # host output queue length (non-blocking; oldest dropped)
+    imu_rate_hz: int = ranged(200, 25, 400)    # BMI270 rounds down to 25/50/100/200/250 Hz
+    queue_size: int = ranged(8, 1, 64)         # host output queue length (non-blocking; oldest dropped)
 
     def __post_init__(self) -> None:
-        check_range("source.depthai.iso", self.iso, 100, 1600)
-        check_range("source.depthai.sync_threshold_ms", self.sync_threshold_ms, 0.1, 50.0)
-        check_range("source.depthai.imu_rate_hz", self.imu_rate_hz, 25, 400)
-        check_range("source.depthai.queue_size", self.queue_size, 1, 64)
+        check_ranges(self, "source.depthai.")
 
 
 @dataclass(frozen=True)
@@ -87,25 +79,23 @@ class ReplaySettings:
 
     path: str = ""               # dataset spec understood by stereopath.device.formats.open_source
     speed: Literal["recorded", "max"] = "max"  # sleep to the recorded timestamps, or as fast as read
-    start: int = 0               # first frame index
-    count: int = 0               # number of frames (0 = all)
+    start: int = ranged(0, 0)    # first frame index
+    count: int = ranged(0, 0)    # number of frames (0 = all)
 
     def __post_init__(self) -> None:
-        check_range("source.replay.start", self.start, 0, None)
-        check_range("source.replay.count", self.count, 0, None)
+        check_ranges(self, "source.replay.")
 
 
 @dataclass(frozen=True)
 class SimSettings:
     """The built-in simulator (stereopath.device.sim)."""
 
-    frames: int = 200            # frames in the simulated scan
+    frames: int = ranged(200, 1, 1_000_000)    # frames in the simulated scan
     seed: int = 0                # random seed of the scene and sensor noise
-    rate_hz: float = 0.0         # pace frames at this rate (0 = as fast as rendered)
+    rate_hz: float = ranged(0.0, 0.0, 1000.0)  # pace frames at this rate (0 = as fast as rendered)
 
     def __post_init__(self) -> None:
-        check_range("source.sim.frames", self.frames, 1, 1_000_000)
-        check_range("source.sim.rate_hz", self.rate_hz, 0.0, 1000.0)
+        check_ranges(self, "source.sim.")
 
 
 @dataclass(frozen=True)
@@ -113,12 +103,12 @@ class SourceSettings:
     """Stereo capture: the backend and the settings every camera backend shares."""
 
     backend: SourceBackend = "picamera2"
-    size: tuple[int, int] = (640, 480)   # output width, height (px)
-    fps: float = 30.0                    # fixed frame rate (frames/s)
+    size: tuple[int, int] = ranged((640, 480), 16, 8192)  # output width, height (px)
+    fps: float = ranged(30.0, 0.5, 240.0)  # fixed frame rate (frames/s)
     exposure_us: int = 8000              # fixed exposure time (µs), identical on both cameras
     pair_tolerance_us: int = 1000        # max |t_left - t_right| of a pair (µs); < half a frame
-    timeout_s: float = 2.0               # no pair for this long -> CaptureError
-    queue_size: int = 4                  # paired frames waiting for the consumer (oldest dropped)
+    timeout_s: float = ranged(2.0, 0.05, 60.0)  # no pair for this long -> CaptureError
+    queue_size: int = ranged(4, 1, 256)  # paired frames waiting for the consumer (oldest dropped)
     rig_file: str = ""                   # rig YAML or Kalibr camchain; "" = the backend's own (factory / dataset / sim)
     picamera2: Picamera2Settings = field(default_factory=Picamera2Settings)
     depthai: DepthaiSettings = field(default_factory=DepthaiSettings)
@@ -126,14 +116,10 @@ class SourceSettings:
     sim: SimSettings = field(default_factory=SimSettings)
 
     def __post_init__(self) -> None:
-        check_range("source.size[0]", self.size[0], 16, 8192)
-        check_range("source.size[1]", self.size[1], 16, 8192)
-        check_range("source.fps", self.fps, 0.5, 240.0)
+        check_ranges(self, "source.")
         frame_us = 1e6 / self.fps
         check_range("source.exposure_us", self.exposure_us, 10, int(frame_us))
         check_range("source.pair_tolerance_us", self.pair_tolerance_us, 1, int(frame_us / 2) - 1)
-        check_range("source.timeout_s", self.timeout_s, 0.05, 60.0)
-        check_range("source.queue_size", self.queue_size, 1, 256)
 
     @property
     def frame_duration_us(self) -> int:
@@ -149,12 +135,12 @@ class SourceSettings:
 class EmulatedImuSettings:
     """The register-level MPU-6050 emulator (``imu.backend = "emulated"``)."""
 
-    period_error_ppm: float = 8000.0   # true sample period vs nominal (the MPU clock drifts ~1 %)
+    period_error_ppm: float = ranged(8000.0, -50000.0, 50000.0)  # true sample period vs nominal (the MPU clock drifts ~1 %)
     gyro_bias_dps: tuple[float, float, float] = (0.8, -0.5, 0.3)  # simulated zero-rate offset
     seed: int = 0
 
     def __post_init__(self) -> None:
-        check_range("imu.emulated.period_error_ppm", self.period_error_ppm, -50000.0, 50000.0)
+        check_ranges(self, "imu.emulated.")
 
 
 # I2C cost of reading the FIFO: 9 bits a byte (8 + ACK); per poll the FIFO_COUNT read (address
@@ -255,14 +241,12 @@ class ImuSettings:
 class TimeAlignSettings:
     """Attaching IMU samples to frames."""
 
-    time_offset_us: float = 0.0   # Kalibr's timeshift_cam_imu: t_imu = t_cam + offset (µs)
-    max_wait_ms: float = 100.0    # a frame waits at most this long for IMU samples past its time
-    gap_factor: float = 2.5       # an IMU step longer than this many periods is a gap
+    time_offset_us: float = ranged(0.0, -1e6, 1e6)    # Kalibr's timeshift_cam_imu: t_imu = t_cam + offset (µs)
+    max_wait_ms: float = ranged(100.0, 0.0, 10000.0)  # a frame waits at most this long for IMU samples past its time
+    gap_factor: float = ranged(2.5, 1.2, 100.0)       # an IMU step longer than this many periods is a gap
 
     def __post_init__(self) -> None:
-        check_range("timealign.time_offset_us", self.time_offset_us, -1e6, 1e6)
-        check_range("timealign.max_wait_ms", self.max_wait_ms, 0.0, 10000.0)
-        check_range("timealign.gap_factor", self.gap_factor, 1.2, 100.0)
+        check_ranges(self, "timealign.")
 
 
 @dataclass(frozen=True)
@@ -338,10 +322,10 @@ class RecorderSettings:
 
     enabled: bool = True
     dir: str = "/var/lib/stereopath/sessions"   # one sub-directory per session
-    reserve_mb: float = 500.0                   # refuse to start / stop below this much free disk
+    reserve_mb: float = ranged(500.0, 0.0, 1e7)  # refuse to start / stop below this much free disk
 
     def __post_init__(self) -> None:
-        check_range("recorder.reserve_mb", self.reserve_mb, 0.0, 1e7)
+        check_ranges(self, "recorder.")
 
 
 @dataclass(frozen=True)
@@ -349,38 +333,31 @@ class ServiceSettings:
     """The capture service (``stereopath device run``): health reporting and lifecycle."""
 
     status_file: str = "/run/stereopath/status.json"  # health JSON rewritten each status period ("" = none)
-    status_interval_s: float = 1.0    # status file, STATUS= line and status message period (s)
-    max_data_age_s: float = 2.0       # WATCHDOG=1 only if a frame and an IMU sample arrived this recently (s;
-    #                                   capped at half the systemd watchdog period)
-    ready_timeout_s: float = 30.0     # no paired frame / IMU sample this long after start -> exit 1 (s)
-    stop_timeout_s: float = 10.0      # wait this long for the pipeline to finish its frame at stop (s)
+    status_interval_s: float = ranged(1.0, 0.05, 60.0)  # status file, STATUS= line and status message period (s)
+    max_data_age_s: float = ranged(2.0, 0.05, 600.0)    # WATCHDOG=1 only if a frame and an IMU sample arrived
+    #                                                     this recently (s; capped at half the systemd watchdog period)
+    ready_timeout_s: float = ranged(30.0, 0.5, 3600.0)  # no paired frame / IMU sample this long after start -> exit 1 (s)
+    stop_timeout_s: float = ranged(10.0, 0.5, 600.0)    # wait this long for the pipeline to finish its frame at stop (s)
 
     def __post_init__(self) -> None:
-        check_range("service.status_interval_s", self.status_interval_s, 0.05, 60.0)
-        check_range("service.max_data_age_s", self.max_data_age_s, 0.05, 600.0)
-        check_range("service.ready_timeout_s", self.ready_timeout_s, 0.5, 3600.0)
-        check_range("service.stop_timeout_s", self.stop_timeout_s, 0.5, 600.0)
+        check_ranges(self, "service.")
 
 
 @dataclass(frozen=True)
 class SelftestSettings:
     """Limits of ``stereopath device selftest``."""
 
-    frames: int = 30                  # stereo pairs to capture
-    max_unpaired_ratio: float = 0.05  # dropped unpaired frames / frames received
-    rate_tolerance: float = 0.10      # relative camera frame-rate error allowed
-    imu_rate_tolerance: float = 0.03  # relative IMU rate error allowed (the MPU clock drifts ~1 %)
-    still_s: float = 2.0              # still period for the gyro bias and gravity checks
+    frames: int = ranged(30, 2, 100000)                # stereo pairs to capture
+    max_unpaired_ratio: float = ranged(0.05, 0.0, 1.0)  # dropped unpaired frames / frames received
+    rate_tolerance: float = ranged(0.10, 0.0, 1.0)      # relative camera frame-rate error allowed
+    imu_rate_tolerance: float = ranged(0.03, 0.0, 1.0)  # relative IMU rate error allowed (the MPU clock drifts ~1 %)
+    still_s: float = ranged(2.0, 0.1, 600.0)            # still period for the gyro bias and gravity checks
     max_gyro_bias_dps: float = 5.0    # |mean gyro| allowed while still
     max_gyro_std_dps: float = 1.0     # larger spread = the unit moved during the test
     gravity_tolerance_m_s2: float = 0.5  # | |mean accel| - 9.80665 | allowed
 
     def __post_init__(self) -> None:
-        check_range("selftest.frames", self.frames, 2, 100000)
-        check_range("selftest.max_unpaired_ratio", self.max_unpaired_ratio, 0.0, 1.0)
-        check_range("selftest.rate_tolerance", self.rate_tolerance, 0.0, 1.0)
-        check_range("selftest.imu_rate_tolerance", self.imu_rate_tolerance, 0.0, 1.0)
-        check_range("selftest.still_s", self.still_s, 0.1, 600.0)
+        check_ranges(self, "selftest.")
 
 
 @dataclass(frozen=True)
