@@ -113,13 +113,13 @@ def kf_count(out: Path, session: str) -> int:
 
 
 def device_role(args: argparse.Namespace) -> int:
-    from stereopath.device.settings import KeySettings, StreamSettings
+    from stereopath.device.settings import KeySettings, StreamImageSettings, StreamSettings
     from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
 
     pairs, _ = load_pairs()
     keys = Path(args.keys_root)
     cfg = StreamSettings(pose_endpoint="tcp://127.0.0.1:*", keyframe_endpoint="tcp://127.0.0.1:*",
-                         image_encoding=args.encoding, spool_fsync=True)
+                         images=StreamImageSettings(encoding=args.encoding), spool_fsync=True)
     key_files = KeySettings(server_secret=str(keys / "device" / "device.key_secret"),
                             clients_dir=str(keys / "device" / "clients"))
     spool = KeyframeSpool(args.spool)

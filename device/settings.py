@@ -163,31 +163,50 @@ def max_rate_on_bus(i2c_khz: float, packet_bytes: int, read_period_ms: float) ->
 
 
 @dataclass(frozen=True)
+class I2cSettings:
+    """``[imu.i2c]``: the bus clock and how failed transfers are retried."""
+
+    clock_khz: float = ranged(400.0, 10.0, 3400.0)  # the bus clock (config.txt dtparam=i2c_arm_baudrate), caps rate_hz
+    retries: int = ranged(3, 0, 20)                 # retries of a failed I2C transfer
+    backoff_ms: float = ranged(2.0, 0.0, 1000.0)    # first retry delay (doubles each retry)
+    reinit_attempts: int = ranged(2, 0, 10)         # re-initialisations before giving up
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "imu.i2c.")
+
+
+@dataclass(frozen=True)
+class ImuTimestampSettings:
+    """``[imu.timestamps]``: how sample times are fitted to the FIFO reads."""
+
+    latency_us: float = ranged(0.0, 0.0, 10000.0)   # fixed read latency subtracted from fitted timestamps
+    fit_window_s: float = ranged(20.0, 1.0, 600.0)  # span of the running sample-period fit
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "imu.timestamps.")
+
+
+@dataclass(frozen=True)
 class ImuSettings:
     """MPU-6050 on I2C (or its emulator): ranges, filter, rate and bus recovery."""
 
     backend: ImuBackend = "mpu6050"
-    bus: int = 1                         # /dev/i2c-N
+    bus: int = ranged(1, 0, 255)         # /dev/i2c-N
     address: int = 0x68                  # 0x68 (AD0 low) or 0x69 (AD0 high)
     rate_hz: float = 200.0               # FIFO sample rate (Hz) = output rate / (1 + SMPLRT_DIV)
-    dlpf_cfg: int = 3                    # DLPF_CFG 0..6 (0 = off: 8 kHz gyro output rate; 3 = 44 Hz)
+    dlpf_cfg: int = ranged(3, 0, 6)      # DLPF_CFG 0..6 (0 = off: 8 kHz gyro output rate; 3 = 44 Hz)
     gyro_range_dps: int = 500            # 250, 500, 1000 or 2000 deg/s
     accel_range_g: int = 4               # 2, 4, 8 or 16 g
     temperature: bool = False            # also put TEMP in the FIFO (14-byte packets)
-    read_period_ms: float = 20.0         # FIFO poll period
-    retries: int = 3                     # retries of a failed I2C transfer
-    backoff_ms: float = 2.0              # first retry delay (doubles each retry)
-    reinit_attempts: int = 2             # re-initialisations before giving up
-    latency_us: float = 0.0              # fixed read latency subtracted from fitted timestamps
-    fit_window_s: float = 20.0           # span of the running sample-period fit
-    i2c_khz: float = 400.0               # the bus clock (config.txt dtparam=i2c_arm_baudrate), caps rate_hz
+    read_period_ms: float = ranged(20.0, 1.0, 1000.0)  # FIFO poll period
+    i2c: I2cSettings = field(default_factory=I2cSettings)
+    timestamps: ImuTimestampSettings = field(default_factory=ImuTimestampSettings)
     emulated: EmulatedImuSettings = field(default_factory=EmulatedImuSettings)
 
     def __post_init__(self) -> None:
-        check_range("imu.bus", self.bus, 0, 255)
+        check_ranges(self, "imu.")
         if self.address not in (0x68, 0x69):
             raise ConfigError(f"imu.address = {self.address:#x} must be 0x68 or 0x69")
-        check_range("imu.dlpf_cfg", self.dlpf_cfg, 0, 6)
         if self.gyro_range_dps not in GYRO_RANGES_DPS:
             raise ConfigError(f"imu.gyro_range_dps = {self.gyro_range_dps} must be one of {list(GYRO_RANGES_DPS)}")
         if self.accel_range_g not in ACCEL_RANGES_G:
@@ -199,23 +218,17 @@ class ImuSettings:
             raise ConfigError(
                 f"imu.rate_hz = {self.rate_hz} is not {base:g} Hz / (1 + n) for an integer n "
                 f"(DLPF_CFG {self.dlpf_cfg} gives a {base:g} Hz output rate)")
-        check_range("imu.read_period_ms", self.read_period_ms, 1.0, 1000.0)
-        check_range("imu.retries", self.retries, 0, 20)
-        check_range("imu.backoff_ms", self.backoff_ms, 0.0, 1000.0)
-        check_range("imu.reinit_attempts", self.reinit_attempts, 0, 10)
-        check_range("imu.latency_us", self.latency_us, 0.0, 10000.0)
-        check_range("imu.fit_window_s", self.fit_window_s, 1.0, 600.0)
-        check_range("imu.i2c_khz", self.i2c_khz, 10.0, 3400.0)
         # bytes per read must fit the 1024-byte FIFO with margin
         pkt = 14 if self.temperature else 12
+        khz = self.i2c.clock_khz
         load = i2c_load_bits_per_s(self.rate_hz, pkt, self.read_period_ms)
-        capacity = I2C_USABLE_SHARE * self.i2c_khz * 1000.0
+        capacity = I2C_USABLE_SHARE * khz * 1000.0
         if load > capacity:
-            most = max_rate_on_bus(self.i2c_khz, pkt, self.read_period_ms)
+            most = max_rate_on_bus(khz, pkt, self.read_period_ms)
             raise ConfigError(
-                f"imu.rate_hz = {self.rate_hz:g} needs {load / 1000:.0f} kbit/s of the {self.i2c_khz:g} kHz I2C bus "
+                f"imu.rate_hz = {self.rate_hz:g} needs {load / 1000:.0f} kbit/s of the {khz:g} kHz I2C bus "
                 f"({pkt}-byte packets); it carries about {most:.0f} Hz ({I2C_USABLE_SHARE:.0%} of its time): lower "
-                "imu.rate_hz, or raise the bus clock (dtparam=i2c_arm_baudrate) and imu.i2c_khz")
+                "imu.rate_hz, or raise the bus clock (dtparam=i2c_arm_baudrate) and imu.i2c.clock_khz")
         fill_ms = 1024 // pkt / self.rate_hz * 1000.0
         if self.read_period_ms > 0.8 * fill_ms:
             raise ConfigError(
@@ -262,50 +275,69 @@ class EstimatorSettings:
 
 
 @dataclass(frozen=True)
+class StreamImageSettings:
+    """``[stream.images]``: how keyframe images are encoded on the wire."""
+
+    encoding: Literal["jpg", "png", "raw"] = "jpg"
+    jpeg_quality: int = ranged(90, 1, 100)     # 1..100 (encoding = "jpg")
+    png_compression: int = ranged(1, 0, 9)     # 0..9 (encoding = "png")
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "stream.images.")
+
+
+@dataclass(frozen=True)
+class StreamBounds:
+    """``[stream.bounds]``: every in-memory queue of the streamer is bounded by one of these, so the
+    device's memory does not depend on what the hosts do."""
+
+    max_credit: int = ranged(16, 1, 1024)          # keyframes in flight per host, whatever credit it asks for
+    max_peers: int = ranged(8, 1, 256)             # hosts tracked at once (least recently heard is evicted)
+    pose_sndhwm: int = ranged(16, 1, 100000)       # PUB high-water mark (per subscriber, then dropped)
+    pose_flush_ms: int = ranged(500, 0, 10000)     # at the end of a run, up to this long to send the last poses queued
+    keyframe_sndhwm: int = 64                      # ROUTER outbound messages per host (> max_credit + 1)
+    control_rcvhwm: int = ranged(64, 1, 100000)    # ROUTER inbound messages per host
+    max_pending_keyframes: int = ranged(16, 1, 1024)  # keyframes waiting to be encoded and spooled
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "stream.bounds.")
+        check_range("stream.bounds.keyframe_sndhwm", self.keyframe_sndhwm, self.max_credit + 2, 100000)
+
+
+@dataclass(frozen=True)
+class HeartbeatSettings:
+    """``[stream.heartbeat]``: ZMTP heartbeats (PING every ``ivl_ms``, drop the peer after ``timeout_ms``)."""
+
+    ivl_ms: int = ranged(1000, 0, 3_600_000)
+    timeout_ms: int = ranged(5000, 0, 3_600_000)
+    ttl_ms: int = ranged(10000, 0, 6_553_500)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "stream.heartbeat.")
+
+
+@dataclass(frozen=True)
 class StreamSettings:
     """The ``[stream]`` section: endpoints, security and bounds of the device's streamer.
 
     The one type of these settings, from device.toml to
     :class:`stereopath.device.streaming.DeviceStreamer` (which takes the ``[keys]`` section beside it).
-    Every in-memory queue is bounded by one of these numbers, so the device's memory does not
-    depend on what the host does.  Times are milliseconds unless the name says otherwise.
+    Times are milliseconds unless the name says otherwise.
     """
 
     pose_endpoint: str = "tcp://*:5555"       # PUB, lossy live poses (bound by the device)
     keyframe_endpoint: str = "tcp://*:5556"   # ROUTER, loss-free keyframes, status, control
     enabled: bool = True                      # stream at all (``device run --no-stream`` overrides)
     insecure: bool = False                    # plain TCP without CURVE; only loopback endpoints allowed
-    image_encoding: Literal["jpg", "png", "raw"] = "jpg"  # keyframe images on the wire
-    jpeg_quality: int = 90                    # 1..100 (image_encoding = "jpg")
-    png_compression: int = 1                  # 0..9 (image_encoding = "png")
-    drain_s: float = 3.0                      # at the end of a run, wait up to this long (s) for a
+    drain_s: float = ranged(3.0, 0.0, 600.0)  # at the end of a run, wait up to this long (s) for a
     #                                           connected host to acknowledge every keyframe
-    max_credit: int = 16                # keyframes in flight per host, whatever credit it asks for
-    max_peers: int = 8                  # hosts tracked at once (least recently heard is evicted)
-    pose_sndhwm: int = 16               # PUB high-water mark (per subscriber, then dropped)
-    pose_flush_ms: int = 500            # at the end of a run, up to this long to send the last poses queued
-    keyframe_sndhwm: int = 64           # ROUTER outbound messages per host
-    control_rcvhwm: int = 64            # ROUTER inbound messages per host
-    max_pending_keyframes: int = 16     # keyframes waiting to be encoded and spooled
-    heartbeat_ivl_ms: int = 1000        # ZMTP heartbeats (PING every ivl, drop after timeout)
-    heartbeat_timeout_ms: int = 5000
-    heartbeat_ttl_ms: int = 10000
-    spool_fsync: bool = True            # fsync each spooled keyframe before offering it
+    spool_fsync: bool = True                  # fsync each spooled keyframe before offering it
+    images: StreamImageSettings = field(default_factory=StreamImageSettings)
+    bounds: StreamBounds = field(default_factory=StreamBounds)
+    heartbeat: HeartbeatSettings = field(default_factory=HeartbeatSettings)
 
     def __post_init__(self) -> None:
-        check_range("stream.jpeg_quality", self.jpeg_quality, 1, 100)
-        check_range("stream.png_compression", self.png_compression, 0, 9)
-        check_range("stream.drain_s", self.drain_s, 0.0, 600.0)
-        check_range("stream.max_credit", self.max_credit, 1, 1024)
-        check_range("stream.max_peers", self.max_peers, 1, 256)
-        check_range("stream.pose_sndhwm", self.pose_sndhwm, 1, 100000)
-        check_range("stream.pose_flush_ms", self.pose_flush_ms, 0, 10000)
-        check_range("stream.keyframe_sndhwm", self.keyframe_sndhwm, self.max_credit + 2, 100000)
-        check_range("stream.control_rcvhwm", self.control_rcvhwm, 1, 100000)
-        check_range("stream.max_pending_keyframes", self.max_pending_keyframes, 1, 1024)
-        check_range("stream.heartbeat_ivl_ms", self.heartbeat_ivl_ms, 0, 3_600_000)
-        check_range("stream.heartbeat_timeout_ms", self.heartbeat_timeout_ms, 0, 3_600_000)
-        check_range("stream.heartbeat_ttl_ms", self.heartbeat_ttl_ms, 0, 6_553_500)
+        check_ranges(self, "stream.")
 
 
 @dataclass(frozen=True)
@@ -375,7 +407,7 @@ class DeviceConfig:
     selftest: SelftestSettings = field(default_factory=SelftestSettings)
 
 
-def _upgrade(raw: dict[str, Any]) -> dict[str, Any]:
+def _upgrade(raw: dict[str, object]) -> dict[str, object]:
     """Read files written before ``[estimator] preset`` was renamed ``name`` (it names an estimator)."""
     est = raw.get("estimator")
     if isinstance(est, Mapping) and "preset" in est:
@@ -386,8 +418,66 @@ def _upgrade(raw: dict[str, Any]) -> dict[str, Any]:
     return raw
 
 
-def device_config_from_mapping(data: Mapping[str, Any]) -> DeviceConfig:
-    return from_mapping(DeviceConfig, _upgrade(dict(data)))
+# Keys that moved from a section into one of its sub-tables: old key -> (sub-table, new key).
+MOVED_KEYS: dict[str, dict[str, tuple[str, str]]] = {
+    "stream": {
+        "image_encoding": ("images", "encoding"),
+        "jpeg_quality": ("images", "jpeg_quality"),
+        "png_compression": ("images", "png_compression"),
+        **{k: ("bounds", k) for k in ("max_credit", "max_peers", "pose_sndhwm", "pose_flush_ms", "keyframe_sndhwm",
+                                      "control_rcvhwm", "max_pending_keyframes")},
+        "heartbeat_ivl_ms": ("heartbeat", "ivl_ms"),
+        "heartbeat_timeout_ms": ("heartbeat", "timeout_ms"),
+        "heartbeat_ttl_ms": ("heartbeat", "ttl_ms"),
+    },
+    "imu": {
+        "i2c_khz": ("i2c", "clock_khz"),
+        "retries": ("i2c", "retries"),
+        "backoff_ms": ("i2c", "backoff_ms"),
+        "reinit_attempts": ("i2c", "reinit_attempts"),
+        "latency_us": ("timestamps", "latency_us"),
+        "fit_window_s": ("timestamps", "fit_window_s"),
+    },
+}
+
+
+def nest_moved_keys(section: str, table: Mapping[str, object]) -> tuple[dict[str, object], list[str]]:
+    """``table`` (the ``[section]`` of a file) with the keys of :data:`MOVED_KEYS` moved into their
+    sub-tables, and the old spellings found (ConfigError when a key is set both ways)."""
+    moved = MOVED_KEYS.get(section, {})
+    out: dict[str, object] = {}
+    found: list[str] = []
+    for key, value in table.items():
+        if key not in moved:
+            out[key] = value
+    for key, value in table.items():
+        if key not in moved:
+            continue
+        sub, new = moved[key]
+        current = out.get(sub, {})
+        if not isinstance(current, Mapping):
+            raise ConfigError(f"{section}.{sub} must be a table, got {type(current).__name__}")
+        if new in current:
+            raise ConfigError(f"[{section}]: both {section}.{sub}.{new} and its old spelling {section}.{key} are set; "
+                              f"keep {section}.{sub}.{new}")
+        out[sub] = {**current, new: value}
+        found.append(f"{section}.{key} -> {section}.{sub}.{new}")
+    return out, found
+
+
+def _upgrade_moved_keys(raw: dict[str, object]) -> dict[str, object]:
+    """Read files written before the keys of :data:`MOVED_KEYS` moved into sub-tables (with a warning)."""
+    for section in MOVED_KEYS:
+        table = raw.get(section)
+        if isinstance(table, Mapping):
+            raw[section], found = nest_moved_keys(section, table)
+            if found:
+                log.warning("device configuration: deprecated key(s) read at their new place: %s", ", ".join(found))
+    return raw
+
+
+def device_config_from_mapping(data: Mapping[str, object]) -> DeviceConfig:
+    return from_mapping(DeviceConfig, _upgrade_moved_keys(_upgrade(dict(data))))
 
 
 INSTALLED_CONFIG = "/etc/stereopath/device.toml"  # what `device install` writes and the service runs with

@@ -34,11 +34,11 @@ class PosePublisher:
         import zmq
 
         self._zmq = zmq
-        self.sock = open_socket(ctx, zmq.XPUB, curve_keys, options={zmq.SNDHWM: config.pose_sndhwm,
+        self.sock = open_socket(ctx, zmq.XPUB, curve_keys, options={zmq.SNDHWM: config.bounds.pose_sndhwm,
                                                                    zmq.XPUB_VERBOSE: 1},
-                                heartbeat_ivl_ms=config.heartbeat_ivl_ms,
-                                heartbeat_timeout_ms=config.heartbeat_timeout_ms,
-                                heartbeat_ttl_ms=config.heartbeat_ttl_ms, maxmsgsize=INBOUND_MAX_BYTES)
+                                heartbeat_ivl_ms=config.heartbeat.ivl_ms,
+                                heartbeat_timeout_ms=config.heartbeat.timeout_ms,
+                                heartbeat_ttl_ms=config.heartbeat.ttl_ms, maxmsgsize=INBOUND_MAX_BYTES)
         self.endpoint = bind_or_close(self.sock, config.pose_endpoint)
         self.sent = 0
         self.dropped = 0

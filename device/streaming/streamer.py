@@ -105,7 +105,7 @@ class DeviceStreamer:
             self._teardown()
             raise
         self._lock = threading.Lock()
-        self._keyframes: queue.Queue[Any] = queue.Queue(maxsize=config.max_pending_keyframes)
+        self._keyframes: queue.Queue[Any] = queue.Queue(maxsize=config.bounds.max_pending_keyframes)
         self._health = DeviceHealth()
         self._status_due = threading.Event()
         self._stop = threading.Event()
@@ -175,7 +175,7 @@ class DeviceStreamer:
             c["max_keyframe_queue"] = max(c["max_keyframe_queue"], self._keyframes.qsize())
         if not accepted:
             log.warning("keyframe of frame %d refused: %d keyframes already wait for the spool writer",
-                        frame_seq, self.config.max_pending_keyframes)
+                        frame_seq, self.config.bounds.max_pending_keyframes)
         self._note_call(t0)
         return accepted
 
@@ -298,7 +298,7 @@ class DeviceStreamer:
         if self._server is not None:
             self._server.close()
         if self._pub is not None:  # the last poses of the run still reach a connected host
-            self._pub.close(flush_ms=self.config.pose_flush_ms)
+            self._pub.close(flush_ms=self.config.bounds.pose_flush_ms)
         if self._auth is not None:
             self._auth.stop()
         self._ctx.term()
@@ -335,7 +335,7 @@ class DeviceStreamer:
             seq = self.spool.count
             try:
                 kf = make_keyframe(self.session_id, seq, frame_seq, t_ns, T, left, right, self.rig_ref,
-                                   cfg.image_encoding, cfg.jpeg_quality, cfg.png_compression)
+                                   cfg.images.encoding, cfg.images.jpeg_quality, cfg.images.png_compression)
                 self.spool.append(seq, encode_keyframe(kf))
             except (ProtocolError, DatasetError, OSError) as exc:
                 log.error("keyframe of frame %d not spooled: %s", frame_seq, exc)
