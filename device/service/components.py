@@ -95,7 +95,7 @@ def nominal_rates(cfg: DeviceConfig, source: Any) -> tuple[float, float | None]:
 def open_recording(cfg: DeviceConfig, session_dir: Path, session_id: str, rig: Any,
                    rates: tuple[float, float | None]) -> NoRecording:
     """The session recorder, or the do-nothing default when ``recorder.enabled = false``."""
-    from stereopath.device.formats.recorder import SessionRecorder
+    from stereopath.device.formats.recorder import SensorInfo, SessionRecorder
 
     if not cfg.recorder.enabled:
         log.warning("recorder.enabled = false: this session is not recorded")
@@ -103,7 +103,7 @@ def open_recording(cfg: DeviceConfig, session_dir: Path, session_id: str, rig: A
     cam_hz, imu_hz = rates
     return RecordingSink(SessionRecorder(session_dir, rig, as_dict(cfg), session_id=session_id,
                                          reserve_bytes=int(cfg.recorder.reserve_mb * 1e6),
-                                         cam_rate_hz=cam_hz, imu_rate_hz=imu_hz or 200.0))
+                                         sensors=SensorInfo(cam_rate_hz=cam_hz, imu_rate_hz=imu_hz or 200.0)))
 
 
 def open_streaming(cfg: DeviceConfig, session_dir: Path, session_id: str, rig: Any,
