@@ -143,7 +143,7 @@ def device_role(args: argparse.Namespace) -> int:
 
         for i in range(args.prefill):
             left, right = pairs[i % len(pairs)]
-            kf = make_keyframe(args.session, i, i, i, np.eye(4), left, right, ("euroc", "0123456789abcdef"),
+            kf = make_keyframe(args.session, i, i, i, np.eye(4), (left, right), ("euroc", "0123456789abcdef"),
                                args.encoding)
             spool.append(i, encode_keyframe(kf))
     Path(args.ready).write_text(json.dumps({
@@ -214,7 +214,7 @@ def bench_sizes(pairs) -> None:
     left, right = pairs[0]
     for enc in ("jpg", "png", "raw"):
         t0 = time.perf_counter()
-        kf = make_keyframe("s", 0, 0, 0, np.eye(4), left, right, ("r", "0123456789abcdef"), enc)
+        kf = make_keyframe("s", 0, 0, 0, np.eye(4), (left, right), ("r", "0123456789abcdef"), enc)
         data = encode_keyframe(kf)
         dt = time.perf_counter() - t0
         print(f"keyframe 640x480 stereo {enc:>3}: {len(data) / 1024:7.1f} KiB, encode {dt * 1e3:6.1f} ms")

@@ -334,8 +334,7 @@ class DeviceStreamer:
             frame_seq, t_ns, T, left, right = item
             seq = self.spool.count
             try:
-                kf = make_keyframe(self.session_id, seq, frame_seq, t_ns, T, left, right, self.rig_ref,
-                                   cfg.images.encoding, cfg.images.jpeg_quality, cfg.images.png_compression)
+                kf = make_keyframe(self.session_id, seq, frame_seq, t_ns, T, (left, right), self.rig_ref, cfg.images)
                 self.spool.append(seq, encode_keyframe(kf))
             except (ProtocolError, DatasetError, OSError) as exc:
                 log.error("keyframe of frame %d not spooled: %s", frame_seq, exc)

@@ -36,6 +36,7 @@ from typing import Any, Callable
 import numpy as np
 
 from stereopath.device.errors import ProtocolError
+from stereopath.device.settings import StreamImageSettings
 from stereopath.device.wire.fields import check_common, check_pose_fields, exact_keys, field_float, field_int, \
     field_quat, field_str, field_vec, pack, unpack
 from stereopath.device.wire.images import check_shape, decode_image, decode_image_field, encode_image, \
@@ -116,16 +117,17 @@ _KEYFRAME_KEYS = ("type", "v", "sid", "seq", "fseq", "t", "p", "q", "rig", "l", 
 
 
 def make_keyframe(session_id: str, seq: int, frame_seq: int, t_ns: int, T_world_cam: np.ndarray,
-                  left: np.ndarray, right: np.ndarray, rig_ref: tuple[str, str], encoding: str = "jpg",
-                  jpeg_quality: int = 90, png_compression: int = 1) -> Keyframe:
-    """Encode both images (``cv2.imencode`` for jpg/png) and build a :class:`Keyframe`."""
+                  images: tuple[np.ndarray, np.ndarray], rig_ref: tuple[str, str],
+                  encoding: str | StreamImageSettings = "jpg") -> Keyframe:
+    """Encode both images ``(left, right)`` (``cv2.imencode`` for jpg/png) and build a :class:`Keyframe`;
+    ``encoding`` is a ``[stream.images]`` section or just its encoding name (default quality)."""
     from stereopath.device.core.geometry import matrix_to_quat_xyzw
 
     T = np.asarray(T_world_cam, dtype=float)
     if T.shape != (4, 4):
         raise ProtocolError(f"keyframe: T_world_cam must be 4x4, got {T.shape}")
-    li = encode_image(left, encoding, jpeg_quality, png_compression)
-    ri = encode_image(right, encoding, jpeg_quality, png_compression)
+    coding = encoding if isinstance(encoding, StreamImageSettings) else StreamImageSettings(encoding=encoding)  # type: ignore[arg-type]
+    li, ri = (encode_image(img, coding.encoding, coding.jpeg_quality, coding.png_compression) for img in images)
     q = matrix_to_quat_xyzw(T[:3, :3])
     return Keyframe(session_id, int(seq), int(frame_seq), int(t_ns), tuple(float(v) for v in T[:3, 3]),  # type: ignore[arg-type]
                     tuple(float(v) for v in q), li, ri, rig_ref[0], rig_ref[1])  # type: ignore[arg-type]

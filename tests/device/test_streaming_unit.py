@@ -30,7 +30,7 @@ def _kf(session: str, seq: int):
     left, right = small_images(seq)
     T = np.eye(4)
     T[:3, 3] = [seq * 0.1, 0.0, 0.0]
-    kf = make_keyframe(session, seq, seq * 10, 1000 + seq, T, left, right, ("rig", "0123456789abcdef"), "png")
+    kf = make_keyframe(session, seq, seq * 10, 1000 + seq, T, (left, right), ("rig", "0123456789abcdef"), "png")
     return kf, encode_keyframe(kf)
 
 
