@@ -35,7 +35,7 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping, Protocol
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Protocol
 
 import numpy as np
 
@@ -47,6 +47,9 @@ from stereopath.device.core.frames import ImuSamples, StereoFrame, median_rate_h
 from stereopath.device.core.rig import Rig
 from stereopath.device.formats.rig_files import MPU6050_NOISE, camera_sensor_yaml, imu_sensor_yaml, save_rig_yaml
 from stereopath.device.formats.tum import Trajectory, format_tum_line, write_tum
+
+if TYPE_CHECKING:
+    from stereopath.device.formats.sequence import StereoSequence
 
 log = logging.getLogger(__name__)
 
@@ -211,7 +214,7 @@ class SessionRecorder:
     def __enter__(self) -> "SessionRecorder":
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     @property
@@ -509,8 +512,8 @@ class SessionRecorder:
             log.error("session %s: cannot write %s: %s", self.session_id, layout.MANIFEST, exc)
 
 
-def record_sequence(seq: Any, out_dir: str | Path, config_dict: dict[str, Any] | None = None,
-                    max_frames: int | None = None, **recorder_kwargs: Any) -> dict[str, Any]:
+def record_sequence(seq: StereoSequence, out_dir: str | Path, config_dict: dict[str, Any] | None = None,
+                    max_frames: int | None = None, **recorder_kwargs: object) -> dict[str, Any]:
     """Write any sequence (``rig``, ``t_ns``, ``frames()``, ``imu``, ``groundtruth``) as a session.
 
     IMU samples are interleaved with the frames as a live recording would write them (the

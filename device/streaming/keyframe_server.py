@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from stereopath.device.errors import DatasetError
 from stereopath.device.wire.protocol import Ack, Credit, DecodeError, Hello, decode_control
@@ -47,6 +47,9 @@ from stereopath.device.wire.sockets import CurveKeys, bind_or_close, open_socket
 from stereopath.device.streaming.acks import ContiguousAcks
 from stereopath.device.streaming.backlog import Backlog
 from stereopath.device.streaming.spool import KeyframeSpool
+
+if TYPE_CHECKING:
+    import zmq
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +94,7 @@ class _Peer:
 class KeyframeServer:
     """ROUTER socket bound to ``config.keyframe_endpoint``; driven by the streamer's I/O thread."""
 
-    def __init__(self, ctx: Any, config: StreamSettings, spool: KeyframeSpool, session_id: str,
+    def __init__(self, ctx: zmq.Context, config: StreamSettings, spool: KeyframeSpool, session_id: str,
                  curve_keys: CurveKeys | None, status_fn: Callable[[], bytes],
                  session_fn: Callable[[], bytes] | None = None, backlog: Backlog | None = None) -> None:
         import zmq
@@ -158,7 +161,7 @@ class KeyframeServer:
             self.handle(key, rid, msg)
         return handled
 
-    def _peer_key(self, rid: bytes, frame: Any) -> str:
+    def _peer_key(self, rid: bytes, frame: zmq.Frame) -> str:
         if self.secure:
             try:
                 user = frame.get("User-Id")

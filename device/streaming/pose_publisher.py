@@ -16,10 +16,13 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Any
+from typing import TYPE_CHECKING
 
 from stereopath.device.settings import StreamSettings
 from stereopath.device.wire.sockets import CurveKeys, bind_or_close, open_socket
+
+if TYPE_CHECKING:
+    import zmq
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +33,7 @@ INBOUND_MAX_BYTES = 4096
 class PosePublisher:
     """XPUB socket bound to ``config.pose_endpoint`` (CURVE server unless insecure)."""
 
-    def __init__(self, ctx: Any, config: StreamSettings, curve_keys: CurveKeys | None) -> None:
+    def __init__(self, ctx: zmq.Context, config: StreamSettings, curve_keys: CurveKeys | None) -> None:
         import zmq
 
         self._zmq = zmq

@@ -31,7 +31,7 @@ Session ids become directory names on the host, so they are restricted to
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, TypeVar
 
 import numpy as np
 
@@ -77,6 +77,11 @@ def _header(obj: dict[str, Any]) -> str:
 
 
 # --------------------------------------------------------------------------- pose
+
+if TYPE_CHECKING:
+    from stereopath.device.core.rig import Rig
+
+_M = TypeVar("_M")
 
 _POSE_KEYS = ("type", "v", "sid", "seq", "t", "p", "q", "st", "n", "kf")
 
@@ -226,7 +231,7 @@ def _decode_status(obj: dict[str, Any]) -> Status:
 _SESSION_KEYS = ("type", "v", "sid", "rig", "cal", "kfs", "live")
 
 
-def make_session_info(session_id: str, rig: Any, rig_ref: tuple[str, str], keyframes: int = 0,
+def make_session_info(session_id: str, rig: Rig | None, rig_ref: tuple[str, str], keyframes: int = 0,
                       live: bool = True) -> SessionInfo:
     """The session message of a device session: ``rig`` (a Rig, or None) named by ``rig_ref``."""
     from stereopath.device.core.rig import rig_to_dict
@@ -247,7 +252,7 @@ def encode_session(msg: SessionInfo) -> bytes:
     return data
 
 
-def rig_of(msg: SessionInfo) -> Any:
+def rig_of(msg: SessionInfo) -> Rig | None:
     """The :class:`stereopath.device.core.rig.Rig` a session message carries (None if it carries none).
 
     Raises :class:`DecodeError` when the calibration is not a valid rig or does not hash to the
@@ -376,7 +381,7 @@ def decode_message(data: bytes, limits: Limits, allowed: tuple[str, ...] | None 
         raise DecodeError("field", f"{msg_type}: {type(exc).__name__}: {exc}") from None
 
 
-def _expect(msg: Any, cls: type) -> Any:
+def _expect(msg: object, cls: type[_M]) -> _M:
     if not isinstance(msg, cls):  # decode_message already restricts the type
         raise DecodeError("type", f"expected {cls.__name__}, got {type(msg).__name__}")
     return msg
