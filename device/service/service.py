@@ -50,7 +50,7 @@ import os
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Mapping
 
 from stereopath.device.core.config import as_dict
 from stereopath.device.errors import ConfigError, StereopathError
@@ -61,6 +61,9 @@ from stereopath.device.service.sdnotify import Notifier
 from stereopath.device.settings import DeviceConfig
 from stereopath.device.service.status import StatusReporter, status_line
 from stereopath.device.service.watchdog import Watchdog
+
+if TYPE_CHECKING:
+    from stereopath.device.capture.timealign import TimeAligner
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +128,7 @@ class CaptureService:
         return self.counters.last_imu_at
 
     @property
-    def aligner(self) -> Any:
+    def aligner(self) -> TimeAligner | None:
         return self.parts.aligner
 
     # ------------------------------------------------------------------ control (any thread, signal handlers)

@@ -44,7 +44,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Callable, Protocol, TypeVar
 
 import numpy as np
 
@@ -52,6 +52,9 @@ from stereopath.device.errors import CaptureError, ConfigError
 from stereopath.device.core.frames import ImuSamples
 from stereopath.device.capture.imu.period_fit import PeriodFit
 from stereopath.device.settings import ImuSettings
+
+if TYPE_CHECKING:
+    from smbus2 import i2c_msg
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +101,21 @@ AFS_SEL = {2: 0, 4: 1, 8: 2, 16: 3}
 STANDARD_GRAVITY = 9.80665
 TEMP_SCALE = 340.0
 TEMP_OFFSET_C = 36.53
+
+
+_R = TypeVar("_R")
+
+
+class I2cBus(Protocol):
+    """What the driver uses of ``smbus2.SMBus`` (the emulator offers the same)."""
+
+    def read_byte_data(self, i2c_addr: int, register: int, force: bool | None = None) -> int: ...
+
+    def write_byte_data(self, i2c_addr: int, register: int, value: int, force: bool | None = None) -> None: ...
+
+    def i2c_rdwr(self, *msgs: i2c_msg) -> None: ...
+
+    def close(self) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -168,7 +186,7 @@ class Mpu6050:
 
     name = "mpu6050"
 
-    def __init__(self, settings: ImuSettings, bus: Any = None, clock_ns: Callable[[], int] = time.monotonic_ns,
+    def __init__(self, settings: ImuSettings, bus: I2cBus | None = None, clock_ns: Callable[[], int] = time.monotonic_ns,
                  sleep: Callable[[float], None] = time.sleep) -> None:
         self.settings = settings
         self._bus = bus
@@ -190,7 +208,7 @@ class Mpu6050:
         self._seg_count = 0
         self._last_t: int | None = None
         self._gap_open: int | None = None
-        self._i2c_msg: Any = None
+        self._i2c_msg: type[i2c_msg] | None = None
         self._opened = False
 
     # ---------------------------------------------------------------------------------
@@ -245,11 +263,11 @@ class Mpu6050:
         self.open()
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # bus primitives with retries ------------------------------------------------------
-    def _retry(self, what: str, fn: Callable[..., Any], *args: Any) -> Any:
+    def _retry(self, what: str, fn: Callable[..., _R], *args: int) -> _R:
         delay = self.settings.i2c.backoff_ms / 1000.0
         for attempt in range(self.settings.i2c.retries + 1):
             try:
@@ -437,7 +455,7 @@ class Mpu6050:
             f"{self.settings.i2c.reinit_attempts} re-initialisations: {last.exc}")
 
 
-def open_mpu6050(settings: ImuSettings, **inject: Any) -> Mpu6050:
+def open_mpu6050(settings: ImuSettings, **inject: object) -> Mpu6050:
     """An opened driver (``bus=``, ``clock_ns=``, ``sleep=`` may be injected)."""
     dev = Mpu6050(settings, **inject)
     dev.open()
