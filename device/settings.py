@@ -9,16 +9,20 @@ Sections (TOML tables):
 ``[source]``      which stereo backend and the capture settings shared by all of them,
                   with one sub-table per backend (``[source.picamera2]``, ``[source.depthai]``,
                   ``[source.replay]``, ``[source.sim]``);
-``[imu]``         the inertial sensor (MPU-6050 on I2C, its emulator, the source's own, or none);
+``[imu]``         the inertial sensor (MPU-6050 on I2C, its emulator, the source's own, or none), with
+                  ``[imu.i2c]`` (bus clock, retries), ``[imu.timestamps]`` and ``[imu.emulated]``;
 ``[timealign]``   camera-IMU time offset and how long a frame may wait for IMU samples;
 ``[estimator]``   which motion estimator runs (``name``; the old key ``preset`` is still read);
-``[stream]``      ZeroMQ endpoints, security and keyframe encoding;
+``[stream]``      ZeroMQ endpoints and security, with ``[stream.images]`` (keyframe encoding),
+                  ``[stream.bounds]`` (queue and credit limits) and ``[stream.heartbeat]``;
 ``[keys]``        CURVE key locations;
 ``[recorder]``    session directory and free-disk reserve;
 ``[service]``     the capture service: status file, watchdog data age, start/stop timeouts;
 ``[selftest]``    pass/fail limits of ``stereopath device selftest``.
 
-Other stages add their own section dataclass here and a field in :class:`DeviceConfig`.
+Keys that moved into a sub-table (:data:`MOVED_KEYS`) are still read at their old place, with a
+logged deprecation warning.  Other stages add their own section dataclass here and a field in
+:class:`DeviceConfig`.
 """
 
 from __future__ import annotations
