@@ -99,7 +99,7 @@ def kitti_bins(frames: int, offset: float) -> None:
 def synthetic(trials: int, sigma: float, seed: int = 0) -> tuple[float, float]:
     """Mean and standard error of ``|t_est|/|t_true|`` of the fixed-point solver, disparity noise ``sigma``."""
     from stereopath.device.core.rig import make_camera, make_rig
-    from stereopath.device.core.stereo import project, refine_pose_lm, triangulate
+    from stereopath.device.core.stereo import LMOptions, PointObservations, project, refine_pose_lm, triangulate
 
     f, b, w, h = 707.0, 0.54, 1226, 370
     K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
@@ -120,7 +120,8 @@ def synthetic(trials: int, sigma: float, seed: int = 0) -> tuple[float, float]:
         pl += rng.normal(0, 0.2, pl.shape)
         pr += rng.normal(0, 0.2, pr.shape)
         keep = (Xt[:, 2] > 0) & (Xt[:, 2] < f * b / 2.0) & (pl[:, 0] > 0) & (pl[:, 0] < w) & (pl[:, 1] > 0) & (pl[:, 1] < h)
-        res = refine_pose_lm(rig, np.eye(4), Xt[keep], pl[keep], Xt[keep], pr[keep], huber_px=1.0, outlier_px=2.0)
+        res = refine_pose_lm(rig, np.eye(4), PointObservations(Xt[keep], pl[keep]), PointObservations(Xt[keep], pr[keep]),
+                             LMOptions(huber_px=1.0, outlier_px=2.0))
         ratios.append(np.linalg.norm(res.T_cam_world[:3, 3]))
     return float(np.mean(ratios)), float(np.std(ratios) / np.sqrt(len(ratios)))
 

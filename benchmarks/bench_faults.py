@@ -240,6 +240,7 @@ def sc_host_disk_full(tmp: Path, mount: bool) -> dict:
 
 def sc_device_disk_full(tmp: Path, mount: bool) -> dict:
     """The device's disk fills mid-scan (recorder + spool) with a host connected."""
+    from stereopath.device.service.components import RunSeams
     from stereopath.device.service.options import RunOptions, load_config
     from stereopath.device.service.service import CaptureService
     from stereopath.host.live.receiver import Receiver, ReceiverConfig
@@ -254,7 +255,7 @@ def sc_device_disk_full(tmp: Path, mount: bool) -> dict:
         cfg_path = write_toml(tmp / "device.toml", tables)
         opts = RunOptions(out=str(dev_root / "s"), wait_for_host_s=10.0)
         service = CaptureService(load_config(cfg_path, opts), opts, cfg_path, environ={},
-                                 estimator=FakeEstimator(kf_every=2))
+                                 seams=RunSeams(estimator=FakeEstimator(kf_every=2)))
         rx = Receiver(ReceiverConfig(stream["pose_endpoint"], stream["keyframe_endpoint"], insecure=True,
                                      fsync=False, stall_timeout_s=0.5), tmp / "host")
         res: dict = {}

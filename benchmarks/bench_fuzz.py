@@ -304,7 +304,7 @@ def build_workspace(w: Path, session_frames: int = 8) -> list[Target]:
     store = KeyframeStore(w / "live", fsync=False)
     for k in range(3):
         fr = seq.frame(k)
-        kf = make_keyframe("sessX", k, k, int(seq.t_ns[k]), seq.groundtruth.T_world_cam[k], fr.left, fr.right,
+        kf = make_keyframe("sessX", k, k, int(seq.t_ns[k]), seq.groundtruth.T_world_cam[k], (fr.left, fr.right),
                            rig_reference(seq.rig), "png")
         store.put(kf, encode_keyframe(kf))
         store.set_last_session("sessX")

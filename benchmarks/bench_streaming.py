@@ -113,13 +113,13 @@ def kf_count(out: Path, session: str) -> int:
 
 
 def device_role(args: argparse.Namespace) -> int:
-    from stereopath.device.settings import KeySettings, StreamSettings
+    from stereopath.device.settings import KeySettings, StreamImageSettings, StreamSettings
     from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
 
     pairs, _ = load_pairs()
     keys = Path(args.keys_root)
     cfg = StreamSettings(pose_endpoint="tcp://127.0.0.1:*", keyframe_endpoint="tcp://127.0.0.1:*",
-                         image_encoding=args.encoding, spool_fsync=True)
+                         images=StreamImageSettings(encoding=args.encoding), spool_fsync=True)
     key_files = KeySettings(server_secret=str(keys / "device" / "device.key_secret"),
                             clients_dir=str(keys / "device" / "clients"))
     spool = KeyframeSpool(args.spool)
@@ -143,7 +143,7 @@ def device_role(args: argparse.Namespace) -> int:
 
         for i in range(args.prefill):
             left, right = pairs[i % len(pairs)]
-            kf = make_keyframe(args.session, i, i, i, np.eye(4), left, right, ("euroc", "0123456789abcdef"),
+            kf = make_keyframe(args.session, i, i, i, np.eye(4), (left, right), ("euroc", "0123456789abcdef"),
                                args.encoding)
             spool.append(i, encode_keyframe(kf))
     Path(args.ready).write_text(json.dumps({
@@ -214,7 +214,7 @@ def bench_sizes(pairs) -> None:
     left, right = pairs[0]
     for enc in ("jpg", "png", "raw"):
         t0 = time.perf_counter()
-        kf = make_keyframe("s", 0, 0, 0, np.eye(4), left, right, ("r", "0123456789abcdef"), enc)
+        kf = make_keyframe("s", 0, 0, 0, np.eye(4), (left, right), ("r", "0123456789abcdef"), enc)
         data = encode_keyframe(kf)
         dt = time.perf_counter() - t0
         print(f"keyframe 640x480 stereo {enc:>3}: {len(data) / 1024:7.1f} KiB, encode {dt * 1e3:6.1f} ms")

@@ -45,7 +45,7 @@ class FramePairer:
         self.last_pair_ns: int | None = None
         self.last_skew_ns: int = 0
 
-    def push(self, side: int, key_ns: int, item: Any) -> None:
+    def push(self, side: int, key_ns: int, item: object) -> None:
         """Called from a camera thread: add one frame (``key_ns`` = its sensor timestamp)."""
         with self._cond:
             if self._closed:

@@ -31,10 +31,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from stereopath.device.service.installer import UNIT_NAME, install
+    from stereopath.device.service.installer import UNIT_NAME, InstallChoices, install
 
-    report = install(args.root, dry_run=args.dry_run, python=args.python, host_keys=args.host_key,
-                     backend=args.backend)
+    report = install(args.root, choices=InstallChoices(dry_run=args.dry_run, python=args.python,
+                                                       host_keys=tuple(args.host_key), backend=args.backend))
     for action in report.actions:
         print(("would " if args.dry_run and not action.startswith("keep ") else "") + action)
     changed = len(report.changed)

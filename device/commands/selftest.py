@@ -13,7 +13,12 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from stereopath.device.capture.imu.base import ImuSource
+    from stereopath.device.capture.sources.base import SourceStats, StereoSource
+    from stereopath.device.settings import DeviceConfig
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,7 +64,7 @@ def _free_disk_check(path: str, reserve_mb: float) -> Check:
 COVERED_RATIO = 0.6  # --cover-left: the covered image's mean grey level below this share of the other's
 
 
-def _sync_check(cfg: Any, source: Any, stats: Any) -> Check | None:
+def _sync_check(cfg: DeviceConfig, source: StereoSource, stats: SourceStats) -> Check | None:
     """The picamera2 software sync: route, frames to SyncReady per camera, skew (None for other sources)."""
     state = getattr(source, "sync_state", None)
     if state is None:
@@ -76,7 +81,7 @@ def _sync_check(cfg: Any, source: Any, stats: Any) -> Check | None:
                  "both cameras SyncReady, a route")
 
 
-def _left_check(source: Any, luma: list[list[float]], cover_left: bool) -> Check | None:
+def _left_check(source: StereoSource, luma: list[list[float]], cover_left: bool) -> Check | None:
     """Which camera is left; with ``cover_left`` the left image must be the darker one."""
     ids = getattr(source, "camera_ids", None)
     named = ""
@@ -104,7 +109,7 @@ def _left_check(source: Any, luma: list[list[float]], cover_left: bool) -> Check
     return Check("left camera", ok, value, f"covered < {COVERED_RATIO:.0%} of the other")
 
 
-def _camera_checks(cfg: Any, source: Any, frames_wanted: int, imu_blocks: list,
+def _camera_checks(cfg: DeviceConfig, source: StereoSource, frames_wanted: int, imu_blocks: list,
                    cover_left: bool = False) -> list[Check]:
     import numpy as np
 
@@ -166,7 +171,7 @@ def _camera_checks(cfg: Any, source: Any, frames_wanted: int, imu_blocks: list,
     return checks
 
 
-def _imu_checks(cfg: Any, imu: Any, blocks_from_source: list) -> list[Check]:
+def _imu_checks(cfg: DeviceConfig, imu: ImuSource | None, blocks_from_source: list) -> list[Check]:
     import time
 
     import numpy as np
@@ -236,7 +241,7 @@ def _imu_checks(cfg: Any, imu: Any, blocks_from_source: list) -> list[Check]:
     return checks
 
 
-def run_selftest(cfg: Any, source: Any = None, imu: Any = None, cover_left: bool = False) -> list[Check]:
+def run_selftest(cfg: DeviceConfig, source: StereoSource | None = None, imu: ImuSource | None = None, cover_left: bool = False) -> list[Check]:
     """All checks; ``source``/``imu`` (unopened) may be injected, otherwise built from ``cfg``."""
     from stereopath.device.errors import StereopathError
     from stereopath.device.capture.imu import create_imu

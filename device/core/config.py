@@ -36,13 +36,13 @@ def check_range(key: str, value: float, lo: float | None = None, hi: float | Non
         raise ConfigError(f"{key} = {value!r} is out of range [{lo}, {hi}]")
 
 
-def ranged(default: Any, lo: float | None = None, hi: float | None = None) -> Any:
+def ranged(default: T, lo: float | None = None, hi: float | None = None) -> T:
     """A dataclass field whose value (or each element of a tuple value) must lie in ``[lo, hi]``; None is
     always allowed (it means "off" or "automatic" where a field's type admits it)."""
     return dataclasses.field(default=default, metadata={"range": (lo, hi)})
 
 
-def field_range(cls: Any, name: str) -> tuple[float | None, float | None] | None:
+def field_range(cls: type, name: str) -> tuple[float | None, float | None] | None:
     """The ``(lo, hi)`` declared for ``cls.name`` by :func:`ranged`, or None."""
     for f in dataclasses.fields(cls):
         if f.name == name:
@@ -50,7 +50,7 @@ def field_range(cls: Any, name: str) -> tuple[float | None, float | None] | None
     raise KeyError(name)
 
 
-def check_ranges(obj: Any, prefix: str = "") -> None:
+def check_ranges(obj: object, prefix: str = "") -> None:
     """Check every field of ``obj`` declared with :func:`ranged`; errors name ``prefix + field``."""
     for f in dataclasses.fields(obj):
         bounds = f.metadata.get("range")
@@ -67,7 +67,7 @@ def check_ranges(obj: Any, prefix: str = "") -> None:
             check_range(key, value, *bounds)
 
 
-def _convert(key: str, tp: Any, value: Any) -> Any:
+def _convert(key: str, tp: object, value: object) -> object:
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
     if tp is Any:
@@ -152,7 +152,7 @@ def from_mapping(cls: type[T], data: Mapping[str, Any], prefix: str = "") -> T:
         raise ConfigError(f"{prefix or cls.__name__}: {exc}") from None
 
 
-def replace(obj: T, **changes: Any) -> T:
+def replace(obj: T, **changes: object) -> T:
     """``dataclasses.replace`` that validates the new values like :func:`from_mapping`."""
     current = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj) if f.init}
     unknown = sorted(set(changes) - set(current))
@@ -185,6 +185,6 @@ def load_toml(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"cannot read configuration file {p}: {exc.strerror or exc}") from None
 
 
-def as_dict(obj: Any) -> dict[str, Any]:
+def as_dict(obj: object) -> dict[str, Any]:
     """Plain-dict view of a configuration dataclass (for logging and manifests)."""
     return dataclasses.asdict(obj)

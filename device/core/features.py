@@ -42,13 +42,13 @@ import logging
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Literal, Mapping
+from typing import Literal, Mapping
 
 import cv2
 import numpy as np
 
 from stereopath.device.core.affine_views import simulate_view, view_transform
-from stereopath.device.core.config import check_range, from_mapping
+from stereopath.device.core.config import check_range, check_ranges, from_mapping, ranged
 from stereopath.device.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -56,6 +56,9 @@ log = logging.getLogger(__name__)
 __all__ = [
     "Features",
     "FeatureConfig",
+    "SiftConfig",
+    "ViewSelectionConfig",
+    "AffineFeatureConfig",
     "PRESETS",
     "get_preset",
     "gray",
@@ -129,14 +132,69 @@ class Features:
 # --------------------------------------------------------------------------- configuration
 
 
+# SIFT's scale space as OpenCV's defaults; nobody tunes them per preset.
+SIFT_SIGMA = 1.6
+SIFT_OCTAVE_LAYERS = 3
+SIFT_PRECISE_UPSCALE = True  # OpenCV's unbiased 2x upsampling (no 0.25 px shift)
+VIEW_BLUR_K = 0.8  # anti-aliasing blur of a simulated view: sigma = VIEW_BLUR_K * sqrt(t^2 - 1)
+COMPACT_VIEWS = True  # oblique views turned to the smallest canvas (SIFT is rotation invariant)
+
+
+@dataclass(frozen=True)
+class SiftConfig:
+    """SIFT's keypoint caps and thresholds: ``nfeatures`` caps the original view and
+    ``view_nfeatures`` each simulated view (0 = unlimited)."""
+
+    nfeatures: int = ranged(0, 0, 1_000_000)
+    view_nfeatures: int = ranged(0, 0, 1_000_000)
+    contrast_threshold: float = ranged(0.04, 1e-4, 1.0)
+    edge_threshold: float = ranged(10.0, 1.0, 100.0)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "sift.")
+
+
+@dataclass(frozen=True)
+class ViewSelectionConfig:
+    """Pair-level view selection (Morel & Yu's two-resolution ASIFT, view_selection.py): match all
+    views of the two images reduced ``factor`` times, then compute and match at full resolution
+    only the view pairs with >= ``min_share`` of the best pair's matches; the reduced original
+    view keeps its ``nfeatures`` strongest keypoints, a view at tilt t 1/t of that (the same
+    density; 0 = as at full resolution).  ``factor`` 0 = off.  detect() on one image always
+    computes every view."""
+
+    factor: int = ranged(0, 0, 16)
+    min_share: float = ranged(0.2, 0.0, 1.0)
+    nfeatures: int = ranged(400, 0, 1_000_000)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "coarse.")
+        if self.factor == 1:
+            raise ConfigError("coarse.factor must be 0 (no view selection) or >= 2, got 1")
+
+
+@dataclass(frozen=True)
+class AffineFeatureConfig:
+    """``cv2.AffineFeature`` parameters (backend "cv2_affine" only); OpenCV's defaults."""
+
+    max_tilt: int = ranged(5, 1, 10)
+    min_tilt: int = 0
+    tilt_step: float = ranged(1.4142135623730951, 1.01, 4.0)
+    rotate_step_base: float = ranged(72.0, 1.0, 180.0)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "affine.")
+        check_range("affine.min_tilt", self.min_tilt, 0, self.max_tilt - 1)
+
+
 @dataclass(frozen=True)
 class FeatureConfig:
     """How to detect features.  Build from a mapping with ``stereopath.device.core.config.from_mapping``.
 
     ``views`` lists ``(tilt, longitude_deg)`` pairs; the first one must be the
-    original view ``(1.0, 0.0)``.  ``nfeatures`` caps the original view and
-    ``view_nfeatures`` each simulated view (0 = unlimited).  Simulated views are
-    computed on the image resized by ``view_scale``.
+    original view ``(1.0, 0.0)``.  Simulated views are computed on the image resized
+    by ``view_scale``, the original view on the image resized by ``original_scale``
+    (SIFT doubles it first).
     """
 
     views: tuple[tuple[float, float], ...] = (ORIGINAL_VIEW,)
@@ -147,34 +205,13 @@ class FeatureConfig:
     # once anyway when it is the later image, so in a sequence this costs only
     # matching time).
     pairing: Literal["asymmetric", "symmetric"] = "asymmetric"
-    nfeatures: int = 0
-    view_nfeatures: int = 0
-    contrast_threshold: float = 0.04
-    view_contrast_threshold: float | None = None  # None: same as contrast_threshold
-    edge_threshold: float = 10.0
-    sigma: float = 1.6
-    n_octave_layers: int = 3
-    view_scale: float = 1.0
-    original_scale: float = 1.0  # the original view computed on the image resized by this (SIFT doubles it first)
-    blur_k: float = 0.8
-    border_px: int = 4
-    threads: int = 1  # views on a thread pool; SIFT is already parallel inside OpenCV, so 1 was fastest on 2 cores
-    compact_views: bool = True  # turn oblique views to the smallest canvas (SIFT is rotation invariant)
-    precise_upscale: bool = True  # OpenCV's unbiased 2x upsampling (no 0.25 px shift)
-    # Pair-level view selection (Morel & Yu's two-resolution ASIFT, view_selection.py): match all
-    # views of the two images reduced ``coarse_factor`` times, then compute and match at full
-    # resolution only the view pairs with >= ``coarse_min_share`` of the best pair's matches;
-    # the reduced original view keeps its ``coarse_nfeatures`` strongest keypoints, a view at tilt
-    # t 1/t of that (the same density; 0 = as at full resolution).  coarse_factor 0 = off.
-    # detect() on one image always computes every view.
-    coarse_factor: int = 0
-    coarse_min_share: float = 0.2
-    coarse_nfeatures: int = 400
-    # cv2.AffineFeature parameters (backend "cv2_affine" only); OpenCV's defaults.
-    affine_max_tilt: int = 5
-    affine_min_tilt: int = 0
-    affine_tilt_step: float = 1.4142135623730951
-    affine_rotate_step_base: float = 72.0
+    sift: SiftConfig = SiftConfig()
+    view_scale: float = ranged(1.0, 0.1, 2.0)
+    original_scale: float = ranged(1.0, 0.1, 1.0)
+    border_px: int = ranged(4, 0, 100)
+    threads: int = ranged(1, 1, 64)  # views on a thread pool; SIFT is already parallel inside OpenCV, so 1 was fastest on 2 cores
+    coarse: ViewSelectionConfig = ViewSelectionConfig()
+    affine: AffineFeatureConfig = AffineFeatureConfig()
 
     def __post_init__(self) -> None:
         if not self.views:
@@ -186,31 +223,10 @@ class FeatureConfig:
                 raise ConfigError(f"views[{i}] must be a (tilt, longitude_deg) pair, got {v!r}")
             check_range(f"views[{i}].tilt", float(v[0]), 1.0, 16.0)
             check_range(f"views[{i}].longitude_deg", float(v[1]), -360.0, 360.0)
-        check_range("nfeatures", self.nfeatures, 0, 1_000_000)
-        check_range("view_nfeatures", self.view_nfeatures, 0, 1_000_000)
-        check_range("contrast_threshold", self.contrast_threshold, 1e-4, 1.0)
-        if self.view_contrast_threshold is not None:
-            check_range("view_contrast_threshold", self.view_contrast_threshold, 1e-4, 1.0)
-        check_range("edge_threshold", self.edge_threshold, 1.0, 100.0)
-        check_range("sigma", self.sigma, 0.5, 5.0)
-        check_range("n_octave_layers", self.n_octave_layers, 1, 10)
-        check_range("view_scale", self.view_scale, 0.1, 2.0)
-        check_range("original_scale", self.original_scale, 0.1, 1.0)
-        check_range("blur_k", self.blur_k, 0.0, 5.0)
-        check_range("border_px", self.border_px, 0, 100)
-        check_range("threads", self.threads, 1, 64)
-        check_range("coarse_factor", self.coarse_factor, 0, 16)
-        if self.coarse_factor == 1:
-            raise ConfigError("coarse_factor must be 0 (no view selection) or >= 2, got 1")
-        check_range("coarse_min_share", self.coarse_min_share, 0.0, 1.0)
-        check_range("coarse_nfeatures", self.coarse_nfeatures, 0, 1_000_000)
-        check_range("affine_max_tilt", self.affine_max_tilt, 1, 10)
-        check_range("affine_min_tilt", self.affine_min_tilt, 0, self.affine_max_tilt - 1)
-        check_range("affine_tilt_step", self.affine_tilt_step, 1.01, 4.0)
-        check_range("affine_rotate_step_base", self.affine_rotate_step_base, 1.0, 180.0)
+        check_ranges(self)
 
     @staticmethod
-    def from_mapping(mapping: Mapping[str, Any]) -> "FeatureConfig":
+    def from_mapping(mapping: Mapping[str, object]) -> "FeatureConfig":
         return from_mapping(FeatureConfig, mapping)
 
     @property
@@ -230,9 +246,8 @@ def _paper_views() -> tuple[tuple[float, float], ...]:
 _FAST = FeatureConfig(
     views=(ORIGINAL_VIEW, (2.0, 0.0), (2.0, 60.0), (2.0, 120.0)),
     pairing="symmetric",
-    contrast_threshold=0.015,
-    edge_threshold=20.0,
-    coarse_factor=3,
+    sift=SiftConfig(contrast_threshold=0.015, edge_threshold=20.0),
+    coarse=ViewSelectionConfig(factor=3),
 )
 
 PRESETS: dict[str, FeatureConfig] = {
@@ -245,8 +260,7 @@ PRESETS: dict[str, FeatureConfig] = {
     "fast_asym": FeatureConfig(
         views=(ORIGINAL_VIEW, (2.0, 0.0), (2.0, 45.0), (2.0, 90.0), (2.0, 135.0)),
         view_scale=0.7,
-        contrast_threshold=0.02,
-        edge_threshold=20.0,
+        sift=SiftConfig(contrast_threshold=0.02, edge_threshold=20.0),
     ),
     "full": FeatureConfig(backend="cv2_affine", pairing="symmetric"),
     # the on-board estimator's keyframes: SIFT on the image at 0.7 (its doubled first octave at 1.4x; ~half
@@ -334,10 +348,11 @@ def _keypoints_to_arrays(kps, desc, view_index: int, M: np.ndarray | None, n_dim
     )
 
 
-def _make_sift(cfg: FeatureConfig, view: bool):
-    n = cfg.view_nfeatures if view else cfg.nfeatures
-    ct = cfg.view_contrast_threshold if (view and cfg.view_contrast_threshold is not None) else cfg.contrast_threshold
-    return cv2.SIFT_create(n, cfg.n_octave_layers, ct, cfg.edge_threshold, cfg.sigma, enable_precise_upscale=cfg.precise_upscale)
+def _make_sift(cfg: FeatureConfig, view: bool) -> cv2.SIFT:
+    s = cfg.sift
+    n = s.view_nfeatures if view else s.nfeatures
+    return cv2.SIFT_create(n, SIFT_OCTAVE_LAYERS, s.contrast_threshold, s.edge_threshold, SIFT_SIGMA,
+                           enable_precise_upscale=SIFT_PRECISE_UPSCALE)
 
 
 def _check_image(image: np.ndarray) -> np.ndarray:
@@ -370,7 +385,7 @@ def _detect_view(image: np.ndarray, small: np.ndarray, cfg: FeatureConfig, index
     tilt, phi = map(float, cfg.views[index])
     if index == 0:
         return _detect_original(image, cfg)
-    view, mask, M = simulate_view(small, tilt, phi, 1.0, cfg.blur_k, max(1, int(round(cfg.border_px * scale))), cfg.compact_views)
+    view, mask, M = simulate_view(small, tilt, phi, 1.0, VIEW_BLUR_K, max(1, int(round(cfg.border_px * scale))), COMPACT_VIEWS)
     if scale != 1.0:
         # original -> small (pixel centres: x_s = scale * x + 0.5 * scale - 0.5) -> view
         off = 0.5 * scale - 0.5
@@ -418,7 +433,8 @@ def detect(image: np.ndarray, cfg: FeatureConfig | str = "sift", views: list[int
 
 def _detect_cv2_affine(image: np.ndarray, cfg: FeatureConfig) -> Features:
     sift = _make_sift(cfg, view=False)
-    af = cv2.AffineFeature_create(sift, cfg.affine_max_tilt, cfg.affine_min_tilt, cfg.affine_tilt_step, cfg.affine_rotate_step_base)
+    a = cfg.affine
+    af = cv2.AffineFeature_create(sift, a.max_tilt, a.min_tilt, a.tilt_step, a.rotate_step_base)
     kps, desc = af.detectAndCompute(image, None)
     feats = _keypoints_to_arrays(kps, desc, -1, None)
     return Features(feats.xy, feats.desc, feats.size, feats.angle, feats.response, np.full(len(feats), -1, np.int16))

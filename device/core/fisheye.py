@@ -16,7 +16,6 @@ focal length at 512 x 512 keeps +-53 deg across, of its +-77 deg).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -38,7 +37,7 @@ class FisheyeCamera:
     size: tuple[int, int]
 
 
-def make_fisheye_camera(name: str, K: Any, dist: Any, size: Any) -> FisheyeCamera:
+def make_fisheye_camera(name: str, K: object, dist: object, size: object) -> FisheyeCamera:
     """Validated :class:`FisheyeCamera`; errors name the field (e.g. ``cam0.distortion``)."""
     if dist is None:
         raise CalibrationError(f"{name}.distortion: missing (an equidistant camera has k1, k2, k3, k4)")

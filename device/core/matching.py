@@ -29,53 +29,43 @@ from __future__ import annotations
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Collection, Literal, Mapping
+from typing import Collection, Literal, Mapping
 
 import numpy as np
 
-from stereopath.device.core.config import check_range, from_mapping
+from stereopath.device.core.config import check_ranges, from_mapping, ranged
 from stereopath.device.errors import ConfigError
 from stereopath.device.core.features import Features
-from stereopath.device.core.nn_index import NNIndex
+from stereopath.device.core.nn_index import NNConfig, NNIndex
 from stereopath.device.core.radius_search import radius_nearest, strip_rank
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MatchConfig", "Matches", "NNIndex", "knn", "match", "match_candidates", "collapse_duplicates", "match_epipolar_rectified", "match_guided"]
+__all__ = ["MatchConfig", "Matches", "NNConfig", "NNIndex", "knn", "match", "match_candidates", "collapse_duplicates", "match_epipolar_rectified", "match_guided"]
 
 
 @dataclass(frozen=True)
 class MatchConfig:
     """Matching parameters (build from a mapping with ``stereopath.device.core.config.from_mapping``)."""
 
-    ratio: float = 0.8  # Lowe's ratio: best < ratio * best-at-another-location
+    ratio: float = ranged(0.8, 0.1, 1.0)  # Lowe's ratio: best < ratio * best-at-another-location
     mutual: bool = True
-    distinct_px: float = 2.5  # keypoints closer than this are one location
-    k: int = 8  # neighbours searched to find the best match at another location
-    method: Literal["auto", "bf", "flann"] = "auto"
-    bf_max_pairs: int = 4_000_000  # auto: brute force while n_queries * n_ref <= this
-    flann_trees: int = 2
-    flann_checks: int = 16  # leaves visited per query: nearly all the matches of 32 at half the time
-    max_distance: float = 0.0  # absolute descriptor distance cap, 0 = none
+    distinct_px: float = ranged(2.5, 0.0, 100.0)  # keypoints closer than this are one location
+    k: int = ranged(8, 2, 64)  # neighbours searched to find the best match at another location
+    index: NNConfig = NNConfig()  # brute force or FLANN
+    max_distance: float = ranged(0.0, 0.0, 1e9)  # absolute descriptor distance cap, 0 = none
     per_view: bool = True  # match view against view (features with view labels), then merge
     rank_by: Literal["ratio", "distance"] = "ratio"  # which duplicate survives the collapse
     # per_view: which view pairs are matched: all, or only pairs with the original view
     # on one side ("original"), optionally plus each view with itself ("original+same").
     view_pairs: Literal["all", "original", "original+same"] = "all"
-    threads: int = 1  # thread pool over views of the second set
+    threads: int = ranged(1, 1, 64)  # thread pool over views of the second set
 
     def __post_init__(self) -> None:
-        check_range("ratio", self.ratio, 0.1, 1.0)
-        check_range("distinct_px", self.distinct_px, 0.0, 100.0)
-        check_range("k", self.k, 2, 64)
-        check_range("bf_max_pairs", self.bf_max_pairs, 0, 10**12)
-        check_range("flann_trees", self.flann_trees, 1, 32)
-        check_range("flann_checks", self.flann_checks, 1, 100_000)
-        check_range("max_distance", self.max_distance, 0.0, 1e9)
-        check_range("threads", self.threads, 1, 64)
+        check_ranges(self)
 
     @staticmethod
-    def from_mapping(mapping: Mapping[str, Any]) -> "MatchConfig":
+    def from_mapping(mapping: Mapping[str, object]) -> "MatchConfig":
         return from_mapping(MatchConfig, mapping)
 
 
@@ -105,7 +95,7 @@ class Matches:
 
 def knn(query: np.ndarray, ref: np.ndarray, k: int, cfg: MatchConfig = MatchConfig()) -> tuple[np.ndarray, np.ndarray]:
     """``k`` nearest rows of ``ref`` for every row of ``query`` (see :class:`NNIndex`)."""
-    return NNIndex(ref, cfg, expected_queries=len(query)).query(query, k)
+    return NNIndex(ref, cfg.index, cfg.k, expected_queries=len(query)).query(query, k)
 
 
 # --------------------------------------------------------------------------- location helpers
@@ -289,7 +279,7 @@ def match_candidates(f1: Features, f2: Features, cfg: MatchConfig = MatchConfig(
 
 def _forward(f1: Features, f2: Features, g1s: list[np.ndarray], g2: np.ndarray, cfg: MatchConfig) -> list[tuple[np.ndarray, ...]]:
     """Ratio-tested nearest neighbours of each f1 view in ``g1s`` among f2 view ``g2``."""
-    index = NNIndex(f2.desc[g2], cfg, expected_queries=sum(len(g) for g in g1s))
+    index = NNIndex(f2.desc[g2], cfg.index, cfg.k, expected_queries=sum(len(g) for g in g1s))
     out = []
     for g1 in g1s:
         nn_idx, nn_dist = index.query(f1.desc[g1], cfg.k)
@@ -317,7 +307,7 @@ def _mutual(f1: Features, f2: Features, groups1: list[np.ndarray], i: np.ndarray
         sel = np.nonzero(gi_of == gi)[0]
         if len(sel) == 0:
             continue
-        rev_idx, _ = NNIndex(f1.desc[g1], cfg, expected_queries=len(sel)).query(f2.desc[j[sel]], 1)
+        rev_idx, _ = NNIndex(f1.desc[g1], cfg.index, cfg.k, expected_queries=len(sel)).query(f2.desc[j[sel]], 1)
         rev = g1[rev_idx[:, 0]]
         keep[sel] = np.linalg.norm(f1.xy[rev] - f1.xy[i[sel]], axis=1) <= cfg.distinct_px
     return keep

@@ -5,37 +5,44 @@ Pure compute; used by :mod:`stereopath.device.core.matching`.
 
 from __future__ import annotations
 
-from typing import Protocol
+from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
 
+from stereopath.device.core.config import check_ranges, ranged
 
-class NNParams(Protocol):
-    """What :class:`NNIndex` reads from a configuration (``matching.MatchConfig``)."""
 
-    method: str
-    bf_max_pairs: int
-    k: int
-    flann_trees: int
-    flann_checks: int
+@dataclass(frozen=True)
+class NNConfig:
+    """How nearest neighbours are searched (``[index]`` of ``matching.MatchConfig``)."""
+
+    method: Literal["auto", "bf", "flann"] = "auto"
+    bf_max_pairs: int = ranged(4_000_000, 0, 10**12)  # auto: brute force while n_queries * n_ref <= this
+    flann_trees: int = ranged(2, 1, 32)
+    flann_checks: int = ranged(16, 1, 100_000)  # leaves visited per query: nearly all the matches of 32 at half the time
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "index.")
 
 
 class NNIndex:
     """Nearest-neighbour search over fixed reference descriptors (brute force or FLANN KD-tree).
 
     ``auto`` picks brute force (exact) while ``expected_queries * len(ref) <=
-    cfg.bf_max_pairs`` and a FLANN KD-tree (approximate, built once) otherwise.
+    cfg.bf_max_pairs`` and a FLANN KD-tree (approximate, built once) otherwise; brute force
+    also when ``ref`` has fewer than ``2 * k`` rows (``k``: the neighbours the caller searches).
     """
 
-    def __init__(self, ref: np.ndarray, cfg: NNParams, expected_queries: int = 0) -> None:
+    def __init__(self, ref: np.ndarray, cfg: NNConfig, k: int, expected_queries: int = 0) -> None:
         self.ref = np.ascontiguousarray(ref, np.float32)
         self.cfg = cfg
         m = len(self.ref)
         method = cfg.method
         if method == "auto":
             method = "bf" if expected_queries * m <= cfg.bf_max_pairs else "flann"
-        self.method = method if m >= 2 * cfg.k else "bf"
+        self.method = method if m >= 2 * k else "bf"
         if self.method == "flann":
             cv2.setRNGSeed(0)  # the randomised KD-trees are built the same way every time
         self._flann = cv2.flann_Index(self.ref, dict(algorithm=1, trees=cfg.flann_trees)) if self.method == "flann" else None

@@ -18,12 +18,15 @@ import logging
 import operator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from stereopath.device.errors import CalibrationError
 from stereopath.device.core.geometry import invert_pose, make_pose, project_to_so3
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 log = logging.getLogger(__name__)
 
@@ -212,7 +215,7 @@ def _compute_rectification(rig: Rig, alpha: float) -> Rectification:
 # construction and validation
 
 
-def checked_array(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
+def checked_array(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
     try:
         a = np.asarray(value, dtype=float)
     except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond any float
@@ -226,7 +229,7 @@ def checked_array(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
     return a
 
 
-def checked_intrinsics(name: str, K: Any) -> np.ndarray:
+def checked_intrinsics(name: str, K: object) -> np.ndarray:
     """A validated 3x3 intrinsic matrix (positive focal lengths, upper triangular, ``K[2,2] = 1``)."""
     K = checked_array(f"{name}.K", K, (3, 3))
     if K[0, 0] <= 0 or K[1, 1] <= 0:
@@ -236,7 +239,7 @@ def checked_intrinsics(name: str, K: Any) -> np.ndarray:
     return K
 
 
-def intrinsic_matrix(where: str, intr: Any) -> np.ndarray:
+def intrinsic_matrix(where: str, intr: object) -> np.ndarray:
     """``[fx, fy, cx, cy]`` (our YAML, EuRoC ``intrinsics``, Kalibr) -> K; errors name ``where``."""
     if not isinstance(intr, (list, tuple)) or len(intr) != 4:
         raise CalibrationError(f"{where}.intrinsics must be [fx, fy, cx, cy], got {intr!r}")
@@ -247,7 +250,7 @@ def intrinsic_matrix(where: str, intr: Any) -> np.ndarray:
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
 
 
-def _whole_number(v: Any) -> int:
+def _whole_number(v: object) -> int:
     """``v`` as an int if it is a whole number (``640``, ``640.0``, ``"640"``); else ValueError/TypeError."""
     if isinstance(v, (bool, np.bool_)):
         raise TypeError("a boolean is not a size")
@@ -263,7 +266,7 @@ def _whole_number(v: Any) -> int:
     return int(f)
 
 
-def checked_size(name: str, size: Any) -> tuple[int, int]:
+def checked_size(name: str, size: object) -> tuple[int, int]:
     try:
         w, h = (_whole_number(v) for v in size)
     except (TypeError, ValueError, OverflowError):
@@ -275,7 +278,7 @@ def checked_size(name: str, size: Any) -> tuple[int, int]:
     return w, h
 
 
-def make_camera(name: str, K: Any, dist: Any, size: Any) -> CameraModel:
+def make_camera(name: str, K: object, dist: object, size: object) -> CameraModel:
     """Validated :class:`CameraModel`; errors name the field (e.g. ``cam0.K``)."""
     K = checked_intrinsics(name, K)
     try:
@@ -293,7 +296,7 @@ def make_camera(name: str, K: Any, dist: Any, size: Any) -> CameraModel:
     return CameraModel(K=K, dist=d, size=wh)
 
 
-def validated_rotation(name: str, R: Any) -> np.ndarray:
+def validated_rotation(name: str, R: ArrayLike) -> np.ndarray:
     """Check that ``R`` is (nearly) a rotation; project a nearly orthonormal one onto SO(3)."""
     R = checked_array(name, R, (3, 3))
     if float(np.max(np.abs(R))) > 1.0 + ORTHO_TOL:  # before any product: 1e308 squared overflows
@@ -335,8 +338,8 @@ def check_baseline_sign(R: np.ndarray, T: np.ndarray) -> None:
                     "side-by-side pair", np.round(c1, 4).tolist(), "xyz"[axis])
 
 
-def make_rig(cam0: CameraModel, cam1: CameraModel, R: Any, T: Any, name: str = "rig",
-             T_body_cam0: Any = None, views_of: str = "") -> Rig:
+def make_rig(cam0: CameraModel, cam1: CameraModel, R: ArrayLike, T: ArrayLike, name: str = "rig",
+             T_body_cam0: ArrayLike | None = None, views_of: str = "") -> Rig:
     """Validated :class:`Rig` from parts (``R``, ``T`` = ``T_cam1_cam0``, metres)."""
     R = validated_rotation(f"rig {name!r}: R", R)
     T = checked_array("T", T, (3,))
@@ -355,7 +358,7 @@ def make_rig(cam0: CameraModel, cam1: CameraModel, R: Any, T: Any, name: str = "
 # our YAML format
 
 
-def rig_from_dict(data: Any, source: str = "rig") -> Rig:
+def rig_from_dict(data: object, source: str = "rig") -> Rig:
     """Rig from our YAML schema (see ``firmware_cfg/rig_paper.yaml``)."""
     if not isinstance(data, dict):
         raise CalibrationError(f"{source}: expected a mapping at top level")
@@ -419,7 +422,7 @@ PAPER_IMAGE_SIZE = (640, 480)
 PAPER_INTRINSICS = (500.0, 500.0, 319.5, 239.5)  # fx, fy, cx, cy at 640x480 (our choice)
 
 
-def paper_rig(T_body_cam0: Any = None) -> Rig:
+def paper_rig(T_body_cam0: ArrayLike | None = None) -> Rig:
     """The reference paper's rig (Table 1 extrinsics, mm -> m) with our 640x480 intrinsics."""
     fx, fy, cx, cy = PAPER_INTRINSICS
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])

@@ -51,6 +51,35 @@ def triangulate(rig: Rig, uv0: np.ndarray, uv1: np.ndarray) -> tuple[np.ndarray,
     return X, err
 
 
+@dataclass(frozen=True, eq=False)
+class PointObservations:
+    """World points and where one camera saw them (undistorted pixels), row for row."""
+
+    X_world: np.ndarray  # (N, 3)
+    uv: np.ndarray       # (N, 2)
+
+
+@dataclass(frozen=True)
+class LMOptions:
+    """Robust Levenberg-Marquardt settings of :func:`refine_pose_lm`: Huber loss at ``huber_px``;
+    residuals of ``cutoff_px`` (default ``10 * outlier_px``) or more weigh nothing; the inliers
+    returned are those under ``outlier_px``."""
+
+    huber_px: float = 1.0
+    max_iter: int = 15
+    outlier_px: float = 3.0
+    cutoff_px: float | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class RotationPrior:
+    """A prior on ``R_cam_world`` (e.g. gyro-integrated): ``weight * log(R prior^T)`` residuals
+    (radians scaled to pixels by the weight)."""
+
+    R: np.ndarray
+    weight: float
+
+
 @dataclass
 class RefineResult:
     T_cam_world: np.ndarray
@@ -107,20 +136,19 @@ def _inlier_errors(T: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray, 
     return inl, e[inl]
 
 
-def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, X_world: np.ndarray, uv_left: np.ndarray,
-                   X_world_r: np.ndarray | None = None, uv_right: np.ndarray | None = None,
-                   huber_px: float = 1.0, max_iter: int = 15, outlier_px: float = 3.0,
-                   prior_R: np.ndarray | None = None, prior_weight: float = 0.0,
-                   cutoff_px: float | None = None) -> RefineResult:
+def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, left: PointObservations, right: PointObservations | None = None,
+                   options: LMOptions = LMOptions(), prior: RotationPrior | None = None) -> RefineResult:
     """Levenberg-Marquardt on the reprojection error in both cameras (Huber loss, IRLS).
 
-    The update is a left perturbation ``T <- [exp(dtheta) | dt] @ T``.  An optional
-    rotation prior (e.g. gyro-integrated ``R_cam_world``) adds ``prior_weight *
-    log(R prior^T)`` residuals (radians scaled to pixels by the weight).  Residuals of ``cutoff_px``
-    (default ``10 * outlier_px``) or more weigh nothing; the inliers returned are those under ``outlier_px``.
+    The update is a left perturbation ``T <- [exp(dtheta) | dt] @ T``; see :class:`LMOptions`
+    and :class:`RotationPrior`.
     """
+    X_world, uv_left = left.X_world, left.uv
+    X_world_r, uv_right = (None, None) if right is None else (right.X_world, right.uv)
+    huber_px, max_iter, outlier_px = options.huber_px, options.max_iter, options.outlier_px
+    prior_R, prior_weight = (None, 0.0) if prior is None else (prior.R, prior.weight)
     T = T_cam_world.copy()
-    cutoff = 10 * outlier_px if cutoff_px is None else cutoff_px
+    cutoff = 10 * outlier_px if options.cutoff_px is None else options.cutoff_px
     K0, K1 = rig.cam0.K, rig.cam1.K
     T10 = rig.T_cam1_cam0
     has_r = X_world_r is not None and uv_right is not None and len(uv_right) > 0
@@ -239,5 +267,5 @@ def rvec_tvec_to_pose(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     return T
 
 
-__all__ = ["undistort_px", "project", "triangulate", "refine_pose_lm", "RefineResult", "stereo_right", "KltStereoParams",
+__all__ = ["undistort_px", "project", "triangulate", "refine_pose_lm", "PointObservations", "LMOptions", "RotationPrior", "RefineResult", "stereo_right", "KltStereoParams",
            "pose_to_rvec_tvec", "rvec_tvec_to_pose", "skew"]

@@ -26,12 +26,12 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal, Mapping
+from typing import Literal, Mapping
 
 import cv2
 import numpy as np
 
-from stereopath.device.core.config import check_range, from_mapping
+from stereopath.device.core.config import check_ranges, from_mapping, ranged
 from stereopath.device.errors import ConfigError
 from stereopath.device.core.geometry import matrix_to_euler_xyz, project_to_so3, skew, so3_exp
 
@@ -42,40 +42,35 @@ __all__ = ["TwoViewConfig", "TwoViewResult", "relative_pose", "rotation_only", "
 Status = Literal["ok", "too_few_matches", "pure_rotation", "planar", "failed"]
 
 
+# RANSAC trials of the rotation-only model.
+ROTATION_ITERS = 300
+# Homography / rotation models are judged by a 2-D transfer error, F by a 1-D epipolar
+# distance: compare them at threshold_px * this factor (chi-square 95 % quantiles, 2 vs 1
+# degree of freedom: sqrt(5.99 / 3.84) = 1.25).
+MODEL_THRESHOLD_FACTOR = 1.25
+
+
 @dataclass(frozen=True)
 class TwoViewConfig:
     """Two-view estimation parameters (build from a mapping with ``stereopath.device.core.config.from_mapping``)."""
 
     method: Literal["ransac", "magsac", "lmeds"] = "ransac"
-    max_iters: int = 10_000  # the paper's RANSAC trials
-    threshold_px: float = 1.0  # epipolar / reprojection inlier threshold
-    confidence: float = 0.999
-    min_matches: int = 12
-    min_inliers: int = 8
-    rotation_ratio: float = 0.95  # pure rotation if rotation-only inliers >= ratio * F inliers
-    planar_ratio: float = 0.95  # planar if homography inliers >= ratio * F inliers
+    max_iters: int = ranged(10_000, 1, 10_000_000)  # the paper's RANSAC trials
+    threshold_px: float = ranged(1.0, 1e-3, 100.0)  # epipolar / reprojection inlier threshold
+    confidence: float = ranged(0.999, 0.5, 0.999999)
+    min_matches: int = ranged(12, 8, 1_000_000)
+    min_inliers: int = ranged(8, 5, 1_000_000)
+    rotation_ratio: float = ranged(0.95, 0.0, 1.0)  # pure rotation if rotation-only inliers >= ratio * F inliers
+    planar_ratio: float = ranged(0.95, 0.0, 1.0)  # planar if homography inliers >= ratio * F inliers
     check_degenerate: bool = True
     refine: bool = True  # Levenberg-Marquardt on the Sampson error of the inliers
-    rotation_iters: int = 300  # RANSAC trials of the rotation-only model
-    # Homography / rotation models are judged by a 2-D transfer error, F by a 1-D
-    # epipolar distance: compare them at threshold_px * this factor (chi-square
-    # 95 % quantiles, 2 vs 1 degree of freedom: sqrt(5.99 / 3.84) = 1.25).
-    model_threshold_factor: float = 1.25
     seed: int = 0
 
     def __post_init__(self) -> None:
-        check_range("max_iters", self.max_iters, 1, 10_000_000)
-        check_range("threshold_px", self.threshold_px, 1e-3, 100.0)
-        check_range("confidence", self.confidence, 0.5, 0.999999)
-        check_range("min_matches", self.min_matches, 8, 1_000_000)
-        check_range("min_inliers", self.min_inliers, 5, 1_000_000)
-        check_range("rotation_ratio", self.rotation_ratio, 0.0, 1.0)
-        check_range("planar_ratio", self.planar_ratio, 0.0, 1.0)
-        check_range("rotation_iters", self.rotation_iters, 1, 1_000_000)
-        check_range("model_threshold_factor", self.model_threshold_factor, 0.1, 10.0)
+        check_ranges(self)
 
     @staticmethod
-    def from_mapping(mapping: Mapping[str, Any]) -> "TwoViewConfig":
+    def from_mapping(mapping: Mapping[str, object]) -> "TwoViewConfig":
         return from_mapping(TwoViewConfig, mapping)
 
 
@@ -211,7 +206,7 @@ def rotation_only(xy1: np.ndarray, xy2: np.ndarray, K1: np.ndarray, K2: np.ndarr
     q2 = p2[idx]
     n = len(idx)
     rng = np.random.default_rng(cfg.seed)
-    iters = cfg.rotation_iters
+    iters = ROTATION_ITERS
     s = rng.integers(0, n, size=(iters, 2))
     s[:, 1] = np.where(s[:, 1] == s[:, 0], (s[:, 0] + 1) % n, s[:, 1])
     Rs = _kabsch_batch(b1[s], b2[s])  # (iters, 3, 3)
@@ -344,7 +339,7 @@ def _degenerate_model(q1: np.ndarray, q2: np.ndarray, K1: np.ndarray, K2: np.nda
                       full_mask) -> TwoViewResult | None:
     """A pure rotation or a plane that explains the matches as well as F does, else None."""
     # -- no parallax: a rotation explains the matches as well as F does
-    thr2 = cfg.threshold_px * cfg.model_threshold_factor
+    thr2 = cfg.threshold_px * MODEL_THRESHOLD_FACTOR
     rot = rotation_only(q1, q2, K1, K2, replace(cfg, threshold_px=thr2))
     n_rot = rot.n_inliers
     if rot.R is not None and n_rot >= cfg.rotation_ratio * n_F:

@@ -9,7 +9,7 @@ low resolution: both images reduced ``K`` times (``K = 3``, area averaging, so 1
 the pixels), all views simulated and matched there, and only the view pairs that
 matched well are then computed and matched at full resolution.
 
-Here a view pair is kept when its low-resolution matches reach ``coarse_min_share`` of
+Here a view pair is kept when its low-resolution matches reach ``coarse.min_share`` of
 the best pair's (and at least :data:`MIN_MATCHES`).  Each pair is counted on its own
 (ratio test, mutual check, one match per location inside the pair), so a view pair
 that finds the same places as another still counts: the full-resolution collapse
@@ -56,24 +56,26 @@ def coarse_config(cfg: FeatureConfig) -> FeatureConfig:
     """The preset as used on the reduced images: border scaled, keypoints capped at the same
     density in every view (a view at tilt ``t`` has ``1/t`` of the image's area; the mean tilt
     of the views when they differ)."""
-    k = max(2, cfg.coarse_factor)
-    cap = cfg.coarse_nfeatures
+    k = max(2, cfg.coarse.factor)
+    cap = cfg.coarse.nfeatures
     tilt = float(np.exp(np.mean([np.log(t) for t, _ in cfg.views[1:]]))) if cfg.n_views > 1 else 1.0
-    return dataclasses.replace(cfg, coarse_factor=0, border_px=max(1, round(cfg.border_px / k)) if cfg.border_px else 0,
-                               nfeatures=cap or cfg.nfeatures, view_nfeatures=max(1, round(cap / tilt)) if cap else cfg.view_nfeatures)
+    sift = dataclasses.replace(cfg.sift, nfeatures=cap or cfg.sift.nfeatures,
+                               view_nfeatures=max(1, round(cap / tilt)) if cap else cfg.sift.view_nfeatures)
+    return dataclasses.replace(cfg, coarse=dataclasses.replace(cfg.coarse, factor=0), sift=sift,
+                               border_px=max(1, round(cfg.border_px / k)) if cfg.border_px else 0)
 
 
 def coarse_pair_counts(img1: np.ndarray, img2: np.ndarray, cfg: FeatureConfig, match_cfg: MatchConfig = MatchConfig()) -> dict[tuple[int, int], int]:
-    """Matches of every candidate view pair on the two images reduced ``cfg.coarse_factor`` times.
+    """Matches of every candidate view pair on the two images reduced ``cfg.coarse.factor`` times.
 
     Each pair is counted on its own: candidates that pass the ratio test and the mutual
     check, made one-to-one per location inside the pair.  The reduced original view keeps its
-    ``cfg.coarse_nfeatures`` strongest keypoints (SIFT's own response ranking) and a view at tilt
+    ``cfg.coarse.nfeatures`` strongest keypoints (SIFT's own response ranking) and a view at tilt
     ``t`` (``1/t`` of the area) ``1/t`` of that, the same density everywhere, so that no view's
     counts are favoured by its size: the most repeatable keypoints are enough to rank the pairs,
     and descriptors are most of SIFT's cost.
     """
-    k = max(2, cfg.coarse_factor)
+    k = max(2, cfg.coarse.factor)
     pairs = candidate_pairs(cfg)
     small = coarse_config(cfg)
     f1 = detect(_reduce(img1, k), small, views=views_of(pairs, 0))
@@ -94,16 +96,16 @@ def coarse_pair_counts(img1: np.ndarray, img2: np.ndarray, cfg: FeatureConfig, m
 
 def select_view_pairs(img1: np.ndarray, img2: np.ndarray, cfg: FeatureConfig | str, match_cfg: MatchConfig = MatchConfig()) -> list[tuple[int, int]] | None:
     """The view pairs worth computing at full resolution, or ``None`` when ``cfg`` selects none
-    (``coarse_factor`` 0, a single view, or OpenCV's ``AffineFeature``): then all are used."""
+    (``coarse.factor`` 0, a single view, or OpenCV's ``AffineFeature``): then all are used."""
     if isinstance(cfg, str):
         cfg = get_preset(cfg)
-    if cfg.coarse_factor < 2 or cfg.backend != "views" or cfg.n_views == 1:
+    if cfg.coarse.factor < 2 or cfg.backend != "views" or cfg.n_views == 1:
         return None
     counts = coarse_pair_counts(img1, img2, cfg, match_cfg)
     best = max(counts.values(), default=0)
     if best < MIN_MATCHES:
         return candidate_pairs(cfg)
-    floor = max(MIN_MATCHES, cfg.coarse_min_share * best)
+    floor = max(MIN_MATCHES, cfg.coarse.min_share * best)
     return [p for p in candidate_pairs(cfg) if counts[p] >= floor]
 
 

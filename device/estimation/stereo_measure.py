@@ -12,6 +12,8 @@ import numpy as np
 from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import Rig
 from stereopath.device.core.stereo import (
+    LMOptions,
+    PointObservations,
     pose_to_rvec_tvec,
     refine_pose_lm,
     rvec_tvec_to_pose,
@@ -128,8 +130,8 @@ class StereoMeasure:
         if stereo_out is not None:
             stereo_out.append((np.asarray(uv)[ridx], uvr[okr]))
         uvr_u = self.right_ideal(uvr[okr])
-        res = refine_pose_lm(self.rig, T_cw, X[idx], uv_u[idx], X[ridx], uvr_u, huber_px=cfg.huber_px,
-                             outlier_px=cfg.pnp_reproj_px, cutoff_px=2 * cfg.pnp_reproj_px)
+        res = refine_pose_lm(self.rig, T_cw, PointObservations(X[idx], uv_u[idx]), PointObservations(X[ridx], uvr_u),
+                             LMOptions(huber_px=cfg.huber_px, outlier_px=cfg.pnp_reproj_px, cutoff_px=2 * cfg.pnp_reproj_px))
         final = np.zeros(len(X), bool)
         final[idx[res.inliers_left]] = True
         if final.sum() < cfg.min_pnp_inliers:

@@ -266,7 +266,7 @@ def write_text_atomic(path: str | Path, text: str, fsync: bool = True, mode: int
     write_atomic(path, text.encode("utf-8"), fsync=fsync, mode=mode)
 
 
-def write_json_atomic(path: str | Path, data: Any, indent: int | None = 2, fsync: bool = True,
+def write_json_atomic(path: str | Path, data: object, indent: int | None = 2, fsync: bool = True,
                       mode: int | None = None) -> None:
     """:func:`write_atomic` of ``data`` as JSON (a trailing newline; unknown types as ``str``)."""
     write_text_atomic(path, json.dumps(data, indent=indent, default=str) + "\n", fsync=fsync, mode=mode)

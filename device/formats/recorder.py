@@ -16,7 +16,7 @@ rewritten atomically when the recording ends.
 Disk space.  The recorder refuses to start (:class:`CaptureError`) when the free space of the
 target file system is below ``reserve_bytes``, and stops cleanly (state ``stopped_low_disk``:
 pending data flushed, files closed, manifest written, further data refused) when it falls below
-while recording.  The free-space probe is injectable (``disk_usage=``) for tests.
+while recording.  The free-space probe and the clock are injectable (:class:`RecorderHooks`) for tests.
 
 States: ``recording`` -> ``closed`` (after :meth:`close`), ``stopped_low_disk`` (final, also
 after :meth:`close`), or ``error`` (an I/O error other than a full disk; raised as
@@ -34,7 +34,8 @@ import threading
 import time
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Protocol
 
 import numpy as np
 
@@ -46,6 +47,9 @@ from stereopath.device.core.frames import ImuSamples, StereoFrame, median_rate_h
 from stereopath.device.core.rig import Rig
 from stereopath.device.formats.rig_files import MPU6050_NOISE, camera_sensor_yaml, imu_sensor_yaml, save_rig_yaml
 from stereopath.device.formats.tum import Trajectory, format_tum_line, write_tum
+
+if TYPE_CHECKING:
+    from stereopath.device.formats.sequence import StereoSequence
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +88,34 @@ def _append_whole(fd: int, data: bytes) -> None:
         raise
 
 
+class DiskUsage(Protocol):
+    """What the recorder reads of ``shutil.disk_usage``."""
+
+    @property
+    def free(self) -> int: ...
+
+
+@dataclass(frozen=True)
+class SensorInfo:
+    """What the session's sensor files (``cam*/sensor.yaml``, ``imu0/sensor.yaml``) say."""
+
+    cam_rate_hz: float = 20.0
+    imu_rate_hz: float = 200.0
+    imu_noise: Mapping[str, float] | None = None  # the IMU's noise figures (None: the MPU-6050's)
+
+
+@dataclass(frozen=True)
+class RecorderHooks:
+    """Injectable free-space probe and monotonic clock (None: ``shutil.disk_usage``, ``time.monotonic``)."""
+
+    disk_usage: Callable[[Path], DiskUsage] | None = None
+    clock: Callable[[], float] | None = None
+
+
+# PNG compression of the recorded images (zlib level: 1 is fast and already near the best size of grey frames)
+PNG_LEVEL = 1
+
+
 class SessionRecorder:
     """Records frames, IMU samples and estimated poses into ``out_dir`` (see module doc)."""
 
@@ -91,17 +123,13 @@ class SessionRecorder:
         self,
         out_dir: str | Path,
         rig: Rig,
-        config_dict: dict[str, Any] | None = None,
+        config_dict: Mapping[str, object] | None = None,
         session_id: str | None = None,
         reserve_bytes: int = DEFAULT_RESERVE_BYTES,
         chunk_s: float = 1.0,
         *,
-        disk_usage: Callable[[Path], Any] | None = None,
-        clock: Callable[[], float] | None = None,
-        cam_rate_hz: float = 20.0,
-        imu_rate_hz: float = 200.0,
-        imu_noise: dict[str, float] | None = None,
-        png_compression: int = 1,
+        sensors: SensorInfo = SensorInfo(),
+        hooks: RecorderHooks = RecorderHooks(),
     ) -> None:
         if chunk_s < 0 or reserve_bytes < 0:
             raise ConfigError(f"recorder: chunk_s ({chunk_s}) and reserve_bytes ({reserve_bytes}) must be >= 0")
@@ -110,10 +138,9 @@ class SessionRecorder:
         self.session_id = session_id or new_session_id()
         self.reserve_bytes = int(reserve_bytes)
         self.chunk_s = float(chunk_s)
-        self._disk_usage = disk_usage or shutil.disk_usage
-        self._clock = clock or time.monotonic
+        self._disk_usage = hooks.disk_usage or shutil.disk_usage
+        self._clock = hooks.clock or time.monotonic
         self._config = dict(config_dict or {})
-        self._png_level = int(png_compression)
         self._lock = threading.RLock()
         self._created = _utc_now()
         self.counts = {"frames": 0, "imu_samples": 0, "poses": 0, "dropped_frames": 0, "dropped_imu_samples": 0}
@@ -140,7 +167,7 @@ class SessionRecorder:
                 f"{self.reserve_bytes / 2**20:.0f} MiB"
             )
         try:
-            self._create_layout(cam_rate_hz, imu_rate_hz, imu_noise or MPU6050_NOISE)
+            self._create_layout(sensors.cam_rate_hz, sensors.imu_rate_hz, dict(sensors.imu_noise or MPU6050_NOISE))
         except OSError as exc:
             self._close_fds()
             self.state = ERROR
@@ -187,7 +214,7 @@ class SessionRecorder:
     def __enter__(self) -> "SessionRecorder":
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     @property
@@ -367,7 +394,7 @@ class SessionRecorder:
         a = np.asarray(img)
         if a.ndim not in (2, 3) or a.dtype not in (np.uint8, np.uint16) or a.size == 0:
             raise CaptureError(f"{cam}: cannot record an image of shape {a.shape} and type {a.dtype}")
-        ok, buf = cv2.imencode(".png", a, [cv2.IMWRITE_PNG_COMPRESSION, self._png_level])
+        ok, buf = cv2.imencode(".png", a, [cv2.IMWRITE_PNG_COMPRESSION, PNG_LEVEL])
         if not ok:
             raise CaptureError(f"{cam}: PNG encoding failed")
         return buf.tobytes()
@@ -485,8 +512,8 @@ class SessionRecorder:
             log.error("session %s: cannot write %s: %s", self.session_id, layout.MANIFEST, exc)
 
 
-def record_sequence(seq: Any, out_dir: str | Path, config_dict: dict[str, Any] | None = None,
-                    max_frames: int | None = None, **recorder_kwargs: Any) -> dict[str, Any]:
+def record_sequence(seq: StereoSequence, out_dir: str | Path, config_dict: dict[str, Any] | None = None,
+                    max_frames: int | None = None, **recorder_kwargs: object) -> dict[str, Any]:
     """Write any sequence (``rig``, ``t_ns``, ``frames()``, ``imu``, ``groundtruth``) as a session.
 
     IMU samples are interleaved with the frames as a live recording would write them (the
@@ -494,11 +521,13 @@ def record_sequence(seq: Any, out_dir: str | Path, config_dict: dict[str, Any] |
     """
     imu = seq.imu
     t_frames = np.asarray(seq.t_ns, dtype=np.int64)
-    recorder_kwargs.setdefault("cam_rate_hz", median_rate_hz(t_frames) or 20.0)
-    if imu is not None and len(imu):
-        recorder_kwargs.setdefault("imu_rate_hz", median_rate_hz(imu.t_ns) or 200.0)
-        if getattr(seq, "imu_noise_figures", None):  # a sequence that knows its IMU's noise (the simulator)
-            recorder_kwargs.setdefault("imu_noise", seq.imu_noise_figures)
+    if "sensors" not in recorder_kwargs:
+        sensors = SensorInfo(cam_rate_hz=median_rate_hz(t_frames) or 20.0)
+        if imu is not None and len(imu):
+            # a sequence that knows its IMU's noise (the simulator) records it
+            sensors = SensorInfo(sensors.cam_rate_hz, median_rate_hz(imu.t_ns) or 200.0,
+                                 getattr(seq, "imu_noise_figures", None) or None)
+        recorder_kwargs["sensors"] = sensors
     with SessionRecorder(out_dir, seq.rig, config_dict, **recorder_kwargs) as rec:
         prev = None
         for k, frame in enumerate(seq.frames()):

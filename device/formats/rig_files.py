@@ -12,7 +12,7 @@ import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -26,7 +26,7 @@ from stereopath.device.formats.fileio import write_text_atomic
 log = logging.getLogger(__name__)
 
 
-def _read_yaml(path: Path, what: str) -> Any:
+def _read_yaml(path: Path, what: str) -> object:
     """A YAML file's content (an OpenCV ``%YAML`` header allowed); a missing, binary or invalid file
     raises :class:`CalibrationError` naming it."""
     import yaml
@@ -48,7 +48,7 @@ def _read_yaml(path: Path, what: str) -> Any:
         raise CalibrationError(f"{path}: invalid YAML: collections nested too deeply") from None
 
 
-def _rig_from_yaml_data(p: Path, data: Any) -> Rig:
+def _rig_from_yaml_data(p: Path, data: object) -> Rig:
     try:
         return rig_from_dict(data, source=str(p))
     except CalibrationError as exc:
@@ -123,8 +123,8 @@ PINHOLE_MODELS = ("radial-tangential", "radtan", "plumb_bob")
 FISHEYE_MODELS = ("equidistant", "fisheye", "kannala-brandt", "kannala_brandt", "kb4")
 
 
-def _camera(name: str, where: str, camera_model: Any, model: Any, intr: Any, dist: Any,
-            resolution: Any) -> CameraModel | FisheyeCamera:
+def _camera(name: str, where: str, camera_model: object, model: object, intr: object, dist: object,
+            resolution: object) -> CameraModel | FisheyeCamera:
     """A camera from the fields EuRoC's ``sensor.yaml`` and Kalibr's camchain share; errors start
     with ``where`` (the file) and name the field."""
     if str(camera_model or "pinhole").lower() != "pinhole":
@@ -145,7 +145,7 @@ def _camera(name: str, where: str, camera_model: Any, model: Any, intr: Any, dis
                            f"({', '.join(PINHOLE_MODELS + FISHEYE_MODELS)})")
 
 
-def _pose(where: str, name: str, value: Any) -> np.ndarray:
+def _pose(where: str, name: str, value: object) -> np.ndarray:
     """A 4x4 rigid transform from a file: rotation checked, last row [0, 0, 0, 1]."""
     try:
         T = checked_array(name, value, (4, 4))
@@ -171,7 +171,8 @@ def _euroc_camera(name: str, path: Path, d: dict[str, Any]) -> tuple[CameraModel
     return cam, T_BS
 
 
-def _kalibr_camchain(path: Path, d: dict[str, Any]) -> tuple[Any, Any, np.ndarray, np.ndarray | None]:
+def _kalibr_camchain(path: Path, d: dict[str, Any]) -> tuple[CameraModel | FisheyeCamera, CameraModel | FisheyeCamera,
+                                                             np.ndarray, np.ndarray | None]:
     """Kalibr ``camchain(-imucam).yaml`` (parsed ``d``, read from ``path``): the two cameras,
     ``T_cam1_cam0`` and ``T_body_cam0`` (None without ``T_cam_imu``, i.e. a camera-only calibration)."""
     where = str(path)
@@ -253,7 +254,7 @@ def load_euroc_calibration(mav0: str | Path) -> RigCalibration:
     return _calibration(cam0, cam1, T_C1_C0, T_body, source, name="euroc", where=str(m))
 
 
-def _calibration(cam0: Any, cam1: Any, T_C1_C0: np.ndarray, T_body: np.ndarray | None, source: str, name: str,
+def _calibration(cam0: CameraModel | FisheyeCamera, cam1: CameraModel | FisheyeCamera, T_C1_C0: np.ndarray, T_body: np.ndarray | None, source: str, name: str,
                  where: str) -> RigCalibration:
     """The pinhole rig of two cameras (fisheye ones through their views); errors name ``source``."""
     try:
@@ -271,7 +272,7 @@ def _calibration(cam0: Any, cam1: Any, T_C1_C0: np.ndarray, T_body: np.ndarray |
     return RigCalibration(rig=rig, views=(view0, view1), source=source)
 
 
-def is_kalibr_camchain(data: Any) -> bool:
+def is_kalibr_camchain(data: object) -> bool:
     """True for a parsed Kalibr camchain (``cam0`` a mapping with Kalibr's ``resolution`` and
     ``distortion_coeffs``), not our rig YAML (which has ``R_cam1_cam0`` and ``T_cam1_cam0_m``)."""
     if not isinstance(data, dict) or "R_cam1_cam0" in data or "T_cam1_cam0_m" in data:
@@ -342,7 +343,7 @@ def load_imu_noise(path: str | Path) -> dict[str, float]:
     return out
 
 
-def yaml_float(v: Any) -> str:
+def yaml_float(v: float) -> str:
     """``v`` as YAML reads a float back: Python writes ``2e-05``, which YAML 1.1 (PyYAML, OpenCV's
     ``%YAML:1.0``) reads as a string; ``2.0e-05`` it reads as a number."""
     r = repr(float(v))
@@ -352,7 +353,7 @@ def yaml_float(v: Any) -> str:
     return f"{mant}.0e{exp}" if e and "." not in mant else r
 
 
-def _yaml_list(values: Any) -> str:
+def _yaml_list(values: Iterable[float]) -> str:
     return "[" + ", ".join(yaml_float(v) for v in values) + "]"
 
 
@@ -362,7 +363,7 @@ def _t_bs_block(T: np.ndarray) -> str:
     return f"T_BS:\n  cols: 4\n  rows: 4\n  data: [{data}]\n"
 
 
-def camera_sensor_yaml(cam: Any, name: str, T_body_cam: np.ndarray, rate_hz: float) -> str:
+def camera_sensor_yaml(cam: CameraModel, name: str, T_body_cam: np.ndarray, rate_hz: float) -> str:
     """EuRoC ``camN/sensor.yaml`` text (pinhole, radial-tangential k1 k2 p1 p2)."""
     dist = np.asarray(cam.dist, dtype=float).reshape(-1)
     if dist.size > 4 and np.any(dist[4:] != 0):

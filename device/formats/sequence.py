@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator
+from typing import Protocol
 
 import numpy as np
 
@@ -29,6 +30,30 @@ from stereopath.device.errors import DatasetError
 from stereopath.device.formats.tum import Trajectory
 
 log = logging.getLogger(__name__)
+
+
+class StereoSequence(Protocol):
+    """The sequence interface of the module doc (what :func:`~stereopath.device.formats.source.open_source`
+    returns: :class:`SequenceBase` subclasses, the simulator's session)."""
+
+    name: str
+    spec: str
+    strict: bool
+    rig: Rig
+    t_ns: np.ndarray
+    skipped_frames: list[int]
+
+    def __len__(self) -> int: ...
+
+    def frame(self, i: int) -> StereoFrame: ...
+
+    def frames(self, start: int = 0, stop: int | None = None, step: int = 1) -> Iterator[StereoFrame]: ...
+
+    @property
+    def imu(self) -> ImuSamples | None: ...
+
+    @property
+    def groundtruth(self) -> Trajectory | None: ...
 
 
 class SequenceBase:

@@ -11,40 +11,43 @@ interface of :mod:`stereopath.device.formats.sequence`.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Callable
 
 from stereopath.device.errors import DatasetError
 
-Opener = Callable[..., Any]
+if TYPE_CHECKING:
+    from stereopath.device.formats.sequence import StereoSequence
+
+Opener = Callable[..., "StereoSequence"]
 
 
-def _no_settings(scheme: str, settings: dict[str, Any]) -> None:
+def _no_settings(scheme: str, settings: dict[str, object]) -> None:
     if settings:
         raise DatasetError(f"source {scheme}: takes no settings (got {', '.join(sorted(settings))})")
 
 
-def _kitti(arg: str, **settings: Any) -> Any:
+def _kitti(arg: str, **settings: object) -> StereoSequence:
     from stereopath.device.formats.kitti import open_kitti
 
     _no_settings("kitti", settings)
     return open_kitti(arg, spec=f"kitti:{arg}")
 
 
-def _euroc(arg: str, **settings: Any) -> Any:
+def _euroc(arg: str, **settings: object) -> StereoSequence:
     from stereopath.device.formats.asl import open_asl
 
     _no_settings("euroc", settings)
     return open_asl(arg, spec=f"euroc:{arg}")
 
 
-def _session(arg: str, **settings: Any) -> Any:
+def _session(arg: str, **settings: object) -> StereoSequence:
     from stereopath.device.formats.asl import open_session
 
     _no_settings("session", settings)
     return open_session(arg)
 
 
-def _sim(arg: str, **settings: Any) -> Any:
+def _sim(arg: str, **settings: object) -> StereoSequence:
     from stereopath.device.sim.source import open_sim_spec  # sim[:SEED or key=value,...]
 
     return open_sim_spec(arg, **settings)
@@ -73,7 +76,7 @@ def parse_spec(spec: str) -> tuple[str, str]:
     return scheme, arg
 
 
-def open_source(spec: str, **settings: Any) -> Any:
+def open_source(spec: str, **settings: object) -> StereoSequence:
     """Open the sequence named by ``spec`` (see the module doc).
 
     ``settings`` go to the opener: the simulator takes :class:`~stereopath.device.sim.session.SimConfig`

@@ -8,9 +8,9 @@ a source, an IMU (or None), an estimator and two sinks.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Mapping
 
 from stereopath.device.core.config import as_dict
 from stereopath.device.core.frames import median_rate_hz
@@ -19,21 +19,39 @@ from stereopath.device.service.options import secret_key_path
 from stereopath.device.settings import DeviceConfig
 from stereopath.device.service.sinks import NoRecording, NoStreaming, RecordingSink, StreamingSink
 
+if TYPE_CHECKING:
+    from stereopath.device.capture.imu.base import ImuSource
+    from stereopath.device.capture.sources.base import StereoSource
+    from stereopath.device.capture.timealign import RateMonitor, TimeAligner
+    from stereopath.device.core.rig import Rig
+    from stereopath.device.estimation.base import Estimator
+
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class Components:
-    source: Any = None
-    imu: Any = None
-    estimator: Any = None
-    monitor: Any = None
-    aligner: Any = None
+    source: StereoSource | None = None
+    imu: ImuSource | None = None
+    estimator: Estimator | None = None
+    monitor: RateMonitor | None = None
+    aligner: TimeAligner | None = None
     recording: NoRecording = NoRecording()
     streaming: NoStreaming = NoStreaming()
 
 
-def open_source(cfg: DeviceConfig, source: Any, inject: Mapping[str, Any]) -> Any:
+@dataclass(frozen=True)
+class RunSeams:
+    """What a run uses instead of what the configuration opens (tests, benchmarks): an unopened
+    stereo source, keyword arguments for ``create_source`` / ``create_imu``, an estimator."""
+
+    source: StereoSource | None = None
+    source_inject: Mapping[str, object] = field(default_factory=dict)
+    imu_inject: Mapping[str, object] = field(default_factory=dict)
+    estimator: Estimator | None = None
+
+
+def open_source(cfg: DeviceConfig, source: StereoSource | None, inject: Mapping[str, object]) -> StereoSource:
     """The configured (or injected, unopened) stereo source, opened; it must carry a rig."""
     from stereopath.device.capture.sources import create_source
 
@@ -52,7 +70,7 @@ def open_source(cfg: DeviceConfig, source: Any, inject: Mapping[str, Any]) -> An
     return source
 
 
-def open_imu(cfg: DeviceConfig, source: Any, inject: Mapping[str, Any]) -> Any:
+def open_imu(cfg: DeviceConfig, source: StereoSource, inject: Mapping[str, object]) -> ImuSource | None:
     """The IMU (the source's own is read directly; a chip is polled on its own thread), or None."""
     from stereopath.device.capture.imu import PollingImuReader, create_imu
 
@@ -73,7 +91,7 @@ def open_imu(cfg: DeviceConfig, source: Any, inject: Mapping[str, Any]) -> Any:
     return imu
 
 
-def nominal_rates(cfg: DeviceConfig, source: Any) -> tuple[float, float | None]:
+def nominal_rates(cfg: DeviceConfig, source: StereoSource) -> tuple[float, float | None]:
     """(camera Hz, IMU Hz) for the session's sensor files and the rate monitor."""
     cam_hz: float = float(cfg.source.fps)
     if cfg.source.recorded:
@@ -92,10 +110,10 @@ def nominal_rates(cfg: DeviceConfig, source: Any) -> tuple[float, float | None]:
     return cam_hz, imu_hz
 
 
-def open_recording(cfg: DeviceConfig, session_dir: Path, session_id: str, rig: Any,
+def open_recording(cfg: DeviceConfig, session_dir: Path, session_id: str, rig: Rig,
                    rates: tuple[float, float | None]) -> NoRecording:
     """The session recorder, or the do-nothing default when ``recorder.enabled = false``."""
-    from stereopath.device.formats.recorder import SessionRecorder
+    from stereopath.device.formats.recorder import SensorInfo, SessionRecorder
 
     if not cfg.recorder.enabled:
         log.warning("recorder.enabled = false: this session is not recorded")
@@ -103,10 +121,10 @@ def open_recording(cfg: DeviceConfig, session_dir: Path, session_id: str, rig: A
     cam_hz, imu_hz = rates
     return RecordingSink(SessionRecorder(session_dir, rig, as_dict(cfg), session_id=session_id,
                                          reserve_bytes=int(cfg.recorder.reserve_mb * 1e6),
-                                         cam_rate_hz=cam_hz, imu_rate_hz=imu_hz or 200.0))
+                                         sensors=SensorInfo(cam_rate_hz=cam_hz, imu_rate_hz=imu_hz or 200.0)))
 
 
-def open_streaming(cfg: DeviceConfig, session_dir: Path, session_id: str, rig: Any,
+def open_streaming(cfg: DeviceConfig, session_dir: Path, session_id: str, rig: Rig,
                    environ: Mapping[str, str]) -> NoStreaming:
     """The streamer, or the do-nothing default when ``stream.enabled = false``."""
     if not cfg.stream.enabled:
@@ -125,24 +143,22 @@ def open_streaming(cfg: DeviceConfig, session_dir: Path, session_id: str, rig: A
                                         status_interval_s=cfg.service.status_interval_s, backlog_roots=roots))
 
 
-def open_components(cfg: DeviceConfig, session_dir: Path, session_id: str, *, source: Any = None,
-                    source_inject: Mapping[str, Any] | None = None, imu_inject: Mapping[str, Any] | None = None,
-                    estimator: Any = None, environ: Mapping[str, str] | None = None,
-                    parts: Components | None = None) -> Components:
+def open_components(cfg: DeviceConfig, session_dir: Path, session_id: str, *, seams: RunSeams = RunSeams(),
+                    environ: Mapping[str, str] | None = None, parts: Components | None = None) -> Components:
     """Open everything a run needs, in order; ``parts`` (filled as each opens) lets a failed start close them."""
     from stereopath.device.capture.timealign import RateMonitor, TimeAligner
     from stereopath.device.estimation.registry import make_estimator
 
     c = parts if parts is not None else Components()
-    c.source = open_source(cfg, source, source_inject or {})
-    c.imu = open_imu(cfg, c.source, imu_inject or {})
-    cam_hz, imu_hz = nominal_rates(cfg, c.source)
-    if estimator is None:
-        estimator = make_estimator(cfg.estimator.name, c.source.rig)
-    c.estimator = estimator
+    c.source = source = open_source(cfg, seams.source, seams.source_inject)
+    c.imu = open_imu(cfg, source, seams.imu_inject)
+    cam_hz, imu_hz = nominal_rates(cfg, source)
+    rig = source.rig
+    assert rig is not None  # open_source refuses a source without one
+    c.estimator = seams.estimator if seams.estimator is not None else make_estimator(cfg.estimator.name, rig)
     c.monitor = RateMonitor(None if cfg.source.recorded else cam_hz, imu_hz if cfg.imu.polled else None,
                             cfg.timealign.gap_factor)
     c.aligner = TimeAligner.from_settings(cfg.timealign, imu_hz if c.imu is not None else None, c.monitor)
-    c.recording = open_recording(cfg, session_dir, session_id, c.source.rig, (cam_hz, imu_hz))
-    c.streaming = open_streaming(cfg, session_dir, session_id, c.source.rig, environ or {})
+    c.recording = open_recording(cfg, session_dir, session_id, rig, (cam_hz, imu_hz))
+    c.streaming = open_streaming(cfg, session_dir, session_id, rig, environ or {})
     return c

@@ -142,22 +142,33 @@ class InstallReport:
         return [a for a in self.actions if not a.startswith(("keep ", "run "))]
 
 
+@dataclass(frozen=True)
+class InstallChoices:
+    """What ``stereopath device install`` is asked for: report only (``dry_run``), the system Python the
+    venv is made from, host public keys to authorise, the camera backend (None: ``source.backend`` of the
+    installed device.toml)."""
+
+    dry_run: bool = False
+    python: str = "/usr/bin/python3"
+    host_keys: Sequence[str | Path] = ()
+    backend: str | None = None
+
+
 class Installer:
     """One installation run (see the module doc); :meth:`run` does every step in order."""
 
     def __init__(self, root: str | Path = "/", *, layout: Layout | None = None, venv: VenvBuilder | None = None,
-                 runner: Runner | None = None, project_dir: str | Path | None = None, dry_run: bool = False,
-                 python: str = "/usr/bin/python3", host_keys: Sequence[str | Path] = (),
-                 backend: str | None = None) -> None:
+                 runner: Runner | None = None, project_dir: str | Path | None = None,
+                 choices: InstallChoices = InstallChoices()) -> None:
         self.root = Path(root).resolve()
         self.live = self.root == Path("/")
         self.layout = layout or Layout()
         self.runner = runner or run_command
-        self.venv = venv or SystemVenv(python=python, with_pip=self.live, runner=self.runner)
+        self.venv = venv or SystemVenv(python=choices.python, with_pip=self.live, runner=self.runner)
         self.project_dir = Path(project_dir) if project_dir else REPO_ROOT
-        self.dry_run = dry_run
-        self.host_keys = [Path(k) for k in host_keys]
-        self.backend = backend  # None: source.backend of the installed device.toml
+        self.dry_run = choices.dry_run
+        self.host_keys = [Path(k) for k in choices.host_keys]
+        self.backend = choices.backend  # None: source.backend of the installed device.toml
         self.report = InstallReport(self.root)
 
     # ------------------------------------------------------------------ helpers

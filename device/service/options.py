@@ -6,11 +6,13 @@ import dataclasses
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, TypeVar
 
 from stereopath.device.core.config import as_dict, replace
 from stereopath.device.errors import ConfigError
-from stereopath.device.settings import DeviceConfig, load_device_config
+from stereopath.device.settings import DeviceConfig, SourceSettings, load_device_config
+
+_T = TypeVar("_T")
 
 CREDENTIAL_NAME = "server.key_secret"     # LoadCredential= name of the device's CURVE secret key
 SOURCE_CHOICES = ("sim", "picamera2", "depthai", "replay")
@@ -42,11 +44,11 @@ class RunOptions:
             raise ConfigError(f"--wait-for-host = {self.wait_for_host_s} must be >= 0")
 
 
-def _with(obj: Any, **changes: Any) -> Any:
+def _with(obj: _T, **changes: object) -> _T:
     return replace(obj, **changes) if changes else obj
 
 
-def _source_override(src: Any, spec: str) -> Any:
+def _source_override(src: SourceSettings, spec: str) -> SourceSettings:
     """``src`` with the ``--source`` spec applied: sim | replay:SPEC | picamera2 | depthai."""
     if spec.startswith("replay:"):
         path = spec[len("replay:"):]

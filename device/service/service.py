@@ -37,9 +37,9 @@ disk), :data:`EXIT_CONFIG` (78, ``EX_CONFIG``) on a bad configuration, which the
 ``RestartPreventExitStatus=78`` keeps from restarting in a loop.  Expected faults are logged
 as one line without a traceback.
 
-Test seams: ``notifier=``, ``environ=``, ``source=`` (an unopened stereo source),
-``source_inject=`` (keyword arguments for :func:`stereopath.device.capture.sources.create_source`),
-``imu_inject=``, ``estimator=`` and ``clock=``.
+Test seams: ``notifier=``, ``environ=``, ``clock=`` and ``seams=`` (a
+:class:`~stereopath.device.service.components.RunSeams`: an unopened stereo source, keyword arguments
+for :func:`stereopath.device.capture.sources.create_source` and ``create_imu``, an estimator).
 """
 
 from __future__ import annotations
@@ -50,17 +50,20 @@ import os
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Mapping
 
 from stereopath.device.core.config import as_dict
 from stereopath.device.errors import ConfigError, StereopathError
-from stereopath.device.service.components import Components, open_components
+from stereopath.device.service.components import Components, RunSeams, open_components
 from stereopath.device.service.options import RunOptions, apply_live, check_config, load_config, split_changes
 from stereopath.device.service.pipeline import FramePipeline, PipelineCounters
 from stereopath.device.service.sdnotify import Notifier
 from stereopath.device.settings import DeviceConfig
 from stereopath.device.service.status import StatusReporter, status_line
 from stereopath.device.service.watchdog import Watchdog
+
+if TYPE_CHECKING:
+    from stereopath.device.capture.timealign import TimeAligner
 
 log = logging.getLogger(__name__)
 
@@ -74,16 +77,13 @@ class CaptureService:
 
     def __init__(self, cfg: DeviceConfig, options: RunOptions | None = None, config_path: str | Path | None = None,
                  *, notifier: Notifier | None = None, environ: Mapping[str, str] | None = None,
-                 source: Any = None, source_inject: Mapping[str, Any] | None = None,
-                 imu_inject: Mapping[str, Any] | None = None, estimator: Any = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 seams: RunSeams = RunSeams(), clock: Callable[[], float] = time.monotonic) -> None:
         self.cfg = cfg
         self.options = options or RunOptions()
         self.config_path = None if config_path is None else Path(config_path)
         self.environ = os.environ if environ is None else environ
         self.notifier = notifier if notifier is not None else Notifier.from_env(self.environ)
-        self._inject = {"source": source, "source_inject": source_inject, "imu_inject": imu_inject,
-                        "estimator": estimator}
+        self._seams = seams
         self._clock = clock
         self.watchdog = Watchdog(self.notifier, self.environ)
         self.parts = Components()           # opened in _setup
@@ -128,7 +128,7 @@ class CaptureService:
         return self.counters.last_imu_at
 
     @property
-    def aligner(self) -> Any:
+    def aligner(self) -> TimeAligner | None:
         return self.parts.aligner
 
     # ------------------------------------------------------------------ control (any thread, signal handlers)
@@ -211,8 +211,8 @@ class CaptureService:
             raise ConfigError(f"--out {self.session_dir}: exists and is not empty (a session is never overwritten; "
                               f"name a new folder: keyframes of earlier sessions in {self.session_dir.parent} or "
                               f"recorder.dir that no host acknowledged are offered to hosts again)")
-        p = open_components(cfg, self.session_dir, self.session_id, environ=self.environ, parts=self.parts,
-                            **self._inject)
+        p = open_components(cfg, self.session_dir, self.session_id, seams=self._seams, environ=self.environ,
+                            parts=self.parts)
         self.pipeline = FramePipeline(p.source, p.imu, p.aligner, p.estimator,
                                       [s for s in (p.recording, p.streaming) if s.active],
                                       stop=self._stop, request_stop=self.request_stop,

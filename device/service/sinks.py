@@ -10,7 +10,14 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import TYPE_CHECKING, Any, Callable, Protocol
+
+if TYPE_CHECKING:
+    from stereopath.device.core.frames import ImuSamples, StereoFrame
+    from stereopath.device.core.trajectory import Trajectory
+    from stereopath.device.estimation.base import PoseEstimate
+    from stereopath.device.formats.recorder import SessionRecorder
+    from stereopath.device.streaming.streamer import DeviceStreamer
 
 log = logging.getLogger(__name__)
 
@@ -20,11 +27,11 @@ class FrameSink(Protocol):
 
     name: str          # the stage name in the status report's ``stage_ms``
 
-    def add_imu(self, block: Any) -> None: ...
+    def add_imu(self, block: ImuSamples) -> None: ...
 
-    def add_frame(self, frame: Any) -> None: ...
+    def add_frame(self, frame: StereoFrame) -> None: ...
 
-    def add_estimate(self, frame: Any, est: Any) -> None: ...
+    def add_estimate(self, frame: StereoFrame, est: PoseEstimate) -> None: ...
 
     def status_fields(self) -> dict[str, Any]: ...
 
@@ -37,13 +44,13 @@ class NullSink:
     name = "off"
     active = False
 
-    def add_imu(self, block: Any) -> None:
+    def add_imu(self, block: ImuSamples) -> None:
         pass
 
-    def add_frame(self, frame: Any) -> None:
+    def add_frame(self, frame: StereoFrame) -> None:
         pass
 
-    def add_estimate(self, frame: Any, est: Any) -> None:
+    def add_estimate(self, frame: StereoFrame, est: PoseEstimate) -> None:
         pass
 
     def status_fields(self) -> dict[str, Any]:
@@ -67,10 +74,10 @@ class NoRecording(NullSink):
     def set_reserve_bytes(self, n: int) -> None:
         pass
 
-    def write_groundtruth(self, groundtruth: Any) -> None:
+    def write_groundtruth(self, groundtruth: Trajectory | None) -> None:
         pass
 
-    def write_json(self, name: str, data: Any) -> None:
+    def write_json(self, name: str, data: object) -> None:
         pass
 
 
@@ -80,20 +87,20 @@ class RecordingSink(NoRecording):
     name = "record"
     active = True
 
-    def __init__(self, recorder: Any) -> None:
+    def __init__(self, recorder: SessionRecorder) -> None:
         self.recorder = recorder
 
     @property
     def state(self) -> str:  # type: ignore[override]
         return self.recorder.state
 
-    def add_imu(self, block: Any) -> None:
+    def add_imu(self, block: ImuSamples) -> None:
         self.recorder.add_imu(block)
 
-    def add_frame(self, frame: Any) -> None:
+    def add_frame(self, frame: StereoFrame) -> None:
         self.recorder.add_frame(frame)
 
-    def add_estimate(self, frame: Any, est: Any) -> None:
+    def add_estimate(self, frame: StereoFrame, est: PoseEstimate) -> None:
         self.recorder.add_pose(est.t_ns, est.T_world_cam)
 
     def status_fields(self) -> dict[str, Any]:
@@ -102,7 +109,7 @@ class RecordingSink(NoRecording):
     def set_reserve_bytes(self, n: int) -> None:
         self.recorder.reserve_bytes = int(n)
 
-    def write_groundtruth(self, groundtruth: Any) -> None:
+    def write_groundtruth(self, groundtruth: Trajectory | None) -> None:
         """Simulated runs: ground truth over the frames recorded (for evaluating the session)."""
         rec = self.recorder
         if groundtruth is None or rec.state not in ("recording", "stopped_low_disk") or not rec.counts["frames"]:
@@ -113,7 +120,7 @@ class RecordingSink(NoRecording):
         if keep.any():
             rec.write_groundtruth(Trajectory(groundtruth.t_ns[keep], groundtruth.T_world_cam[keep]))
 
-    def write_json(self, name: str, data: Any) -> None:
+    def write_json(self, name: str, data: object) -> None:
         from stereopath.device.formats.fileio import write_json_atomic
 
         try:
@@ -157,12 +164,12 @@ class StreamingSink(NoStreaming):
     name = "stream"
     active = True
 
-    def __init__(self, streamer: Any) -> None:
+    def __init__(self, streamer: DeviceStreamer) -> None:
         self.streamer = streamer
         self.pose_endpoint = streamer.pose_endpoint
         self.keyframe_endpoint = streamer.keyframe_endpoint
 
-    def add_estimate(self, frame: Any, est: Any) -> None:
+    def add_estimate(self, frame: StereoFrame, est: PoseEstimate) -> None:
         st = self.streamer
         st.publish_pose(est.seq, est.t_ns, est.T_world_cam, tracking=est.status, inliers=int(est.inliers),
                         keyframe=bool(est.keyframe))

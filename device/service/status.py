@@ -6,13 +6,38 @@ import logging
 import os
 import time
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Protocol
 
 from stereopath.device.formats.fileio import write_json_atomic
 
 STATUS_FORMAT_VERSION = 1
 
+if TYPE_CHECKING:
+    from stereopath.device.service.components import Components
+    from stereopath.device.service.pipeline import PipelineCounters
+    from stereopath.device.service.watchdog import Watchdog
+    from stereopath.device.settings import DeviceConfig
+
 log = logging.getLogger(__name__)
+
+
+class ServiceView(Protocol):
+    """What the health report reads of the capture service (``service.CaptureService``)."""
+
+    cfg: DeviceConfig
+    counters: PipelineCounters
+    parts: Components
+    watchdog: Watchdog
+    session_id: str
+    session_dir: Path | None
+    state: str
+    stop_reason: str
+    ready_at: float | None
+
+    @property
+    def ready(self) -> bool: ...
+
+    def data_fresh(self, now: float) -> bool: ...
 
 
 class RateWindow:
@@ -126,7 +151,7 @@ class StatusReporter:
         self.problem = LastProblem()
         self._warned = False
 
-    def report(self, svc: Any) -> dict[str, Any]:
+    def report(self, svc: ServiceView) -> dict[str, Any]:
         """The health report of a :class:`~stereopath.device.service.service.CaptureService` now."""
         from stereopath.device.streaming import health
 

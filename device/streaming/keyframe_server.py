@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from stereopath.device.errors import DatasetError
 from stereopath.device.wire.protocol import Ack, Credit, DecodeError, Hello, decode_control
@@ -47,6 +47,9 @@ from stereopath.device.wire.sockets import CurveKeys, bind_or_close, open_socket
 from stereopath.device.streaming.acks import ContiguousAcks
 from stereopath.device.streaming.backlog import Backlog
 from stereopath.device.streaming.spool import KeyframeSpool
+
+if TYPE_CHECKING:
+    import zmq
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +94,7 @@ class _Peer:
 class KeyframeServer:
     """ROUTER socket bound to ``config.keyframe_endpoint``; driven by the streamer's I/O thread."""
 
-    def __init__(self, ctx: Any, config: StreamSettings, spool: KeyframeSpool, session_id: str,
+    def __init__(self, ctx: zmq.Context, config: StreamSettings, spool: KeyframeSpool, session_id: str,
                  curve_keys: CurveKeys | None, status_fn: Callable[[], bytes],
                  session_fn: Callable[[], bytes] | None = None, backlog: Backlog | None = None) -> None:
         import zmq
@@ -105,11 +108,11 @@ class KeyframeServer:
         self._session_fn = session_fn
         self.backlog = backlog if backlog is not None and backlog.sessions else None
         self.sock = open_socket(ctx, zmq.ROUTER, curve_keys,
-                                options={zmq.ROUTER_MANDATORY: 1, zmq.SNDHWM: config.keyframe_sndhwm,
-                                         zmq.RCVHWM: config.control_rcvhwm},
-                                heartbeat_ivl_ms=config.heartbeat_ivl_ms,
-                                heartbeat_timeout_ms=config.heartbeat_timeout_ms,
-                                heartbeat_ttl_ms=config.heartbeat_ttl_ms, maxmsgsize=SOCKET_MAX_BYTES)
+                                options={zmq.ROUTER_MANDATORY: 1, zmq.SNDHWM: config.bounds.keyframe_sndhwm,
+                                         zmq.RCVHWM: config.bounds.control_rcvhwm},
+                                heartbeat_ivl_ms=config.heartbeat.ivl_ms,
+                                heartbeat_timeout_ms=config.heartbeat.timeout_ms,
+                                heartbeat_ttl_ms=config.heartbeat.ttl_ms, maxmsgsize=SOCKET_MAX_BYTES)
         self.endpoint = bind_or_close(self.sock, config.keyframe_endpoint)
         self._peers: dict[str, _Peer] = {}
         self._sent_by_key: dict[str, int] = {}  # highest seq sent to any connection of a key (bounded)
@@ -158,7 +161,7 @@ class KeyframeServer:
             self.handle(key, rid, msg)
         return handled
 
-    def _peer_key(self, rid: bytes, frame: Any) -> str:
+    def _peer_key(self, rid: bytes, frame: zmq.Frame) -> str:
         if self.secure:
             try:
                 user = frame.get("User-Id")
@@ -195,7 +198,7 @@ class KeyframeServer:
             acked = min(claimed, self.spool.last_seq, trusted)
             peer.acks.reset(acked, keep_above=False)
             peer.next_seq = peer.acked + 1
-            peer.credit = min(msg.credit, self.config.max_credit)
+            peer.credit = min(msg.credit, self.config.bounds.max_credit)
             peer.restart_backlog()
             if peer.acked >= 0:
                 self.spool.release(peer.acked)
@@ -232,10 +235,10 @@ class KeyframeServer:
             elif (msg.session_id, msg.seq) in peer.bl_inflight and self.backlog is not None:
                 peer.bl_inflight.discard((msg.session_id, msg.seq))
                 self.backlog.acknowledged(msg.session_id, msg.seq)
-            peer.credit = min(peer.credit + msg.credit, self.config.max_credit)
+            peer.credit = min(peer.credit + msg.credit, self.config.bounds.max_credit)
         else:
             self.stats["credits"] += 1
-            peer.credit = min(peer.credit + msg.n, self.config.max_credit)
+            peer.credit = min(peer.credit + msg.n, self.config.bounds.max_credit)
 
     def _key_acks(self, key: str) -> ContiguousAcks:
         acks = self._acked_by_key.pop(key, None) or ContiguousAcks()
@@ -245,16 +248,16 @@ class KeyframeServer:
 
     def _bound_history(self, history: dict[str, Any]) -> None:
         """Forget the least recently updated keys of a per-key history (insertion order) beyond a bound."""
-        while len(history) > KEY_HISTORY_PER_PEER * self.config.max_peers:
+        while len(history) > KEY_HISTORY_PER_PEER * self.config.bounds.max_peers:
             history.pop(next(iter(history)))
 
     def _add_peer(self, key: str, rid: bytes) -> _Peer:
-        if len(self._peers) >= self.config.max_peers:
+        if len(self._peers) >= self.config.bounds.max_peers:
             oldest = min(self._peers.values(), key=lambda p: (p.connected, p.last_heard))
             del self._peers[oldest.conn]
             self.stats["peers_evicted"] += 1
             self._peer_log.log(logging.WARNING, "evict", "too many host connections (max %d): "
-                               "forgetting one of %s", self.config.max_peers, oldest.key[:20])
+                               "forgetting one of %s", self.config.bounds.max_peers, oldest.key[:20])
         peer = _Peer(key, rid)
         peer.max_sent = self._sent_by_key.get(key, -1)  # what this key had: later sends count as resends
         self._peers[peer.conn] = peer

@@ -16,10 +16,13 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Any
+from typing import TYPE_CHECKING
 
 from stereopath.device.settings import StreamSettings
 from stereopath.device.wire.sockets import CurveKeys, bind_or_close, open_socket
+
+if TYPE_CHECKING:
+    import zmq
 
 log = logging.getLogger(__name__)
 
@@ -30,15 +33,15 @@ INBOUND_MAX_BYTES = 4096
 class PosePublisher:
     """XPUB socket bound to ``config.pose_endpoint`` (CURVE server unless insecure)."""
 
-    def __init__(self, ctx: Any, config: StreamSettings, curve_keys: CurveKeys | None) -> None:
+    def __init__(self, ctx: zmq.Context, config: StreamSettings, curve_keys: CurveKeys | None) -> None:
         import zmq
 
         self._zmq = zmq
-        self.sock = open_socket(ctx, zmq.XPUB, curve_keys, options={zmq.SNDHWM: config.pose_sndhwm,
+        self.sock = open_socket(ctx, zmq.XPUB, curve_keys, options={zmq.SNDHWM: config.bounds.pose_sndhwm,
                                                                    zmq.XPUB_VERBOSE: 1},
-                                heartbeat_ivl_ms=config.heartbeat_ivl_ms,
-                                heartbeat_timeout_ms=config.heartbeat_timeout_ms,
-                                heartbeat_ttl_ms=config.heartbeat_ttl_ms, maxmsgsize=INBOUND_MAX_BYTES)
+                                heartbeat_ivl_ms=config.heartbeat.ivl_ms,
+                                heartbeat_timeout_ms=config.heartbeat.timeout_ms,
+                                heartbeat_ttl_ms=config.heartbeat.ttl_ms, maxmsgsize=INBOUND_MAX_BYTES)
         self.endpoint = bind_or_close(self.sock, config.pose_endpoint)
         self.sent = 0
         self.dropped = 0

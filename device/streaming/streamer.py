@@ -32,12 +32,13 @@ import queue
 import threading
 import time
 import dataclasses
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
 from stereopath.device.errors import ConfigError, DatasetError, ProtocolError
-from stereopath.device.wire.protocol import HEALTH_FIELDS, DeviceHealth, Status, check_session_id, encode_keyframe, \
+from stereopath.device.wire.protocol import HEALTH_FIELDS, DeviceHealth, SessionInfo, Status, check_session_id, encode_keyframe, \
     decode_session, encode_pose, encode_session, encode_status, make_keyframe, make_session_info, pose_from_matrix, rig_reference
 from stereopath.device.streaming.backlog import Backlog, find_backlog, write_marker
 from stereopath.device.streaming import health
@@ -47,6 +48,9 @@ from stereopath.device.streaming.pose_publisher import PosePublisher
 from stereopath.device.wire.security import load_secret_keypair, start_authenticator
 from stereopath.device.wire.sockets import CurveKeys, secure_channel
 from stereopath.device.streaming.spool import KeyframeSpool
+
+if TYPE_CHECKING:
+    from stereopath.device.core.rig import Rig
 
 log = logging.getLogger(__name__)
 
@@ -63,9 +67,9 @@ class DeviceStreamer:
     Bind errors and key problems raise :class:`ConfigError` here.
     """
 
-    def __init__(self, config: StreamSettings, spool: KeyframeSpool, session_id: str, rig: Any = None,
+    def __init__(self, config: StreamSettings, spool: KeyframeSpool, session_id: str, rig: Rig | None = None,
                  rig_ref: tuple[str, str] | None = None, *, keys: KeySettings | None = None,
-                 status_interval_s: float = 1.0, backlog_roots: Any = ()) -> None:
+                 status_interval_s: float = 1.0, backlog_roots: Sequence[str | Path] = ()) -> None:
         import zmq
 
         self.config = config
@@ -105,7 +109,7 @@ class DeviceStreamer:
             self._teardown()
             raise
         self._lock = threading.Lock()
-        self._keyframes: queue.Queue[Any] = queue.Queue(maxsize=config.max_pending_keyframes)
+        self._keyframes: queue.Queue[Any] = queue.Queue(maxsize=config.bounds.max_pending_keyframes)
         self._health = DeviceHealth()
         self._status_due = threading.Event()
         self._stop = threading.Event()
@@ -175,11 +179,11 @@ class DeviceStreamer:
             c["max_keyframe_queue"] = max(c["max_keyframe_queue"], self._keyframes.qsize())
         if not accepted:
             log.warning("keyframe of frame %d refused: %d keyframes already wait for the spool writer",
-                        frame_seq, self.config.max_pending_keyframes)
+                        frame_seq, self.config.bounds.max_pending_keyframes)
         self._note_call(t0)
         return accepted
 
-    def publish_status(self, **health: Any) -> None:
+    def publish_status(self, **health: object) -> None:
         """Update device health fields (keyword names from :class:`DeviceHealth`) and send a status soon.
 
         ``None`` leaves a field as it was.  The status is also sent every ``status_interval_s`` with
@@ -250,12 +254,12 @@ class DeviceStreamer:
     def __enter__(self) -> "DeviceStreamer":
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ------------------------------------------------------------------ internals
 
-    def _open_backlog(self, roots: Any) -> Backlog:
+    def _open_backlog(self, roots: Sequence[str | Path]) -> Backlog:
         """Mark this spool as this session's and find earlier sessions' undelivered keyframes."""
         try:
             write_marker(self.spool.dir, encode_session(self._session_info))
@@ -270,7 +274,7 @@ class DeviceStreamer:
                         (", ..." if len(backlog.sessions) > 5 else ""))
         return backlog
 
-    def _checked_session_info(self, rig: Any) -> Any:
+    def _checked_session_info(self, rig: Rig | None) -> SessionInfo:
         """The session message, decodable by a host (else sent without the rig, with a warning)."""
         info = make_session_info(self.session_id, rig, self.rig_ref)
         try:
@@ -298,7 +302,7 @@ class DeviceStreamer:
         if self._server is not None:
             self._server.close()
         if self._pub is not None:  # the last poses of the run still reach a connected host
-            self._pub.close(flush_ms=self.config.pose_flush_ms)
+            self._pub.close(flush_ms=self.config.bounds.pose_flush_ms)
         if self._auth is not None:
             self._auth.stop()
         self._ctx.term()
@@ -334,8 +338,7 @@ class DeviceStreamer:
             frame_seq, t_ns, T, left, right = item
             seq = self.spool.count
             try:
-                kf = make_keyframe(self.session_id, seq, frame_seq, t_ns, T, left, right, self.rig_ref,
-                                   cfg.image_encoding, cfg.jpeg_quality, cfg.png_compression)
+                kf = make_keyframe(self.session_id, seq, frame_seq, t_ns, T, (left, right), self.rig_ref, cfg.images)
                 self.spool.append(seq, encode_keyframe(kf))
             except (ProtocolError, DatasetError, OSError) as exc:
                 log.error("keyframe of frame %d not spooled: %s", frame_seq, exc)

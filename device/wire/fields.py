@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import re
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 
 import msgpack
 
@@ -16,7 +16,7 @@ def pack(obj: Mapping[str, Any], single_float: bool = False) -> bytes:
     return msgpack.packb(obj, use_bin_type=True, use_single_float=single_float)
 
 
-def unpack(data: Any, limits: Limits) -> dict[str, Any]:
+def unpack(data: object, limits: Limits) -> dict[str, Any]:
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise DecodeError("malformed", f"expected bytes, got {type(data).__name__}")
     n = len(data)
@@ -88,7 +88,7 @@ def field_quat(obj: Mapping[str, Any], key: str) -> tuple[float, float, float, f
     return q  # type: ignore[return-value]
 
 
-def check_pose_fields(position_m: Any, quat_xyzw: Any, what: str) -> tuple[list[float], list[float]]:
+def check_pose_fields(position_m: Iterable[float], quat_xyzw: Iterable[float], what: str) -> tuple[list[float], list[float]]:
     p = [float(x) for x in position_m]
     q = [float(x) for x in quat_xyzw]
     if len(p) != 3 or len(q) != 4:

@@ -111,7 +111,7 @@ def pack_image(img: EncodedImage) -> dict[str, Any]:
     return {"enc": img.encoding, "shape": list(img.shape), "dtype": img.dtype, "data": img.data}
 
 
-def decode_image_field(obj: Any, key: str) -> EncodedImage:
+def decode_image_field(obj: object, key: str) -> EncodedImage:
     if not isinstance(obj, dict):
         raise DecodeError("field", f"{key} must be a map")
     exact_keys(obj, _IMAGE_KEYS, key)

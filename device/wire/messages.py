@@ -14,11 +14,14 @@ import re
 import secrets
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from stereopath.device.errors import ProtocolError
+
+if TYPE_CHECKING:
+    from stereopath.device.core.rig import Rig
 
 PROTOCOL_VERSION = 1
 POSE_MAX_BYTES = 128
@@ -220,14 +223,14 @@ def new_session_id() -> str:
     return time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + secrets.token_hex(3)
 
 
-def check_session_id(sid: Any) -> str:
+def check_session_id(sid: object) -> str:
     """Return ``sid`` if it is a valid session id, else raise :class:`ProtocolError`."""
     if not isinstance(sid, str) or not SESSION_ID_RE.match(sid):
         raise DecodeError("field", f"session id {sid!r} must match {SESSION_ID_RE.pattern}")
     return sid
 
 
-def rig_reference(rig: Any) -> tuple[str, str]:
+def rig_reference(rig: Rig) -> tuple[str, str]:
     """``(name, hash)`` of a :class:`stereopath.device.core.rig.Rig`: a 16-hex-digit SHA-256 of its calibration."""
     from stereopath.device.core.rig import rig_to_dict
 

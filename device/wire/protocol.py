@@ -31,11 +31,12 @@ Session ids become directory names on the host, so they are restricted to
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, TypeVar
 
 import numpy as np
 
 from stereopath.device.errors import ProtocolError
+from stereopath.device.settings import StreamImageSettings
 from stereopath.device.wire.fields import check_common, check_pose_fields, exact_keys, field_float, field_int, \
     field_quat, field_str, field_vec, pack, unpack
 from stereopath.device.wire.images import check_shape, decode_image, decode_image_field, encode_image, \
@@ -77,6 +78,11 @@ def _header(obj: dict[str, Any]) -> str:
 
 # --------------------------------------------------------------------------- pose
 
+if TYPE_CHECKING:
+    from stereopath.device.core.rig import Rig
+
+_M = TypeVar("_M")
+
 _POSE_KEYS = ("type", "v", "sid", "seq", "t", "p", "q", "st", "n", "kf")
 
 
@@ -116,16 +122,17 @@ _KEYFRAME_KEYS = ("type", "v", "sid", "seq", "fseq", "t", "p", "q", "rig", "l", 
 
 
 def make_keyframe(session_id: str, seq: int, frame_seq: int, t_ns: int, T_world_cam: np.ndarray,
-                  left: np.ndarray, right: np.ndarray, rig_ref: tuple[str, str], encoding: str = "jpg",
-                  jpeg_quality: int = 90, png_compression: int = 1) -> Keyframe:
-    """Encode both images (``cv2.imencode`` for jpg/png) and build a :class:`Keyframe`."""
+                  images: tuple[np.ndarray, np.ndarray], rig_ref: tuple[str, str],
+                  encoding: str | StreamImageSettings = "jpg") -> Keyframe:
+    """Encode both images ``(left, right)`` (``cv2.imencode`` for jpg/png) and build a :class:`Keyframe`;
+    ``encoding`` is a ``[stream.images]`` section or just its encoding name (default quality)."""
     from stereopath.device.core.geometry import matrix_to_quat_xyzw
 
     T = np.asarray(T_world_cam, dtype=float)
     if T.shape != (4, 4):
         raise ProtocolError(f"keyframe: T_world_cam must be 4x4, got {T.shape}")
-    li = encode_image(left, encoding, jpeg_quality, png_compression)
-    ri = encode_image(right, encoding, jpeg_quality, png_compression)
+    coding = encoding if isinstance(encoding, StreamImageSettings) else StreamImageSettings(encoding=encoding)  # type: ignore[arg-type]
+    li, ri = (encode_image(img, coding.encoding, coding.jpeg_quality, coding.png_compression) for img in images)
     q = matrix_to_quat_xyzw(T[:3, :3])
     return Keyframe(session_id, int(seq), int(frame_seq), int(t_ns), tuple(float(v) for v in T[:3, 3]),  # type: ignore[arg-type]
                     tuple(float(v) for v in q), li, ri, rig_ref[0], rig_ref[1])  # type: ignore[arg-type]
@@ -224,7 +231,7 @@ def _decode_status(obj: dict[str, Any]) -> Status:
 _SESSION_KEYS = ("type", "v", "sid", "rig", "cal", "kfs", "live")
 
 
-def make_session_info(session_id: str, rig: Any, rig_ref: tuple[str, str], keyframes: int = 0,
+def make_session_info(session_id: str, rig: Rig | None, rig_ref: tuple[str, str], keyframes: int = 0,
                       live: bool = True) -> SessionInfo:
     """The session message of a device session: ``rig`` (a Rig, or None) named by ``rig_ref``."""
     from stereopath.device.core.rig import rig_to_dict
@@ -245,7 +252,7 @@ def encode_session(msg: SessionInfo) -> bytes:
     return data
 
 
-def rig_of(msg: SessionInfo) -> Any:
+def rig_of(msg: SessionInfo) -> Rig | None:
     """The :class:`stereopath.device.core.rig.Rig` a session message carries (None if it carries none).
 
     Raises :class:`DecodeError` when the calibration is not a valid rig or does not hash to the
@@ -374,7 +381,7 @@ def decode_message(data: bytes, limits: Limits, allowed: tuple[str, ...] | None 
         raise DecodeError("field", f"{msg_type}: {type(exc).__name__}: {exc}") from None
 
 
-def _expect(msg: Any, cls: type) -> Any:
+def _expect(msg: object, cls: type[_M]) -> _M:
     if not isinstance(msg, cls):  # decode_message already restricts the type
         raise DecodeError("type", f"expected {cls.__name__}, got {type(msg).__name__}")
     return msg

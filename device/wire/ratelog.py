@@ -11,7 +11,7 @@ import logging
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Callable
 
 
 @dataclass
@@ -32,7 +32,7 @@ class RateLimitedLog:
         self._keys: OrderedDict[str, _KeyState] = OrderedDict()
         self.suppressed = 0
 
-    def log(self, level: int, key: str, msg: str, *args: Any) -> bool:
+    def log(self, level: int, key: str, msg: str, *args: object) -> bool:
         """Log ``msg % args`` unless ``key`` had a line less than ``interval_s`` ago; True if it was logged."""
         now = self._clock()
         entry = self._keys.get(key)

@@ -23,9 +23,13 @@ import shutil
 import stat
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from stereopath.device.errors import ConfigError
+
+if TYPE_CHECKING:
+    import zmq
+    from zmq.auth.thread import ThreadAuthenticator
 
 log = logging.getLogger(__name__)
 
@@ -187,7 +191,7 @@ class _ZapLog:
         self._warned: set[tuple[str, str]] = set()
         self.refused = 0
 
-    def debug(self, msg: str, *args: Any, **kw: Any) -> None:
+    def debug(self, msg: str, *args: object, **kw: object) -> None:
         if msg.startswith("version:") and len(args) >= 4:
             self._address = str(args[3])
         elif "CURVE" in msg and (msg.startswith("DENIED") or (args and args[0] == "DENIED")):
@@ -207,7 +211,7 @@ class _ZapLog:
         return getattr(self._log, name)
 
 
-def start_authenticator(ctx: Any, clients_dir: str | Path) -> Any:
+def start_authenticator(ctx: zmq.Context, clients_dir: str | Path) -> ThreadAuthenticator:
     """Start a ZAP authenticator on ``ctx`` admitting only the CURVE keys in ``clients_dir``.
 
     Refused clients are logged as warnings (see :class:`_ZapLog`)."""

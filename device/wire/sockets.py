@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import logging
 import socket
-from typing import Any, Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Callable, Mapping, Sequence
+
+if TYPE_CHECKING:
+    import zmq
 
 log = logging.getLogger(__name__)
 
 
-def apply_common_options(sock: Any, *, heartbeat_ivl_ms: int, heartbeat_timeout_ms: int, heartbeat_ttl_ms: int,
+def apply_common_options(sock: zmq.Socket, *, heartbeat_ivl_ms: int, heartbeat_timeout_ms: int, heartbeat_ttl_ms: int,
                          maxmsgsize: int, reconnect_ivl_ms: int = 100, reconnect_ivl_max_ms: int = 5000) -> None:
     """Set the options every stereopath socket carries (before bind/connect).
 
@@ -35,7 +38,7 @@ class CurveKeys:
     def __init__(self, public: bytes, secret: bytes, server_key: bytes | None = None) -> None:
         self.public, self.secret, self.server_key = public, secret, server_key
 
-    def apply(self, sock: Any) -> None:
+    def apply(self, sock: zmq.Socket) -> None:
         """Make ``sock`` a CURVE server or client (before bind/connect)."""
         sock.curve_publickey, sock.curve_secretkey = self.public, self.secret
         if self.server_key is None:
@@ -61,8 +64,8 @@ def secure_channel(insecure: bool, endpoints: Sequence[str], load_keys: Callable
     return load_keys()
 
 
-def open_socket(ctx: Any, kind: int, keys: CurveKeys | None, *, options: Mapping[int, int] | None = None,
-                **common: int) -> Any:
+def open_socket(ctx: zmq.Context, kind: int, keys: CurveKeys | None, *, options: Mapping[int, int] | None = None,
+                **common: int) -> zmq.Socket:
     """A socket of ``kind`` with the common options (:func:`apply_common_options`), ``options`` and CURVE."""
     sock = ctx.socket(kind)
     apply_common_options(sock, **common)
@@ -73,7 +76,7 @@ def open_socket(ctx: Any, kind: int, keys: CurveKeys | None, *, options: Mapping
     return sock
 
 
-def bind_or_close(sock: Any, endpoint: str) -> str:
+def bind_or_close(sock: zmq.Socket, endpoint: str) -> str:
     """Bind ``sock`` and return the endpoint it got; on failure close it (linger 0) and re-raise.
 
     A socket left open after a failed bind would hang the context's ``term()`` for good.

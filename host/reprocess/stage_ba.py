@@ -175,7 +175,7 @@ def refine_frame(rig: Any, T_world_cam: np.ndarray, points: dict[int, np.ndarray
     a 6-unknown Levenberg-Marquardt per frame (Huber, both cameras; the right camera's principal point
     shifted by the adjusted disparity offset, as in the bundle adjustment)."""
     from stereopath.device.core.geometry import invert_pose
-    from stereopath.device.core.stereo import refine_pose_lm
+    from stereopath.device.core.stereo import LMOptions, PointObservations, refine_pose_lm
 
     rows = rows[np.fromiter((int(p) in points for p in rows[:, 1]), bool, len(rows))]
     if len(rows) < min_obs:
@@ -183,8 +183,8 @@ def refine_frame(rig: Any, T_world_cam: np.ndarray, points: dict[int, np.ndarray
     X = np.array([points[int(i)] for i in rows[:, 1]])
     left, right = rows[:, 2] == 0, rows[:, 2] == 1
     uv_r = rows[right, 3:5] - [disparity_offset_px, 0.0]
-    res = refine_pose_lm(rig, invert_pose(T_world_cam), X[left], rows[left, 3:5], X[right], uv_r,
-                         huber_px=huber_px, max_iter=10, outlier_px=3.0 * huber_px)
+    res = refine_pose_lm(rig, invert_pose(T_world_cam), PointObservations(X[left], rows[left, 3:5]),
+                         PointObservations(X[right], uv_r), LMOptions(huber_px=huber_px, max_iter=10, outlier_px=3.0 * huber_px))
     T = invert_pose(res.T_cam_world)
     return T if np.all(np.isfinite(T)) else None
 

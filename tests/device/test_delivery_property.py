@@ -133,7 +133,7 @@ class Delivery(RuleBasedStateMachine):
     def produce(self, n: int) -> None:
         for _ in range(n):
             seq = self.spool.count
-            kf = make_keyframe(self.session, seq, 10 * seq, 1000 + seq, np.eye(4), _IMG, _IMG, RIG_REF, "png")
+            kf = make_keyframe(self.session, seq, 10 * seq, 1000 + seq, np.eye(4), (_IMG, _IMG), RIG_REF, "png")
             try:
                 self.spool.append(seq, encode_keyframe(kf))
             except DatasetError:  # disk and memory full: refused (the streamer counts it), never offered

@@ -5,7 +5,7 @@ import pytest
 
 from stereopath.device.estimation.inertial import (GyroIntegrator, VisionGyroBias, estimate_still,
                                                    gravity_aligned_rotation)
-from stereopath.device.core.stereo import project, refine_pose_lm, triangulate
+from stereopath.device.core.stereo import LMOptions, PointObservations, project, refine_pose_lm, triangulate
 from stereopath.device.core.frames import ImuSamples
 from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, so3_log
 from stereopath.device.core.rig import paper_rig
@@ -37,7 +37,7 @@ def test_lm_refinement_both_cameras_with_outliers():
     uv1 += rng.normal(0, 0.2, uv1.shape)
     uv0[:30] += rng.uniform(20, 60, (30, 2))  # gross outliers
     T0 = make_pose(so3_exp([0.06, -0.09, 0.03]), [0.07, -0.0, 0.08]) # a few cm and ~1 deg off
-    res = refine_pose_lm(rig, T0, Xw, uv0, Xw, uv1, outlier_px=2.0)
+    res = refine_pose_lm(rig, T0, PointObservations(Xw, uv0), PointObservations(Xw, uv1), LMOptions(outlier_px=2.0))
     assert rotation_angle_deg(res.T_cam_world[:3, :3] @ T_cw[:3, :3].T) < 0.02
     assert np.linalg.norm(res.T_cam_world[:3, 3] - T_cw[:3, 3]) < 1e-3
     assert res.inliers_left[:30].sum() == 0 and res.inliers_left[30:].mean() > 0.95
@@ -218,7 +218,7 @@ def test_zero_mean_disparity_noise_does_not_lengthen_the_solved_translation():
     for _ in range(12):
         uvA, urA, uvB, urB = _forward_pair(rig, r, 400, disparity_noise_px=1.0)
         X, _ = triangulate(rig, uvA, urA)
-        res = refine_pose_lm(rig, np.eye(4), X, uvB, X, urB, outlier_px=2.0)
+        res = refine_pose_lm(rig, np.eye(4), PointObservations(X, uvB), PointObservations(X, urB), LMOptions(outlier_px=2.0))
         ratios.append(np.linalg.norm(res.T_cam_world[:3, 3]))
     assert 0.98 < np.mean(ratios) < 1.0
 
@@ -236,7 +236,8 @@ def test_a_disparity_offset_lengthens_the_translation_and_removing_it_restores_t
     for known in (0.0, -0.2):
         geo = StereoMeasure(rig, StereoConfig(disparity_offset_px=known))
         X, _ = geo.triangulate(uvA, urA)
-        res = refine_pose_lm(rig, np.eye(4), X, uvB, X, geo.right_ideal(urB), outlier_px=2.0)
+        res = refine_pose_lm(rig, np.eye(4), PointObservations(X, uvB), PointObservations(X, geo.right_ideal(urB)),
+                             LMOptions(outlier_px=2.0))
         lengths[known] = np.linalg.norm(res.T_cam_world[:3, 3])
     assert lengths[0.0] > 1.005  # about 0.2 px / (typical disparity)
     assert abs(lengths[-0.2] - 1.0) < 2e-3

@@ -109,6 +109,7 @@ def test_device_disk_full_mid_run_loses_no_keyframe_reaching_a_host_and_exits_74
     import shutil as shutil_mod
     import threading
 
+    from stereopath.device.service.components import RunSeams
     from stereopath.device.service.options import RunOptions, load_config
     from stereopath.device.service.service import EXIT_DISK_FULL, CaptureService
     from stereopath.host.live.receiver import Receiver, ReceiverConfig
@@ -125,7 +126,7 @@ def test_device_disk_full_mid_run_loses_no_keyframe_reaching_a_host_and_exits_74
     cfg_path = write_toml(tmp_path / "device.toml", tables)
     opts = RunOptions(out=str(tmp_path / "s"), wait_for_host_s=10.0)
     service = CaptureService(load_config(cfg_path, opts), opts, cfg_path, environ={},
-                             estimator=FakeEstimator(kf_every=2))
+                             seams=RunSeams(estimator=FakeEstimator(kf_every=2)))
     rx = Receiver(ReceiverConfig(stream["pose_endpoint"], stream["keyframe_endpoint"], insecure=True, fsync=False,
                                  stall_timeout_s=0.5), tmp_path / "host")
     result = {}
@@ -151,6 +152,7 @@ def test_the_recording_is_closed_before_the_drain_waits_for_hosts(tmp_path, monk
     flushed, manifest closed) by then, so a kill during the drain loses no frame that was recorded."""
     from stereopath.device.formats.asl import open_session
     from stereopath.device.service import sinks
+    from stereopath.device.service.components import RunSeams
     from stereopath.device.service.options import RunOptions, load_config
     from stereopath.device.service.service import EXIT_OK, CaptureService
     from tests.device.test_service_support import FakeEstimator
@@ -164,7 +166,7 @@ def test_the_recording_is_closed_before_the_drain_waits_for_hosts(tmp_path, monk
     monkeypatch.setattr(sinks.NoStreaming, "drain", drain)
     cfg_path = write_toml(tmp_path / "device.toml", sim_tables(tmp_path, frames=12))
     opts = RunOptions(out=str(tmp_path / "s"))
-    service = CaptureService(load_config(cfg_path, opts), opts, cfg_path, environ={}, estimator=FakeEstimator())
+    service = CaptureService(load_config(cfg_path, opts), opts, cfg_path, environ={}, seams=RunSeams(estimator=FakeEstimator()))
     assert service.run() == EXIT_OK
     assert seen["manifest"]["status"] == "closed" and seen["manifest"]["counts"]["frames"] == 12
     assert seen["frames"] == 12

@@ -146,7 +146,7 @@ def test_map_max_keyframes_applies_to_keyframe_folders(session, tmp_path):
         fr = seq.frame(k)
         T = np.eye(4)
         T[0, 3] = 0.01 * k
-        kf = make_keyframe("sessX", k, k, int(seq.t_ns[k]), T, fr.left, fr.right, rig_reference(seq.rig), "png")
+        kf = make_keyframe("sessX", k, k, int(seq.t_ns[k]), T, (fr.left, fr.right), rig_reference(seq.rig), "png")
         store.put(kf, encode_keyframe(kf))
     store.close()
     kdir = tmp_path / "live" / "sessX" / "keyframes"

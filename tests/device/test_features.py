@@ -12,6 +12,7 @@ from stereopath.device.core.config import from_mapping
 from stereopath.device.errors import ConfigError
 from stereopath.device.core.features import (
     PRESETS,
+    AffineFeatureConfig,
     FeatureConfig,
     Features,
     detect,
@@ -224,7 +225,7 @@ def test_features_concat_and_subset():
 
 
 def test_cv2_affine_backend_labels_unknown_view():
-    cfg = FeatureConfig(backend="cv2_affine", affine_max_tilt=2, pairing="symmetric")
+    cfg = FeatureConfig(backend="cv2_affine", affine=AffineFeatureConfig(max_tilt=2), pairing="symmetric")
     f = detect(texture(160, 120), cfg)
     assert len(f) > 0
     assert (f.view == -1).all()

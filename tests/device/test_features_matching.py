@@ -10,6 +10,7 @@ from stereopath.device.core.config import from_mapping
 from stereopath.device.errors import ConfigError
 from stereopath.device.core.features import Features
 from stereopath.device.core.matching import (
+    NNConfig,
     MatchConfig,
     Matches,
     collapse_duplicates,
@@ -118,8 +119,8 @@ def test_match_handles_empty_and_mismatched_inputs():
 
 def test_brute_force_and_flann_agree_on_easy_data():
     f1, f2, truth = duplicated_scene(seed=3, n=300, n_views=1, n_distractors=500)
-    a = match(f1, f2, MatchConfig(method="bf"))
-    b = match(f1, f2, MatchConfig(method="flann", flann_checks=128))
+    a = match(f1, f2, MatchConfig(index=NNConfig(method="bf")))
+    b = match(f1, f2, MatchConfig(index=NNConfig(method="flann", flann_checks=128)))
     assert len(a) >= 290
     common = len(set(map(tuple, a.idx)) & set(map(tuple, b.idx)))
     assert common >= 0.95 * len(a)
@@ -128,7 +129,7 @@ def test_brute_force_and_flann_agree_on_easy_data():
 def test_knn_sorted_and_exact():
     rng = np.random.default_rng(2)
     q, r = random_desc(rng, 20), random_desc(rng, 50)
-    idx, dist = knn(q, r, 3, MatchConfig(method="bf"))
+    idx, dist = knn(q, r, 3, MatchConfig(index=NNConfig(method="bf")))
     full = np.linalg.norm(q[:, None] - r[None], axis=2)
     np.testing.assert_array_equal(idx[:, 0], full.argmin(axis=1))
     np.testing.assert_allclose(dist[:, 0], full.min(axis=1), rtol=1e-4)
@@ -148,11 +149,11 @@ def test_collapse_duplicates_is_one_to_one_per_location():
 
 
 def test_match_config_validation():
-    assert from_mapping(MatchConfig, {"ratio": 0.7, "method": "bf"}).ratio == 0.7
+    assert from_mapping(MatchConfig, {"ratio": 0.7, "index": {"method": "bf"}}).ratio == 0.7
     with pytest.raises(ConfigError, match="ratio"):
         MatchConfig(ratio=1.5)
-    with pytest.raises(ConfigError, match="method"):
-        from_mapping(MatchConfig, {"method": "annoy"})
+    with pytest.raises(ConfigError, match=r"index\.method"):
+        from_mapping(MatchConfig, {"index": {"method": "annoy"}})
 
 
 # --------------------------------------------------------------------------- rectified stereo

@@ -204,7 +204,7 @@ def test_fifo_data_read_error_resets_the_fifo_instead_of_retrying():
 
 
 def test_persistent_error_reinitialises_then_fails_clearly():
-    drv, em, clk = make(retries=2, reinit_attempts=1)
+    drv, em, clk = make(i2c={"retries": 2, "reinit_attempts": 1})
     drv.open()
     run_polls(drv, clk, 3)
     em.fail_next(3, op="rdwr")                               # exhausts the retries once

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from stereopath.device.service.installer import UNIT_NAME, InstallError, Installer, Layout, install
+from stereopath.device.service.installer import UNIT_NAME, InstallChoices, InstallError, Installer, Layout, install
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -97,7 +97,7 @@ def test_existing_accounts_and_edited_config_are_kept(tmp_path):
 
 
 def test_dry_run_changes_nothing(tmp_path):
-    report = Installer(tmp_path, venv=FakeVenv(), dry_run=True).run()
+    report = Installer(tmp_path, venv=FakeVenv(), choices=InstallChoices(dry_run=True)).run()
     assert report.changed and list(tmp_path.iterdir()) == []
 
 
@@ -132,7 +132,7 @@ def test_default_venv_outside_slash_is_cheap_and_touches_no_system(tmp_path):
 
             subprocess.run(cmd, check=True)
 
-    Installer(tmp_path, runner=runner, python=os.path.realpath("/usr/bin/python3")).run()
+    Installer(tmp_path, runner=runner, choices=InstallChoices(python=os.path.realpath("/usr/bin/python3"))).run()
     assert len(ran) == 1 and "--without-pip" in ran[0] and "--system-site-packages" in ran[0]
     cfg = (tmp_path / "opt/stereopath/venv/pyvenv.cfg").read_text()
     assert "include-system-site-packages = true" in cfg
@@ -144,9 +144,9 @@ def test_host_keys_are_authorised_and_secrets_refused(tmp_path):
     pub, sec = generate_keypair(tmp_path / "laptop", "laptop")
     root = tmp_path / "root"
     root.mkdir()
-    install(root, venv=FakeVenv(), host_keys=[pub])
+    install(root, venv=FakeVenv(), choices=InstallChoices(host_keys=[pub]))
     copied = root / "etc/stereopath/clients/laptop.key"
     assert copied.read_bytes() == pub.read_bytes() and mode(copied) == 0o644
-    assert install(root, venv=FakeVenv(), host_keys=[pub]).changed == []
+    assert install(root, venv=FakeVenv(), choices=InstallChoices(host_keys=[pub])).changed == []
     with pytest.raises(InstallError, match="never a .key_secret"):
-        install(root, venv=FakeVenv(), host_keys=[sec])
+        install(root, venv=FakeVenv(), choices=InstallChoices(host_keys=[sec]))

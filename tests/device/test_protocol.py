@@ -40,7 +40,7 @@ def _images(color: bool = False, dtype=np.uint8) -> tuple[np.ndarray, np.ndarray
 def _keyframe(encoding: str = "jpg", **kw) -> Keyframe:
     left, right = _images(**kw)
     T = make_pose(euler_xyz_to_matrix(np.radians([10, -5, 30])), [0.1, 0.2, 0.3])
-    return make_keyframe("sessA", 3, 57, 99_000, T, left, right, RIG, encoding)
+    return make_keyframe("sessA", 3, 57, 99_000, T, (left, right), RIG, encoding)
 
 
 def _raw(obj) -> bytes:

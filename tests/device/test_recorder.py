@@ -21,7 +21,7 @@ from stereopath.device.formats import open_session, open_source
 from stereopath.device.errors import CaptureError
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.geometry import make_pose, rot_x, rot_z
-from stereopath.device.formats.recorder import SessionRecorder, record_sequence
+from stereopath.device.formats.recorder import RecorderHooks, SessionRecorder, record_sequence
 from stereopath.device.core.rig import make_camera, make_rig, paper_rig
 from stereopath.device.formats.rig_files import load_euroc_rig
 from stereopath.device.formats.tum import Trajectory
@@ -51,7 +51,7 @@ def clocked_recorder(out, chunk_s=1.0):
     """A recorder on a plentiful disk whose flush clock the test sets (``t[0]``): rows are written when it
     passes ``chunk_s``."""
     t = [0.0]
-    return SessionRecorder(out, small_rig(), chunk_s=chunk_s, disk_usage=PLENTY, clock=lambda: t[0]), t
+    return SessionRecorder(out, small_rig(), chunk_s=chunk_s, hooks=RecorderHooks(disk_usage=PLENTY, clock=lambda: t[0])), t
 
 
 
@@ -60,7 +60,7 @@ def test_round_trip_layout_and_manifest(tmp_path):
     rig = small_rig()
     frames, imu = make_frames(6, rng), make_imu(61, rng)
     out = tmp_path / "s"
-    with SessionRecorder(out, rig, {"estimator": "stereo", "n": 3}, session_id="abc", disk_usage=PLENTY) as rec:
+    with SessionRecorder(out, rig, {"estimator": "stereo", "n": 3}, session_id="abc", hooks=RecorderHooks(disk_usage=PLENTY)) as rec:
         assert rec.state == "recording" and rec.session_id == "abc"
         for k, f in enumerate(frames):
             rec.add_imu(imu.between(f.t_ns - 50_000_000 if k else -1, f.t_ns))
@@ -109,13 +109,13 @@ def test_round_trip_layout_and_manifest(tmp_path):
 def test_refuses_non_empty_folder(tmp_path):
     (tmp_path / "x").write_text("hello")
     with pytest.raises(CaptureError, match="not empty"):
-        SessionRecorder(tmp_path, small_rig(), disk_usage=PLENTY)
+        SessionRecorder(tmp_path, small_rig(), hooks=RecorderHooks(disk_usage=PLENTY))
 
 
 def test_refuses_to_start_below_reserve(tmp_path):
     out = tmp_path / "s"
     with pytest.raises(CaptureError, match="below the reserve"):
-        SessionRecorder(out, small_rig(), reserve_bytes=100 * 2**20, disk_usage=lambda p: Usage(1, 1, 50 * 2**20))
+        SessionRecorder(out, small_rig(), reserve_bytes=100 * 2**20, hooks=RecorderHooks(disk_usage=lambda p: Usage(1, 1, 50 * 2**20)))
     assert not out.exists()
 
 
@@ -123,7 +123,7 @@ def test_stops_cleanly_when_disk_runs_low(tmp_path, caplog):
     free = [10**9]
     rng = np.random.default_rng(2)
     out = tmp_path / "s"
-    rec = SessionRecorder(out, small_rig(), reserve_bytes=10**8, disk_usage=lambda p: Usage(0, 0, free[0]))
+    rec = SessionRecorder(out, small_rig(), reserve_bytes=10**8, hooks=RecorderHooks(disk_usage=lambda p: Usage(0, 0, free[0])))
     frames = make_frames(8, rng)
     for f in frames[:4]:
         assert rec.add_frame(f)
@@ -164,7 +164,7 @@ def test_disk_full_during_flush_stops(tmp_path, monkeypatch):
 
 
 def test_other_io_error_is_a_capture_error(tmp_path, monkeypatch):
-    rec = SessionRecorder(tmp_path / "s", small_rig(), disk_usage=PLENTY)
+    rec = SessionRecorder(tmp_path / "s", small_rig(), hooks=RecorderHooks(disk_usage=PLENTY))
     rec.add_frame(make_frames(1, np.random.default_rng(0))[0])
 
     def broken(fd, data):
@@ -180,7 +180,7 @@ def test_chunked_flush_by_clock(tmp_path):
     t = [0.0]
     rng = np.random.default_rng(4)
     out = tmp_path / "s"
-    rec = SessionRecorder(out, small_rig(), chunk_s=1.0, disk_usage=PLENTY, clock=lambda: t[0])
+    rec = SessionRecorder(out, small_rig(), chunk_s=1.0, hooks=RecorderHooks(disk_usage=PLENTY, clock=lambda: t[0]))
     csv = out / "mav0" / "cam0" / "data.csv"
     frames = make_frames(4, rng)
     rec.add_frame(frames[0])
@@ -196,7 +196,7 @@ def test_chunked_flush_by_clock(tmp_path):
 
 def test_out_of_order_frames_and_imu_are_dropped(tmp_path):
     rng = np.random.default_rng(5)
-    rec = SessionRecorder(tmp_path / "s", small_rig(), disk_usage=PLENTY)
+    rec = SessionRecorder(tmp_path / "s", small_rig(), hooks=RecorderHooks(disk_usage=PLENTY))
     f = make_frames(2, rng)
     assert rec.add_frame(f[1])
     assert rec.add_frame(f[0]) is False
@@ -213,10 +213,11 @@ WRITER = textwrap.dedent("""
     import sys, numpy as np
     sys.path.insert(0, sys.argv[2])
     from tests.device.test_recorder import small_rig, make_imu, PLENTY
+    from stereopath.device.formats.recorder import RecorderHooks
     from stereopath.device.core.frames import StereoFrame
     from stereopath.device.formats.recorder import SessionRecorder
     rng = np.random.default_rng(0)
-    rec = SessionRecorder(sys.argv[1], small_rig(), chunk_s=0.02, disk_usage=PLENTY)
+    rec = SessionRecorder(sys.argv[1], small_rig(), chunk_s=0.02, hooks=RecorderHooks(disk_usage=PLENTY))
     i = 0
     while True:
         t = 10**18 + i * 50_000_000
@@ -267,7 +268,7 @@ def test_crash_mid_chunk_leaves_parseable_files(tmp_path, repo_root, caplog):
 
 def test_record_sequence_converts_a_dataset(data_dir, tmp_path):
     src = open_source(f"kitti:{data_dir / 'kitti_odometry' / 'sequences' / '06'}")
-    man = record_sequence(src, tmp_path / "k", max_frames=3, disk_usage=PLENTY)
+    man = record_sequence(src, tmp_path / "k", max_frames=3, hooks=RecorderHooks(disk_usage=PLENTY))
     assert man["counts"]["frames"] == 3
     s = open_session(tmp_path / "k")
     assert len(s) == 3 and s.imu is not None and len(s.imu) == 0
@@ -278,7 +279,7 @@ def test_record_sequence_converts_a_dataset(data_dir, tmp_path):
 
 def test_paper_rig_session_sensor_yaml_readable(tmp_path):
     rig = paper_rig()
-    SessionRecorder(tmp_path / "p", rig, disk_usage=PLENTY).close()
+    SessionRecorder(tmp_path / "p", rig, hooks=RecorderHooks(disk_usage=PLENTY)).close()
     e = load_euroc_rig(tmp_path / "p" / "mav0")
     np.testing.assert_allclose(e.T, rig.T, atol=1e-12)
     np.testing.assert_allclose(e.T_body_cam0, np.eye(4))

@@ -14,6 +14,7 @@ import threading
 import pytest
 
 from stereopath.device.formats import open_source
+from stereopath.device.service.components import RunSeams
 from stereopath.device.service.options import RunOptions, load_config
 from stereopath.device.service.service import CaptureService
 from stereopath.device.formats.tum import read_tum
@@ -41,7 +42,7 @@ def test_ready_after_sources_open_watchdog_stops_when_a_sensor_hangs(tmp_path, f
     estimator = FakeEstimator()
     service = CaptureService(load_config(cfg_path, RunOptions()), RunOptions(out=str(out)), cfg_path,
                              environ={"NOTIFY_SOCKET": listener.address, "WATCHDOG_USEC": str(int(WATCHDOG_S * 1e6))},
-                             source=source, estimator=estimator)
+                             seams=RunSeams(source=source, estimator=estimator))
     thread, result = _start(service)
     try:
         assert listener.wait_for("READY", "1", timeout_s=30)
@@ -87,7 +88,7 @@ def test_ready_after_sources_open_watchdog_stops_when_a_sensor_hangs(tmp_path, f
 def test_duration_limit(tmp_path):
     cfg_path = write_toml(tmp_path / "device.toml", sim_tables(tmp_path, rate_hz=20.0))
     opts = RunOptions(duration_s=1.0, out=str(tmp_path / "s"))
-    service = CaptureService(load_config(cfg_path, opts), opts, cfg_path, environ={}, estimator=FakeEstimator())
+    service = CaptureService(load_config(cfg_path, opts), opts, cfg_path, environ={}, seams=RunSeams(estimator=FakeEstimator()))
     assert service.run() == 0
     assert service.stop_reason == "1 s elapsed" and 0 < service.frames_in < 200
     assert len(open_source(f"session:{tmp_path / 's'}")) == service.frames_in
@@ -97,7 +98,7 @@ def test_frame_limit_ends_cleanly_and_reports_status(tmp_path):
     cfg_path = write_toml(tmp_path / "device.toml", sim_tables(tmp_path))
     opts = RunOptions(frames=12, out=str(tmp_path / "s"))
     estimator = FakeEstimator(kf_every=4)
-    service = CaptureService(load_config(cfg_path, opts), opts, cfg_path, environ={}, estimator=estimator)
+    service = CaptureService(load_config(cfg_path, opts), opts, cfg_path, environ={}, seams=RunSeams(estimator=estimator))
     assert service.run() == 0
     status = json.loads((tmp_path / "status.json").read_text())
     assert status["state"] == "stopped" and status["stop_reason"] == "12 frames captured"
@@ -117,7 +118,7 @@ def test_sighup_reload_applies_live_settings_and_names_the_others(tmp_path, capl
     cfg_path = write_toml(tmp_path / "device.toml", tables)
     opts = RunOptions(out=str(tmp_path / "s"))
     service = CaptureService(load_config(cfg_path, opts), opts, cfg_path, environ={},
-                             source=HangingSimSource(rate_hz=20.0), estimator=FakeEstimator())
+                             seams=RunSeams(source=HangingSimSource(rate_hz=20.0), estimator=FakeEstimator()))
     thread, result = _start(service)
     try:
         assert wait_until(lambda: service.ready, 30)
@@ -162,7 +163,7 @@ def test_capture_failure_exits_1_with_one_log_line(tmp_path, caplog):
     cfg_path = write_toml(tmp_path / "device.toml", sim_tables(tmp_path, frames=5))
     opts = RunOptions(out=str(tmp_path / "s"))
     service = CaptureService(load_config(cfg_path, opts), opts, cfg_path, environ={},
-                             source=Broken(frames=5), estimator=FakeEstimator())
+                             seams=RunSeams(source=Broken(frames=5), estimator=FakeEstimator()))
     caplog.set_level(logging.INFO)
     assert service.run() == 1
     errors = [r for r in caplog.records if r.levelno >= logging.ERROR]

@@ -67,6 +67,7 @@ def test_no_multicast_route_refuses_software_sync_naming_the_route():
 
 
 def test_no_multicast_route_exits_78_on_one_line(tmp_path, caplog):
+    from stereopath.device.service.components import RunSeams
     from stereopath.device.service.main import run_service
     from stereopath.device.service.options import RunOptions
     from tests.device.test_service_support import write_toml
@@ -81,7 +82,7 @@ def test_no_multicast_route_exits_78_on_one_line(tmp_path, caplog):
     world = FakeCameraWorld(multicast_route=False)
     with caplog.at_level(logging.WARNING):
         code = run_service(cfg_path, RunOptions(out=str(tmp_path / "s")), environ={},
-                           source_inject={"api": world.api(), "route_reader": with_route(SUBNET_ONLY)})
+                           seams=RunSeams(source_inject={"api": world.api(), "route_reader": with_route(SUBNET_ONLY)}))
     assert code == 78
     errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
     assert len(errors) == 1 and SYNC_GROUP in errors[0] and "ip route add" in errors[0], errors

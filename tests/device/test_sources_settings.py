@@ -75,8 +75,8 @@ def test_imu_divider_and_output_rate():
     ({"rate_hz": 2666.6666666666665, "dlpf_cfg": 0, "read_period_ms": 10}, True),   # 8 kHz / 3, 12-byte packets
     ({"rate_hz": 4000, "dlpf_cfg": 0, "read_period_ms": 10}, False),                # ~3 kHz is what 400 kHz carries
     ({"rate_hz": 2666.6666666666665, "dlpf_cfg": 0, "read_period_ms": 10, "temperature": True}, False),
-    ({"rate_hz": 1000, "dlpf_cfg": 1, "i2c_khz": 100}, False),                       # 100 kHz: ~690 Hz
-    ({"rate_hz": 500, "dlpf_cfg": 1, "i2c_khz": 100}, True),
+    ({"rate_hz": 1000, "dlpf_cfg": 1, "i2c": {"clock_khz": 100}}, False),                       # 100 kHz: ~690 Hz
+    ({"rate_hz": 500, "dlpf_cfg": 1, "i2c": {"clock_khz": 100}}, True),
 ])
 def test_imu_rate_is_capped_by_what_the_i2c_bus_carries(table, ok):
     if ok:
@@ -93,3 +93,20 @@ def test_toml_overrides_only_what_it_names(tmp_path):
     assert cfg.source.backend == "sim" and cfg.source.fps == 20.0 and cfg.imu.backend == "emulated"
     assert cfg.source.picamera2 == SourceSettings().picamera2
     assert cfg.stream.pose_endpoint == "tcp://*:5555" and cfg.stream.keyframe_endpoint == "tcp://*:5556"
+
+
+def test_keys_moved_into_sub_tables_are_still_read_from_old_files(tmp_path, caplog):
+    p = tmp_path / "old.toml"
+    p.write_text('[stream]\nmax_credit = 4\nimage_encoding = "png"\nheartbeat_ivl_ms = 200\n'
+                 '[stream.bounds]\nmax_peers = 3\n[imu]\ni2c_khz = 1000.0\nlatency_us = 50.0\n')
+    with caplog.at_level("WARNING", logger="stereopath.device.settings"):
+        cfg = load_device_config(p)
+    assert (cfg.stream.bounds.max_credit, cfg.stream.bounds.max_peers) == (4, 3)
+    assert cfg.stream.images.encoding == "png" and cfg.stream.heartbeat.ivl_ms == 200
+    assert cfg.imu.i2c.clock_khz == 1000.0 and cfg.imu.timestamps.latency_us == 50.0
+    assert "stream.max_credit -> stream.bounds.max_credit" in caplog.text and "imu.i2c_khz -> imu.i2c.clock_khz" in caplog.text
+    p.write_text("[stream]\nmax_credit = 4\n[stream.bounds]\nmax_credit = 5\n")
+    with pytest.raises(ConfigError, match=r"stream\.bounds\.max_credit .* old spelling stream\.max_credit"):
+        load_device_config(p)
+    with pytest.raises(ConfigError, match=r"stream\.bounds\.max_credit"):
+        from_mapping(DeviceConfig, {"stream": {"bounds": {"max_credit": 0}}})

@@ -131,9 +131,9 @@ def test_host_paused_device_never_blocks_and_catches_up(tmp_path, keys):
     assert producer.refused == 0 and during["keyframes_refused"] == 0
     # memory bounded: nothing waits in RAM (all on disk), at most max_credit keyframes in flight per host
     assert during["pending_keyframes"] == 0
-    assert during["max_keyframe_queue"] <= dev.config.max_pending_keyframes
+    assert during["max_keyframe_queue"] <= dev.config.bounds.max_pending_keyframes
     for peer in during["peers"]:
-        assert peer["max_sent"] - peer["acked"] <= dev.config.max_credit
-        assert peer["credit"] <= dev.config.max_credit
+        assert peer["max_sent"] - peer["acked"] <= dev.config.bounds.max_credit
+        assert peer["credit"] <= dev.config.bounds.max_credit
     print(f"max producer call during the pause: {producer.max_call_s * 1e3:.2f} ms")  # informative only
     assert_exactly_once(out, "sessP", dev.spool)

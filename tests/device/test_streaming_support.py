@@ -8,7 +8,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from stereopath.device.settings import KeySettings, StreamSettings
+from stereopath.device.core.config import from_mapping
+from stereopath.device.settings import KeySettings, StreamSettings, nest_moved_keys
 from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
 from stereopath.device.wire.security import DemoKeys
 from stereopath.host.live.store import read_index
@@ -26,13 +27,15 @@ def small_images(seed: int, h: int = 96, w: int = 128) -> tuple[np.ndarray, np.n
 
 def device_config(keys: DemoKeys | None, pose_endpoint: str = LOOPBACK_ANY, keyframe_endpoint: str = LOOPBACK_ANY,
                   **overrides: Any) -> StreamSettings:
+    """A ``[stream]`` section; ``overrides`` may use the flat keys of the sub-tables (``max_credit=4``)."""
     base: dict[str, Any] = dict(pose_endpoint=pose_endpoint, keyframe_endpoint=keyframe_endpoint,
-                                heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, heartbeat_ttl_ms=3000,
-                                spool_fsync=False)
+                                heartbeat={"ivl_ms": 250, "timeout_ms": 1500, "ttl_ms": 3000}, spool_fsync=False)
     if keys is None:
         base["insecure"] = True
-    base.update(overrides)
-    return StreamSettings(**base)
+    nested, _ = nest_moved_keys("stream", overrides)
+    for key, value in nested.items():
+        base[key] = {**base[key], **value} if isinstance(value, dict) and isinstance(base.get(key), dict) else value
+    return from_mapping(StreamSettings, base)
 
 
 def key_settings(keys: DemoKeys | None) -> KeySettings | None:

@@ -30,7 +30,7 @@ def _kf(session: str, seq: int):
     left, right = small_images(seq)
     T = np.eye(4)
     T[:3, 3] = [seq * 0.1, 0.0, 0.0]
-    kf = make_keyframe(session, seq, seq * 10, 1000 + seq, T, left, right, ("rig", "0123456789abcdef"), "png")
+    kf = make_keyframe(session, seq, seq * 10, 1000 + seq, T, (left, right), ("rig", "0123456789abcdef"), "png")
     return kf, encode_keyframe(kf)
 
 
@@ -38,14 +38,14 @@ def _kf(session: str, seq: int):
 
 
 def test_stream_config_from_mapping_rejects_unknown_and_out_of_range():
-    cfg = from_mapping(StreamSettings, {"pose_endpoint": "tcp://*:6000", "max_credit": 4})
-    assert cfg.max_credit == 4 and cfg.keyframe_endpoint == "tcp://*:5556"
+    cfg = from_mapping(StreamSettings, {"pose_endpoint": "tcp://*:6000", "bounds": {"max_credit": 4}})
+    assert cfg.bounds.max_credit == 4 and cfg.keyframe_endpoint == "tcp://*:5556"
     with pytest.raises(ConfigError, match="bogus"):
         from_mapping(StreamSettings, {"bogus": 1})
-    with pytest.raises(ConfigError, match="max_credit"):
-        StreamSettings(max_credit=0)
-    with pytest.raises(ConfigError, match="image_encoding"):
-        from_mapping(StreamSettings, {"image_encoding": "bmp"})
+    with pytest.raises(ConfigError, match=r"stream\.bounds\.max_credit"):
+        from_mapping(StreamSettings, {"bounds": {"max_credit": 0}})
+    with pytest.raises(ConfigError, match=r"images\.encoding"):
+        from_mapping(StreamSettings, {"images": {"encoding": "bmp"}})
 
 
 @pytest.mark.parametrize("ep", ["tcp://127.0.0.1:5555", "tcp://127.0.0.1:*", "tcp://127.8.9.10:1", "tcp://[::1]:5",
@@ -305,7 +305,7 @@ def test_the_last_poses_of_a_run_reach_a_connected_host_when_the_publisher_close
     from tests.device.test_streaming_support import device_config
 
     ctx = zmq.Context()
-    cfg = dataclasses.replace(device_config(None), pose_sndhwm=5000)
+    cfg = device_config(None, pose_sndhwm=5000)
     pub = PosePublisher(ctx, cfg, None)
     sub = ctx.socket(zmq.SUB)
     sub.setsockopt(zmq.RCVHWM, 5000)
@@ -318,7 +318,7 @@ def test_the_last_poses_of_a_run_reach_a_connected_host_when_the_publisher_close
             time.sleep(0.01)
         payload = bytes(2000)  # a backlog the I/O thread cannot have sent by the close (linger 0 loses most of it)
         sent = sum(pub.send(payload) for _ in range(3000))
-        pub.close(flush_ms=cfg.pose_flush_ms)
+        pub.close(flush_ms=cfg.bounds.pose_flush_ms)
         while sub.poll(2000):
             sub.recv()
             got += 1
@@ -326,5 +326,5 @@ def test_the_last_poses_of_a_run_reach_a_connected_host_when_the_publisher_close
         sub.close(linger=0)
         pub.close()  # (closed already unless the test failed before)
         ctx.term()
-    assert cfg.pose_flush_ms > 0 and sent == 3000
+    assert cfg.bounds.pose_flush_ms > 0 and sent == 3000
     assert got == sent

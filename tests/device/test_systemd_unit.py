@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from stereopath.device.capture.multicast_route import ROUTE_COMMAND
-from stereopath.device.service.installer import BACKEND_DROPINS, UNIT_NAME, Layout, install
+from stereopath.device.service.installer import BACKEND_DROPINS, UNIT_NAME, InstallChoices, Layout, install
 from tests.device.test_install import FakeVenv
 
 pytestmark = [
@@ -41,7 +41,7 @@ def _installed_root(tmp_path: Path, backend: str | None = None, config_backend: 
         etc = root / "etc/stereopath"
         etc.mkdir(parents=True)
         (etc / "device.toml").write_text(f'[source]\nbackend = "{config_backend}"\n')
-    install(root, venv=FakeVenv(), backend=backend)
+    install(root, venv=FakeVenv(), choices=InstallChoices(backend=backend))
     # what the target system provides: /bin/kill for ExecReload=, iproute2's ip for the
     # picamera2 drop-in's ExecStartPre=
     (root / "bin").mkdir()

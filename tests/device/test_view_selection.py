@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stereopath.device.core.features import FeatureConfig, detect, get_preset
+from stereopath.device.core.features import FeatureConfig, ViewSelectionConfig, detect, get_preset
 from stereopath.device.core.matching import MatchConfig, match
 from stereopath.device.core.view_selection import candidate_pairs, coarse_config, coarse_pair_counts, detect_pair, match_pair, select_view_pairs, views_of
 from stereopath.device.errors import ConfigError
@@ -56,7 +56,7 @@ def test_selection_keeps_the_correct_matches_of_all_view_pairs_on_a_tilted_plane
     pairs = select_view_pairs(cones, tilted, cfg)
     assert pairs is not None and 0 < len(pairs) < len(candidate_pairs(cfg))
     selected, n_selected = _correct(cones, tilted, H, cfg, pairs)
-    everything, n_all = _correct(cones, tilted, H, dataclasses.replace(cfg, coarse_factor=0), None)
+    everything, n_all = _correct(cones, tilted, H, dataclasses.replace(cfg, coarse=ViewSelectionConfig(factor=0)), None)
     assert everything > 150
     assert selected >= 0.95 * everything  # the dropped view pairs held (almost) nothing of their own
     assert n_selected <= n_all
@@ -87,7 +87,7 @@ def test_without_selection_every_view_is_computed(cones):
     small = cones[::2, ::2].copy()
     f1, f2, pairs = detect_pair(small, small, "sift")
     assert pairs is None and set(np.unique(f2.view)) == {0}
-    f1, f2, pairs = detect_pair(small, small, dataclasses.replace(get_preset("fast"), coarse_factor=0))
+    f1, f2, pairs = detect_pair(small, small, dataclasses.replace(get_preset("fast"), coarse=ViewSelectionConfig(factor=0)))
     assert pairs is None and set(np.unique(f1.view)) == set(np.unique(f2.view)) == {0, 1, 2, 3}
     f1, f2, pairs = detect_pair(small, small, "fast_asym")  # asymmetric: the earlier image's original view only
     assert pairs is None and set(np.unique(f1.view)) == {0}
@@ -113,22 +113,22 @@ def test_only_pairs_restricts_per_view_matching_and_is_ignored_without_view_labe
 
 
 def test_coarse_config_is_validated():
-    assert FeatureConfig.from_mapping({"coarse_factor": 3, "coarse_min_share": 0.3, "coarse_nfeatures": 200}).coarse_factor == 3
-    with pytest.raises(ConfigError, match="coarse_factor"):
-        FeatureConfig(coarse_factor=1)
-    with pytest.raises(ConfigError, match="coarse_min_share"):
-        FeatureConfig(coarse_min_share=1.5)
-    assert get_preset("fast").coarse_factor == 3 and get_preset("fast_asym").coarse_factor == 0
+    assert FeatureConfig.from_mapping({"coarse": {"factor": 3, "min_share": 0.3, "nfeatures": 200}}).coarse.factor == 3
+    with pytest.raises(ConfigError, match=r"coarse\.factor"):
+        FeatureConfig(coarse=ViewSelectionConfig(factor=1))
+    with pytest.raises(ConfigError, match=r"coarse\.min_share"):
+        FeatureConfig.from_mapping({"coarse": {"min_share": 1.5}})
+    assert get_preset("fast").coarse.factor == 3 and get_preset("fast_asym").coarse.factor == 0
 
 
 def test_coarse_pass_caps_every_view_at_the_same_keypoint_density():
     fast = get_preset("fast")  # tilt-2 views: half the image's area, half the keypoints
     small = coarse_config(fast)
-    assert small.coarse_factor == 0 and small.nfeatures == fast.coarse_nfeatures
-    assert small.view_nfeatures == round(fast.coarse_nfeatures / 2)
-    assert small.border_px == max(1, round(fast.border_px / fast.coarse_factor))
-    paper = dataclasses.replace(get_preset("paper"), coarse_factor=3, coarse_nfeatures=400)
+    assert small.coarse.factor == 0 and small.sift.nfeatures == fast.coarse.nfeatures
+    assert small.sift.view_nfeatures == round(fast.coarse.nfeatures / 2)
+    assert small.border_px == max(1, round(fast.border_px / fast.coarse.factor))
+    paper = dataclasses.replace(get_preset("paper"), coarse=ViewSelectionConfig(factor=3, nfeatures=400))
     tilts = np.array([t for t, _ in paper.views[1:]])
-    assert coarse_config(paper).view_nfeatures == round(400 / np.exp(np.log(tilts).mean()))
-    uncapped = coarse_config(dataclasses.replace(fast, coarse_nfeatures=0))
-    assert uncapped.nfeatures == fast.nfeatures and uncapped.view_nfeatures == fast.view_nfeatures
+    assert coarse_config(paper).sift.view_nfeatures == round(400 / np.exp(np.log(tilts).mean()))
+    uncapped = coarse_config(dataclasses.replace(fast, coarse=dataclasses.replace(fast.coarse, nfeatures=0)))
+    assert uncapped.sift.nfeatures == fast.sift.nfeatures and uncapped.sift.view_nfeatures == fast.sift.view_nfeatures

@@ -262,8 +262,8 @@ def test_mcap_of_a_recorded_session_and_of_a_live_store(session, tmp_path):
     store = KeyframeStore(tmp_path / "live", fsync=False)
     for k in range(4):
         fr = seq.frame(3 * k)
-        kf = make_keyframe("sessX", k, 3 * k, int(seq.t_ns[3 * k]), seq.groundtruth.T_world_cam[3 * k], fr.left,
-                           fr.right, rig_reference(seq.rig), "png")
+        kf = make_keyframe("sessX", k, 3 * k, int(seq.t_ns[3 * k]), seq.groundtruth.T_world_cam[3 * k],
+                           (fr.left, fr.right), rig_reference(seq.rig), "png")
         store.put(kf, encode_keyframe(kf))
     store.close()
     save_rig_yaml(seq.rig, tmp_path / "live" / "sessX" / "keyframes" / "rig.yaml")
@@ -328,8 +328,8 @@ def test_live_mcap_sink_records_poses_and_keyframes_as_they_arrive(session, tmp_
     sink = McapSink(tmp_path / "live.mcap", rig_for=lambda sid: seq.rig)
     poses = [Pose("sessM", i, int(gt.t_ns[i]), tuple(gt.T_world_cam[i][:3, 3]),
                   tuple(matrix_to_quat_xyzw(gt.T_world_cam[i][:3, :3]))) for i in range(len(gt))]
-    kfs = [make_keyframe("sessM", k, 4 * k, int(gt.t_ns[4 * k]), gt.T_world_cam[4 * k], seq.frame(4 * k).left,
-                         seq.frame(4 * k).right, rig_reference(seq.rig), enc) for k, enc in enumerate(["jpg", "png", "png"])]
+    kfs = [make_keyframe("sessM", k, 4 * k, int(gt.t_ns[4 * k]), gt.T_world_cam[4 * k],
+                         (seq.frame(4 * k).left, seq.frame(4 * k).right), rig_reference(seq.rig), enc) for k, enc in enumerate(["jpg", "png", "png"])]
     th = threading.Thread(target=lambda: [sink.on_pose(p) for p in poses])
     th.start()
     for kf in kfs:

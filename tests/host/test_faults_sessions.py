@@ -333,6 +333,7 @@ def test_a_refused_out_does_not_strand_its_spool(tmp_path):
     session's keyframes and, at its stop, waits (up to stream.drain_s) until a host has them."""
     import threading
 
+    from stereopath.device.service.components import RunSeams
     from stereopath.device.service.main import run_service
     from stereopath.device.service.options import RunOptions, load_config
     from stereopath.device.service.service import CaptureService
@@ -352,7 +353,7 @@ def test_a_refused_out_does_not_strand_its_spool(tmp_path):
     assert run_service(cfg_path, RunOptions(out=str(scans / "a")), environ={}) == 78
     opts = RunOptions(out=str(scans / "b"), wait_for_host_s=20.0)
     service = CaptureService(load_config(cfg_path, opts), opts, cfg_path, environ={},
-                             estimator=FakeEstimator(kf_every=2))
+                             seams=RunSeams(estimator=FakeEstimator(kf_every=2)))
     out = tmp_path / "host"
     result: dict = {}
     th = threading.Thread(target=lambda: result.setdefault("code", service.run()), daemon=True)

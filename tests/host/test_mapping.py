@@ -184,7 +184,7 @@ def keyframe_dir(session, tmp_path_factory) -> Path:
     ref = rig_reference(seq.rig)
     for k, i in enumerate(range(20, 60, 8)):
         fr = seq.frame(i)
-        kf = make_keyframe(root.name, k, i, int(seq.t_ns[i]), gt.T_world_cam[i], fr.left, fr.right, ref, encoding="png")
+        kf = make_keyframe(root.name, k, i, int(seq.t_ns[i]), gt.T_world_cam[i], (fr.left, fr.right), ref, encoding="png")
         store.put(kf, encode_keyframe(kf))
     store.close()
     return root

@@ -282,7 +282,7 @@ def test_host_rejects_malformed_device_messages_and_carries_on(tmp_path, keys):
                          fsync=False, stall_timeout_s=100.0)
     rx = Receiver(cfg, tmp_path / "out")
     rng = np.random.default_rng(11)
-    kf = make_keyframe("fake", 0, 0, 5, np.eye(4), *small_images(0), ("rig", "0123456789abcdef"), "png")
+    kf = make_keyframe("fake", 0, 0, 5, np.eye(4), small_images(0), ("rig", "0123456789abcdef"), "png")
     good = encode_keyframe(kf)
     bad_kf = msgpack.unpackb(good)
     bad_kf["l"]["dtype"] = "<f8"

@@ -8,16 +8,19 @@ register-level emulator on a simulated clock, for machines without the chip),
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 from stereopath.device.errors import ConfigError
 from stereopath.device.capture.imu.base import ImuSource, OfflineImu, PollingImuReader
 from stereopath.device.settings import ImuSettings
 
+if TYPE_CHECKING:
+    from stereopath.device.capture.sources.base import StereoSource
+
 __all__ = ["ImuSource", "OfflineImu", "PollingImuReader", "create_imu"]
 
 
-def create_imu(settings: ImuSettings, stereo_source: Any = None, **inject: Any) -> ImuSource | None:
+def create_imu(settings: ImuSettings, stereo_source: StereoSource | None = None, **inject: object) -> ImuSource | None:
     """The configured IMU, not yet opened (``bus=``, ``clock=``, ``source_fn=`` injectable)."""
     backend = settings.backend
     if backend == "none":

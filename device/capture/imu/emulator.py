@@ -35,15 +35,26 @@ import errno
 import os
 import threading
 import time
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Callable, Protocol
 
 import numpy as np
 
 from stereopath.device.core.frames import ImuSamples
 from stereopath.device.capture.imu import mpu6050 as R
 
+if TYPE_CHECKING:
+    from smbus2 import i2c_msg
+
 I2C_M_RD = 0x0001
 SourceFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray | None]]
+
+
+class BusClock(Protocol):
+    """The emulator's time: ``now_ns()``, and ``advance_ns`` for the time a transfer takes on the bus."""
+
+    def now_ns(self) -> int: ...
+
+    def advance_ns(self, dt_ns: int) -> None: ...
 
 
 class SimClock:
@@ -122,7 +133,7 @@ def samples_source(imu: ImuSamples, t_start_ns: int | None = None) -> SourceFn:
 class Mpu6050Emulator:
     """Fake ``smbus2.SMBus`` with one MPU-6050 on it (see module doc)."""
 
-    def __init__(self, clock: Any = None, source: SourceFn | None = None, address: int = 0x68,
+    def __init__(self, clock: BusClock | None = None, source: SourceFn | None = None, address: int = 0x68,
                  who_am_i: int = 0x68, period_error_ppm: float = 0.0, bus_hz: float = 400_000.0) -> None:
         self.clock = clock if clock is not None else RealClock()
         self.source = source if source is not None else still_source()
@@ -296,7 +307,7 @@ class Mpu6050Emulator:
         self.regs[reg] = value
 
     # smbus2.SMBus interface ----------------------------------------------------------------
-    def read_byte_data(self, i2c_addr: int, register: int, force: Any = None) -> int:
+    def read_byte_data(self, i2c_addr: int, register: int, force: bool | None = None) -> int:
         with self._lock:
             self._check("read", i2c_addr)
             self._sync()
@@ -305,7 +316,7 @@ class Mpu6050Emulator:
             self._bus_time(3)
             return v
 
-    def write_byte_data(self, i2c_addr: int, register: int, value: int, force: Any = None) -> None:
+    def write_byte_data(self, i2c_addr: int, register: int, value: int, force: bool | None = None) -> None:
         with self._lock:
             self._check("write", i2c_addr)
             self._sync()
@@ -313,7 +324,7 @@ class Mpu6050Emulator:
             self._write(register, value)
             self._bus_time(3)
 
-    def read_i2c_block_data(self, i2c_addr: int, register: int, length: int, force: Any = None) -> list[int]:
+    def read_i2c_block_data(self, i2c_addr: int, register: int, length: int, force: bool | None = None) -> list[int]:
         if length > 32:
             raise ValueError("Desired block length over 32 bytes")
         with self._lock:
@@ -324,7 +335,7 @@ class Mpu6050Emulator:
             self._bus_time(2 + length)
             return list(data)
 
-    def i2c_rdwr(self, *msgs: Any) -> None:
+    def i2c_rdwr(self, *msgs: i2c_msg) -> None:
         with self._lock:
             for m in msgs:
                 if m.len > 8192:
@@ -356,5 +367,5 @@ class Mpu6050Emulator:
     def __enter__(self) -> "Mpu6050Emulator":
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()

@@ -29,10 +29,10 @@ Timestamps come from :class:`~stereopath.device.capture.imu.period_fit.PeriodFit
 fit of host time against the cumulative sample index, not from the nominal rate (the
 MPU clock is off by up to about 1 %).
 
-I2C errors (``OSError``) are retried ``retries`` times with exponential backoff; a FIFO
+I2C errors (``OSError``) are retried ``imu.i2c.retries`` times with exponential backoff; a FIFO
 data transfer is never retried (bytes may already have left the FIFO): the FIFO is reset
 instead.  If a register transfer still fails, the chip is re-initialised (up to
-``reinit_attempts`` times, each recorded as a gap) and after that a
+``imu.i2c.reinit_attempts`` times, each recorded as a gap) and after that a
 :class:`CaptureError` names the bus, address, operation and last error.
 
 The bus (anything with ``read_byte_data``, ``write_byte_data`` and ``i2c_rdwr``, i.e.
@@ -44,7 +44,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Callable, Protocol, TypeVar
 
 import numpy as np
 
@@ -52,6 +52,9 @@ from stereopath.device.errors import CaptureError, ConfigError
 from stereopath.device.core.frames import ImuSamples
 from stereopath.device.capture.imu.period_fit import PeriodFit
 from stereopath.device.settings import ImuSettings
+
+if TYPE_CHECKING:
+    from smbus2 import i2c_msg
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +101,21 @@ AFS_SEL = {2: 0, 4: 1, 8: 2, 16: 3}
 STANDARD_GRAVITY = 9.80665
 TEMP_SCALE = 340.0
 TEMP_OFFSET_C = 36.53
+
+
+_R = TypeVar("_R")
+
+
+class I2cBus(Protocol):
+    """What the driver uses of ``smbus2.SMBus`` (the emulator offers the same)."""
+
+    def read_byte_data(self, i2c_addr: int, register: int, force: bool | None = None) -> int: ...
+
+    def write_byte_data(self, i2c_addr: int, register: int, value: int, force: bool | None = None) -> None: ...
+
+    def i2c_rdwr(self, *msgs: i2c_msg) -> None: ...
+
+    def close(self) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -168,7 +186,7 @@ class Mpu6050:
 
     name = "mpu6050"
 
-    def __init__(self, settings: ImuSettings, bus: Any = None, clock_ns: Callable[[], int] = time.monotonic_ns,
+    def __init__(self, settings: ImuSettings, bus: I2cBus | None = None, clock_ns: Callable[[], int] = time.monotonic_ns,
                  sleep: Callable[[float], None] = time.sleep) -> None:
         self.settings = settings
         self._bus = bus
@@ -185,12 +203,12 @@ class Mpu6050:
         self.gaps: list[tuple[int, int]] = []
         self.who_am_i: int | None = None
         self.chip = MPU6050_CHIP
-        self._fit = PeriodFit(self.nominal_period_ns, window_ns=int(settings.fit_window_s * 1e9),
+        self._fit = PeriodFit(self.nominal_period_ns, window_ns=int(settings.timestamps.fit_window_s * 1e9),
                               min_span=max(20, int(settings.rate_hz * 0.5)))
         self._seg_count = 0
         self._last_t: int | None = None
         self._gap_open: int | None = None
-        self._i2c_msg: Any = None
+        self._i2c_msg: type[i2c_msg] | None = None
         self._opened = False
 
     # ---------------------------------------------------------------------------------
@@ -216,7 +234,7 @@ class Mpu6050:
             self._init_device()
         except _BusFailure as exc:
             self._close_bus()
-            raise CaptureError(f"{self.where}: {exc.what} failed after {self.settings.retries} retries: "
+            raise CaptureError(f"{self.where}: {exc.what} failed after {self.settings.i2c.retries} retries: "
                                f"{exc.exc} (wiring, address, pull-ups?)") from None
         except (CaptureError, ConfigError):
             self._close_bus()
@@ -245,17 +263,17 @@ class Mpu6050:
         self.open()
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # bus primitives with retries ------------------------------------------------------
-    def _retry(self, what: str, fn: Callable[..., Any], *args: Any) -> Any:
-        delay = self.settings.backoff_ms / 1000.0
-        for attempt in range(self.settings.retries + 1):
+    def _retry(self, what: str, fn: Callable[..., _R], *args: int) -> _R:
+        delay = self.settings.i2c.backoff_ms / 1000.0
+        for attempt in range(self.settings.i2c.retries + 1):
             try:
                 return fn(*args)
             except OSError as exc:
-                if attempt == self.settings.retries:
+                if attempt == self.settings.i2c.retries:
                     raise _BusFailure(what, exc) from None
                 self.stats.retries += 1
                 log.debug("%s: %s failed (%s); retry %d in %.1f ms", self.where, what, exc, attempt + 1, delay * 1e3)
@@ -384,7 +402,7 @@ class Mpu6050:
             return ImuSamples.empty()
         self._fit.add(self._seg_count + n - 1, t_obs)
         idx = np.arange(self._seg_count, self._seg_count + n)
-        t = self._fit.times_ns(idx) - int(self.settings.latency_us * 1000)
+        t = self._fit.times_ns(idx) - int(self.settings.timestamps.latency_us * 1000)
         self._seg_count += n
         if self._last_t is not None and t[0] <= self._last_t:
             t = np.maximum(t, self._last_t + 1 + np.arange(n))
@@ -421,10 +439,10 @@ class Mpu6050:
     def _reinitialise(self, failure: _BusFailure) -> None:
         self._mark_gap()
         last = failure
-        for attempt in range(self.settings.reinit_attempts):
+        for attempt in range(self.settings.i2c.reinit_attempts):
             log.warning("%s: %s; re-initialising (%d/%d)", self.where, last, attempt + 1,
-                        self.settings.reinit_attempts)
-            self._sleep(self.settings.backoff_ms / 1000.0 * 2 ** (self.settings.retries + attempt))
+                        self.settings.i2c.reinit_attempts)
+            self._sleep(self.settings.i2c.backoff_ms / 1000.0 * 2 ** (self.settings.i2c.retries + attempt))
             try:
                 self._init_device()
             except _BusFailure as exc:
@@ -433,11 +451,11 @@ class Mpu6050:
             self.stats.reinits += 1
             return
         raise CaptureError(
-            f"{self.where}: {last.what} failed after {self.settings.retries} retries and "
-            f"{self.settings.reinit_attempts} re-initialisations: {last.exc}")
+            f"{self.where}: {last.what} failed after {self.settings.i2c.retries} retries and "
+            f"{self.settings.i2c.reinit_attempts} re-initialisations: {last.exc}")
 
 
-def open_mpu6050(settings: ImuSettings, **inject: Any) -> Mpu6050:
+def open_mpu6050(settings: ImuSettings, **inject: object) -> Mpu6050:
     """An opened driver (``bus=``, ``clock_ns=``, ``sleep=`` may be injected)."""
     dev = Mpu6050(settings, **inject)
     dev.open()

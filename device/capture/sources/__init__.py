@@ -16,8 +16,6 @@ Test seams: ``api=`` (picamera2 names), ``dai=`` (depthai module), ``sequence=``
 
 from __future__ import annotations
 
-from typing import Any
-
 from stereopath.device.errors import ConfigError
 from stereopath.device.settings import SourceSettings
 from stereopath.device.capture.sources.base import SourceBase, SourceStats, StereoSource
@@ -25,7 +23,7 @@ from stereopath.device.capture.sources.base import SourceBase, SourceStats, Ster
 __all__ = ["SourceBase", "SourceStats", "StereoSource", "create_source"]
 
 
-def create_source(settings: SourceSettings, **inject: Any) -> StereoSource:
+def create_source(settings: SourceSettings, **inject: object) -> StereoSource:
     """The configured backend, not yet opened (see module doc for the injectable seams)."""
     backend = settings.backend
     if backend == "picamera2":

@@ -14,11 +14,16 @@ import dataclasses
 import logging
 import threading
 from dataclasses import dataclass
-from typing import Any, Iterator, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Iterator, Protocol, runtime_checkable
 
 from stereopath.device.errors import CalibrationError, CaptureError
 from stereopath.device.core.frames import StereoFrame
 from stereopath.device.core.rig import Rig
+
+if TYPE_CHECKING:
+    from stereopath.device.capture.imu.base import ImuSource
+    from stereopath.device.core.fisheye import PinholeView
+    from stereopath.device.formats.rig_files import RigCalibration
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +51,11 @@ class SourceStats:
     def as_dict(self) -> dict[str, int]:
         return dataclasses.asdict(self)
 
+    def add(self, **increments: int) -> None:
+        """Add to the named counters."""
+        for key, inc in increments.items():
+            setattr(self, key, getattr(self, key) + inc)
+
 
 @runtime_checkable
 class StereoSource(Protocol):
@@ -59,7 +69,7 @@ class StereoSource(Protocol):
 
     def __enter__(self) -> "StereoSource": ...
 
-    def __exit__(self, *exc: Any) -> None: ...
+    def __exit__(self, *exc: object) -> None: ...
 
     def __iter__(self) -> Iterator[StereoFrame]: ...
 
@@ -67,7 +77,7 @@ class StereoSource(Protocol):
     def rig(self) -> Rig | None: ...
 
     @property
-    def imu(self) -> Any: ...
+    def imu(self) -> ImuSource | None: ...
 
     @property
     def stats(self) -> SourceStats: ...
@@ -83,8 +93,8 @@ class SourceBase:
         self._stats_lock = threading.Lock()
         self._opened = False
         self._rig: Rig | None = None
-        self._imu: Any = None
-        self._views: tuple[Any, Any] = (None, None)  # fisheye cameras: the pinhole views frames go through
+        self._imu: ImuSource | None = None
+        self._views: tuple[PinholeView | None, PinholeView | None] = (None, None)  # fisheye cameras: the pinhole views frames go through
 
     # lifecycle -------------------------------------------------------------------------
     def open(self) -> None:
@@ -107,7 +117,7 @@ class SourceBase:
         self.open()
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def __iter__(self) -> Iterator[StereoFrame]:
@@ -117,7 +127,7 @@ class SourceBase:
             return self._frames()
         return self._through_views(self._frames())
 
-    def _use_rig_file(self, calib: Any, size: tuple[int, int] | None = None) -> None:
+    def _use_rig_file(self, calib: RigCalibration, size: tuple[int, int] | None = None) -> None:
         """Take a loaded rig file (:func:`load_rig_override`): its pinhole rig and its cameras' views,
         refusing (:class:`CalibrationError`) a camera calibrated for another image ``size`` than the
         source delivers (a fisheye camera's own size, or a pinhole camera's ``image_size``): its
@@ -144,7 +154,7 @@ class SourceBase:
         return self._rig
 
     @property
-    def imu(self) -> Any:
+    def imu(self) -> ImuSource | None:
         return self._imu
 
     @property
@@ -154,8 +164,7 @@ class SourceBase:
 
     def _count(self, **increments: int) -> None:
         with self._stats_lock:
-            for key, inc in increments.items():
-                setattr(self._stats, key, getattr(self._stats, key) + inc)
+            self._stats.add(**increments)
 
     # to implement ----------------------------------------------------------------------
     def _open(self) -> None:
@@ -168,7 +177,7 @@ class SourceBase:
         raise NotImplementedError
 
 
-def load_rig_override(path: str) -> Any:
+def load_rig_override(path: str) -> RigCalibration | None:
     """The configured rig file (:class:`~stereopath.device.formats.rig_files.RigCalibration`: our rig
     YAML, or a Kalibr camchain whose fisheye cameras come with their pinhole views), or None when
     ``path`` is empty."""

@@ -58,7 +58,8 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator
+from types import ModuleType
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 from stereopath.device.errors import CalibrationError, CaptureError, ConfigError
 from stereopath.device.core.frames import StereoFrame
@@ -69,6 +70,10 @@ from stereopath.device.capture.pairing import LEFT, RIGHT, SIDE_NAMES, FramePair
 from stereopath.device.capture.multicast_route import ROUTE_COMMAND, SYNC_GROUP, multicast_route, read_proc_net_route
 
 START_BUDGET_S = 45.0  # the first pair must come within this (systemd/stereopath-capture.service: TimeoutStartSec=60)
+
+if TYPE_CHECKING:
+    from picamera2 import MappedArray, Picamera2
+    from picamera2.request import CompletedRequest
 
 log = logging.getLogger(__name__)
 
@@ -96,9 +101,9 @@ class SyncState:
 class Picamera2Api:
     """The three names the backend needs (real modules, or a fake in tests)."""
 
-    Picamera2: Any
-    MappedArray: Any
-    controls: Any  # libcamera.controls
+    Picamera2: type[Picamera2]
+    MappedArray: type[MappedArray]
+    controls: ModuleType  # libcamera.controls
 
 
 def import_picamera2() -> Picamera2Api:
@@ -213,7 +218,7 @@ class Picamera2Source(SourceBase):
                         "(set source.size to match the calibration)", *asked, *sizes[0], *sizes[0])
         return sizes[0]
 
-    def _lock_controls(self, cam: Any) -> dict[str, Any]:
+    def _lock_controls(self, cam: Picamera2) -> dict[str, Any]:
         s, ps = self.settings, self.settings.picamera2
         fd = s.frame_duration_us
         ctrl: dict[str, Any] = {
@@ -335,7 +340,7 @@ class Picamera2Source(SourceBase):
                 "ExecStartPre= does) or set source.picamera2.sync = \"off\"")
         log.info("picamera2: software sync multicast to %s goes through %s", SYNC_GROUP, iface)
 
-    def _check_sync_frames(self, server: Any) -> None:
+    def _check_sync_frames(self, server: Picamera2) -> None:
         frames = int(self.settings.picamera2.sync_frames)
         self.sync_state.sync_frames = frames
         if self.first_pair_timeout_s > START_BUDGET_S:
@@ -368,13 +373,13 @@ class Picamera2Source(SourceBase):
         frames = max(int(s.picamera2.sync_frames), SYNC_PERIOD_FRAMES) + 2  # +2: a skipped controller frame
         return frames / float(s.fps) + float(s.timeout_s)
 
-    def _make_callback(self, side: int, mapped_array: Any) -> Callable[[Any], None]:
+    def _make_callback(self, side: int, mapped_array: type[MappedArray]) -> Callable[[CompletedRequest], None]:
         w, h = self._size  # the size libcamera chose, not necessarily the one asked for
         frame_ns = self.settings.frame_duration_us * 1000
         counter = "frames_left" if side == LEFT else "frames_right"
         pairer = self._pairer
 
-        def on_request(request: Any) -> None:  # runs on this camera's picamera2 thread
+        def on_request(request: CompletedRequest) -> None:  # runs on this camera's picamera2 thread
             try:
                 self._last_cb_ns[side] = time.monotonic_ns()
                 md = request.get_metadata()

@@ -54,7 +54,8 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import time
-from typing import Any, Callable, Iterator
+from types import ModuleType
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import numpy as np
 
@@ -64,6 +65,10 @@ from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import Rig, make_camera, make_rig
 from stereopath.device.settings import SourceSettings
 from stereopath.device.capture.sources.base import SourceBase, load_rig_override
+
+if TYPE_CHECKING:
+    import depthai
+    from numpy.typing import ArrayLike
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +93,7 @@ DEPTHAI_NAMES = (
 )
 
 
-def import_depthai() -> Any:
+def import_depthai() -> ModuleType:
     try:
         import depthai
     except ImportError as exc:
@@ -101,7 +106,7 @@ def timedelta_to_ns(td: dt.timedelta) -> int:
     return ((td.days * 86400 + td.seconds) * 1_000_000 + td.microseconds) * 1000
 
 
-def crop_scale_intrinsics(K: Any, src_size: tuple[int, int], dst_size: tuple[int, int]) -> np.ndarray:
+def crop_scale_intrinsics(K: ArrayLike, src_size: tuple[int, int], dst_size: tuple[int, int]) -> np.ndarray:
     """K of a ``dst_size`` image made with ``ImgResizeMode.CROP`` from a ``src_size`` one.
 
     CROP cuts the largest centred window of the output's aspect ratio out of the source and
@@ -123,7 +128,7 @@ def crop_scale_intrinsics(K: Any, src_size: tuple[int, int], dst_size: tuple[int
     return out
 
 
-def frame_intrinsics(frame: Any, size: tuple[int, int]) -> np.ndarray | None:
+def frame_intrinsics(frame: depthai.ImgFrame, size: tuple[int, int]) -> np.ndarray | None:
     """K from an ``ImgFrame``'s own transformation, or None when it carries none for ``size``."""
     try:
         tr = frame.getTransformation()
@@ -137,7 +142,7 @@ def frame_intrinsics(frame: Any, size: tuple[int, int]) -> np.ndarray | None:
         return None
 
 
-def rig_from_calibration(cal: Any, dai: Any, size: tuple[int, int], name: str = "oak-d",
+def rig_from_calibration(cal: depthai.CalibrationHandler, dai: ModuleType, size: tuple[int, int], name: str = "oak-d",
                          intrinsics: dict[str, Any] | None = None) -> Rig:
     """Our rig from a depthai ``CalibrationHandler`` (metres, ``T_cam1_cam0``).
 
@@ -191,7 +196,7 @@ class DepthaiImu:
 
     name = "depthai-imu"
 
-    def __init__(self, queue: Any, rate_hz: float) -> None:
+    def __init__(self, queue: depthai.MessageQueue, rate_hz: float) -> None:
         self._q = queue
         self.rate_hz = float(rate_hz)
         self.gaps: list[tuple[int, int]] = []
@@ -266,12 +271,12 @@ class DepthaiSource(SourceBase):
         self.settings = settings
         self._dai_arg = dai
         self._rig_arg = rig
-        self._pipeline: Any = None
-        self._queue: Any = None
-        self._dai: Any = None
-        self._first: Any = None
+        self._pipeline: depthai.Pipeline | None = None
+        self._queue: depthai.MessageQueue | None = None
+        self._dai: ModuleType | None = None
+        self._first: depthai.MessageGroup | None = None
 
-    def _module(self) -> Any:
+    def _module(self) -> ModuleType:
         if self._dai_arg is None:
             return import_depthai()
         if callable(self._dai_arg) and not hasattr(self._dai_arg, "Pipeline"):
@@ -410,7 +415,7 @@ class DepthaiSource(SourceBase):
             yield StereoFrame(seq=seq, t_ns=t_mid, left=left, right=right, meta=meta)
             seq += 1
 
-    def _first_group(self, timeout_s: float) -> Any:
+    def _first_group(self, timeout_s: float) -> depthai.MessageGroup | None:
         """The first complete synchronised group (its frames carry the transformation K is read from)."""
         deadline = time.monotonic() + timeout_s
         while True:

@@ -14,18 +14,23 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any, Callable, Iterator
+from typing import TYPE_CHECKING, Callable, Iterator, Sequence
 
 from stereopath.device.errors import CalibrationError, CaptureError, DatasetError
 from stereopath.device.core.frames import StereoFrame
 from stereopath.device.capture.imu.base import OfflineImu
-from stereopath.device.settings import ReplaySettings
+from stereopath.device.settings import ReplaySettings, SimSettings
 from stereopath.device.capture.sources.base import SourceBase, load_rig_override
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from stereopath.device.formats.sequence import StereoSequence
 
 log = logging.getLogger(__name__)
 
 
-def paced(times_ns: list[int] | Any, clock_ns: Callable[[], int], sleep: Callable[[float], None]) -> Callable[[int], None]:
+def paced(times_ns: Sequence[int] | np.ndarray, clock_ns: Callable[[], int], sleep: Callable[[float], None]) -> Callable[[int], None]:
     """A function that waits until recorded time ``t`` (relative to the first call) is due."""
     state: dict[str, int] = {}
 
@@ -50,7 +55,7 @@ class SequenceSource(SourceBase):
 
     name = "sequence"
 
-    def __init__(self, settings: Any, sequence: Any = None, rig_file: str = "",
+    def __init__(self, settings: ReplaySettings | SimSettings, sequence: StereoSequence | None = None, rig_file: str = "",
                  clock_ns: Callable[[], int] = time.monotonic_ns, sleep: Callable[[float], None] = time.sleep,
                  imu_lookahead_ns: int = 100_000_000) -> None:
         """``settings``: the subclass's section of ``[source]``; ``sequence``: an already opened one (tests)."""
@@ -61,9 +66,9 @@ class SequenceSource(SourceBase):
         self._clock_ns = clock_ns
         self._sleep = sleep
         self._lookahead = imu_lookahead_ns
-        self.sequence: Any = None
+        self.sequence: StereoSequence | None = None
 
-    def _load(self) -> Any:
+    def _load(self) -> StereoSequence:
         raise NotImplementedError
 
     def _span(self) -> tuple[int, int]:
@@ -129,7 +134,7 @@ class ReplaySource(SequenceSource):
     name = "replay"
     settings: ReplaySettings
 
-    def _load(self) -> Any:
+    def _load(self) -> StereoSequence:
         if not self.settings.path:
             raise CaptureError("replay source: no sequence configured (source.replay.path, e.g. 'euroc:DIR')")
         from stereopath.device.formats import open_source

@@ -12,15 +12,18 @@ simulated IMU is exposed as ``source.imu`` (an :class:`~stereopath.device.captur
 from __future__ import annotations
 
 import logging
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Callable
 
 from stereopath.device.capture.sources.replay import SequenceSource
 from stereopath.device.settings import SimSettings
 
+if TYPE_CHECKING:
+    from stereopath.device.formats.sequence import StereoSequence
+
 log = logging.getLogger(__name__)
 
 
-def open_sim_session(settings: SimSettings) -> Any:
+def open_sim_session(settings: SimSettings) -> StereoSequence:
     """The simulated session of ``[source.sim]``, through the one source-spec opener."""
     from stereopath.device.formats.source import open_source
 
@@ -34,11 +37,11 @@ class SimSource(SequenceSource):
     settings: SimSettings
 
     @property
-    def session(self) -> Any:
+    def session(self) -> StereoSequence | None:
         """The simulated session itself (ground truth, IMU truth); None before :meth:`open`."""
         return self.sequence
 
-    def _load(self) -> Any:
+    def _load(self) -> StereoSequence:
         return open_sim_session(self.settings)
 
     def _pacer(self) -> Callable[[int, int], None] | None:
