@@ -4,7 +4,7 @@ Pure compute: a grey ``uint8`` image in, a :class:`Features` set out.
 
 The *modified ASIFT* of the reference paper runs SIFT on affine-simulated views
 of an image.  A view is a pair ``(tilt t, longitude phi_deg)``: the image is
-rotated by ``phi``, blurred along x with ``sigma = blur_k * sqrt(t^2 - 1)``
+rotated by ``phi``, blurred along x with ``sigma = VIEW_BLUR_K * sqrt(t^2 - 1)``
 (anti-aliasing, as in Morel & Yu's ASIFT) and squeezed along x by ``1/t``.  SIFT
 runs on the view (with a mask that ignores the blank corners and a thin border)
 and every keypoint is mapped back to the original image with the inverse affine
@@ -26,7 +26,7 @@ Presets (:data:`PRESETS`):
   fails) at three longitudes, lower contrast and looser edge thresholds.  The symmetric
   pairing doubles the covered tilt directions (image 1 squeezed along phi = image 2
   stretched along phi); for one pair (``view_selection.detect_pair``) a low-resolution
-  pass first picks the view pairs worth computing (``coarse_factor``);
+  pass first picks the view pairs worth computing (``coarse.factor``);
 * ``fast_asym`` - the same cost in the paper's asymmetric scheme: tilt 2 at four
   longitudes, views downscaled to 0.7, SIFT only on the earlier image;
 * ``full``  - OpenCV's ``cv2.AffineFeature`` with its default view parameters (the

@@ -34,14 +34,13 @@ log = logging.getLogger(__name__)
 
 class StereoSequence(Protocol):
     """The sequence interface of the module doc (what :func:`~stereopath.device.formats.source.open_source`
-    returns: :class:`SequenceBase` subclasses, the simulator's session)."""
+    returns: :class:`SequenceBase` subclasses, the simulator's session).  Recorded sequences also have
+    ``strict`` and ``skipped_frames`` (:class:`SequenceBase`); a rendered one never skips a frame."""
 
     name: str
     spec: str
-    strict: bool
     rig: Rig
     t_ns: np.ndarray
-    skipped_frames: list[int]
 
     def __len__(self) -> int: ...
 
