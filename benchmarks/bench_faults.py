@@ -217,7 +217,7 @@ def sc_host_disk_full(tmp: Path, mount: bool) -> dict:
             while time.monotonic() < t_end:
                 rx.poll(0.02)
             during = len(stored_seqs(out, "sessH"))
-            failures = rx.stats.link["store_failures"]
+            failures = rx.stats.link.store_failures
             if mount:
                 grow("8m")
             else:
@@ -557,7 +557,7 @@ def sc_partition(tmp: Path, mount: bool) -> dict:
             p.blackhole.clear()
         tick(5)
         wait_for(lambda: len(stored_seqs(out, "sessN")) >= n, 40, between=lambda: rx.poll(0.05))
-        link = dict(rx.stats.link)
+        link = rx.stats.link.to_json()
     finally:
         rx.close()
         for p in proxies:

@@ -282,7 +282,7 @@ def test_earlier_session_keyframes_wait_for_host_space(tmp_path, monkeypatch):
     out = tmp_path / "host"
     rx = _receiver(new.pose_endpoint, new.keyframe_endpoint, out)
     try:
-        assert wait_for(lambda: rx.stats.link["store_failures"] >= 2, 20, between=lambda: rx.poll(0.02))
+        assert wait_for(lambda: rx.stats.link.store_failures >= 2, 20, between=lambda: rx.poll(0.02))
         assert len(list((tmp_path / "spool_sessOld").glob("*.kf"))) == 4  # nothing acknowledged, nothing deleted
         full["on"] = False
         assert wait_for(lambda: len(stored_seqs(out, "sessOld")) == 4, 30, between=lambda: rx.poll(0.02))
@@ -320,7 +320,7 @@ def test_keyframes_refused_before_later_ones_stored_are_fetched_again(tmp_path, 
     rx = _receiver(new.pose_endpoint, new.keyframe_endpoint, out)
     try:
         assert wait_for(lambda: len(stored_seqs(out, "sessOld")) == 4, 30, between=lambda: rx.poll(0.02))
-        assert len(refused) == 2 and rx.stats.link["store_failures"] == 2
+        assert len(refused) == 2 and rx.stats.link.store_failures == 2
         assert wait_for(lambda: not list((tmp_path / "spool_sessOld").glob("*.kf")), 10,
                         between=lambda: rx.poll(0.02))
     finally:

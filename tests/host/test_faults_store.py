@@ -77,7 +77,7 @@ def test_host_disk_full_keeps_keyframes_unacked_until_space_returns(tmp_path, mo
         for i in range(6):
             assert dev.offer_keyframe(i, i * 50_000_000, np.eye(4), *small_images(i))
         assert dev.wait_spooled(6, 10)
-        assert wait_for(lambda: rx.stats.link["store_failures"] >= 2, 10, between=lambda: rx.poll(0.02))
+        assert wait_for(lambda: rx.stats.link.store_failures >= 2, 10, between=lambda: rx.poll(0.02))
         for _ in range(20):
             rx.poll(0.02)
         assert not list(out.rglob("kf_*"))
@@ -127,7 +127,7 @@ def test_a_keyframe_refused_by_a_full_host_disk_is_asked_for_again_as_soon_as_st
             assert dev.offer_keyframe(i, i * 50_000_000, np.eye(4), *small_images(i))
         assert dev.wait_spooled(6, 10)
         assert wait_for(lambda: rx.store.session("sessH").acked_seq == 5, 10, between=lambda: rx.poll(0.02))
-        assert refused and rx.stats.link["hellos"] >= 2 and rx.stats.link["rehellos_after_stall"] == 0
+        assert refused and rx.stats.link.hellos >= 2 and rx.stats.link.rehellos_after_stall == 0
     finally:
         rx.close()
         dev.close()
@@ -168,7 +168,7 @@ def test_a_keyframe_that_keeps_failing_does_not_set_off_a_resend_loop(tmp_path, 
         wait_for(lambda: False, 3.0, between=lambda: rx.poll(0.02))
         elapsed = time.monotonic() - start
         assert rx.store.session("sessL").acked_seq == 1
-        assert rx.stats.link["hellos"] <= 2 + elapsed / receiver_mod.RECOVERY_HELLO_MIN_S
+        assert rx.stats.link.hellos <= 2 + elapsed / receiver_mod.RECOVERY_HELLO_MIN_S
         assert dev.stats()["keyframes_resent"] <= 4 * (1 + elapsed / receiver_mod.RECOVERY_HELLO_MIN_S)
     finally:
         rx.close()
