@@ -47,7 +47,7 @@ from stereopath.device.wire.security import load_host_keys
 from stereopath.device.wire.sockets import CurveKeys, secure_channel
 from stereopath.device.formats.tum import ns_to_seconds_str
 from stereopath.device.formats.fileio import cut_torn_tail, write_json_atomic
-from stereopath.host.live.receiver_config import RECEIVER_JSON, ReceiverConfig
+from stereopath.host.live.receiver_config import MAX_KEYFRAME_BYTES, RECEIVER_JSON, ReceiverConfig
 from stereopath.host.live.receiver_link import RECOVERY_HELLO_MIN_S, Link
 from stereopath.host.live.receiver_sessions import SessionCatalog, describe_incomplete
 from stereopath.host.live.receiver_stats import EventRate, LiveState, ReceiverStats, SessionStats
@@ -99,8 +99,8 @@ class Receiver:
         self.live = LiveState(session_id=self.store.last_session)
         self.sessions = SessionCatalog(self.out, fsync=config.fsync)
         self.device_session: str | None = None  # the device's live session (from its status / session message)
-        self._kf_limits = Limits(max_message_bytes=config.max_keyframe_bytes,
-                                 max_bin_len=min(KEYFRAME_LIMITS.max_bin_len, config.max_keyframe_bytes),
+        self._kf_limits = Limits(max_message_bytes=MAX_KEYFRAME_BYTES,
+                                 max_bin_len=min(KEYFRAME_LIMITS.max_bin_len, MAX_KEYFRAME_BYTES),
                                  max_array_len=SESSION_LIMITS.max_array_len, max_str_len=SESSION_LIMITS.max_str_len)
         for line in describe_incomplete(self.out):
             log.warning("incomplete session in %s: %s", self.out, line)

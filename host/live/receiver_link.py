@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Callable
 from stereopath.device.errors import ConfigError
 from stereopath.device.wire.protocol import POSE_LIMITS, Ack, Hello, Status, encode_ack, encode_hello
 from stereopath.device.wire.sockets import CurveKeys, open_socket, zmtp_greeting
-from stereopath.host.live.receiver_config import ReceiverConfig
+from stereopath.host.live.receiver_config import HEARTBEAT_TTL_MS, MAX_KEYFRAME_BYTES, ReceiverConfig
 from stereopath.host.live.receiver_stats import LinkCounters
 from stereopath.host.live.store import KeyframeStore
 
@@ -58,16 +58,17 @@ class Link:
         self._refused_since_hello = False  # a keyframe went unacknowledged: a later hello has it resent
         self._last_dealer_rx = self._last_hello_at = time.monotonic()
         self._ctx = zmq.Context()
-        common = dict(heartbeat_ivl_ms=config.heartbeat_ivl_ms, heartbeat_timeout_ms=config.heartbeat_timeout_ms,
-                      heartbeat_ttl_ms=config.heartbeat_ttl_ms, reconnect_ivl_ms=config.reconnect_ivl_ms,
-                      reconnect_ivl_max_ms=config.reconnect_ivl_max_ms)
+        t = config.sockets
+        common = dict(heartbeat_ivl_ms=t.heartbeat_ivl_ms, heartbeat_timeout_ms=t.heartbeat_timeout_ms,
+                      heartbeat_ttl_ms=HEARTBEAT_TTL_MS, reconnect_ivl_ms=t.reconnect_ivl_ms,
+                      reconnect_ivl_max_ms=t.reconnect_ivl_max_ms)
         self.sub: zmq.Socket = open_socket(self._ctx, zmq.SUB, curve, options={zmq.CONFLATE: 1},
                                            maxmsgsize=max(4096, 4 * POSE_LIMITS.max_message_bytes), **common)
         self.sub.setsockopt(zmq.SUBSCRIBE, b"")
         hwm = 4 * config.window + 64
         self.dealer: zmq.Socket = open_socket(self._ctx, zmq.DEALER, curve,
                                               options={zmq.IMMEDIATE: 1, zmq.RCVHWM: hwm, zmq.SNDHWM: hwm},
-                                              maxmsgsize=config.max_keyframe_bytes, **common)
+                                              maxmsgsize=MAX_KEYFRAME_BYTES, **common)
         self._monitor: zmq.Socket = self.dealer.get_monitor_socket(
             zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_FAILED_AUTH
             | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL)
@@ -228,7 +229,7 @@ class Link:
         if not self.connected or self._hello_pending:
             return
         quiet = now - max(self._last_dealer_rx, self._last_hello_at)
-        if quiet < max(self.config.stall_timeout_s, 2.0 * self.config.heartbeat_ivl_ms / 1000.0):
+        if quiet < max(self.config.stall_timeout_s, 2.0 * self.config.sockets.heartbeat_ivl_ms / 1000.0):
             return
         self.counters.rehellos_silent += 1
         if not self._silent_warned:

@@ -221,7 +221,7 @@ class DenseMapper:
             "bounds_min_m": v.min(axis=0).tolist(),
             "bounds_max_m": v.max(axis=0).tolist(),
             "config": {
-                "depth": dataclasses.asdict(config.depth),
+                "depth": config.depth.record(),
                 "fusion": dataclasses.asdict(config.fusion),
                 "keyframes": dataclasses.asdict(config.keyframes),
             },

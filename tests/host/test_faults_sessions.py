@@ -20,10 +20,12 @@ PAPER_YAML = REPO / "firmware_cfg" / "rig_paper.yaml"
 
 def _receiver(pose_endpoint: str, keyframe_endpoint: str, out: Path, **kw):
     from stereopath.host.live.receiver import Receiver, ReceiverConfig
+    from stereopath.host.live.receiver_config import SocketTiming
 
     return Receiver(ReceiverConfig(pose_endpoint, keyframe_endpoint, insecure=True, fsync=False,
-                                   heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
-                                   reconnect_ivl_max_ms=400, stall_timeout_s=1.0), out, **kw)
+                                   sockets=SocketTiming(heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500,
+                                                        reconnect_ivl_ms=50, reconnect_ivl_max_ms=400),
+                                   stall_timeout_s=1.0), out, **kw)
 
 
 def _deliver(dev, out: Path, session: str, n: int) -> None:

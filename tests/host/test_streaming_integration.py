@@ -19,11 +19,12 @@ from stereopath.device.wire.protocol import Hello, Keyframe, Status, decode_mess
 from stereopath.device.wire.security import generate_keypair, load_public_key, load_secret_keypair, make_demo_keys
 from stereopath.device.formats.tum import read_tum
 from stereopath.host.live.receiver import Receiver
-from stereopath.host.live.receiver_config import ReceiverConfig
+from stereopath.host.live.receiver_config import ReceiverConfig, SocketTiming
 from tests.device.test_streaming_support import assert_exactly_once, make_device, port_of, small_images, stored_seqs, \
     wait_for
 
 pytestmark = pytest.mark.timeout(60)
+FAST_SOCKETS = SocketTiming(heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50, reconnect_ivl_max_ms=400)
 
 
 @pytest.fixture(scope="module")
@@ -34,8 +35,7 @@ def keys(tmp_path_factory):
 def _receiver(dev, keys, out: Path, **kw) -> Receiver:
     cfg = ReceiverConfig(dev.pose_endpoint, dev.keyframe_endpoint, insecure=keys is None,
                          keys_dir=None if keys is None else str(keys.host_keys_dir), fsync=False,
-                         heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
-                         reconnect_ivl_max_ms=400, stall_timeout_s=1.0, **kw)
+                         sockets=FAST_SOCKETS, stall_timeout_s=1.0, **kw)
     return Receiver(cfg, out)
 
 
