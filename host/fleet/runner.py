@@ -315,13 +315,15 @@ class _Scheduler:
         return mine * slots > total
 
     def submit(self, slots: int) -> None:
+        from stereopath.host.fleet.worker import TaskPlan
+
         pm = self.options.path_map
         while len(self.inflight) < slots and (not self.inflight or self._idle()) and (nxt := self._next(slots)) is not None:
             st, part = nxt
             lead = self._leads(st, part, slots)
             ref = self.task.options(name=f"reprocess {st.session.id} ({part})", **self.task_opts).remote(
                 st.session.id, pm.to_worker(st.session.path), pm.to_worker(st.out), self.kwargs, self.board,
-                self.after_stage, self.threads, part, self.options.spread, lead)
+                self.after_stage, TaskPlan(part, self.threads, self.options.spread, lead))
             self.inflight[ref] = (st, part)
             if lead:
                 self.lead_refs.add(ref)
