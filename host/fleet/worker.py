@@ -22,14 +22,19 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 if TYPE_CHECKING:
     from ray.actor import ActorHandle
 
+    from stereopath.host.reprocess.pipeline import ReprocessResult
+
 log = logging.getLogger(__name__)
 
 STAGE_ORDER = ("estimate", "tracks", "ba", "map")  # the order the pipeline runs its stages in
+Shared = TypeVar("Shared")  # what every piece of a stage reads
+Item = TypeVar("Item")  # one piece's input
+Out = TypeVar("Out")  # one piece's result
 
 
 class ProgressBoard:
@@ -80,7 +85,7 @@ def _node() -> str:
         return socket.gethostname()
 
 
-def summarise(res: Any, wall_s: float, cpu_s: float) -> dict[str, Any]:
+def summarise(res: ReprocessResult, wall_s: float, cpu_s: float) -> dict[str, Any]:
     """The figures of one finished session for ``fleet.json`` (from a ``ReprocessResult``)."""
     rep = res.report or {}
     extra = rep.get("extra") or {}
@@ -156,7 +161,7 @@ def limit_threads(n: int, tbb: bool = True) -> None:
         limit_tbb(n)
 
 
-def run_piece(fn: Callable[[Any, Any], Any], shared: Any, item: Any) -> Any:
+def run_piece(fn: Callable[[Shared, Item], Out], shared: Shared, item: Item) -> tuple[Out, float]:
     """One piece of a stage's :func:`~stereopath.host.backend.parallel.parallel_map`, as a Ray task
     of one CPU: every pool of its worker at one thread (as in the stage it came from: one BLAS
     thread, so the same bits), then ``fn(shared, item)``; returns it with the CPU seconds it took."""
@@ -212,7 +217,7 @@ class RaySpreader:
         """Whether a piece sent now would run soon (an idle CPU, or the lead's turn at the next one)."""
         return self.ahead > 0 or self.idle_cpus() >= 1.0
 
-    def __call__(self, fn: Callable[[Any, Any], Any], shared: Any, items: list[Any]) -> list[Any]:
+    def __call__(self, fn: Callable[[Shared, Item], Out], shared: Shared, items: list[Item]) -> list[Out]:
         out: list[Any] = [None] * len(items)
         pending: dict[Any, int] = {}
         ref = None
