@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stereopath.device.core.config import check_range
+from stereopath.device.core.config import check_ranges, ranged
 from stereopath.device.core.geometry import rotation_angle_deg
 from stereopath.device.core.rig import Rig
 from stereopath.device.errors import CalibrationError, ConfigError, DatasetError
@@ -35,18 +35,14 @@ class KeyframeSelection:
     recording: the fusion keeps only surfaces several keyframes saw).  ``max_keyframes > 0`` thins the
     result evenly."""
 
-    stride: int = 0
-    min_translation_m: float = 0.04
-    min_rotation_deg: float = 5.0
-    max_keyframes: int = 0
-    min_keyframes: int = 8
+    stride: int = ranged(0, 0, 1_000_000)
+    min_translation_m: float = ranged(0.04, 0.0, 100.0)
+    min_rotation_deg: float = ranged(5.0, 0.0, 180.0)
+    max_keyframes: int = ranged(0, 0, 1_000_000)
+    min_keyframes: int = ranged(8, 0, 1_000_000)
 
     def __post_init__(self) -> None:
-        check_range("stride", self.stride, 0, 1_000_000)
-        check_range("min_translation_m", self.min_translation_m, 0.0, 100.0)
-        check_range("min_rotation_deg", self.min_rotation_deg, 0.0, 180.0)
-        check_range("max_keyframes", self.max_keyframes, 0, 1_000_000)
-        check_range("min_keyframes", self.min_keyframes, 0, 1_000_000)
+        check_ranges(self)
 
 
 @dataclass(frozen=True, eq=False)

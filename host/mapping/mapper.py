@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from stereopath.device.core.config import check_range
+from stereopath.device.core.config import check_range, check_ranges, ranged
 from stereopath.device.errors import ConfigError, DatasetError, StereopathError
 from stereopath.device.core.rig import Rig
 from stereopath.device.formats.tum import Trajectory
@@ -61,12 +61,11 @@ class MapConfig:
     depth: DepthConfig = field(default_factory=DepthConfig)
     fusion: FusionConfig = field(default_factory=FusionConfig)
     keyframes: KeyframeSelection = field(default_factory=KeyframeSelection)
-    preview_size: tuple[int, int] = (960, 720)
+    preview_size: tuple[int, int] = ranged((960, 720), 16, 8192)
     preset: str = "custom"
 
     def __post_init__(self) -> None:
-        check_range("preview_size[0]", self.preview_size[0], 16, 8192)
-        check_range("preview_size[1]", self.preview_size[1], 16, 8192)
+        check_ranges(self)
 
 
 MAP_PRESETS: dict[str, MapConfig] = {
