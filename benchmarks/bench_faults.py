@@ -91,10 +91,12 @@ def _receiver(dev, out: Path, **kw):
 
 def _receiver_at(pose_endpoint: str, keyframe_endpoint: str, out: Path, **kw):
     from stereopath.host.live.receiver import Receiver, ReceiverConfig
+    from stereopath.host.live.receiver_config import SocketTiming
 
     cfg = ReceiverConfig(pose_endpoint, keyframe_endpoint, insecure=True, fsync=False,
-                         heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
-                         reconnect_ivl_max_ms=400, stall_timeout_s=1.0, **kw)
+                         sockets=SocketTiming(heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
+                                              reconnect_ivl_max_ms=400),
+                         stall_timeout_s=1.0, **kw)
     return Receiver(cfg, out)
 
 
@@ -217,7 +219,7 @@ def sc_host_disk_full(tmp: Path, mount: bool) -> dict:
             while time.monotonic() < t_end:
                 rx.poll(0.02)
             during = len(stored_seqs(out, "sessH"))
-            failures = rx.stats.link["store_failures"]
+            failures = rx.stats.link.store_failures
             if mount:
                 grow("8m")
             else:
@@ -244,6 +246,7 @@ def sc_device_disk_full(tmp: Path, mount: bool) -> dict:
     from stereopath.device.service.options import RunOptions, load_config
     from stereopath.device.service.service import CaptureService
     from stereopath.host.live.receiver import Receiver, ReceiverConfig
+    from stereopath.host.live.receiver_config import SocketTiming
     from tests.device.test_service_support import FakeEstimator, sim_tables, write_toml
 
     stream = loopback_stream(drain_s=5.0)
@@ -286,13 +289,15 @@ def sc_two_hosts(tmp: Path, mount: bool) -> dict:
     """`host live` twice with one key (here: two receivers, CURVE, the same key pair)."""
     from stereopath.device.wire.security import make_demo_keys
     from stereopath.host.live.receiver import Receiver, ReceiverConfig
+    from stereopath.host.live.receiver_config import SocketTiming
 
     keys = make_demo_keys(tmp / "keys")
     dev = make_device(tmp, keys, "sessT")
 
     def rx(out):
         return Receiver(ReceiverConfig(dev.pose_endpoint, dev.keyframe_endpoint, keys_dir=str(keys.host_keys_dir),
-                                       fsync=False, stall_timeout_s=1.0, reconnect_ivl_ms=50), out)
+                                       fsync=False, stall_timeout_s=1.0,
+                                       sockets=SocketTiming(reconnect_ivl_ms=50)), out)
     a = rx(tmp / "a")
     for i in range(5):
         _offer(dev, i)
@@ -558,7 +563,7 @@ def sc_partition(tmp: Path, mount: bool) -> dict:
             p.blackhole.clear()
         tick(5)
         wait_for(lambda: len(stored_seqs(out, "sessN")) >= n, 40, between=lambda: rx.poll(0.05))
-        link = dict(rx.stats.link)
+        link = rx.stats.link.to_json()
     finally:
         rx.close()
         for p in proxies:

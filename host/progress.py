@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import sys
-from typing import Any, Callable
+from types import TracebackType
+from typing import TYPE_CHECKING, Callable
+
+if TYPE_CHECKING:
+    from tqdm import tqdm
 
 
-def progress_bar(total: int, desc: str, enabled: bool | None, unit: str = "it") -> Any:
+def progress_bar(total: int, desc: str, enabled: bool | None, unit: str = "it") -> tqdm | None:
     """A tqdm bar on stderr, or None (``enabled=None``: only when stderr is a terminal)."""
     if enabled is None:
         enabled = sys.stderr.isatty()
@@ -26,6 +30,7 @@ class Bar:
     def __enter__(self) -> Callable[[int], None]:
         return (lambda n=1: None) if self.bar is None else self.bar.update
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
         if self.bar is not None:
             self.bar.close()

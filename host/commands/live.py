@@ -152,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _counts(stats) -> dict[str, int]:
     """Messages of every kind received, and the link's counters (connects, refusals), so far."""
-    return {"messages": sum(stats.received.values()), **stats.link}
+    return {"messages": stats.received.total(), **stats.link.to_json()}
 
 
 def _exit_status(receiver, mapper, models, device: str = "", listened_s: float = 0.0,
@@ -162,7 +162,7 @@ def _exit_status(receiver, mapper, models, device: str = "", listened_s: float =
     when this run started (:func:`_counts`)."""
     st = receiver.stats
     log.info("received %d poses, %d keyframes (%d duplicates), %d pose seq gaps, %d rejected; sessions: %s",
-             st.received["pose"], st.received["keyframe"], st.duplicates, st.pose_seq_gaps, st.rejected,
+             st.received.pose, st.received.keyframe, st.duplicates, st.pose_seq_gaps, st.rejected,
              ", ".join(st.sessions) or "none")
     if receiver.storage_error is not None:
         print(f"stereopath: error: keyframes could not be stored on this host ({receiver.storage_error}); the "

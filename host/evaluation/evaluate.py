@@ -22,13 +22,16 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from stereopath.device.errors import DatasetError
 from stereopath.device.core.geometry import invert_pose
 from stereopath.device.formats.tum import Trajectory
+
+if TYPE_CHECKING:
+    from evo.core.trajectory import PoseTrajectory3D
 
 MIN_ASSOCIATED = 3
 
@@ -39,7 +42,7 @@ def ns_to_seconds(t_ns: np.ndarray) -> np.ndarray:
     return (t // 1_000_000_000).astype(float) + (t % 1_000_000_000).astype(float) / 1e9
 
 
-def to_evo(traj: Trajectory) -> Any:
+def to_evo(traj: Trajectory) -> PoseTrajectory3D:
     """Our :class:`Trajectory` as an ``evo.core.trajectory.PoseTrajectory3D``."""
     from evo.core.trajectory import PoseTrajectory3D
 
@@ -55,8 +58,8 @@ class Association:
     est: Trajectory  # associated estimated poses (as given)
     est_aligned: Trajectory  # est after the Umeyama SE(3) alignment (used for ATE)
     T_gt_est: np.ndarray  # the alignment: est_aligned = T_gt_est @ est
-    evo_gt: Any
-    evo_est_aligned: Any
+    evo_gt: PoseTrajectory3D
+    evo_est_aligned: PoseTrajectory3D
 
 
 def _indices(stamps_assoc: np.ndarray, stamps_all: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, SupportsFloat, Union
 
 import numpy as np
 
@@ -41,16 +41,18 @@ REPORT_KEYS = (
 METRIC_KEYS = ("path_length_m", "end_error_m", "end_error_pct", "ate_rmse_m", "rpe_trans_rmse_m",
                "rpe_rot_rmse_deg", "accuracy_pct")
 WORLD_FRAMES = ("first_camera", "gravity_aligned")
+# a value JSON holds (what json.loads returns, what json.dumps takes)
+JsonValue = Union[None, bool, int, float, str, list["JsonValue"], dict[str, "JsonValue"]]
 
 
-def _num(v: Any) -> float | None:
+def _num(v: SupportsFloat | None) -> float | None:
     if v is None:
         return None
     f = float(v)
     return f if math.isfinite(f) else None
 
 
-def _plain(v: Any) -> Any:
+def _plain(v: object) -> JsonValue:
     """numpy scalars/arrays and non-finite floats -> JSON-safe Python values."""
     if isinstance(v, dict):
         return {str(k): _plain(x) for k, x in v.items()}

@@ -19,32 +19,38 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from stereopath.device.core.geometry import invert_pose
+from stereopath.device.core.rig import CameraModel
 from stereopath.host.export.conventions import T_cam1_cam0
 from stereopath.host.export.keyframe_images import write_keyframe_images
 from stereopath.host.export.result import ExportSource
+
+if TYPE_CHECKING:
+    import pycolmap
 
 log = logging.getLogger(__name__)
 
 SPARSE = Path("sparse") / "0"
 
 
-def _rigid(pycolmap: Any, T: np.ndarray) -> Any:
+def _rigid(pycolmap: ModuleType, T: np.ndarray) -> pycolmap.Rigid3d:
     T = np.asarray(T, float)
     return pycolmap.Rigid3d(pycolmap.Rotation3d(T[:3, :3]), T[:3, 3].copy())
 
 
-def _camera(pycolmap: Any, camera_id: int, cam: Any) -> Any:
+def _camera(pycolmap: ModuleType, camera_id: int, cam: CameraModel) -> pycolmap.Camera:
     K = np.asarray(cam.K, float)
     return pycolmap.Camera(camera_id=camera_id, model="PINHOLE", width=int(cam.size[0]), height=int(cam.size[1]),
                            params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
 
 
-def build_reconstruction(src: ExportSource, names: dict[tuple[int, int], str], rgb: np.ndarray) -> Any:
+def build_reconstruction(src: ExportSource, names: dict[tuple[int, int], str],
+                         rgb: np.ndarray) -> pycolmap.Reconstruction:
     """The pycolmap ``Reconstruction`` of ``src`` (``names[(k, cam)]``: each image's name under images/)."""
     import pycolmap
 

@@ -13,10 +13,10 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from stereopath.device.core.rig import CameraModel
 from stereopath.host.export.result import ExportSource
 from stereopath.host.progress import Bar
 
@@ -37,7 +37,7 @@ class WrittenImage:
 class _Undistort:
     """One camera's resampling onto its own pinhole K (identity for a camera without distortion)."""
 
-    def __init__(self, cam: Any) -> None:
+    def __init__(self, cam: CameraModel) -> None:
         self.maps = None
         if np.any(np.asarray(cam.dist) != 0):
             import cv2

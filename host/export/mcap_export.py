@@ -10,6 +10,7 @@ time order, one frame at a time.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,7 @@ log = logging.getLogger(__name__)
 FILE_NAME = "scan.mcap"
 
 
-def _encoded(src: ExportSource) -> Any:
+def _encoded(src: ExportSource) -> Callable[[int], tuple[bytes, bytes, str]]:
     """Pose index -> (left bytes, right bytes, format)."""
     if src.frame_images is not None:
         return src.frame_images

@@ -25,9 +25,13 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import TYPE_CHECKING, BinaryIO
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from google.protobuf.descriptor import FileDescriptor
+    from google.protobuf.message import Message
 
 log = logging.getLogger(__name__)
 
@@ -48,14 +52,14 @@ TOPICS = {"tf": "/tf", "pose": "/pose", "cam0": "/cam0/image", "cam1": "/cam1/im
 WORLD, CAM0, CAM1, IMU_FRAME = "world", "cam0", "cam1", "imu"
 
 
-def file_descriptor_set(message_class: Any) -> bytes:
+def file_descriptor_set(message_class: type[Message]) -> bytes:
     """The serialized ``FileDescriptorSet`` of a protobuf message class and every file it depends on."""
     from google.protobuf.descriptor_pb2 import FileDescriptorSet
 
     fds = FileDescriptorSet()
     seen: set[str] = set()
 
-    def add(fd: Any) -> None:
+    def add(fd: FileDescriptor) -> None:
         if fd.name in seen:
             return
         seen.add(fd.name)

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from stereopath.device.core.rig import CameraModel
 from stereopath.host.export.conventions import T_world_cam1, opengl_from_opencv
 from stereopath.host.export.keyframe_images import write_keyframe_images
 from stereopath.host.export.result import ExportSource
@@ -39,7 +40,7 @@ PLY_NAME = "sparse_pc.ply"
 CHUNK = 65536  # points written per block
 
 
-def camera_entry(cam: Any) -> dict[str, Any]:
+def camera_entry(cam: CameraModel) -> dict[str, float | int]:
     """A pinhole camera as nerfstudio's per-frame intrinsics (no distortion left in the written images)."""
     K = np.asarray(cam.K, float)
     return {"fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),

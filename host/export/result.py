@@ -28,8 +28,10 @@ from typing import Any
 
 import numpy as np
 
+from stereopath.device.core.frames import ImuSamples
 from stereopath.device.core.rig import Rig
 from stereopath.device.errors import DatasetError
+from stereopath.device.formats.sequence import SequenceBase
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +55,7 @@ class ExportSource:
     t_ns: np.ndarray  # every frame with a pose
     T_world_cam0: np.ndarray  # (N, 4, 4)
     keyframes: list[ExportKeyframe]
-    imu: Any = None  # ImuSamples or None
+    imu: ImuSamples | None = None
     point_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     point_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     observations: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))  # (keyframe, point id, cam, u, v, w)
@@ -96,7 +98,7 @@ def _npz(path: Path) -> dict[str, np.ndarray]:
     return arrs
 
 
-def _file_images(seq: Any) -> Callable[[int], tuple[bytes, bytes, str]] | None:
+def _file_images(seq: SequenceBase) -> Callable[[int], tuple[bytes, bytes, str]] | None:
     """Frame -> the recorded PNG files' bytes, when the images are read as stored (no pinhole view)."""
     views = getattr(seq, "views", None)
     if not hasattr(seq, "image_paths") or (views is not None and any(v is not None for v in views)):
@@ -113,7 +115,7 @@ def _file_images(seq: Any) -> Callable[[int], tuple[bytes, bytes, str]] | None:
     return read
 
 
-def _loader(seq: Any, i: int) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
+def _loader(seq: SequenceBase, i: int) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
     def load() -> tuple[np.ndarray, np.ndarray]:
         fr = seq.frame(i)
         return fr.left, fr.right

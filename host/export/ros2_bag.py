@@ -20,8 +20,9 @@ topic             type                        what
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -29,6 +30,9 @@ from stereopath.device.core.geometry import invert_pose, matrix_to_quat_xyzw
 from stereopath.host.export.conventions import T_cam1_cam0
 from stereopath.host.export.result import ExportSource
 from stereopath.host.progress import Bar
+
+if TYPE_CHECKING:
+    from rosbags.typesys.store import Typestore
 
 log = logging.getLogger(__name__)
 
@@ -40,30 +44,30 @@ TYPES = {"cam0": "sensor_msgs/msg/Image", "cam1": "sensor_msgs/msg/Image", "imu"
 
 
 class _Messages:
-    """ROS 2 messages of the type store."""
+    """ROS 2 messages of the type store (instances of the classes it generates: opaque here)."""
 
-    def __init__(self, typestore: Any) -> None:
+    def __init__(self, typestore: Typestore) -> None:
         self.ts = typestore
         self.T = typestore.types
 
-    def header(self, t_ns: int, frame: str) -> Any:
+    def header(self, t_ns: int, frame: str) -> object:
         stamp = self.T["builtin_interfaces/msg/Time"](sec=int(t_ns) // 1_000_000_000, nanosec=int(t_ns) % 1_000_000_000)
         return self.T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
 
-    def vec(self, v: Any) -> Any:
+    def vec(self, v: Sequence[float] | np.ndarray) -> object:
         return self.T["geometry_msgs/msg/Vector3"](x=float(v[0]), y=float(v[1]), z=float(v[2]))
 
-    def quat(self, R: np.ndarray) -> Any:
+    def quat(self, R: np.ndarray) -> object:
         q = matrix_to_quat_xyzw(np.asarray(R, float))
         return self.T["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
 
-    def transform(self, t_ns: int, parent: str, child: str, T: np.ndarray) -> Any:
+    def transform(self, t_ns: int, parent: str, child: str, T: np.ndarray) -> object:
         tr = self.T["geometry_msgs/msg/Transform"](translation=self.vec(T[:3, 3]), rotation=self.quat(T[:3, :3]))
         stamped = self.T["geometry_msgs/msg/TransformStamped"](header=self.header(t_ns, parent), child_frame_id=child,
                                                                transform=tr)
         return self.T["tf2_msgs/msg/TFMessage"](transforms=[stamped])
 
-    def odometry(self, t_ns: int, T: np.ndarray) -> Any:
+    def odometry(self, t_ns: int, T: np.ndarray) -> object:
         pt = self.T["geometry_msgs/msg/Point"](x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3]))
         pose = self.T["geometry_msgs/msg/PoseWithCovariance"](
             pose=self.T["geometry_msgs/msg/Pose"](position=pt, orientation=self.quat(T[:3, :3])),
@@ -74,14 +78,14 @@ class _Messages:
         return self.T["nav_msgs/msg/Odometry"](header=self.header(t_ns, "world"), child_frame_id="cam0", pose=pose,
                                                twist=twist)
 
-    def image(self, t_ns: int, frame: str, img: np.ndarray) -> Any:
+    def image(self, t_ns: int, frame: str, img: np.ndarray) -> object:
         img = np.ascontiguousarray(img, np.uint8)
         enc = "mono8" if img.ndim == 2 else "bgr8"
         h, w = img.shape[:2]
         return self.T["sensor_msgs/msg/Image"](header=self.header(t_ns, frame), height=h, width=w, encoding=enc,
                                                is_bigendian=0, step=int(img.strides[0]), data=img.reshape(-1))
 
-    def imu(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> Any:
+    def imu(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> object:
         cov = np.zeros(9)
         no_orientation = np.zeros(9)
         no_orientation[0] = -1.0
@@ -105,7 +109,7 @@ def export_ros2(src: ExportSource, out: Path, progress: bool | None = None) -> d
     with Writer(out / BAG, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         conn = {k: writer.add_connection(TOPICS[k], TYPES[k], typestore=ts) for k in TOPICS if k != "imu" or imu is not None}
 
-        def put(key: str, t_ns: int, msg: Any) -> None:
+        def put(key: str, t_ns: int, msg: object) -> None:
             writer.write(conn[key], int(t_ns), ts.serialize_cdr(msg, TYPES[key]))
             counts[key] += 1
 

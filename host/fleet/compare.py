@@ -12,7 +12,12 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from stereopath.host.evaluation.report import JsonValue
+
+if TYPE_CHECKING:
+    import numpy as np
 
 BYTE_FILES = ("trajectory.tum",)
 PLY_FILES = ("mesh.ply", "cloud.ply")
@@ -25,7 +30,7 @@ def _timing(key: str) -> bool:
             or key in ("finished_utc", "stages"))
 
 
-def _untimed(v: Any) -> Any:
+def _untimed(v: JsonValue) -> JsonValue:
     if isinstance(v, dict):
         return {k: _untimed(x) for k, x in v.items() if not _timing(str(k))}
     if isinstance(v, list):
@@ -41,20 +46,20 @@ def npz_contents(path: Path) -> dict[str, Any]:
         return {k: _untimed(json.loads(str(z[k]))) if k in _RECORDS else z[k] for k in z.files if k not in _TIMES}
 
 
-def _same(x: Any, y: Any) -> bool:
+def _same(x: np.ndarray | dict[str, JsonValue], y: np.ndarray | dict[str, JsonValue]) -> bool:
     if isinstance(x, dict) or isinstance(y, dict):
         return x == y
     return x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
 
 
-def _rows(*arrays: Any) -> Any:
+def _rows(*arrays: np.ndarray) -> np.ndarray:
     import numpy as np
 
     cols = [np.asarray(x, np.float64).reshape(len(arrays[0]), -1) for x in arrays if len(x)]
     return np.hstack(cols) if cols else np.zeros((0, 0))
 
 
-def ply_canonical(path: Path) -> tuple[Any, Any]:
+def ply_canonical(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """A PLY's elements in a canonical order: (vertex rows, triangle rows) as float arrays.
 
     Vertex rows are position, normal, colour, sorted; triangles are rewritten with the sorted
@@ -98,7 +103,7 @@ def _unlabelled(record: dict[str, Any]) -> dict[str, Any]:
     """``record`` without its ``source`` label, and the label's path replaced in every text."""
     src = record.get("source")
 
-    def walk(v: Any) -> Any:
+    def walk(v: JsonValue) -> JsonValue:
         if isinstance(v, dict):
             return {k: walk(x) for k, x in v.items() if k != "source"}
         if isinstance(v, list):

@@ -10,11 +10,11 @@ import sys
 from collections.abc import Sequence
 from typing import Any, TextIO
 
+from stereopath.host.fleet.state import SessionState, count_states
 
-def status_line(states: Sequence[Any]) -> str:
+
+def status_line(states: Sequence[SessionState]) -> str:
     """``2/4 done, 1 running, 0 failed | s1: ba, s3: tracks (attempt 2)``."""
-    from stereopath.host.fleet.runner import count_states
-
     c = count_states(states)
     head = f"{c['done']}/{len(states)} done, {c['running']} running, {c['failed']} failed"
     if c["interrupted"]:
@@ -34,7 +34,7 @@ class FleetProgress:
         self.last = ""
         self.reported: set[tuple[str, str]] = set()
 
-    def __call__(self, states: Sequence[Any]) -> None:
+    def __call__(self, states: Sequence[SessionState]) -> None:
         for s in states:  # finished sessions get a line of their own
             if s.status in ("done", "failed") and (s.session.id, s.status) not in self.reported:
                 self.reported.add((s.session.id, s.status))

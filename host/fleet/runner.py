@@ -26,11 +26,16 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 from stereopath.device.errors import ConfigError, StereopathError
 from stereopath.host.fleet.sessions import FleetSession, PathMap, frame_count
+from stereopath.host.fleet.state import FleetResult, ReprocessSettings, SessionState
 from stereopath.host.fleet.worker import STAGE_ORDER
+
+if TYPE_CHECKING:
+    from ray.actor import ActorHandle
 
 log = logging.getLogger(__name__)
 
@@ -69,55 +74,7 @@ class FleetOptions:
             raise ConfigError(f"poll_s must be in [0.01, 60], got {self.poll_s}")
 
 
-@dataclass(frozen=True)
-class ReprocessSettings:
-    """The one-session command's settings, the same for every session of the run."""
-
-    preset: str = "standard"
-    do_map: bool = True
-    map_preset: str = "auto"
-    imu_priors: bool = False
-    force: bool = False  # recompute every stored stage (first attempt of each task only)
-    strict: bool = False  # stop a session at its first unreadable frame (default: skip it, counted)
-
-
-@dataclass
-class SessionState:
-    session: FleetSession
-    out: Path  # DIR/<session id> as the driver sees it
-    status: str = "pending"  # pending | running | done | failed | interrupted
-    stage: str | None = None  # the stage running now (while running)
-    stored: list[str] = field(default_factory=list)
-    attempts: int = 0
-    node: str | None = None
-    pid: int | None = None  # worker process of the latest attempt
-    error: str | None = None
-    result: dict[str, Any] | None = None
-    first: dict[str, Any] | None = None  # what the first of the session's two tasks reported
-    started: float | None = None
-    finished: float | None = None
-
-
-@dataclass
-class FleetResult:
-    out_dir: Path
-    sessions: list[SessionState]
-    wall_s: float
-    cluster: dict[str, Any]
-    interrupted: bool = False
-
-    def counts(self) -> dict[str, int]:
-        return count_states(self.sessions)
-
-
-def count_states(states: Sequence[SessionState]) -> dict[str, int]:
-    out = {k: 0 for k in ("done", "running", "failed", "pending", "interrupted")}
-    for s in states:
-        out[s.status] = out.get(s.status, 0) + 1
-    return out
-
-
-def _import_ray() -> Any:
+def _import_ray() -> ModuleType:
     try:
         import ray
     except ImportError as exc:
@@ -178,7 +135,7 @@ def _error_text(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {first[0] if first else ''}".rstrip(": ")
 
 
-def cluster_info(ray: Any, options: FleetOptions) -> dict[str, Any]:
+def cluster_info(ray: ModuleType, options: FleetOptions) -> dict[str, Any]:
     """The cluster as ``fleet.json`` records it, with ``max_in_flight`` (:func:`capacity`)."""
     res = ray.cluster_resources()
     return {"address": options.ray, "nodes": len([n for n in ray.nodes() if n.get("Alive")]),
@@ -237,7 +194,7 @@ class _Scheduler:
     the later stages).
     """
 
-    def __init__(self, ray: Any, states: list[SessionState], settings: ReprocessSettings, options: FleetOptions,
+    def __init__(self, ray: ModuleType, states: list[SessionState], settings: ReprocessSettings, options: FleetOptions,
                  after_stage: Callable[[str], None] | None) -> None:
         from stereopath.host.fleet.worker import IdleCpus, ProgressBoard, reprocess_task
 
@@ -315,13 +272,15 @@ class _Scheduler:
         return mine * slots > total
 
     def submit(self, slots: int) -> None:
+        from stereopath.host.fleet.worker import TaskPlan
+
         pm = self.options.path_map
         while len(self.inflight) < slots and (not self.inflight or self._idle()) and (nxt := self._next(slots)) is not None:
             st, part = nxt
             lead = self._leads(st, part, slots)
             ref = self.task.options(name=f"reprocess {st.session.id} ({part})", **self.task_opts).remote(
                 st.session.id, pm.to_worker(st.session.path), pm.to_worker(st.out), self.kwargs, self.board,
-                self.after_stage, self.threads, part, self.options.spread, lead)
+                self.after_stage, TaskPlan(part, self.threads, self.options.spread, lead))
             self.inflight[ref] = (st, part)
             if lead:
                 self.lead_refs.add(ref)
@@ -426,7 +385,7 @@ def run_fleet(sessions: Sequence[FleetSession], out_dir: str | Path, settings: R
     return result
 
 
-def _poll(ray: Any, board: Any, states: list[SessionState], settings: ReprocessSettings) -> bool:
+def _poll(ray: ModuleType, board: ActorHandle, states: list[SessionState], settings: ReprocessSettings) -> bool:
     """Copy the board's view (attempts, node, stored stages) into the running sessions' states."""
     try:
         snap = ray.get(board.snapshot.remote(), timeout=10)

@@ -11,9 +11,12 @@ import dataclasses
 import html
 import time
 from pathlib import Path
+from collections.abc import Mapping
 from typing import Any
 
 from stereopath.device.formats.fileio import write_json_atomic, write_text_atomic
+from stereopath.host.evaluation.report import JsonValue
+from stereopath.host.fleet.state import FleetResult, ReprocessSettings
 
 FORMAT = "stereopath-fleet"
 VERSION = 1
@@ -22,7 +25,7 @@ _ROW_KEYS = ("frames", "keyframes", "ate_rmse_m", "ate_reestimated_m", "mesh_ver
              "mesh_bytes", "map_error", "stages", "stage_seconds", "wall_s", "cpu_s")
 
 
-def summary_dict(result: Any, settings: Any) -> dict[str, Any]:
+def summary_dict(result: FleetResult, settings: ReprocessSettings | Mapping[str, object]) -> dict[str, Any]:
     """``fleet.json``'s content from a :class:`stereopath.host.fleet.runner.FleetResult`."""
     rows = []
     for st in result.sessions:
@@ -46,7 +49,7 @@ def summary_dict(result: Any, settings: Any) -> dict[str, Any]:
     }
 
 
-def _cell(v: Any, scale: float = 1.0, digits: int = 3) -> str:
+def _cell(v: JsonValue, scale: float = 1.0, digits: int = 3) -> str:
     if v is None:
         return "&ndash;"
     if isinstance(v, float) or scale != 1.0:
@@ -104,7 +107,8 @@ def render_html(summary: dict[str, Any]) -> str:
             f"<table><tr>{th}</tr>{''.join(rows)}</table></body></html>\n")
 
 
-def write_summary(out_dir: Path, result: Any, settings: Any) -> dict[str, Any]:
+def write_summary(out_dir: Path, result: FleetResult,
+                  settings: ReprocessSettings | Mapping[str, object]) -> dict[str, Any]:
     """Write ``fleet.json`` and ``fleet.html`` into ``out_dir``; returns the summary dict."""
     summary = summary_dict(result, settings)
     # no fsync: the summary is rewritten after every change and can be rebuilt by rerunning the command

@@ -20,12 +20,21 @@ import os
 import socket
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
+
+if TYPE_CHECKING:
+    from ray.actor import ActorHandle
+
+    from stereopath.host.reprocess.pipeline import ReprocessResult
 
 log = logging.getLogger(__name__)
 
 STAGE_ORDER = ("estimate", "tracks", "ba", "map")  # the order the pipeline runs its stages in
+Shared = TypeVar("Shared")  # what every piece of a stage reads
+Item = TypeVar("Item")  # one piece's input
+Out = TypeVar("Out")  # one piece's result
 
 
 class ProgressBoard:
@@ -76,7 +85,7 @@ def _node() -> str:
         return socket.gethostname()
 
 
-def summarise(res: Any, wall_s: float, cpu_s: float) -> dict[str, Any]:
+def summarise(res: ReprocessResult, wall_s: float, cpu_s: float) -> dict[str, Any]:
     """The figures of one finished session for ``fleet.json`` (from a ``ReprocessResult``)."""
     rep = res.report or {}
     extra = rep.get("extra") or {}
@@ -152,7 +161,7 @@ def limit_threads(n: int, tbb: bool = True) -> None:
         limit_tbb(n)
 
 
-def run_piece(fn: Callable[[Any, Any], Any], shared: Any, item: Any) -> Any:
+def run_piece(fn: Callable[[Shared, Item], Out], shared: Shared, item: Item) -> tuple[Out, float]:
     """One piece of a stage's :func:`~stereopath.host.backend.parallel.parallel_map`, as a Ray task
     of one CPU: every pool of its worker at one thread (as in the stage it came from: one BLAS
     thread, so the same bits), then ``fn(shared, item)``; returns it with the CPU seconds it took."""
@@ -208,7 +217,7 @@ class RaySpreader:
         """Whether a piece sent now would run soon (an idle CPU, or the lead's turn at the next one)."""
         return self.ahead > 0 or self.idle_cpus() >= 1.0
 
-    def __call__(self, fn: Callable[[Any, Any], Any], shared: Any, items: list[Any]) -> list[Any]:
+    def __call__(self, fn: Callable[[Shared, Item], Out], shared: Shared, items: list[Item]) -> list[Out]:
         out: list[Any] = [None] * len(items)
         pending: dict[Any, int] = {}
         ref = None
@@ -271,27 +280,41 @@ def first_part(session: str | Path, out_dir: str | Path, preset: str, t0: float,
             "wall_s": round(time.perf_counter() - t0, 3), "cpu_s": round(time.process_time() - c0, 3)}
 
 
-def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any], board: Any = None,
-                   after_stage: Callable[[str], None] | None = None, threads: int | None = None,
-                   part: str = "all", spread: bool = False, lead: bool = False) -> dict[str, Any]:
-    """Reprocess one session (paths as this worker sees them); returns :func:`summarise`'s dict.
+@dataclass(frozen=True)
+class TaskPlan:
+    """How one session task runs.
 
-    ``settings``: keyword arguments of ``reprocess_session`` (preset, do_map, map_preset,
-    imu_priors, force; force applies to the first attempt only).  ``board``: a :class:`ProgressBoard` actor handle or None.
-    ``after_stage(name)`` is called after each stored stage, after the board is told.
-    ``threads``: the thread count of every pool in this worker (:func:`limit_threads`; None leaves them).
     ``part``: "all"; or "first": stop once the ``estimate`` stage is computed and return
     :func:`first_part`'s dict (when it was already stored, the session runs to its end); or
     "rest": the session from its stored estimate (the driver runs "first" before it).
+    ``threads``: the thread count of every pool in the worker (:func:`limit_threads`; None leaves them).
     ``spread``: the stages' independent pieces run as Ray tasks of their own on idle CPUs
     (:class:`RaySpreader`); ``lead``: this session is the one the fleet waits for (its spreader's ``lead``).
+    """
+
+    part: str = "all"
+    threads: int | None = None
+    spread: bool = False
+    lead: bool = False
+
+
+def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any],
+                   board: ActorHandle | None = None, after_stage: Callable[[str], None] | None = None,
+                   plan: TaskPlan = TaskPlan()) -> dict[str, Any]:
+    """Reprocess one session (paths as this worker sees them) as ``plan`` says; returns :func:`summarise`'s dict.
+
+    ``settings``: keyword arguments of ``reprocess_session`` (preset, do_map, map_preset,
+    imu_priors, force; force applies to the first attempt only).  ``board``: a :class:`ProgressBoard` actor
+    handle or None.
+    ``after_stage(name)`` is called after each stored stage, after the board is told.
     A :class:`StereopathError` (bad input) propagates: the driver reports the session failed.
     """
     from stereopath.host.backend.parallel import spread_with
     from stereopath.host.reprocess.pipeline import reprocess_session
 
-    if threads is not None:
-        limit_threads(max(1, int(threads)))
+    part = plan.part
+    if plan.threads is not None:
+        limit_threads(max(1, int(plan.threads)))
     t0, c0 = time.perf_counter(), time.process_time()
     node = _node()
     if board is not None:
@@ -310,7 +333,7 @@ def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any
         if part == "first" and name == "estimate":
             raise _Stop
 
-    spreader = RaySpreader(lead=lead) if spread else None
+    spreader = RaySpreader(lead=plan.lead) if plan.spread else None
     try:
         with spread_with(spreader):
             res = reprocess_session(session, out_dir, progress=False, after_stage=hook, **settings)

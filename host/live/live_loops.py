@@ -13,12 +13,16 @@ See docs/architecture.md, "A keyframe on the host".
 from __future__ import annotations
 
 import logging
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from stereopath.device.core.rig import Rig
 from stereopath.host.backend.pose_graph import LivePoseGraph
+
+if TYPE_CHECKING:
+    from stereopath.host.backend.loops import LoopConfig
+    from stereopath.host.backend.tracks import TrackConfig
 
 log = logging.getLogger(__name__)
 
@@ -26,7 +30,7 @@ log = logging.getLogger(__name__)
 class LiveLoopCloser:
     """Loop detection and pose-graph correction over one session's keyframes, in arrival order."""
 
-    def __init__(self, rig: Rig, loops: Any = None, features: Any = None) -> None:
+    def __init__(self, rig: Rig, loops: LoopConfig | None = None, features: TrackConfig | None = None) -> None:
         from stereopath.host.backend.loops import LoopConfig
         from stereopath.host.backend.tracks import TrackConfig
 

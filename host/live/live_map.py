@@ -16,18 +16,26 @@ import logging
 import queue
 import threading
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Callable
 
 from stereopath.device.errors import CalibrationError, StereopathError
 from stereopath.device.core.rig import Rig
+from stereopath.device.wire.protocol import Keyframe
+
+if TYPE_CHECKING:
+    import open3d as o3d
+
+    from stereopath.host.backend.loops import LoopConfig
+    from stereopath.host.live.live_loops import LiveLoopCloser
+    from stereopath.host.mapping.mapper import DenseMapper
 
 log = logging.getLogger(__name__)
 
 
 class LiveMapper:
     def __init__(self, rig: Rig | None, out_dir: str | Path, every: int = 10, preset: str = "object",
-                 on_mesh: Any = None, rig_for: Callable[[str], Rig | None] | None = None,
-                 loops: Any = True) -> None:
+                 on_mesh: Callable[[str, o3d.geometry.TriangleMesh], None] | None = None,
+                 rig_for: Callable[[str], Rig | None] | None = None, loops: bool | LoopConfig | None = True) -> None:
         from stereopath.device.wire.protocol import rig_reference
 
         self.rig = rig
@@ -38,23 +46,23 @@ class LiveMapper:
         self.preset = preset
         self.on_mesh = on_mesh
         self._ref = rig_reference(rig) if rig is not None else None
-        self._mappers: dict[str, Any] = {}
+        self._mappers: dict[str, DenseMapper] = {}
         # loops: True (default LoopConfig), False/None (off) or a LoopConfig
         self.loops = loops
-        self._closers: dict[str, Any] = {}
+        self._closers: dict[str, LiveLoopCloser] = {}
         self.loops_closed = 0
-        self._q: queue.Queue = queue.Queue()
+        self._q: queue.Queue[Keyframe | None] = queue.Queue()
         self._thread = threading.Thread(target=self._work, name="live-map", daemon=True)
         self._thread.start()
         self.rejected = 0
         self.fused = 0
         self.refreshes = 0
 
-    def on_keyframe(self, kf: Any, new: bool) -> None:
+    def on_keyframe(self, kf: Keyframe, new: bool) -> None:
         if new:
             self._q.put(kf)
 
-    def _rig_of(self, kf: Any) -> Rig:
+    def _rig_of(self, kf: Keyframe) -> Rig:
         """The rig ``kf`` was taken with: the device's (stored from its session message), else ``rig``."""
         from stereopath.device.wire.protocol import rig_reference
 
@@ -79,7 +87,7 @@ class LiveMapper:
                                    f"({kf.rig_hash}), not the session's")
         return rig
 
-    def _mapper(self, session: str, rig: Rig):
+    def _mapper(self, session: str, rig: Rig) -> DenseMapper:
         from stereopath.host.mapping.mapper import DenseMapper, map_preset
 
         if session not in self._mappers:
@@ -87,7 +95,7 @@ class LiveMapper:
                                                  keep_depth=bool(self.loops))
         return self._mappers[session]
 
-    def _fuse(self, kf: Any, rig: Rig) -> bool:
+    def _fuse(self, kf: Keyframe, rig: Rig) -> bool:
         """Fuse one keyframe (at its loop-corrected pose); True when it closed a loop and the map was re-posed."""
         from stereopath.device.wire.protocol import decode_image
         from stereopath.host.live.live_loops import LiveLoopCloser

@@ -19,12 +19,14 @@ from typing import Any
 
 import numpy as np
 
+from stereopath.device.wire.protocol import EncodedImage, Keyframe, Pose
+
 log = logging.getLogger(__name__)
 
 FORMATS = {"jpg": "jpeg", "jpeg": "jpeg", "png": "png"}
 
 
-def _compressed(img: Any) -> tuple[bytes, str]:
+def _compressed(img: EncodedImage) -> tuple[bytes, str]:
     """An encoded image's bytes and Foxglove format (raw images are encoded as PNG)."""
     fmt = FORMATS.get(str(img.encoding).lower())
     if fmt is not None:
@@ -74,14 +76,14 @@ class McapSink:
                 self.failed = f"{what}: {exc}"
                 log.error("--mcap %s: writing stopped (%s); the keyframe store is unaffected", self.path, exc)
 
-    def on_pose(self, pose: Any) -> None:
+    def on_pose(self, pose: Pose) -> None:
         def write() -> None:
             self._session(pose.session_id, pose.t_ns)
             self.recorder.pose(pose.t_ns, np.asarray(pose.T_world_cam, float))
 
         self._guarded("pose", write)
 
-    def on_keyframe(self, kf: Any, new: bool) -> None:
+    def on_keyframe(self, kf: Keyframe, new: bool) -> None:
         if not new:
             return
 

@@ -13,11 +13,12 @@ each device session id it sees keeps a folder ``OUT/<session>/`` with
 ``OUT/receiver.json`` counts messages received, keyframe duplicates, gaps in the pose seq and
 rejected messages by reason (totals over restarts of the receiver).
 
-Keyframe flow control (see :mod:`stereopath.device.streaming.keyframe_server`): on every completed
-handshake (a socket monitor reports it, so reconnects are noticed) the receiver says
-``hello(last session, highest contiguous seq, window)``; it acknowledges each keyframe after
-storing it, granting one more credit; if the device's status shows keyframes the receiver does
-not have and none arrived for ``stall_timeout_s``, it says hello again.
+Keyframe flow control (see :mod:`stereopath.device.streaming.keyframe_server`): the receiver's
+:class:`~stereopath.host.live.receiver_link.Link` owns the sockets; on every completed handshake
+(a socket monitor reports it, so reconnects are noticed) it says ``hello(last session, highest
+contiguous seq, window)``; the receiver acknowledges each keyframe after storing it, granting one
+more credit; if the device's status shows keyframes the receiver does not have and none arrived
+for ``stall_timeout_s``, the link says hello again.
 
 Poses are received on their own thread (they never wait behind a keyframe being written to
 disk); keyframes, status and the flow control run in :meth:`Receiver.poll`.  Callbacks
@@ -36,24 +37,28 @@ import math
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, TextIO
+from types import TracebackType
+from typing import TYPE_CHECKING, Callable, TextIO
 
 from stereopath.device.errors import ConfigError
-from stereopath.device.wire.protocol import KEYFRAME_LIMITS, POSE_LIMITS, SESSION_LIMITS, Ack, DecodeError, \
-    Keyframe, Limits, Pose, SessionInfo, Status, decode_message, encode_ack
+from stereopath.device.wire.protocol import KEYFRAME_LIMITS, POSE_LIMITS, SESSION_LIMITS, DecodeError, \
+    Keyframe, Limits, Pose, SessionInfo, Status, decode_message
 from stereopath.device.wire.security import load_host_keys
-from stereopath.device.wire.sockets import CurveKeys, open_socket, secure_channel
+from stereopath.device.wire.sockets import CurveKeys, secure_channel
 from stereopath.device.formats.tum import ns_to_seconds_str
 from stereopath.device.formats.fileio import cut_torn_tail, write_json_atomic
-from stereopath.host.live.receiver_config import RECEIVER_JSON, ReceiverConfig
-from stereopath.host.live.receiver_link import LinkControl
+from stereopath.host.live.receiver_config import MAX_KEYFRAME_BYTES, RECEIVER_JSON, ReceiverConfig
+from stereopath.host.live.receiver_link import RECOVERY_HELLO_MIN_S, Link
 from stereopath.host.live.receiver_sessions import SessionCatalog, describe_incomplete
 from stereopath.host.live.receiver_stats import EventRate, LiveState, ReceiverStats, SessionStats
 from stereopath.host.live.store import STATE_NAME, KeyframeStore, list_sessions
 
+if TYPE_CHECKING:
+    import zmq
+
 log = logging.getLogger(__name__)
 
-RECOVERY_HELLO_MIN_S = 1.0  # seconds between hellos asking for refused keyframes once storing works again
+__all__ = ["HOST_FILES", "RECOVERY_HELLO_MIN_S", "Receiver", "session_name_clash"]
 HOST_FILES = (RECEIVER_JSON, STATE_NAME)  # what the host itself keeps in OUT beside the session folders
 
 
@@ -71,7 +76,7 @@ def session_name_clash(out: Path, sid: str) -> str:
     return ""
 
 
-class Receiver(LinkControl):
+class Receiver:
     """Receives from one device into ``out_dir``; drive it with :meth:`poll` or :meth:`run`."""
 
     def __init__(self, config: ReceiverConfig, out_dir: str | Path,
@@ -94,56 +99,27 @@ class Receiver(LinkControl):
         self.live = LiveState(session_id=self.store.last_session)
         self.sessions = SessionCatalog(self.out, fsync=config.fsync)
         self.device_session: str | None = None  # the device's live session (from its status / session message)
-        self._kf_limits = Limits(max_message_bytes=config.max_keyframe_bytes,
-                                 max_bin_len=min(KEYFRAME_LIMITS.max_bin_len, config.max_keyframe_bytes),
+        self._kf_limits = Limits(max_message_bytes=MAX_KEYFRAME_BYTES,
+                                 max_bin_len=min(KEYFRAME_LIMITS.max_bin_len, MAX_KEYFRAME_BYTES),
                                  max_array_len=SESSION_LIMITS.max_array_len, max_str_len=SESSION_LIMITS.max_str_len)
         for line in describe_incomplete(self.out):
             log.warning("incomplete session in %s: %s", self.out, line)
         self._tum: dict[str, TextIO] = {}
         self._pose_rate, self._kf_rate = EventRate(), EventRate()
         self._pose_window: collections.deque[tuple[float, int]] = collections.deque(maxlen=4096)
-        self._hello_pending = False
-        self._hello_after: float | None = None  # a hello due then (storing works again after a refusal)
-        self._last_progress = time.monotonic()
         self._next_stats = time.monotonic()
-        self._auth_warned = False
-        self._probe_next, self._probe_said = 0.0, ""
         self._warned: set[str] = set()
         self._known_sessions: set[str] = {s for s in list_sessions(self.out) if not session_name_clash(self.out, s)}
         self._refused_sessions: dict[str, str] = {}  # session ids whose folder cannot be made, and why (bounded)
         self.storage_error: str | None = None  # set while keyframes cannot be stored (disk full)
-        self._refused_since_hello = False  # a keyframe went unacknowledged: a later hello has it resent
-        self._last_dealer_rx = self._last_hello_at = time.monotonic()
         self._new_sessions = 0
-        self._ctx = zmq.Context()
-        common = dict(heartbeat_ivl_ms=config.heartbeat_ivl_ms, heartbeat_timeout_ms=config.heartbeat_timeout_ms,
-                      heartbeat_ttl_ms=config.heartbeat_ttl_ms, reconnect_ivl_ms=config.reconnect_ivl_ms,
-                      reconnect_ivl_max_ms=config.reconnect_ivl_max_ms)
-        self.sub = open_socket(self._ctx, zmq.SUB, curve, options={zmq.CONFLATE: 1},
-                               maxmsgsize=max(4096, 4 * POSE_LIMITS.max_message_bytes), **common)
-        self.sub.setsockopt(zmq.SUBSCRIBE, b"")
-        hwm = 4 * config.window + 64
-        self.dealer = open_socket(self._ctx, zmq.DEALER, curve,
-                                  options={zmq.IMMEDIATE: 1, zmq.RCVHWM: hwm, zmq.SNDHWM: hwm},
-                                  maxmsgsize=config.max_keyframe_bytes, **common)
-        self.monitor = self.dealer.get_monitor_socket(
-            zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_FAILED_AUTH
-            | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL)
-        try:
-            self.sub.connect(config.pose_endpoint)
-            self.dealer.connect(config.keyframe_endpoint)
-        except zmq.ZMQError as exc:
-            self.dealer.disable_monitor()
-            for s in (self.monitor, self.sub, self.dealer):
-                s.close(linger=0)
-            self._ctx.term()
-            self.store.close()
-            raise ConfigError(f"cannot connect to {config.pose_endpoint} / {config.keyframe_endpoint}: {exc}") from None
-        self._poller = zmq.Poller()
-        for s in (self.dealer, self.monitor):
-            self._poller.register(s, zmq.POLLIN)
-        self._closed = False
         self.lock = threading.RLock()  # hold it to read stats/live consistently (the pose thread writes them)
+        try:
+            self.link = Link(config, curve, self.store, self.stats.link, self._storage_failed)
+        except ConfigError:
+            self.store.close()
+            raise
+        self._closed = False
         self._stop = threading.Event()
         self._pose_thread = threading.Thread(target=self._pose_loop, name="stereopath-poses", daemon=True)
         self._pose_thread.start()
@@ -154,17 +130,14 @@ class Receiver(LinkControl):
 
     def poll(self, timeout_s: float = 0.1) -> int:
         """Wait up to ``timeout_s`` for traffic and handle everything available; returns messages handled."""
-        events = dict(self._poller.poll(int(max(0.0, timeout_s) * 1000)))
         n = 0
-        if self.monitor in events:
-            self._handle_monitor()
-        if self.dealer in events:
-            n += self._drain(self.dealer, "keyframe", 64)
+        readable = self.link.wait(timeout_s)
+        self.live.connected = self.link.connected
+        if readable:
+            n += self._drain(self.link.dealer, "keyframe", 64)
         now = time.monotonic()
-        if self._hello_pending or (self._hello_after is not None and now >= self._hello_after):
-            self._hello_after = None
-            self._send_hello()
-        self._check_stall(now)
+        self.link.hello_if_due(now)
+        self.link.check(now, self.live.status)
         self._update_live(now)
         if now >= self._next_stats:
             self.write_stats()
@@ -204,18 +177,13 @@ class Receiver(LinkControl):
         self.store.close()
         for line in describe_incomplete(self.out):
             log.warning("incomplete session: %s", line)
-        try:
-            self.dealer.disable_monitor()
-        except self._zmq.ZMQError:
-            pass
-        for s in (self.monitor, self.sub, self.dealer):
-            s.close(linger=0)
-        self._ctx.term()
+        self.link.close()
 
     def __enter__(self) -> "Receiver":
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
         self.close()
 
     # ------------------------------------------------------------------ handlers
@@ -223,16 +191,16 @@ class Receiver(LinkControl):
     def _pose_loop(self) -> None:
         zmq = self._zmq
         poller = zmq.Poller()
-        poller.register(self.sub, zmq.POLLIN)
+        poller.register(self.link.sub, zmq.POLLIN)
         try:
             while not self._stop.is_set():
                 if poller.poll(100):
-                    self._drain(self.sub, "pose", 256)
+                    self._drain(self.link.sub, "pose", 256)
         except Exception:  # a bug must not pass silently
             log.exception("pose receiver thread failed")
             raise
 
-    def _drain(self, sock: Any, channel: str, limit: int) -> int:
+    def _drain(self, sock: zmq.Socket, channel: str, limit: int) -> int:
         zmq = self._zmq
         n = 0
         while n < limit:
@@ -243,8 +211,7 @@ class Receiver(LinkControl):
             n += 1
             self.live.last_rx = time.monotonic()
             if channel == "keyframe":
-                self._last_dealer_rx = time.monotonic()
-                self._warned.discard("silent")
+                self.link.heard(time.monotonic())
             if len(frames) != 1:
                 self._reject(channel, "frames")
                 continue
@@ -326,7 +293,7 @@ class Receiver(LinkControl):
     def _handle_pose(self, pose: Pose) -> None:
         now = time.monotonic()
         with self.lock:
-            self.stats.received["pose"] += 1
+            self.stats.received.pose += 1
             s = self._session(pose.session_id)
             if s.last_pose_seq >= 0:
                 if pose.seq > s.last_pose_seq + 1:
@@ -370,8 +337,8 @@ class Receiver(LinkControl):
         except OSError:
             pass
         with self.lock:
-            self.stats.link["poses_unsaved"] += 1
-            first = self.stats.link["poses_unsaved"] == 1 or "poses" not in self._warned
+            self.stats.link.poses_unsaved += 1
+            first = self.stats.link.poses_unsaved == 1 or "poses" not in self._warned
             self._warned.add("poses")
         if first:
             log.error("cannot append to %s: %s; live poses are shown but not saved on this host (the device "
@@ -402,13 +369,11 @@ class Receiver(LinkControl):
             log.info("storing keyframes again (after: %s): hello, so the device resends the ones refused",
                      self.storage_error)
             self.storage_error = None
-            # soon, not after a stall (a run's end waits only stream.drain_s for hosts), but at most once per
-            # RECOVERY_HELLO_MIN_S: a keyframe that keeps failing must not have the device resend in a loop
-            self._hello_after = max(time.monotonic(), self._last_hello_at + RECOVERY_HELLO_MIN_S)
+            self.link.storing_again()
         self.sessions.on_count(kf.session_id, kf.seq + 1)  # the device holds at least this many
         now = time.monotonic()
         with self.lock:
-            self.stats.received["keyframe"] += 1
+            self.stats.received.keyframe += 1
             s = self._session(kf.session_id, live)
             if new:
                 s.keyframes += 1
@@ -418,20 +383,16 @@ class Receiver(LinkControl):
                 self.stats.duplicates += 1
             if live:
                 self.live.acked_seq = self.store.session(kf.session_id).acked_seq
-        self._last_progress = now
-        try:
-            self.dealer.send(encode_ack(Ack(kf.session_id, kf.seq, 1)), self._zmq.NOBLOCK)
-        except self._zmq.Again:
-            with self.lock:
-                self.stats.link["acks_unsent"] += 1  # not connected: the next hello resynchronises
+        self.link.progress(now)
+        self.link.ack(kf.session_id, kf.seq)
         if self.on_keyframe is not None:
             self.on_keyframe(kf, new)
 
     def _storage_failed(self, what: str, exc: OSError) -> None:
         """Log a storage failure once per streak; the device resends what was not acknowledged."""
         with self.lock:
-            self.stats.link["store_failures"] += 1
-            self._refused_since_hello = True
+            self.stats.link.store_failures += 1
+            self.link.refused()
             first = self.storage_error is None
             self.storage_error = f"{exc.strerror or exc} ({self.out})"
         if first:
@@ -444,7 +405,7 @@ class Receiver(LinkControl):
         self.device_session = st.session_id
         self.sessions.on_count(st.session_id, st.keyframes_spooled)
         with self.lock:
-            self.stats.received["status"] += 1
+            self.stats.received.status += 1
             self._session(st.session_id)
             self.live.status = st
         if self.on_status is not None:
@@ -454,11 +415,24 @@ class Receiver(LinkControl):
         if info.live:
             self.device_session = info.session_id
         with self.lock:
-            self.stats.received["session"] += 1
+            self.stats.received.session += 1
         try:
             self.sessions.on_session(info)
         except OSError as exc:  # the next connection sends it again
             self._storage_failed(f"the rig of session {info.session_id}", exc)
+
+    def _update_live(self, now: float) -> None:
+        with self.lock:
+            live = self.live
+            live.pose_rate_hz = self._pose_rate.rate(now)
+            live.keyframe_rate_hz = self._kf_rate.rate(now)
+            w = self._pose_window
+            while w and now - w[0][0] > 2.0:
+                w.popleft()
+            if len(w) >= 2:
+                span = max(s for _, s in w) - min(s for _, s in w) + 1
+                live.pose_window_ratio = min(1.0, len(w) / span)
+            live.link_quality = self.link.quality(now, live.last_rx, live.pose_window_ratio)
 
     # ------------------------------------------------------------------ statistics
 

@@ -2,14 +2,26 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from stereopath.device.core.config import check_range
+from stereopath.device.core.config import check_ranges, ranged
 from stereopath.device.errors import ConfigError
 from stereopath.device.wire.protocol import KEYFRAME_LIMITS
 
 RECEIVER_JSON = "receiver.json"
 DEFAULT_POSE_PORT = 5555
+HEARTBEAT_TTL_MS = 10000  # how long the device may wait for this host's heartbeats (ZMTP heartbeat TTL)
+MAX_KEYFRAME_BYTES = KEYFRAME_LIMITS.max_message_bytes  # a bigger keyframe message is refused (socket limit)
+
+
+@dataclass(frozen=True)
+class SocketTiming:
+    """ZMTP heartbeats and reconnection backoff of the receiver's sockets (milliseconds)."""
+
+    heartbeat_ivl_ms: int = 1000
+    heartbeat_timeout_ms: int = 5000  # a silent device is dropped after this (then reconnected)
+    reconnect_ivl_ms: int = 100
+    reconnect_ivl_max_ms: int = 5000
 
 
 @dataclass(frozen=True)
@@ -21,23 +33,15 @@ class ReceiverConfig:
     insecure: bool = False
     keys_dir: str | None = None      # the host's key pair (*.key_secret) and device.key
     device_key: str | None = None    # the device's public key, if not KEYS/device.key
-    window: int = 8                  # keyframes in flight (credit)
-    heartbeat_ivl_ms: int = 1000
-    heartbeat_timeout_ms: int = 5000
-    heartbeat_ttl_ms: int = 10000
-    reconnect_ivl_ms: int = 100
-    reconnect_ivl_max_ms: int = 5000
-    stall_timeout_s: float = 3.0
+    window: int = ranged(8, 1, 1024)  # keyframes in flight (credit)
+    sockets: SocketTiming = field(default_factory=SocketTiming)
+    stall_timeout_s: float = ranged(3.0, 0.05, 3600.0)  # no keyframe while the device has some: hello again
     fsync: bool = True
-    stats_interval_s: float = 1.0
-    max_keyframe_bytes: int = KEYFRAME_LIMITS.max_message_bytes
-    max_new_sessions: int = 64       # session ids not seen before that one run accepts (each gets a folder)
+    stats_interval_s: float = 1.0    # between rewrites of receiver.json
+    max_new_sessions: int = ranged(64, 1, 1_000_000)  # new session ids one run accepts (each gets a folder)
 
     def __post_init__(self) -> None:
-        check_range("window", self.window, 1, 1024)
-        check_range("max_new_sessions", self.max_new_sessions, 1, 1_000_000)
-        check_range("stall_timeout_s", self.stall_timeout_s, 0.05, 3600.0)
-        check_range("max_keyframe_bytes", self.max_keyframe_bytes, 1024, 2**31 - 1)
+        check_ranges(self)
         if not self.insecure and not self.keys_dir:
             raise ConfigError("a host key directory (--keys DIR) is required unless --insecure is given")
 

@@ -1,11 +1,11 @@
-"""The receiver's side of the keyframe link: handshakes, hellos, stall and silence checks, link quality.
+"""The receiver's side of the keyframe link: its sockets, handshakes, hellos, stall and silence checks.
 
-Mixed into :class:`stereopath.host.live.receiver.Receiver` (which owns the sockets, the store and
-the counters these methods use); split out so each module holds one responsibility.  On every
-completed handshake (the DEALER's socket monitor reports it, so reconnects are noticed) the
-receiver says ``hello(last session, highest contiguous seq, window)``; when the device's status
-shows keyframes the receiver does not have and none arrived for ``stall_timeout_s``, or when the
-connection stays silent (no status, no keyframe), it says hello again.
+:class:`Link` owns the pose SUB and keyframe DEALER sockets and the flow-control state; the
+:class:`stereopath.host.live.receiver.Receiver` composes one and calls it.  On every completed
+handshake (the DEALER's socket monitor reports it, so reconnects are noticed) the link says
+``hello(last session, highest contiguous seq, window)``; when the device's status shows keyframes
+the host does not have and none arrived for ``stall_timeout_s``, or when the connection stays
+silent (no status, no keyframe), it says hello again.
 """
 
 from __future__ import annotations
@@ -13,40 +13,145 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Callable
 
-from stereopath.device.wire.protocol import Hello, encode_hello
-from stereopath.device.wire.sockets import zmtp_greeting
+from stereopath.device.errors import ConfigError
+from stereopath.device.wire.protocol import POSE_LIMITS, Ack, Hello, Status, encode_ack, encode_hello
+from stereopath.device.wire.sockets import CurveKeys, open_socket, zmtp_greeting
+from stereopath.host.live.receiver_config import HEARTBEAT_TTL_MS, MAX_KEYFRAME_BYTES, ReceiverConfig
+from stereopath.host.live.receiver_stats import LinkCounters
+from stereopath.host.live.store import KeyframeStore
+
+if TYPE_CHECKING:
+    import zmq
 
 log = logging.getLogger("stereopath.host.live.receiver")  # one logger for the receiver's lines
 PROBE_INTERVAL_S = 30.0  # between probes of an endpoint whose handshakes keep failing
+RECOVERY_HELLO_MIN_S = 1.0  # seconds between hellos asking for refused keyframes once storing works again
 
 
-class LinkControl:
-    """Flow-control and link-state methods of the receiver (see the module doc)."""
+class Link:
+    """The connection to one device: sockets, handshake and probe state, hellos; counts into ``counters``.
 
-    config: Any
-    dealer: Any
-    monitor: Any
-    store: Any
-    stats: Any
-    live: Any
-    lock: Any
-    _zmq: Any
-    _hello_pending: bool
-    _auth_warned: bool
-    _probe_next: float  # when a failed handshake may be probed again
-    _probe_said: str    # the last reason logged
-    _warned: set[str]
-    _last_progress: float
-    _last_hello_at: float
-    _last_dealer_rx: float
-    _pose_rate: Any
-    _kf_rate: Any
-    _pose_window: Any
-    _storage_failed: Callable[[str, OSError], None]
-    storage_error: str | None
-    _refused_since_hello: bool
+    ``store`` says what the host holds (for hellos and the stall check); ``on_storage_failed(what,
+    exc)`` is called when reading it fails.  Everything but :attr:`sub` (read by the receiver's pose
+    thread) is used from the polling thread.
+    """
+
+    def __init__(self, config: ReceiverConfig, curve: CurveKeys | None, store: KeyframeStore,
+                 counters: LinkCounters, on_storage_failed: Callable[[str, OSError], None]) -> None:
+        import zmq
+
+        self._zmq = zmq
+        self.config = config
+        self.store = store
+        self.counters = counters
+        self._on_storage_failed = on_storage_failed
+        self.connected = False
+        self._hello_pending = False
+        self._hello_after: float | None = None  # a hello due then (storing works again after a refusal)
+        self._last_progress = time.monotonic()
+        self._auth_warned = False
+        self._silent_warned = False
+        self._probe_next = 0.0  # when a failed handshake may be probed again
+        self._probe_said = ""   # the last reason logged
+        self._refused_since_hello = False  # a keyframe went unacknowledged: a later hello has it resent
+        self._last_dealer_rx = self._last_hello_at = time.monotonic()
+        self._ctx = zmq.Context()
+        t = config.sockets
+        common = dict(heartbeat_ivl_ms=t.heartbeat_ivl_ms, heartbeat_timeout_ms=t.heartbeat_timeout_ms,
+                      heartbeat_ttl_ms=HEARTBEAT_TTL_MS, reconnect_ivl_ms=t.reconnect_ivl_ms,
+                      reconnect_ivl_max_ms=t.reconnect_ivl_max_ms)
+        self.sub: zmq.Socket = open_socket(self._ctx, zmq.SUB, curve, options={zmq.CONFLATE: 1},
+                                           maxmsgsize=max(4096, 4 * POSE_LIMITS.max_message_bytes), **common)
+        self.sub.setsockopt(zmq.SUBSCRIBE, b"")
+        hwm = 4 * config.window + 64
+        self.dealer: zmq.Socket = open_socket(self._ctx, zmq.DEALER, curve,
+                                              options={zmq.IMMEDIATE: 1, zmq.RCVHWM: hwm, zmq.SNDHWM: hwm},
+                                              maxmsgsize=MAX_KEYFRAME_BYTES, **common)
+        self._monitor: zmq.Socket = self.dealer.get_monitor_socket(
+            zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_FAILED_AUTH
+            | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL)
+        try:
+            self.sub.connect(config.pose_endpoint)
+            self.dealer.connect(config.keyframe_endpoint)
+        except zmq.ZMQError as exc:
+            self.close()
+            raise ConfigError(f"cannot connect to {config.pose_endpoint} / {config.keyframe_endpoint}: {exc}") from None
+        self._poller = zmq.Poller()
+        for s in (self.dealer, self._monitor):
+            self._poller.register(s, zmq.POLLIN)
+
+    def close(self) -> None:
+        try:
+            self.dealer.disable_monitor()
+        except self._zmq.ZMQError:
+            pass
+        for s in (self._monitor, self.sub, self.dealer):
+            s.close(linger=0)
+        self._ctx.term()
+
+    # ------------------------------------------------------------------ polling thread
+
+    def wait(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for the keyframe socket; handle the socket monitor's events.  True when
+        the keyframe socket has messages to read."""
+        events = dict(self._poller.poll(int(max(0.0, timeout_s) * 1000)))
+        if self._monitor in events:
+            self._handle_monitor()
+        return self.dealer in events
+
+    def heard(self, now: float) -> None:
+        """Something arrived on the keyframe socket (keyframe, status or session)."""
+        self._last_dealer_rx = now
+        self._silent_warned = False
+
+    def progress(self, now: float) -> None:
+        """A keyframe was handled: the stall check starts over."""
+        self._last_progress = now
+
+    def refused(self) -> None:
+        """A keyframe could not be stored: not acknowledged, so a later hello has the device resend it."""
+        self._refused_since_hello = True
+
+    def storing_again(self) -> None:
+        """Storing works again after a refusal: hello soon, not after a stall (a run's end waits only
+        stream.drain_s for hosts), but at most once per RECOVERY_HELLO_MIN_S: a keyframe that keeps failing
+        must not have the device resend in a loop."""
+        self._hello_after = max(time.monotonic(), self._last_hello_at + RECOVERY_HELLO_MIN_S)
+
+    def ack(self, session_id: str, seq: int) -> None:
+        """Acknowledge keyframe ``seq`` of ``session_id`` (one more credit)."""
+        try:
+            self.dealer.send(encode_ack(Ack(session_id, seq, 1)), self._zmq.NOBLOCK)
+        except self._zmq.Again:
+            self.counters.acks_unsent += 1  # not connected: the next hello resynchronises
+
+    def hello_if_due(self, now: float) -> None:
+        """Say hello after a handshake, a hello the socket would not take, or recovered storage."""
+        if self._hello_pending or (self._hello_after is not None and now >= self._hello_after):
+            self._hello_after = None
+            self._send_hello()
+
+    def check(self, now: float, status: Status | None) -> None:
+        """The silence and stall checks; ``status``: the device's last status (None: none yet)."""
+        self._check_silence(now)
+        self._check_stall(now, status)
+
+    def quality(self, now: float, last_rx: float | None, pose_window_ratio: float) -> str:
+        """The link as the live view shows it; ``last_rx``: monotonic time of the last message of any kind."""
+        age = None if last_rx is None else now - last_rx
+        if self.counters.auth_failures and not self.connected:
+            return "refused"
+        if age is None:
+            return "waiting"
+        if age > 3.0 or not self.connected:
+            return "lost"
+        if age > 0.5 or pose_window_ratio < 0.9 or now - self._last_dealer_rx > self.config.stall_timeout_s:
+            return "poor"  # (the last: poses flow but no status or keyframes on the keyframe link)
+        return "good"
+
+    # ------------------------------------------------------------------ internals
 
     def _handle_monitor(self) -> None:
         from zmq.utils.monitor import recv_monitor_message
@@ -54,27 +159,27 @@ class LinkControl:
         zmq = self._zmq
         while True:
             try:
-                ev = recv_monitor_message(self.monitor, zmq.NOBLOCK)
+                ev = recv_monitor_message(self._monitor, zmq.NOBLOCK)
             except zmq.Again:
                 break
             e = ev["event"]
             if e == zmq.EVENT_HANDSHAKE_SUCCEEDED:
-                self.stats.link["connects"] += 1
-                self.live.connected = True
+                self.counters.connects += 1
+                self.connected = True
                 log.info("connected to device %s", self.config.keyframe_endpoint)
                 self._hello_pending = True
             elif e == zmq.EVENT_DISCONNECTED:
-                if self.live.connected:
-                    self.stats.link["disconnects"] += 1
+                if self.connected:
+                    self.counters.disconnects += 1
                     log.info("disconnected from device; reconnecting")
-                self.live.connected = False
+                self.connected = False
             elif e == zmq.EVENT_HANDSHAKE_FAILED_AUTH:
-                self.stats.link["auth_failures"] += 1
+                self.counters.auth_failures += 1
                 if not self._auth_warned:
                     self._auth_warned = True
                     log.warning("device refused this host's key (is its public key in the device's clients dir?)")
             else:
-                self.stats.link["handshake_failures"] += 1
+                self.counters.handshake_failures += 1
                 now = time.monotonic()
                 if now >= self._probe_next:  # ask the endpoint itself what answers there (again while it fails)
                     self._probe_next = now + PROBE_INTERVAL_S
@@ -114,38 +219,35 @@ class LinkControl:
         self._hello_pending = False
         self._refused_since_hello = False
         self._last_hello_at = time.monotonic()
-        self.stats.link["hellos"] += 1
+        self.counters.hellos += 1
         self._last_progress = time.monotonic()
         log.debug("hello: session %s, acked %d, window %d", sid, acked, self.config.window)
 
     def _check_silence(self, now: float) -> None:
         """Connected, yet neither status nor keyframes for a while: the device has lost track of this
         connection (or the stream died); say hello again instead of showing a good link forever."""
-        if not self.live.connected or self._hello_pending:
+        if not self.connected or self._hello_pending:
             return
         quiet = now - max(self._last_dealer_rx, self._last_hello_at)
-        if quiet < max(self.config.stall_timeout_s, 2.0 * self.config.heartbeat_ivl_ms / 1000.0):
+        if quiet < max(self.config.stall_timeout_s, 2.0 * self.config.sockets.heartbeat_ivl_ms / 1000.0):
             return
-        self.stats.link["rehellos_silent"] += 1
-        if "silent" not in self._warned:
-            self._warned.add("silent")
+        self.counters.rehellos_silent += 1
+        if not self._silent_warned:
+            self._silent_warned = True
             log.warning("no status or keyframes from the device for %.1f s although connected: hello again", quiet)
-        self.live.link_quality = "lost"
         self._send_hello()
 
-    def _check_stall(self, now: float) -> None:
-        self._check_silence(now)
-        st = self.live.status
-        if not self.live.connected or st is None or now - self._last_progress < self.config.stall_timeout_s:
+    def _check_stall(self, now: float, st: Status | None) -> None:
+        if not self.connected or st is None or now - self._last_progress < self.config.stall_timeout_s:
             return
         try:
             have = self.store.session(st.session_id).acked_seq if st.session_id == self.store.last_session else -1
         except OSError as exc:
-            self._storage_failed(f"session {st.session_id}", exc)
+            self._on_storage_failed(f"session {st.session_id}", exc)
             self._last_progress = now
             return
         if st.keyframes_spooled - 1 > have:
-            self.stats.link["rehellos_after_stall"] += 1
+            self.counters.rehellos_after_stall += 1
             log.info("keyframes stalled (device has %d, host holds up to %d): hello again",
                      st.keyframes_spooled, have)
             if st.session_id != self.store.last_session:
@@ -154,32 +256,6 @@ class LinkControl:
         elif self._refused_since_hello:
             # a keyframe was not stored (e.g. an earlier session's, disk full) even if later ones were:
             # the device resends what no host acknowledged after a hello
-            self.stats.link["rehellos_after_stall"] += 1
+            self.counters.rehellos_after_stall += 1
             self._send_hello()
         self._last_progress = now
-
-    def _update_live(self, now: float) -> None:
-        with self.lock:
-            self._update_live_locked(now)
-
-    def _update_live_locked(self, now: float) -> None:
-        live = self.live
-        live.pose_rate_hz = self._pose_rate.rate(now)
-        live.keyframe_rate_hz = self._kf_rate.rate(now)
-        w = self._pose_window
-        while w and now - w[0][0] > 2.0:
-            w.popleft()
-        if len(w) >= 2:
-            span = max(s for _, s in w) - min(s for _, s in w) + 1
-            live.pose_window_ratio = min(1.0, len(w) / span)
-        age = None if live.last_rx is None else now - live.last_rx
-        if self.stats.link["auth_failures"] and not live.connected:
-            live.link_quality = "refused"
-        elif age is None:
-            live.link_quality = "waiting"
-        elif age > 3.0 or not live.connected:
-            live.link_quality = "lost"
-        elif age > 0.5 or live.pose_window_ratio < 0.9 or now - self._last_dealer_rx > self.config.stall_timeout_s:
-            live.link_quality = "poor"  # (the last: poses flow but no status or keyframes on the keyframe link)
-        else:
-            live.link_quality = "good"

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from stereopath.device.core.rig import Rig
 from stereopath.device.errors import CalibrationError, DatasetError, ProtocolError
 from stereopath.device.formats.fileio import write_json_atomic
 from stereopath.device.wire.protocol import SESSION_ID_RE, SessionInfo, rig_of
@@ -99,7 +100,7 @@ class SessionCatalog:
     def __init__(self, out_dir: Path, fsync: bool = True) -> None:
         self.out = out_dir
         self.fsync = fsync
-        self._rigs: dict[str, Any] = {}
+        self._rigs: dict[str, Rig] = {}
         self._counts: dict[str, int] = {}
         self._refs: dict[str, dict[str, str]] = {}
         self._dirty: set[str] = set()
@@ -121,7 +122,7 @@ class SessionCatalog:
                         "receiving them into %s", info.keyframes, info.session_id, d)
         self.save()
 
-    def _store_rig(self, d: Path, info: SessionInfo, rig: Any) -> None:
+    def _store_rig(self, d: Path, info: SessionInfo, rig: Rig) -> None:
         from stereopath.device.formats.rig_files import save_rig_yaml
 
         path = d / RIG_FILE
@@ -146,7 +147,7 @@ class SessionCatalog:
                 self._counts[session_id] = keyframes
                 self._dirty.add(session_id)
 
-    def rig(self, session_id: str) -> Any:
+    def rig(self, session_id: str) -> Rig | None:
         """The device's rig of ``session_id`` (from memory or ``OUT/<session>/rig.yaml``), or None."""
         with self._lock:
             rig = self._rigs.get(session_id)

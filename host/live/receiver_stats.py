@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import collections
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, Mapping
 
 from stereopath.device.wire.protocol import Pose, Status
 
@@ -23,19 +23,65 @@ class SessionStats:
         return dict(vars(self))
 
 
+def _int_fields(cls: type, data: Mapping[str, int | str | float]) -> dict[str, int]:
+    """The entries of ``data`` (a JSON object) that name a field of the counter dataclass ``cls``, as ints."""
+    names = {f.name for f in fields(cls)}
+    return {k: int(v) for k, v in data.items() if k in names}
+
+
+@dataclass
+class MessageCounts:
+    """Messages received, by kind (``receiver.json``'s ``received``)."""
+
+    pose: int = 0
+    keyframe: int = 0
+    status: int = 0
+    session: int = 0
+
+    def total(self) -> int:
+        return self.pose + self.keyframe + self.status + self.session
+
+    def to_json(self) -> dict[str, int]:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, int | str | float]) -> "MessageCounts":
+        return cls(**_int_fields(cls, data))
+
+
+@dataclass
+class LinkCounters:
+    """The keyframe link's and the host store's events (``receiver.json``'s ``link``)."""
+
+    connects: int = 0
+    disconnects: int = 0
+    auth_failures: int = 0
+    handshake_failures: int = 0
+    hellos: int = 0
+    rehellos_after_stall: int = 0
+    acks_unsent: int = 0             # acknowledgements the socket would not take (the next hello resynchronises)
+    store_failures: int = 0          # keyframes or rigs this host could not store (not acknowledged)
+    poses_unsaved: int = 0           # poses shown live but not appended to poses.tum (disk full)
+    rehellos_silent: int = 0
+
+    def to_json(self) -> dict[str, int]:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, int | str | float]) -> "LinkCounters":
+        return cls(**_int_fields(cls, data))
+
+
 @dataclass
 class ReceiverStats:
     """Counters written to ``receiver.json`` (cumulative over receiver restarts)."""
 
-    received: dict[str, int] = field(default_factory=lambda: {"pose": 0, "keyframe": 0, "status": 0, "session": 0})
+    received: MessageCounts = field(default_factory=MessageCounts)
     duplicates: int = 0
     pose_seq_gaps: int = 0
-    rejected_by_reason: dict[str, int] = field(default_factory=dict)
+    rejected_by_reason: dict[str, int] = field(default_factory=dict)  # keyed by DecodeError reason (open set)
     rejected_by_channel: dict[str, int] = field(default_factory=lambda: {"pose": 0, "keyframe": 0})
-    link: dict[str, int] = field(default_factory=lambda: {
-        "connects": 0, "disconnects": 0, "auth_failures": 0, "handshake_failures": 0, "hellos": 0,
-        "rehellos_after_stall": 0, "acks_unsent": 0,
-        "store_failures": 0, "poses_unsaved": 0, "rehellos_silent": 0})
+    link: LinkCounters = field(default_factory=LinkCounters)
     sessions: dict[str, SessionStats] = field(default_factory=dict)
     runs: int = 0
 
@@ -45,12 +91,12 @@ class ReceiverStats:
 
     def to_json(self) -> dict[str, Any]:
         return {
-            "received": dict(self.received),
+            "received": self.received.to_json(),
             "duplicates": self.duplicates,
             "pose_seq_gaps": self.pose_seq_gaps,
             "rejected": {"total": self.rejected, "by_reason": dict(self.rejected_by_reason),
                          "by_channel": dict(self.rejected_by_channel)},
-            "link": dict(self.link),
+            "link": self.link.to_json(),
             "sessions": {sid: s.to_json() for sid, s in self.sessions.items()},
             "runs": self.runs,
         }
@@ -58,14 +104,14 @@ class ReceiverStats:
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> "ReceiverStats":
         st = cls()
-        st.received.update({k: int(v) for k, v in data.get("received", {}).items() if k in st.received})
+        st.received = MessageCounts.from_json(data.get("received", {}))
         st.duplicates = int(data.get("duplicates", 0))
         st.pose_seq_gaps = int(data.get("pose_seq_gaps", 0))
         rej = data.get("rejected", {})
         st.rejected_by_reason = {str(k): int(v) for k, v in rej.get("by_reason", {}).items()}
         st.rejected_by_channel.update({k: int(v) for k, v in rej.get("by_channel", {}).items()
                                        if k in st.rejected_by_channel})
-        st.link.update({k: int(v) for k, v in data.get("link", {}).items() if k in st.link})
+        st.link = LinkCounters.from_json(data.get("link", {}))
         for sid, s in data.get("sessions", {}).items():
             known = {k: v for k, v in s.items() if k in SessionStats.__dataclass_fields__}
             st.sessions[str(sid)] = SessionStats(**known)

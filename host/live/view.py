@@ -13,11 +13,17 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
+from stereopath.device.core.rig import Rig
 from stereopath.device.wire.protocol import Keyframe, Pose, decode_image
+
+if TYPE_CHECKING:
+    import open3d as o3d
+
+    from stereopath.host.live.receiver import Receiver
 
 log = logging.getLogger(__name__)
 
@@ -32,7 +38,7 @@ def _fmt_bytes(n: int | None) -> str:
     return f"{n}"
 
 
-def summary_lines(receiver: Any) -> list[str]:
+def summary_lines(receiver: Receiver) -> list[str]:
     """The live view's text: session/pose line, rates line, device line."""
     live = receiver.live
     stats = receiver.stats
@@ -71,7 +77,7 @@ class TerminalView:
         self._next_log = time.monotonic() + log_interval_s
         self._drawn = 0
 
-    def update(self, receiver: Any) -> None:
+    def update(self, receiver: Receiver) -> None:
         lock = getattr(receiver, "lock", None)
         if lock is not None:
             with lock:
@@ -106,7 +112,7 @@ class RerunView:
     PATH_EVERY_S = 0.5
     MAX_PATH_POINTS = 20000
 
-    def __init__(self, save_path: str | Path | None = None, spawn: bool = True, rig: Any = None,
+    def __init__(self, save_path: str | Path | None = None, spawn: bool = True, rig: Rig | None = None,
                  application_id: str = "stereopath_live") -> None:
         import rerun as rr
 
@@ -167,7 +173,7 @@ class RerunView:
                                                              **kwargs), static=True)
         self._pinhole_size[sid] = (w, h)
 
-    def on_mesh(self, session_id: str, mesh: Any) -> None:
+    def on_mesh(self, session_id: str, mesh: o3d.geometry.TriangleMesh) -> None:
         """Show the live dense model (called by the live mapper's thread)."""
         from stereopath.host.mapping.fusion import mesh_arrays
 

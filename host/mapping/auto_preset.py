@@ -21,11 +21,15 @@ from __future__ import annotations
 
 import logging
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from stereopath.host.mapping.depth import DepthConfig
+
+if TYPE_CHECKING:
+    from stereopath.device.core.rig import Rig
+    from stereopath.host.mapping.inputs import MapKeyframe
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +89,7 @@ def choose_from_survey(depths_m: np.ndarray, world_xyz: np.ndarray, max_depths_m
     return PresetChoice(name, why, keyframes, q, round(share, 3), ext)
 
 
-def survey(rig: Any, keyframes: list[Any], samples: int = SAMPLES) -> tuple[np.ndarray, np.ndarray, int]:
+def survey(rig: Rig, keyframes: list[MapKeyframe], samples: int = SAMPLES) -> tuple[np.ndarray, np.ndarray, int]:
     """Depths and world points of ``samples`` keyframes spread over ``keyframes`` (``MapKeyframe``:
     ``load()``, ``T_world_cam0``), and the number surveyed."""
     from stereopath.device.errors import DatasetError
@@ -120,7 +124,7 @@ def survey(rig: Any, keyframes: list[Any], samples: int = SAMPLES) -> tuple[np.n
     return np.concatenate(depths), np.vstack(points), n
 
 
-def choose_preset(rig: Any, keyframes: list[Any], max_depths_m: dict[str, float]) -> PresetChoice:
+def choose_preset(rig: Rig, keyframes: list[MapKeyframe], max_depths_m: dict[str, float]) -> PresetChoice:
     """The map preset for these keyframes (module doc), ``max_depths_m``: each preset's depth range end; logged."""
     d, X, n = survey(rig, keyframes)
     choice = choose_from_survey(d, X, max_depths_m, n)

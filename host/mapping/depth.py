@@ -2,10 +2,10 @@
 
 :meth:`StereoDepth.compute`: rectify; OpenCV ``StereoSGBM`` on the pair and again on the pair turned by
 180 degrees (``rot180(right)`` as reference: the right image's disparity), both padded so the first
-columns are matched; keep a pixel when both agree within ``lr_max_diff_px`` and take their mean (SGBM's
-fast mode aggregates top to bottom only, which makes slanted surfaces lag by about 0.1 px; the turned
-pass lags the other way, so the mean cancels it); drop speckles, the black border of the rectified image,
-optionally depth edges, and erode each region by ``erode_px``; ``depth = f * B / d`` within
+columns are matched; keep a pixel when both agree within :data:`LR_MAX_DIFF_PX` and take their mean
+(SGBM's fast mode aggregates top to bottom only, which makes slanted surfaces lag by about 0.1 px; the
+turned pass lags the other way, so the mean cancels it); drop speckles, the black border of the rectified
+image, optionally depth edges, and erode each region by ``erode_px``; ``depth = f * B / d`` within
 ``[min_depth_m, max_depth_m]``.  Depth is in the **rectified left camera frame**
 (``T_world_rect = T_world_cam0 @ [R0^T | 0]``, :meth:`DepthMap.pose_world_rect`); disparities are float32
 px with NaN where invalid, depths float32 metres with 0 where invalid (Open3D's convention).
@@ -21,7 +21,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from stereopath.device.core.config import check_range
+from stereopath.device.core.config import check_ranges, ranged
 from stereopath.device.errors import ConfigError, StereopathError
 from stereopath.device.core.rig import Rectification, Rig
 
@@ -35,6 +35,12 @@ _MODES = {
     "hh4": cv2.STEREO_SGBM_MODE_HH4,
 }
 MAX_DISPARITY_PX = 512
+UNIQUENESS_RATIO = 10  # SGBM: percent margin of the best cost over the second best
+PRE_FILTER_CAP = 63  # SGBM: clip of the prefiltered image derivative
+LR_MAX_DIFF_PX = 1.0  # left-right consistency tolerance (the mean of both disparities is kept)
+SPECKLE_WINDOW_PX = 100  # blobs smaller than this are dropped
+SPECKLE_RANGE_PX = 2.0  # disparity step that separates blobs
+EDGE_DILATE_PX = 1  # how far the depth-edge mask is grown
 
 
 @dataclass(frozen=True)
@@ -45,47 +51,36 @@ class DepthConfig:
     (``f * B / min_depth_m``, rounded up to a multiple of 16).
     """
 
-    min_depth_m: float = 0.25
-    max_depth_m: float = 2.0
-    max_disparity_px: int = 0
-    block_size: int = 3
+    min_depth_m: float = ranged(0.25, 1e-3, 1e3)
+    max_depth_m: float = ranged(2.0, 1e-3, 1e4)  # and above min_depth_m
+    max_disparity_px: int = ranged(0, 0, MAX_DISPARITY_PX)
+    block_size: int = ranged(3, 1, 15)  # odd
     mode: SgbmMode = "3way"
-    p1_per_pixel: float = 8.0  # SGBM P1 = p1_per_pixel * channels * block_size^2
-    p2_per_pixel: float = 32.0  # SGBM P2, the same way (P2 > P1)
-    uniqueness_ratio: int = 10  # percent margin of the best cost over the second best
-    pre_filter_cap: int = 63
-    lr_max_diff_px: float = 1.0  # left-right consistency tolerance; <= 0 disables the check
-    lr_average: bool = True  # right pass on the 180-degree-turned pair; keep the mean of both disparities
-    speckle_window_px: int = 100  # blobs smaller than this are dropped; 0 disables
-    speckle_range_px: float = 2.0  # disparity step that separates blobs
-    pad_left: bool = True  # pad by the disparity range so the left columns are matched too
-    edge_max_rel_step: float = 0.0  # drop pixels next to a relative depth step above this; 0 = off
-    edge_dilate_px: int = 1  # how far the depth-edge mask is grown
-    erode_px: int = 0  # finally shrink every valid region by this many pixels (drops unreliable rims)
+    p1_per_pixel: float = ranged(8.0, 0.0, 1e4)  # SGBM P1 = p1_per_pixel * channels * block_size^2
+    p2_per_pixel: float = ranged(32.0, 0.0, 1e5)  # SGBM P2, the same way (P2 > P1)
+    edge_max_rel_step: float = ranged(0.0, 0.0, 10.0)  # drop pixels next to a relative depth step above this; 0 = off
+    erode_px: int = ranged(0, 0, 20)  # finally shrink every valid region by this many pixels (drops unreliable rims)
 
     def __post_init__(self) -> None:
-        check_range("min_depth_m", self.min_depth_m, 1e-3, 1e3)
-        check_range("max_depth_m", self.max_depth_m, self.min_depth_m, 1e4)
+        check_ranges(self)
         if self.max_depth_m <= self.min_depth_m:
             raise ConfigError(f"max_depth_m = {self.max_depth_m} must exceed min_depth_m = {self.min_depth_m}")
-        check_range("max_disparity_px", self.max_disparity_px, 0, MAX_DISPARITY_PX)
-        check_range("block_size", self.block_size, 1, 15)
         if self.block_size % 2 == 0:
             raise ConfigError(f"block_size = {self.block_size} must be odd")
         if self.mode not in _MODES:
             raise ConfigError(f"mode = {self.mode!r} must be one of {sorted(_MODES)}")
-        check_range("p1_per_pixel", self.p1_per_pixel, 0.0, 1e4)
-        check_range("p2_per_pixel", self.p2_per_pixel, self.p1_per_pixel, 1e5)
         if self.p2_per_pixel <= self.p1_per_pixel:
             raise ConfigError(f"p2_per_pixel = {self.p2_per_pixel} must exceed p1_per_pixel = {self.p1_per_pixel}")
-        check_range("uniqueness_ratio", self.uniqueness_ratio, 0, 100)
-        check_range("pre_filter_cap", self.pre_filter_cap, 1, 63)
-        check_range("lr_max_diff_px", self.lr_max_diff_px, -1.0, 100.0)
-        check_range("speckle_window_px", self.speckle_window_px, 0, 100000)
-        check_range("speckle_range_px", self.speckle_range_px, 0.0, 100.0)
-        check_range("edge_max_rel_step", self.edge_max_rel_step, 0.0, 10.0)
-        check_range("edge_dilate_px", self.edge_dilate_px, 0, 20)
-        check_range("erode_px", self.erode_px, 0, 20)
+
+    def record(self) -> dict[str, float | int | str | bool]:
+        """Every setting the depth uses, with the fixed ones (``map.json``'s ``config.depth``)."""
+        return {"min_depth_m": self.min_depth_m, "max_depth_m": self.max_depth_m,
+                "max_disparity_px": self.max_disparity_px, "block_size": self.block_size, "mode": self.mode,
+                "p1_per_pixel": self.p1_per_pixel, "p2_per_pixel": self.p2_per_pixel,
+                "uniqueness_ratio": UNIQUENESS_RATIO, "pre_filter_cap": PRE_FILTER_CAP,
+                "lr_max_diff_px": LR_MAX_DIFF_PX, "lr_average": True, "speckle_window_px": SPECKLE_WINDOW_PX,
+                "speckle_range_px": SPECKLE_RANGE_PX, "pad_left": True, "edge_max_rel_step": self.edge_max_rel_step,
+                "edge_dilate_px": EDGE_DILATE_PX, "erode_px": self.erode_px}
 
 
 DEPTH_PRESETS: dict[str, DepthConfig] = {
@@ -201,10 +196,10 @@ def make_matcher(config: DepthConfig, num_disparities: int, channels: int = 1) -
         P1=int(round(config.p1_per_pixel * channels * bs * bs)),
         P2=int(round(config.p2_per_pixel * channels * bs * bs)),
         disp12MaxDiff=-1,
-        uniquenessRatio=int(config.uniqueness_ratio),
+        uniquenessRatio=UNIQUENESS_RATIO,
         speckleWindowSize=0,
         speckleRange=0,
-        preFilterCap=int(config.pre_filter_cap),
+        preFilterCap=PRE_FILTER_CAP,
         mode=_MODES[config.mode],
     )
 
@@ -300,22 +295,16 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, config: DepthConfig, 
         raise StereopathError(f"unsupported image shape {left.shape}")
     channels = 1 if left.ndim == 2 else left.shape[2]
     m = matcher if matcher is not None else make_matcher(config, num_disparities, channels)
-    pad = num_disparities if config.pad_left else 0
+    pad = num_disparities  # so the left columns are matched too
     dl = _match(m, left, right, pad)
-    if config.lr_max_diff_px > 0:
-        if config.lr_average:
-            # the right image's disparity from the pair turned by 180 degrees: mirrored like the
-            # plain left-right trick, and also upside down, so SGM's top-to-bottom path runs the
-            # other way and its lag on slanted surfaces has the opposite sign in the two maps
-            dr = _match(m, np.ascontiguousarray(right[::-1, ::-1]), np.ascontiguousarray(left[::-1, ::-1]),
-                        pad)[::-1, ::-1]
-        else:
-            dr = _match(m, np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1]), pad)[:, ::-1]
-        ok = left_right_check(dl, dr, config.lr_max_diff_px)
-        if config.lr_average:
-            dl = 0.5 * (dl + sample_row_linear(dr, dl))
-        dl[~ok] = np.nan
-    return filter_speckles(dl, config.speckle_window_px, config.speckle_range_px)
+    # the right image's disparity from the pair turned by 180 degrees: mirrored like the plain
+    # left-right trick, and also upside down, so SGM's top-to-bottom path runs the other way and its
+    # lag on slanted surfaces has the opposite sign in the two maps; the mean of both cancels it
+    dr = _match(m, np.ascontiguousarray(right[::-1, ::-1]), np.ascontiguousarray(left[::-1, ::-1]), pad)[::-1, ::-1]
+    ok = left_right_check(dl, dr, LR_MAX_DIFF_PX)
+    dl = 0.5 * (dl + sample_row_linear(dr, dl))
+    dl[~ok] = np.nan
+    return filter_speckles(dl, SPECKLE_WINDOW_PX, SPECKLE_RANGE_PX)
 
 
 def sample_row_linear(disp_right: np.ndarray, disp_left: np.ndarray) -> np.ndarray:
@@ -396,7 +385,7 @@ class StereoDepth:
             z = np.where(np.isfinite(disp) & (disp > 0), fB / disp, 0.0).astype(np.float32)
         z[(z < self.config.min_depth_m) | (z > self.config.max_depth_m)] = 0.0
         if self.config.edge_max_rel_step > 0:
-            z[depth_edge_mask(z, self.config.edge_max_rel_step, self.config.edge_dilate_px)] = 0.0
+            z[depth_edge_mask(z, self.config.edge_max_rel_step, EDGE_DILATE_PX)] = 0.0
         if self.config.erode_px > 0:
             k = np.ones((2 * self.config.erode_px + 1,) * 2, np.uint8)
             z[cv2.erode((z > 0).astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0) == 0] = 0.0

@@ -13,14 +13,14 @@ from collections.abc import Callable
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from stereopath.device.core.config import check_range
+from stereopath.device.core.config import check_ranges, ranged
 from stereopath.device.core.geometry import rotation_angle_deg
 from stereopath.device.core.rig import Rig
 from stereopath.device.errors import CalibrationError, ConfigError, DatasetError
+from stereopath.device.formats.sequence import SequenceBase
 from stereopath.device.formats.tum import Trajectory
 
 log = logging.getLogger(__name__)
@@ -35,18 +35,14 @@ class KeyframeSelection:
     recording: the fusion keeps only surfaces several keyframes saw).  ``max_keyframes > 0`` thins the
     result evenly."""
 
-    stride: int = 0
-    min_translation_m: float = 0.04
-    min_rotation_deg: float = 5.0
-    max_keyframes: int = 0
-    min_keyframes: int = 8
+    stride: int = ranged(0, 0, 1_000_000)
+    min_translation_m: float = ranged(0.04, 0.0, 100.0)
+    min_rotation_deg: float = ranged(5.0, 0.0, 180.0)
+    max_keyframes: int = ranged(0, 0, 1_000_000)
+    min_keyframes: int = ranged(8, 0, 1_000_000)
 
     def __post_init__(self) -> None:
-        check_range("stride", self.stride, 0, 1_000_000)
-        check_range("min_translation_m", self.min_translation_m, 0.0, 100.0)
-        check_range("min_rotation_deg", self.min_rotation_deg, 0.0, 180.0)
-        check_range("max_keyframes", self.max_keyframes, 0, 1_000_000)
-        check_range("min_keyframes", self.min_keyframes, 0, 1_000_000)
+        check_ranges(self)
 
 
 @dataclass(frozen=True, eq=False)
@@ -127,7 +123,7 @@ def _frame_tolerance_ns(t_ns: np.ndarray) -> int:
     return max(1_000_000, int(np.median(np.diff(np.asarray(t_ns, np.int64)))) // 2)
 
 
-def keyframes_from_sequence(seq: Any, trajectory: Trajectory, selection: KeyframeSelection,
+def keyframes_from_sequence(seq: SequenceBase, trajectory: Trajectory, selection: KeyframeSelection,
                             kind: str = "sequence", source: str = "", poses_source: str = "trajectory") -> MapInput:
     """Keyframes of any sequence (``rig``, ``t_ns``, ``frame(i)``) posed by ``trajectory``."""
     t_ns = np.asarray(seq.t_ns, np.int64)
@@ -185,7 +181,7 @@ def keyframes_input(path: str | Path, selection: KeyframeSelection | None = None
     The calibration is ``rig`` (a Rig or a rig YAML path) or a ``rig.yaml`` in the keyframes
     folder or its parent; its hash must match the keyframes' rig reference.
     """
-    from stereopath.device.wire.protocol import decode_image, rig_reference
+    from stereopath.device.wire.protocol import Keyframe, decode_image, rig_reference
     from stereopath.device.formats.rig_files import load_rig_yaml
     from stereopath.host.live.store import load_keyframe
 
@@ -231,7 +227,7 @@ def keyframes_input(path: str | Path, selection: KeyframeSelection | None = None
     poses = np.array([k.T_world_cam for k in kfs])
     sel = select_keyframes(poses, selection or KeyframeSelection(stride=1))
 
-    def loader(kf: Any) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
+    def loader(kf: Keyframe) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
         def load() -> tuple[np.ndarray, np.ndarray]:
             return decode_image(kf.left), decode_image(kf.right)
         return load

@@ -27,19 +27,25 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from stereopath.device.core.config import check_range
+from stereopath.device.core.config import check_range, check_ranges, ranged
 from stereopath.device.errors import ConfigError, DatasetError, StereopathError
 from stereopath.device.core.rig import Rig
 from stereopath.device.formats.tum import Trajectory
-from stereopath.host.mapping.depth import DEPTH_PRESETS, DepthConfig, StereoDepth
+from stereopath.device.formats.sequence import SequenceBase
+from stereopath.host.mapping.depth import DEPTH_PRESETS, DepthConfig, DepthMap, StereoDepth
 from stereopath.host.mapping.fusion import FUSION_PRESETS, FusionConfig, TsdfVolume
 from stereopath.host.mapping.inputs import KeyframeSelection, MapInput, keyframes_from_sequence, open_map_input
 from stereopath.host.backend.parallel import parallel_map
 from stereopath.host.progress import progress_bar
+
+if TYPE_CHECKING:
+    import open3d as o3d
+
+    from stereopath.host.mapping.inputs import MapKeyframe
 
 log = logging.getLogger(__name__)
 
@@ -55,12 +61,11 @@ class MapConfig:
     depth: DepthConfig = field(default_factory=DepthConfig)
     fusion: FusionConfig = field(default_factory=FusionConfig)
     keyframes: KeyframeSelection = field(default_factory=KeyframeSelection)
-    preview_size: tuple[int, int] = (960, 720)
+    preview_size: tuple[int, int] = ranged((960, 720), 16, 8192)
     preset: str = "custom"
 
     def __post_init__(self) -> None:
-        check_range("preview_size[0]", self.preview_size[0], 16, 8192)
-        check_range("preview_size[1]", self.preview_size[1], 16, 8192)
+        check_ranges(self)
 
 
 MAP_PRESETS: dict[str, MapConfig] = {
@@ -76,7 +81,7 @@ AUTO = "auto"  # the preset chosen from the keyframes' stereo depth (stereopath.
 PRESET_CHOICES = (AUTO, *MAP_PRESETS)
 
 
-def map_preset(name: str, voxel_mm: float | None = None, **keyframe_changes: Any) -> MapConfig:
+def map_preset(name: str, voxel_mm: float | None = None, **keyframe_changes: float) -> MapConfig:
     """The named preset, optionally with another voxel size (truncation scales with it)."""
     if name not in MAP_PRESETS:
         raise ConfigError(f"unknown map preset {name!r}; known: {', '.join(sorted(MAP_PRESETS))}")
@@ -97,8 +102,8 @@ def map_preset(name: str, voxel_mm: float | None = None, **keyframe_changes: Any
 class MapResult:
     """The model in memory: legacy Open3D mesh and cloud, preview image (RGB) and statistics."""
 
-    mesh: Any
-    cloud: Any
+    mesh: o3d.geometry.TriangleMesh
+    cloud: o3d.geometry.PointCloud
     preview: np.ndarray
     stats: dict[str, Any]
 
@@ -121,7 +126,7 @@ class DenseMapper:
         self.poses: list[np.ndarray] = []
         self.indices: list[int] = []
         self.valid_fractions: list[float] = []
-        self.depth_maps: list[Any] | None = [] if keep_depth else None
+        self.depth_maps: list[DepthMap] | None = [] if keep_depth else None
         self.reposed = 0
         self.timings = {"load": 0.0, "depth": 0.0, "fusion": 0.0}
         log.info("dense mapping (%s preset): depth %.2f-%.2f m, voxel %.1f mm", config.preset, config.depth.min_depth_m,
@@ -132,14 +137,15 @@ class DenseMapper:
     def keyframes(self) -> int:
         return len(self.poses)
 
-    def add(self, left: np.ndarray, right: np.ndarray, T_world_cam0: np.ndarray, index: int | None = None) -> Any:
+    def add(self, left: np.ndarray, right: np.ndarray, T_world_cam0: np.ndarray,
+            index: int | None = None) -> DepthMap:
         """Depth of one raw stereo pair, fused at the camera-0 pose; returns the :class:`stereopath.host.mapping.depth.DepthMap`."""
         t0 = time.perf_counter()
         dm = self.depth.compute(left, right)
         self.timings["depth"] += time.perf_counter() - t0
         return self.fuse(dm, T_world_cam0, index)
 
-    def fuse(self, dm: Any, T_world_cam0: np.ndarray, index: int | None = None) -> Any:
+    def fuse(self, dm: DepthMap, T_world_cam0: np.ndarray, index: int | None = None) -> DepthMap:
         """Fuse a depth map computed by ``self.depth`` at the camera-0 pose; returns ``dm``."""
         t0 = time.perf_counter()
         self.volume.integrate_depth_map(dm, T_world_cam0)
@@ -169,7 +175,7 @@ class DenseMapper:
         self.reposed += 1
         self.timings["fusion"] += time.perf_counter() - t0
 
-    def mesh(self) -> Any:
+    def mesh(self) -> o3d.geometry.TriangleMesh:
         """The current legacy Open3D mesh (may be empty)."""
         return self.volume.extract_mesh()
 
@@ -221,7 +227,7 @@ class DenseMapper:
             "bounds_min_m": v.min(axis=0).tolist(),
             "bounds_max_m": v.max(axis=0).tolist(),
             "config": {
-                "depth": dataclasses.asdict(config.depth),
+                "depth": config.depth.record(),
                 "fusion": dataclasses.asdict(config.fusion),
                 "keyframes": dataclasses.asdict(config.keyframes),
             },
@@ -242,7 +248,7 @@ class DenseMapper:
 DEPTH_BATCH = 8  # keyframes loaded and their depth computed together before they are fused in order
 
 
-def _depth_map(depth: StereoDepth, images: tuple[np.ndarray, np.ndarray]) -> Any:
+def _depth_map(depth: StereoDepth, images: tuple[np.ndarray, np.ndarray]) -> DepthMap:
     """One keyframe's depth map (a piece of :func:`~stereopath.host.backend.parallel.parallel_map`)."""
     return depth.compute(images[0], images[1])
 
@@ -332,8 +338,8 @@ def write_map(result: MapResult, out_dir: str | Path) -> dict[str, Path]:
     return {name: out / name for name in MAP_FILES}
 
 
-def auto_config(rig: Rig, keyframes_for: Callable[[KeyframeSelection], list[Any]], voxel_mm: float | None = None,
-                **keyframe_changes: Any) -> tuple[MapConfig, dict[str, Any]]:
+def auto_config(rig: Rig, keyframes_for: Callable[[KeyframeSelection], list[MapKeyframe]],
+                voxel_mm: float | None = None, **keyframe_changes: float) -> tuple[MapConfig, dict[str, Any]]:
     """The preset :mod:`stereopath.host.mapping.auto_preset` chooses for the keyframes
     ``keyframes_for(selection)`` gives (surveyed with the object preset's finer keyframe spacing), with
     ``voxel_mm`` and the keyframe changes applied; and the ``preset_choice`` entry of map.json."""
@@ -349,7 +355,7 @@ def asked_choice(config: MapConfig) -> dict[str, Any]:
     return {"asked": config.preset, "preset": config.preset, "reason": "given (--map-preset)"}
 
 
-def map_sequence(seq: Any, trajectory: Trajectory, out_dir: str | Path | None, config: MapConfig | str,
+def map_sequence(seq: SequenceBase, trajectory: Trajectory, out_dir: str | Path | None, config: MapConfig | str,
                  progress: bool | None = None, source: str = "") -> MapResult:
     """Map any sequence (``rig``, ``t_ns``, ``frame(i)``) with the poses of ``trajectory``; write the
     model into ``out_dir`` when given.  (For reprocessing and the demo.)  ``config`` may be
@@ -371,7 +377,7 @@ def map_sequence(seq: Any, trajectory: Trajectory, out_dir: str | Path | None, c
 
 def map_path(path: str | Path, out_dir: str | Path, config: MapConfig | str, poses: str | Path | None = None,
              rig: str | Path | None = None, progress: bool | None = None, strict: bool = False,
-             voxel_mm: float | None = None, **keyframe_changes: Any) -> MapResult:
+             voxel_mm: float | None = None, **keyframe_changes: float) -> MapResult:
     """``stereopath host map``: open a session or keyframes folder, build the model, write it.
 
     ``config``: a MapConfig, or a preset name (with ``voxel_mm`` and ``keyframe_changes`` applied),

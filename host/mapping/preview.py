@@ -23,6 +23,8 @@ from stereopath.device.formats.fileio import write_atomic
 log = logging.getLogger(__name__)
 
 MAX_FRAGMENTS_PER_CHUNK = 4_000_000
+BACKGROUND_RGB = (255, 255, 255)  # where no triangle covers a pixel
+NEAR_M = 1e-3  # triangles with a vertex nearer to the camera than this (or behind it) are not drawn
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
@@ -145,14 +147,13 @@ def _fragments(px: np.ndarray, py: np.ndarray, iz: np.ndarray, tri: np.ndarray, 
 
 def render_mesh(vertices: np.ndarray, triangles: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
                 size: tuple[int, int] = (960, 720), vertex_colors: np.ndarray | None = None,
-                normals: np.ndarray | None = None, background: tuple[int, int, int] = (255, 255, 255),
-                near_m: float = 1e-3) -> np.ndarray:
+                normals: np.ndarray | None = None) -> np.ndarray:
     """(H, W, 3) uint8 RGB image of a triangle mesh (colours in [0, 1], optional)."""
     v = np.asarray(vertices, float).reshape(-1, 3)
     tri = np.asarray(triangles, np.int64).reshape(-1, 3)
     w, h = int(size[0]), int(size[1])
     img = np.empty((h, w, 3), np.uint8)
-    img[:] = np.asarray(background, np.uint8)
+    img[:] = np.asarray(BACKGROUND_RGB, np.uint8)
     if len(v) == 0 or len(tri) == 0:
         return img
     if normals is None:
@@ -161,7 +162,7 @@ def render_mesh(vertices: np.ndarray, triangles: np.ndarray, K: np.ndarray, T_wo
     pc = v @ T_cw[:3, :3].T + T_cw[:3, 3]
     nc = np.asarray(normals, float) @ T_cw[:3, :3].T
     z = pc[:, 2]
-    in_front = z > near_m
+    in_front = z > NEAR_M
     tri = tri[in_front[tri].all(axis=1)]
     if len(tri) == 0:
         return img

@@ -61,7 +61,7 @@ def test_host_notices_a_silent_stream_and_says_hello_again(tmp_path, keys):
         for i in range(1, 4):
             assert dev.offer_keyframe(i, i, np.eye(4), *small_images(i))
         assert wait_for(lambda: len(stored_seqs(tmp_path / "out", "sessS")) == 4, 15, between=lambda: rx.poll(0.02))
-        assert rx.stats.link["rehellos_silent"] >= 1
+        assert rx.stats.link.rehellos_silent >= 1
     finally:
         rx.close()
         dev.close()

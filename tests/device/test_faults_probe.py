@@ -184,12 +184,14 @@ def test_zmtp_greeting_tells_a_device_from_a_dead_forwarder(tmp_path):
 
 def _receiver_at(endpoint: str, keys, out: Path, device_key: Path | None = None):
     from stereopath.host.live.receiver import Receiver, ReceiverConfig
+    from stereopath.host.live.receiver_config import SocketTiming
 
     cfg = ReceiverConfig(endpoint, endpoint, insecure=keys is None,
                          keys_dir=None if keys is None else str(keys.host_keys_dir),
                          device_key=None if device_key is None else str(device_key), fsync=False,
-                         heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
-                         reconnect_ivl_max_ms=200, stall_timeout_s=1.0)
+                         sockets=SocketTiming(heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
+                                              reconnect_ivl_max_ms=200),
+                         stall_timeout_s=1.0)
     return Receiver(cfg, out)
 
 

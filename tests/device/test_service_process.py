@@ -16,7 +16,7 @@ from stereopath.device.formats import open_source
 from stereopath.device.wire.security import make_demo_keys
 from stereopath.device.formats.tum import read_tum
 from stereopath.host.live.receiver import Receiver
-from stereopath.host.live.receiver_config import ReceiverConfig
+from stereopath.host.live.receiver_config import ReceiverConfig, SocketTiming
 from tests.device.test_service_support import NotifyListener, device_run, sim_tables, wait_until, write_toml
 
 pytestmark = pytest.mark.timeout(90)
@@ -115,7 +115,8 @@ def test_device_run_streams_poses_and_keyframes_to_a_host(tmp_path):
         assert wait_until(lambda: endpoints() is not None or proc.poll() is not None, 60)
         pose_ep, kf_ep = endpoints()
         rx = Receiver(ReceiverConfig(pose_ep, kf_ep, keys_dir=str(keys.host_keys_dir), fsync=False,
-                                     heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
+                                     sockets=SocketTiming(heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500,
+                                                          reconnect_ivl_ms=50),
                                      stall_timeout_s=1.0), tmp_path / "host")
         while proc.poll() is None:
             rx.poll(0.05)

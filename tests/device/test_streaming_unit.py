@@ -219,7 +219,7 @@ def test_store_drops_corrupt_file_on_rebuild(tmp_path):
 
 def test_receiver_stats_json_round_trip():
     st = ReceiverStats()
-    st.received["pose"] = 5
+    st.received.pose = 5
     st.rejected_by_reason["malformed"] = 2
     st.duplicates = 1
     back = ReceiverStats.from_json(st.to_json())

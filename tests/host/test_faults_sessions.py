@@ -20,10 +20,12 @@ PAPER_YAML = REPO / "firmware_cfg" / "rig_paper.yaml"
 
 def _receiver(pose_endpoint: str, keyframe_endpoint: str, out: Path, **kw):
     from stereopath.host.live.receiver import Receiver, ReceiverConfig
+    from stereopath.host.live.receiver_config import SocketTiming
 
     return Receiver(ReceiverConfig(pose_endpoint, keyframe_endpoint, insecure=True, fsync=False,
-                                   heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
-                                   reconnect_ivl_max_ms=400, stall_timeout_s=1.0), out, **kw)
+                                   sockets=SocketTiming(heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500,
+                                                        reconnect_ivl_ms=50, reconnect_ivl_max_ms=400),
+                                   stall_timeout_s=1.0), out, **kw)
 
 
 def _deliver(dev, out: Path, session: str, n: int) -> None:
@@ -282,7 +284,7 @@ def test_earlier_session_keyframes_wait_for_host_space(tmp_path, monkeypatch):
     out = tmp_path / "host"
     rx = _receiver(new.pose_endpoint, new.keyframe_endpoint, out)
     try:
-        assert wait_for(lambda: rx.stats.link["store_failures"] >= 2, 20, between=lambda: rx.poll(0.02))
+        assert wait_for(lambda: rx.stats.link.store_failures >= 2, 20, between=lambda: rx.poll(0.02))
         assert len(list((tmp_path / "spool_sessOld").glob("*.kf"))) == 4  # nothing acknowledged, nothing deleted
         full["on"] = False
         assert wait_for(lambda: len(stored_seqs(out, "sessOld")) == 4, 30, between=lambda: rx.poll(0.02))
@@ -320,7 +322,7 @@ def test_keyframes_refused_before_later_ones_stored_are_fetched_again(tmp_path, 
     rx = _receiver(new.pose_endpoint, new.keyframe_endpoint, out)
     try:
         assert wait_for(lambda: len(stored_seqs(out, "sessOld")) == 4, 30, between=lambda: rx.poll(0.02))
-        assert len(refused) == 2 and rx.stats.link["store_failures"] == 2
+        assert len(refused) == 2 and rx.stats.link.store_failures == 2
         assert wait_for(lambda: not list((tmp_path / "spool_sessOld").glob("*.kf")), 10,
                         between=lambda: rx.poll(0.02))
     finally:

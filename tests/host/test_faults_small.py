@@ -161,7 +161,7 @@ def test_bogus_session_ids_are_bounded(tmp_path):
     try:
         deadline = time.monotonic() + 10
         sent = 0
-        while time.monotonic() < deadline and rx.stats.received["pose"] + rx.stats.rejected < 20:
+        while time.monotonic() < deadline and rx.stats.received.pose + rx.stats.rejected < 20:
             pub.send(encode_pose(Pose(f"bogus{sent % 40:03d}", sent, sent + 1, (0.0, 0.0, 0.0),
                                       (0.0, 0.0, 0.0, 1.0))))
             sent += 1

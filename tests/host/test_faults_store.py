@@ -77,7 +77,7 @@ def test_host_disk_full_keeps_keyframes_unacked_until_space_returns(tmp_path, mo
         for i in range(6):
             assert dev.offer_keyframe(i, i * 50_000_000, np.eye(4), *small_images(i))
         assert dev.wait_spooled(6, 10)
-        assert wait_for(lambda: rx.stats.link["store_failures"] >= 2, 10, between=lambda: rx.poll(0.02))
+        assert wait_for(lambda: rx.stats.link.store_failures >= 2, 10, between=lambda: rx.poll(0.02))
         for _ in range(20):
             rx.poll(0.02)
         assert not list(out.rglob("kf_*"))
@@ -104,7 +104,7 @@ def test_a_keyframe_refused_by_a_full_host_disk_is_asked_for_again_as_soon_as_st
 
     from stereopath.host.live import store as store_mod
     from stereopath.host.live.receiver import Receiver
-    from stereopath.host.live.receiver_config import ReceiverConfig
+    from stereopath.host.live.receiver_config import ReceiverConfig, SocketTiming
     from tests.device.test_streaming_support import assert_exactly_once, make_device, small_images, wait_for
 
     real = store_mod.write_atomic
@@ -120,14 +120,15 @@ def test_a_keyframe_refused_by_a_full_host_disk_is_asked_for_again_as_soon_as_st
     dev = make_device(tmp_path, None, "sessH")
     out = tmp_path / "out"
     rx = Receiver(ReceiverConfig(dev.pose_endpoint, dev.keyframe_endpoint, insecure=True, fsync=False,
-                                 heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
-                                 reconnect_ivl_max_ms=400, stall_timeout_s=60.0), out)
+                                 sockets=SocketTiming(heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500,
+                                                      reconnect_ivl_ms=50, reconnect_ivl_max_ms=400),
+                                 stall_timeout_s=60.0), out)
     try:
         for i in range(6):
             assert dev.offer_keyframe(i, i * 50_000_000, np.eye(4), *small_images(i))
         assert dev.wait_spooled(6, 10)
         assert wait_for(lambda: rx.store.session("sessH").acked_seq == 5, 10, between=lambda: rx.poll(0.02))
-        assert refused and rx.stats.link["hellos"] >= 2 and rx.stats.link["rehellos_after_stall"] == 0
+        assert refused and rx.stats.link.hellos >= 2 and rx.stats.link.rehellos_after_stall == 0
     finally:
         rx.close()
         dev.close()
@@ -145,7 +146,7 @@ def test_a_keyframe_that_keeps_failing_does_not_set_off_a_resend_loop(tmp_path, 
     from stereopath.host.live import receiver as receiver_mod
     from stereopath.host.live import store as store_mod
     from stereopath.host.live.receiver import Receiver
-    from stereopath.host.live.receiver_config import ReceiverConfig
+    from stereopath.host.live.receiver_config import ReceiverConfig, SocketTiming
     from tests.device.test_streaming_support import make_device, small_images, wait_for
 
     real = store_mod.write_atomic
@@ -158,8 +159,9 @@ def test_a_keyframe_that_keeps_failing_does_not_set_off_a_resend_loop(tmp_path, 
     monkeypatch.setattr(store_mod, "write_atomic", never_2)
     dev = make_device(tmp_path, None, "sessL")
     rx = Receiver(ReceiverConfig(dev.pose_endpoint, dev.keyframe_endpoint, insecure=True, fsync=False,
-                                 heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
-                                 reconnect_ivl_max_ms=400, stall_timeout_s=60.0), tmp_path / "out")
+                                 sockets=SocketTiming(heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500,
+                                                      reconnect_ivl_ms=50, reconnect_ivl_max_ms=400),
+                                 stall_timeout_s=60.0), tmp_path / "out")
     try:
         for i in range(6):
             assert dev.offer_keyframe(i, i * 50_000_000, np.eye(4), *small_images(i))
@@ -168,7 +170,7 @@ def test_a_keyframe_that_keeps_failing_does_not_set_off_a_resend_loop(tmp_path, 
         wait_for(lambda: False, 3.0, between=lambda: rx.poll(0.02))
         elapsed = time.monotonic() - start
         assert rx.store.session("sessL").acked_seq == 1
-        assert rx.stats.link["hellos"] <= 2 + elapsed / receiver_mod.RECOVERY_HELLO_MIN_S
+        assert rx.stats.link.hellos <= 2 + elapsed / receiver_mod.RECOVERY_HELLO_MIN_S
         assert dev.stats()["keyframes_resent"] <= 4 * (1 + elapsed / receiver_mod.RECOVERY_HELLO_MIN_S)
     finally:
         rx.close()

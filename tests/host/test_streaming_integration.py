@@ -19,11 +19,12 @@ from stereopath.device.wire.protocol import Hello, Keyframe, Status, decode_mess
 from stereopath.device.wire.security import generate_keypair, load_public_key, load_secret_keypair, make_demo_keys
 from stereopath.device.formats.tum import read_tum
 from stereopath.host.live.receiver import Receiver
-from stereopath.host.live.receiver_config import ReceiverConfig
+from stereopath.host.live.receiver_config import ReceiverConfig, SocketTiming
 from tests.device.test_streaming_support import assert_exactly_once, make_device, port_of, small_images, stored_seqs, \
     wait_for
 
 pytestmark = pytest.mark.timeout(60)
+FAST_SOCKETS = SocketTiming(heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50, reconnect_ivl_max_ms=400)
 
 
 @pytest.fixture(scope="module")
@@ -34,8 +35,7 @@ def keys(tmp_path_factory):
 def _receiver(dev, keys, out: Path, **kw) -> Receiver:
     cfg = ReceiverConfig(dev.pose_endpoint, dev.keyframe_endpoint, insecure=keys is None,
                          keys_dir=None if keys is None else str(keys.host_keys_dir), fsync=False,
-                         heartbeat_ivl_ms=250, heartbeat_timeout_ms=1500, reconnect_ivl_ms=50,
-                         reconnect_ivl_max_ms=400, stall_timeout_s=1.0, **kw)
+                         sockets=FAST_SOCKETS, stall_timeout_s=1.0, **kw)
     return Receiver(cfg, out)
 
 
@@ -67,7 +67,7 @@ def test_poses_keyframes_and_status_reach_the_host(tmp_path, keys, secure):
         assert wait_for(lambda: len(stored_seqs(tmp_path / "out", "sessA")) == 10, 10, between=lambda: rx.poll(0.02))
         assert wait_for(lambda: rx.live.status is not None, 5, between=lambda: rx.poll(0.02))
         st = rx.stats
-        assert st.received["pose"] >= 20 and st.rejected == 0 and st.duplicates == 0
+        assert st.received.pose >= 20 and st.rejected == 0 and st.duplicates == 0
         assert rx.live.status.session_id == "sessA" and rx.live.acked_seq == 9
         assert rx.live.link_quality in ("good", "poor")
     finally:
@@ -75,7 +75,7 @@ def test_poses_keyframes_and_status_reach_the_host(tmp_path, keys, secure):
         dev.close()
     assert_exactly_once(tmp_path / "out", "sessA", dev.spool)
     traj = read_tum(tmp_path / "out" / "sessA" / "poses.tum")
-    assert len(traj) == st.received["pose"]
+    assert len(traj) == st.received.pose
     assert np.allclose(traj.T_world_cam[-1], _pose_T(39), atol=1e-5)
     stats = dev.stats()
     assert stats["keyframes_sent"] == 10 and stats["acks"] == 10 and stats["keyframes_resent"] == 0
@@ -97,7 +97,7 @@ def test_device_restart_new_session_kept_apart(tmp_path, keys):
         dev_b = make_device(tmp_path, keys, "sessB", pose_endpoint=f"tcp://127.0.0.1:{pport}",
                             keyframe_endpoint=f"tcp://127.0.0.1:{kport}")
         try:
-            assert wait_for(lambda: rx.stats.link["connects"] >= 2, 10, between=lambda: rx.poll(0.02))
+            assert wait_for(lambda: rx.stats.link.connects >= 2, 10, between=lambda: rx.poll(0.02))
             wait_for(lambda: False, 0.3, between=lambda: rx.poll(0.02))
             _stream(dev_b, rx, 12, 4)
             assert wait_for(lambda: len(stored_seqs(out, "sessB")) == 3, 10, between=lambda: rx.poll(0.02))
@@ -179,7 +179,7 @@ def test_unauthorised_clients_receive_nothing(tmp_path, keys):
         rx.close()
         dev.close()
     assert got == {name: 0 for name in attackers}
-    assert rx.stats.received["pose"] > 0  # the authorised host did receive
+    assert rx.stats.received.pose > 0  # the authorised host did receive
     stats = dev.stats()
     assert stats["hellos"] == 1 and len(stats["peers"]) == 1  # no intruder hello reached the device
 
@@ -318,7 +318,7 @@ def test_host_rejects_malformed_device_messages_and_carries_on(tmp_path, keys):
     st = rx.stats
     assert st.rejected_by_reason.get("frames") == 1 and st.rejected_by_reason.get("version", 0) >= n // len(garbage)
     assert st.rejected_by_channel["pose"] <= 50  # conflated SUB: some garbage is replaced before it is read
-    assert st.received["keyframe"] == 1
+    assert st.received.keyframe == 1
 
 
 def test_live_command_writes_rerun_recording(tmp_path, keys):
@@ -441,12 +441,12 @@ def test_poses_appended_after_a_torn_last_line_still_read(tmp_path):
         assert wait_for(lambda: rx.live.connected, 5, between=lambda: rx.poll(0.02))
         wait_for(lambda: False, 0.3, between=lambda: rx.poll(0.02))  # let the SUB subscription propagate
         _stream(dev, rx, 10, 0)
-        assert wait_for(lambda: rx.stats.received["pose"] >= 5, 5, between=lambda: rx.poll(0.02))
+        assert wait_for(lambda: rx.stats.received.pose >= 5, 5, between=lambda: rx.poll(0.02))
     finally:
         rx.close()
         dev.close()
     traj = read_tum(out / "sessT" / "poses.tum")
-    assert len(traj) == 1 + rx.stats.received["pose"] and traj.t_ns[0] == 1
+    assert len(traj) == 1 + rx.stats.received.pose and traj.t_ns[0] == 1
 
 
 def test_a_failed_pose_write_leaves_no_torn_line_even_if_the_host_stops_then(tmp_path):

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from stereopath.device.core.config import check_range
+from stereopath.device.core.config import check_ranges, ranged
 from stereopath.device.estimation.base import PoseEstimate, WorldFrame
 from stereopath.device.core.features import gray
 from stereopath.device.core.frames import ImuSamples, StereoFrame
@@ -36,20 +36,18 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class PaperConfig:
     feature_preset: str = "paper"
-    ransac_iterations: int = 10_000
-    frame_step: int = 4  # a "position" every N video frames (consecutive 20 Hz frames barely move)
+    ransac_iterations: int = ranged(10_000, 10, 1_000_000)
+    frame_step: int = ranged(4, 1, 1000)  # a "position" every N video frames (consecutive 20 Hz frames barely move)
     ransac_threshold_px: float = 1.0
     epipolar_max_dy_px: float = 1.0
-    min_matches: int = 15
+    min_matches: int = ranged(15, 8, 100000)
     min_disparity_px: float = 1.0
     # Eq. 4 as written ignores the rotation between P-1 and P; True removes it (T_P from
     # X_{P-1} - R_P X_P), which is not the paper's method but shows what the rotation costs.
     rotation_compensated: bool = False
 
     def __post_init__(self) -> None:
-        check_range("ransac_iterations", self.ransac_iterations, 10, 1_000_000)
-        check_range("frame_step", self.frame_step, 1, 1000)
-        check_range("min_matches", self.min_matches, 8, 100000)
+        check_ranges(self)
 
 
 def match_indices(m) -> np.ndarray:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stereopath.device.core.config import check_range
+from stereopath.device.core.config import check_ranges, ranged
 from stereopath.device.estimation.base import PoseEstimate, WorldFrame
 from stereopath.host.evaluation.baselines.paper import match_indices
 from stereopath.device.core.features import gray
@@ -24,14 +24,13 @@ from stereopath.device.formats.tum import Trajectory
 @dataclass(frozen=True)
 class SfmConfig:
     feature_preset: str = "sift"
-    ransac_iterations: int = 10_000
-    frame_step: int = 4  # a "position" every N video frames (consecutive 20 Hz frames barely move)
+    ransac_iterations: int = ranged(10_000, 10, 1_000_000)
+    frame_step: int = ranged(4, 1, 1000)  # a "position" every N video frames (consecutive 20 Hz frames barely move)
     ransac_threshold_px: float = 1.0
     min_matches: int = 15
 
     def __post_init__(self) -> None:
-        check_range("ransac_iterations", self.ransac_iterations, 10, 1_000_000)
-        check_range("frame_step", self.frame_step, 1, 1000)
+        check_ranges(self)
 
 
 class SfmEstimator:
