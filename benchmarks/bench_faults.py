@@ -246,7 +246,6 @@ def sc_device_disk_full(tmp: Path, mount: bool) -> dict:
     from stereopath.device.service.options import RunOptions, load_config
     from stereopath.device.service.service import CaptureService
     from stereopath.host.live.receiver import Receiver, ReceiverConfig
-    from stereopath.host.live.receiver_config import SocketTiming
     from tests.device.test_service_support import FakeEstimator, sim_tables, write_toml
 
     stream = loopback_stream(drain_s=5.0)

@@ -26,7 +26,7 @@ _ROW_KEYS = ("frames", "keyframes", "ate_rmse_m", "ate_reestimated_m", "mesh_ver
 
 
 def summary_dict(result: FleetResult, settings: ReprocessSettings | Mapping[str, object]) -> dict[str, Any]:
-    """``fleet.json``'s content from a :class:`stereopath.host.fleet.runner.FleetResult`."""
+    """``fleet.json``'s content from a :class:`stereopath.host.fleet.state.FleetResult`."""
     rows = []
     for st in result.sessions:
         r = st.result or {}

@@ -48,7 +48,7 @@ from stereopath.device.wire.sockets import CurveKeys, secure_channel
 from stereopath.device.formats.tum import ns_to_seconds_str
 from stereopath.device.formats.fileio import cut_torn_tail, write_json_atomic
 from stereopath.host.live.receiver_config import MAX_KEYFRAME_BYTES, RECEIVER_JSON, ReceiverConfig
-from stereopath.host.live.receiver_link import RECOVERY_HELLO_MIN_S, Link
+from stereopath.host.live.receiver_link import Link
 from stereopath.host.live.receiver_sessions import SessionCatalog, describe_incomplete
 from stereopath.host.live.receiver_stats import EventRate, LiveState, ReceiverStats, SessionStats
 from stereopath.host.live.store import STATE_NAME, KeyframeStore, list_sessions
@@ -58,7 +58,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-__all__ = ["HOST_FILES", "RECOVERY_HELLO_MIN_S", "Receiver", "session_name_clash"]
+__all__ = ["HOST_FILES", "Receiver", "ReceiverConfig", "session_name_clash"]
 HOST_FILES = (RECEIVER_JSON, STATE_NAME)  # what the host itself keeps in OUT beside the session folders
 
 

@@ -34,8 +34,10 @@ class Link:
     """The connection to one device: sockets, handshake and probe state, hellos; counts into ``counters``.
 
     ``store`` says what the host holds (for hellos and the stall check); ``on_storage_failed(what,
-    exc)`` is called when reading it fails.  Everything but :attr:`sub` (read by the receiver's pose
-    thread) is used from the polling thread.
+    exc)`` is called when reading it fails.  The polling thread drives the link; :attr:`sub` is read
+    by the receiver's pose thread, and the handshake probe thread reads :attr:`config` and notes what it
+    said.  ``counters`` is shared with the receiver: each field has one writer (the link its own
+    counts, the receiver ``poses_unsaved`` and ``store_failures`` under its lock).
     """
 
     def __init__(self, config: ReceiverConfig, curve: CurveKeys | None, store: KeyframeStore,

@@ -21,7 +21,10 @@ MODEL_FILES = ("mesh.ply", "cloud.ply", "model.png", "map.json")
 
 
 def settings(config: Any) -> dict[str, Any]:
-    return {"preset": config} if isinstance(config, str) else dataclasses.asdict(config)
+    """What the stage's key hashes: the depth settings in their recorded (``map.json``) form, constants included."""
+    if isinstance(config, str):
+        return {"preset": config}
+    return {**dataclasses.asdict(config), "depth": config.depth.record()}
 
 
 def run(config: Any, inputs: StageInputs) -> list[str]:

@@ -143,7 +143,7 @@ def test_a_keyframe_that_keeps_failing_does_not_set_off_a_resend_loop(tmp_path, 
 
     import numpy as np
 
-    from stereopath.host.live import receiver as receiver_mod
+    from stereopath.host.live.receiver_link import RECOVERY_HELLO_MIN_S
     from stereopath.host.live import store as store_mod
     from stereopath.host.live.receiver import Receiver
     from stereopath.host.live.receiver_config import ReceiverConfig, SocketTiming
@@ -170,8 +170,8 @@ def test_a_keyframe_that_keeps_failing_does_not_set_off_a_resend_loop(tmp_path, 
         wait_for(lambda: False, 3.0, between=lambda: rx.poll(0.02))
         elapsed = time.monotonic() - start
         assert rx.store.session("sessL").acked_seq == 1
-        assert rx.stats.link.hellos <= 2 + elapsed / receiver_mod.RECOVERY_HELLO_MIN_S
-        assert dev.stats()["keyframes_resent"] <= 4 * (1 + elapsed / receiver_mod.RECOVERY_HELLO_MIN_S)
+        assert rx.stats.link.hellos <= 2 + elapsed / RECOVERY_HELLO_MIN_S
+        assert dev.stats()["keyframes_resent"] <= 4 * (1 + elapsed / RECOVERY_HELLO_MIN_S)
     finally:
         rx.close()
         dev.close()

@@ -285,3 +285,16 @@ def test_preview_renderer_orientation(tmp_path):
     assert np.nonzero(red)[0].mean() < 60 < np.nonzero(blue)[0].mean()
     write_png(img, tmp_path / "p.png")
     assert cv2.imread(str(tmp_path / "p.png")).shape == (120, 160, 3)
+
+
+def test_the_map_stage_key_hashes_every_depth_setting():
+    """The reprocess map stage's key covers the fixed SGBM settings too (as recorded in map.json), so a
+    stored model is reused only when the depth it was made with is the same."""
+    from stereopath.host.mapping.mapper import map_preset
+    from stereopath.host.reprocess import stage_map
+
+    config = map_preset("object")
+    recorded = stage_map.settings(config)["depth"]
+    assert recorded == config.depth.record()
+    assert {"uniqueness_ratio", "pre_filter_cap", "speckle_window_px", "edge_dilate_px"} <= set(recorded)
+    assert stage_map.settings("auto") == {"preset": "auto"}
