@@ -133,7 +133,7 @@ class KeyframeJobs:
         self._executor = None
         self._feature_cfg = None
         self._match_cfg = None
-        if self.cfg.use_asift_keyframes and self.cfg.background_keyframes:
+        if self.cfg.asift.enabled and self.cfg.keyframes.background:
             from concurrent.futures import ThreadPoolExecutor
 
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keyframe-features")
@@ -148,7 +148,7 @@ class KeyframeJobs:
         from stereopath.device.core.features import detect, get_preset
 
         if self._feature_cfg is None:
-            self._feature_cfg = get_preset(self.cfg.feature_preset)
+            self._feature_cfg = get_preset(self.cfg.asift.feature_preset)
         return detect(img, self._feature_cfg, views=views)
 
     def _apply_correction(self, G: np.ndarray) -> None:
@@ -177,7 +177,7 @@ class KeyframeJobs:
                 G = rigid(C_since @ res.T_refined @ invert_pose(res.T_tracked) @ invert_pose(C_since))
                 ang = rotation_angle_deg(G[:3, :3])
                 log.debug("keyframe %d: correction %.3f deg, %.4f m", res.seq, ang, float(np.linalg.norm(G[:3, 3])))
-                if ang <= self.cfg.max_correction_deg:
+                if ang <= self.cfg.asift.max_correction_deg:
                     self._apply_correction(G)
                     self.counters["kf_corrections"] += 1
                     self.counters["asift_matches"] += res.n_asift
@@ -200,17 +200,17 @@ class KeyframeJobs:
         """(current, previous) index pairs of the keyframe's original view against the previous library."""
         from stereopath.device.core.matching import MatchConfig, match, match_guided
 
-        if self.cfg.guided_radius_px <= 0:
+        if self.cfg.asift.guided_radius_px <= 0:
             mt = match(feats0, prev.feats, self._match_cfg or MatchConfig())
             return np.asarray(mt.idx).reshape(-1, 2)
         T_cw = invert_pose(T_tracked)
         Xc = prev_X @ T_cw[:3, :3].T + T_cw[:3, 3]
         pred = np.full((len(Xc), 2), np.nan)
-        front = Xc[:, 2] > self.cfg.min_depth_m
+        front = Xc[:, 2] > self.cfg.geometry.min_depth_m
         if np.any(front):
             pred[front] = cv2.projectPoints(Xc[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
                                             self.rig.cam0.K, self.rig.cam0.dist)[0].reshape(-1, 2)
-        mt = match_guided(prev.feats, feats0, pred, self.cfg.guided_radius_px, self._match_cfg or MatchConfig())
+        mt = match_guided(prev.feats, feats0, pred, self.cfg.asift.guided_radius_px, self._match_cfg or MatchConfig())
         return np.asarray(mt.idx).reshape(-1, 2)[:, ::-1]
 
     def _keyframe_job(self, seq: int, left, right, T_tracked: np.ndarray, z0: float, X_map: np.ndarray,
@@ -221,7 +221,7 @@ class KeyframeJobs:
         the previous keyframe, each with a 3D point) around the positions the tracked pose
         predicts; those matches and the tracked map points give the keyframe pose."""
         prev, T_prev = resolve_previous(prev_source, C_sub)
-        predicted = self.cfg.asift_views == "predicted"
+        predicted = self.cfg.asift.views == "predicted"
         feats = self._features(left, views=[0] if predicted else None)
         T_ref, n_asift, n_views = None, 0, 0
         if prev is not None and len(feats):
@@ -231,13 +231,13 @@ class KeyframeJobs:
                 cur = self._with_predicted_views(left, cur, prev_X, T_prev, T_tracked)
                 n_views = int(cur.view.max())
             idx = self._asift_matches(prev, prev_X, cur, T_tracked)
-            if len(idx) >= self.cfg.min_pnp_inliers:
+            if len(idx) >= self.cfg.geometry.min_pnp_inliers:
                 X = np.vstack([prev_X[idx[:, 1]], X_map])
                 uv = np.vstack([cur.xy[idx[:, 0]].astype(np.float64), uv_map])
                 T_new, _, mask = self._geo.solve_pose(left, right, X, uv, T_tracked, seed=seq)
                 # the tracked map must still fit the joint pose: ASIFT matches that pull the pose away
                 # from it (repeated texture, a wrong 3D point) would turn its points into outliers
-                if T_new is not None and mask[len(idx):].sum() >= self.cfg.kf_map_agreement * len(X_map):
+                if T_new is not None and mask[len(idx):].sum() >= self.cfg.asift.map_agreement * len(X_map):
                     T_ref, n_asift = T_new, int(mask[: len(idx)].sum())
         library = self._library_of(seq, left, right, feats, z0)
         if library is None:  # the next keyframe matches against the one before
@@ -258,10 +258,10 @@ class KeyframeJobs:
         from stereopath.device.core.features import ORIGINAL_VIEW, Features, detect, get_preset
 
         tilt, phi = predicted_view_change(prev_X, T_prev, T_tracked)
-        if tilt < self.cfg.asift_view_min_tilt:
+        if tilt < self.cfg.asift.view_min_tilt:
             return feats0
         t = min(tilt, MAX_SIMULATED_TILT)
-        cfg = dataclasses.replace(get_preset(self.cfg.feature_preset),
+        cfg = dataclasses.replace(get_preset(self.cfg.asift.feature_preset),
                                   views=(ORIGINAL_VIEW, (t, phi), (t, (phi + 90.0) % 180.0)))
         log.debug("keyframe views at tilt %.2f, longitudes %.0f/%.0f deg", t, phi, (phi + 90.0) % 180.0)
         return Features.concat([feats0, detect(left, cfg, views=[1, 2])])
@@ -270,13 +270,13 @@ class KeyframeJobs:
         """The keyframe's features with stereo 3D points (camera frame)."""
         if len(feats) == 0:
             return None
-        if len(feats) > self.cfg.kf_library_max:  # the strongest keypoints of all views
-            keep = np.argsort(-feats.response, kind="stable")[: self.cfg.kf_library_max]
+        if len(feats) > self.cfg.asift.library_max:  # the strongest keypoints of all views
+            keep = np.argsort(-feats.response, kind="stable")[: self.cfg.asift.library_max]
             feats = feats.subset(np.sort(keep))
         # no forward-backward check: a wrong 3D point of the library is an outlier of the next
         # keyframe's RANSAC, and the check would double the cost of its largest stereo search
         _, Xc, ok = self._geo.stereo_points(left, right, feats.xy.astype(np.float32), z0, fb_check=False)
-        if ok.sum() < self.cfg.min_pnp_inliers:
+        if ok.sum() < self.cfg.geometry.min_pnp_inliers:
             return None
         return Library(seq, feats.subset(ok), Xc[ok])
 
@@ -286,15 +286,15 @@ class KeyframeJobs:
         cfg = self.cfg
         if self._T_asift is None or self._library is None and not self._jobs:
             return True
-        if self._cur_seq - self._asift_frame >= cfg.asift_max_frames:
+        if self._cur_seq - self._asift_frame >= cfg.asift.max_frames:
             return True
-        return rotation_angle_deg(self._T_asift[:3, :3].T @ T_world_cam[:3, :3]) >= cfg.asift_min_rotation_deg
+        return rotation_angle_deg(self._T_asift[:3, :3].T @ T_world_cam[:3, :3]) >= cfg.asift.min_rotation_deg
 
     def _submit_keyframe_job(self, left, right, T_world_cam: np.ndarray, z0: float) -> None:
         """Queue this keyframe's ASIFT work: one job running and one waiting at most (the newest wins).
         Finished jobs are joined before (:meth:`_join_keyframe_jobs_moving`), so that the queue and
         ``T_world_cam`` are those of the live state."""
-        if not self.cfg.use_asift_keyframes:
+        if not self.cfg.asift.enabled:
             return
         if not self._asift_needed(T_world_cam):
             self.counters["kf_jobs_deferred"] += 1

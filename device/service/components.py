@@ -138,7 +138,7 @@ def open_components(cfg: DeviceConfig, session_dir: Path, session_id: str, *, so
     c.imu = open_imu(cfg, c.source, imu_inject or {})
     cam_hz, imu_hz = nominal_rates(cfg, c.source)
     if estimator is None:
-        estimator = make_estimator(cfg.estimator.name, c.source.rig)
+        estimator = make_estimator(cfg.estimator.name, c.source.rig, options=cfg.estimator.stereo)
     c.estimator = estimator
     c.monitor = RateMonitor(None if cfg.source.recorded else cam_hz, imu_hz if cfg.imu.polled else None,
                             cfg.timealign.gap_factor)

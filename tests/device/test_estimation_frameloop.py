@@ -12,7 +12,8 @@ from stereopath.device.formats.rig_files import load_kitti_calib
 from stereopath.device.core.stereo import stereo_right
 from stereopath.device.estimation.base import run_estimator
 from stereopath.device.estimation.registry import make_estimator
-from stereopath.device.estimation.stereo_vo import StereoConfig, StereoEstimator
+from stereopath.device.core.stereo_config import AsiftWork, DisparityOffsetConfig, KeyframePolicy, StereoConfig
+from stereopath.device.estimation.stereo_vo import StereoEstimator
 
 
 def _kitti_frames(data_dir, idx):
@@ -35,13 +36,13 @@ def test_stereo_right_recovers_a_subpixel_disparity_and_rejects_row_mismatch(dat
     pts = cv2.goodFeaturesToTrack(left, 200, 0.01, 10).reshape(-1, 2)
     pts = pts[(pts[:, 0] > 40) & (pts[:, 0] < 1180) & (pts[:, 1] > 40) & (pts[:, 1] < 330)]
     cfg = StereoConfig()
-    xr, ok = stereo_right(rig, left, right, pts, pts - [4.0, 0.0], cfg)
+    xr, ok = stereo_right(rig, left, right, pts, pts - [4.0, 0.0], cfg.klt)
     assert ok.mean() > 0.9
     assert np.median(np.abs(pts[ok, 0] - xr[ok, 0] - d)) < 0.05
     assert np.all(np.abs(xr[ok, 1] - pts[ok, 1]) < 0.2)
     # the same points 3 px lower in the right image: not on the rectified row, rejected
     down = cv2.warpAffine(right, np.float32([[1, 0, 0], [0, 1, 3]]), (1226, 370), borderMode=cv2.BORDER_REFLECT)
-    _, ok2 = stereo_right(rig, left, down, pts, pts - [4.0, 0.0], cfg)
+    _, ok2 = stereo_right(rig, left, down, pts, pts - [4.0, 0.0], cfg.klt)
     assert ok2.mean() < 0.1
     assert stereo_right(rig, left, right, np.zeros((0, 2)), np.zeros((0, 2)), cfg)[0].shape == (0, 2)
 
@@ -58,7 +59,7 @@ def test_gray_accepts_colour_and_single_channel():
 def test_keyframe_work_never_stalls_the_frame_loop_and_its_queue_is_bounded(data_dir):
     rig, frames = _kitti_frames(data_dir, range(12))
     # a keyframe at every frame, each asking for ASIFT work
-    est = StereoEstimator(rig, StereoConfig(kf_max_frames=1, asift_min_rotation_deg=0.0))
+    est = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=1), asift=AsiftWork(min_rotation_deg=0.0)))
     release = threading.Event()
     started = []
     real_job = est._keyframe_job
@@ -99,8 +100,8 @@ def test_fast_motion_every_nth_kitti_frame_is_tracked(data_dir, step):
 
 def test_online_disparity_offset_is_estimated_bounded_and_used(data_dir):
     rig, frames = _kitti_frames(data_dir, range(14))
-    est = StereoEstimator(rig, StereoConfig(kf_max_frames=2, background_keyframes=False,
-                                            estimate_disparity_offset=True))
+    est = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=2, background=False),
+                                            disparity_offset=DisparityOffsetConfig(estimate=True)))
     out = [est.process(f, None) for f in frames]
     est.close()
     assert all(e.status == "ok" for e in out)
@@ -134,7 +135,8 @@ def test_each_offset_estimate_is_solved_over_the_last_four_keyframes_stereo_obse
     monkeypatch.setattr(stereo_vo, "offset_over_keyframes", window)
     monkeypatch.setattr(disparity_offset.OffsetFilter, "update", update)
     rig, frames = _kitti_frames(data_dir, range(14))
-    est = StereoEstimator(rig, StereoConfig(kf_max_frames=2, background_keyframes=False, record_observations=True))
+    est = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=2, background=False)))
+    est.record_observations = True
     for f in frames:
         est.process(f, None)
     est.close()
@@ -164,7 +166,7 @@ def test_the_path_measured_before_the_offset_was_learned_is_re_measured_once(dat
     end_error = {}
     for correct in (True, False):
         rig, frames = _kitti_frames(data_dir, range(14))
-        est = StereoEstimator(rig, StereoConfig(kf_max_frames=2, background_keyframes=False))
+        est = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=2, background=False)))
         if not correct:
             real = est._prior_path.correction  # computed (the pairs are forgotten), never applied
             est._prior_path.correction = lambda *args: [real(*args), None][1]
@@ -183,8 +185,8 @@ def test_online_disparity_offset_stays_at_the_prior_around_an_object():
     from stereopath.device.sim.session import open_sim
 
     seq = open_sim(seed=2, frames=60, trajectory="orbit")
-    est = StereoEstimator(seq.rig, StereoConfig(kf_max_frames=2, background_keyframes=False))
-    assert est.cfg.estimate_disparity_offset  # on by default
+    est = StereoEstimator(seq.rig, StereoConfig(KeyframePolicy(max_frames=2, background=False)))
+    assert est.cfg.disparity_offset.estimate  # on by default
     out = [est.process(seq.frame(i), None) for i in range(len(seq))]
     est.close()
     assert all(e.status == "ok" for e in out)
@@ -197,15 +199,15 @@ def test_online_disparity_offset_stays_at_the_prior_around_an_object():
 
 def test_asift_work_is_scheduled_by_view_change_not_at_every_keyframe(data_dir):
     rig, frames = _kitti_frames(data_dir, range(12))  # driving straight: little rotation
-    est = StereoEstimator(rig, StereoConfig(kf_max_frames=1, background_keyframes=False, asift_max_frames=5))
+    est = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=1, background=False), asift=AsiftWork(max_frames=5)))
     out = [est.process(f, None) for f in frames]
     est.close()
     assert all(e.status == "ok" for e in out) and sum(e.keyframe for e in out) >= 10
     # the first keyframe and then one by age (5 frames) at most: the rest only top up the map
     assert 2 <= est.counters["kf_jobs"] <= 3
     assert est.counters["kf_jobs_deferred"] == est.counters["keyframes"] - est.counters["kf_jobs"]
-    turning = StereoEstimator(rig, StereoConfig(kf_max_frames=1, background_keyframes=False,
-                                                asift_min_rotation_deg=0.0))
+    turning = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=1, background=False),
+                                                asift=AsiftWork(min_rotation_deg=0.0)))
     for f in frames[:4]:
         turning.process(f, None)
     turning.close()
@@ -251,7 +253,7 @@ def test_keyframe_match_simulates_views_only_for_a_large_predicted_view_change(d
     from stereopath.device.core.features import Features
 
     rig, frames = _kitti_frames(data_dir, [0])
-    est = StereoEstimator(rig, StereoConfig(background_keyframes=False))
+    est = StereoEstimator(rig, StereoConfig(KeyframePolicy(background=False)))
     left = frames[0].left
     feats0 = est._features(left, views=[0])
     X = np.random.default_rng(1).normal(0, 0.5, (100, 3)) + [0.0, 0.0, 10.0]
@@ -267,4 +269,4 @@ def test_keyframe_match_simulates_views_only_for_a_large_predicted_view_change(d
     from stereopath.device.errors import ConfigError
 
     with pytest.raises(ConfigError):
-        StereoConfig(asift_views="sometimes")
+        AsiftWork(views="sometimes")

@@ -109,7 +109,7 @@ def test_gyro_bias_is_measured_from_vision_without_a_still_imu_block_before_the_
     G = seq.groundtruth.T_world_cam
     gap_error = {}
     for on in (True, False):
-        est = make_estimator("stereo", seq.rig, options={"estimate_gyro_bias": on})
+        est = make_estimator("stereo", seq.rig, options={"gyro": {"estimate_bias": on}})
         run = run_estimator(est, iter(broken), imu)
         status = {e.seq: e.status for e in run.estimates}
         assert run.world_frame == "first_camera"
@@ -131,7 +131,8 @@ def test_a_keyframe_job_joined_while_the_keyframe_is_made_moves_its_pose_with_th
     import cv2
 
     from stereopath.device.core.geometry import so3_exp
-    from stereopath.device.estimation.stereo_vo import StereoConfig, StereoEstimator
+    from stereopath.device.core.stereo_config import KeyframePolicy, StereoConfig
+    from stereopath.device.estimation.stereo_vo import StereoEstimator
 
     class LateJoins(StereoEstimator):  # every result is joined while a keyframe is made
         inside = False
@@ -157,7 +158,7 @@ def test_a_keyframe_job_joined_while_the_keyframe_is_made_moves_its_pose_with_th
             return res
 
     seq, frames = sim
-    est = LateJoins(seq.rig, StereoConfig(background_keyframes=False))
+    est = LateJoins(seq.rig, StereoConfig(KeyframePolicy(background=False)))
     K, dist = seq.rig.cam0.K, seq.rig.cam0.dist
     worst, joined, job_pose_error = 0.0, 0, 0.0
     imu = seq.imu

@@ -94,13 +94,13 @@ def test_points_at_scale_one_are_tracked_as_before_beside_other_groups():
 
 def test_the_estimator_takes_0_or_a_step_of_at_least_1_percent():
     from stereopath.device.errors import ConfigError
-    from stereopath.device.estimation.stereo_vo import StereoConfig
+    from stereopath.device.core.stereo_config import KltConfig
 
-    assert StereoConfig(klt_scale_step=0.0).klt_scale_step == 0.0
-    assert StereoConfig().klt_scale_step == 0.05
+    assert KltConfig(klt_scale_step=0.0).klt_scale_step == 0.0
+    assert KltConfig().klt_scale_step == 0.05
     for bad in (1e-6, 0.005, -0.05, 0.6, float("nan")):
         with pytest.raises(ConfigError, match="klt_scale_step"):
-            StereoConfig(klt_scale_step=bad)
+            KltConfig(klt_scale_step=bad)
 
 
 def test_the_previous_image_pose_moves_with_the_live_state():
