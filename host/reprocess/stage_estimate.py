@@ -1,7 +1,7 @@
 """Stage ``estimate``: the ``stereo`` estimator over every frame with the preset's settings.
 
-Outputs (``estimate.npz``): per-frame ``t_ns``, ``seq``, ``T_world_cam``, ``status`` (index into
-:data:`STATUS`), ``keyframe``, ``frame_ms`` and ``meta`` (world frame, estimator, its stats).
+Outputs (``estimate.npz``): per-frame ``t_ns``, ``seq``, ``T_world_cam``, ``status``
+(:attr:`TrackStatus.code`), ``keyframe``, ``frame_ms`` and ``meta`` (world frame, estimator, its stats).
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ from stereopath.host.progress import Bar
 from stereopath.host.reprocess.store import json_array
 
 NAME = "estimate"
-STATUS = ("ok", "imu_only", "lost")
 
 
 
@@ -41,7 +40,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
         "t_ns": np.array([e.t_ns for e in res.estimates], np.int64),
         "seq": np.array([e.seq for e in res.estimates], np.int64),
         "T_world_cam": np.array([e.T_world_cam for e in res.estimates]),
-        "status": np.array([STATUS.index(e.status) if e.status in STATUS else 2 for e in res.estimates], np.int8),
+        "status": np.array([e.status.code for e in res.estimates], np.int8),
         "keyframe": np.array([e.keyframe for e in res.estimates], bool),
         "frame_ms": np.array(res.frame_ms, float),
         "meta": json_array({"world_frame": res.world_frame, "estimator": res.estimator, "stats": res.extra}),

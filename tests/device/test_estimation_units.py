@@ -142,7 +142,7 @@ def _bias_estimator(sigma0=0.1):
     est._R_body_cam = np.eye(3)
     est._gyro = GyroIntegrator(None)
     est._bias = VisionGyroBias(None, sigma0)
-    est._T_bias_start = np.eye(4)
+    est._state.T_bias_start = np.eye(4)
     return est
 
 
@@ -155,7 +155,7 @@ def _feed(est, bias_true, seconds, bad=None, correction_at=None, G=None):
     G_now = np.eye(4)
     for k, (R_gyro, dt, R_true) in enumerate(_spin(bias_true, lambda: est._gyro.bias, seconds), start=1):
         if k == correction_at:
-            est._apply_correction(G)  # a keyframe correction joined: the live state moves
+            est._state.apply(G)  # a keyframe correction joined: the live state moves
             G_now = G @ G_now
         T = G_now @ make_pose(R_true, np.zeros(3))
         status = "ok"
@@ -163,7 +163,7 @@ def _feed(est, bias_true, seconds, bad=None, correction_at=None, G=None):
             T, status = make_pose(R_true @ so3_exp([0.0, np.radians(5.0), 0.0]), np.zeros(3)), "imu_only"
         est._gyro_step = (R_gyro, dt)
         est._refine_gyro_bias(PoseEstimate(k, k * 50_000_000, T, status))
-        est._T_world_cam = T
+        est._state.T_world_cam = T
 
 
 def test_the_estimator_restarts_its_bias_window_where_tracking_breaks():
@@ -248,7 +248,7 @@ def _rendered_points():
     import cv2
 
     from stereopath.device.estimation.stereo_measure import StereoMeasure
-    from stereopath.device.core.stereo_config import DisparityOffsetConfig, StereoConfig
+    from stereopath.device.core.stereo_config import StereoConfig
     from stereopath.device.sim.session import SimConfig, open_sim
 
     seq = open_sim(SimConfig(frames=2, with_depth=True))
@@ -269,7 +269,7 @@ def test_pose_inliers_are_classified_at_the_refined_pose_not_by_the_ransac_conse
     """A tracked map drops the points a pose calls outliers for good, so the inliers must be those
     that fit the refined pose: good points that a minimal-sample hypothesis left just outside the
     threshold come back, and gross outliers stay out (rendered stereo pair, true depths)."""
-    from stereopath.device.core.stereo_config import DisparityOffsetConfig, StereoConfig
+    from stereopath.device.core.stereo_config import StereoConfig
 
     geo, left, right, xy, X = _rendered_points()
     rig = geo.rig

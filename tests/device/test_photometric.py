@@ -77,7 +77,7 @@ def sim_short():
 def _run(seq, frames, **options):
     est = make_estimator("stereo", seq.rig, options=options)
     run = run_estimator(est, iter(frames), seq.imu)
-    return run, evaluate(seq.groundtruth, run.trajectory), dict(est.counters)
+    return run, evaluate(seq.groundtruth, run.trajectory), est.stats()
 
 
 def test_estimator_measures_a_darker_right_camera_and_tracks_as_with_matched_cameras(sim_short):
