@@ -86,7 +86,7 @@ class StereoMeasure:
         geo = self.geometry
         return (err < geo.triangulation_max_px) & (Xc[:, 2] > geo.min_depth_m) & (Xc[:, 2] < self.max_depth)
 
-    def stereo_points(self, left, right, xy: np.ndarray, z0: float,
+    def stereo_points(self, left: np.ndarray, right: np.ndarray, xy: np.ndarray, z0: float,
                       fb_check: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """New stereo points at left pixels ``xy``: (right pixels, camera-1 points, good mask).
 
@@ -96,8 +96,9 @@ class StereoMeasure:
         Xc, err = self.triangulate(xy, uvr)
         return uvr, Xc, ok & self.good_points(Xc, err)
 
-    def solve_pose(self, left, right, X: np.ndarray, uv: np.ndarray, T_guess: np.ndarray, seed: int,
-                   use_guess: bool = True, stereo_out: list | None = None):
+    def solve_pose(self, left: np.ndarray, right: np.ndarray, X: np.ndarray, uv: np.ndarray, T_guess: np.ndarray,
+                   seed: int, use_guess: bool = True, stereo_out: list[tuple[np.ndarray, np.ndarray]] | None = None
+                   ) -> tuple[np.ndarray | None, int, np.ndarray | None]:
         """PnP RANSAC (from the guess), then LM in both cameras over every point in front (nothing beyond
         twice the inlier threshold weighs), inliers classified at the refined pose.
         Returns (T_world_cam, n_inliers, mask).  ``stereo_out``: a list that receives the right-image

@@ -28,8 +28,9 @@ from stereopath.device.core.photometric import (GainOffset, correct_right, fit_g
                                                 relation_matters)
 from stereopath.device.core.stereo import stereo_right
 from stereopath.device.core.scaled_klt import track_scaled
-from stereopath.device.estimation.disparity_offset import (OffsetFilter, PriorPath, offset_between_keyframes,
-                                                          offset_over_keyframes)
+from stereopath.device.estimation.disparity_offset import (KeyframeObservations, OffsetFilter, PriorPath,
+                                                          offset_between_keyframes)
+from stereopath.device.estimation.offset_window import offset_over_keyframes
 from stereopath.device.estimation.keyframe_jobs import KeyframeJob, KeyframeWorker, Submitted
 from stereopath.device.estimation.live_state import LiveState, StereoStats
 from stereopath.device.estimation.stereo_measure import StereoMeasure
@@ -531,15 +532,15 @@ class StereoEstimator:
         kf = self.counts.keyframes
         both = m.obs_kf[idx] == kf - 1
         if self._state.T_kf is not None and both.sum() >= self.cfg.geometry.min_pnp_inliers:
+            pair = KeyframeObservations(m.obs[idx[both]], B[both], self._state.T_kf, T_world_cam)
             if self.cfg.disparity_offset.keyframes > 2 and len(self._offset_views) >= 2:
                 est = offset_over_keyframes(self._geo.rect, list(self._offset_views) + [(m.ids[idx], B, T_world_cam)],
                                             self._offset.max_inflation)
                 self.counts.disparity_offset_windows += 1
             else:
-                est = offset_between_keyframes(self._geo.rect, m.obs[idx[both]], B[both], self._state.T_kf, T_world_cam,
-                                               self._offset.max_inflation)
+                est = offset_between_keyframes(self._geo.rect, pair, self._offset.max_inflation)
             if not (learned_before := self._offset.ready):  # motions measured with the prior, for the correction
-                self._prior_path.add(kf, m.obs[idx[both]], B[both], self._state.T_kf, T_world_cam)
+                self._prior_path.add(kf, pair)
             used = self._offset.update(est)
             self.counts.disparity_offset_pairs = self._offset.n
             self.counts.disparity_offset_unidentified = self._offset.unidentified
