@@ -112,7 +112,9 @@ def test_the_previous_image_pose_moves_with_the_live_state():
 
     est = StereoEstimator(paper_rig())
     T = make_pose(so3_exp(np.array([0.0, 0.1, 0.0])), np.array([0.2, 0.0, 1.0]))
-    est._T_world_cam, est._T_prev_left = T.copy(), T.copy()
+    st = est._state
+    st.T_world_cam, st.T_prev_left = T.copy(), T.copy()
     G = make_pose(so3_exp(np.array([0.0, 0.0, 0.02])), np.array([0.01, -0.02, 0.0]))
-    est._apply_correction(G)
-    assert np.allclose(est._T_prev_left, G @ T) and np.allclose(est._T_world_cam, est._T_prev_left)
+    st.apply(G)
+    assert np.allclose(st.T_prev_left, G @ T) and np.allclose(st.T_world_cam, st.T_prev_left)
+    est.close()
