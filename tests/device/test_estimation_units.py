@@ -365,3 +365,18 @@ def test_the_stereo_settings_come_by_stage_from_device_toml_and_options(tmp_path
         est.close()
     with pytest.raises(ConfigError, match="background_keyframes"):  # the sections' keys only
         make_estimator("stereo", paper_rig(), options={"background_keyframes": False})
+
+
+def test_track_status_keeps_the_recorded_codes_and_names():
+    import json
+
+    from stereopath.device.estimation.base import PoseEstimate, TrackStatus
+    from stereopath.device.wire.messages import TRACKING_STATES
+
+    # estimate.npz and the wire's pose message carry these integers: 0 ok, 1 imu_only, 2 lost
+    assert [s.code for s in TrackStatus] == [0, 1, 2] and tuple(TrackStatus) == TRACKING_STATES
+    assert all(TrackStatus.from_code(s.code) is s for s in TrackStatus)
+    est = PoseEstimate(3, 0, np.eye(4), "imu_only")  # a name is taken as its status
+    assert est.status is TrackStatus.IMU_ONLY and json.dumps(est.status) == '"imu_only"'
+    with pytest.raises(ValueError):
+        PoseEstimate(3, 0, np.eye(4), "fine")
