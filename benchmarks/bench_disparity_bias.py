@@ -61,7 +61,7 @@ def kitti_pair(geo, seq: Path, i: int, Tg: np.ndarray):
 
 def kitti_bins(frames: int, offset: float) -> None:
     from stereopath.device.estimation.stereo_measure import StereoMeasure
-    from stereopath.device.estimation.stereo_vo import StereoConfig
+    from stereopath.device.core.stereo_config import DisparityOffsetConfig, StereoConfig
     from stereopath.device.formats.rig_files import load_kitti_calib
 
     base = data_dir() / "kitti_odometry"
@@ -69,7 +69,7 @@ def kitti_bins(frames: int, offset: float) -> None:
     rig = load_kitti_calib(seq / "calib.txt", (1226, 370))
     gt = np.loadtxt(base / "poses" / "06.txt").reshape(-1, 3, 4)
     T = [np.vstack([g, [0, 0, 0, 1]]) for g in gt]
-    geo = StereoMeasure(rig, StereoConfig(disparity_offset_px=offset))
+    geo = StereoMeasure(rig, StereoConfig(disparity_offset=DisparityOffsetConfig(prior_px=offset)))
     rows = {b: [] for b in BINS}
     for i in range(frames):
         for b, v in kitti_pair(geo, seq, i, np.linalg.inv(T[i + 1]) @ T[i]).items():

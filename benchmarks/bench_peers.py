@@ -261,7 +261,7 @@ def main() -> None:
     ap.add_argument("--sim-frames", type=int, default=None, help="frames of the simulated scan (default: its own)")
     ap.add_argument("--threads", type=int, default=None, help="cv2.setNumThreads in our process (1 = one core)")
     ap.add_argument("--no-peer", action="store_true", help="our rows only")
-    ap.add_argument("--option", action="append", default=[], help="stereo config KEY=VALUE (ours)")
+    ap.add_argument("--option", action="append", default=[], help="stereo config SECTION.KEY=VALUE (ours), e.g. klt.klt_window=21")
     ap.add_argument("--rig", default=None, help="rig YAML for ours instead of the source's (e.g. rig_refined.yaml)")
     ap.add_argument("--json-out", metavar="FILE", help="also write the medians and ratios as JSON "
                                                         "(benchmarks/write_table.py)")
@@ -271,13 +271,16 @@ def main() -> None:
 
     if args.threads is not None:
         cv2.setNumThreads(args.threads)
-    options = {}
+    options: dict[str, dict] = {}
     for kv in args.option:
         k, _, v = kv.partition("=")
+        section, _, key = k.partition(".")
+        if not key:
+            raise SystemExit(f"--option {kv!r}: name the section, SECTION.KEY=VALUE (e.g. klt.klt_window=21)")
         try:
-            options[k] = json.loads(v)  # numbers, true/false
+            options.setdefault(section, {})[key] = json.loads(v)  # numbers, true/false
         except json.JSONDecodeError:
-            options[k] = v
+            options.setdefault(section, {})[key] = v
     cases = [c for c in (args.cases or ",".join(DEFAULT_CASES + (("euroc",) if args.euroc else ()))).split(",") if c]
     for c in cases:
         if c not in CASES:

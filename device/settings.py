@@ -12,7 +12,8 @@ Sections (TOML tables):
 ``[imu]``         the inertial sensor (MPU-6050 on I2C, its emulator, the source's own, or none), with
                   ``[imu.i2c]`` (bus clock, retries), ``[imu.timestamps]`` and ``[imu.emulated]``;
 ``[timealign]``   camera-IMU time offset and how long a frame may wait for IMU samples;
-``[estimator]``   which motion estimator runs (``name``; the old key ``preset`` is still read);
+``[estimator]``   which motion estimator runs (``name``; the old key ``preset`` is still read) and its
+                  settings by stage (``[estimator.stereo.*]``);
 ``[stream]``      ZeroMQ endpoints and security, with ``[stream.images]`` (keyframe encoding),
                   ``[stream.bounds]`` (queue and credit limits) and ``[stream.heartbeat]``;
 ``[keys]``        CURVE key locations;
@@ -33,6 +34,7 @@ from pathlib import Path
 from typing import Literal, Mapping
 
 from stereopath.device.core.config import check_range, check_ranges, from_mapping, load_toml, ranged
+from stereopath.device.core.stereo_config import StereoConfig
 from stereopath.device.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -268,9 +270,12 @@ class TimeAlignSettings:
 
 @dataclass(frozen=True)
 class EstimatorSettings:
-    """Motion estimator (its own stage fills in the details)."""
+    """Motion estimator: which one, and the ``stereo`` estimator's settings by stage
+    (``[estimator.stereo.keyframes]``, ``.klt``, ``.asift``, ``.geometry``, ``.gyro``, ``.disparity_offset``,
+    ``.exposure``: :mod:`stereopath.device.core.stereo_config`)."""
 
     name: str = "stereo"          # the on-board estimator (the paper and sfm baselines run on the host only)
+    stereo: StereoConfig = field(default_factory=StereoConfig)
 
     def __post_init__(self) -> None:
         if self.name != "stereo":

@@ -5,7 +5,7 @@ timestamp is brought onto the camera clock as ``t_cam = t_imu - offset``.  The o
 a calibrated parameter (``timealign.time_offset_us``).
 
 :class:`TimeAligner` buffers IMU samples and gives every frame ``k`` the block
-``frame.meta["imu"]``: an interpolated sample at the previous frame's time, every raw
+``frame.imu``: an interpolated sample at the previous frame's time, every raw
 sample strictly between the two frames, and an interpolated sample at this frame's time
 (the first frame gets the pre-roll instead: up to 2 s of samples before it, so that an
 estimator can take the gyro bias and gravity from the start-up rest).  Integrating the block therefore
@@ -197,7 +197,7 @@ class TimeAligner:
         imu = self._imu
         meta = frame.meta
         if not len(imu):
-            meta["imu"] = ImuSamples.empty()
+            frame.imu = ImuSamples.empty()
             meta["imu_complete"] = False
             meta["imu_gap"] = True
             self._t_prev = t_k
@@ -216,7 +216,7 @@ class TimeAligner:
         parts.append(inner)
         parts.append(interpolate(imu, t_k))
         block = ImuSamples.concat(parts)
-        meta["imu"] = block
+        frame.imu = block
         meta["imu_complete"] = bool(imu.t_ns[-1] >= t_k and (t_prev is None or imu.t_ns[0] <= t_prev))
         period = self._period()
         gap = False
@@ -238,7 +238,7 @@ class TimeAligner:
 def align_stream(frames: Iterable[StereoFrame], imu: object | None, time_offset_ns: int = 0,
                  max_wait_ns: int = 100_000_000, gap_factor: float = 2.5, nominal_imu_hz: float | None = None,
                  monitor: RateMonitor | None = None) -> Iterator[StereoFrame]:
-    """Frames with ``meta["imu"]`` attached, reading ``imu.read()`` before each frame."""
+    """Frames with ``imu`` attached, reading ``imu.read()`` before each frame."""
     aligner = TimeAligner(time_offset_ns, max_wait_ns, gap_factor, nominal_imu_hz, monitor)
     for frame in frames:
         if imu is not None:

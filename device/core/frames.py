@@ -7,20 +7,20 @@ at mid-exposure for images.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
-
 import numpy as np
 
 
 @dataclass
 class StereoFrame:
-    """One synchronised left/right pair (8-bit grey, or BGR when ``meta['color']``)."""
+    """One synchronised left/right pair (8-bit grey, or BGR when ``meta['color']``), and the IMU samples
+    since the previous frame once time alignment has attached them (``imu``)."""
 
     seq: int
     t_ns: int
     left: np.ndarray
     right: np.ndarray
-    meta: dict[str, Any] = field(default_factory=dict)
+    meta: dict[str, object] = field(default_factory=dict)
+    imu: ImuSamples | None = None
 
 
 @dataclass
@@ -79,7 +79,7 @@ class ImuSamples:
         )
 
 
-def median_rate_hz(t_ns: Any) -> float | None:
+def median_rate_hz(t_ns: np.ndarray | list[int] | None) -> float | None:
     """Samples per second from the median step of increasing timestamps (ns); None with too few."""
     if t_ns is None or len(t_ns) < 2:
         return None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Callable, Iterable, Literal, Protocol
 
 import numpy as np
@@ -12,8 +13,24 @@ from stereopath.device.errors import EstimationError
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.formats.tum import Trajectory
 
-Status = Literal["ok", "imu_only", "lost"]
 WorldFrame = Literal["first_camera", "gravity_aligned"]
+
+
+class TrackStatus(StrEnum):
+    """How a frame's pose was obtained.  It equals its name as a string (``"ok"``, as in reports and the
+    wire's pose message); :attr:`code` is the integer recorded in ``estimate.npz`` and sent on the wire."""
+
+    OK = "ok"  # tracked (or relocalised) by vision
+    IMU_ONLY = "imu_only"  # vision failed: the gyro's rotation (constant velocity for the translation)
+    LOST = "lost"  # vision failed and no gyro: the constant-velocity prediction
+
+    @property
+    def code(self) -> int:
+        return list(TrackStatus).index(self)
+
+    @classmethod
+    def from_code(cls, code: int) -> TrackStatus:
+        return list(cls)[code]
 
 
 @dataclass
@@ -23,10 +40,13 @@ class PoseEstimate:
     seq: int
     t_ns: int
     T_world_cam: np.ndarray
-    status: Status
+    status: TrackStatus
     inliers: int = 0
     keyframe: bool = False
     note: str = ""  # why a frame is not "ok" (e.g. "too_few_matches")
+
+    def __post_init__(self) -> None:
+        self.status = TrackStatus(self.status)  # the name ("ok") is accepted too
 
 
 class Estimator(Protocol):
@@ -47,7 +67,7 @@ class EstimateRun:
     frame_ms: list[float]  # one per frame processed
     world_frame: WorldFrame
     estimator: str
-    extra: dict = field(default_factory=dict)
+    extra: dict[str, int | float | str] = field(default_factory=dict)
 
     @property
     def trajectory(self) -> Trajectory:
@@ -56,7 +76,7 @@ class EstimateRun:
 
     @property
     def frames_tracked(self) -> int:
-        return sum(1 for e in self.estimates if e.status == "ok")
+        return sum(1 for e in self.estimates if e.status is TrackStatus.OK)
 
 
 def run_estimator(estimator: Estimator, frames: Iterable[StereoFrame], imu: ImuSamples | None,

@@ -11,6 +11,7 @@ import numpy as np
 
 from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import Rig
+from stereopath.device.core.stereo_config import StereoConfig
 from stereopath.device.core.stereo import (
     LMOptions,
     PointObservations,
@@ -24,16 +25,17 @@ from stereopath.device.core.stereo import (
 
 
 class StereoMeasure:
-    """Right-image correspondences, stereo points and poses for one rig (``cfg``: a ``StereoConfig``)."""
+    """Right-image correspondences, stereo points and poses for one rig: the estimator's stereo geometry and
+    KLT settings, and the disparity offset in use (its prior until the estimator learns it)."""
 
-    def __init__(self, rig: Rig, cfg) -> None:
+    def __init__(self, rig: Rig, cfg: StereoConfig) -> None:
         self.rig = rig
-        self.cfg = cfg
+        self.geometry = geo = cfg.geometry
+        self.klt = cfg.klt
         self.rect = rig.rectification()
-        self.disparity_offset_px = float(cfg.disparity_offset_px)
+        self.disparity_offset_px = float(cfg.disparity_offset.prior_px)
         fb = self.rect.f * self.rect.baseline_m
-        self.max_depth = min(cfg.max_depth_m, fb / cfg.min_disparity_px) if cfg.min_disparity_px > 0 \
-            else cfg.max_depth_m
+        self.max_depth = min(geo.max_depth_m, fb / geo.min_disparity_px) if geo.min_disparity_px > 0 else geo.max_depth_m
 
     def right_guess(self, X_cam0: np.ndarray) -> np.ndarray:
         """Where points given in camera 1's frame appear in the right image (distorted pixels)."""
@@ -83,26 +85,27 @@ class StereoMeasure:
 
     def good_points(self, Xc: np.ndarray, err: np.ndarray) -> np.ndarray:
         """Triangulations that are consistent and inside the mapped depth range."""
-        cfg = self.cfg
-        return (err < cfg.triangulation_max_px) & (Xc[:, 2] > cfg.min_depth_m) & (Xc[:, 2] < self.max_depth)
+        geo = self.geometry
+        return (err < geo.triangulation_max_px) & (Xc[:, 2] > geo.min_depth_m) & (Xc[:, 2] < self.max_depth)
 
-    def stereo_points(self, left, right, xy: np.ndarray, z0: float,
+    def stereo_points(self, left: np.ndarray, right: np.ndarray, xy: np.ndarray, z0: float,
                       fb_check: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """New stereo points at left pixels ``xy``: (right pixels, camera-1 points, good mask).
 
         The right-image search starts from each pixel's ray at depth ``z0``; ``fb_check`` as in
         :func:`~stereopath.device.core.stereo.stereo_right`."""
-        uvr, ok = stereo_right(self.rig, left, right, xy, self.right_guess(self.rays(xy) * z0), self.cfg, fb_check)
+        uvr, ok = stereo_right(self.rig, left, right, xy, self.right_guess(self.rays(xy) * z0), self.klt, fb_check)
         Xc, err = self.triangulate(xy, uvr)
         return uvr, Xc, ok & self.good_points(Xc, err)
 
-    def solve_pose(self, left, right, X: np.ndarray, uv: np.ndarray, T_guess: np.ndarray, seed: int,
-                   use_guess: bool = True, stereo_out: list | None = None):
+    def solve_pose(self, left: np.ndarray, right: np.ndarray, X: np.ndarray, uv: np.ndarray, T_guess: np.ndarray,
+                   seed: int, use_guess: bool = True, stereo_out: list[tuple[np.ndarray, np.ndarray]] | None = None
+                   ) -> tuple[np.ndarray | None, int, np.ndarray | None]:
         """PnP RANSAC (from the guess), then LM in both cameras over every point in front (nothing beyond
         twice the inlier threshold weighs), inliers classified at the refined pose.
         Returns (T_world_cam, n_inliers, mask).  ``stereo_out``: a list that receives the right-image
         matches the refinement used, ``(left pixels, right pixels)`` (distorted, as in the images)."""
-        cfg = self.cfg
+        geo = self.geometry
         K0, d0 = self.rig.cam0.K, self.rig.cam0.dist
         uv_u = undistort_px(uv, K0, d0)
         T_cw = invert_pose(T_guess)
@@ -111,9 +114,9 @@ class StereoMeasure:
         cv2.setRNGSeed(seed)
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
             X.reshape(-1, 1, 3), uv_u.reshape(-1, 1, 2), K0, None, rvec, tvec, useExtrinsicGuess=use_guess,
-            iterationsCount=200 if use_guess else 500, reprojectionError=cfg.pnp_reproj_px, confidence=0.999,
+            iterationsCount=200 if use_guess else 500, reprojectionError=geo.pnp_reproj_px, confidence=0.999,
             flags=cv2.SOLVEPNP_ITERATIVE)
-        if not ok or inl is None or len(inl) < cfg.min_pnp_inliers:
+        if not ok or inl is None or len(inl) < geo.min_pnp_inliers:
             return None, 0, None
         T_cw = rvec_tvec_to_pose(rvec, tvec)
         # The consensus only seeds the refinement: a minimal-sample hypothesis a little off leaves
@@ -123,17 +126,17 @@ class StereoMeasure:
         # are classified at the refined pose.  Residuals over twice the threshold weigh nothing: a
         # block of consistently wrong matches (repeated texture) cannot pull the pose.
         Xc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
-        idx = np.flatnonzero(Xc[:, 2] > cfg.min_depth_m)
-        uvr, okr = stereo_right(self.rig, left, right, uv[idx], self.right_guess(Xc[idx]), cfg, fb_check=False,
-                                levels=cfg.seeded_stereo_levels)
+        idx = np.flatnonzero(Xc[:, 2] > geo.min_depth_m)
+        uvr, okr = stereo_right(self.rig, left, right, uv[idx], self.right_guess(Xc[idx]), self.klt, fb_check=False,
+                                levels=self.klt.seeded_stereo_levels)
         ridx = idx[okr]
         if stereo_out is not None:
             stereo_out.append((np.asarray(uv)[ridx], uvr[okr]))
         uvr_u = self.right_ideal(uvr[okr])
         res = refine_pose_lm(self.rig, T_cw, PointObservations(X[idx], uv_u[idx]), PointObservations(X[ridx], uvr_u),
-                             LMOptions(huber_px=cfg.huber_px, outlier_px=cfg.pnp_reproj_px, cutoff_px=2 * cfg.pnp_reproj_px))
+                             LMOptions(huber_px=geo.huber_px, outlier_px=geo.pnp_reproj_px, cutoff_px=2 * geo.pnp_reproj_px))
         final = np.zeros(len(X), bool)
         final[idx[res.inliers_left]] = True
-        if final.sum() < cfg.min_pnp_inliers:
+        if final.sum() < geo.min_pnp_inliers:
             return None, 0, None
         return invert_pose(res.T_cam_world), int(final.sum()), final

@@ -12,6 +12,7 @@ with the predicted pose, never ``ok``.  Design and reasons: docs/architecture.md
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections import deque
 from dataclasses import dataclass
@@ -19,123 +20,56 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from stereopath.device.core.config import check_range
-from stereopath.device.errors import ConfigError
-from stereopath.device.estimation.base import PoseEstimate, WorldFrame
+from stereopath.device.estimation.base import PoseEstimate, TrackStatus, WorldFrame
 from stereopath.device.estimation.inertial import (GyroIntegrator, VisionGyroBias, estimate_still,
                                                    gravity_aligned_rotation)
-from stereopath.device.core.features import get_preset, gray
+from stereopath.device.core.features import gray
 from stereopath.device.core.photometric import (GainOffset, correct_right, fit_gain_offset, measure_relation,
                                                 relation_matters)
-from stereopath.device.core.stereo import stereo_right, undistort_px
+from stereopath.device.core.stereo import stereo_right
 from stereopath.device.core.scaled_klt import track_scaled
-from stereopath.device.estimation.disparity_offset import (OffsetFilter, PriorPath, offset_between_keyframes,
-                                                          offset_over_keyframes)
-from stereopath.device.estimation.keyframe_jobs import KeyframeJobs
+from stereopath.device.estimation.disparity_offset import (KeyframeObservations, OffsetFilter, PriorPath,
+                                                          offset_between_keyframes)
+from stereopath.device.estimation.offset_window import offset_over_keyframes
+from stereopath.device.estimation.keyframe_jobs import KeyframeJob, KeyframeWorker, Submitted
+from stereopath.device.estimation.live_state import LiveState, StereoStats
 from stereopath.device.estimation.stereo_measure import StereoMeasure
 from stereopath.device.estimation.tracked_map import TrackedMap
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, so3_log
 from stereopath.device.core.rig import Rig
+from stereopath.device.core.stereo_config import StereoConfig
 
 log = logging.getLogger(__name__)
 
+NEW_CORNER_SPACING_PX = 14  # new map points keep this far from the tracked ones
+TRACK_KLT_LEVELS = 2  # pyramid of the tracking from the predicted pose
+RETRY_KLT_LEVELS = 5  # deeper pyramid of the retry from the last positions when that tracking fails
+FB_KLT_LEVELS = 1  # pyramid of the backward (check) track: it starts at the known answer, a refinement
+MAX_FAILURES_KEEP_MAP = 10  # failed frames in a row before the map restarts
+GYRO_BIAS_WINDOW_S = 1.0  # the gyro bias is refined from this much tracked time at once
 STILL_BIAS_SIGMA_RAD_S = 5e-4  # the gyro bias measured still before the first frame (0.03 deg/s)
 UNKNOWN_BIAS_SIGMA_RAD_S = 0.1  # no still start: the bias is anything a MEMS gyro has (~6 deg/s)
 
+# a keyframe's stereo observations for the offset's window solve: point ids, rectified rows, the keyframe pose
+OffsetView = tuple[np.ndarray, np.ndarray, np.ndarray]
+
 
 @dataclass(frozen=True)
-class StereoConfig:
-    feature_preset: str = "onboard"  # modified-ASIFT preset used at keyframes (`fast` costs more CPU for no gain here)
-    use_asift_keyframes: bool = True
-    max_points: int = 400  # map points kept for tracking (the frame loop's cost grows with them)
-    new_corner_spacing_px: int = 14
-    min_tracked: int = 100  # fewer tracked inliers -> keyframe
-    kf_track_ratio: float = 0.6  # tracked inliers below this share of the map at the last keyframe -> keyframe
-    kf_rotation_deg: float = 15.0  # rotation since the last keyframe -> keyframe (the view change ASIFT bridges)
-    kf_parallax_px: float = 0.0  # median flow since the keyframe -> keyframe (0 = off)
-    kf_max_frames: int = 20
-    asift_min_rotation_deg: float = 3.0  # rotation since the last ASIFT keyframe that asks for ASIFT work again
-    asift_max_frames: int = 30  # ... or frames since it
-    asift_views: str = "predicted"  # affine views for the predicted view change ("preset": every preset view)
-    asift_view_min_tilt: float = 1.41  # ... above the tilt SIFT bridges itself (ASIFT's sqrt(2) tilt step)
-    klt_window: int = 19  # tracking and stereo (15 lost tracks on the blurrier EuRoC frames)
-    klt_levels: int = 3  # pyramid of a search without a 3D guess (new stereo points)
-    track_klt_levels: int = 2  # pyramid of the tracking from the predicted pose (the retry goes deeper)
-    seeded_stereo_levels: int = 1  # pyramid of the right-image search from a known 3D point (a guess within ~1 px)
-    fb_klt_levels: int = 1  # pyramid of the backward (check) track: it starts at the known answer, a refinement
-    retry_klt_levels: int = 5  # deeper pyramid of the retry when tracking from the prediction fails
-    relocalise: bool = True  # match SIFT against the last keyframe library when tracking fails
-    fb_max_px: float = 0.6  # forward-backward KLT disagreement
-    # frame-to-frame tracking compares each point's window at the scale its predicted depth change gives,
-    # in rungs of (1 + klt_scale_step)^k (device/core/scaled_klt.py; 0 = plain KLT): moving along the
-    # optical axis grows near windows from frame to frame, which pulls plain KLT off the points
-    klt_scale_step: float = 0.05
-    epipolar_max_dy_px: float = 1.0
-    triangulation_max_px: float = 1.0
-    min_depth_m: float = 0.1
-    max_depth_m: float = 1000.0
-    min_disparity_px: float = 2.0  # farther points (depth > f * baseline / this) are not mapped
-    pnp_reproj_px: float = 2.0
-    min_pnp_inliers: int = 12
-    use_imu: bool = True
-    # refine the gyro bias from the tracked rotation, window by window (gyro_bias_window_s of tracked frames)
-    estimate_gyro_bias: bool = True
-    gyro_bias_window_s: float = 1.0
-    huber_px: float = 1.0
-    max_failures_keep_map: int = 10  # failed frames in a row before the map restarts
-    background_keyframes: bool = True  # keyframe ASIFT work on a worker thread (False: at the keyframe itself)
-    record_observations: bool = False  # keep a keyframe observation log (memory grows with the session)
-    guided_radius_px: float = 24.0  # keyframe matching around the predicted positions (0 = global)
-    refine_points: bool = True  # average each tracked point's stereo triangulations at keyframes
-    kf_library_max: int = 6000  # keypoints (all views) kept with 3D per keyframe for the next match
-    max_correction_deg: float = 2.0  # larger keyframe corrections from the ASIFT solve are rejected
-    kf_map_agreement: float = 0.8  # share of the tracked map that must stay inlier in the keyframe's ASIFT solve
-    disparity_offset_px: float = 0.0  # a known stereo disparity offset (calibration): the prior of the estimate
-    # refine it on line from points seen in stereo at the last keyframes, using only the estimates where the offset
-    # is identifiable (OffsetFilter.max_inflation): an orbit around an object leaves it at the prior
-    estimate_disparity_offset: bool = True
-    disparity_offset_keyframes: int = 4  # keyframes per offset solve: the last ones, every point seen at two of them
-    # fit the right camera's grey levels to the left's on the stereo matches of every frame (the pose solve's)
-    # and keyframe, and correct the right image when the median of the last five fits changes the matched
-    # texture by more than exposure_tolerance grey levels
-    match_exposure: bool = True
-    exposure_tolerance: float = 4.0
+class StereoImages:
+    """One frame's grey images: the right one in the left camera's grey levels (when the two cameras
+    differ, else as captured) and as captured (what the exposure fits measure)."""
 
-    def __post_init__(self) -> None:
-        get_preset(self.feature_preset)  # an unknown name is refused here, not by each keyframe's job
-        check_range("max_points", self.max_points, 20, 20000)
-        check_range("min_tracked", self.min_tracked, 8, self.max_points)
-        check_range("kf_track_ratio", self.kf_track_ratio, 0.0, 1.0)
-        check_range("kf_rotation_deg", self.kf_rotation_deg, 0.5, 180.0)
-        check_range("kf_parallax_px", self.kf_parallax_px, 0.0, 10000.0)
-        check_range("kf_max_frames", self.kf_max_frames, 1, 1000)
-        check_range("asift_min_rotation_deg", self.asift_min_rotation_deg, 0.0, 180.0)
-        check_range("asift_max_frames", self.asift_max_frames, 1, 100000)
-        check_range("asift_view_min_tilt", self.asift_view_min_tilt, 1.0, 16.0)
-        if self.asift_views not in ("predicted", "preset"):
-            raise ConfigError(f"asift_views must be 'predicted' or 'preset', got {self.asift_views!r}")
-        check_range("disparity_offset_keyframes", self.disparity_offset_keyframes, 2, 20)
-        check_range("klt_window", self.klt_window, 5, 61)
-        check_range("klt_levels", self.klt_levels, 0, 6)
-        check_range("track_klt_levels", self.track_klt_levels, 0, 6)
-        check_range("seeded_stereo_levels", self.seeded_stereo_levels, 0, 6)
-        check_range("fb_klt_levels", self.fb_klt_levels, 0, 8)
-        check_range("klt_scale_step", self.klt_scale_step, 0.0, 0.5)
-        if 0.0 < self.klt_scale_step < 0.01:  # finer rungs than 1 % cost a resampling per handful of points
-            raise ConfigError(f"klt_scale_step = {self.klt_scale_step!r}: 0 (plain KLT) or 0.01 to 0.5")
-        check_range("retry_klt_levels", self.retry_klt_levels, 0, 8)
-        check_range("epipolar_max_dy_px", self.epipolar_max_dy_px, 0.1, 5.0)
-        check_range("min_depth_m", self.min_depth_m, 0.01, self.max_depth_m)
-        check_range("min_pnp_inliers", self.min_pnp_inliers, 6, 10000)
-        check_range("kf_map_agreement", self.kf_map_agreement, 0.0, 1.0)
-        check_range("max_correction_deg", self.max_correction_deg, 0.0, 180.0)
-        check_range("disparity_offset_px", self.disparity_offset_px, -10.0, 10.0)
-        check_range("exposure_tolerance", self.exposure_tolerance, 0.0, 255.0)
-        check_range("gyro_bias_window_s", self.gyro_bias_window_s, 0.1, 60.0)
+    left: np.ndarray
+    right: np.ndarray
+    right_raw: np.ndarray
 
 
-class StereoEstimator(KeyframeJobs):
+class StereoEstimator:
+    """The frame loop.  Its live state (poses, map, the corrections applied) is one :class:`LiveState`; the
+    keyframes' ASIFT work is a :class:`KeyframeWorker`, polled once per frame, whose corrections the loop
+    applies; what it has done is a :class:`StereoStats`."""
+
     name = "stereo"
 
     def __init__(self, rig: Rig, config: StereoConfig | None = None) -> None:
@@ -143,53 +77,41 @@ class StereoEstimator(KeyframeJobs):
         self.cfg = config or StereoConfig()
         self.world_frame: WorldFrame = "first_camera"
         self._geo = StereoMeasure(rig, self.cfg)
-        self._T_world_cam: np.ndarray | None = None
-        self._T_prev_prev: np.ndarray | None = None
-        self._T_kf: np.ndarray | None = None
+        self._state = LiveState()
+        self._worker = KeyframeWorker(rig, self.cfg, self._geo)
+        self.counts = StereoStats(disparity_offset_mpx=int(round(1000 * self.cfg.disparity_offset.prior_px)))
         self._n_at_kf = 0
         self._t_prev: int | None = None
         self._dt_prev: float | None = None
-        self._prev_left: np.ndarray | None = None
-        self._T_prev_left: np.ndarray | None = None  # the pose of the camera that took _prev_left (a live pose)
+        self._prev_left: np.ndarray | None = None  # the last tracked image (its camera's pose: T_prev_left)
         self._exposure: GainOffset | None = None  # the right camera's grey levels -> the left's, when it matters
-        self._right_raw: np.ndarray | None = None
         self._exposure_fits: list[GainOffset] = []  # the last fits (used or not)
-        self._map = TrackedMap()
-        self._init_keyframe_jobs()
-        self._offset = OffsetFilter(prior=float(self.cfg.disparity_offset_px))
+        self._asift_frame = -(10**9)  # the frame of the last keyframe whose ASIFT work was submitted
+        self._offset = OffsetFilter(prior=float(self.cfg.disparity_offset.prior_px))
         # keyframe pairs measured with the prior offset, kept until the offset is first learned
         self._prior_path = PriorPath()
-        # the last keyframes' stereo observations (ids, rectified rows, pose) for the offset's window solve
-        self._offset_views: deque = deque(maxlen=self.cfg.disparity_offset_keyframes - 1)
+        # the last keyframes' stereo observations for the offset's window solve
+        self._offset_views: deque[OffsetView] = deque(maxlen=self.cfg.disparity_offset.keyframes - 1)
         self._pending_G: np.ndarray | None = None
         self._since_kf = 0
         self._failures = 0
         self._gyro: GyroIntegrator | None = None
         self._bias: VisionGyroBias | None = None
         self._gyro_step: tuple[np.ndarray, float] | None = None  # the gyro's body rotation over the last frame
-        self._T_bias_start: np.ndarray | None = None  # pose at the start of the bias window (a live pose)
         self._R_body_cam = None if rig.T_body_cam0 is None else rig.T_body_cam0[:3, :3]
-        self._klt = dict(winSize=(self.cfg.klt_window, self.cfg.klt_window), maxLevel=self.cfg.klt_levels,
+        self._klt = dict(winSize=(self.cfg.klt.klt_window, self.cfg.klt.klt_window), maxLevel=self.cfg.klt.klt_levels,
                          criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
-        # keyframe log for offline bundle adjustment: poses, observations (kf, point id, cam, u, v)
-        self.record_observations = self.cfg.record_observations
-        self.keyframe_poses: list[tuple[int, np.ndarray]] = []
-        self.observations: list[np.ndarray] = []
-        self.landmarks: dict[int, np.ndarray] = {}
         self._next_id = 0
         self._cur_seq = 0
-        self.counters = dict.fromkeys(
-            "keyframes imu_only lost asift_matches kf_jobs kf_jobs_skipped kf_jobs_deferred asift_views kf_corrections"
-            " retracked relocalised disparity_offset_pairs disparity_offset_unidentified"
-            " disparity_offset_path_corrections disparity_offset_windows exposure_fits exposure_corrected_frames gyro_bias_updates"
-            " gyro_bias_rejected".split(), 0)
-        self.counters["right_gain_milli"], self.counters["right_offset_centi"] = 1000, 0
-        self.counters["disparity_offset_mpx"] = int(round(1000 * self.cfg.disparity_offset_px))
 
     # ------------------------------------------------------------------ public
 
-    def stats(self) -> dict:
-        return dict(self.counters)
+    def stats(self) -> dict[str, int]:
+        return dataclasses.asdict(self.counts)
+
+    def close(self) -> None:
+        """Stop the background keyframe worker (idempotent)."""
+        self._worker.close()
 
     def __del__(self) -> None:  # the worker thread must not outlive the estimator
         try:
@@ -200,28 +122,42 @@ class StereoEstimator(KeyframeJobs):
     def process(self, frame: StereoFrame, imu: ImuSamples | None) -> PoseEstimate:
         left, right = gray(frame.left), gray(frame.right)
         self._cur_seq = frame.seq
-        if self._T_world_cam is None:
+        if self._state.T_world_cam is None:
             return self._initialise(frame, left, right, imu)
-        right = self._exposure_corrected(right)
-        self._join_keyframe_job()
-        if self._pending_G is not None:  # the path since the start, re-measured with the learned offset
-            self._apply_correction(self._pending_G)
-            self._pending_G = None
+        img = StereoImages(left, self._exposure_corrected(right), right)
+        self._join_keyframe_work()
         dt = (frame.t_ns - self._t_prev) * 1e-9
         T_pred, have_rot_prior = self._predict(frame.t_ns, dt, imu)
-        est = self._track(frame, left, right, T_pred, have_rot_prior)
+        est = self._track(frame, img, T_pred, have_rot_prior)
         self._refine_gyro_bias(est)
-        self._T_prev_prev = self._T_world_cam
-        self._T_world_cam = est.T_world_cam
+        self._state.T_prev_prev = self._state.T_world_cam
+        self._state.T_world_cam = est.T_world_cam
         self._t_prev = frame.t_ns
         self._dt_prev = dt
         return est
 
+    def _join_keyframe_work(self) -> None:
+        """The frame's one join point: the finished keyframe jobs' corrections (oldest first), then the
+        path's re-measure with a newly learned disparity offset, each one rigid motion of the live state."""
+        st = self._state
+        for c in self._worker.poll(st.C):
+            if c.G is not None:
+                st.apply(c.G)
+                self.counts.kf_corrections += 1
+                self.counts.asift_matches += c.n_asift
+            self.counts.asift_views += c.n_views
+            if c.library is not None:
+                st.library, st.T_library = c.library, c.T_library
+        if self._pending_G is not None:  # the path since the start, re-measured with the learned offset
+            st.apply(self._pending_G)
+            self._pending_G = None
+
     # ------------------------------------------------------------------ stages
 
-    def _initialise(self, frame: StereoFrame, left, right, imu: ImuSamples | None) -> PoseEstimate:
+    def _initialise(self, frame: StereoFrame, left: np.ndarray, right: np.ndarray,
+                    imu: ImuSamples | None) -> PoseEstimate:
         R_world_cam = np.eye(3)
-        if self.cfg.use_imu and imu is not None and len(imu) and self._R_body_cam is not None:
+        if imu is not None and len(imu) and self._R_body_cam is not None:
             still = estimate_still(imu)
             if still is not None:
                 self._gyro = GyroIntegrator(still.gyro_bias_rad_s)
@@ -237,31 +173,30 @@ class StereoEstimator(KeyframeJobs):
                 log.warning("IMU not still before the first frame: gyro bias unknown until vision measures it"
                             " (estimate_gyro_bias), world frame = first camera")
             self._gyro.feed_and_integrate(imu, frame.t_ns, frame.t_ns)
-            if self.cfg.estimate_gyro_bias:
-                self._bias = VisionGyroBias(bias0, sigma0, window_s=self.cfg.gyro_bias_window_s)
+            if self.cfg.gyro.estimate_bias:
+                self._bias = VisionGyroBias(bias0, sigma0, window_s=GYRO_BIAS_WINDOW_S)
         T = make_pose(R_world_cam, np.zeros(3))
-        self._T_world_cam = T
-        self._T_bias_start = T.copy()
+        self._state.T_world_cam = T
+        self._state.T_bias_start = T.copy()
         self._t_prev = frame.t_ns
-        self._prev_left, self._T_prev_left = left, T.copy()
-        if self.cfg.match_exposure:
+        self._prev_left, self._state.T_prev_left = left, T.copy()
+        if self.cfg.exposure.match:
             # a first measurement of the two cameras' exposure on this frame's stereo matches
-            xy = self._corners(left, np.full(left.shape[:2], 255, np.uint8), self.cfg.max_points)
+            xy = self._corners(left, np.full(left.shape[:2], 255, np.uint8), self.cfg.keyframes.max_points)
             if len(xy):
                 z0 = self._default_depth()
                 self._use_exposure_fit(measure_relation(
                     left, right, xy, lambda image: self._geo.stereo_points(left, image, xy, z0)[::2]))
-        right = self._exposure_corrected(right)
-        n = self._new_keyframe(left, right, T)
-        status = "ok" if n >= self.cfg.min_pnp_inliers else "lost"
+        n = self._new_keyframe(StereoImages(left, self._exposure_corrected(right), right), T)
+        status = TrackStatus.OK if n >= self.cfg.geometry.min_pnp_inliers else TrackStatus.LOST
         return PoseEstimate(frame.seq, frame.t_ns, T.copy(), status, inliers=n, keyframe=True,
-                            note="" if status == "ok" else "no_stereo_points")
+                            note="" if status is TrackStatus.OK else "no_stereo_points")
 
     def _predict(self, t_ns: int, dt: float, imu: ImuSamples | None) -> tuple[np.ndarray, bool]:
-        T_prev = self._T_world_cam
+        T_prev = self._state.T_world_cam
         # constant velocity (translation and rotation) from the last two poses
-        if self._T_prev_prev is not None and self._dt_prev:
-            T_rel = invert_pose(self._T_prev_prev) @ T_prev  # motion in the previous camera frame
+        if self._state.T_prev_prev is not None and self._dt_prev:
+            T_rel = invert_pose(self._state.T_prev_prev) @ T_prev  # motion in the previous camera frame
             scale = dt / self._dt_prev
             R_rel = so3_exp(so3_log(T_rel[:3, :3]) * scale)
             t_rel = T_rel[:3, 3] * scale
@@ -277,71 +212,73 @@ class StereoEstimator(KeyframeJobs):
                 have_rot = True
         return T_prev @ make_pose(R_rel, t_rel), have_rot
 
-    def _track(self, frame: StereoFrame, left, right, T_pred: np.ndarray, have_rot: bool) -> PoseEstimate:
+    def _track(self, frame: StereoFrame, img: StereoImages, T_pred: np.ndarray, have_rot: bool) -> PoseEstimate:
         cfg = self.cfg
-        m = self._map
+        left = img.left
+        m = self._state.map
         T_est = None
         n_inl = 0
         note = ""
         relocalised = False
-        if len(m) >= cfg.min_pnp_inliers and self._prev_left is not None:
+        if len(m) >= cfg.geometry.min_pnp_inliers and self._prev_left is not None:
             # first from the predicted pose; then a deeper pyramid from the last positions (a motion
             # the prediction missed: the first frames without a velocity, a jolt, dropped frames)
-            attempts = [(T_pred, cfg.track_klt_levels)]
-            if cfg.retry_klt_levels > cfg.track_klt_levels:
-                attempts.append((None, cfg.retry_klt_levels))
+            attempts = [(T_pred, TRACK_KLT_LEVELS)]
+            if RETRY_KLT_LEVELS > TRACK_KLT_LEVELS:
+                attempts.append((None, RETRY_KLT_LEVELS))
             for k, (T_guess, levels) in enumerate(attempts):
                 uv_new, good = self._klt_track(left, T_guess, levels)
-                if good.sum() < cfg.min_pnp_inliers:
+                if good.sum() < cfg.geometry.min_pnp_inliers:
                     note = "too_few_tracked"
                     continue
-                pairs: list = []
-                T_est, n_inl, inl = self._geo.solve_pose(left, right, m.X[good], uv_new[good], T_pred, self._cur_seq,
-                                                         stereo_out=pairs if cfg.match_exposure else None)
+                pairs: list[tuple[np.ndarray, np.ndarray]] = []
+                T_est, n_inl, inl = self._geo.solve_pose(left, img.right, m.X[good], uv_new[good], T_pred,
+                                                         self._cur_seq, stereo_out=pairs if cfg.exposure.match else None)
                 if T_est is None:
                     note = "pose_failed"
                     continue
-                if pairs and self._right_raw is not None:  # the cameras' exposure, measured at every frame
-                    self._fit_exposure(left, self._right_raw, *pairs[0])
+                if pairs:  # the cameras' exposure, measured at every frame
+                    self._fit_exposure(left, img.right_raw, *pairs[0])
                 m.uv = uv_new.astype(np.float32)
                 m.keep(good)
                 m.keep(inl)
                 if k:
-                    self.counters["retracked"] += 1
+                    self.counts.retracked += 1
                 break
         else:
             note = "no_map"
-        if T_est is None and cfg.relocalise:
-            T_est, n_inl = self._relocalise(left, right, T_pred)
+        if T_est is None:
+            T_est, n_inl = self._relocalise(img, T_pred)
             relocalised = T_est is not None
         self._since_kf += 1
         if T_est is not None:
             self._failures = 0
-            self._prev_left, self._T_prev_left = left, T_est.copy()
+            self._prev_left, self._state.T_prev_left = left, T_est.copy()
             if relocalised:
-                self.counters["relocalised"] += 1
-                self._map = TrackedMap()
-                self._new_keyframe(left, right, T_est)
-                return PoseEstimate(frame.seq, frame.t_ns, self._T_kf.copy(), "ok", inliers=n_inl, keyframe=True,
+                self.counts.relocalised += 1
+                self._state.map = TrackedMap()
+                self._new_keyframe(img, T_est)
+                return PoseEstimate(frame.seq, frame.t_ns, T_est, TrackStatus.OK, inliers=n_inl, keyframe=True,
                                     note="relocalised")
             is_kf = self._need_keyframe(T_est, n_inl)
             if is_kf:
-                self._new_keyframe(left, right, T_est)
-                T_est = self._T_kf.copy()  # moved with the live state if a keyframe job was joined meanwhile
-            return PoseEstimate(frame.seq, frame.t_ns, T_est, "ok", inliers=n_inl, keyframe=is_kf)
+                self._new_keyframe(img, T_est)
+            return PoseEstimate(frame.seq, frame.t_ns, T_est, TrackStatus.OK, inliers=n_inl, keyframe=is_kf)
         # Vision failed (black frame, lens cap, no overlap, blur): fall back to the IMU rotation (or
         # constant velocity), flagged.  The map and the last good image are kept so the next good
         # frame can be tracked against them; after several failures in a row the map restarts here.
-        status = "imu_only" if have_rot else "lost"
-        self.counters[status] += 1
+        status = TrackStatus.IMU_ONLY if have_rot else TrackStatus.LOST
+        if have_rot:
+            self.counts.imu_only += 1
+        else:
+            self.counts.lost += 1
         self._failures += 1
         is_kf = False
-        if self._failures > cfg.max_failures_keep_map or len(m) < cfg.min_pnp_inliers:
-            self._map = TrackedMap()
-            n = self._new_keyframe(left, right, T_pred)
-            T_pred = self._T_kf.copy()
-            if n >= cfg.min_pnp_inliers:
-                self._prev_left, self._T_prev_left = left, T_pred.copy()
+        if self._failures > MAX_FAILURES_KEEP_MAP or len(m) < cfg.geometry.min_pnp_inliers:
+            self._state.map = TrackedMap()
+            n = self._new_keyframe(img, T_pred)
+            if n >= cfg.geometry.min_pnp_inliers:
+                self._prev_left, self._state.T_prev_left = left, T_pred.copy()
                 is_kf = True
         return PoseEstimate(frame.seq, frame.t_ns, T_pred, status, inliers=0, keyframe=is_kf, note=note)
 
@@ -350,21 +287,22 @@ class StereoEstimator(KeyframeJobs):
         A frame that is not tracked (or relocalised: a new map) restarts the window."""
         if self._bias is None or self._R_body_cam is None:
             return
-        if est.status != "ok" or est.note == "relocalised" or self._gyro_step is None or self._T_bias_start is None:
+        ok = est.status is TrackStatus.OK
+        if not ok or est.note == "relocalised" or self._gyro_step is None or self._state.T_bias_start is None:
             self._bias.restart()
-            self._T_bias_start = est.T_world_cam.copy() if est.status == "ok" else None
+            self._state.T_bias_start = est.T_world_cam.copy() if ok else None
             return
         self._bias.add(*self._gyro_step)
         if not self._bias.window_full:
             return
         Rbc = self._R_body_cam
-        R_vis_body = Rbc @ (self._T_bias_start[:3, :3].T @ est.T_world_cam[:3, :3]) @ Rbc.T
+        R_vis_body = Rbc @ (self._state.T_bias_start[:3, :3].T @ est.T_world_cam[:3, :3]) @ Rbc.T
         if self._bias.update(R_vis_body):
             self._gyro.bias = self._bias.bias.copy()
-            self.counters["gyro_bias_updates"] = self._bias.updates
+            self.counts.gyro_bias_updates = self._bias.updates
             log.debug("gyro bias %s rad/s (+- %.5f)", np.round(self._bias.bias, 5), self._bias.sigma_rad_s)
-        self.counters["gyro_bias_rejected"] = self._bias.rejected
-        self._T_bias_start = est.T_world_cam.copy()
+        self.counts.gyro_bias_rejected = self._bias.rejected
+        self._state.T_bias_start = est.T_world_cam.copy()
 
     @property
     def gyro_bias_rad_s(self) -> np.ndarray | None:
@@ -374,22 +312,22 @@ class StereoEstimator(KeyframeJobs):
     def _need_keyframe(self, T_est: np.ndarray, n_inl: int) -> bool:
         """What the path needs: points to track, a view change ASIFT can still bridge, or age."""
         cfg = self.cfg
-        if n_inl < cfg.min_tracked or n_inl < cfg.kf_track_ratio * self._n_at_kf:
+        if n_inl < cfg.keyframes.min_tracked or n_inl < cfg.keyframes.track_ratio * self._n_at_kf:
             return True
-        if self._since_kf >= cfg.kf_max_frames:
+        if self._since_kf >= cfg.keyframes.max_frames:
             return True
-        if self._T_kf is not None and rotation_angle_deg(self._T_kf[:3, :3].T @ T_est[:3, :3]) > cfg.kf_rotation_deg:
+        if self._state.T_kf is not None and rotation_angle_deg(self._state.T_kf[:3, :3].T @ T_est[:3, :3]) > cfg.keyframes.rotation_deg:
             return True
-        m = self._map
-        if cfg.kf_parallax_px > 0 and len(m):
-            return float(np.median(np.linalg.norm(m.uv - m.uv_kf, axis=1))) > cfg.kf_parallax_px
+        m = self._state.map
+        if cfg.keyframes.parallax_px > 0 and len(m):
+            return float(np.median(np.linalg.norm(m.uv - m.uv_kf, axis=1))) > cfg.keyframes.parallax_px
         return False
 
     def _klt_track(self, left: np.ndarray, T_pred: np.ndarray | None, levels: int) -> tuple[np.ndarray, np.ndarray]:
         """Track the map into ``left``; returns new pixels and the good mask (the map is not changed).
 
         ``T_pred`` seeds each point at its projection; ``None`` starts from the last positions."""
-        m = self._map
+        m = self._state.map
         guess = m.uv.copy()
         scale = np.ones(len(m.uv))
         if T_pred is not None:
@@ -400,35 +338,35 @@ class StereoEstimator(KeyframeJobs):
                 pts = cv2.projectPoints(Xc[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
                                         self.rig.cam0.K, self.rig.cam0.dist)[0].reshape(-1, 2)
                 guess[front] = pts
-            if self.cfg.klt_scale_step > 0 and self._T_prev_left is not None:
+            if self.cfg.klt.klt_scale_step > 0 and self._state.T_prev_left is not None:
                 # each point's window grows by its depth in the previous image over its predicted depth now
-                T_pw = invert_pose(self._T_prev_left)
+                T_pw = invert_pose(self._state.T_prev_left)
                 z_prev = m.X @ T_pw[2, :3] + T_pw[2, 3]
                 known = front & (z_prev > 1e-3)
                 scale[known] = z_prev[known] / Xc[known, 2]
         # forward, then back from the new positions seeded with the old ones: a true track converges there at once
-        p1, both, fb = track_scaled(self._prev_left, left, m.uv, guess, scale, self.cfg.klt_scale_step,
-                                    dict(self._klt, maxLevel=levels), min(levels, self.cfg.fb_klt_levels))
+        p1, both, fb = track_scaled(self._prev_left, left, m.uv, guess, scale, self.cfg.klt.klt_scale_step,
+                                    dict(self._klt, maxLevel=levels), min(levels, FB_KLT_LEVELS))
         w, h = self.rig.cam0.size
-        good = both & (fb < self.cfg.fb_max_px)
+        good = both & (fb < self.cfg.klt.fb_max_px)
         good &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
         return p1, good
 
-    def _relocalise(self, left, right, T_pred: np.ndarray) -> tuple[np.ndarray | None, int]:
+    def _relocalise(self, img: StereoImages, T_pred: np.ndarray) -> tuple[np.ndarray | None, int]:
         """The pose from SIFT matches against the newest keyframe library (no trust in the prediction)."""
-        lib = self._library
-        if lib is None or not self.cfg.use_asift_keyframes:
+        lib = self._state.library
+        if lib is None or not self.cfg.asift.enabled:
             return None, 0
         from stereopath.device.core.matching import MatchConfig, match
 
-        feats0 = self._features(left, views=[0])
-        mt = match(feats0, lib.feats, self._match_cfg or MatchConfig())
+        feats0 = self._worker.features(img.left, views=[0])
+        mt = match(feats0, lib.feats, MatchConfig())
         idx = np.asarray(mt.idx).reshape(-1, 2)
-        if len(idx) < self.cfg.min_pnp_inliers:
+        if len(idx) < self.cfg.geometry.min_pnp_inliers:
             return None, 0
-        T_l = self._T_library
+        T_l = self._state.T_library
         X = lib.X_cam[idx[:, 1]] @ T_l[:3, :3].T + T_l[:3, 3]
-        T, n, _ = self._geo.solve_pose(left, right, X, feats0.xy[idx[:, 0]].astype(np.float64), T_pred,
+        T, n, _ = self._geo.solve_pose(img.left, img.right, X, feats0.xy[idx[:, 0]].astype(np.float64), T_pred,
                                        self._cur_seq, use_guess=False)
         if T is None:
             return None, 0
@@ -437,13 +375,11 @@ class StereoEstimator(KeyframeJobs):
 
     # ------------------------------------------------------------------ keyframes
 
-    def _new_keyframe(self, left, right, T_world_cam: np.ndarray) -> int:
+    def _new_keyframe(self, img: StereoImages, T_world_cam: np.ndarray) -> int:
         """Top up the map with new stereo points; hand the keyframe's ASIFT work to the worker."""
         cfg = self.cfg
-        m = self._map
-        # a keyframe job that finished since this frame began moves the map and the live poses, and this
-        # pose with them (the pose that is returned, the new points and the job submitted below)
-        T_world_cam = self._join_keyframe_jobs_moving(T_world_cam)
+        m = self._state.map
+        left, right = img.left, img.right
         T_cw = invert_pose(T_world_cam)
         # right-image guess from the median depth of the current map (or a middle depth)
         z0 = self._default_depth()
@@ -451,22 +387,19 @@ class StereoEstimator(KeyframeJobs):
             Xc_m = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
             if np.any(Xc_m[:, 2] > 0):
                 z0 = float(np.median(Xc_m[Xc_m[:, 2] > 0, 2]))
-        self._submit_keyframe_job(left, right, T_world_cam, z0)
+        self._submit_keyframe_job(img, T_world_cam, z0)
         # candidate new map points: corners away from the existing tracks
-        need = cfg.max_points - len(m)
+        need = cfg.keyframes.max_points - len(m)
         mask = np.full(left.shape[:2], 255, np.uint8)
         for u, v in m.uv.astype(int):
-            cv2.circle(mask, (int(u), int(v)), cfg.new_corner_spacing_px, 0, -1)
+            cv2.circle(mask, (int(u), int(v)), NEW_CORNER_SPACING_PX, 0, -1)
         cands_all = np.zeros((0, 2), np.float32)
         if need > 0:
             cands_all = self._corners(left, mask, need)
-        # observations of the existing points at this keyframe (refinement, disparity offset, bundle adjustment)
-        k = len(self.keyframe_poses)
-        if self.record_observations:
-            self.keyframe_poses.append((self._cur_seq, T_world_cam.copy()))
+        # observations of the existing points at this keyframe (refinement, disparity offset)
         seen = (np.zeros((0, 2)), np.zeros((0, 2)))
-        if (self.record_observations or cfg.refine_points or cfg.estimate_disparity_offset or cfg.match_exposure) and len(m):
-            seen = self._observe_map(left, right, T_world_cam, k)
+        if len(m):
+            seen = self._observe_map(img, T_world_cam)
         sel = np.zeros(0, np.int64)
         uvr = np.zeros((0, 2), np.float32)
         Xw = np.zeros((0, 3))
@@ -475,47 +408,72 @@ class StereoEstimator(KeyframeJobs):
             Xw = Xc @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
             # corners (not SIFT keypoints) become tracked map points, up to max_points
             sel = np.flatnonzero(ok)[: max(0, need)]
-        if cfg.match_exposure and self._right_raw is not None:
-            self._fit_exposure(left, self._right_raw, np.vstack([seen[0], cands_all[sel]]), np.vstack([seen[1], uvr[sel]]))
+        if cfg.exposure.match:
+            self._fit_exposure(left, img.right_raw, np.vstack([seen[0], cands_all[sel]]), np.vstack([seen[1], uvr[sel]]))
         new_ids = np.arange(self._next_id, self._next_id + len(sel), dtype=np.int64)
         self._next_id += len(sel)
-        if self.record_observations and len(sel):
-            self._record(k, new_ids, cands_all[sel], uvr[sel], np.ones(len(sel), bool))
-            self.landmarks.update({int(i): x for i, x in zip(new_ids, Xw[sel])})
         m.X = np.vstack([m.X, Xw[sel]])
         m.uv = np.vstack([m.uv, cands_all[sel]]).astype(np.float32)
         m.ids = np.concatenate([m.ids, new_ids])
         m.nobs = np.concatenate([m.nobs, np.ones(len(sel))])
         new_obs = self._geo.rectified_observations(cands_all[sel], uvr[sel]) if len(sel) else np.zeros((0, 3))
         m.obs = np.vstack([m.obs, new_obs])
-        m.obs_kf = np.concatenate([m.obs_kf, np.full(len(sel), self.counters["keyframes"], np.int64)])
+        m.obs_kf = np.concatenate([m.obs_kf, np.full(len(sel), self.counts.keyframes, np.int64)])
         m.uv_kf = m.uv.copy()
-        if cfg.estimate_disparity_offset and cfg.disparity_offset_keyframes > 2:
+        if cfg.disparity_offset.estimate and cfg.disparity_offset.keyframes > 2:
             # the points measured in stereo here, as measured (no offset removed); the pose only starts the
             # window's solve (its motions are unknowns), so a later keyframe correction does not stale it
-            at = m.obs_kf == self.counters["keyframes"]
+            at = m.obs_kf == self.counts.keyframes
             self._offset_views.append((m.ids[at].copy(), m.obs[at].copy(), T_world_cam.copy()))
         self._since_kf = 0
-        self._T_kf = T_world_cam.copy()
+        self._state.T_kf = T_world_cam.copy()
         self._n_at_kf = len(m)
-        self.counters["keyframes"] += 1
+        self.counts.keyframes += 1
         return len(m)
+
+    def _asift_needed(self, T_world_cam: np.ndarray) -> bool:
+        """ASIFT work where the view changed: a rotation since the last ASIFT keyframe (the tilt the
+        affine views bridge), or its age; a keyframe in between only tops up the tracked map."""
+        st = self._state
+        if st.T_asift is None or st.library is None and not self._worker.in_flight:
+            return True
+        if self._cur_seq - self._asift_frame >= self.cfg.asift.max_frames:
+            return True
+        return rotation_angle_deg(st.T_asift[:3, :3].T @ T_world_cam[:3, :3]) >= self.cfg.asift.min_rotation_deg
+
+    def _submit_keyframe_job(self, img: StereoImages, T_world_cam: np.ndarray, z0: float) -> None:
+        """Hand this keyframe's ASIFT work to the worker (which keeps one job running and one waiting)."""
+        if not self.cfg.asift.enabled:
+            return
+        if not self._asift_needed(T_world_cam):
+            self.counts.kf_jobs_deferred += 1
+            return
+        st, m = self._state, self._state.map
+        library = None if st.library is None else (st.library, st.T_library.copy(), st.C.copy())
+        job = KeyframeJob(self._cur_seq, img.left, img.right, T_world_cam.copy(), z0, m.X.copy(),
+                          m.uv.astype(np.float64), st.C.copy(), library)
+        outcome = self._worker.submit(job)
+        if outcome is not Submitted.QUEUED:
+            self.counts.kf_jobs_skipped += 1
+        if outcome is Submitted.DROPPED:
+            return
+        self.counts.kf_jobs += 1
+        st.T_asift, self._asift_frame = T_world_cam.copy(), self._cur_seq
 
     def _corners(self, left: np.ndarray, mask: np.ndarray, n: int) -> np.ndarray:
         """Up to ``n`` corners of ``left`` where ``mask`` is set (candidate new map points)."""
         c = cv2.goodFeaturesToTrack(left, maxCorners=n, qualityLevel=0.005,
-                                    minDistance=self.cfg.new_corner_spacing_px, mask=mask, blockSize=5)
+                                    minDistance=NEW_CORNER_SPACING_PX, mask=mask, blockSize=5)
         return np.zeros((0, 2), np.float32) if c is None else c.reshape(-1, 2).astype(np.float32)
 
     def _exposure_corrected(self, right: np.ndarray) -> np.ndarray:
-        """``right`` in the left camera's grey levels when the two cameras differ (kept as captured for the fit)."""
-        self._right_raw = right
+        """``right`` in the left camera's grey levels when the two cameras differ."""
         if self._exposure is None:
             return right
-        self.counters["exposure_corrected_frames"] += 1
+        self.counts.exposure_corrected_frames += 1
         return correct_right(right, self._exposure)
 
-    def _fit_exposure(self, left, right_raw, xy_left: np.ndarray, xy_right: np.ndarray) -> None:
+    def _fit_exposure(self, left: np.ndarray, right_raw: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray) -> None:
         """Re-measure the right camera's grey levels against the left's on these stereo matches (the median
         of the last fits); the correction is used from the next frame if it matters, dropped if it no
         longer does, kept if these matches do not identify it."""
@@ -531,29 +489,28 @@ class StereoEstimator(KeyframeJobs):
         self._exposure_fits = (self._exposure_fits + [rel])[-5:]
         med = np.median([(f.gain, f.offset, f.change) for f in self._exposure_fits], axis=0)
         rel = GainOffset(float(med[0]), float(med[1]), rel.n, float(med[2]))
-        self.counters["exposure_fits"] += 1
-        self.counters["right_gain_milli"] = int(round(1000 * rel.gain))
-        self.counters["right_offset_centi"] = int(round(100 * rel.offset))
-        self._exposure = rel if relation_matters(rel, self.cfg.exposure_tolerance) else None
+        self.counts.exposure_fits += 1
+        self.counts.right_gain_milli = int(round(1000 * rel.gain))
+        self.counts.right_offset_centi = int(round(100 * rel.offset))
+        self._exposure = rel if relation_matters(rel, self.cfg.exposure.tolerance) else None
 
-    def _observe_map(self, left, right, T_world_cam: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Stereo of the tracked points at this keyframe: the bundle-adjustment log, the running mean
-        of each point's triangulations, and the disparity offset from the last keyframe to this one.
+    def _observe_map(self, img: StereoImages, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Stereo of the tracked points at this keyframe: the running mean of each point's
+        triangulations, and the disparity offset from the last keyframe to this one.
         Returns the left and right pixels of the points found in the right image."""
         cfg = self.cfg
-        m = self._map
+        m = self._state.map
+        left, right = img.left, img.right
         T_cw = invert_pose(T_world_cam)
         Xc_old = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
-        uvr_old, ok_old = stereo_right(self.rig, left, right, m.uv, self._geo.right_guess(Xc_old), cfg, fb_check=False,
-                                      levels=cfg.seeded_stereo_levels)
-        if self.record_observations:
-            self._record(k, m.ids, m.uv, uvr_old, ok_old)
+        uvr_old, ok_old = stereo_right(self.rig, left, right, m.uv, self._geo.right_guess(Xc_old), cfg.klt, fb_check=False,
+                                      levels=cfg.klt.seeded_stereo_levels)
         idx_o = np.flatnonzero(ok_old)
         seen = (m.uv[idx_o], uvr_old[idx_o])  # copies (index arrays)
         if not ok_old.any():
             return seen
         offset_before = self._geo.disparity_offset_px
-        if cfg.estimate_disparity_offset:
+        if cfg.disparity_offset.estimate:
             self._update_disparity_offset(idx_o, uvr_old[idx_o], T_world_cam)
         Xc_new, err_new = self._geo.triangulate(m.uv[idx_o], uvr_old[idx_o])
         good = self._geo.good_points(Xc_new, err_new)
@@ -561,53 +518,44 @@ class StereoEstimator(KeyframeJobs):
         if self._geo.disparity_offset_px != offset_before:
             # the earlier triangulations carry the old offset: restart each point's mean from this keyframe
             m.nobs[idx] = 0
-        if cfg.refine_points:
-            # running mean of each tracked point over its stereo observations at keyframes
-            Xw_new = Xc_new[good] @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
-            n = m.nobs[idx][:, None]
-            m.X[idx] = (m.X[idx] * n + Xw_new) / (n + 1)
-            m.nobs[idx] += 1
+        # running mean of each tracked point over its stereo observations at keyframes
+        Xw_new = Xc_new[good] @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+        n = m.nobs[idx][:, None]
+        m.X[idx] = (m.X[idx] * n + Xw_new) / (n + 1)
+        m.nobs[idx] += 1
         return seen
 
     def _update_disparity_offset(self, idx: np.ndarray, uv_right: np.ndarray, T_world_cam: np.ndarray) -> None:
         """Fuse the offset seen between the last keyframe and this one (points measured in stereo at both)."""
-        m = self._map
+        m = self._state.map
         B = self._geo.rectified_observations(m.uv[idx], uv_right)
-        kf = self.counters["keyframes"]
+        kf = self.counts.keyframes
         both = m.obs_kf[idx] == kf - 1
-        if self._T_kf is not None and both.sum() >= self.cfg.min_pnp_inliers:
-            if self.cfg.disparity_offset_keyframes > 2 and len(self._offset_views) >= 2:
+        if self._state.T_kf is not None and both.sum() >= self.cfg.geometry.min_pnp_inliers:
+            pair = KeyframeObservations(m.obs[idx[both]], B[both], self._state.T_kf, T_world_cam)
+            if self.cfg.disparity_offset.keyframes > 2 and len(self._offset_views) >= 2:
                 est = offset_over_keyframes(self._geo.rect, list(self._offset_views) + [(m.ids[idx], B, T_world_cam)],
                                             self._offset.max_inflation)
-                self.counters["disparity_offset_windows"] += 1
+                self.counts.disparity_offset_windows += 1
             else:
-                est = offset_between_keyframes(self._geo.rect, m.obs[idx[both]], B[both], self._T_kf, T_world_cam,
-                                               self._offset.max_inflation)
+                est = offset_between_keyframes(self._geo.rect, pair, self._offset.max_inflation)
             if not (learned_before := self._offset.ready):  # motions measured with the prior, for the correction
-                self._prior_path.add(kf, m.obs[idx[both]], B[both], self._T_kf, T_world_cam)
+                self._prior_path.add(kf, pair)
             used = self._offset.update(est)
-            self.counters["disparity_offset_pairs"] = self._offset.n
-            self.counters["disparity_offset_unidentified"] = self._offset.unidentified
+            self.counts.disparity_offset_pairs = self._offset.n
+            self.counts.disparity_offset_unidentified = self._offset.unidentified
             log.debug("keyframe %d: disparity offset %s (used %s), fused %.3f +- %.3f px", self._cur_seq, est, used,
                       self._offset.value, self._offset.sigma)
             if used and self._offset.ready:
                 if not learned_before:
                     self._pending_G = self._prior_path.correction(  # applied at the next frame
                         self._geo.rect, kf, T_world_cam, self._geo.disparity_offset_px, self._offset.value,
-                        self.cfg.max_correction_deg)
-                    self.counters["disparity_offset_path_corrections"] += int(self._pending_G is not None)
+                        self.cfg.asift.max_correction_deg)
+                    self.counts.disparity_offset_path_corrections += int(self._pending_G is not None)
                 self._geo.disparity_offset_px = self._offset.value
-                self.counters["disparity_offset_mpx"] = int(round(1000 * self._offset.value))
+                self.counts.disparity_offset_mpx = int(round(1000 * self._offset.value))
         m.obs[idx] = B
         m.obs_kf[idx] = kf
-
-    def _record(self, k: int, ids, uv_left, uv_right, ok_right) -> None:
-        """Observations (undistorted pixels) of map points at keyframe ``k``, for bundle adjustment."""
-        ul = undistort_px(uv_left, self.rig.cam0.K, self.rig.cam0.dist)
-        ur = undistort_px(uv_right[ok_right], self.rig.cam1.K, self.rig.cam1.dist)
-        for cam, idv, uv in ((0, ids, ul), (1, ids[ok_right], ur)):
-            if len(idv):
-                self.observations.append(np.column_stack([np.full(len(idv), k), idv, np.full(len(idv), cam), uv]))
 
     def _default_depth(self) -> float:
         # a depth that gives a middle disparity on this rig

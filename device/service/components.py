@@ -155,7 +155,8 @@ def open_components(cfg: DeviceConfig, session_dir: Path, session_id: str, *, se
     cam_hz, imu_hz = nominal_rates(cfg, source)
     rig = source.rig
     assert rig is not None  # open_source refuses a source without one
-    c.estimator = seams.estimator if seams.estimator is not None else make_estimator(cfg.estimator.name, rig)
+    c.estimator = (seams.estimator if seams.estimator is not None
+                   else make_estimator(cfg.estimator.name, rig, options=cfg.estimator.stereo))
     c.monitor = RateMonitor(None if cfg.source.recorded else cam_hz, imu_hz if cfg.imu.polled else None,
                             cfg.timealign.gap_factor)
     c.aligner = TimeAligner.from_settings(cfg.timealign, imu_hz if c.imu is not None else None, c.monitor)

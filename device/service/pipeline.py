@@ -14,10 +14,16 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Iterable, Protocol, Sequence
 
+from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.errors import EstimationError, StereopathError
+from stereopath.device.estimation.base import Estimator, PoseEstimate, TrackStatus
 from stereopath.device.service.sinks import FrameSink
+
+if TYPE_CHECKING:
+    from stereopath.device.capture.timealign import TimeAligner
+    from stereopath.device.settings import TimeAlignSettings
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +40,7 @@ class PipelineCounters:
     tracked_frames: int = 0
     last_frame_at: float | None = None
     last_imu_at: float | None = None
-    last_estimate: Any = None
+    last_estimate: PoseEstimate | None = None
     stage_ms: dict[str, float] = field(default_factory=dict)  # average time per frame of each stage (ms)
     # the estimator's own time per frame (ms), kept for the session's estimator.json
     estimate_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=200_000))
@@ -46,16 +52,32 @@ class PipelineCounters:
         self.stage_ms[stage] = ms if old is None else 0.9 * old + 0.1 * ms
 
 
+class ImuReader(Protocol):
+    def read(self) -> ImuSamples:
+        """The samples that arrived since the last read."""
+
+
+@dataclass
+class FrameInputs:
+    """What a run's frame loop reads and runs: the stereo frames, the IMU (or None), the time alignment
+    that attaches the IMU samples to each frame, and the estimator."""
+
+    source: Iterable[StereoFrame]
+    imu: ImuReader | None
+    aligner: TimeAligner
+    estimator: Estimator
+
+
 class FramePipeline:
     """One capture run's frame loop; :meth:`run` is the pipeline thread's body."""
 
-    def __init__(self, source: Any, imu: Any, aligner: Any, estimator: Any, sinks: Sequence[FrameSink], *,
-                 stop: threading.Event, request_stop: Callable[[str], None], frame_limit: int | None = None,
+    def __init__(self, inputs: FrameInputs, sinks: Sequence[FrameSink], *, stop: threading.Event,
+                 request_stop: Callable[[str], None], frame_limit: int | None = None,
                  clock: Callable[[], float] = time.monotonic, counters: PipelineCounters | None = None) -> None:
-        self.source = source
-        self.imu = imu
-        self.aligner = aligner
-        self.estimator = estimator
+        self.source = inputs.source
+        self.imu = inputs.imu
+        self.aligner = inputs.aligner
+        self.estimator = inputs.estimator
         self.sinks = list(sinks)
         self.counters = counters if counters is not None else PipelineCounters()
         self.failure: BaseException | None = None
@@ -64,9 +86,9 @@ class FramePipeline:
         self._request_stop = request_stop
         self._frame_limit = frame_limit
         self._clock = clock
-        self._pending_timealign: Any = None
+        self._pending_timealign: TimeAlignSettings | None = None
 
-    def set_timealign(self, settings: Any) -> None:
+    def set_timealign(self, settings: TimeAlignSettings) -> None:
         """New ``[timealign]`` settings, applied by the pipeline thread before its next frame."""
         self._pending_timealign = settings
 
@@ -120,7 +142,7 @@ class FramePipeline:
                 sink.add_imu(block)
             self.aligner.add_imu(block)
 
-    def _handle(self, frame: Any) -> None:
+    def _handle(self, frame: StereoFrame) -> None:
         c = self.counters
         spent = dict.fromkeys((s.name for s in self.sinks), 0.0)
         for sink in self.sinks:
@@ -129,7 +151,7 @@ class FramePipeline:
             spent[sink.name] += time.perf_counter() - t0
         t0 = time.perf_counter()
         try:
-            est = self.estimator.process(frame, frame.meta.get("imu"))
+            est = self.estimator.process(frame, frame.imu)
         except EstimationError as exc:
             c.estimation_errors += 1
             log.log(logging.WARNING if c.estimation_errors == 1 else logging.DEBUG,
@@ -140,9 +162,12 @@ class FramePipeline:
         dt = time.perf_counter() - t0
         c.average("estimate", dt)
         c.estimate_ms.append(dt * 1e3)
+        if est is None:  # no pose for this frame (not an on-board estimator's answer)
+            self._note_times(spent)
+            return
         c.last_estimate = est
         c.frames_done += 1
-        c.tracked_frames += est.status == "ok"
+        c.tracked_frames += est.status is TrackStatus.OK
         c.keyframes += bool(est.keyframe)
         for sink in self.sinks:
             t0 = time.perf_counter()
@@ -161,7 +186,7 @@ class FramePipeline:
         a.max_wait_ns = int(round(s.max_wait_ms * 1e6))
         a.gap_factor = float(s.gap_factor)
 
-    def estimator_summary(self) -> dict[str, Any] | None:
+    def estimator_summary(self) -> dict[str, object] | None:
         """``estimator.json``: the estimator's time per frame and tracking counts (None before any estimate)."""
         c = self.counters
         if not c.estimate_ms:

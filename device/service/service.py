@@ -56,7 +56,7 @@ from stereopath.device.core.config import as_dict
 from stereopath.device.errors import ConfigError, StereopathError
 from stereopath.device.service.components import Components, RunSeams, open_components
 from stereopath.device.service.options import RunOptions, apply_live, check_config, load_config, split_changes
-from stereopath.device.service.pipeline import FramePipeline, PipelineCounters
+from stereopath.device.service.pipeline import FrameInputs, FramePipeline, PipelineCounters
 from stereopath.device.service.sdnotify import Notifier
 from stereopath.device.settings import DeviceConfig
 from stereopath.device.service.status import StatusReporter, status_line
@@ -213,7 +213,7 @@ class CaptureService:
                               f"recorder.dir that no host acknowledged are offered to hosts again)")
         p = open_components(cfg, self.session_dir, self.session_id, seams=self._seams, environ=self.environ,
                             parts=self.parts)
-        self.pipeline = FramePipeline(p.source, p.imu, p.aligner, p.estimator,
+        self.pipeline = FramePipeline(FrameInputs(p.source, p.imu, p.aligner, p.estimator),
                                       [s for s in (p.recording, p.streaming) if s.active],
                                       stop=self._stop, request_stop=self.request_stop,
                                       frame_limit=self.options.frames, clock=self._clock, counters=self.counters)

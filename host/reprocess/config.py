@@ -12,9 +12,22 @@ from typing import Any
 
 import numpy as np
 
+from stereopath.device.core.stereo_config import DisparityOffsetConfig, KeyframePolicy, StereoConfig
 from stereopath.host.backend.loops import LoopConfig
 from stereopath.host.reprocess.preset_names import DEFAULT_PRESET, PRESET_ABOUT
 from stereopath.host.backend.tracks import TrackConfig
+
+
+def offline_stereo() -> StereoConfig:
+    """The stereo estimator as reprocessing runs it.
+
+    Offline there is no frame deadline: each keyframe's ASIFT work is joined at its keyframe (on board
+    it runs on a worker thread whose result arrives when it is ready), so a rerun (or a resumed run, or
+    a fleet worker) gives the same path to the last bit.  The disparity offset is not refined on line:
+    the bundle adjustment estimates it from every keyframe at once, and an on-line value that changes
+    part-way through (the points re-triangulated each time) only hands it a start whose scale drifts."""
+    return StereoConfig(keyframes=KeyframePolicy(background=False),
+                        disparity_offset=DisparityOffsetConfig(estimate=False))
 
 
 @dataclass(frozen=True)
@@ -23,10 +36,9 @@ class ReprocessPreset:
 
     description: str
     estimator_preset: str | None = None  # feature preset of the stereo estimator (None: its on-board default)
-    # offline, each keyframe's ASIFT work is joined at its keyframe (on board it runs on a worker
-    # thread whose result arrives when it is ready): the re-estimate then does not depend on timing,
-    # so two runs (one after another, or as fleet tasks) give the same bytes
-    estimator_options: tuple[tuple[str, Any], ...] = (("background_keyframes", False),)
+    # the stereo estimator's settings by stage (its feature preset is estimator_preset); a preset overrides
+    # a section with a typed value: dataclasses.replace(offline_stereo(), klt=KltConfig(...))
+    estimator_options: StereoConfig = field(default_factory=offline_stereo)
     tracks: TrackConfig = field(default_factory=TrackConfig)
     loops: LoopConfig = field(default_factory=LoopConfig)  # loop closure between keyframes (tracks stage)
     ba_loss: str = "huber"

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from stereopath.device.errors import StereopathError
+from stereopath.device.estimation.base import TrackStatus
 from stereopath.device.formats.tum import Trajectory
 from stereopath.host.reprocess.config import ReprocessPreset
 from stereopath.host.reprocess.rig_refine import report_entry, write_refined_rig
@@ -144,7 +145,7 @@ def build_report(s: RunSummary) -> dict[str, Any]:
     if skipped:
         extra["skipped_frame_indexes"] = skipped[:1000]
     return make_report(source=s.label, estimator="stereo+ba", frames=len(s.final),
-                       frames_tracked=int(np.sum(s.est["status"] == 0)),
+                       frames_tracked=int(np.sum(s.est["status"] == TrackStatus.OK.code)),
                        metrics=m_final if m_final and m_final.get("ate_rmse_m") is not None else None,
                        frame_ms=s.est["frame_ms"], extra=extra,
                        world_frame=meta(s.ba, "stats").get("world_frame") or info.get("world_frame", "first_camera"))

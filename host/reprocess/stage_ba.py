@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from stereopath.device.errors import EstimationError, ImuMismatchError
+from stereopath.device.estimation.base import TrackStatus
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
 from stereopath.host.progress import Bar, progress_bar
 from stereopath.host.reprocess.store import json_array, meta
@@ -229,7 +230,7 @@ def level_world(inputs: StageInputs, res, T_frames: np.ndarray, imu_usable: bool
     R_body_cam = np.asarray(rig.T_body_cam0)[:3, :3]
     gravity, by = res.gravity_world, "imu_factors"
     if gravity is None and imu_usable and imu is not None and len(imu):
-        tracked = np.asarray(est["status"]) == 0 if "status" in est else None
+        tracked = np.asarray(est["status"]) == TrackStatus.OK.code if "status" in est else None
         T_world_body = T_frames @ make_pose(R_body_cam.T, np.zeros(3))
         gravity, by = gravity_from_still_frames(imu, est["t_ns"], T_world_body, tracked), "still_imu"
     if gravity is None:

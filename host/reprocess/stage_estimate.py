@@ -1,7 +1,7 @@
 """Stage ``estimate``: the ``stereo`` estimator over every frame with the preset's settings.
 
-Outputs (``estimate.npz``): per-frame ``t_ns``, ``seq``, ``T_world_cam``, ``status`` (index into
-:data:`STATUS`), ``keyframe``, ``frame_ms`` and ``meta`` (world frame, estimator, its stats).
+Outputs (``estimate.npz``): per-frame ``t_ns``, ``seq``, ``T_world_cam``, ``status``
+(:attr:`TrackStatus.code`), ``keyframe``, ``frame_ms`` and ``meta`` (world frame, estimator, its stats).
 """
 
 from __future__ import annotations
@@ -10,30 +10,18 @@ from typing import Any
 
 import numpy as np
 
+from stereopath.device.core.config import as_dict
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
 from stereopath.host.progress import Bar
 from stereopath.host.reprocess.store import json_array
 
 NAME = "estimate"
-STATUS = ("ok", "imu_only", "lost")
 
-
-# Offline there is no frame deadline: keyframe work runs in line so that a rerun (or a resumed
-# run, or a fleet worker) gives the same path to the last bit.  The on-board service keeps it
-# on its worker thread.  The disparity offset is not refined on line: the bundle adjustment
-# estimates it from every keyframe at once, and an on-line value that changes part-way through
-# (the points re-triangulated each time) only hands it a start whose scale drifts
-OFFLINE_OPTIONS = {"background_keyframes": False, "estimate_disparity_offset": False}
-
-
-def estimator_options(config: ReprocessPreset) -> dict[str, Any]:
-    """The stereo estimator's options for offline re-estimation (the preset's win)."""
-    return {**OFFLINE_OPTIONS, **dict(config.estimator_options)}
 
 
 def settings(config: ReprocessPreset) -> dict[str, Any]:
     """The settings that make up this stage's key."""
-    return {"preset": config.estimator_preset, "options": estimator_options(config)}
+    return {"preset": config.estimator_preset, "options": as_dict(config.estimator_options)}
 
 
 def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
@@ -41,9 +29,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     from stereopath.device.estimation.registry import make_estimator
 
     seq = inputs.seq
-    est = make_estimator("stereo", seq.rig, preset=config.estimator_preset, options=estimator_options(config))
-    if hasattr(est, "record_observations"):
-        est.record_observations = False  # offline tracks replace the on-board observation log
+    est = make_estimator("stereo", seq.rig, preset=config.estimator_preset, options=config.estimator_options)
     try:
         with Bar(len(seq), "re-estimate", inputs.progress, "frame") as tick:
             res = run_estimator(est, seq.frames(), getattr(seq, "imu", None), progress=tick)
@@ -54,7 +40,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
         "t_ns": np.array([e.t_ns for e in res.estimates], np.int64),
         "seq": np.array([e.seq for e in res.estimates], np.int64),
         "T_world_cam": np.array([e.T_world_cam for e in res.estimates]),
-        "status": np.array([STATUS.index(e.status) if e.status in STATUS else 2 for e in res.estimates], np.int8),
+        "status": np.array([e.status.code for e in res.estimates], np.int8),
         "keyframe": np.array([e.keyframe for e in res.estimates], bool),
         "frame_ms": np.array(res.frame_ms, float),
         "meta": json_array({"world_frame": res.world_frame, "estimator": res.estimator, "stats": res.extra}),

@@ -19,6 +19,7 @@ import logging
 
 import numpy as np
 
+from stereopath.device.estimation.base import TrackStatus
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
 from stereopath.host.backend.loops import detect_loops, loops_to_array
 from stereopath.host.backend.parallel import parallel_map, spare_cores, spreading
@@ -37,8 +38,8 @@ def settings(config: ReprocessPreset) -> dict:
 
 def choose_keyframes(est: dict[str, np.ndarray]) -> np.ndarray:
     """The estimator's keyframes that were tracked, plus the first and last tracked frames."""
-    ok = np.flatnonzero(est["status"] == 0)
-    kf = np.flatnonzero(est["keyframe"] & (est["status"] == 0))
+    ok = np.flatnonzero(est["status"] == TrackStatus.OK.code)
+    kf = np.flatnonzero(est["keyframe"] & (est["status"] == TrackStatus.OK.code))
     return np.unique(np.concatenate([ok[:1], kf, ok[-1:]])).astype(np.int64)
 
 
@@ -48,7 +49,7 @@ def next_keyframe(rig, est: dict[str, np.ndarray], k: int, points, cfg) -> int:
     (:func:`tracks.view_change`), at least the next tracked frame."""
     from stereopath.host.backend.tracks import view_change
 
-    ok, T = np.flatnonzero(est["status"] == 0), est["T_world_cam"]
+    ok, T = np.flatnonzero(est["status"] == TrackStatus.OK.code), est["T_world_cam"]
     later = ok[ok > k]
     nxt = int(later[0])
     for j in later[1:]:
@@ -65,7 +66,7 @@ def keyframes_by_view_change(rig, est: dict[str, np.ndarray], features_of, cfg, 
     keyframe is :func:`next_keyframe` from the previous keyframe's features; the last tracked frame
     ends the list.  ``features_of(i)`` computes frame ``i``'s features.  Rotation alone changes no
     viewpoint: a scan that mostly turns gets few keyframes, driving towards the scene one every frame or two."""
-    ok = np.flatnonzero(est["status"] == 0)
+    ok = np.flatnonzero(est["status"] == TrackStatus.OK.code)
     kf, feats = [int(ok[0])], [features_of(int(ok[0]))]
     while kf[-1] < ok[-1]:
         kf.append(next_keyframe(rig, est, kf[-1], feats[-1], cfg))
@@ -80,7 +81,7 @@ def guessed_keyframe_count(rig, est: dict[str, np.ndarray], images_of, cfg) -> i
     guesses ahead: the rule of :func:`next_keyframe` on cheap corners (:func:`view_points`) from the
     first tracked frame to the last (a small fraction of the keypoints' cost).  What a
     session's tracks and bundle adjustment will cost, for a scheduler; never used for results."""
-    if not np.any(est["status"] == 0):
+    if not np.any(est["status"] == TrackStatus.OK.code):
         return 0
     if cfg.keyframe_parallax_deg <= 0:  # the estimator's keyframes
         return len(choose_keyframes(est))
@@ -99,7 +100,7 @@ def keyframes_ahead(rig, est: dict[str, np.ndarray], images_of, cfg, progress=No
     at two after a wrong one, so little work is thrown away where the guesses are poor.  While the
     spreader has no idle processor (:func:`spare_cores`: other sessions keep every core busy) the
     next keyframe is found exactly as one after another, and nothing is guessed."""
-    ok = np.flatnonzero(est["status"] == 0)
+    ok = np.flatnonzero(est["status"] == TrackStatus.OK.code)
     feats: dict[int, object] = {}
     corners: dict[int, object] = {}
     kf, size = [int(ok[0])], 2
@@ -184,7 +185,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
 
     seq, est = inputs.seq, inputs.results["estimate"]
     cfg = config.tracks
-    if not np.any(est["status"] == 0):
+    if not np.any(est["status"] == TrackStatus.OK.code):
         return _empty(est, np.zeros(0, np.int64), "no tracked frame in the re-estimate")
 
     def images_of(i: int) -> tuple[np.ndarray, np.ndarray]:

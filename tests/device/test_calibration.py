@@ -167,7 +167,7 @@ def test_euroc_gyro_bias_is_measured_by_the_estimator_from_vision(data_dir):
     assert run.world_frame == "first_camera"  # not still before the first frame
     assert est.stats()["gyro_bias_updates"] >= 3
     assert np.all(np.abs(est.gyro_bias_rad_s - implied) < 1.5e-3)  # 0.09 deg/s, from 4.5 deg/s unknown
-    off = make_estimator("stereo", seq.rig, options={"estimate_gyro_bias": False})
+    off = make_estimator("stereo", seq.rig, options={"gyro": {"estimate_bias": False}})
     run_estimator(off, iter(frames), seq.imu)
     assert np.allclose(off.gyro_bias_rad_s, 0.0)
 

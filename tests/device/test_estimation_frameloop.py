@@ -12,7 +12,9 @@ from stereopath.device.formats.rig_files import load_kitti_calib
 from stereopath.device.core.stereo import stereo_right
 from stereopath.device.estimation.base import run_estimator
 from stereopath.device.estimation.registry import make_estimator
-from stereopath.device.estimation.stereo_vo import StereoConfig, StereoEstimator
+from stereopath.device.core.stereo_config import AsiftWork, DisparityOffsetConfig, KeyframePolicy, StereoConfig
+from stereopath.device.estimation.stereo_measure import StereoMeasure
+from stereopath.device.estimation.stereo_vo import StereoEstimator
 
 
 def _kitti_frames(data_dir, idx):
@@ -35,13 +37,13 @@ def test_stereo_right_recovers_a_subpixel_disparity_and_rejects_row_mismatch(dat
     pts = cv2.goodFeaturesToTrack(left, 200, 0.01, 10).reshape(-1, 2)
     pts = pts[(pts[:, 0] > 40) & (pts[:, 0] < 1180) & (pts[:, 1] > 40) & (pts[:, 1] < 330)]
     cfg = StereoConfig()
-    xr, ok = stereo_right(rig, left, right, pts, pts - [4.0, 0.0], cfg)
+    xr, ok = stereo_right(rig, left, right, pts, pts - [4.0, 0.0], cfg.klt)
     assert ok.mean() > 0.9
     assert np.median(np.abs(pts[ok, 0] - xr[ok, 0] - d)) < 0.05
     assert np.all(np.abs(xr[ok, 1] - pts[ok, 1]) < 0.2)
     # the same points 3 px lower in the right image: not on the rectified row, rejected
     down = cv2.warpAffine(right, np.float32([[1, 0, 0], [0, 1, 3]]), (1226, 370), borderMode=cv2.BORDER_REFLECT)
-    _, ok2 = stereo_right(rig, left, down, pts, pts - [4.0, 0.0], cfg)
+    _, ok2 = stereo_right(rig, left, down, pts, pts - [4.0, 0.0], cfg.klt)
     assert ok2.mean() < 0.1
     assert stereo_right(rig, left, right, np.zeros((0, 2)), np.zeros((0, 2)), cfg)[0].shape == (0, 2)
 
@@ -58,23 +60,23 @@ def test_gray_accepts_colour_and_single_channel():
 def test_keyframe_work_never_stalls_the_frame_loop_and_its_queue_is_bounded(data_dir):
     rig, frames = _kitti_frames(data_dir, range(12))
     # a keyframe at every frame, each asking for ASIFT work
-    est = StereoEstimator(rig, StereoConfig(kf_max_frames=1, asift_min_rotation_deg=0.0))
+    est = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=1), asift=AsiftWork(min_rotation_deg=0.0)))
     release = threading.Event()
     started = []
-    real_job = est._keyframe_job
+    real_job = est._worker.run
 
-    def slow_job(*args):
-        started.append(args[0])
+    def slow_job(job, prev):
+        started.append(job.seq)
         release.wait(30)  # the worker is stuck until the test lets it go
-        return real_job(*args)
+        return real_job(job, prev)
 
-    est._keyframe_job = slow_job
+    est._worker.run = slow_job
     try:
         out = [est.process(f, None) for f in frames]  # must return although no job can finish
         assert all(e.status == "ok" for e in out)
         assert sum(e.keyframe for e in out) >= 10
-        assert len(est._jobs) <= 2  # one running, one waiting: never a pile-up
-        assert est.counters["kf_jobs_skipped"] >= 8
+        assert est._worker.in_flight <= 2  # one running, one waiting: never a pile-up
+        assert est.counts.kf_jobs_skipped >= 8
         assert started == [0]  # only the first job started; the waiting one was replaced
     finally:
         release.set()
@@ -99,18 +101,18 @@ def test_fast_motion_every_nth_kitti_frame_is_tracked(data_dir, step):
 
 def test_online_disparity_offset_is_estimated_bounded_and_used(data_dir):
     rig, frames = _kitti_frames(data_dir, range(14))
-    est = StereoEstimator(rig, StereoConfig(kf_max_frames=2, background_keyframes=False,
-                                            estimate_disparity_offset=True))
+    est = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=2, background=False),
+                                            disparity_offset=DisparityOffsetConfig(estimate=True)))
     out = [est.process(f, None) for f in frames]
     est.close()
     assert all(e.status == "ok" for e in out)
     assert est._offset.n >= 3 and est._offset.ready
     assert abs(est._offset.value) <= est._offset.bound
     # from the third keyframe on, each estimate is solved over the last four keyframes
-    assert est.counters["disparity_offset_windows"] >= est.counters["keyframes"] - 3 >= 3
+    assert est.counts.disparity_offset_windows >= est.counts.keyframes - 3 >= 3
     # the fused value is what the triangulation and the pose refinement now remove
     assert est._geo.disparity_offset_px == est._offset.value != 0.0
-    assert est.counters["disparity_offset_mpx"] == round(1000 * est._offset.value)
+    assert est.counts.disparity_offset_mpx == round(1000 * est._offset.value)
 
 
 def test_each_offset_estimate_is_solved_over_the_last_four_keyframes_stereo_observations(data_dir, monkeypatch):
@@ -131,30 +133,47 @@ def test_each_offset_estimate_is_solved_over_the_last_four_keyframes_stereo_obse
         fused.append(est)
         return real_update(self, est)
 
+    kept = []  # per keyframe: its pose, the points measured in stereo there (ids, rows), the ids mapped before
+    measured: list = []  # the rectified rows measured while a keyframe is made
+    real_new_keyframe = stereo_vo.StereoEstimator._new_keyframe
+    real_rows = StereoMeasure.rectified_observations
+
+    def rows_of(self, uv_left, uv_right):
+        out = real_rows(self, uv_left, uv_right)
+        measured.append(out.copy())
+        return out
+
+    def new_keyframe(self, img, T_world_cam):
+        before = set(self._state.map.ids.tolist())
+        measured.clear()
+        n = real_new_keyframe(self, img, T_world_cam)
+        m = self._state.map
+        at = m.obs_kf == self.counts.keyframes - 1
+        kept.append((T_world_cam.copy(), m.ids[at].copy(), m.obs[at].copy(), before, np.vstack(measured)))
+        return n
+
     monkeypatch.setattr(stereo_vo, "offset_over_keyframes", window)
     monkeypatch.setattr(disparity_offset.OffsetFilter, "update", update)
+    monkeypatch.setattr(stereo_vo.StereoEstimator, "_new_keyframe", new_keyframe)
+    monkeypatch.setattr(StereoMeasure, "rectified_observations", rows_of)
     rig, frames = _kitti_frames(data_dir, range(14))
-    est = StereoEstimator(rig, StereoConfig(kf_max_frames=2, background_keyframes=False, record_observations=True))
+    est = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=2, background=False)))
     for f in frames:
         est.process(f, None)
     est.close()
-    obs = np.vstack(est.observations)  # (keyframe, point id, camera, u, v), undistorted = as measured on KITTI
-    poses = [T for _, T in est.keyframe_poses]
     assert len(calls) >= 3 and [len(v) for v, _ in calls[:2]] == [3, 4] and all(len(v) == 4 for v, _ in calls[1:])
     for views, out in calls:
         assert any(out is e for e in fused)  # the window's estimate, not another
         for n, (ids, rows, T) in enumerate(views):
-            k = next(i for i, P in enumerate(poses) if np.array_equal(P, T))
-            stereo = obs[(obs[:, 0] == k) & (obs[:, 2] == 1)]
+            T_kf, kf_ids, kf_rows, before, kf_measured = next(k for k in kept if np.array_equal(k[0], T))
+            # rows as measured at that keyframe
+            assert all(np.any(np.all(kf_measured == r, axis=1)) for r in rows)
             if n < len(views) - 1:  # an earlier keyframe: every point measured in stereo there
-                assert sorted(ids) == sorted(stereo[:, 1].astype(int))
-            else:  # this keyframe, before its new points are made
-                earlier = obs[obs[:, 0] < k, 1]
-                assert set(ids) == set(stereo[np.isin(stereo[:, 1], earlier), 1].astype(int))
-            left = obs[(obs[:, 0] == k) & (obs[:, 2] == 0)]
-            ul = np.array([left[left[:, 1] == i][0, 3:] for i in ids])
-            ur = np.array([stereo[stereo[:, 1] == i][0, 3:] for i in ids])
-            np.testing.assert_allclose(rows, est._geo.rectified_observations(ul, ur), atol=1e-6)
+                assert sorted(ids) == sorted(kf_ids)
+            else:  # this keyframe, before its new points are made: the mapped points measured in stereo
+                assert set(ids) == set(kf_ids.tolist()) & before
+            order = {int(i): r for i, r in zip(kf_ids, kf_rows)}
+            np.testing.assert_array_equal(rows, np.array([order[int(i)] for i in ids]).reshape(-1, 3))
 
 
 def test_the_path_measured_before_the_offset_was_learned_is_re_measured_once(data_dir):
@@ -164,14 +183,14 @@ def test_the_path_measured_before_the_offset_was_learned_is_re_measured_once(dat
     end_error = {}
     for correct in (True, False):
         rig, frames = _kitti_frames(data_dir, range(14))
-        est = StereoEstimator(rig, StereoConfig(kf_max_frames=2, background_keyframes=False))
+        est = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=2, background=False)))
         if not correct:
             real = est._prior_path.correction  # computed (the pairs are forgotten), never applied
             est._prior_path.correction = lambda *args: [real(*args), None][1]
         out = [est.process(f, None) for f in frames]
         est.close()
         assert all(e.status == "ok" for e in out) and est._offset.ready
-        assert est.counters["disparity_offset_path_corrections"] == int(correct)
+        assert est.counts.disparity_offset_path_corrections == int(correct)
         assert not est._prior_path.pairs  # kept only until the offset is learned
         end_error[correct] = np.linalg.norm(out[-1].T_world_cam[:3, 3] - gt[13][:, 3])
     assert end_error[True] < end_error[False] - 0.01
@@ -183,33 +202,33 @@ def test_online_disparity_offset_stays_at_the_prior_around_an_object():
     from stereopath.device.sim.session import open_sim
 
     seq = open_sim(seed=2, frames=60, trajectory="orbit")
-    est = StereoEstimator(seq.rig, StereoConfig(kf_max_frames=2, background_keyframes=False))
-    assert est.cfg.estimate_disparity_offset  # on by default
+    est = StereoEstimator(seq.rig, StereoConfig(KeyframePolicy(max_frames=2, background=False)))
+    assert est.cfg.disparity_offset.estimate  # on by default
     out = [est.process(seq.frame(i), None) for i in range(len(seq))]
     est.close()
     assert all(e.status == "ok" for e in out)
-    assert est.counters["disparity_offset_unidentified"] >= 5
+    assert est.counts.disparity_offset_unidentified >= 5
     assert est._offset.n == 0 and est._geo.disparity_offset_px == 0.0
-    assert est.counters["disparity_offset_windows"] >= 5
-    assert est.counters["disparity_offset_mpx"] == 0
-    assert est.counters["disparity_offset_path_corrections"] == 0
+    assert est.counts.disparity_offset_windows >= 5
+    assert est.counts.disparity_offset_mpx == 0
+    assert est.counts.disparity_offset_path_corrections == 0
 
 
 def test_asift_work_is_scheduled_by_view_change_not_at_every_keyframe(data_dir):
     rig, frames = _kitti_frames(data_dir, range(12))  # driving straight: little rotation
-    est = StereoEstimator(rig, StereoConfig(kf_max_frames=1, background_keyframes=False, asift_max_frames=5))
+    est = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=1, background=False), asift=AsiftWork(max_frames=5)))
     out = [est.process(f, None) for f in frames]
     est.close()
     assert all(e.status == "ok" for e in out) and sum(e.keyframe for e in out) >= 10
     # the first keyframe and then one by age (5 frames) at most: the rest only top up the map
-    assert 2 <= est.counters["kf_jobs"] <= 3
-    assert est.counters["kf_jobs_deferred"] == est.counters["keyframes"] - est.counters["kf_jobs"]
-    turning = StereoEstimator(rig, StereoConfig(kf_max_frames=1, background_keyframes=False,
-                                                asift_min_rotation_deg=0.0))
+    assert 2 <= est.counts.kf_jobs <= 3
+    assert est.counts.kf_jobs_deferred == est.counts.keyframes - est.counts.kf_jobs
+    turning = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=1, background=False),
+                                                asift=AsiftWork(min_rotation_deg=0.0)))
     for f in frames[:4]:
         turning.process(f, None)
     turning.close()
-    assert turning.counters["kf_jobs"] == 4  # any rotation asks for it: every keyframe
+    assert turning.counts.kf_jobs == 4  # any rotation asks for it: every keyframe
 
 
 def _look_at(c, target=np.zeros(3), up=np.array([0.0, -1.0, 0.0])):
@@ -251,20 +270,20 @@ def test_keyframe_match_simulates_views_only_for_a_large_predicted_view_change(d
     from stereopath.device.core.features import Features
 
     rig, frames = _kitti_frames(data_dir, [0])
-    est = StereoEstimator(rig, StereoConfig(background_keyframes=False))
+    est = StereoEstimator(rig, StereoConfig(KeyframePolicy(background=False)))
     left = frames[0].left
-    feats0 = est._features(left, views=[0])
+    feats0 = est._worker.features(left, views=[0])
     X = np.random.default_rng(1).normal(0, 0.5, (100, 3)) + [0.0, 0.0, 10.0]
     T0 = _look_at(np.zeros(3), np.array([0.0, 0.0, 10.0]))
     small = _look_at(np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 10.0]))  # ~6 deg: SIFT bridges it
-    same = est._with_predicted_views(left, feats0, X, T0, small)
+    same = est._worker._with_predicted_views(left, feats0, X, T0, small)
     assert same is feats0
     big = _look_at(np.array([10.0 * np.sin(1.0), 0.0, 10.0 - 10.0 * np.cos(1.0)]), np.array([0.0, 0.0, 10.0]))
-    out = est._with_predicted_views(left, feats0, X, T0, big)  # 57 deg: tilt ~1.85
+    out = est._worker._with_predicted_views(left, feats0, X, T0, big)  # 57 deg: tilt ~1.85
     assert isinstance(out, Features) and set(np.unique(out.view)) == {0, 1, 2}
     assert len(out) > len(feats0)
     est.close()
     from stereopath.device.errors import ConfigError
 
     with pytest.raises(ConfigError):
-        StereoConfig(asift_views="sometimes")
+        AsiftWork(views="sometimes")

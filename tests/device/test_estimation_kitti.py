@@ -70,7 +70,7 @@ def test_tracking_at_the_predicted_scale_keeps_the_path_of_fast_driving(data_dir
     out = {}
     for step in (0.0, 0.05):
         # keyframe work in line: the same result every run
-        est = make_estimator("stereo", seq.rig, options={"klt_scale_step": step, "background_keyframes": False})
+        est = make_estimator("stereo", seq.rig, options={"klt": {"klt_scale_step": step}, "keyframes": {"background": False}})
         run = run_estimator(est, iter(frames), None)
         assert run.frames_tracked == len(frames) == 26
         out[step] = (evaluate(seq.groundtruth, run.trajectory)["ate_rmse_m"], est.stats()["disparity_offset_mpx"])

@@ -135,13 +135,14 @@ def test_gyro_bias_window_with_a_bad_pose_is_rejected_and_an_untracked_frame_res
 
 def _bias_estimator(sigma0=0.1):
     """A ``stereo`` estimator whose bias window is fed by hand (body frame = camera frame)."""
-    from stereopath.device.estimation.stereo_vo import StereoConfig, StereoEstimator
+    from stereopath.device.core.stereo_config import KeyframePolicy, StereoConfig
+    from stereopath.device.estimation.stereo_vo import StereoEstimator
 
-    est = StereoEstimator(paper_rig(), StereoConfig(background_keyframes=False))
+    est = StereoEstimator(paper_rig(), StereoConfig(KeyframePolicy(background=False)))
     est._R_body_cam = np.eye(3)
     est._gyro = GyroIntegrator(None)
     est._bias = VisionGyroBias(None, sigma0)
-    est._T_bias_start = np.eye(4)
+    est._state.T_bias_start = np.eye(4)
     return est
 
 
@@ -154,7 +155,7 @@ def _feed(est, bias_true, seconds, bad=None, correction_at=None, G=None):
     G_now = np.eye(4)
     for k, (R_gyro, dt, R_true) in enumerate(_spin(bias_true, lambda: est._gyro.bias, seconds), start=1):
         if k == correction_at:
-            est._apply_correction(G)  # a keyframe correction joined: the live state moves
+            est._state.apply(G)  # a keyframe correction joined: the live state moves
             G_now = G @ G_now
         T = G_now @ make_pose(R_true, np.zeros(3))
         status = "ok"
@@ -162,7 +163,7 @@ def _feed(est, bias_true, seconds, bad=None, correction_at=None, G=None):
             T, status = make_pose(R_true @ so3_exp([0.0, np.radians(5.0), 0.0]), np.zeros(3)), "imu_only"
         est._gyro_step = (R_gyro, dt)
         est._refine_gyro_bias(PoseEstimate(k, k * 50_000_000, T, status))
-        est._T_world_cam = T
+        est._state.T_world_cam = T
 
 
 def test_the_estimator_restarts_its_bias_window_where_tracking_breaks():
@@ -228,13 +229,13 @@ def test_a_disparity_offset_lengthens_the_translation_and_removing_it_restores_t
     solved against them too long, worst from far points; StereoMeasure removes a known offset from
     the triangulation and from the right-image observations of the refinement."""
     from stereopath.device.estimation.stereo_measure import StereoMeasure
-    from stereopath.device.estimation.stereo_vo import StereoConfig
+    from stereopath.device.core.stereo_config import DisparityOffsetConfig, StereoConfig
 
     rig, r = _road_rig(), np.random.default_rng(12)
     uvA, urA, uvB, urB = _forward_pair(rig, r, 600, disparity_offset_px=-0.2)
     lengths = {}
     for known in (0.0, -0.2):
-        geo = StereoMeasure(rig, StereoConfig(disparity_offset_px=known))
+        geo = StereoMeasure(rig, StereoConfig(disparity_offset=DisparityOffsetConfig(prior_px=known)))
         X, _ = geo.triangulate(uvA, urA)
         res = refine_pose_lm(rig, np.eye(4), PointObservations(X, uvB), PointObservations(X, geo.right_ideal(urB)),
                              LMOptions(outlier_px=2.0))
@@ -248,7 +249,7 @@ def _rendered_points():
     import cv2
 
     from stereopath.device.estimation.stereo_measure import StereoMeasure
-    from stereopath.device.estimation.stereo_vo import StereoConfig
+    from stereopath.device.core.stereo_config import StereoConfig
     from stereopath.device.sim.session import SimConfig, open_sim
 
     seq = open_sim(SimConfig(frames=2, with_depth=True))
@@ -269,7 +270,7 @@ def test_pose_inliers_are_classified_at_the_refined_pose_not_by_the_ransac_conse
     """A tracked map drops the points a pose calls outliers for good, so the inliers must be those
     that fit the refined pose: good points that a minimal-sample hypothesis left just outside the
     threshold come back, and gross outliers stay out (rendered stereo pair, true depths)."""
-    from stereopath.device.estimation.stereo_vo import StereoConfig
+    from stereopath.device.core.stereo_config import StereoConfig
 
     geo, left, right, xy, X = _rendered_points()
     rig = geo.rig
@@ -283,7 +284,7 @@ def test_pose_inliers_are_classified_at_the_refined_pose_not_by_the_ransac_conse
         assert T is not None and n == mask.sum()
         assert not (mask & gross).any()
         uv_at_T, _ = project(rig.cam0.K, X @ invert_pose(T)[:3, :3].T + invert_pose(T)[:3, 3])
-        fits = np.linalg.norm(uv_at_T - uv, axis=1) < StereoConfig().pnp_reproj_px
+        fits = np.linalg.norm(uv_at_T - uv, axis=1) < StereoConfig().geometry.pnp_reproj_px
         # the refinement's own rule (left error below the threshold) decides, at the pose returned
         np.testing.assert_array_equal(mask, fits)
         assert np.linalg.norm(T[:3, 3]) < 1e-3 and rotation_angle_deg(T[:3, :3]) < 0.05
@@ -338,3 +339,45 @@ def test_pose_refinement_normal_equations_match_numeric_derivatives():
         assert cost == pytest.approx(float(np.sum(w * e * e)), rel=1e-12)
         assert np.allclose(g, Jn.T @ (wr * rr), rtol=1e-5, atol=1e-6 * np.abs(g).max())
         assert np.allclose(H, Jn.T @ (wr[:, None] * Jn), rtol=1e-5, atol=1e-6 * np.abs(H).max())
+
+
+def test_the_stereo_settings_come_by_stage_from_device_toml_and_options(tmp_path):
+    from stereopath.device.core.rig import paper_rig
+    from stereopath.device.errors import ConfigError
+    from stereopath.device.estimation.registry import make_estimator
+    from stereopath.device.settings import load_device_config
+
+    path = tmp_path / "device.toml"
+    path.write_text("[estimator.stereo.klt]\nklt_window = 21\n[estimator.stereo.keyframes]\nmax_frames = 7\n")
+    stereo = load_device_config(path).estimator.stereo
+    assert stereo.klt.klt_window == 21 and stereo.keyframes.max_frames == 7 and stereo.klt.klt_levels == 3
+    path.write_text("[estimator.stereo.klt]\nwindow = 21\n")
+    with pytest.raises(ConfigError, match=r"\[estimator\.stereo\.klt\]: window"):
+        load_device_config(path)
+    path.write_text("[estimator.stereo.keyframes]\nmin_tracked = 500\n")  # more than the map keeps
+    with pytest.raises(ConfigError, match="keyframes.min_tracked = 500"):
+        load_device_config(path)
+    est = make_estimator("stereo", paper_rig(), preset="fast", options={"keyframes": {"background": False},
+                                                                        "geometry": {"max_depth_m": 30.0}})
+    try:
+        assert est.cfg.geometry.max_depth_m == 30.0 and est.cfg.asift.feature_preset == "fast"
+        assert est.cfg.keyframes.background is False and est.cfg.keyframes.max_frames == 20
+    finally:
+        est.close()
+    with pytest.raises(ConfigError, match="background_keyframes"):  # the sections' keys only
+        make_estimator("stereo", paper_rig(), options={"background_keyframes": False})
+
+
+def test_track_status_keeps_the_recorded_codes_and_names():
+    import json
+
+    from stereopath.device.estimation.base import PoseEstimate, TrackStatus
+    from stereopath.device.wire.messages import TRACKING_STATES
+
+    # estimate.npz and the wire's pose message carry these integers: 0 ok, 1 imu_only, 2 lost
+    assert [s.code for s in TrackStatus] == [0, 1, 2] and tuple(TrackStatus) == TRACKING_STATES
+    assert all(TrackStatus.from_code(s.code) is s for s in TrackStatus)
+    est = PoseEstimate(3, 0, np.eye(4), "imu_only")  # a name is taken as its status
+    assert est.status is TrackStatus.IMU_ONLY and json.dumps(est.status) == '"imu_only"'
+    with pytest.raises(ValueError):
+        PoseEstimate(3, 0, np.eye(4), "fine")

@@ -77,7 +77,7 @@ def sim_short():
 def _run(seq, frames, **options):
     est = make_estimator("stereo", seq.rig, options=options)
     run = run_estimator(est, iter(frames), seq.imu)
-    return run, evaluate(seq.groundtruth, run.trajectory), dict(est.counters)
+    return run, evaluate(seq.groundtruth, run.trajectory), est.stats()
 
 
 def test_estimator_measures_a_darker_right_camera_and_tracks_as_with_matched_cameras(sim_short):
@@ -92,7 +92,7 @@ def test_estimator_measures_a_darker_right_camera_and_tracks_as_with_matched_cam
     assert c["keyframes"] <= c0["keyframes"] + 4
     assert m["ate_rmse_m"] < 1.5 * m0["ate_rmse_m"] + 2e-4
     # without the correction the same frames lose most stereo matches: a keyframe at nearly every frame
-    run_off, m_off, c_off = _run(seq, dark, match_exposure=False)
+    run_off, m_off, c_off = _run(seq, dark, exposure={"match": False})
     assert c_off["keyframes"] > 3 * c["keyframes"]
 
 
@@ -109,7 +109,7 @@ def test_estimator_follows_a_right_camera_whose_exposure_keeps_changing(sim_shor
         agc.append(dataclasses.replace(f, right=cv2.LUT(f.right, lut)))
     run0, m0, c0 = _run(seq, frames)
     run, m, c = _run(seq, agc)
-    run_off, m_off, _ = _run(seq, agc, match_exposure=False)
+    run_off, m_off, _ = _run(seq, agc, exposure={"match": False})
     assert run.frames_tracked == len(frames)
     assert c["exposure_fits"] >= len(frames) - 2  # every tracked frame measures the relation
     assert c["exposure_corrected_frames"] > len(frames) // 2

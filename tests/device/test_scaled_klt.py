@@ -94,13 +94,13 @@ def test_points_at_scale_one_are_tracked_as_before_beside_other_groups():
 
 def test_the_estimator_takes_0_or_a_step_of_at_least_1_percent():
     from stereopath.device.errors import ConfigError
-    from stereopath.device.estimation.stereo_vo import StereoConfig
+    from stereopath.device.core.stereo_config import KltConfig
 
-    assert StereoConfig(klt_scale_step=0.0).klt_scale_step == 0.0
-    assert StereoConfig().klt_scale_step == 0.05
+    assert KltConfig(klt_scale_step=0.0).klt_scale_step == 0.0
+    assert KltConfig().klt_scale_step == 0.05
     for bad in (1e-6, 0.005, -0.05, 0.6, float("nan")):
         with pytest.raises(ConfigError, match="klt_scale_step"):
-            StereoConfig(klt_scale_step=bad)
+            KltConfig(klt_scale_step=bad)
 
 
 def test_the_previous_image_pose_moves_with_the_live_state():
@@ -112,7 +112,9 @@ def test_the_previous_image_pose_moves_with_the_live_state():
 
     est = StereoEstimator(paper_rig())
     T = make_pose(so3_exp(np.array([0.0, 0.1, 0.0])), np.array([0.2, 0.0, 1.0]))
-    est._T_world_cam, est._T_prev_left = T.copy(), T.copy()
+    st = est._state
+    st.T_world_cam, st.T_prev_left = T.copy(), T.copy()
     G = make_pose(so3_exp(np.array([0.0, 0.0, 0.02])), np.array([0.01, -0.02, 0.0]))
-    est._apply_correction(G)
-    assert np.allclose(est._T_prev_left, G @ T) and np.allclose(est._T_world_cam, est._T_prev_left)
+    st.apply(G)
+    assert np.allclose(st.T_prev_left, G @ T) and np.allclose(st.T_world_cam, st.T_prev_left)
+    est.close()

@@ -39,12 +39,12 @@ def test_each_frame_gets_exactly_the_interval_since_the_previous_one():
     for f in frames(10):
         out += aligner.add_frame(f)
     assert len(out) == 10
-    first = out[0].meta["imu"]
+    first = out[0].imu
     # the first frame gets the pre-roll: every sample before it (here from 0.9 s), then its own time
     assert first.t_ns[-1] == out[0].t_ns
     assert set(first.t_ns[:-1]) == {t for t in imu.t_ns if t < out[0].t_ns}
     for prev, f in zip(out, out[1:]):
-        b = f.meta["imu"]
+        b = f.imu
         assert b.t_ns[0] == prev.t_ns and b.t_ns[-1] == f.t_ns
         inner = b.t_ns[1:-1]
         assert np.all((inner > prev.t_ns) & (inner < f.t_ns))
@@ -64,7 +64,7 @@ def test_time_offset_moves_imu_onto_the_camera_clock():
     aligner.add_imu(imu)
     f = aligner.add_frame(StereoFrame(0, cam_t, None, None, {}))[0]
     # the sample at camera time t carries the IMU value recorded at t + offset
-    assert f.meta["imu"].gyro_rad_s[-1, 0] == pytest.approx((cam_t + offset) / 1e9)
+    assert f.imu.gyro_rad_s[-1, 0] == pytest.approx((cam_t + offset) / 1e9)
 
 
 def test_frames_wait_for_imu_then_give_up_after_max_wait():
@@ -127,7 +127,7 @@ def test_align_stream_with_a_replayed_imu():
     out = list(align_stream(source(), offline))
     assert [f.seq for f in out] == list(range(12))
     assert all(f.meta["imu_complete"] for f in out)
-    assert sum(len(f.meta["imu"]) for f in out[1:]) == sum(1 for t in offline.samples.t_ns if fs[0].t_ns < t < fs[-1].t_ns) + 2 * 11
+    assert sum(len(f.imu) for f in out[1:]) == sum(1 for t in offline.samples.t_ns if fs[0].t_ns < t < fs[-1].t_ns) + 2 * 11
 
 
 def test_interpolate_holds_outside_the_span():

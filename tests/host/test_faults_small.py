@@ -254,10 +254,10 @@ def test_the_model_is_written_inside_its_folder(tmp_path, monkeypatch):
 def test_an_unknown_feature_preset_is_refused_before_the_odometry_runs(tmp_path, capsys):
     """It used to be found by every keyframe's background job (a traceback each), the run ending with exit 0."""
     from stereopath.device.errors import ConfigError
-    from stereopath.device.estimation.stereo_vo import StereoConfig
+    from stereopath.device.core.stereo_config import AsiftWork
 
     with pytest.raises(ConfigError, match="unknown feature preset 'nope'"):
-        StereoConfig(feature_preset="nope")
+        AsiftWork(feature_preset="nope")
     assert _cli(["odometry", "sim", "--frames", "3", "--preset", "nope", "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "Traceback" not in err and "unknown feature preset 'nope'" in err

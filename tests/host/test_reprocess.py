@@ -40,7 +40,7 @@ def session_with_onboard(session, tmp_path_factory) -> Path:
 
     d = tmp_path_factory.mktemp("reprocess") / "with_onboard"
     shutil.copytree(session, d)
-    run = estimate_sequence(open_source(f"session:{d}"), "stereo", options={"use_asift_keyframes": False},
+    run = estimate_sequence(open_source(f"session:{d}"), "stereo", options={"asift": {"enabled": False}},
                             progress=False)
     write_tum(d / "trajectory.tum", run.trajectory)
     return d
@@ -287,13 +287,12 @@ def test_a_tiny_session_still_gives_a_path(tmp_path):
 def test_the_re_estimate_leaves_the_disparity_offset_to_the_bundle_adjustment():
     from stereopath.device.core.rig import paper_rig
     from stereopath.device.estimation.registry import make_estimator
-    from stereopath.host.reprocess.stage_estimate import estimator_options
 
-    opts = estimator_options(REPROCESS_PRESETS["standard"])
-    assert opts["estimate_disparity_offset"] is False and opts["background_keyframes"] is False
-    est = make_estimator("stereo", paper_rig(), options=opts)  # the option names the estimator knows
+    opts = REPROCESS_PRESETS["standard"].estimator_options
+    assert opts.disparity_offset.estimate is False and opts.keyframes.background is False
+    est = make_estimator("stereo", paper_rig(), options=opts)
     try:
-        assert est.cfg.estimate_disparity_offset is False
+        assert est.cfg.disparity_offset.estimate is False
     finally:
         est.close()
 
