@@ -1,9 +1,18 @@
-"""Run an estimator over a sequence and write ``trajectory.tum``, ``report.json``, ``path.png``."""
+"""Run an estimator over a sequence and write ``trajectory.tum``, ``report.json``, ``path.png``.
+
+CPU accounting: :func:`estimate_sequence` measures the process CPU time of the frame loop (all
+threads: the estimator, its keyframe worker, OpenCV and BLAS) and, of it, the CPU time the reading
+thread spends producing the frames (reading and decoding recorded images, or rendering simulated
+ones: what a live camera does not cost the device).  The report gives both per frame
+(``extra.cpu_ms_per_frame``: ``frame_loop`` and ``live_frames``, the loop without producing them).
+"""
 
 from __future__ import annotations
 
 import itertools
 import logging
+import time
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +40,20 @@ def _frames(seq, limit: int | None):
     return it if limit is None else itertools.islice(it, limit)
 
 
+def _reading_time(frames: Iterable, spent: list[float]) -> Iterator:
+    """``frames``, adding the CPU time of this thread spent producing each one to ``spent[0]``."""
+    it = iter(frames)
+    while True:
+        t0 = time.thread_time()
+        try:
+            frame = next(it)
+        except StopIteration:
+            return
+        finally:
+            spent[0] += time.thread_time() - t0
+        yield frame
+
+
 def estimate_sequence(seq, estimator: str = "stereo", preset: str | None = None, max_frames: int | None = None,
                       options: dict[str, Any] | None = None, progress: bool = True) -> EstimateRun:
     if callable(getattr(seq, "frame", None)):  # refuse exchanged left/right images before running
@@ -43,8 +66,24 @@ def estimate_sequence(seq, estimator: str = "stereo", preset: str | None = None,
         gt, _ = optional_groundtruth(seq)
     est = make_estimator(estimator, seq.rig, preset=preset, groundtruth=gt, options=options)
     total = len(seq) if max_frames is None else min(len(seq), max_frames)
+    reading = [0.0]
+    cpu0 = time.process_time()
     with Bar(total, f"{estimator} odometry", None if progress else False, unit="frame") as tick:
-        return run_estimator(est, _frames(seq, max_frames), getattr(seq, "imu", None), progress=tick)
+        run = run_estimator(est, _reading_time(_frames(seq, max_frames), reading), getattr(seq, "imu", None),
+                            progress=tick)
+    run.extra["cpu_s"] = {"frame_loop": time.process_time() - cpu0, "reading_frames": reading[0]}
+    return run
+
+
+def cpu_ms_per_frame(run: EstimateRun) -> dict[str, float] | None:
+    """``{"frame_loop", "live_frames"}``: CPU ms per frame of the frame loop, and of it without producing
+    the frames (None for a run :func:`estimate_sequence` did not measure, or without frames)."""
+    cpu = run.extra.get("cpu_s")
+    n = len(run.frame_ms)
+    if not cpu or not n:
+        return None
+    return {"frame_loop": 1e3 * cpu["frame_loop"] / n,
+            "live_frames": 1e3 * (cpu["frame_loop"] - cpu["reading_frames"]) / n}
 
 
 def report_for(run: EstimateRun, seq, source_label: str) -> tuple[dict, Trajectory | None]:
@@ -63,6 +102,9 @@ def report_for(run: EstimateRun, seq, source_label: str) -> tuple[dict, Trajecto
     report.setdefault("extra", {}).update({"estimator_stats": run.extra})
     skipped = list(getattr(seq, "skipped_frames", None) or [])
     report["extra"]["frames_skipped"] = len(skipped)
+    cpu = cpu_ms_per_frame(run)
+    if cpu is not None:
+        report["extra"]["cpu_ms_per_frame"] = cpu
     if gt_error is not None:
         report["extra"]["groundtruth_error"] = gt_error
     if skipped:
