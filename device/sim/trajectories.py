@@ -39,49 +39,34 @@ Trajectories (:data:`TRAJECTORIES`, :func:`get_trajectory`):
   closure.
 * ``"line"``: a 1 m straight slide past the table with fixed orientation.
 * ``"still"``: the arc's start pose, perfectly still (no shake).
+* ``"handheld"``: real recorded motion rescaled to a 1.5 m scan, moving from the first IMU sample
+  on (no still start, no time law): :mod:`stereopath.device.sim.handheld`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from stereopath.device.errors import ConfigError
+from stereopath.device.sim.motion import FIRST_FRAME_S, MotionState, rotation_chain
 from stereopath.device.sim.scene import TARGET_WORLD
+
+if TYPE_CHECKING:
+    from stereopath.device.sim.handheld import HandheldTrajectory
+
+__all__ = ["FIRST_FRAME_S", "MotionState", "TRAJECTORIES", "get_trajectory", "rotation_chain"]
 
 STILL_S = 1.25
 RAMP_S = 1.5
 DEFAULT_FRAMES = 400
 DEFAULT_RATE_HZ = 20.0
-FIRST_FRAME_S = 1.0
 DEFAULT_DURATION_S = FIRST_FRAME_S + (DEFAULT_FRAMES - 1) / DEFAULT_RATE_HZ  # 20.95 s
 ARC_PATH_LENGTH_M = 5.12
 
 # camera looking along world +x with z up: camera x (right) = -y, y (down) = -z, z (forward) = +x
 _R_BASE = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-
-
-@dataclass
-class MotionState:
-    """Trajectory samples (N = len(t_s)); ``omega_cam``/``alpha_cam`` in the camera frame."""
-
-    t_s: np.ndarray
-    R_world_cam: np.ndarray   # (N, 3, 3)
-    p_world_cam: np.ndarray   # (N, 3) camera centre
-    v_world: np.ndarray       # (N, 3) m/s
-    a_world: np.ndarray       # (N, 3) m/s^2 (kinematic, gravity not included)
-    omega_cam: np.ndarray     # (N, 3) rad/s, body angular velocity: R^T dR/dt = [omega]x
-    alpha_cam: np.ndarray     # (N, 3) rad/s^2, d(omega_cam)/dt
-
-    @property
-    def T_world_cam(self) -> np.ndarray:
-        n = len(self.t_s)
-        T = np.tile(np.eye(4), (n, 1, 1))
-        T[:, :3, :3] = self.R_world_cam
-        T[:, :3, 3] = self.p_world_cam
-        return T
 
 
 # ----------------------------------------------------------------------------------- helpers
@@ -140,45 +125,6 @@ class TimeLaw:
         g[down], e[down], de[down] = self.g_end - T * IS, S, -dS / T
         g[after] = self.g_end
         return g, e, de
-
-
-_AXES = {"x": 0, "y": 1, "z": 2}
-
-
-def _elementary(axis: str, th: np.ndarray) -> np.ndarray:
-    c, s = np.cos(th), np.sin(th)
-    n = len(th)
-    R = np.zeros((n, 3, 3))
-    i = _AXES[axis]
-    j, k = (i + 1) % 3, (i + 2) % 3
-    R[:, i, i] = 1.0
-    R[:, j, j] = c
-    R[:, k, k] = c
-    R[:, k, j] = s
-    R[:, j, k] = -s
-    return R
-
-
-Factor = tuple  # ("x"|"y"|"z", theta, dtheta, ddtheta) or ("const", R)
-
-
-def rotation_chain(factors: list[Factor], n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``R = F1 F2 ... Fk`` with its body angular velocity and acceleration (time derivatives given)."""
-    M = np.tile(np.eye(3), (n, 1, 1))
-    w = np.zeros((n, 3))
-    a = np.zeros((n, 3))
-    for f in reversed(factors):
-        if f[0] == "const":
-            M = np.einsum("ij,njk->nik", f[1], M)
-            continue
-        axis, th, dth, ddth = f
-        e = _AXES[axis]
-        col = M[:, e, :]  # M^T e_k = row e of M
-        v = col * dth[:, None]
-        a = col * ddth[:, None] - np.cross(w, v) + a
-        w = v + w
-        M = np.einsum("nij,njk->nik", _elementary(axis, th), M)
-    return M, w, a
 
 
 # ----------------------------------------------------------------------------------- shapes
@@ -444,16 +390,25 @@ def make_still(duration_s: float = DEFAULT_DURATION_S, seed: int = 0) -> Analyti
     return AnalyticTrajectory("still", shape, TimeLaw(0.0, still_s=np.inf), duration_s)
 
 
-TRAJECTORIES: dict[str, Callable[..., AnalyticTrajectory]] = {
+def make_handheld(duration_s: float = DEFAULT_DURATION_S, seed: int = 0) -> HandheldTrajectory:
+    """Real recorded motion as a hand-held scan (:mod:`stereopath.device.sim.handheld`)."""
+    from stereopath.device.sim.handheld import HandheldTrajectory
+
+    return HandheldTrajectory(duration_s)
+
+
+TRAJECTORIES: dict[str, Callable[..., AnalyticTrajectory | HandheldTrajectory]] = {
     "arc": make_arc,
     "orbit": make_orbit,
     "loop": make_loop,
     "line": make_line,
     "still": make_still,
+    "handheld": make_handheld,
 }
 
 
-def get_trajectory(name: str, duration_s: float = DEFAULT_DURATION_S, seed: int = 0) -> AnalyticTrajectory:
+def get_trajectory(name: str, duration_s: float = DEFAULT_DURATION_S,
+                   seed: int = 0) -> AnalyticTrajectory | HandheldTrajectory:
     """The trajectory ``name`` (a key of :data:`TRAJECTORIES`) lasting ``duration_s`` seconds."""
     if name not in TRAJECTORIES:
         raise ConfigError(f"trajectory = {name!r} is unknown; choose one of {', '.join(TRAJECTORIES)}")
