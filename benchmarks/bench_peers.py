@@ -45,7 +45,8 @@ report's ``cpu_ms_per_frame.live_frames``) and the whole command's (the child pr
 imports, evaluation and plot included, divided by the frames).  Ratios ours / ORB-SLAM3 come from
 the same run and compare the frame loops with decoding.  The last line is the score over all cases:
 the geometric mean of the ratios for ATE, end error and CPU per frame, and the worst case of each.  For one-core figures run it under ``taskset -c 0`` with
-``--threads 1`` (OpenCV at one thread in our process; ORB-SLAM3 inherits the affinity).  ``--rig`` runs ours with another
+``--threads 1`` (OpenCV at one thread in our process, through ``OPENCV_FOR_THREADS_NUM``; ORB-SLAM3
+inherits the affinity); the table's "median CPU ms/frame, live" column is the median over the frames.  ``--rig`` runs ours with another
 calibration of the same cameras (e.g. the ``rig_refined.yaml`` of ``stereopath host reprocess``);
 ORB-SLAM3 keeps the source's; with ``--rig`` or ``--option`` ours runs in this process instead of
 through the command (which has neither), and the command's CPU is not measured.
@@ -158,14 +159,15 @@ def run_ours(spec: str, options: dict | None = None, rig_file: str | None = None
                 frames=len(ms), keyframes=run.extra.get("keyframes"))
 
 
-def run_command(spec: str, out: Path, frames: int | None = None) -> dict:
+def run_command(spec: str, out: Path, frames: int | None = None, threads: int | None = None) -> dict:
     """One run of ``stereopath odometry SPEC --out OUT`` in its own process: the report's figures, and
     the process's CPU time (all threads, from start to exit) per frame."""
     cmd = [str(Path(sys.executable).parent / "stereopath"), "-q", "odometry", spec, "--out", str(out)]
     if frames is not None:
         cmd += ["--frames", str(frames)]
     with open(out.parent / f"{out.name}.log", "w") as log_file:
-        proc = subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, env=PEER_ENV)
+        env = dict(PEER_ENV, **({"OPENCV_FOR_THREADS_NUM": str(threads)} if threads else {}))
+        proc = subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, env=env)
         _, status, usage = os.wait4(proc.pid, 0)
         proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
@@ -176,6 +178,7 @@ def run_command(spec: str, out: Path, frames: int | None = None) -> dict:
     n = r["frames"]
     return dict(end_pct=r["end_error_pct"], ate_m=r["ate_rmse_m"], median_ms=r["median_frame_ms"],
                 p95_ms=r["p95_frame_ms"], cpu_ms=cpu["frame_loop"], cpu_live_ms=cpu["live_frames"],
+                cpu_live_median_ms=cpu["live_median"],
                 cpu_cmd_ms=1e3 * (usage.ru_utime + usage.ru_stime) / n, tracked=r["frames_tracked"], frames=n,
                 keyframes=r["extra"]["estimator_stats"].get("keyframes"))
 
@@ -266,8 +269,8 @@ def score_line(results: dict) -> str:
 def print_table(results: dict) -> None:
     print()
     print("| data | system | end error | ATE RMSE | median ms/frame | p95 ms | CPU ms/frame (all threads) | "
-          "CPU ms/frame without image decoding | CPU ms/frame, whole command | tracked |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "CPU ms/frame without image decoding | median CPU ms/frame, live | CPU ms/frame, whole command | tracked |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for case, systems in results.items():
         for name, rows in systems.items():
             if not rows:
@@ -278,6 +281,7 @@ def print_table(results: dict) -> None:
             print(f"| {case} | {name} | {fmt(med(rows, 'end_pct'), '.3f')} % | {ate_s} | "
                   f"{fmt(med(rows, 'median_ms'), '.1f')} | {fmt(med(rows, 'p95_ms'), '.1f')} | "
                   f"{fmt(med(rows, 'cpu_ms'), '.1f')} | {fmt(med(rows, 'cpu_live_ms'), '.1f')} | "
+                  f"{fmt(med(rows, 'cpu_live_median_ms'), '.1f')} | "
                   f"{fmt(med(rows, 'cpu_cmd_ms'), '.1f')} | {tracked}/{rows[0]['frames']} |")
     print()
     for case, systems in results.items():
@@ -338,7 +342,7 @@ def main() -> None:
     ap.add_argument("--peer-venv", default=None)
     ap.add_argument("--vocab", default=None)
     ap.add_argument("--sim-frames", type=int, default=None, help="frames of the simulated scan (default: its own)")
-    ap.add_argument("--threads", type=int, default=None, help="cv2.setNumThreads in our process (1 = one core)")
+    ap.add_argument("--threads", type=int, default=None, help="OpenCV threads in our process (1 = one core)")
     ap.add_argument("--no-peer", action="store_true", help="our rows only")
     ap.add_argument("--option", action="append", default=[], help="stereo config KEY=VALUE (ours)")
     ap.add_argument("--rig", default=None, help="rig YAML for ours instead of the source's (e.g. rig_refined.yaml)")
@@ -457,7 +461,7 @@ def main() -> None:
                 if in_process:
                     row = run_ours(ours_spec, options, args.rig, frames)
                 else:
-                    row = run_command(ours_spec, tmp / f"ours_{case}_{r}", frames)
+                    row = run_command(ours_spec, tmp / f"ours_{case}_{r}", frames, args.threads)
                 results[case]["stereo"].append(row)
                 print(f"{case} run {r}: stereo    {json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()})}", flush=True)
         print_table(results)

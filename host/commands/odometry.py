@@ -76,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
             cpu = r["extra"].get("cpu_ms_per_frame")
             if cpu:
                 print(f"{name}: CPU ms/frame: frame loop {cpu['frame_loop']:.1f}, without reading and decoding "
-                      f"the images {cpu['live_frames']:.1f}")
+                      f"the images {cpu['live_frames']:.1f} (median {cpu['live_median']:.1f}, "
+                      f"p95 {cpu['live_p95']:.1f})")
         frames = sum(r["frames"] for r in reports.values())
         if frames:
             print(f"CPU ms/frame of the whole command: {1e3 * time.process_time() / frames:.1f}")

@@ -52,6 +52,10 @@ def test_odometry_runs_one_blas_thread(tmp_path):
     out = _probe(tmp_path, ["-q", "odometry", "sim:frames=12", "--out", str(tmp_path / "o")])
     assert out["code"] == 0
     assert out["blas"] and all(n == 1 for n in out["blas"])
+    # the report counts the frame loop's CPU with and without producing the frames (rendering here)
+    cpu = json.loads((tmp_path / "o" / "report.json").read_text())["extra"]["cpu_ms_per_frame"]
+    assert 0 < cpu["live_frames"] < cpu["frame_loop"]
+    assert 0 < cpu["live_median"] <= cpu["live_p95"]
 
 
 def test_host_commands_keep_the_library_default(monkeypatch, capsys):
