@@ -248,22 +248,27 @@ def ratios(results: dict) -> dict[str, dict[str, float]]:
     return out
 
 
-def score_line(results: dict) -> str:
-    """One line: the geometric mean over the cases of ours / ORB-SLAM3 for ATE, end error and CPU per
-    frame, and the worst case of each."""
+def _score(results: dict) -> dict[str, tuple[float, float, str]]:
+    """Per ratio of :data:`RATIO_KEYS`: (geometric mean over the cases, worst ratio, worst case)."""
     import math
 
     per_case = ratios(results)
-    parts = []
-    for key, label in RATIO_KEYS:
-        vals = {case: r[key] for case, r in per_case.items() if key in r and r[key] > 0}
-        if not vals:
-            parts.append(f"{label} -")
-            continue
-        gmean = math.exp(sum(math.log(v) for v in vals.values()) / len(vals))
-        worst = max(vals, key=vals.get)
-        parts.append(f"{label} {gmean:.2f}x (worst {vals[worst]:.2f}x {worst})")
-    return f"score over {len(per_case)} cases, ours / ORB-SLAM3, geometric mean: " + "; ".join(parts)
+    out = {}
+    for key, _ in RATIO_KEYS:
+        vals = {case: r[key] for case, r in per_case.items() if r.get(key, 0) > 0}
+        if vals:
+            worst = max(vals, key=vals.get)
+            out[key] = (math.exp(sum(math.log(v) for v in vals.values()) / len(vals)), vals[worst], worst)
+    return out
+
+
+def score_line(results: dict) -> str:
+    """One line: the geometric mean over the cases of ours / ORB-SLAM3 for ATE, end error and CPU per
+    frame, and the worst case of each."""
+    score = _score(results)
+    parts = [f"{label} {score[key][0]:.2f}x (worst {score[key][1]:.2f}x {score[key][2]})" if key in score
+             else f"{label} -" for key, label in RATIO_KEYS]
+    return f"score over {len(ratios(results))} cases, ours / ORB-SLAM3, geometric mean: " + "; ".join(parts)
 
 
 def print_table(results: dict) -> None:
@@ -312,9 +317,19 @@ def json_figures(results: dict) -> dict:
         out[f"peers.{case}.cpu_command_ms"] = med(ours, "cpu_cmd_ms")
         out[f"peers.{case}.frames_lost"] = max(r["frames"] - r["tracked"] for r in ours)
         if orb:
-            for key, name in (("ate_m", "ate_ratio"), ("cpu_ms", "cpu_ratio")):
+            for key, name in (("ate_m", "ate_ratio"), ("end_pct", "end_error_ratio"), ("cpu_ms", "cpu_ratio")):
                 a, b = med(ours, key), med(orb, key)
                 out[f"peers.{case}.{name}"] = a / b if a is not None and b else None
+    return out
+
+
+def score_figures(results: dict) -> dict[str, float]:
+    """The score line's figures: ``peers.score.{ate,end_error,cpu}_{gmean,worst}``."""
+    names = {"ate_m": "ate", "end_pct": "end_error", "cpu_ms": "cpu"}
+    out: dict[str, float] = {}
+    for key, (gmean, worst, _) in _score(results).items():
+        out[f"peers.score.{names[key]}_gmean"] = gmean
+        out[f"peers.score.{names[key]}_worst"] = worst
     return out
 
 
@@ -468,7 +483,7 @@ def main() -> None:
         if args.json_out:
             from results_file import write_results
 
-            write_results(args.json_out, "bench_peers.py", json_figures(results))
+            write_results(args.json_out, "bench_peers.py", {**json_figures(results), **score_figures(results)})
         print("targets, every case: ATE <= 0.9x ORB-SLAM3's, end error <= 1.0x, CPU per frame <= 1.0x")
         print(score_line(results))
     finally:
