@@ -163,14 +163,16 @@ def _pitch_down(u, du, ddu, w, dw, ddw):
 class LookAtOrbitShape(Shape):
     """Camera on ``(r cos phi, r sin phi, h)`` around the z axis looking at ``TARGET_WORLD`` (+ excursions)."""
 
-    def __init__(self, phi0: float, k: float, r: Sines, r0: float, h: Sines, h0: float,
-                 excursions: tuple[Sines, Sines, Sines] | None, shake_pos: list[Sines] | None,
-                 shake_rot: list[Sines] | None, yaw_offset: Sines | None = None) -> None:
+    def __init__(self, phi0: float, k: float, radius: tuple[Sines, float], height: tuple[Sines, float],
+                 excursions: tuple[Sines, Sines, Sines] | None, shake: tuple[list[Sines], list[Sines]] | None,
+                 yaw_offset: Sines | None = None) -> None:
+        """``radius`` and ``height``: (variation, mean); ``shake``: (position, rotation) sums of sines or None."""
         self.phi0, self.k = float(phi0), float(k)
         self.yaw_offset = yaw_offset  # heading away from the target (0: looking at it), a function of g
-        self.r, self.r0, self.h, self.h0 = r, float(r0), h, float(h0)
+        self.r, self.r0 = radius[0], float(radius[1])
+        self.h, self.h0 = height[0], float(height[1])
         self.exc = excursions
-        self.shake_pos, self.shake_rot = shake_pos, shake_rot
+        self.shake_pos, self.shake_rot = shake if shake is not None else (None, None)
 
     def _rh(self, g):
         r, dr, ddr = self.r(g)
@@ -307,8 +309,7 @@ def default_frame_times(frames: int = DEFAULT_FRAMES, rate_hz: float = DEFAULT_R
     return FIRST_FRAME_S + np.arange(frames) / rate_hz
 
 
-def _arc_shape(k: float, seed: int) -> LookAtOrbitShape:
-    sp, sr = _shake(seed, 0.003, 0.5)
+def _arc_shape(k: float, seed: int, shake: bool = True) -> LookAtOrbitShape:
     exc = (
         Sines(np.radians([16.0, 6.0]), [1 / 11.0, 1 / 4.3], [0.2, 3.0]),   # tilt (camera x)
         Sines(np.radians([17.0, 7.0]), [1 / 8.5, 1 / 3.3], [3.3, 0.2]),    # pan (camera y)
@@ -316,9 +317,9 @@ def _arc_shape(k: float, seed: int) -> LookAtOrbitShape:
     )
     return LookAtOrbitShape(
         phi0=np.radians(-115.0), k=k,
-        r=Sines([0.12, 0.03], [1 / 13.0, 1 / 5.1], [0.3, 1.0]), r0=1.05,
-        h=Sines([0.12, 0.04], [1 / 9.0, 1 / 3.7], [1.1, 0.2]), h0=1.30,
-        excursions=exc, shake_pos=sp, shake_rot=sr,
+        radius=(Sines([0.12, 0.03], [1 / 13.0, 1 / 5.1], [0.3, 1.0]), 1.05),
+        height=(Sines([0.12, 0.04], [1 / 9.0, 1 / 3.7], [1.1, 0.2]), 1.30),
+        excursions=exc, shake=_shake(seed, 0.003, 0.5) if shake else None,
     )
 
 
@@ -345,8 +346,8 @@ def make_arc(duration_s: float = DEFAULT_DURATION_S, seed: int = 0,
 def make_orbit(duration_s: float = DEFAULT_DURATION_S, seed: int = 0) -> AnalyticTrajectory:
     law = TimeLaw(duration_s)
     k = 2 * np.pi / law.g_end if law.g_end > 0 else 0.0
-    sp, sr = _shake(seed, 0.002, 0.3)
-    shape = LookAtOrbitShape(np.radians(-90.0), k, Sines([0.0], [0.0]), 1.1, Sines([0.0], [0.0]), 1.35, None, sp, sr)
+    shape = LookAtOrbitShape(np.radians(-90.0), k, (Sines([0.0], [0.0]), 1.1), (Sines([0.0], [0.0]), 1.35), None,
+                             _shake(seed, 0.002, 0.3))
     return AnalyticTrajectory("orbit", shape, law, duration_s)
 
 
@@ -369,8 +370,8 @@ def make_loop(duration_s: float = DEFAULT_DURATION_S, seed: int = 0, turns: int 
     )
     # heading: along the walk (90 deg off the table), swinging 30 deg towards the walls and back once a turn
     heading = Sines(np.radians([90.0, 30.0]), [0.0, turns / G], [np.pi / 2, 0.0])
-    shape = LookAtOrbitShape(np.radians(-100.0), k, Sines([0.10, 0.03], per[[2, 4]], [0.3, 1.0]), radius_m,
-                             Sines([0.09, 0.03], per[[1, 3]], [1.1, 0.2]), 1.32, exc, sp, sr, yaw_offset=heading)
+    shape = LookAtOrbitShape(np.radians(-100.0), k, (Sines([0.10, 0.03], per[[2, 4]], [0.3, 1.0]), radius_m),
+                             (Sines([0.09, 0.03], per[[1, 3]], [1.1, 0.2]), 1.32), exc, (sp, sr), yaw_offset=heading)
     return AnalyticTrajectory("loop", shape, law, duration_s)
 
 
@@ -385,8 +386,7 @@ def make_line(duration_s: float = DEFAULT_DURATION_S, seed: int = 0, length_m: f
 
 
 def make_still(duration_s: float = DEFAULT_DURATION_S, seed: int = 0) -> AnalyticTrajectory:
-    shape = _arc_shape(0.3, seed)
-    shape.shake_pos = shape.shake_rot = None
+    shape = _arc_shape(0.3, seed, shake=False)
     return AnalyticTrajectory("still", shape, TimeLaw(0.0, still_s=np.inf), duration_s)
 
 
