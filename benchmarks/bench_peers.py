@@ -44,7 +44,9 @@ also the CPU per frame without reading and decoding the images (what live frames
 report's ``cpu_ms_per_frame.live_frames``) and the whole command's (the child process's CPU time,
 imports, evaluation and plot included, divided by the frames).  Ratios ours / ORB-SLAM3 come from
 the same run and compare the frame loops with decoding.  The last line is the score over all cases:
-the geometric mean of the ratios for ATE, end error and CPU per frame, and the worst case of each.  For one-core figures run it under ``taskset -c 0`` with
+the geometric mean of the ratios for ATE, end error and CPU per frame, and the worst case of each.
+For the simulated cases it also prints our position error (median, p95) over the first 2 s and
+after them (a start in motion should be no worse than the rest).  For one-core figures run it under ``taskset -c 0`` with
 ``--threads 1`` (OpenCV at one thread in our process, through ``OPENCV_FOR_THREADS_NUM``; ORB-SLAM3
 inherits the affinity); the table's "median CPU ms/frame, live" column is the median over the frames.  ``--rig`` runs ours with another
 calibration of the same cameras (e.g. the ``rig_refined.yaml`` of ``stereopath host reprocess``);
@@ -183,6 +185,26 @@ def run_command(spec: str, out: Path, frames: int | None = None, threads: int | 
                 keyframes=r["extra"]["estimator_stats"].get("keyframes"))
 
 
+START_S = 2.0
+
+
+def start_errors(groundtruth: Path, trajectory: Path) -> tuple[float, float, float, float] | None:
+    """Position errors (ATE alignment) of the first :data:`START_S` seconds and of the rest:
+    (median, p95 of the start, median, p95 of the rest), metres; None without poses in both."""
+    import numpy as np
+
+    from stereopath.device.formats.tum import read_tum
+    from stereopath.host.evaluation.evaluate import associate_and_align
+
+    a = associate_and_align(read_tum(groundtruth), read_tum(trajectory))
+    err = np.linalg.norm(a.est_aligned.positions - a.gt.positions, axis=1)
+    start = (a.gt.t_ns - a.gt.t_ns[0]) * 1e-9 < START_S
+    if not start.any() or start.all():
+        return None
+    return (float(np.median(err[start])), float(np.percentile(err[start], 95)),
+            float(np.median(err[~start])), float(np.percentile(err[~start], 95)))
+
+
 def _timed(frames, spent: list):
     """The frames, with the CPU time of the reading thread spent producing them (reading and decoding
     the recorded images, which a live camera does not cost) added to ``spent[0]``."""
@@ -299,6 +321,12 @@ def print_table(results: dict) -> None:
             a, b = med(ours, key), med(orb, key)
             parts.append(f"{label} {a / b:.2f}x" if a is not None and b else f"{label} -")
         print(f"{case}: ours / ORB-SLAM3: " + ", ".join(parts))
+    for case, systems in results.items():
+        starts = [r["start_err"] for r in systems.get("stereo") or [] if r.get("start_err")]
+        if starts:
+            m = [statistics.median(v[i] for v in starts) * 1e3 for i in range(4)]
+            print(f"{case}: ours, position error in the first {START_S:.0f} s median {m[0]:.2f} mm, p95 {m[1]:.2f} mm; "
+                  f"after it median {m[2]:.2f} mm, p95 {m[3]:.2f} mm")
 
 
 def json_figures(results: dict) -> dict:
@@ -477,6 +505,8 @@ def main() -> None:
                     row = run_ours(ours_spec, options, args.rig, frames)
                 else:
                     row = run_command(ours_spec, tmp / f"ours_{case}_{r}", frames, args.threads)
+                    if case in SIM_TRAJECTORIES:
+                        row["start_err"] = start_errors(Path(gt[0]), tmp / f"ours_{case}_{r}" / "trajectory.tum")
                 results[case]["stereo"].append(row)
                 print(f"{case} run {r}: stereo    {json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()})}", flush=True)
         print_table(results)
