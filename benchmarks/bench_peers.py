@@ -180,7 +180,7 @@ def run_command(spec: str, out: Path, frames: int | None = None, threads: int | 
     n = r["frames"]
     return dict(end_pct=r["end_error_pct"], ate_m=r["ate_rmse_m"], median_ms=r["median_frame_ms"],
                 p95_ms=r["p95_frame_ms"], cpu_ms=cpu["frame_loop"], cpu_live_ms=cpu["live_frames"],
-                cpu_live_median_ms=cpu["live_median"],
+                cpu_live_median_ms=cpu["live_median"], cpu_live_p95_ms=cpu["live_p95"],
                 cpu_cmd_ms=1e3 * (usage.ru_utime + usage.ru_stime) / n, tracked=r["frames_tracked"], frames=n,
                 keyframes=r["extra"]["estimator_stats"].get("keyframes"))
 
@@ -321,6 +321,12 @@ def print_table(results: dict) -> None:
             a, b = med(ours, key), med(orb, key)
             parts.append(f"{label} {a / b:.2f}x" if a is not None and b else f"{label} -")
         print(f"{case}: ours / ORB-SLAM3: " + ", ".join(parts))
+    for case, systems in results.items():
+        ours = systems.get("stereo") or []
+        if med(ours, "cpu_live_p95_ms") is not None:
+            print(f"{case}: ours, CPU per live frame (without reading and decoding images): median "
+                  f"{med(ours, 'cpu_live_median_ms'):.1f} ms, p95 {med(ours, 'cpu_live_p95_ms'):.1f} ms; "
+                  f"estimator wall time p95 {med(ours, 'p95_ms'):.1f} ms")
     for case, systems in results.items():
         starts = [r["start_err"] for r in systems.get("stereo") or [] if r.get("start_err")]
         if starts:
