@@ -21,6 +21,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from stereopath.device.commands.blas_threads import use_one_blas_thread  # noqa: E402
+
+use_one_blas_thread()  # the device path's BLAS, set before numpy is loaded
+
 from stereopath.device.estimation.base import run_estimator  # noqa: E402
 from stereopath.host.evaluation.baselines import make_estimator  # noqa: E402
 from stereopath.host.evaluation.evaluate import evaluate  # noqa: E402

@@ -20,6 +20,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from stereopath.device.commands.blas_threads import use_one_blas_thread  # noqa: E402
+
+use_one_blas_thread()  # the device path's BLAS, set before numpy is loaded
+
 
 def _time_frames(session, indices) -> tuple[float, float]:
     """(wall seconds, process CPU seconds) per stereo frame, averaged over ``indices``."""

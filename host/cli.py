@@ -4,6 +4,10 @@ Known errors (:class:`stereopath.device.errors.StereopathError`) are printed on 
 and give exit code 2; a read or write the system refused (:data:`REFUSED_IO`: disk full, read-only
 file system, no permission, a failing disk) is printed on one line with exit code 74 (``EX_IOERR``; its
 traceback with ``-vv``); anything else is a bug and keeps its traceback.
+
+The commands of the device path (``odometry``, ``sim``, ``device run``) run BLAS at one thread, set
+before numpy is loaded (:mod:`stereopath.device.commands.blas_threads`); the other commands keep the
+libraries' defaults.
 """
 
 from __future__ import annotations
@@ -104,6 +108,10 @@ def setup_logging(verbose: int, quiet: bool) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from stereopath.device.commands.blas_threads import runs_device_path, use_one_blas_thread
+
+    if runs_device_path(sys.argv[1:] if argv is None else argv):
+        use_one_blas_thread()  # before the parser's imports load numpy
     parser = build_parser()
     args = parser.parse_args(argv)
     if not hasattr(args, "_run"):

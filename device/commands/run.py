@@ -13,6 +13,8 @@ configuration.
 Without hardware: --source sim --frames 100 --out /tmp/s1 --no-stream --status-file "" (or --insecure
 with a configuration whose [stream] endpoints are loopback, e.g. tcp://127.0.0.1:5555; the status
 file's default folder, /run/stereopath, is the service's).
+
+The service runs BLAS at one thread (:mod:`stereopath.device.commands.blas_threads`).
 """
 
 from __future__ import annotations
@@ -47,6 +49,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import logging
+
+    from stereopath.device.commands.blas_threads import use_one_blas_thread
+
+    use_one_blas_thread()  # the entry point has done it before numpy was loaded; this covers direct callers
 
     from stereopath.device.errors import ConfigError
     from stereopath.device.service.journal import use_journal_format

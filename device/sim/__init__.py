@@ -13,12 +13,10 @@ Nothing is imported until used: ``from stereopath.device.sim import open_sim, Si
 
 from __future__ import annotations
 
-from typing import Any
-
 __all__ = ["SimConfig", "SimSession", "open_sim"]
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> object:
     if name in __all__:
         from stereopath.device.sim import session
 

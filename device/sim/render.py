@@ -192,34 +192,45 @@ class _DistortionWarp:
         return out, d
 
 
+@dataclass(frozen=True)
+class RenderDetail:
+    """How a :class:`Renderer` samples the scene: ``lod_bias`` shifts the mip level choice (positive =
+    blurrier); ``tile_m`` the largest render tile side; ``near_m`` the near plane; ``background`` the
+    grey level where no surface is seen."""
+
+    lod_bias: float = 0.25
+    tile_m: float = 1.0
+    near_m: float = 0.05
+    background: int = 0
+
+
 class Renderer:
     """Renders ``scene`` for ``rig`` (see the module doc).
 
     ``noise_sigma`` (DN) is the photometric noise of :meth:`render`; ``vignetting`` the relative
-    brightness loss in the image corners (0 = none); ``lod_bias`` shifts the mip level choice
-    (positive = blurrier); ``tile_m`` the largest render tile side; ``near_m`` the near plane.
+    brightness loss in the image corners (0 = none); ``detail`` the sampling settings.
     A renderer keeps scratch buffers: use one per thread.
     """
 
     def __init__(self, scene: Scene, rig: Rig, *, noise_sigma: float = 2.0, seed: int = 0,
-                 vignetting: float = 0.0, lod_bias: float = 0.25, tile_m: float = 1.0,
-                 near_m: float = 0.05, background: int = 0) -> None:
+                 vignetting: float = 0.0, detail: RenderDetail = RenderDetail()) -> None:
         if noise_sigma < 0:
             raise ValueError("noise_sigma must be >= 0")
-        if near_m <= 0:
+        if detail.near_m <= 0:
             raise ValueError("near_m must be > 0")
         self.scene = scene
         self.rig = rig
         self.noise_sigma = float(noise_sigma)
         self.seed = int(seed)
         self.vignetting = float(vignetting)
-        self.lod_bias = float(lod_bias)
-        self.near_m = float(near_m)
-        self.background = int(background)
+        self.lod_bias = float(detail.lod_bias)
+        self.near_m = float(detail.near_m)
+        self.background = int(detail.background)
+        tile_m = float(detail.tile_m)
         cache = scene.__dict__.setdefault("_render_tiles", {})  # tiles depend on the scene only
-        if float(tile_m) not in cache:
-            cache[float(tile_m)] = _build_tiles(scene, float(tile_m))
-        self.tiles = cache[float(tile_m)]
+        if tile_m not in cache:
+            cache[tile_m] = _build_tiles(scene, tile_m)
+        self.tiles = cache[tile_m]
         self._distortion: dict[int, _DistortionWarp] = {}
         self._noise: tuple[np.ndarray, np.ndarray] | None = None
         self._vignette: dict[tuple[int, int], np.ndarray] = {}

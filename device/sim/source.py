@@ -1,18 +1,21 @@
 """``open_source("sim[:ARG]")``: the simulator as a recorded-sequence source.
 
 ``ARG`` is empty (defaults), a seed (``sim:3``) or comma-separated ``key=value`` settings of
-:class:`stereopath.device.sim.session.SimConfig` (``sim:seed=3,frames=100,trajectory=orbit``).  The opener of
+:class:`stereopath.device.sim.session.SimConfig`'s top-level scalar fields (``sim:seed=3,frames=100,trajectory=orbit``).  The opener of
 :mod:`stereopath.device.formats.source` calls :func:`open_sim_spec` for the ``sim`` scheme.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 from stereopath.device.errors import ConfigError
 
+if TYPE_CHECKING:
+    from stereopath.device.sim.session import SimSession
 
-def parse_sim_spec(arg: str) -> dict[str, Any]:
+
+def parse_sim_spec(arg: str) -> dict[str, bool | int | float | str]:
     """``"3"`` -> ``{"seed": 3}``; ``"seed=3,frames=10,motion_blur=true"`` -> typed mapping."""
     import dataclasses
     import typing
@@ -28,8 +31,8 @@ def parse_sim_spec(arg: str) -> dict[str, Any]:
         except ValueError:
             raise ConfigError(f"sim source {arg!r}: expected a seed or key=value settings") from None
     hints = typing.get_type_hints(SimConfig)
-    known = {f.name for f in dataclasses.fields(SimConfig)}
-    out: dict[str, Any] = {}
+    known = {f.name for f in dataclasses.fields(SimConfig) if hints[f.name] in (bool, int, float, str)}
+    out: dict[str, bool | int | float | str] = {}
     for item in arg.split(","):
         key, sep, text = item.partition("=")
         key, text = key.strip(), text.strip()
@@ -52,7 +55,7 @@ def parse_sim_spec(arg: str) -> dict[str, Any]:
     return out
 
 
-def open_sim_spec(arg: str, **settings: Any):
+def open_sim_spec(arg: str, **settings: object) -> SimSession:
     """The simulated session named by ``arg``; ``settings`` (SimConfig fields) override the spec's."""
     from stereopath.device.sim.session import open_sim
 

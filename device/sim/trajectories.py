@@ -39,49 +39,34 @@ Trajectories (:data:`TRAJECTORIES`, :func:`get_trajectory`):
   closure.
 * ``"line"``: a 1 m straight slide past the table with fixed orientation.
 * ``"still"``: the arc's start pose, perfectly still (no shake).
+* ``"handheld"``: real recorded motion rescaled to a 1.5 m scan, moving from the first IMU sample
+  on (no still start, no time law): :mod:`stereopath.device.sim.handheld`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from stereopath.device.errors import ConfigError
+from stereopath.device.sim.motion import FIRST_FRAME_S, MotionState, rotation_chain
 from stereopath.device.sim.scene import TARGET_WORLD
+
+if TYPE_CHECKING:
+    from stereopath.device.sim.handheld import HandheldTrajectory
+
+__all__ = ["FIRST_FRAME_S", "MotionState", "TRAJECTORIES", "get_trajectory", "rotation_chain"]
 
 STILL_S = 1.25
 RAMP_S = 1.5
 DEFAULT_FRAMES = 400
 DEFAULT_RATE_HZ = 20.0
-FIRST_FRAME_S = 1.0
 DEFAULT_DURATION_S = FIRST_FRAME_S + (DEFAULT_FRAMES - 1) / DEFAULT_RATE_HZ  # 20.95 s
 ARC_PATH_LENGTH_M = 5.12
 
 # camera looking along world +x with z up: camera x (right) = -y, y (down) = -z, z (forward) = +x
 _R_BASE = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-
-
-@dataclass
-class MotionState:
-    """Trajectory samples (N = len(t_s)); ``omega_cam``/``alpha_cam`` in the camera frame."""
-
-    t_s: np.ndarray
-    R_world_cam: np.ndarray   # (N, 3, 3)
-    p_world_cam: np.ndarray   # (N, 3) camera centre
-    v_world: np.ndarray       # (N, 3) m/s
-    a_world: np.ndarray       # (N, 3) m/s^2 (kinematic, gravity not included)
-    omega_cam: np.ndarray     # (N, 3) rad/s, body angular velocity: R^T dR/dt = [omega]x
-    alpha_cam: np.ndarray     # (N, 3) rad/s^2, d(omega_cam)/dt
-
-    @property
-    def T_world_cam(self) -> np.ndarray:
-        n = len(self.t_s)
-        T = np.tile(np.eye(4), (n, 1, 1))
-        T[:, :3, :3] = self.R_world_cam
-        T[:, :3, 3] = self.p_world_cam
-        return T
 
 
 # ----------------------------------------------------------------------------------- helpers
@@ -142,45 +127,6 @@ class TimeLaw:
         return g, e, de
 
 
-_AXES = {"x": 0, "y": 1, "z": 2}
-
-
-def _elementary(axis: str, th: np.ndarray) -> np.ndarray:
-    c, s = np.cos(th), np.sin(th)
-    n = len(th)
-    R = np.zeros((n, 3, 3))
-    i = _AXES[axis]
-    j, k = (i + 1) % 3, (i + 2) % 3
-    R[:, i, i] = 1.0
-    R[:, j, j] = c
-    R[:, k, k] = c
-    R[:, k, j] = s
-    R[:, j, k] = -s
-    return R
-
-
-Factor = tuple  # ("x"|"y"|"z", theta, dtheta, ddtheta) or ("const", R)
-
-
-def rotation_chain(factors: list[Factor], n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``R = F1 F2 ... Fk`` with its body angular velocity and acceleration (time derivatives given)."""
-    M = np.tile(np.eye(3), (n, 1, 1))
-    w = np.zeros((n, 3))
-    a = np.zeros((n, 3))
-    for f in reversed(factors):
-        if f[0] == "const":
-            M = np.einsum("ij,njk->nik", f[1], M)
-            continue
-        axis, th, dth, ddth = f
-        e = _AXES[axis]
-        col = M[:, e, :]  # M^T e_k = row e of M
-        v = col * dth[:, None]
-        a = col * ddth[:, None] - np.cross(w, v) + a
-        w = v + w
-        M = np.einsum("nij,njk->nik", _elementary(axis, th), M)
-    return M, w, a
-
-
 # ----------------------------------------------------------------------------------- shapes
 
 
@@ -217,14 +163,16 @@ def _pitch_down(u, du, ddu, w, dw, ddw):
 class LookAtOrbitShape(Shape):
     """Camera on ``(r cos phi, r sin phi, h)`` around the z axis looking at ``TARGET_WORLD`` (+ excursions)."""
 
-    def __init__(self, phi0: float, k: float, r: Sines, r0: float, h: Sines, h0: float,
-                 excursions: tuple[Sines, Sines, Sines] | None, shake_pos: list[Sines] | None,
-                 shake_rot: list[Sines] | None, yaw_offset: Sines | None = None) -> None:
+    def __init__(self, phi0: float, k: float, radius: tuple[Sines, float], height: tuple[Sines, float],
+                 excursions: tuple[Sines, Sines, Sines] | None, shake: tuple[list[Sines], list[Sines]] | None,
+                 yaw_offset: Sines | None = None) -> None:
+        """``radius`` and ``height``: (variation, mean); ``shake``: (position, rotation) sums of sines or None."""
         self.phi0, self.k = float(phi0), float(k)
         self.yaw_offset = yaw_offset  # heading away from the target (0: looking at it), a function of g
-        self.r, self.r0, self.h, self.h0 = r, float(r0), h, float(h0)
+        self.r, self.r0 = radius[0], float(radius[1])
+        self.h, self.h0 = height[0], float(height[1])
         self.exc = excursions
-        self.shake_pos, self.shake_rot = shake_pos, shake_rot
+        self.shake_pos, self.shake_rot = shake if shake is not None else (None, None)
 
     def _rh(self, g):
         r, dr, ddr = self.r(g)
@@ -361,8 +309,7 @@ def default_frame_times(frames: int = DEFAULT_FRAMES, rate_hz: float = DEFAULT_R
     return FIRST_FRAME_S + np.arange(frames) / rate_hz
 
 
-def _arc_shape(k: float, seed: int) -> LookAtOrbitShape:
-    sp, sr = _shake(seed, 0.003, 0.5)
+def _arc_shape(k: float, seed: int, shake: bool = True) -> LookAtOrbitShape:
     exc = (
         Sines(np.radians([16.0, 6.0]), [1 / 11.0, 1 / 4.3], [0.2, 3.0]),   # tilt (camera x)
         Sines(np.radians([17.0, 7.0]), [1 / 8.5, 1 / 3.3], [3.3, 0.2]),    # pan (camera y)
@@ -370,9 +317,9 @@ def _arc_shape(k: float, seed: int) -> LookAtOrbitShape:
     )
     return LookAtOrbitShape(
         phi0=np.radians(-115.0), k=k,
-        r=Sines([0.12, 0.03], [1 / 13.0, 1 / 5.1], [0.3, 1.0]), r0=1.05,
-        h=Sines([0.12, 0.04], [1 / 9.0, 1 / 3.7], [1.1, 0.2]), h0=1.30,
-        excursions=exc, shake_pos=sp, shake_rot=sr,
+        radius=(Sines([0.12, 0.03], [1 / 13.0, 1 / 5.1], [0.3, 1.0]), 1.05),
+        height=(Sines([0.12, 0.04], [1 / 9.0, 1 / 3.7], [1.1, 0.2]), 1.30),
+        excursions=exc, shake=_shake(seed, 0.003, 0.5) if shake else None,
     )
 
 
@@ -399,8 +346,8 @@ def make_arc(duration_s: float = DEFAULT_DURATION_S, seed: int = 0,
 def make_orbit(duration_s: float = DEFAULT_DURATION_S, seed: int = 0) -> AnalyticTrajectory:
     law = TimeLaw(duration_s)
     k = 2 * np.pi / law.g_end if law.g_end > 0 else 0.0
-    sp, sr = _shake(seed, 0.002, 0.3)
-    shape = LookAtOrbitShape(np.radians(-90.0), k, Sines([0.0], [0.0]), 1.1, Sines([0.0], [0.0]), 1.35, None, sp, sr)
+    shape = LookAtOrbitShape(np.radians(-90.0), k, (Sines([0.0], [0.0]), 1.1), (Sines([0.0], [0.0]), 1.35), None,
+                             _shake(seed, 0.002, 0.3))
     return AnalyticTrajectory("orbit", shape, law, duration_s)
 
 
@@ -423,8 +370,8 @@ def make_loop(duration_s: float = DEFAULT_DURATION_S, seed: int = 0, turns: int 
     )
     # heading: along the walk (90 deg off the table), swinging 30 deg towards the walls and back once a turn
     heading = Sines(np.radians([90.0, 30.0]), [0.0, turns / G], [np.pi / 2, 0.0])
-    shape = LookAtOrbitShape(np.radians(-100.0), k, Sines([0.10, 0.03], per[[2, 4]], [0.3, 1.0]), radius_m,
-                             Sines([0.09, 0.03], per[[1, 3]], [1.1, 0.2]), 1.32, exc, sp, sr, yaw_offset=heading)
+    shape = LookAtOrbitShape(np.radians(-100.0), k, (Sines([0.10, 0.03], per[[2, 4]], [0.3, 1.0]), radius_m),
+                             (Sines([0.09, 0.03], per[[1, 3]], [1.1, 0.2]), 1.32), exc, (sp, sr), yaw_offset=heading)
     return AnalyticTrajectory("loop", shape, law, duration_s)
 
 
@@ -439,21 +386,29 @@ def make_line(duration_s: float = DEFAULT_DURATION_S, seed: int = 0, length_m: f
 
 
 def make_still(duration_s: float = DEFAULT_DURATION_S, seed: int = 0) -> AnalyticTrajectory:
-    shape = _arc_shape(0.3, seed)
-    shape.shake_pos = shape.shake_rot = None
+    shape = _arc_shape(0.3, seed, shake=False)
     return AnalyticTrajectory("still", shape, TimeLaw(0.0, still_s=np.inf), duration_s)
 
 
-TRAJECTORIES: dict[str, Callable[..., AnalyticTrajectory]] = {
+def make_handheld(duration_s: float = DEFAULT_DURATION_S, seed: int = 0) -> HandheldTrajectory:
+    """Real recorded motion as a hand-held scan (:mod:`stereopath.device.sim.handheld`)."""
+    from stereopath.device.sim.handheld import HandheldTrajectory
+
+    return HandheldTrajectory(duration_s)
+
+
+TRAJECTORIES: dict[str, Callable[..., AnalyticTrajectory | HandheldTrajectory]] = {
     "arc": make_arc,
     "orbit": make_orbit,
     "loop": make_loop,
     "line": make_line,
     "still": make_still,
+    "handheld": make_handheld,
 }
 
 
-def get_trajectory(name: str, duration_s: float = DEFAULT_DURATION_S, seed: int = 0) -> AnalyticTrajectory:
+def get_trajectory(name: str, duration_s: float = DEFAULT_DURATION_S,
+                   seed: int = 0) -> AnalyticTrajectory | HandheldTrajectory:
     """The trajectory ``name`` (a key of :data:`TRAJECTORIES`) lasting ``duration_s`` seconds."""
     if name not in TRAJECTORIES:
         raise ConfigError(f"trajectory = {name!r} is unknown; choose one of {', '.join(TRAJECTORIES)}")

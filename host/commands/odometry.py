@@ -4,6 +4,11 @@ SOURCE is sim[:SEED], kitti:SEQDIR, euroc:MAV0DIR or session:DIR.  With
 --compare paper,stereo,sfm every named estimator runs (each in OUT/<name>) and
 the reference paper's Table 2 is printed for this run next to the paper's
 own numbers.
+
+It prints the CPU time per frame it used: the whole command (the process so far: imports, reading
+and decoding the images, estimation, evaluation and the plot), the frame loop, and the frame loop
+without reading and decoding the images (what live frames cost).  BLAS runs at one thread
+(:mod:`stereopath.device.commands.blas_threads`).
 """
 
 from __future__ import annotations
@@ -11,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -66,4 +72,13 @@ def run(args: argparse.Namespace) -> int:
                       f"(indexes in report.json; --strict stops instead)", file=sys.stderr)
         if len(names) > 1:
             print(format_table(reports))
+        for name, r in reports.items():
+            cpu = r["extra"].get("cpu_ms_per_frame")
+            if cpu:
+                print(f"{name}: CPU ms/frame: frame loop {cpu['frame_loop']:.1f}, without reading and decoding "
+                      f"the images {cpu['live_frames']:.1f} (median {cpu['live_median']:.1f}, "
+                      f"p95 {cpu['live_p95']:.1f})")
+        frames = sum(r["frames"] for r in reports.values())
+        if frames:
+            print(f"CPU ms/frame of the whole command: {1e3 * time.process_time() / frames:.1f}")
     return 0

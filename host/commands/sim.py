@@ -17,7 +17,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from stereopath.device.sim.trajectories import TRAJECTORIES
 
     parser.add_argument("--trajectory", default=None, choices=sorted(TRAJECTORIES),
-                        help="camera trajectory of the simulator (default: arc, the hand-held table-top scan)")
+                        help="camera trajectory of the simulator (default: arc, the hand-held table-top scan; handheld: "
+                             "real recorded motion as a 1.5 m scan, started in motion, with auto-exposure and blur)")
     parser.add_argument("--reserve-mb", type=finite_number("megabytes"), default=256.0, metavar="MB",
                         help="free disk space to keep; the recorder refuses to start or stops below it (default 256)")
 

@@ -122,7 +122,7 @@ def test_body_frame_is_forward_left_up_of_the_camera():
 
 def test_noise_statistics_match_the_datasheet_densities():
     sess = open_sim(trajectory="still", frames=1200, seed=5)  # 60 s at rest, 12000 samples
-    imu, truth, rate = sess.imu, sess.imu_truth, sess.cfg.imu_rate_hz
+    imu, truth, rate = sess.imu, sess.imu_truth, sess.cfg.imu.rate_hz
     model = sess.imu_model
     assert len(imu) > 11000
     # first differences remove the (slowly varying) bias; quantisation adds LSB^2/12 per sample
@@ -161,7 +161,7 @@ def test_quantisation_scales_and_clipping():
 
 
 def test_session_imu_is_the_raw_counts_and_covers_one_second_before_the_first_frame():
-    sess = open_sim(frames=40, gyro_fs_dps=1000, accel_fs_g=8)
+    sess = open_sim(frames=40, imu={"gyro_fs_dps": 1000, "accel_fs_g": 8})
     assert sess.imu.t_ns[0] == sess.t_ns[0] - 1_000_000_000 == 0
     assert sess.imu.t_ns[-1] == sess.t_ns[-1]
     assert np.all(np.diff(sess.imu.t_ns) == 5_000_000)

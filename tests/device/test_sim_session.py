@@ -18,9 +18,9 @@ from stereopath.device.formats.tum import Trajectory
 
 def test_pinned_api_and_defaults():
     cfg = SimConfig()
-    assert (cfg.frames, cfg.rate_hz, cfg.seed, cfg.trajectory, cfg.imu_rate_hz, cfg.noise_sigma) == (
+    assert (cfg.frames, cfg.rate_hz, cfg.seed, cfg.trajectory, cfg.imu.rate_hz, cfg.noise_sigma) == (
         400, 20.0, 0, "arc", 200.0, 2.0)
-    assert (cfg.exposure_drift, cfg.motion_blur, cfg.gyro_fs_dps, cfg.accel_fs_g, cfg.with_depth) == (
+    assert (cfg.exposure_drift, cfg.motion_blur, cfg.imu.gyro_fs_dps, cfg.imu.accel_fs_g, cfg.with_depth) == (
         False, False, 500, 4, False)
     s = open_sim(frames=5)
     assert isinstance(s, SimSession) and isinstance(s.rig, Rig) and s.rig.T_body_cam0 is not None
@@ -45,11 +45,12 @@ def test_config_rejects_unknown_keys_and_bad_values():
         open_sim(colour=True)
     with pytest.raises(ConfigError, match="colour"):
         from_mapping(SimConfig, {"frames": 10, "colour": True})
-    for bad in ({"frames": 0}, {"rate_hz": -1.0}, {"trajectory": "spiral"}, {"gyro_fs_dps": 300},
-                {"accel_fs_g": 3}, {"noise_sigma": -0.5}, {"seed": -1}, {"imu_rate_hz": 0.0},
-                {"frames": "ten"}, {"motion_blur": "yes"}, {"exposure_ms": 80.0}):
-        key = next(iter(bad))
-        with pytest.raises(ConfigError, match=key):
+    for bad in ({"frames": 0}, {"rate_hz": -1.0}, {"trajectory": "spiral"}, {"imu": {"gyro_fs_dps": 300}},
+                {"imu": {"accel_fs_g": 3}}, {"noise_sigma": -0.5}, {"seed": -1}, {"imu": {"rate_hz": 0.0}},
+                {"frames": "ten"}, {"motion_blur": "yes"}, {"exposure_ms": 80.0}, {"imu": {"colour": 1}}):
+        key, value = next(iter(bad.items()))
+        match = f"imu.*{next(iter(value))}" if isinstance(value, dict) else key
+        with pytest.raises(ConfigError, match=match):
             open_sim(**bad)
     with pytest.raises(ConfigError, match="frames"):
         open_sim(SimConfig(frames=3), frames=-2)
@@ -153,3 +154,64 @@ def test_source_spec_parsing_and_registration():
     assert len(s) == 4 and s.cfg.seed == 2 and s.spec == "sim:seed=2,frames=4"
     s2 = open_source("sim:seed=2,frames=4")  # registered with the dataset sources on import
     assert len(s2) == 4 and np.array_equal(s2.frame(1).left, s.frame(1).left)
+
+
+# ------------------------------------------------------------------ the hand-held stand-in
+
+def _handheld(**kw):
+    from stereopath.device.sim.handheld import motion_file
+
+    try:
+        motion_file()
+    except ConfigError:
+        pytest.skip("the recorded flight (shared data trajectories/V101_gt.txt) is not available")
+    return open_sim(trajectory="handheld", **kw)
+
+
+def test_handheld_starts_in_motion():
+    """No still block: the rig moves and turns from the first IMU sample on, and the measured gyro shows it."""
+    s = _handheld(frames=60, seed=1)
+    st = s.trajectory.state(np.array([0.0, 0.5, 1.0]))
+    assert np.all(np.linalg.norm(st.v_world, axis=1) > 0.01)  # m/s
+    assert np.all(np.degrees(np.linalg.norm(st.omega_cam, axis=1)) > 2.0)  # deg/s
+    before = s.imu_truth.t_ns < s.t_ns[0]
+    assert before.sum() >= 150  # one second of IMU data before the first frame, all of it moving
+    assert np.degrees(np.linalg.norm(s.imu_truth.gyro_rad_s[before], axis=1)).min() > 1.0
+    p = s.groundtruth.positions
+    assert np.linalg.norm(p[1] - p[0]) > 1e-4
+
+
+def test_handheld_scan_length_and_exact_derivatives():
+    s = _handheld(frames=400)
+    assert 1.0 <= s.groundtruth.path_length_m() <= 2.0
+    tr, t, h = s.trajectory, np.linspace(2.0, 19.0, 40), 1e-4
+    st = tr.state(t)
+    fd = (tr.state(t + h).p_world_cam - tr.state(t - h).p_world_cam) / (2 * h)
+    assert np.abs(fd - st.v_world).max() < 1e-5
+    dR = tr.state(t + h).R_world_cam - tr.state(t - h).R_world_cam
+    w_fd = np.einsum("nji,njk->nik", st.R_world_cam, dR / (2 * h))  # R^T dR/dt = [omega]x
+    assert np.abs(w_fd[:, 2, 1] - st.omega_cam[:, 0]).max() < 1e-5
+
+
+def test_handheld_has_exposure_changes_and_motion_blur():
+    s = _handheld(frames=400, seed=3, noise_sigma=0.0)
+    shutter = np.array([s.shutter_ms(i) for i in range(len(s))])
+    gains = np.array([s.gains(i) for i in range(len(s))])
+    assert shutter.max() / shutter.min() > 1.3  # the auto-exposure moves the shutter time
+    assert np.abs(gains[:, 0] - 1).max() > 0.05 and not np.allclose(gains[:, 0], gains[:, 1])
+    assert s.blurred and s.render(120).meta["shutter_ms"] == shutter[120]
+    # blur: the same frame rendered sharp (one pose) has more gradient energy than the blurred one
+    i = int(np.argmax([np.linalg.norm(s.trajectory.state(float(t) * 1e-9).omega_cam) for t in s.t_ns[:200]]))
+    blurred = s.render(i).left.astype(float)
+    sharp, _, _ = s.renderer.render(s.groundtruth.T_world_cam[i], key=i, gains=s.gains(i))
+    energy = [np.mean(np.abs(np.diff(im.astype(float), axis=1))) for im in (blurred, sharp)]
+    assert energy[0] < 0.97 * energy[1]
+
+
+def test_handheld_is_deterministic_by_seed():
+    a, b, c = _handheld(frames=40, seed=5), _handheld(frames=40, seed=5), _handheld(frames=40, seed=6)
+    assert np.array_equal(a.render(30).left, b.render(30).left)
+    assert np.array_equal(a.imu.gyro_rad_s, b.imu.gyro_rad_s)
+    assert [a.shutter_ms(i) for i in range(40)] == [b.shutter_ms(i) for i in range(40)]
+    assert [a.shutter_ms(i) for i in range(40)] != [c.shutter_ms(i) for i in range(40)]
+    assert np.array_equal(a.groundtruth.T_world_cam, c.groundtruth.T_world_cam)  # the same recorded motion
