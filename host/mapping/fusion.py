@@ -95,6 +95,16 @@ class TsdfVolume:
     def block_count(self) -> int:
         return int(self._grid.hashmap().size())
 
+    @property
+    def voxel_bytes(self) -> int:
+        """Bytes of one voxel's attributes (TSDF and weight, plus colour when fused: float32 each)."""
+        return 4 * (5 if self.config.color else 2)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the allocated voxel blocks (the hash map's own tables not counted)."""
+        return self.block_count * self.config.block_resolution ** 3 * self.voxel_bytes
+
     def integrate(self, depth_m: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
                   color_rgb: np.ndarray | None = None) -> None:
         """Fuse one depth map (float32 metres, 0 = none) seen by a camera ``K`` at ``T_world_cam``.

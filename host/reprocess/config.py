@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from stereopath.host.backend.loops import LoopConfig
+from stereopath.host.reprocess.memory import MemoryLedger
 from stereopath.host.reprocess.preset_names import DEFAULT_PRESET, PRESET_ABOUT
 from stereopath.host.backend.tracks import TrackConfig
 
@@ -100,3 +101,4 @@ class StageInputs:
     progress: bool | None = None
     results: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)  # e.g. the map stage's folder and settings
+    memory: MemoryLedger = field(default_factory=MemoryLedger)  # sizes of what the stage holds

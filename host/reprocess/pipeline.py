@@ -33,6 +33,7 @@ from stereopath.host.reprocess.config import (  # noqa: F401  (re-exported: the 
     StageInputs,
     resolve_preset,
 )
+from stereopath.host.reprocess.memory import MemoryLedger
 from stereopath.host.reprocess.outputs import STAGES, RunSummary, write_outputs
 from stereopath.host.reprocess.stage_ba import gyro_rotation_priors  # noqa: F401  (re-exported)
 from stereopath.host.reprocess.stage_map import MODEL_FILES  # noqa: F401  (re-exported)
@@ -85,6 +86,7 @@ class _Runner:
             self.matched = ExposureMatchedSequence(seq, config.tracks, config.exposure_tolerance)
         self.progress, self.after_stage = progress, after_stage
         self.store = StageStore(stages_dir)
+        self.memory = MemoryLedger()
         self.status: dict[str, str] = {}
         self.cache: dict[str, dict[str, np.ndarray]] = {}
         self.keys: dict[str, str] = {}
@@ -97,13 +99,15 @@ class _Runner:
 
     def run_stage(self, name: str, files: list[str], compute: Callable[[], Any]) -> Any:
         self.store.forget(name)
+        self.memory.start()
         t0 = time.perf_counter()
         # one BLAS thread: a multi-threaded BLAS sums long dot products in an order that depends on
         # its thread count, so the adjusted poses would change in the last bits from a 2-core
         # laptop to a 16-core one or a Ray worker (OMP_NUM_THREADS=1); pinned, they do not
         with _one_blas_thread():
             result = compute()
-        self.store.finish(name, self.keys[name], files, time.perf_counter() - t0, self.settings.get(name))
+        self.store.finish(name, self.keys[name], files, time.perf_counter() - t0, self.settings.get(name),
+                          self.memory.summary())
         self.status[name] = "computed"
         log.info("stage %s: computed in %.1f s", name, time.perf_counter() - t0)
         if self.after_stage is not None:
@@ -130,7 +134,7 @@ class _Runner:
 
         def compute() -> dict[str, np.ndarray]:
             inputs = StageInputs(self.seq if name == "estimate" else self.matched, self.progress,
-                                 {d: self.get(d) for d in _DEPENDS[name]})
+                                 {d: self.get(d) for d in _DEPENDS[name]}, memory=self.memory)
             data = _ARRAY_STAGES[name].run(self.config, inputs)
             save_npz(path, **data)
             return data
@@ -146,7 +150,8 @@ class _Runner:
         if not self.force and self.store.done("map", self.keys["map"]):
             self.status["map"] = "reused"
         else:
-            inputs = StageInputs(self.matched, self.progress, extra={"dst": dst, "trajectory": final, "label": label})
+            inputs = StageInputs(self.matched, self.progress, extra={"dst": dst, "trajectory": final, "label": label},
+                                 memory=self.memory)
             try:
                 self.run_stage("map", [f"map/{f}" for f in MODEL_FILES], lambda: stage_map.run(map_cfg, inputs))
             except StereopathError as exc:  # e.g. no valid depth with this map preset: keep the path outputs

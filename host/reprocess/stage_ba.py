@@ -24,6 +24,7 @@ import numpy as np
 from stereopath.device.errors import EstimationError, ImuMismatchError
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
 from stereopath.host.progress import Bar, progress_bar
+from stereopath.host.reprocess.memory import MB, peak_rss_mb, rss_mb
 from stereopath.host.reprocess.store import json_array, meta
 
 log = logging.getLogger(__name__)
@@ -257,8 +258,11 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
         priors = gyro_rotation_priors(inputs.seq, est["t_ns"][kf], config.gyro_sigma_rad_per_sqrt_s, T_kf)
     t0 = time.perf_counter()
     imu, imu_usable = imu_terms_of(config, inputs)
+    inputs.memory.note("observations", trk["observations"].nbytes)
+    rss0 = rss_mb()
     try:
         res = adjust_keyframes(config, inputs, priors, imu)
+        inputs.memory.note("gtsam_graph", int((peak_rss_mb() - rss0) * MB))  # the solver's growth of the peak
     except EstimationError as exc:
         # too little structure to adjust (e.g. a very short or featureless session): keep the re-estimate
         log.warning("bundle adjustment not possible (%s): the re-estimated path is kept", exc)

@@ -30,8 +30,11 @@ def run(config: Any, inputs: StageInputs) -> list[str]:
     dst = Path(inputs.extra["dst"])
     if dst.exists():
         shutil.rmtree(dst)
-    map_sequence(inputs.seq, inputs.extra["trajectory"], dst, config, progress=inputs.progress,
-                 source=inputs.extra["label"])
+    result = map_sequence(inputs.seq, inputs.extra["trajectory"], dst, config, progress=inputs.progress,
+                          source=inputs.extra["label"])
+    fusion = result.stats["config"]["fusion"]
+    voxel_bytes = 4 * (5 if fusion["color"] else 2)  # TsdfVolume.voxel_bytes: float32 TSDF, weight (, colour)
+    inputs.memory.note("tsdf_volume", result.stats["blocks"] * fusion["block_resolution"] ** 3 * voxel_bytes)
     return [f for f in MODEL_FILES if (dst / f).is_file()]
 
 

@@ -23,6 +23,7 @@ from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
 from stereopath.host.backend.loops import detect_loops, loops_to_array
 from stereopath.host.backend.parallel import parallel_map, spare_cores, spreading
 from stereopath.host.progress import Bar
+from stereopath.host.reprocess.memory import nbytes
 from stereopath.host.reprocess.store import json_array
 
 log = logging.getLogger(__name__)
@@ -207,6 +208,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
             # independent per keyframe: a fleet task spreads them over idle cores (same results, same order)
             feats = parallel_map(_keyframe_features, (seq.rig, cfg), images)
             tick(len(kf))
+    inputs.memory.note("keypoints_descriptors", nbytes(feats))
     if len(kf) < 2:
         return _empty(est, kf, f"{len(kf)} tracked keyframe(s) in the re-estimate; bundle adjustment needs two")
     T_kf = est["T_world_cam"][kf]
@@ -216,9 +218,12 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
         from stereopath.host.backend.track_alignment import align_tracks
 
         images = [images_of(i) for i in kf]
+        inputs.memory.note("images", nbytes(images))
         align = functools.partial(align_tracks, seq.rig, [a for a, _ in images], [b for _, b in images], T_kf, cfg)
     with Bar(n_gaps, "track matching", inputs.progress, "gap") as tick:
         tr = tracks_mod.build_tracks(seq.rig, feats, T_kf, cfg, progress=tick, align=align)
+    inputs.memory.note("observations", tr.observations.nbytes)
+    inputs.memory.note("tracks", nbytes(tr.points) + nbytes(tr.kf_ids) + nbytes(tr.kf_xy))
     loops = detect_loops(seq.rig, feats, T_kf, config.loops)
     ids = np.fromiter(tr.points.keys(), np.int64, len(tr.points))
     xyz = np.array([tr.points[int(i)] for i in ids]).reshape(-1, 3)
