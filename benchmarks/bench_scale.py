@@ -1,7 +1,8 @@
 """Reprocessing at growing scan lengths: wall, CPU, peak memory and accuracy per length, memory per stage.
 
     .venv/bin/python benchmarks/bench_scale.py [--frames 200,400,800,2000,4000] [--cache DIR]
-        [--trajectory arc] [--preset standard] [--no-map] [--keep] [--json-out FILE]
+        [--trajectory arc] [--preset standard] [--no-map] [--keep] [--record-only] [--stereopath CMD]
+        [--json-out FILE]
 
 For each length N, a simulated session (``stereopath sim --frames N``) is recorded once into the cache
 folder (default ``$TMPDIR/stereopath_scale``; reused by later runs, so record the long ones ahead) and
@@ -30,7 +31,12 @@ ROOT = Path(__file__).resolve().parents[1]
 STAGES = ("estimate", "tracks", "ba", "map")
 
 
+COMMAND: list[str] = []  # --stereopath: another build of the command (e.g. a copy of an earlier commit)
+
+
 def stereopath_cmd() -> list[str]:
+    if COMMAND:
+        return list(COMMAND)
     exe = Path(sys.executable).with_name("stereopath")
     return [str(exe)] if exe.is_file() else [sys.executable, "-m", "stereopath"]
 
@@ -38,6 +44,10 @@ def stereopath_cmd() -> list[str]:
 def session(cache: Path, frames: int, trajectory: str) -> Path:
     """The cached session of ``frames`` frames (recorded now when missing; a cut recording is redone)."""
     out = cache / f"sim-{trajectory}-{frames}"
+    if (cache / f"sim-{trajectory}-{frames}.part" / "manifest.json").is_file() and not out.exists():
+        part = cache / f"sim-{trajectory}-{frames}.part"
+        if json.loads((part / "manifest.json").read_text()).get("status") == "closed":
+            part.rename(out)
     if (out / "manifest.json").is_file() and json.loads((out / "manifest.json").read_text()).get("status") == "closed":
         return out
     part = cache / f"sim-{trajectory}-{frames}.part"
@@ -106,7 +116,10 @@ def main() -> int:
     ap.add_argument("--keep", action="store_true", help="keep the reprocessing outputs (in the cache folder)")
     ap.add_argument("--record-only", action="store_true", help="record the sessions and stop")
     ap.add_argument("--json-out", type=Path)
+    ap.add_argument("--stereopath", help="the stereopath command to run (default: this environment's)")
     args = ap.parse_args()
+    if args.stereopath:
+        COMMAND[:] = args.stereopath.split()
     lengths = [int(x) for x in args.frames.split(",") if x.strip()]
     args.cache.mkdir(parents=True, exist_ok=True)
     sessions = {n: session(args.cache, n, args.trajectory) for n in lengths}

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -333,9 +334,44 @@ def _disparity(rig: Rig, X_cam: np.ndarray) -> np.ndarray:
 
 
 def _match_gap(shared: tuple, gap: int) -> list[np.ndarray]:
-    """:func:`match_keyframes` of every keyframe ``i`` with ``i + gap`` (``shared``: rig, keyframes, poses, config)."""
-    rig, kfs, T, cfg = shared
-    return [match_keyframes(rig, kfs[i], kfs[i + gap], T[i], T[i + gap], cfg) for i in range(len(kfs) - gap)]
+    """:func:`match_keyframes` of keyframe ``i`` with ``i + gap`` for the first ``first`` keyframes ``i`` of a
+    batch (``shared``: rig, the batch's keyframes and the ``gap`` after them, their poses, config, first)."""
+    rig, kfs, T, cfg, first = shared
+    return [match_keyframes(rig, kfs[i], kfs[i + gap], T[i], T[i + gap], cfg)
+            for i in range(min(first, len(kfs) - gap))]
+
+
+# keyframes whose matches with the later keyframes are computed together: with the window after them,
+# what the matching holds in memory at a time
+MATCH_BATCH = 24
+
+
+def match_all(rig: Rig, kfs: "KeyframeList", T_world_cam: np.ndarray, cfg: TrackConfig, gaps: list[int],
+              progress=None) -> list[list[np.ndarray]]:
+    """For each gap of ``gaps``, the matches (:func:`match_keyframes`) of every keyframe ``i`` with ``i + gap``.
+
+    The keyframes are taken in batches of :data:`MATCH_BATCH` with the ``max(gaps)`` after them, so only
+    those are held at a time (``kfs`` may load them on demand); within a batch the gaps' matchings are
+    independent (:func:`parallel_map` may spread them).  ``progress(n)`` after each batch of ``n`` keyframes."""
+    per_gap: list[list[np.ndarray]] = [[] for _ in gaps]
+    n, reach = len(kfs), max(gaps, default=0)
+    for s in range(0, n, MATCH_BATCH):
+        e = min(n, s + MATCH_BATCH + reach)
+        first = min(MATCH_BATCH, n - s)
+        part = [kfs[k] for k in range(s, e)]
+        for out, got in zip(per_gap, parallel_map(_match_gap, (rig, part, T_world_cam[s:e], cfg, first), gaps)):
+            out.extend(got)
+        if progress is not None:
+            progress(first)
+    return per_gap
+
+
+class KeyframeList(Protocol):
+    """Keyframes' stereo keypoints by index: a list, or a store that loads them on demand."""
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, k: int) -> KeyframeFeatures: ...
 
 
 @dataclass
@@ -349,34 +385,35 @@ class Tracks:
     stats: dict
 
 
-def build_tracks(rig: Rig, kfs: list[KeyframeFeatures], T_world_cam: np.ndarray, cfg: TrackConfig,
-                 progress=None, align=None) -> Tracks:
+def build_tracks(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, cfg: TrackConfig,
+                 progress=None, align=None, sizes: list[int] | None = None) -> Tracks:
     """Join the keyframes' stereo keypoints into tracks (see the module doc).
 
     Observation rows are ``(keyframe, point id, cam, u, v, weight)`` in undistorted pixels, one
     left and one right row per keypoint in a track; ``weight`` scales the residual (large
-    keypoints are located less precisely).  ``progress(n)`` is called once per keyframe gap.
+    keypoints are located less precisely).  ``progress(n)`` is called after each batch of ``n``
+    keyframes matched (:func:`match_all`).  ``sizes``: the keyframes' keypoint counts when known
+    (``kfs`` is then read in order, a batch at a time).
     """
     T_world_cam = np.asarray(T_world_cam, dtype=float).reshape(-1, 4, 4)
-    offsets = np.concatenate([[0], np.cumsum([len(k) for k in kfs])]).astype(np.int64)
+    sizes = [len(k) for k in kfs] if sizes is None else sizes
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     kf_of = np.repeat(np.arange(len(kfs)), np.diff(offsets))
     uf = _Tracks(kf_of)
     n_matches = 0
     # nearer keyframe pairs first: their matches are the most reliable, later conflicting ones lose
     gaps = sorted(g for g in (cfg.gaps or range(1, cfg.window + 1)) if 1 <= g <= cfg.window)
-    # the gaps' matchings are independent (parallel_map may spread them); joined below in order
-    matched = parallel_map(_match_gap, (rig, kfs, T_world_cam, cfg), gaps)
+    # matched a batch of keyframes at a time; joined below gap by gap, in order
+    matched = match_all(rig, kfs, T_world_cam, cfg, gaps, progress)
     for gap, per_i in zip(gaps, matched):
         for i, idx in enumerate(per_i):
             j = i + gap
             n_matches += len(idx)
             uf.union_many((idx[:, 0] + offsets[i]).tolist(), (idx[:, 1] + offsets[j]).tolist())
-        if progress is not None:
-            progress(1)
     n = int(offsets[-1])
-    empty = [np.zeros(0, np.int64) for _ in kfs]
+    empty = [np.zeros(0, np.int64) for _ in range(len(kfs))]
     if n == 0:
-        return Tracks(np.zeros((0, 6)), {}, empty, [np.zeros((0, 2), np.float32) for _ in kfs],
+        return Tracks(np.zeros((0, 6)), {}, empty, [np.zeros((0, 2), np.float32) for _ in range(len(kfs))],
                       {"keypoints": 0, "matches": 0, "tracks": 0, "observations": 0})
     find = uf.find
     roots = np.fromiter((find(i) for i in range(n)), dtype=np.int64, count=n)
@@ -393,7 +430,8 @@ def build_tracks(rig: Rig, kfs: list[KeyframeFeatures], T_world_cam: np.ndarray,
     rows = []
     kf_ids, kf_xy = [], []
     Xw_sum = np.zeros((int(good.sum()), 3))
-    for k, kf in enumerate(kfs):
+    for k in range(len(kfs)):
+        kf = kfs[k]
         s = slice(offsets[k], offsets[k + 1])
         m = sel[s]
         ids = tid[inv[s][m]]

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -108,11 +109,16 @@ class _Runner:
             result = compute()
         self.store.finish(name, self.keys[name], files, time.perf_counter() - t0, self.settings.get(name),
                           self.memory.summary())
+        shutil.rmtree(self.parts_dir(name), ignore_errors=True)  # the stage's partial results: stored whole now
         self.status[name] = "computed"
         log.info("stage %s: computed in %.1f s", name, time.perf_counter() - t0)
         if self.after_stage is not None:
             self.after_stage(name)
         return result
+
+    def parts_dir(self, name: str) -> Path:
+        """The folder of a stage's partial results (``OUT/stages/<stage>.parts``; one subfolder per key)."""
+        return self.dir / f"{name}.parts"
 
     def reusable(self, name: str) -> bool:
         return not self.force and self.store.done(name, self.keys[name]) and self.status.get(name) != "computed"
@@ -134,7 +140,8 @@ class _Runner:
 
         def compute() -> dict[str, np.ndarray]:
             inputs = StageInputs(self.seq if name == "estimate" else self.matched, self.progress,
-                                 {d: self.get(d) for d in _DEPENDS[name]}, memory=self.memory)
+                                 {d: self.get(d) for d in _DEPENDS[name]}, memory=self.memory,
+                                 parts=self.parts_dir(name) / self.keys[name])
             data = _ARRAY_STAGES[name].run(self.config, inputs)
             save_npz(path, **data)
             return data
@@ -197,6 +204,7 @@ def reprocess_sequence(seq: Any, out_dir: str | Path, preset: str | ReprocessPre
     trk_stats = (json.loads(str(runner.cache["tracks"]["stats"])) if "tracks" in runner.cache
                  else stored_stats(stages_dir / "tracks.npz"))
     final = Trajectory(est["t_ns"], ba["T_frames"])
+    runner.cache.pop("tracks", None)  # the model needs only the path: the tracks are not held while it is built
     map_stats = None
     if map_cfg is not None:
         map_stats = runner.map(map_cfg, final, label)

@@ -132,7 +132,8 @@ def test_the_refined_rig_is_written_only_when_a_disparity_offset_was_applied(ful
     out, _, _ = full_run
     shutil.copytree(out / "stages", tmp_path / "stages")  # the estimate and tracks stages are reused
     (tmp_path / "rig_refined.yaml").write_text("# an earlier run's\n")
-    preset = dataclasses.replace(REPROCESS_PRESETS["standard"], ba_disparity_offset_min_px=min_px,
+    preset = dataclasses.replace(REPROCESS_PRESETS["standard"],
+                                 ba=dataclasses.replace(REPROCESS_PRESETS["standard"].ba, disparity_offset_min_px=min_px),
                                  refine_frames=False)
     res = reprocess_session(session, tmp_path, preset=preset, do_map=False, progress=False)
     assert res.stages["estimate"] == res.stages["tracks"] == "reused" and res.stages["ba"] == "computed"
