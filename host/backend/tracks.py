@@ -398,25 +398,31 @@ def build_tracks(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, cfg: Trac
     T_world_cam = np.asarray(T_world_cam, dtype=float).reshape(-1, 4, 4)
     sizes = [len(k) for k in kfs] if sizes is None else sizes
     offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    kf_of = np.repeat(np.arange(len(kfs)), np.diff(offsets))
-    uf = _Tracks(kf_of)
-    n_matches = 0
+    kf_of = np.repeat(np.arange(len(kfs), dtype=np.int32), np.diff(offsets))
     # nearer keyframe pairs first: their matches are the most reliable, later conflicting ones lose
     gaps = sorted(g for g in (cfg.gaps or range(1, cfg.window + 1)) if 1 <= g <= cfg.window)
     # matched a batch of keyframes at a time; joined below gap by gap, in order
     matched = match_all(rig, kfs, T_world_cam, cfg, gaps, progress)
-    for gap, per_i in zip(gaps, matched):
-        for i, idx in enumerate(per_i):
-            j = i + gap
-            n_matches += len(idx)
-            uf.union_many((idx[:, 0] + offsets[i]).tolist(), (idx[:, 1] + offsets[j]).tolist())
+    pairs = [(idx[:, 0] + offsets[i], idx[:, 1] + offsets[i + gap])
+             for gap, per_i in zip(gaps, matched) for i, idx in enumerate(per_i)]
+    del matched
+    n_matches = sum(len(a) for a, _ in pairs)
+    # the union-find runs over the keypoints in a match only (numbered in order), the rest stay alone
+    used = np.unique(np.concatenate([np.concatenate(p) for p in pairs])) if pairs else np.zeros(0, np.int64)
+    uf = _Tracks(kf_of[used])
+    for a, b in pairs:
+        uf.union_many(np.searchsorted(used, a).tolist(), np.searchsorted(used, b).tolist())
+    del pairs
     n = int(offsets[-1])
     empty = [np.zeros(0, np.int64) for _ in range(len(kfs))]
     if n == 0:
         return Tracks(np.zeros((0, 6)), {}, empty, [np.zeros((0, 2), np.float32) for _ in range(len(kfs))],
                       {"keypoints": 0, "matches": 0, "tracks": 0, "observations": 0})
     find = uf.find
-    roots = np.fromiter((find(i) for i in range(n)), dtype=np.int64, count=n)
+    roots = np.arange(n, dtype=np.int64)
+    roots[used] = used[np.fromiter((find(i) for i in range(len(used))), dtype=np.int64, count=len(used))]
+    conflicts = uf.conflicts
+    del uf, find
     uniq_roots, inv, counts = np.unique(roots, return_inverse=True, return_counts=True)
     good = counts >= cfg.min_track_length
     sel = good[inv]
@@ -451,7 +457,7 @@ def build_tracks(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, cfg: Trac
     points = {int(i): Xw_sum[i] / n_per[i] for i in range(len(Xw_sum)) if n_per[i]}
     lengths = counts[good]
     stats = {"keyframes": len(kfs), "keypoints": n, "matches": n_matches, "tracks": int(good.sum()),
-             "observations": int(len(obs)), "conflicting_matches": uf.conflicts,
+             "observations": int(len(obs)), "conflicting_matches": conflicts,
              "mean_track_length": float(lengths.mean()) if len(lengths) else 0.0,
              "max_track_length": int(lengths.max()) if len(lengths) else 0}
     log.info("tracks: %d keypoints, %d matches, %d tracks (mean length %.1f keyframes), %d observations",
