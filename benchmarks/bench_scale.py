@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_scale.py [--frames 200,400,800,2000,4000] [--cache DIR]
         [--trajectory arc] [--preset standard] [--no-map] [--keep] [--record-only] [--stereopath CMD]
-        [--json-out FILE]
+        [--tag TAG] [--json-out FILE]
 
 For each length N, a simulated session (``stereopath sim --frames N``) is recorded once into the cache
 folder (default ``$TMPDIR/stereopath_scale``; reused by later runs, so record the long ones ahead) and
@@ -117,6 +117,7 @@ def main() -> int:
     ap.add_argument("--record-only", action="store_true", help="record the sessions and stop")
     ap.add_argument("--json-out", type=Path)
     ap.add_argument("--stereopath", help="the stereopath command to run (default: this environment's)")
+    ap.add_argument("--tag", default="", help="suffix of the output folders (runs of two builds side by side)")
     args = ap.parse_args()
     if args.stereopath:
         COMMAND[:] = args.stereopath.split()
@@ -131,7 +132,7 @@ def main() -> int:
     print("|---|---|---|---|---|---|")
     rows = {}
     for n in lengths:
-        out = args.cache / f"out-{args.trajectory}-{n}"
+        out = args.cache / f"out-{args.trajectory}-{n}{'-' + args.tag if args.tag else ''}"
         shutil.rmtree(out, ignore_errors=True)
         rows[n] = reprocess(sessions[n], out, args.preset, not args.no_map)
         print_row(n, rows[n])
