@@ -23,6 +23,7 @@ import numpy as np
 
 from stereopath.device.core.rig import Rig
 from stereopath.device.errors import ConfigError
+from stereopath.host.backend.gtsam_lib import import_gtsam  # noqa: F401  (re-exported)
 from stereopath.host.backend.ba_common import (
     LOSSES,
     MIN_POSES_PER_POINT,
@@ -48,15 +49,6 @@ RIG_SIGMA = 1e-5  # rad and m: right-camera pose = left pose x rig extrinsics (d
 FREE_SIGMA = 1e3  # an unconstrained direction of a prior
 TILT_SIGMA = 0.1  # rad: the held pose's tilt when the IMU's gravity can fix it
 OFFSET_SIGNIFICANCE = 3.0  # standard errors an estimated disparity offset must exceed to be applied
-
-
-def import_gtsam() -> Any:
-    """The ``gtsam`` module, or a ConfigError saying how to install it."""
-    try:
-        import gtsam
-    except ImportError as exc:  # pragma: no cover - depends on the installation
-        raise ConfigError("the offline back end needs GTSAM: pip install 'stereopath[host]' (gtsam>=4.3)") from exc
-    return gtsam
 
 
 def _keys(symbol: str, index: np.ndarray) -> list[int]:

@@ -27,7 +27,7 @@ from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import Rig
 from stereopath.device.errors import ConfigError
 from stereopath.host.backend.parallel import parallel_map
-from stereopath.host.backend.slanted_stereo import refine_slanted
+from stereopath.host.backend.slanted_stereo import SlantedFit, refine_slanted
 
 log = logging.getLogger(__name__)
 
@@ -164,7 +164,7 @@ def stereo_points(rig: Rig, left: np.ndarray, right: np.ndarray, xy: np.ndarray,
         xr, ok = stereo_right(rig, left, right, xy, right_guess_at_depth(rig, uv0, cfg, depth_guess_m), cfg)
     if cfg.slanted_window:
         idx = np.flatnonzero(ok)
-        xr_ok, refined = refine_slanted(left, right, np.asarray(xy)[idx], xr[idx], half=cfg.slanted_window // 2)
+        xr_ok, refined = refine_slanted(left, right, np.asarray(xy)[idx], xr[idx], SlantedFit(half=cfg.slanted_window // 2))
         xr = xr.astype(np.float64)
         xr[idx] = xr_ok
         ok[idx] = refined
@@ -465,17 +465,28 @@ def build_tracks(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, cfg: Trac
     return Tracks(obs, points, kf_ids, kf_xy, stats)
 
 
-def frame_observations(rig: Rig, kf_left: np.ndarray, kf_xy: np.ndarray, kf_ids: np.ndarray,
-                       points: dict[int, np.ndarray], left: np.ndarray, right: np.ndarray,
-                       T_world_cam_guess: np.ndarray, cfg: TrackConfig) -> np.ndarray:
-    """Observations of a keyframe's tracked points in another (nearby) frame, for motion-only refinement.
+@dataclass(frozen=True)
+class TrackedKeypoints:
+    """A keyframe's left image and the keypoints it has in tracks: raw (distorted) pixels and point ids."""
+
+    left: np.ndarray
+    xy: np.ndarray
+    ids: np.ndarray
+
+
+def frame_observations(rig: Rig, kf: TrackedKeypoints, points: dict[int, np.ndarray],
+                       frame: tuple[np.ndarray, np.ndarray], T_world_cam_guess: np.ndarray,
+                       cfg: TrackConfig) -> np.ndarray:
+    """Observations of a keyframe's tracked points in another (nearby) frame (its ``(left, right)``
+    images), for motion-only refinement.
 
     Each keypoint is followed by one KLT step from the keyframe image straight into ``left``
     (seeded by projecting its point with ``T_world_cam_guess``; no chaining, so no drift) and
     located in ``right`` the same way as at keyframes.  Rows ``(0, point id, cam, u, v, 1)``
     in undistorted pixels (the caller sets the pose index).
     """
-    kf_left, left, right = gray(kf_left), gray(left), gray(right)
+    kf_left, kf_xy, kf_ids = gray(kf.left), kf.xy, kf.ids
+    left, right = gray(frame[0]), gray(frame[1])
     known = np.array([int(i) in points for i in kf_ids], dtype=bool) if len(kf_ids) else np.zeros(0, bool)
     if not known.any():
         return np.zeros((0, 6))

@@ -151,7 +151,7 @@ def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.
                 is_kf: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
     """Each non-keyframe's observations of the adjusted points (KLT from its two keyframes), one frame
     at a time: ``(frame index, rows)``."""
-    from stereopath.host.backend.tracks import frame_observations
+    from stereopath.host.backend.tracks import TrackedKeypoints, frame_observations
 
     seq, est, trk = inputs.seq, inputs.results["estimate"], inputs.results["tracks"]
     kf, offs = trk["kf_index"], trk["kf_offsets"]
@@ -173,7 +173,7 @@ def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.
                 if len(ids) > config.frame_points:
                     pick = np.linspace(0, len(ids) - 1, config.frame_points).astype(int)
                     ids, xy = ids[pick], xy[pick]
-                o = frame_observations(seq.rig, kf_img[k], xy, ids, res.points, fr.left, fr.right,
+                o = frame_observations(seq.rig, TrackedKeypoints(kf_img[k], xy, ids), res.points, (fr.left, fr.right),
                                        T_frames[i], config.tracks)
                 o[:, 0] = i
                 rows.append(o)

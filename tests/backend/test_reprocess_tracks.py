@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from stereopath.device.core.geometry import invert_pose
-from stereopath.host.backend.tracks import TrackConfig, build_tracks, frame_observations, stereo_features
+from stereopath.host.backend.tracks import (
+    TrackConfig,
+    TrackedKeypoints,
+    build_tracks,
+    frame_observations,
+    stereo_features,
+)
 from tests.backend.ba_support import adjust
 
 
@@ -64,8 +70,8 @@ def test_frame_observations_follow_keyframe_points_into_a_frame(scan):
     kf = stereo_features(sess.rig, frames[12].left, frames[12].right, cfg)
     points = {i: X @ T[12][:3, :3].T + T[12][:3, 3] for i, X in enumerate(kf.X_cam)}
     ids = np.arange(len(kf))
-    obs = frame_observations(sess.rig, frames[12].left, kf.feats.xy, ids, points, frames[14].left,
-                             frames[14].right, T[14], cfg)
+    obs = frame_observations(sess.rig, TrackedKeypoints(frames[12].left, kf.feats.xy, ids), points,
+                             (frames[14].left, frames[14].right), T[14], cfg)
     left = obs[obs[:, 2] == 0]
     assert len(left) > 0.7 * len(kf) and np.sum(obs[:, 2] == 1) > 0.5 * len(kf)
     # the observed pixels agree with the points projected at the true pose

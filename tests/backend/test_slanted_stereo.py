@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stereopath.host.backend.slanted_stereo import refine_slanted
+from stereopath.host.backend.slanted_stereo import SlantedFit, refine_slanted
 
 
 def plane_wave_texture(x: np.ndarray, y: np.ndarray, seed: int) -> np.ndarray:
@@ -63,7 +63,7 @@ def test_a_slanted_surface_is_matched_at_the_window_centre_where_a_translational
     true = truth(xy)
     klt, st = _translational(left, right, xy, true + 0.3)
     assert st.all()
-    ref, ok = refine_slanted(left, right, xy, klt, half=10)  # the offline tracks' 21 px window
+    ref, ok = refine_slanted(left, right, xy, klt, SlantedFit(half=10))  # the offline tracks' 21 px window
     assert ok.mean() > 0.95
     err_klt = np.abs(klt[:, 0] - true[:, 0])
     err = np.abs(ref[ok, 0] - true[ok, 0])
