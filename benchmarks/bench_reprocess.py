@@ -117,7 +117,10 @@ def compare_solvers(name: str, seq, stages: Path, base, runs: int, ate_on: float
 
 # the earlier offline keyframes and match check (issue 13): the estimator's keyframes,
 # a keyframe match verified against its stereo point's position only (no depth allowance)
-TRACKS_BEFORE = {"keyframe_parallax_deg": 0.0, "verify_depth_sigmas": 0.0}
+def tracks_before(tracks):
+    """The earlier offline keyframes and match check of a track config."""
+    return dataclasses.replace(tracks, keyframe_parallax_deg=0.0,
+                               match=dataclasses.replace(tracks.match, verify_depth_sigmas=0.0))
 
 
 def compare_tracks(name: str, seq, tmp: Path, base, ate_on: float, unit: float, unit_name: str, runs: int) -> None:
@@ -126,7 +129,7 @@ def compare_tracks(name: str, seq, tmp: Path, base, ate_on: float, unit: float, 
     import json
     import shutil
 
-    variants = {"before": dataclasses.replace(base, tracks=dataclasses.replace(base.tracks, **TRACKS_BEFORE)),
+    variants = {"before": dataclasses.replace(base, tracks=tracks_before(base.tracks)),
                 "after": base}
     fig = {v: {"ate": [], "cpu": []} for v in variants}
     stats = {}

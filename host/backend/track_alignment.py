@@ -195,7 +195,7 @@ def align_tracks(rig, lefts: list[np.ndarray], rights: list[np.ndarray], T_world
     with the moved keypoints (left pixel, stereo match, 3D point) and the mask of the keypoints kept."""
     from stereopath.device.core.features import Features, gray
     from stereopath.device.core.geometry import invert_pose
-    from stereopath.host.backend.tracks import KeyframeFeatures, stereo_points
+    from stereopath.host.backend.tracks import ALIGN_MAX_MOVE_PX, KeyframeFeatures, stereo_points
 
     keep = np.ones(len(track), bool)
     glob = np.flatnonzero(track >= 0)
@@ -227,7 +227,7 @@ def align_tracks(rig, lefts: list[np.ndarray], rights: list[np.ndarray], T_world
     # both windows on real pixels (a border replicated into a window would pull the fit)
     inside = _window_inside(xy[ref], np.repeat(np.eye(2)[None], len(ref), 0), half, w, h)
     inside &= _window_inside(new_xy, A, half, w, h)
-    ok = settled & inside & (moved <= cfg.align_max_move_px)
+    ok = settled & inside & (moved <= ALIGN_MAX_MOVE_PX)
     out = []
     for k, kf in enumerate(kfs):
         m = (kt == k)

@@ -55,7 +55,7 @@ def next_keyframe(rig, est: dict[str, np.ndarray], k: int, points, cfg) -> int:
     later = ok[ok > k]
     nxt = int(later[0])
     for j in later[1:]:
-        angle, motion = view_change(rig, points, T[k], T[j], cfg.min_depth_m)
+        angle, motion = view_change(rig, points, T[k], T[j], cfg.stereo.min_depth_m)
         if angle > cfg.keyframe_parallax_deg or motion > cfg.keyframe_motion_px:
             break
         nxt = int(j)
@@ -195,7 +195,7 @@ def view_points(rig, left: np.ndarray, right: np.ndarray, cfg):
                                 minDistance=VIEW_CORNER_SPACING_PX)
     xy = np.zeros((0, 2), np.float32) if c is None else c.reshape(-1, 2).astype(np.float32)
     # a guess needs their depth roughly: the KLT match without the slanted refinement
-    uv0, uv1, X, ok = stereo_points(rig, left, right, xy, dataclasses.replace(cfg, slanted_window=0))
+    uv0, uv1, X, ok = stereo_points(rig, left, right, xy, dataclasses.replace(cfg, stereo=dataclasses.replace(cfg.stereo, slanted_window=0)))
     n = int(ok.sum())
     z = np.zeros(n, np.float32)
     feats = Features(xy[ok], np.zeros((n, 0), np.float32), z, z.copy(), z.copy(), np.zeros(n, np.int16))

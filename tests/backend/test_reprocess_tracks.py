@@ -7,6 +7,7 @@ import pytest
 
 from stereopath.device.core.geometry import invert_pose
 from stereopath.host.backend.tracks import (
+    PairMatch,
     TrackConfig,
     TrackedKeypoints,
     build_tracks,
@@ -140,12 +141,12 @@ def test_matches_after_driving_forward_are_kept_and_wrong_ones_rejected():
         return np.isin(np.arange(n), idx[:, 0])
 
     # the matches the descriptors find at all (keypoints closer than a few pixels collapse)
-    found = kept(TrackConfig(verify_px=50.0, verify_disparity_px=50.0))
+    found = kept(TrackConfig(match=PairMatch(verify_px=50.0, verify_disparity_px=50.0)))
     ok = found & ~wrong
     new = kept(TrackConfig())
     assert new[ok].mean() > 0.97 and new[found & wrong].mean() < 0.05
     # without the depth allowance many correct matches were lost
-    old = kept(TrackConfig(verify_depth_sigmas=0.0))
+    old = kept(TrackConfig(match=PairMatch(verify_depth_sigmas=0.0)))
     assert old[ok].mean() < 0.8
 
 
@@ -180,7 +181,7 @@ def test_offline_keyframes_follow_the_viewpoint_change_not_the_estimators_keyfra
     assert kf[0] == 0 and kf[-1] == n_frames - 1 and list(kf) == asked and len(fs) == len(kf)
 
     def within(k0, k1):
-        angle, motion = view_change(rig, feats, T[k0], T[k1], cfg.min_depth_m)
+        angle, motion = view_change(rig, feats, T[k0], T[k1], cfg.stereo.min_depth_m)
         return angle <= cfg.keyframe_parallax_deg and motion <= cfg.keyframe_motion_px
 
     for k0, k1 in zip(kf[:-1], kf[1:]):

@@ -158,10 +158,10 @@ def test_real_stereo_pairs_are_matched_closer_to_the_true_disparity(data_dir, sc
 
 def test_the_track_setting_takes_off_or_a_window_size_and_rejects_others():
     from stereopath.device.errors import ConfigError
-    from stereopath.host.backend.tracks import TrackConfig
+    from stereopath.host.backend.tracks import StereoMatch, TrackConfig
 
-    assert TrackConfig().slanted_window == TrackConfig().klt_window  # by default the KLT's own window
-    assert TrackConfig(slanted_window=0).slanted_window == 0
+    assert TrackConfig().stereo.slanted_window == TrackConfig().stereo.klt_window  # by default the KLT's own window
+    assert TrackConfig(stereo=StereoMatch(slanted_window=0)).stereo.slanted_window == 0
     for bad in (3, 43, -1):
         with pytest.raises(ConfigError, match="slanted_window"):
-            TrackConfig(slanted_window=bad)
+            TrackConfig(stereo=StereoMatch(slanted_window=bad))
