@@ -17,7 +17,8 @@ import dataclasses
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -39,6 +40,8 @@ from stereopath.host.backend.ba_common import (
 )
 
 if TYPE_CHECKING:
+    import gtsam
+
     from stereopath.host.backend.imu_factors import ImuTerms
     from stereopath.host.backend.loops import Loop
 
@@ -56,11 +59,12 @@ def _keys(symbol: str, index: np.ndarray) -> list[int]:
     return ((ord(symbol) << 56) + np.asarray(index).astype(np.int64)).tolist()
 
 
-def _pose(g: Any, T: np.ndarray) -> Any:
+def _pose(g: ModuleType, T: np.ndarray) -> gtsam.Pose3:
     return g.Pose3(g.Rot3.ClosestTo(np.asarray(T[:3, :3], float)), np.asarray(T[:3, 3], float))
 
 
-def add_loop_factors(g: Any, graph: Any, X: Any, loops: list, k_sigma: float = 3.0) -> None:
+def add_loop_factors(g: ModuleType, graph: gtsam.NonlinearFactorGraph, X: Callable[[int], int], loops: list[Loop],
+                     k_sigma: float = 3.0) -> None:
     """Relative-pose constraints of verified loops (Huber at ``k_sigma`` standard deviations)."""
     nm = g.noiseModel
     for lp in loops:
@@ -88,16 +92,16 @@ class _Graph:
         self.cx1 = float(K1[0, 2])
         self.T01 = self.pose(np.asarray(rig.T_cam0_cam1, float))
         self.est_offset = estimate_offset
-        self._noise: dict[float, Any] = {}
+        self._noise: dict[float, gtsam.noiseModel.Base] = {}
         if estimate_offset:
             self.values.insert(self.C(0), self.cal1)
             sig = np.array([RIG_SIGMA, RIG_SIGMA, RIG_SIGMA, FREE_SIGMA, RIG_SIGMA])  # fx fy s u0 v0
             self.graph.add(g.PriorFactorCal3_S2(self.C(0), self.cal1, g.noiseModel.Diagonal.Sigmas(sig)))
 
-    def pose(self, T: np.ndarray) -> Any:
+    def pose(self, T: np.ndarray) -> gtsam.Pose3:
         return _pose(self.g, T)
 
-    def noise(self, weight: float) -> Any:
+    def noise(self, weight: float) -> gtsam.noiseModel.Base:
         """Robust isotropic 2D noise with sigma ``pixel_sigma / weight`` px (cached by weight); the
         robust loss turns at ``k / weight`` px whatever the sigma."""
         m = self._noise.get(weight)
@@ -110,7 +114,7 @@ class _Graph:
             self._noise[weight] = m
         return m
 
-    def gauge_noise(self, T: np.ndarray, gravity_world: np.ndarray | None) -> Any:
+    def gauge_noise(self, T: np.ndarray, gravity_world: np.ndarray | None) -> gtsam.noiseModel.Base:
         """The held pose's prior: tight, or (with the IMU) free to tilt, i.e. to rotate about the
         horizontal axes, which only gravity can fix (the visual problem is the same in any rotation)."""
         nm = self.g.noiseModel
@@ -171,7 +175,7 @@ class _Graph:
     def add_loops(self, loops: list) -> None:
         add_loop_factors(self.g, self.graph, self.X, loops)
 
-    def add_imu(self, terms: Any) -> None:
+    def add_imu(self, terms: ImuTerms) -> None:
         """Velocity and bias unknowns, CombinedImuFactors between keyframes, a prior on each chain's first bias."""
         g = self.g
         self.V, self.B = g.symbol_shorthand.V, g.symbol_shorthand.B
@@ -189,7 +193,7 @@ class _Graph:
         self.imu_keys = linked
 
 
-def _points_first(gr: _Graph) -> Any:
+def _points_first(gr: _Graph) -> gtsam.Ordering:
     """The elimination ordering of bundle adjustment: every point, then the rest (poses, velocities,
     biases, calibration).  Eliminating the points first is the Schur complement: what is left is
     the small, dense reduced camera system."""
@@ -206,7 +210,7 @@ RELATIVE_TOL_BEFORE_OUTLIERS = 1e-2
 
 
 def _optimize(gr: _Graph, max_iterations: int, on_iteration=None, relative_tol: float = RELATIVE_TOL
-              ) -> tuple[Any, int, list[float]]:
+              ) -> tuple[gtsam.Values, int, list[float]]:
     """Levenberg-Marquardt from ``gr.values``; (values, iterations, error after each iteration).
 
     Points eliminated first (:func:`_points_first`), sequential Cholesky: cheaper than multifrontal
@@ -233,7 +237,7 @@ def _optimize(gr: _Graph, max_iterations: int, on_iteration=None, relative_tol: 
     return opt.values(), it, history
 
 
-def _read(gr: _Graph, values: Any, n_poses: int, ids: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray], float]:
+def _read(gr: _Graph, values: gtsam.Values, n_poses: int, ids: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray], float]:
     T = np.array([values.atPose3(gr.X(k)).matrix() for k in range(n_poses)])
     pts = {int(i): np.asarray(values.atPoint3(gr.L(int(i))), float).copy() for i in ids}
     offset = values.atCal3_S2(gr.C(0)).px() - gr.cx1 if gr.est_offset else float(gr.cal1.px() - gr.cx1)
@@ -425,8 +429,8 @@ def _result(rig: Rig, sol: _Solved, obs: np.ndarray, rms0: float, outlier_px: fl
                     float(np.mean(rn <= outlier_px)) if len(rn) else float("nan"), history, offset)
 
 
-def odometry_factor(g: Any, X: Any, k: int, T_k: np.ndarray, T_next: np.ndarray, sigma_per_m: float = 0.01,
-                    rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4) -> Any:
+def odometry_factor(g: ModuleType, X: Callable[[int], int], k: int, T_k: np.ndarray, T_next: np.ndarray, sigma_per_m: float = 0.01,
+                    rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4) -> gtsam.BetweenFactorPose3:
     """The relative pose between poses ``k`` and ``k + 1`` as measured (``T_k``, ``T_next``), with a
     standard deviation that grows with the distance between them (drift per metre, at least
     ``min_sigma``: m and rad)."""
@@ -436,13 +440,13 @@ def odometry_factor(g: Any, X: Any, k: int, T_k: np.ndarray, T_next: np.ndarray,
     return g.BetweenFactorPose3(X(k), X(k + 1), _pose(g, rel), g.noiseModel.Diagonal.Sigmas(np.array(sig)))
 
 
-def gauge_prior(g: Any, X: Any, T: np.ndarray) -> Any:
+def gauge_prior(g: ModuleType, X: Callable[[int], int], T: np.ndarray) -> gtsam.PriorFactorPose3:
     """The first pose held where it is (the pose graph's gauge)."""
     return g.PriorFactorPose3(X(0), _pose(g, T), g.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA))
 
 
-def pose_graph_factors(g: Any, X: Any, T: np.ndarray, loops: list, sigma_per_m: float = 0.01,
-                       rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4) -> Any:
+def pose_graph_factors(g: ModuleType, X: Callable[[int], int], T: np.ndarray, loops: list[Loop], sigma_per_m: float = 0.01,
+                       rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4) -> gtsam.NonlinearFactorGraph:
     """The pose graph of poses ``T``: the first held (:func:`gauge_prior`), consecutive ones tied by
     their relative motion (:func:`odometry_factor`), and the verified ``loops``."""
     graph = g.NonlinearFactorGraph()
