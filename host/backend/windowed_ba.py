@@ -73,7 +73,8 @@ def adjust_in_windows(rig: Rig, problem: BAProblem, config: BAConfig, priors: Se
 
     T = np.asarray(problem.T_world_cam, float).reshape(-1, 4, 4).copy()
     obs = as_observations(problem.observations)
-    obs = obs[np.argsort(obs[:, 0], kind="stable")]
+    if np.any(np.diff(obs[:, 0]) < 0):  # the tracks stage writes them in keyframe order: no copy then
+        obs = obs[np.argsort(obs[:, 0], kind="stable")]
     k_of = obs[:, 0]
     points = dict(problem.points)
     offset, estimate_offset = float(problem.disparity_offset_px), config.disparity_offset
