@@ -1,18 +1,17 @@
-"""Bundle adjustment of long sessions: overlapping windows of keyframes, then the loops by a pose graph.
+"""Bundle adjustment of long sessions: overlapping windows of keyframes, tied back by their loops.
 
 A batch adjustment (:func:`stereopath.host.backend.gtsam_ba.bundle_adjust`) holds every point's
 elimination factor at once: its memory grows with the scan (about 17 MB per keyframe on the
 simulated table scan).  Up to :data:`BATCH_KEYFRAMES` keyframes the batch runs as it is (the reference);
 above, :func:`adjust_in_windows`:
 
-1. windows of :data:`WINDOW` consecutive keyframes, each overlapping the last by :data:`OVERLAP`, are
-   adjusted one after another (the same solver on the window's observations, loops, rotation priors and
-   IMU terms); the overlap's poses are held where the last window put them, so the windows join without
-   a seam, and only one window's problem is in memory at a time.  The disparity offset is estimated in
-   the first window and held after it;
-2. the loops between keyframes of different windows then close the path: a pose graph of the adjusted
-   keyframes' relative motion and the loops (:func:`~stereopath.host.backend.gtsam_ba.pose_graph`)
-   spreads each loop's correction over the path, and every point moves with its first keyframe.
+windows of :data:`WINDOW` consecutive keyframes, each overlapping the last by :data:`OVERLAP`, are
+adjusted one after another (the same solver on the window's observations, loops, rotation priors and
+IMU terms); the overlap's poses are held where the last window put them, so the windows join without a
+seam, and only one window's problem is in memory at a time.  A loop from a window's keyframe back to an
+earlier one brings that keyframe in, held where its window put it (an anchor): the loop pulls the new
+window onto the path already adjusted instead of letting the windows drift apart.  The disparity offset
+is estimated in the first window and held after it.
 
 ``on_window(n)`` after each window: a progress bar with a remaining-time estimate.
 """
@@ -22,13 +21,18 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import Rig
 from stereopath.device.errors import EstimationError
 from stereopath.host.backend.ba_common import BAConfig, BAProblem, BAResult, RotationPrior, as_observations
+
+if TYPE_CHECKING:
+    from stereopath.host.backend.imu_factors import ImuTerms
+    from stereopath.host.backend.loops import Loop
 
 log = logging.getLogger(__name__)
 
@@ -47,22 +51,46 @@ def window_starts(n_keyframes: int) -> list[int]:
     return starts
 
 
-def _imu_window(imu, s: int, e: int):
-    """The IMU terms between keyframes ``s`` and ``e`` (exclusive), renumbered from 0; None without any."""
+@dataclass(frozen=True)
+class _Window:
+    """Keyframes ``s`` to ``e`` (exclusive) and, before them, the earlier ``anchors`` a loop ties them to:
+    where each keyframe is in the window's problem."""
+
+    s: int
+    e: int
+    anchors: tuple[int, ...]
+
+    def at(self, k: int) -> int:
+        return self.anchors.index(k) if k < self.s else len(self.anchors) + k - self.s
+
+    def holds(self, k: int) -> bool:
+        return self.s <= k < self.e or k in self.anchors
+
+
+def _window(loops: list, s: int, e: int) -> _Window:
+    """The window of keyframes ``s``-``e`` with the earlier keyframes its loops reach as anchors."""
+    return _Window(s, e, tuple(sorted({lp.i for lp in loops if s <= lp.j < e and lp.i < s})))
+
+
+def _imu_window(imu: ImuTerms | None, win: _Window) -> ImuTerms | None:
+    """The IMU terms between the window's keyframes, numbered as in its problem; None without any."""
     if imu is None:
         return None
-    pims = [(i - s, j - s, p) for i, j, p in imu.pims if s <= i and j < e]
+    pims = [(win.at(i), win.at(j), p) for i, j, p in imu.pims if win.s <= i and j < win.e]
     if not pims:
         return None
-    return dataclasses.replace(imu, pims=pims, velocities=np.asarray(imu.velocities)[s:e])
+    vel = np.asarray(imu.velocities)
+    vel = np.concatenate([vel[list(win.anchors)].reshape(-1, 3), vel[win.s:win.e]])
+    return dataclasses.replace(imu, pims=pims, velocities=vel)
 
 
-def _loops_window(loops: list, s: int, e: int) -> list:
-    return [dataclasses.replace(lp, i=lp.i - s, j=lp.j - s) for lp in loops if s <= lp.i and lp.j < e]
+def _loops_window(loops: list[Loop], win: _Window) -> list[Loop]:
+    return [dataclasses.replace(lp, i=win.at(lp.i), j=win.at(lp.j)) for lp in loops
+            if win.s <= lp.j < win.e and win.holds(lp.i)]
 
 
-def _priors_window(priors: Sequence[RotationPrior], s: int, e: int) -> list[RotationPrior]:
-    return [dataclasses.replace(p, i=p.i - s, j=p.j - s) for p in priors if s <= p.i and p.j < e]
+def _priors_window(priors: Sequence[RotationPrior], win: _Window) -> list[RotationPrior]:
+    return [dataclasses.replace(p, i=win.at(p.i), j=win.at(p.j)) for p in priors if win.s <= p.i and p.j < win.e]
 
 
 def adjust_in_windows(rig: Rig, problem: BAProblem, config: BAConfig, priors: Sequence[RotationPrior] = (),
@@ -83,40 +111,45 @@ def adjust_in_windows(rig: Rig, problem: BAProblem, config: BAConfig, priors: Se
     rms0, rms1, n_obs, iters, inliers = [], [], 0, 0, []
     history: list[float] = []
     adjusted: set[int] = set()
+    loops = list(problem.loops)
     for w, s in enumerate(window_starts(len(T))):
         e = min(len(T), s + WINDOW)
+        win = _window(loops, s, e)
+        na = len(win.anchors)
         lo, hi = np.searchsorted(k_of, [s, e])
         o = obs[lo:hi].copy()
-        o[:, 0] -= s
+        o[:, 0] += na - s
         cfg = dataclasses.replace(config, disparity_offset=estimate_offset)
-        # after the first window the held overlap stays where it is (the first pose's tilt was settled there)
-        pb = BAProblem(T[s:e], points, o, _loops_window(list(problem.loops), s, e), _imu_window(problem.imu, s, e),
-                       n_fixed=problem.n_fixed if w == 0 else OVERLAP, disparity_offset_px=offset,
-                       held_may_tilt=problem.held_may_tilt and w == 0)
+        # held: the anchors, and after the first window the overlap, where the last windows put them (the
+        # first pose's tilt was settled in the first window)
+        T_w = np.concatenate([T[list(win.anchors)].reshape(-1, 4, 4), T[s:e]])
+        pb = BAProblem(T_w, points, o, _loops_window(loops, win), _imu_window(problem.imu, win),
+                       n_fixed=na + (problem.n_fixed if w == 0 else OVERLAP), disparity_offset_px=offset,
+                       held_may_tilt=problem.held_may_tilt and w == 0 and na == 0)
         try:
-            res = bundle_adjust(rig, pb, cfg, _priors_window(priors, s, e))
+            res = bundle_adjust(rig, pb, cfg, _priors_window(priors, win))
         except EstimationError as exc:  # a window with too little structure keeps its poses
             log.warning("bundle adjustment window %d (keyframes %d-%d) left as it was: %s", w, s, e - 1, exc)
             if on_window is not None:
                 on_window(1)
             continue
-        T[s:e] = res.T_world_cam
+        T[s:e] = res.T_world_cam[na:]
         points.update(res.points)
         offset, estimate_offset = res.disparity_offset_px, False
         if biases is not None and res.imu_biases is not None:
-            ok = np.isfinite(res.imu_biases[:, 0])
-            biases[s:e][ok] = res.imu_biases[ok]
+            ok = np.isfinite(res.imu_biases[na:, 0])
+            biases[s:e][ok] = res.imu_biases[na:][ok]
         first = first or res
         rms0.append((res.rms_before_px, res.n_obs))
         rms1.append((res.rms_after_px, res.n_obs))
         inliers.append((res.inlier_fraction, res.n_obs))
         n_obs, iters, history = n_obs + res.n_obs, iters + res.iterations, history + res.history
         adjusted.update(res.points)
-        log.info("bundle adjustment window %d: keyframes %d-%d, %d observations", w, s, e - 1, res.n_obs)
+        log.info("bundle adjustment window %d: keyframes %d-%d, %d observations, %d loop anchors", w, s, e - 1,
+                 res.n_obs, na)
         if on_window is not None:
             on_window(1)
     points = {i: points[i] for i in sorted(adjusted)}
-    T, points = _close_loops(T, points, obs, list(problem.loops))
 
     def mean(pairs: list[tuple[float, int]]) -> float:
         v, n = np.array([p[0] for p in pairs], float), np.array([p[1] for p in pairs], float)
@@ -130,25 +163,3 @@ def adjust_in_windows(rig: Rig, problem: BAProblem, config: BAConfig, priors: Se
     out.gravity_world = first.gravity_world
     out.pixel_sigma_px = first.pixel_sigma_px
     return out
-
-
-def _close_loops(T: np.ndarray, points: dict[int, np.ndarray], obs: np.ndarray, loops: list
-                 ) -> tuple[np.ndarray, dict[int, np.ndarray]]:
-    """The adjusted keyframes with the loops between windows closed by a pose graph; each point moved with
-    the correction of the first keyframe that observes it."""
-    from stereopath.host.backend.gtsam_ba import pose_graph
-
-    across = [lp for lp in loops if lp.j - lp.i >= WINDOW - OVERLAP]
-    if not across:
-        return T, points
-    T_new = pose_graph(T, loops)
-    C = np.einsum("nij,njk->nik", T_new, np.array([invert_pose(t) for t in T]))
-    ids, first = np.unique(obs[:, 1].astype(np.int64), return_index=True)
-    kf = obs[first, 0].astype(np.int64)
-    moved = {}
-    for i, k in zip(ids.tolist(), kf.tolist()):
-        x = points.get(i)
-        if x is not None:
-            moved[i] = C[k, :3, :3] @ x + C[k, :3, 3]
-    log.info("bundle adjustment windows joined: %d loops between windows closed by the pose graph", len(across))
-    return T_new, {**points, **moved}

@@ -60,15 +60,30 @@ def test_windows_recover_the_poses_a_batch_recovers():
     assert np.median([np.linalg.norm(res.points[i] - pts[i]) for i in res.points]) < 5e-3
 
 
-def test_a_loop_between_windows_is_closed_by_the_pose_graph():
-    """A path whose last keyframe drifted: the windows keep the drift (no window holds both ends), the
-    loop between the first and last keyframes moves the end onto the measured pose."""
+def test_a_loop_back_to_an_earlier_window_holds_that_keyframe_in_the_window(monkeypatch):
+    """The window holding a loop's later keyframe gets the earlier keyframe as a held anchor, the loop
+    between them, and everything else renumbered after it; the windows before it get neither."""
+    from stereopath.host.backend import gtsam_ba
+
     rng = np.random.default_rng(12)
-    rig, T_true, pts, obs = _corridor(rng, n_pts=100)
-    T_adj = T_true.copy()
-    drift = make_pose(np.eye(3), [0.0, 0.0, 0.02])
-    points = dict(pts)
-    loop = Loop(0, 39, invert_pose(T_true[0]) @ T_true[39], 100, 100, 1e-5, 1e-5, 0.0)
-    T_adj[20:] = np.einsum("ij,njk->nik", drift, T_adj[20:])
-    T_new, _ = windowed_ba._close_loops(T_adj, points, obs, [loop])
-    assert np.linalg.norm(T_new[39][:3, 3] - T_true[39][:3, 3]) < 2e-3 < np.linalg.norm(T_adj[39][:3, 3] - T_true[39][:3, 3])
+    rig, T_true, pts, obs = _corridor(rng, n_pts=300)
+    loop = Loop(2, 39, invert_pose(T_true[2]) @ T_true[39], 100, 100, 1e-4, 1e-4, 0.0)
+    seen = []
+    solve = gtsam_ba.bundle_adjust
+
+    def spy(rig, problem, config, priors=(), on_iteration=None):
+        seen.append(problem)
+        return solve(rig, problem, config, priors, on_iteration)
+
+    monkeypatch.setattr(gtsam_ba, "bundle_adjust", spy)
+    res = windowed_ba.adjust_in_windows(rig, BAProblem(T_true, pts, obs, [loop]), BAConfig(disparity_offset=False))
+    starts = windowed_ba.window_starts(40)
+    assert len(seen) == len(starts)
+    for pb, s in zip(seen, starts):
+        if s + windowed_ba.WINDOW <= 39:  # a window without the loop's later keyframe
+            assert not pb.loops and len(pb.T_world_cam) == windowed_ba.WINDOW
+            continue
+        assert len(pb.T_world_cam) == windowed_ba.WINDOW + 1 and np.allclose(pb.T_world_cam[0], T_true[2], atol=2e-3)
+        assert pb.n_fixed == 1 + windowed_ba.OVERLAP and [(lp.i, lp.j) for lp in pb.loops] == [(0, 1 + 39 - s)]
+        assert pb.observations[:, 0].min() >= 1  # the anchor has no observations of its own
+    assert np.abs(res.T_world_cam[2] - T_true[2]).max() < 2e-3
