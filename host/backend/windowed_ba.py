@@ -37,8 +37,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 BATCH_KEYFRAMES = 80  # up to this many keyframes: one batch adjustment
-WINDOW = 24  # keyframes per window above it ...
-OVERLAP = 8  # ... of which this many are the last window's, held
+WINDOW = 48  # keyframes per window above it ...
+OVERLAP = 24  # ... of which this many are the last window's, held
 
 
 def window_starts(n_keyframes: int) -> list[int]:

@@ -41,7 +41,14 @@ def test_windows_cover_every_keyframe_and_overlap(n):
     assert all(b - a <= W - O for a, b in zip(starts, starts[1:]))  # each window overlaps the last by OVERLAP or more
 
 
-def test_windows_recover_the_poses_a_batch_recovers():
+@pytest.fixture
+def small_windows(monkeypatch):
+    """Windows of 24 keyframes overlapping by 8: several on a 40-keyframe problem."""
+    monkeypatch.setattr(windowed_ba, "WINDOW", 24)
+    monkeypatch.setattr(windowed_ba, "OVERLAP", 8)
+
+
+def test_windows_recover_the_poses_a_batch_recovers(small_windows):
     rng = np.random.default_rng(11)
     rig, T_true, pts, obs = _corridor(rng)
     T_noisy, pts_noisy = _perturbed(rng, T_true, pts, 0.002, 0.005, 0.01)
@@ -60,7 +67,7 @@ def test_windows_recover_the_poses_a_batch_recovers():
     assert np.median([np.linalg.norm(res.points[i] - pts[i]) for i in res.points]) < 5e-3
 
 
-def test_a_loop_back_to_an_earlier_window_holds_that_keyframe_in_the_window(monkeypatch):
+def test_a_loop_back_to_an_earlier_window_holds_that_keyframe_in_the_window(small_windows, monkeypatch):
     """The window holding a loop's later keyframe gets the earlier keyframe as a held anchor, the loop
     between them, and everything else renumbered after it; the windows before it get neither."""
     from stereopath.host.backend import gtsam_ba
