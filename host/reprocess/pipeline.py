@@ -139,6 +139,8 @@ class _Runner:
                 return data
 
         def compute() -> dict[str, np.ndarray]:
+            if self.force:  # --force: nothing of an earlier run is read back, partial results neither
+                shutil.rmtree(self.parts_dir(name), ignore_errors=True)
             inputs = StageInputs(self.seq if name == "estimate" else self.matched, self.progress,
                                  {d: self.get(d) for d in _DEPENDS[name]}, memory=self.memory,
                                  parts=self.parts_dir(name) / self.keys[name])
