@@ -195,7 +195,8 @@ def view_points(rig, left: np.ndarray, right: np.ndarray, cfg):
                                 minDistance=VIEW_CORNER_SPACING_PX)
     xy = np.zeros((0, 2), np.float32) if c is None else c.reshape(-1, 2).astype(np.float32)
     # a guess needs their depth roughly: the KLT match without the slanted refinement
-    uv0, uv1, X, ok = stereo_points(rig, left, right, xy, dataclasses.replace(cfg, stereo=dataclasses.replace(cfg.stereo, slanted_window=0)))
+    no_slant = dataclasses.replace(cfg, stereo=dataclasses.replace(cfg.stereo, slanted_window=0))
+    uv0, uv1, X, ok = stereo_points(rig, left, right, xy, no_slant)
     n = int(ok.sum())
     z = np.zeros(n, np.float32)
     feats = Features(xy[ok], np.zeros((n, 0), np.float32), z, z.copy(), z.copy(), np.zeros(n, np.int16))

@@ -8,7 +8,6 @@ import pytest
 from stereopath.device.core.geometry import invert_pose, make_pose, so3_exp
 from stereopath.device.core.stereo import project
 from stereopath.device.errors import EstimationError, ImuMismatchError
-from stereopath.host.backend import gtsam_ba
 from stereopath.host.backend.imu_factors import ImuNoise, imu_terms
 from tests.backend.ba_support import adjust
 
