@@ -18,9 +18,10 @@ import logging
 import shutil
 import time
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -48,6 +49,9 @@ from stereopath.host.reprocess.store import (  # noqa: F401  (re-exported)
     stored_stats,
 )
 
+if TYPE_CHECKING:
+    from stereopath.host.mapping.mapper import MapConfig
+
 log = logging.getLogger(__name__)
 
 _ARRAY_STAGES = {"estimate": stage_estimate, "tracks": stage_tracks, "ba": stage_ba}
@@ -64,7 +68,7 @@ class ReprocessResult:
     files: list[str]
 
 
-def _one_blas_thread() -> Any:
+def _one_blas_thread() -> AbstractContextManager[object]:
     """A context with every BLAS (NumPy's, SciPy's and OpenCV's OpenBLAS) limited to one thread."""
     import cv2  # noqa: F401 - each library brings its own BLAS, which must be loaded to be limited
     import scipy.linalg  # noqa: F401
@@ -151,7 +155,7 @@ class _Runner:
         self.cache[name] = self.run_stage(name, [path.name], compute)
         return self.cache[name]
 
-    def map(self, map_cfg: Any, final: Trajectory, label: str) -> dict[str, Any] | None:
+    def map(self, map_cfg: MapConfig | str, final: Trajectory, label: str) -> dict[str, Any] | None:
         """Run or reuse the map stage; its map.json statistics (or the error)."""
         self.settings["map"] = stage_map.settings(map_cfg)
         self.keys["map"] = stage_key("map", PIPELINE_VERSION, self.keys["ba"], self.settings["map"])

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from stereopath.device.core.rig import Rig
 from stereopath.device.errors import EstimationError, ImuMismatchError
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
 from stereopath.host.progress import Bar, progress_bar
@@ -182,7 +183,7 @@ def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.
                 yield int(i), np.vstack(rows)
 
 
-def refine_frame(rig: Any, T_world_cam: np.ndarray, points: dict[int, np.ndarray], rows: np.ndarray,
+def refine_frame(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarray], rows: np.ndarray,
                  huber_px: float, disparity_offset_px: float, min_obs: int = 6) -> np.ndarray | None:
     """One frame's pose moved to fit the fixed adjusted ``points`` (its observation ``rows``); None
     with fewer than ``min_obs`` rows.  Each frame is independent once the points are fixed, so this is

@@ -12,19 +12,22 @@ import dataclasses
 import json
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from stereopath.host.reprocess.config import StageInputs
+
+if TYPE_CHECKING:
+    from stereopath.host.mapping.mapper import MapConfig
 
 NAME = "map"
 MODEL_FILES = ("mesh.ply", "cloud.ply", "model.png", "map.json")
 
 
-def settings(config: Any) -> dict[str, Any]:
+def settings(config: MapConfig | str) -> dict[str, Any]:
     return {"preset": config} if isinstance(config, str) else dataclasses.asdict(config)
 
 
-def run(config: Any, inputs: StageInputs) -> list[str]:
+def run(config: MapConfig | str, inputs: StageInputs) -> list[str]:
     from stereopath.host.mapping.mapper import map_sequence
 
     dst = Path(inputs.extra["dst"])
