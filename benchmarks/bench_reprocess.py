@@ -83,7 +83,7 @@ def ba_stage(seq, stages: Path, preset):
     return ate, wall, cpu, json.loads(str(out["stats"]))
 
 
-VARIANTS = {"gtsam": {"ba_imu": False}, "gtsam+imu": {"ba_imu": True}}
+VARIANTS = {"gtsam": False, "gtsam+imu": True}  # variant -> IMU factors
 
 
 def compare_solvers(name: str, seq, stages: Path, base, runs: int, ate_on: float, unit: float,
@@ -93,7 +93,7 @@ def compare_solvers(name: str, seq, stages: Path, base, runs: int, ate_on: float
     stats = {}
     for _ in range(runs):
         for v in variants:
-            ate, wall, cpu, st = ba_stage(seq, stages, dataclasses.replace(base, **VARIANTS[v]))
+            ate, wall, cpu, st = ba_stage(seq, stages, dataclasses.replace(base, ba=dataclasses.replace(base.ba, imu=VARIANTS[v])))
             fig[v]["ate"].append(ate)
             fig[v]["wall"].append(wall)
             fig[v]["cpu"].append(cpu)
@@ -117,7 +117,10 @@ def compare_solvers(name: str, seq, stages: Path, base, runs: int, ate_on: float
 
 # the earlier offline keyframes and match check (issue 13): the estimator's keyframes,
 # a keyframe match verified against its stereo point's position only (no depth allowance)
-TRACKS_BEFORE = {"keyframe_parallax_deg": 0.0, "verify_depth_sigmas": 0.0}
+def tracks_before(tracks):
+    """The earlier offline keyframes and match check of a track config."""
+    return dataclasses.replace(tracks, keyframe_parallax_deg=0.0,
+                               match=dataclasses.replace(tracks.match, verify_depth_sigmas=0.0))
 
 
 def compare_tracks(name: str, seq, tmp: Path, base, ate_on: float, unit: float, unit_name: str, runs: int) -> None:
@@ -126,7 +129,7 @@ def compare_tracks(name: str, seq, tmp: Path, base, ate_on: float, unit: float, 
     import json
     import shutil
 
-    variants = {"before": dataclasses.replace(base, tracks=dataclasses.replace(base.tracks, **TRACKS_BEFORE)),
+    variants = {"before": dataclasses.replace(base, tracks=tracks_before(base.tracks)),
                 "after": base}
     fig = {v: {"ate": [], "cpu": []} for v in variants}
     stats = {}
@@ -367,7 +370,7 @@ def sim_figures(tmp: Path, args, base, figures: dict):
 
 def ablations(tmp: Path, base, sequences) -> None:
     variants = {
-        "no disparity offset": dataclasses.replace(base, ba_disparity_offset=False),
+        "no disparity offset": dataclasses.replace(base, ba=dataclasses.replace(base.ba, disparity_offset=False)),
         "no frame refinement": dataclasses.replace(base, refine_frames=False),
         "quick preset (no affine views)": REPROCESS_PRESETS["quick"],
     }

@@ -11,12 +11,63 @@ Pure computation: no I/O.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from stereopath.device.core.config import check_ranges, ranged
 from stereopath.device.core.geometry import invert_pose, so3_exp, so3_log
 from stereopath.device.core.rig import Rig
-from stereopath.device.errors import EstimationError
+from stereopath.device.errors import ConfigError, EstimationError
+
+if TYPE_CHECKING:
+    from stereopath.host.backend.imu_factors import ImuTerms
+    from stereopath.host.backend.loops import Loop
+
+LOSSES = ("huber", "cauchy", "linear")
+MIN_POSES_PER_POINT = 2  # a point seen from fewer poses constrains nothing and is left out
+# Levenberg-Marquardt stops when an iteration lowers the cost by less than this fraction (the last such
+# steps move the keyframes by micrometres)
+RELATIVE_TOL = 1e-4
+
+
+@dataclass(frozen=True)
+class BAConfig:
+    """Settings of the keyframe bundle adjustment (:func:`stereopath.host.backend.gtsam_ba.bundle_adjust`)."""
+
+    loss: str = "huber"  # robust loss of the reprojection error: huber, cauchy or linear
+    robust_px: float = ranged(1.0, 0.01, 100.0)  # where the robust loss turns (pixels)
+    max_iterations: int = ranged(30, 1, 10_000)  # Levenberg-Marquardt iterations per solve
+    outlier_px: float = ranged(3.0, 0.1, 1000.0)  # residuals above this are dropped between solves ...
+    outlier_rounds: int = ranged(1, 0, 100)  # ... this many times
+    disparity_offset: bool = True  # estimate a constant disparity error (the right principal point)
+    disparity_offset_min_px: float = ranged(0.02, 0.0, 100.0)  # smaller estimates are noise: not applied
+    # IMU preintegration between keyframes (the reprocessing's ba stage, when the session's IMU fits the path)
+    imu: bool = True
+    relative_tol: float = ranged(RELATIVE_TOL, 0.0, 1.0)  # the last solve's stopping rule
+
+    def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise ConfigError(f"ba.loss = {self.loss!r}; known: {', '.join(LOSSES)}")
+        check_ranges(self, "ba.")
+
+
+@dataclass
+class BAProblem:
+    """What a bundle adjustment refines: poses ``T_world_cam`` (K, 4, 4), ``points`` {id: XYZ world} and the
+    observation rows linking them, plus verified ``loops`` and preintegrated ``imu`` terms between
+    consecutive poses; the first ``n_fixed`` poses are held (the gauge; with IMU terms free to tilt,
+    which gravity then fixes, unless ``held_may_tilt`` is False), and ``disparity_offset_px`` is the
+    right principal point's offset to start from."""
+
+    T_world_cam: np.ndarray
+    points: dict[int, np.ndarray]
+    observations: np.ndarray
+    loops: list[Loop] = field(default_factory=list)
+    imu: ImuTerms | None = None
+    n_fixed: int = 1
+    disparity_offset_px: float = 0.0
+    held_may_tilt: bool = True
 
 
 @dataclass

@@ -13,14 +13,24 @@ computation.  See docs/architecture.md, "Reprocessing".
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-from typing import Any
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from stereopath.device.core.rig import Rig
 from stereopath.device.errors import ConfigError
+from stereopath.host.backend.gtsam_lib import import_gtsam  # noqa: F401  (re-exported)
 from stereopath.host.backend.ba_common import (
+    LOSSES,
+    MIN_POSES_PER_POINT,
+    RELATIVE_TOL,
+    BAConfig,
+    BAProblem,
     BAResult,
     RotationPrior,
     check_problem,
@@ -29,9 +39,14 @@ from stereopath.host.backend.ba_common import (
     select_observations,
 )
 
+if TYPE_CHECKING:
+    import gtsam
+
+    from stereopath.host.backend.imu_factors import ImuTerms
+    from stereopath.host.backend.loops import Loop
+
 log = logging.getLogger(__name__)
 
-LOSSES = ("huber", "cauchy", "linear")
 GAUGE_SIGMA = 1e-6  # rad and m: the held poses
 RIG_SIGMA = 1e-5  # rad and m: right-camera pose = left pose x rig extrinsics (disparity offset only)
 FREE_SIGMA = 1e3  # an unconstrained direction of a prior
@@ -39,25 +54,17 @@ TILT_SIGMA = 0.1  # rad: the held pose's tilt when the IMU's gravity can fix it
 OFFSET_SIGNIFICANCE = 3.0  # standard errors an estimated disparity offset must exceed to be applied
 
 
-def import_gtsam() -> Any:
-    """The ``gtsam`` module, or a ConfigError saying how to install it."""
-    try:
-        import gtsam
-    except ImportError as exc:  # pragma: no cover - depends on the installation
-        raise ConfigError("the offline back end needs GTSAM: pip install 'stereopath[host]' (gtsam>=4.3)") from exc
-    return gtsam
-
-
 def _keys(symbol: str, index: np.ndarray) -> list[int]:
     """GTSAM symbol keys (``symbol_shorthand``) of many indices at once: char << 56 | index."""
     return ((ord(symbol) << 56) + np.asarray(index).astype(np.int64)).tolist()
 
 
-def _pose(g: Any, T: np.ndarray) -> Any:
+def _pose(g: ModuleType, T: np.ndarray) -> gtsam.Pose3:
     return g.Pose3(g.Rot3.ClosestTo(np.asarray(T[:3, :3], float)), np.asarray(T[:3, 3], float))
 
 
-def add_loop_factors(g: Any, graph: Any, X: Any, loops: list, k_sigma: float = 3.0) -> None:
+def add_loop_factors(g: ModuleType, graph: gtsam.NonlinearFactorGraph, X: Callable[[int], int], loops: list[Loop],
+                     k_sigma: float = 3.0) -> None:
     """Relative-pose constraints of verified loops (Huber at ``k_sigma`` standard deviations)."""
     nm = g.noiseModel
     for lp in loops:
@@ -85,16 +92,16 @@ class _Graph:
         self.cx1 = float(K1[0, 2])
         self.T01 = self.pose(np.asarray(rig.T_cam0_cam1, float))
         self.est_offset = estimate_offset
-        self._noise: dict[float, Any] = {}
+        self._noise: dict[float, gtsam.noiseModel.Base] = {}
         if estimate_offset:
             self.values.insert(self.C(0), self.cal1)
             sig = np.array([RIG_SIGMA, RIG_SIGMA, RIG_SIGMA, FREE_SIGMA, RIG_SIGMA])  # fx fy s u0 v0
             self.graph.add(g.PriorFactorCal3_S2(self.C(0), self.cal1, g.noiseModel.Diagonal.Sigmas(sig)))
 
-    def pose(self, T: np.ndarray) -> Any:
+    def pose(self, T: np.ndarray) -> gtsam.Pose3:
         return _pose(self.g, T)
 
-    def noise(self, weight: float) -> Any:
+    def noise(self, weight: float) -> gtsam.noiseModel.Base:
         """Robust isotropic 2D noise with sigma ``pixel_sigma / weight`` px (cached by weight); the
         robust loss turns at ``k / weight`` px whatever the sigma."""
         m = self._noise.get(weight)
@@ -107,7 +114,7 @@ class _Graph:
             self._noise[weight] = m
         return m
 
-    def gauge_noise(self, T: np.ndarray, gravity_world: np.ndarray | None) -> Any:
+    def gauge_noise(self, T: np.ndarray, gravity_world: np.ndarray | None) -> gtsam.noiseModel.Base:
         """The held pose's prior: tight, or (with the IMU) free to tilt, i.e. to rotate about the
         horizontal axes, which only gravity can fix (the visual problem is the same in any rotation)."""
         nm = self.g.noiseModel
@@ -168,7 +175,7 @@ class _Graph:
     def add_loops(self, loops: list) -> None:
         add_loop_factors(self.g, self.graph, self.X, loops)
 
-    def add_imu(self, terms: Any) -> None:
+    def add_imu(self, terms: ImuTerms) -> None:
         """Velocity and bias unknowns, CombinedImuFactors between keyframes, a prior on each chain's first bias."""
         g = self.g
         self.V, self.B = g.symbol_shorthand.V, g.symbol_shorthand.B
@@ -186,7 +193,7 @@ class _Graph:
         self.imu_keys = linked
 
 
-def _points_first(gr: _Graph) -> Any:
+def _points_first(gr: _Graph) -> gtsam.Ordering:
     """The elimination ordering of bundle adjustment: every point, then the rest (poses, velocities,
     biases, calibration).  Eliminating the points first is the Schur complement: what is left is
     the small, dense reduced camera system."""
@@ -197,15 +204,13 @@ def _points_first(gr: _Graph) -> Any:
     return gr.g.Ordering(keys[np.argsort(rank, kind="stable")].tolist())
 
 
-# Levenberg-Marquardt stops when an iteration lowers the cost by less than this fraction (the
-# last such steps move the keyframes by micrometres); a solve that is followed by an outlier
-# round only has to bring the residuals to where the 3 px selection is settled
-RELATIVE_TOL = 1e-4
+# a solve that is followed by an outlier round only has to bring the residuals to where the 3 px
+# selection is settled (the last solve stops at BAConfig.relative_tol)
 RELATIVE_TOL_BEFORE_OUTLIERS = 1e-2
 
 
 def _optimize(gr: _Graph, max_iterations: int, on_iteration=None, relative_tol: float = RELATIVE_TOL
-              ) -> tuple[Any, int, list[float]]:
+              ) -> tuple[gtsam.Values, int, list[float]]:
     """Levenberg-Marquardt from ``gr.values``; (values, iterations, error after each iteration).
 
     Points eliminated first (:func:`_points_first`), sequential Cholesky: cheaper than multifrontal
@@ -232,120 +237,167 @@ def _optimize(gr: _Graph, max_iterations: int, on_iteration=None, relative_tol: 
     return opt.values(), it, history
 
 
-def _read(gr: _Graph, values: Any, n_poses: int, ids: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray], float]:
+def _read(gr: _Graph, values: gtsam.Values, n_poses: int, ids: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray], float]:
     T = np.array([values.atPose3(gr.X(k)).matrix() for k in range(n_poses)])
     pts = {int(i): np.asarray(values.atPoint3(gr.L(int(i))), float).copy() for i in ids}
     offset = values.atCal3_S2(gr.C(0)).px() - gr.cx1 if gr.est_offset else float(gr.cal1.px() - gr.cx1)
     return T, pts, float(offset)
 
 
-def _solve(rig: Rig, T: np.ndarray, points: dict[int, np.ndarray], obs: np.ndarray, held: np.ndarray,
-           priors: list[RotationPrior], opts: dict[str, Any], offset_px: float, estimate_offset: bool,
-           on_iteration=None):
-    # opts: loss, huber_px, max_iterations, loops
-    """One batch solve: (poses, points, offset, iterations, history)."""
-    gr = _Graph(rig, opts["loss"], opts["huber_px"], offset_px, estimate_offset, opts.get("pixel_sigma", 1.0))
-    ids = np.unique(obs[:, 1].astype(np.int64))
-    imu = opts.get("imu")
-    gr.add_poses(T, held, None if imu is None else imu.gravity_world)
-    gr.add_points(ids, np.array([points[int(i)] for i in ids]))
-    gr.add_observations(obs)
-    gr.add_rotation_priors(priors)
-    gr.add_loops(opts.get("loops") or [])
+@dataclass
+class _Solve:
+    """One batch solve's problem: poses (the first ``held`` ones tied by the gauge prior), points,
+    observation rows, rotation priors, loops and IMU terms, and the disparity offset (estimated or held)."""
+
+    T: np.ndarray
+    points: dict[int, np.ndarray]
+    obs: np.ndarray
+    held: np.ndarray
+    priors: list[RotationPrior]
+    loops: list[Loop]
+    imu: ImuTerms | None
+    offset_px: float
+    estimate_offset: bool
+    held_may_tilt: bool = True
+
+
+@dataclass
+class _Solved:
+    """What one batch solve found (the IMU's gravity and biases only with IMU terms; the offset's
+    standard error only when asked for and computable)."""
+
+    T: np.ndarray
+    points: dict[int, np.ndarray]
+    offset_px: float
+    iterations: int
+    history: list[float]
+    offset_sigma_px: float | None = None
+    gravity_world: np.ndarray | None = None
+    imu_biases: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class _Numerics:
+    """How a solve weighs and stops: the robust loss, the pixel noise, the iteration limit and tolerance,
+    and the offset change above which the offset's standard error is computed (None: never)."""
+
+    loss: str
+    robust_px: float
+    max_iterations: int
+    pixel_sigma: float = 1.0
+    tol: float = RELATIVE_TOL
+    offset_check_px: float | None = None
+
+
+def _solve(rig: Rig, pb: _Solve, num: _Numerics, on_iteration: Callable[[int], object] | None = None) -> _Solved:
+    """One batch solve (Levenberg-Marquardt from the problem's values)."""
+    gr = _Graph(rig, num.loss, num.robust_px, pb.offset_px, pb.estimate_offset, num.pixel_sigma)
+    ids = np.unique(pb.obs[:, 1].astype(np.int64))
+    imu = pb.imu
+    gr.add_poses(pb.T, pb.held, None if imu is None or not pb.held_may_tilt else imu.gravity_world)
+    gr.add_points(ids, np.array([pb.points[int(i)] for i in ids]))
+    gr.add_observations(pb.obs)
+    gr.add_rotation_priors(pb.priors)
+    gr.add_loops(pb.loops)
     if imu is not None:
         gr.add_imu(imu)
-    values, iters, history = _optimize(gr, opts["max_iterations"], on_iteration, opts.get("tol", RELATIVE_TOL))
-    T_new, pts_new, offset = _read(gr, values, len(T), ids)
-    check = opts.pop("offset_check_px", None)
-    if gr.est_offset and check is not None and abs(offset - offset_px) >= check:
+    values, iters, history = _optimize(gr, num.max_iterations, on_iteration, num.tol)
+    T_new, pts_new, offset = _read(gr, values, len(pb.T), ids)
+    out = _Solved(T_new, pts_new, offset, iters, history)
+    check = num.offset_check_px
+    if gr.est_offset and check is not None and abs(offset - pb.offset_px) >= check:
         # the offset's standard error (only where it could be applied: the marginal costs about one solve)
         try:
             cov = gr.g.Marginals(gr.graph, values).marginalCovariance(gr.C(0))
-            opts["offset_sigma_px"] = float(np.sqrt(cov[3, 3]))
+            out.offset_sigma_px = float(np.sqrt(cov[3, 3]))
         except RuntimeError as e:  # an indeterminate system (a point at the limit of its parallax):
             # Levenberg-Marquardt's damping solved it, the plain marginal cannot; the threshold decides
             log.info("disparity offset: no standard error (%s)", str(e).strip().splitlines()[0])
     if imu is not None:
         # the held pose tilted to agree with gravity: move the whole solution back onto it (a rigid
         # motion, which changes neither the path's shape nor any residual) so the world stays put
-        A = T[0] @ np.linalg.inv(T_new[0])
-        T_new = np.einsum("ij,njk->nik", A, T_new)
-        pts_new = {i: A[:3, :3] @ x + A[:3, 3] for i, x in pts_new.items()}
-        opts["gravity_world"] = A[:3, :3] @ np.asarray(imu.gravity_world, float)  # where the solve put it
-        biases = np.full((len(T), 6), np.nan)
+        A = pb.T[0] @ np.linalg.inv(T_new[0])
+        out.T = np.einsum("ij,njk->nik", A, T_new)
+        out.points = {i: A[:3, :3] @ x + A[:3, 3] for i, x in pts_new.items()}
+        out.gravity_world = A[:3, :3] @ np.asarray(imu.gravity_world, float)  # where the solve put it
+        biases = np.full((len(pb.T), 6), np.nan)
         for k in gr.imu_keys:
             biases[k] = values.atConstantBias(gr.B(k)).vector()
-        opts["imu_biases"] = biases
-    return T_new, pts_new, offset, iters, history
+        out.imu_biases = biases
+    return out
 
 
-def bundle_adjust(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarray], observations: np.ndarray,
-                  huber_px: float = 1.0, loss: str = "huber", min_keyframes_per_point: int = 2,
-                  max_iterations: int = 50, n_fixed: int = 1, rotation_priors: list[RotationPrior] | None = None,
-                  outlier_px: float = 3.0, outlier_rounds: int = 1, estimate_disparity_offset: bool = False,
-                  disparity_offset_px: float = 0.0, disparity_offset_min_px: float = 0.0,
-                  on_iteration=None, loops: list | None = None, imu: Any = None,
-                  relative_tol: float = RELATIVE_TOL) -> BAResult:
-    """Refine ``T_world_cam`` (K, 4, 4) and ``points`` {id: XYZ world} on ``observations`` (N, 5|6).
+def bundle_adjust(rig: Rig, problem: BAProblem, config: BAConfig = BAConfig(),
+                  priors: Sequence[RotationPrior] = (), on_iteration: Callable[[int], object] | None = None) -> BAResult:
+    """Refine the problem's poses ``T_world_cam`` (K, 4, 4) and ``points`` {id: XYZ world} on its
+    ``observations`` (N, 5|6), with its loops and IMU terms (see :class:`BAProblem`) and the rotation
+    ``priors``.
 
-    ``huber_px`` is the scale of the robust ``loss`` (pixels).  With ``outlier_rounds > 0`` the
-    problem is solved, observations with a residual above ``outlier_px`` are dropped, and solved
-    again (that many times).  ``on_iteration(1)`` is called after every LM iteration.  ``loops``:
-    verified loop closures (:class:`stereopath.host.backend.loops.Loop`, pose indices ``i``,
-    ``j``) added as relative-pose factors.  ``imu``: preintegrated IMU between consecutive poses
-    (:class:`stereopath.host.backend.imu_factors.ImuTerms`); the biases come back in
-    ``imu_biases``.  ``relative_tol``: the final solve stops when an iteration lowers the cost by
-    less than this fraction.
+    ``config.robust_px`` is the scale of the robust ``config.loss`` (pixels).  With
+    ``config.outlier_rounds > 0`` the problem is solved, observations with a residual above
+    ``config.outlier_px`` are dropped, and solved again (that many times).  ``on_iteration(1)`` is
+    called after every LM iteration.  Loops (:class:`stereopath.host.backend.loops.Loop`, pose
+    indices ``i``, ``j``) are added as relative-pose factors; with IMU terms
+    (:class:`stereopath.host.backend.imu_factors.ImuTerms`) the biases come back in ``imu_biases``.
     """
-    if loss not in LOSSES:
-        raise ConfigError(f"loss = {loss!r}; known: {', '.join(LOSSES)}")
-    T, obs = check_problem(T_world_cam, observations, points, min_keyframes_per_point)
-    held = np.arange(len(T)) < max(n_fixed, 0)
-    priors = list(rotation_priors or [])
-    opts = {"loss": loss, "huber_px": huber_px, "max_iterations": max_iterations, "loops": list(loops or []),
-            "imu": imu}
-    rms0 = rms_px(*reprojection_residuals(rig, T, points, obs, disparity_offset_px))
-    offset, est = float(disparity_offset_px), bool(estimate_disparity_offset) and bool(np.any(obs[:, 2] == 1))
-    rounds = max(outlier_rounds, 0)
-    opts["tol"] = RELATIVE_TOL_BEFORE_OUTLIERS if rounds else relative_tol
-    opts["offset_check_px"] = disparity_offset_min_px
-    T, pts, new_offset, iters, history = _solve(rig, T, points, obs, held, priors, opts, offset, est, on_iteration)
-    resolve = opts["tol"] != relative_tol  # the last solve stopped early: solve again unless a round does
-    sigma = opts.pop("offset_sigma_px", 0.0)
-    if est and abs(new_offset - offset) < max(disparity_offset_min_px, OFFSET_SIGNIFICANCE * sigma):
+    T, obs = check_problem(problem.T_world_cam, problem.observations, problem.points, MIN_POSES_PER_POINT)
+    held = np.arange(len(T)) < max(problem.n_fixed, 0)
+    loops, imu = list(problem.loops), problem.imu
+    rms0 = rms_px(*reprojection_residuals(rig, T, problem.points, obs, problem.disparity_offset_px))
+    offset = float(problem.disparity_offset_px)
+    est = bool(config.disparity_offset) and bool(np.any(obs[:, 2] == 1))
+    rounds = config.outlier_rounds
+    num = _Numerics(config.loss, config.robust_px, config.max_iterations,
+                    tol=RELATIVE_TOL_BEFORE_OUTLIERS if rounds else config.relative_tol,
+                    offset_check_px=config.disparity_offset_min_px)
+    pb = _Solve(T, problem.points, obs, held, list(priors), loops, imu, offset, est, problem.held_may_tilt)
+    sol = _solve(rig, pb, num, on_iteration)
+    num = dataclasses.replace(num, offset_check_px=None)  # the offset's standard error: after the first solve only
+    iters, history = sol.iterations, sol.history
+    resolve = num.tol != config.relative_tol  # the last solve stopped early: solve again unless a round does
+    sigma = sol.offset_sigma_px or 0.0
+    if est and abs(sol.offset_px - offset) < max(config.disparity_offset_min_px, OFFSET_SIGNIFICANCE * sigma):
         log.info("disparity offset %+.4f px (standard error %.4f px) below %.3f px or %g standard errors: not applied",
-                 new_offset - offset, sigma, disparity_offset_min_px, OFFSET_SIGNIFICANCE)
+                 sol.offset_px - offset, sigma, config.disparity_offset_min_px, OFFSET_SIGNIFICANCE)
         est, resolve = False, True
     else:
-        offset = new_offset
-    if imu is not None or opts["loops"] or priors:
+        offset = sol.offset_px
+    if imu is not None or loops or pb.priors:
         # the observations' noise as measured, so that they weigh against the IMU, loops and priors
         # as they should (it changes nothing in a problem of observations alone)
         n_unknowns = 3 * len(np.unique(obs[:, 1])) + 6 * int(np.sum(~held))
-        opts["pixel_sigma"] = pixel_noise_px(*reprojection_residuals(rig, T, pts, obs, offset), outlier_px, n_unknowns)
-        log.info("bundle adjustment: pixel noise %.3f px (robust spread of the residuals)", opts["pixel_sigma"])
+        num = dataclasses.replace(num, pixel_sigma=pixel_noise_px(
+            *reprojection_residuals(rig, sol.T, sol.points, obs, offset), config.outlier_px, n_unknowns))
+        log.info("bundle adjustment: pixel noise %.3f px (robust spread of the residuals)", num.pixel_sigma)
         resolve = resolve or rounds == 0
     for k in range(rounds):
-        r, front = reprojection_residuals(rig, T, pts, obs, offset)
-        bad = ~front | (np.linalg.norm(r, axis=1) > outlier_px)
-        keep = select_observations(obs[~bad], pts, min_keyframes_per_point)
+        r, front = reprojection_residuals(rig, sol.T, sol.points, obs, offset)
+        bad = ~front | (np.linalg.norm(r, axis=1) > config.outlier_px)
+        keep = select_observations(obs[~bad], sol.points, MIN_POSES_PER_POINT)
         if not bad.any() or len(np.unique(keep[:, 1])) < 10:
             break
         obs = keep
-        opts["tol"] = RELATIVE_TOL_BEFORE_OUTLIERS if k + 1 < rounds else relative_tol
-        T, pts, new_offset, it2, h2 = _solve(rig, T, pts, obs, held, priors, opts, offset, est, on_iteration)
-        offset = new_offset if est else offset
-        iters, history, resolve = iters + it2, history + h2, opts["tol"] != relative_tol
+        num = dataclasses.replace(num, tol=RELATIVE_TOL_BEFORE_OUTLIERS if k + 1 < rounds else config.relative_tol)
+        sol = _next_solve(rig, pb, sol, obs, offset, est, num, on_iteration)
+        offset = sol.offset_px if est else offset
+        iters, history, resolve = iters + sol.iterations, history + sol.history, num.tol != config.relative_tol
     if resolve:  # no outlier round followed the first solve (or the offset was dropped after it)
-        opts["tol"] = relative_tol
-        T, pts, new_offset, it2, h2 = _solve(rig, T, pts, obs, held, priors, opts, offset, est, on_iteration)
-        offset = new_offset if est else offset
-        iters, history = iters + it2, history + h2
-    res = _result(rig, T, pts, obs, offset, rms0, iters, history, outlier_px)
-    res.imu_biases = opts.get("imu_biases")
-    res.gravity_world = opts.get("gravity_world")
-    res.pixel_sigma_px = opts.get("pixel_sigma")
+        num = dataclasses.replace(num, tol=config.relative_tol)
+        sol = _next_solve(rig, pb, sol, obs, offset, est, num, on_iteration)
+        offset = sol.offset_px if est else offset
+        iters, history = iters + sol.iterations, history + sol.history
+    res = _result(rig, _Solved(sol.T, sol.points, offset, iters, history), obs, rms0, config.outlier_px)
+    res.imu_biases = sol.imu_biases
+    res.gravity_world = sol.gravity_world
+    res.pixel_sigma_px = num.pixel_sigma if (imu is not None or loops or pb.priors) else None
     return res
+
+
+def _next_solve(rig: Rig, pb: _Solve, last: _Solved, obs: np.ndarray, offset: float, est: bool, num: _Numerics,
+                on_iteration: Callable[[int], object] | None) -> _Solved:
+    """A further solve from the last one's poses and points, on ``obs`` with the offset as now settled."""
+    nxt = dataclasses.replace(pb, T=last.T, points=last.points, obs=obs, offset_px=offset, estimate_offset=est)
+    return _solve(rig, nxt, num, on_iteration)
 
 
 # the smallest pixel noise assumed: sub-pixel matching is not more repeatable than this
@@ -365,19 +417,20 @@ def pixel_noise_px(r: np.ndarray, front: np.ndarray, outlier_px: float, n_unknow
     return max(float(mad * np.sqrt(len(r) / (len(r) - n_unknowns))), MIN_PIXEL_SIGMA)
 
 
-def _result(rig, T, pts, obs, offset, rms0, iters, history, outlier_px) -> BAResult:
-    pts = {int(i): pts[int(i)] for i in np.unique(obs[:, 1].astype(np.int64))}
+def _result(rig: Rig, sol: _Solved, obs: np.ndarray, rms0: float, outlier_px: float) -> BAResult:
+    T, offset, history = sol.T, sol.offset_px, sol.history
+    pts = {int(i): sol.points[int(i)] for i in np.unique(obs[:, 1].astype(np.int64))}
     r, front = reprojection_residuals(rig, T, pts, obs, offset)
     rn = np.linalg.norm(r[front], axis=1)
     rms1 = rms_px(r, front)
     log.info("bundle adjustment (GTSAM): %d poses, %d points, %d observations, rms %.3f -> %.3f px, %d iterations, "
-             "disparity offset %+.3f px", len(T), len(pts), len(obs), rms0, rms1, iters, offset)
-    return BAResult(T, pts, rms0, rms1, len(obs), len(pts), iters, history[0], history[-1],
+             "disparity offset %+.3f px", len(T), len(pts), len(obs), rms0, rms1, sol.iterations, offset)
+    return BAResult(T, pts, rms0, rms1, len(obs), len(pts), sol.iterations, history[0], history[-1],
                     float(np.mean(rn <= outlier_px)) if len(rn) else float("nan"), history, offset)
 
 
-def odometry_factor(g: Any, X: Any, k: int, T_k: np.ndarray, T_next: np.ndarray, sigma_per_m: float = 0.01,
-                    rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4) -> Any:
+def odometry_factor(g: ModuleType, X: Callable[[int], int], k: int, T_k: np.ndarray, T_next: np.ndarray, sigma_per_m: float = 0.01,
+                    rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4) -> gtsam.BetweenFactorPose3:
     """The relative pose between poses ``k`` and ``k + 1`` as measured (``T_k``, ``T_next``), with a
     standard deviation that grows with the distance between them (drift per metre, at least
     ``min_sigma``: m and rad)."""
@@ -387,13 +440,13 @@ def odometry_factor(g: Any, X: Any, k: int, T_k: np.ndarray, T_next: np.ndarray,
     return g.BetweenFactorPose3(X(k), X(k + 1), _pose(g, rel), g.noiseModel.Diagonal.Sigmas(np.array(sig)))
 
 
-def gauge_prior(g: Any, X: Any, T: np.ndarray) -> Any:
+def gauge_prior(g: ModuleType, X: Callable[[int], int], T: np.ndarray) -> gtsam.PriorFactorPose3:
     """The first pose held where it is (the pose graph's gauge)."""
     return g.PriorFactorPose3(X(0), _pose(g, T), g.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA))
 
 
-def pose_graph_factors(g: Any, X: Any, T: np.ndarray, loops: list, sigma_per_m: float = 0.01,
-                       rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4) -> Any:
+def pose_graph_factors(g: ModuleType, X: Callable[[int], int], T: np.ndarray, loops: list[Loop], sigma_per_m: float = 0.01,
+                       rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4) -> gtsam.NonlinearFactorGraph:
     """The pose graph of poses ``T``: the first held (:func:`gauge_prior`), consecutive ones tied by
     their relative motion (:func:`odometry_factor`), and the verified ``loops``."""
     graph = g.NonlinearFactorGraph()

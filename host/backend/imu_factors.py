@@ -104,7 +104,7 @@ def imu_terms(seq: Any, t_kf: np.ndarray, T_world_cam: np.ndarray, noise: ImuNoi
     gravity and the keyframe velocities from its positions).  EstimationError when the sequence has
     no IMU or no ``T_body_cam0``, or when the path and the IMU disagree."""
     from stereopath.device.estimation.inertial import estimate_still
-    from stereopath.host.backend.gtsam_ba import import_gtsam
+    from stereopath.host.backend.gtsam_lib import import_gtsam
 
     g = import_gtsam()
     imu, rig = getattr(seq, "imu", None), seq.rig

@@ -13,33 +13,68 @@ computation on arrays.  See docs/architecture.md, "Reprocessing".
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from stereopath.device.core.config import check_ranges, ranged
 from stereopath.device.core.geometry import invert_pose, rotation_angle_deg
 from stereopath.device.core.rig import Rig
+
+if TYPE_CHECKING:
+    from stereopath.host.backend.tracks import KeyframeFeatures, KeyframeList
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
+class LoopCheck:
+    """The geometric verification of a loop candidate: PnP RANSAC, the stereo scale, and how far the
+    measured relative pose may disagree with the estimated path."""
+
+    ransac_px: float = ranged(2.0, 0.1, 100.0)
+    min_inliers: int = ranged(40, 6, 100_000)
+    min_inlier_ratio: float = ranged(0.3, 0.0, 1.0)
+    scale_tolerance: float = ranged(0.03, 0.0, 1.0)
+    max_3d_error: float = ranged(0.02, 0.0, 10.0)  # median |X_j - T X_i| / depth of the inliers
+    drift_per_m: float = ranged(0.02, 0.0, 10.0)  # accepted disagreement with the estimated path per metre travelled
+    min_drift_m: float = ranged(0.02, 0.0, 100.0)
+    max_rotation_deg: float = ranged(5.0, 0.0, 180.0)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "loops.check.")
+
+
+@dataclass(frozen=True)
 class LoopConfig:
     enabled: bool = True
-    min_separation: int = 25  # keyframes (more than the track window)
-    max_distance_m: float = 0.3
-    max_angle_deg: float = 35.0
-    min_matches: int = 40
-    candidates_per_keyframe: int = 1
-    nearest_checked: int = 3  # appearance is scored for the spatially nearest candidates only
-    ransac_px: float = 2.0
-    min_inliers: int = 40
-    min_inlier_ratio: float = 0.3
-    scale_tolerance: float = 0.03
-    max_3d_error: float = 0.02  # median |X_j - T X_i| / depth of the inliers
-    drift_per_m: float = 0.02  # accepted disagreement with the estimated path per metre travelled
-    min_drift_m: float = 0.02
-    max_rotation_deg: float = 5.0
+    min_separation: int = ranged(25, 0, 1_000_000)  # keyframes (more than the track window)
+    max_distance_m: float = ranged(0.3, 0.0, 1000.0)
+    max_angle_deg: float = ranged(35.0, 0.0, 180.0)
+    min_matches: int = ranged(40, 1, 100_000)
+    candidates_per_keyframe: int = ranged(1, 1, 1000)
+    nearest_checked: int = ranged(3, 1, 1000)  # appearance is scored for the spatially nearest candidates only
+    check: LoopCheck = field(default_factory=LoopCheck)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "loops.")
+
+
+@dataclass(frozen=True)
+class LoopCandidate:
+    """Two keyframes ``i < j`` that may see the same place: their keypoints (``a``, ``b``:
+    :class:`~stereopath.host.backend.tracks.KeyframeFeatures`), estimated poses, the path travelled
+    between them, and their descriptor matches (None: computed when verified)."""
+
+    a: KeyframeFeatures
+    b: KeyframeFeatures
+    T_wi: np.ndarray
+    T_wj: np.ndarray
+    path_m: float
+    i: int = 0
+    j: int = 1
+    matches: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -77,13 +112,14 @@ def candidate_pairs(T_world_cam: np.ndarray, cfg: LoopConfig) -> list[tuple[int,
     return out
 
 
-def descriptor_matches(a, b) -> np.ndarray:
+def descriptor_matches(a: KeyframeFeatures, b: KeyframeFeatures) -> np.ndarray:
     from stereopath.device.core.matching import MatchConfig, match
 
     return match(a.feats, b.feats, MatchConfig(ratio=0.8, mutual=True, per_view=False)).idx
 
 
-def _pnp(rig: Rig, X_i: np.ndarray, uv_j: np.ndarray, cfg: LoopConfig):
+def _pnp(rig: Rig, X_i: np.ndarray, uv_j: np.ndarray, cfg: LoopCheck
+         ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """T_cj_ci from 3D points in camera i and pixels in camera j, with the inlier indices (or None)."""
     import cv2
 
@@ -106,30 +142,31 @@ def _pnp(rig: Rig, X_i: np.ndarray, uv_j: np.ndarray, cfg: LoopConfig):
     return T, inl, err
 
 
-def verify_pair(rig: Rig, a, b, T_wi: np.ndarray, T_wj: np.ndarray, path_m: float, cfg: LoopConfig,
-                i: int = 0, j: int = 1, m: np.ndarray | None = None) -> tuple[Loop | None, str]:
-    """Geometric verification of keyframes ``a`` (i) and ``b`` (j) with their descriptor matches ``m``
-    (computed when None); (the loop or None, the reason)."""
-    m = descriptor_matches(a, b) if m is None else m
+def verify_pair(rig: Rig, cand: LoopCandidate, cfg: LoopConfig) -> tuple[Loop | None, str]:
+    """Geometric verification of a loop candidate (its descriptor matches computed when not given);
+    (the loop or None, the reason)."""
+    a, b, i, j = cand.a, cand.b, cand.i, cand.j
+    m = descriptor_matches(a, b) if cand.matches is None else cand.matches
+    chk = cfg.check
     if len(m) < cfg.min_matches:
         return None, f"{len(m)} matches"
     X_i, uv_j, X_j = a.X_cam[m[:, 0]], b.uv0[m[:, 1]], b.X_cam[m[:, 1]]
-    res = _pnp(rig, X_i, uv_j, cfg)
+    res = _pnp(rig, X_i, uv_j, chk)
     if res is None:
         return None, "PnP failed"
     T_ji, inl, err = res
-    if len(inl) < cfg.min_inliers or len(inl) < cfg.min_inlier_ratio * len(m):
+    if len(inl) < chk.min_inliers or len(inl) < chk.min_inlier_ratio * len(m):
         return None, f"{len(inl)} inliers of {len(m)}"
     Xi_in_j = X_i[inl] @ T_ji[:3, :3].T + T_ji[:3, 3]
     scale = np.median(np.linalg.norm(X_j[inl], axis=1) / np.maximum(np.linalg.norm(Xi_in_j, axis=1), 1e-9))
     err3d = np.median(np.linalg.norm(X_j[inl] - Xi_in_j, axis=1) / np.maximum(X_j[inl, 2], 1e-9))
-    if abs(scale - 1) > cfg.scale_tolerance or err3d > cfg.max_3d_error:
+    if abs(scale - 1) > chk.scale_tolerance or err3d > chk.max_3d_error:
         return None, f"inconsistent scale {scale:.3f} / 3D error {err3d:.3f}"
     T_ij = invert_pose(T_ji)
-    T_ij_est = invert_pose(T_wi) @ T_wj
+    T_ij_est = invert_pose(cand.T_wi) @ cand.T_wj
     corr = float(np.linalg.norm(T_ij[:3, 3] - T_ij_est[:3, 3]))
     rot = rotation_angle_deg(T_ij[:3, :3].T @ T_ij_est[:3, :3])
-    if corr > max(cfg.min_drift_m, cfg.drift_per_m * path_m) or rot > cfg.max_rotation_deg:
+    if corr > max(chk.min_drift_m, chk.drift_per_m * cand.path_m) or rot > chk.max_rotation_deg:
         return None, f"disagrees with the path by {1000 * corr:.1f} mm / {rot:.2f} deg"
     f = rig.cam0.K[0, 0]
     px = max(float(np.sqrt(np.mean(err[inl] ** 2))), 0.3)
@@ -138,7 +175,7 @@ def verify_pair(rig: Rig, a, b, T_wi: np.ndarray, T_wj: np.ndarray, path_m: floa
     return Loop(i, j, T_ij, int(len(inl)), int(len(m)), s_rot, s_t, corr), "accepted"
 
 
-def detect_loops(rig: Rig, kfs: list, T_world_cam: np.ndarray, cfg: LoopConfig = LoopConfig()) -> list[Loop]:
+def detect_loops(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, cfg: LoopConfig = LoopConfig()) -> list[Loop]:
     """Verified loops among the keyframes ``kfs`` (:class:`~stereopath.host.backend.tracks.KeyframeFeatures`)."""
     if not cfg.enabled or len(kfs) < 2:
         return []
@@ -155,8 +192,8 @@ def detect_loops(rig: Rig, kfs: list, T_world_cam: np.ndarray, cfg: LoopConfig =
         for m, j in scored[:cfg.candidates_per_keyframe]:
             if len(m) < cfg.min_matches:
                 continue
-            loop, why = verify_pair(rig, kfs[i], kfs[j], T_world_cam[i], T_world_cam[j], along[j] - along[i], cfg,
-                                    i, j, m)
+            cand = LoopCandidate(kfs[i], kfs[j], T_world_cam[i], T_world_cam[j], float(along[j] - along[i]), i, j, m)
+            loop, why = verify_pair(rig, cand, cfg)
             log.debug("loop candidate %d-%d: %s", i, j, why)
             if loop is not None:
                 loops.append(loop)

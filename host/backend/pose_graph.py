@@ -13,9 +13,12 @@ Forgetting a keyframe (:meth:`LivePoseGraph.rebuild`) rebuilds the graph.  Pure 
 from __future__ import annotations
 
 import logging
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from stereopath.host.backend.loops import Loop
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +36,7 @@ class LivePoseGraph:
         self.X = self.g.symbol_shorthand.X
         self.max_updates, self.tol_m, self.tol_rad = max_updates, tol_m, tol_rad
         self.onboard: list[np.ndarray] = []
-        self.loops: list[Any] = []
+        self.loops: list[Loop] = []
         self._reset()
 
     def _reset(self) -> None:
@@ -76,7 +79,7 @@ class LivePoseGraph:
         self.onboard.append(T)
         self._poses = np.concatenate([self._poses, start[None]])
 
-    def add_loop(self, loop: Any) -> None:
+    def add_loop(self, loop: Loop) -> None:
         """A verified loop between keyframes ``loop.i`` and ``loop.j`` (both already added); every
         pose is re-estimated."""
         from stereopath.host.backend.gtsam_ba import add_loop_factors

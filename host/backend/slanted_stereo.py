@@ -12,6 +12,8 @@ See docs/architecture.md, "Reprocessing".
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 # points per block: a block's windows stay in the CPU caches
@@ -66,16 +68,27 @@ def _warped(corners: np.ndarray, x: np.ndarray, row0: np.ndarray, fy: np.ndarray
     return top + bot
 
 
+@dataclass(frozen=True)
+class SlantedFit:
+    """The slanted window's fit: half its side (pixels), Gauss-Newton iterations, and the limits of a
+    refined point (see :func:`refine_slanted`)."""
+
+    half: int = 10
+    iterations: int = 12
+    max_shift_px: float = 1.0
+    max_slant: float = 0.5
+    tol_px: float = 0.02
+
+
 def refine_slanted(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray,
-                   half: int = 10, iterations: int = 12, max_shift_px: float = 1.0,
-                   max_slant: float = 0.5, tol_px: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+                   fit: SlantedFit = SlantedFit()) -> tuple[np.ndarray, np.ndarray]:
     """Right-image pixels of ``xy_left`` refined with a slanted window around the match ``xy_right``.
 
     Returns ``(xy_right_refined (n, 2) float64, ok (n,) bool)``.  A point is not refined (``ok``
     False, its input position returned) when the window has no texture, the fit does not settle
-    within ``tol_px``, it moves more than ``max_shift_px`` from the input, or needs a slant beyond
-    ``max_slant`` (pixels of disparity per pixel: the window then straddles a depth edge rather
-    than a surface).
+    within ``fit.tol_px``, it moves more than ``fit.max_shift_px`` from the input, or needs a slant
+    beyond ``fit.max_slant`` (pixels of disparity per pixel: the window then straddles a depth edge
+    rather than a surface).
     """
     xy_left = np.asarray(xy_left, np.float64).reshape(-1, 2)
     xy_right = np.asarray(xy_right, np.float64).reshape(-1, 2)
@@ -87,10 +100,8 @@ def refine_slanted(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_
     L = np.asarray(left, np.float32)
     R = _corners(right)
     blocks = [slice(i, min(i + BLOCK, n)) for i in range(0, n, BLOCK)]
-    args = dict(half=half, iterations=iterations, max_shift_px=max_shift_px, max_slant=max_slant, tol_px=tol_px)
-
     def one(b: slice) -> tuple[np.ndarray, np.ndarray]:
-        return _refine_block(L, R, xy_left[b], xy_right[b], **args)
+        return _refine_block(L, R, xy_left[b], xy_right[b], fit)
 
     workers = max(1, min(cv2.getNumThreads(), len(blocks)))  # the threads OpenCV may use (a fleet task sets it)
     if workers == 1:
@@ -103,11 +114,11 @@ def refine_slanted(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_
     return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
-def _refine_block(L: np.ndarray, R: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray, *, half: int,
-                  iterations: int, max_shift_px: float, max_slant: float, tol_px: float
+def _refine_block(L: np.ndarray, R: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray, fit: SlantedFit
                   ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`refine_slanted` on one block of points; ``L`` the left image (float32), ``R`` the right
     one's :func:`_corners`."""
+    half, iterations, max_shift_px, max_slant, tol_px = fit.half, fit.iterations, fit.max_shift_px, fit.max_slant, fit.tol_px
     n = len(xy_left)
     dy, dx = np.mgrid[-half:half + 1, -half:half + 1]
     dx = dx.ravel().astype(np.float32)

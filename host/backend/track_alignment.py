@@ -12,6 +12,8 @@ See docs/architecture.md, "Reprocessing" (the ``aligned`` preset).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import logging
 
 import numpy as np
@@ -21,9 +23,19 @@ log = logging.getLogger(__name__)
 BLOCK = 1024  # observations per block (a block's windows stay in the CPU caches)
 
 
+@dataclass(frozen=True)
+class AffineFit:
+    """The affine window's fit: half its side (pixels), Gauss-Newton iterations, and the last step a
+    settled point moved less than (pixels)."""
+
+    half: int = 10
+    iterations: int = 10
+    tol_px: float = 0.02
+
+
 def refine_affine(ref_images: list[np.ndarray], ref_img: np.ndarray, xy_ref: np.ndarray, target: np.ndarray,
-                  xy: np.ndarray, A0: np.ndarray, half: int = 10, iterations: int = 10,
-                  tol_px: float = 0.02) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  xy: np.ndarray, A0: np.ndarray, fit: AffineFit = AffineFit()
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where the window of the grey image ``ref_images[ref_img[i]]`` around ``xy_ref[i]`` lands in the
     grey image ``target``.
 
@@ -32,8 +44,10 @@ def refine_affine(ref_images: list[np.ndarray], ref_img: np.ndarray, xy_ref: np.
     template is sampled exactly; the target with OpenCV's bilinear remap (positions in 1/32 px: an
     affine window's samples have different fractions, so the rounding averages out).
     Returns ``(xy_refined (n, 2), A (n, 2, 2), settled (n,) bool)``: settled when the last step
-    moved the point by less than ``tol_px`` and the window had texture (a point stops at half that)."""
+    moved the point by less than ``fit.tol_px`` and the window had texture (a point stops at half that)."""
     import cv2
+
+    half, iterations, tol_px = fit.half, fit.iterations, fit.tol_px
 
     from stereopath.host.backend.slanted_stereo import window_samples
 
@@ -157,7 +171,7 @@ def _refine_blocks(templates: list[np.ndarray], targets: list[np.ndarray], args:
     blocks = [slice(i, min(i + BLOCK, j)) for a, j in zip(np.r_[0, cuts], np.r_[cuts, n]) for i in range(a, j, BLOCK)]
 
     def one(b: slice):
-        return refine_affine(templates, ref_img[b], xy_ref[b], targets[img[b.start]], xy[b], A0[b], half=half)
+        return refine_affine(templates, ref_img[b], xy_ref[b], targets[img[b.start]], xy[b], A0[b], AffineFit(half=half))
 
     workers = max(1, min(cv2.getNumThreads(), len(blocks)))
     if workers == 1:
@@ -181,7 +195,7 @@ def align_tracks(rig, lefts: list[np.ndarray], rights: list[np.ndarray], T_world
     with the moved keypoints (left pixel, stereo match, 3D point) and the mask of the keypoints kept."""
     from stereopath.device.core.features import Features, gray
     from stereopath.device.core.geometry import invert_pose
-    from stereopath.host.backend.tracks import KeyframeFeatures, stereo_points
+    from stereopath.host.backend.tracks import ALIGN_MAX_MOVE_PX, KeyframeFeatures, stereo_points
 
     keep = np.ones(len(track), bool)
     glob = np.flatnonzero(track >= 0)
@@ -213,7 +227,7 @@ def align_tracks(rig, lefts: list[np.ndarray], rights: list[np.ndarray], T_world
     # both windows on real pixels (a border replicated into a window would pull the fit)
     inside = _window_inside(xy[ref], np.repeat(np.eye(2)[None], len(ref), 0), half, w, h)
     inside &= _window_inside(new_xy, A, half, w, h)
-    ok = settled & inside & (moved <= cfg.align_max_move_px)
+    ok = settled & inside & (moved <= ALIGN_MAX_MOVE_PX)
     out = []
     for k, kf in enumerate(kfs):
         m = (kt == k)

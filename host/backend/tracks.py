@@ -13,12 +13,13 @@ See docs/architecture.md, "Reprocessing".
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Protocol
 
 import cv2
 import numpy as np
 
-from stereopath.device.core.config import check_range
+from stereopath.device.core.config import check_range, check_ranges, ranged
 from stereopath.device.core.features import gray
 from stereopath.device.core.stereo import stereo_right, triangulate, undistort_px
 from stereopath.device.core.scaled_klt import forward_backward
@@ -26,73 +27,88 @@ from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import Rig
 from stereopath.device.errors import ConfigError
 from stereopath.host.backend.parallel import parallel_map
-from stereopath.host.backend.slanted_stereo import refine_slanted
+from stereopath.host.backend.slanted_stereo import SlantedFit, refine_slanted
 
 log = logging.getLogger(__name__)
 
 
+MIN_TRACK_LENGTH = 2  # keyframes a track must span to be kept
+SIZE_WEIGHTING_PX = 10.0  # keypoints larger than this get weight SIZE_WEIGHTING_PX / size
+ALIGN_MAX_MOVE_PX = 1.5  # an aligned observation moved further than this is dropped (track_alignment)
+
+
 @dataclass(frozen=True)
-class TrackConfig:
-    feature_preset: str = "sift"  # stereopath.device.core.features preset of the keyframe detections
-    original_view_only: bool = False  # only the preset's original view (its SIFT thresholds, no affine views)
-    max_features: int = 2000  # strongest keypoints kept per keyframe (0 = all)
-    window: int = 20  # each keyframe is matched with later keyframes up to this far ...
-    gaps: tuple[int, ...] = ()  # ... at these distances only (empty = every distance 1..window)
-    radius_px: float = 16.0  # guided matching: search radius around the predicted position
-    ratio: float = 0.8
+class StereoMatch:
+    """How a left-image keypoint is found in the right image and triangulated (the KLT search
+    :func:`stereopath.device.core.stereo.stereo_right` reads ``klt_window``, ``klt_levels``,
+    ``fb_max_px`` and ``epipolar_max_dy_px``)."""
+
+    klt_window: int = ranged(21, 3, 101)
+    klt_levels: int = ranged(3, 0, 8)
+    # pyramid levels above the image for KLT seeded from a known 3D point (frame refinement): the
+    # seed is within a pixel or two, so the coarse levels only cost time
+    seeded_klt_levels: int = ranged(1, 0, 8)
+    fb_max_px: float = ranged(0.5, 0.0, 100.0)
+    epipolar_max_dy_px: float = ranged(1.0, 0.0, 100.0)
+    triangulation_max_px: float = ranged(1.0, 0.0, 100.0)
+    min_depth_m: float = 0.1
+    max_depth_m: float = 40.0
+    guess_disparity_px: float = ranged(20.0, 0.1, 10_000.0)  # the right-image search starts here without a depth guess
+    # the right-image match refined with a slanted window of this side (pixels; 0 = the KLT match as
+    # is; by default the KLT window): unbiased on surfaces seen at a slant (slanted_stereo)
+    slanted_window: int = 21
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "tracks.stereo.")
+        check_range("tracks.stereo.min_depth_m", self.min_depth_m, 1e-3, self.max_depth_m)
+        if self.slanted_window and not 5 <= self.slanted_window <= 41:
+            raise ConfigError(f"slanted_window must be 0 (off) or 5-41 pixels, got {self.slanted_window}")
+
+
+@dataclass(frozen=True)
+class PairMatch:
+    """How the keypoints of two keyframes are matched and checked against their relative pose."""
+
+    radius_px: float = ranged(16.0, 0.5, 500.0)  # guided matching: search radius around the predicted position
+    ratio: float = ranged(0.8, 0.1, 1.0)
     prefilter_px: float = 3.0  # matches used to refine the pair's relative pose (deviation after the median offset)
     verify_px: float = 0.7  # accepted deviation from the position predicted with the refined pose ...
     # ... where the prediction is the segment swept by the point's depth over this many standard
     # deviations of the stereo disparity (moving towards a point turns its depth error into an image
     # shift along the epipolar line, which grows with the motion; 0 = the depth as measured).  The
     # standard deviation is the pair's own: the spread (MAD) of the matches' disparity disagreement
-    verify_depth_sigmas: float = 3.0
+    verify_depth_sigmas: float = ranged(3.0, 0.0, 20.0)
     verify_disparity_px: float = 1.5  # accepted stereo disparity disagreement
-    klt_window: int = 21
-    # the right-image match refined with a slanted window of this side (pixels; 0 = the KLT match as
-    # is; by default the KLT window): unbiased on surfaces seen at a slant (slanted_stereo)
-    slanted_window: int = 21
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "tracks.match.")
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    feature_preset: str = "sift"  # stereopath.device.core.features preset of the keyframe detections
+    original_view_only: bool = False  # only the preset's original view (its SIFT thresholds, no affine views)
+    max_features: int = ranged(2000, 0, 1_000_000)  # strongest keypoints kept per keyframe (0 = all)
+    window: int = ranged(20, 1, 1000)  # each keyframe is matched with later keyframes up to this far ...
+    gaps: tuple[int, ...] = ()  # ... at these distances only (empty = every distance 1..window)
     # each track's observations aligned on its middle keyframe's window of this side (pixels; 0 = the
     # keypoints as detected; 21 = the KLT window in the 'aligned' preset) and dropped where that moves
-    # them further than align_max_move_px (track_alignment)
+    # them further than ALIGN_MAX_MOVE_PX (track_alignment)
     align_window: int = 0
-    align_max_move_px: float = 1.5
-    klt_levels: int = 3
-    # pyramid levels above the image for KLT seeded from a known 3D point (frame refinement): the
-    # seed is within a pixel or two, so the coarse levels only cost time
-    seeded_klt_levels: int = 1
-    fb_max_px: float = 0.5
-    epipolar_max_dy_px: float = 1.0
-    triangulation_max_px: float = 1.0
-    min_depth_m: float = 0.1
-    max_depth_m: float = 40.0
-    guess_disparity_px: float = 20.0  # right-image search starts at this disparity unless a depth guess is given
-    min_track_length: int = 2
     # offline keyframes (independent of the on-board estimator's real-time choice): the next keyframe
     # is the last frame from which the previous keyframe's stereo points are seen under a viewpoint
     # change (median parallax angle between the two camera centres) of at most keyframe_parallax_deg
     # and moved by at most keyframe_motion_px in the image (median), at least the next frame
     # (keyframe_parallax_deg = 0: the estimator's keyframes)
-    keyframe_parallax_deg: float = 2.5
-    keyframe_motion_px: float = 100.0
-    size_weighting_px: float = 10.0  # keypoints larger than this get weight size_weighting_px / size (0 = off)
+    keyframe_parallax_deg: float = ranged(2.5, 0.0, 90.0)
+    keyframe_motion_px: float = ranged(100.0, 1.0, 100_000.0)
+    stereo: StereoMatch = field(default_factory=StereoMatch)
+    match: PairMatch = field(default_factory=PairMatch)
 
     def __post_init__(self) -> None:
-        check_range("max_features", self.max_features, 0, 1_000_000)
-        check_range("window", self.window, 1, 1000)
-        check_range("radius_px", self.radius_px, 0.5, 500.0)
-        check_range("ratio", self.ratio, 0.1, 1.0)
-        check_range("min_track_length", self.min_track_length, 2, 1000)
-        check_range("min_depth_m", self.min_depth_m, 1e-3, self.max_depth_m)
-        check_range("keyframe_parallax_deg", self.keyframe_parallax_deg, 0.0, 90.0)
-        check_range("keyframe_motion_px", self.keyframe_motion_px, 1.0, 100_000.0)
-        check_range("verify_depth_sigmas", self.verify_depth_sigmas, 0.0, 20.0)
-        check_range("seeded_klt_levels", self.seeded_klt_levels, 0, 8)
-        if self.slanted_window and not 5 <= self.slanted_window <= 41:
-            raise ConfigError(f"slanted_window must be 0 (off) or 5-41 pixels, got {self.slanted_window}")
+        check_ranges(self, "tracks.")
         if self.align_window and not 5 <= self.align_window <= 41:
             raise ConfigError(f"align_window must be 0 (off) or 5-41 pixels, got {self.align_window}")
-        check_range("align_max_move_px", self.align_max_move_px, 0.1, 10.0)
 
 
 @dataclass
@@ -136,9 +152,9 @@ def stereo_features(rig: Rig, left: np.ndarray, right: np.ndarray, cfg: TrackCon
 
 def right_guess_at_depth(rig: Rig, uv0: np.ndarray, cfg: TrackConfig, depth_guess_m: float | None = None) -> np.ndarray:
     """Raw right pixels of undistorted left pixels ``uv0`` put at ``depth_guess_m`` (default: the depth of
-    ``cfg.guess_disparity_px``): where a right-image search without a better guess starts."""
+    ``cfg.stereo.guess_disparity_px``): where a right-image search without a better guess starts."""
     K0, K1, d1 = rig.cam0.K, rig.cam1.K, rig.cam1.dist
-    z0 = depth_guess_m or rig.rectification().f * rig.rectification().baseline_m / cfg.guess_disparity_px
+    z0 = depth_guess_m or rig.rectification().f * rig.rectification().baseline_m / cfg.stereo.guess_disparity_px
     rays = np.column_stack([(uv0[:, 0] - K0[0, 2]) / K0[0, 0], (uv0[:, 1] - K0[1, 2]) / K0[1, 1], np.ones(len(uv0))])
     Xr = (rays * z0) @ rig.R.T + rig.T
     Xr[:, 2] = np.maximum(Xr[:, 2], 1e-3)
@@ -155,21 +171,22 @@ def stereo_points(rig: Rig, left: np.ndarray, right: np.ndarray, xy: np.ndarray,
     coarse levels)."""
     K0, d0, K1, d1 = rig.cam0.K, rig.cam0.dist, rig.cam1.K, rig.cam1.dist
     uv0 = undistort_px(xy, K0, d0)
-    if guess_right is not None and cfg.slanted_window:
+    if guess_right is not None and cfg.stereo.slanted_window:
         xr, ok = np.asarray(guess_right, np.float64).reshape(-1, 2), np.ones(len(uv0), bool)
     elif guess_right is not None:
-        xr, ok = stereo_right(rig, left, right, xy, guess_right, cfg, levels=cfg.seeded_klt_levels)
+        xr, ok = stereo_right(rig, left, right, xy, guess_right, cfg.stereo, levels=cfg.stereo.seeded_klt_levels)
     else:
-        xr, ok = stereo_right(rig, left, right, xy, right_guess_at_depth(rig, uv0, cfg, depth_guess_m), cfg)
-    if cfg.slanted_window:
+        xr, ok = stereo_right(rig, left, right, xy, right_guess_at_depth(rig, uv0, cfg, depth_guess_m), cfg.stereo)
+    if cfg.stereo.slanted_window:
         idx = np.flatnonzero(ok)
-        xr_ok, refined = refine_slanted(left, right, np.asarray(xy)[idx], xr[idx], half=cfg.slanted_window // 2)
+        xr_ok, refined = refine_slanted(left, right, np.asarray(xy)[idx], xr[idx], 
+                                         SlantedFit(half=cfg.stereo.slanted_window // 2))
         xr = xr.astype(np.float64)
         xr[idx] = xr_ok
         ok[idx] = refined
     uv1 = undistort_px(xr, K1, d1)
     X, err = triangulate(rig, uv0, uv1)
-    ok &= (err < cfg.triangulation_max_px) & (X[:, 2] > cfg.min_depth_m) & (X[:, 2] < cfg.max_depth_m)
+    ok &= (err < cfg.stereo.triangulation_max_px) & (X[:, 2] > cfg.stereo.min_depth_m) & (X[:, 2] < cfg.stereo.max_depth_m)
     return uv0, uv1, X, ok
 
 
@@ -273,30 +290,30 @@ def match_keyframes(rig: Rig, a: KeyframeFeatures, b: KeyframeFeatures, T_world_
 
     if len(a) == 0 or len(b) == 0:
         return np.zeros((0, 2), np.int64)
-    mcfg = MatchConfig(ratio=cfg.ratio, per_view=False)
+    mcfg = MatchConfig(ratio=cfg.match.ratio, per_view=False)
     T_b_a = invert_pose(T_world_b) @ T_world_a
-    pred = _project(rig, a.X_cam @ T_b_a[:3, :3].T + T_b_a[:3, 3], cfg.min_depth_m)
-    idx = np.asarray(match_guided(a.feats, b.feats, pred, cfg.radius_px, mcfg).idx, np.int64).reshape(-1, 2)
+    pred = _project(rig, a.X_cam @ T_b_a[:3, :3].T + T_b_a[:3, 3], cfg.stereo.min_depth_m)
+    idx = np.asarray(match_guided(a.feats, b.feats, pred, cfg.match.radius_px, mcfg).idx, np.int64).reshape(-1, 2)
     if len(idx) == 0:
         return idx
     xy_b = b.feats.xy[idx[:, 1]].astype(np.float64)
     res = xy_b - pred[idx[:, 0]]
-    pre = np.linalg.norm(res - np.median(res, axis=0), axis=1) <= cfg.prefilter_px
+    pre = np.linalg.norm(res - np.median(res, axis=0), axis=1) <= cfg.match.prefilter_px
     if pre.sum() >= 12:
         T_b_a = _refine_relative_pose(rig, a.X_cam[idx[pre, 0]], xy_b[pre], T_b_a)
     Xa = a.X_cam[idx[:, 0]]
     Xb = Xa @ T_b_a[:3, :3].T + T_b_a[:3, 3]
-    pred = _project(rig, Xb, cfg.min_depth_m)
+    pred = _project(rig, Xb, cfg.stereo.min_depth_m)
     res = xy_b - pred
     res = res - np.nanmedian(res, axis=0)
     disp_err = _disparity(rig, Xb) - _disparity(rig, b.X_cam[idx[:, 1]])
-    if cfg.verify_depth_sigmas > 0 and pre.sum() >= 12:
+    if cfg.match.verify_depth_sigmas > 0 and pre.sum() >= 12:
         # a's and b's disparities are equally noisy: their difference has sqrt(2) sigma
         e = disp_err[pre]
         sigma = 1.4826 * np.median(np.abs(e - np.median(e))) / np.sqrt(2.0)
-        res = _off_depth_segment(rig, Xa, T_b_a, pred, res, cfg.verify_depth_sigmas * sigma, cfg.min_depth_m)
-    ok = np.linalg.norm(res, axis=1) <= cfg.verify_px
-    ok &= np.abs(disp_err) <= cfg.verify_disparity_px
+        res = _off_depth_segment(rig, Xa, T_b_a, pred, res, cfg.match.verify_depth_sigmas * sigma, cfg.stereo.min_depth_m)
+    ok = np.linalg.norm(res, axis=1) <= cfg.match.verify_px
+    ok &= np.abs(disp_err) <= cfg.match.verify_disparity_px
     return idx[ok]
 
 
@@ -333,9 +350,44 @@ def _disparity(rig: Rig, X_cam: np.ndarray) -> np.ndarray:
 
 
 def _match_gap(shared: tuple, gap: int) -> list[np.ndarray]:
-    """:func:`match_keyframes` of every keyframe ``i`` with ``i + gap`` (``shared``: rig, keyframes, poses, config)."""
-    rig, kfs, T, cfg = shared
-    return [match_keyframes(rig, kfs[i], kfs[i + gap], T[i], T[i + gap], cfg) for i in range(len(kfs) - gap)]
+    """:func:`match_keyframes` of keyframe ``i`` with ``i + gap`` for the first ``first`` keyframes ``i`` of a
+    batch (``shared``: rig, the batch's keyframes and the ``gap`` after them, their poses, config, first)."""
+    rig, kfs, T, cfg, first = shared
+    return [match_keyframes(rig, kfs[i], kfs[i + gap], T[i], T[i + gap], cfg)
+            for i in range(min(first, len(kfs) - gap))]
+
+
+# keyframes whose matches with the later keyframes are computed together: with the window after them,
+# what the matching holds in memory at a time
+MATCH_BATCH = 24
+
+
+def match_all(rig: Rig, kfs: "KeyframeList", T_world_cam: np.ndarray, cfg: TrackConfig, gaps: list[int],
+              progress=None) -> list[list[np.ndarray]]:
+    """For each gap of ``gaps``, the matches (:func:`match_keyframes`) of every keyframe ``i`` with ``i + gap``.
+
+    The keyframes are taken in batches of :data:`MATCH_BATCH` with the ``max(gaps)`` after them, so only
+    those are held at a time (``kfs`` may load them on demand); within a batch the gaps' matchings are
+    independent (:func:`parallel_map` may spread them).  ``progress(n)`` after each batch of ``n`` keyframes."""
+    per_gap: list[list[np.ndarray]] = [[] for _ in gaps]
+    n, reach = len(kfs), max(gaps, default=0)
+    for s in range(0, n, MATCH_BATCH):
+        e = min(n, s + MATCH_BATCH + reach)
+        first = min(MATCH_BATCH, n - s)
+        part = [kfs[k] for k in range(s, e)]
+        for out, got in zip(per_gap, parallel_map(_match_gap, (rig, part, T_world_cam[s:e], cfg, first), gaps)):
+            out.extend(got)
+        if progress is not None:
+            progress(first)
+    return per_gap
+
+
+class KeyframeList(Protocol):
+    """Keyframes' stereo keypoints by index: a list, or a store that loads them on demand."""
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, k: int) -> KeyframeFeatures: ...
 
 
 @dataclass
@@ -349,51 +401,59 @@ class Tracks:
     stats: dict
 
 
-def build_tracks(rig: Rig, kfs: list[KeyframeFeatures], T_world_cam: np.ndarray, cfg: TrackConfig,
-                 progress=None, align=None) -> Tracks:
+def build_tracks(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, cfg: TrackConfig,
+                 progress=None, align=None, sizes: list[int] | None = None) -> Tracks:
     """Join the keyframes' stereo keypoints into tracks (see the module doc).
 
     Observation rows are ``(keyframe, point id, cam, u, v, weight)`` in undistorted pixels, one
     left and one right row per keypoint in a track; ``weight`` scales the residual (large
-    keypoints are located less precisely).  ``progress(n)`` is called once per keyframe gap.
+    keypoints are located less precisely).  ``progress(n)`` is called after each batch of ``n``
+    keyframes matched (:func:`match_all`).  ``sizes``: the keyframes' keypoint counts when known
+    (``kfs`` is then read in order, a batch at a time).
     """
     T_world_cam = np.asarray(T_world_cam, dtype=float).reshape(-1, 4, 4)
-    offsets = np.concatenate([[0], np.cumsum([len(k) for k in kfs])]).astype(np.int64)
-    kf_of = np.repeat(np.arange(len(kfs)), np.diff(offsets))
-    uf = _Tracks(kf_of)
-    n_matches = 0
+    sizes = [len(k) for k in kfs] if sizes is None else sizes
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    kf_of = np.repeat(np.arange(len(kfs), dtype=np.int32), np.diff(offsets))
     # nearer keyframe pairs first: their matches are the most reliable, later conflicting ones lose
     gaps = sorted(g for g in (cfg.gaps or range(1, cfg.window + 1)) if 1 <= g <= cfg.window)
-    # the gaps' matchings are independent (parallel_map may spread them); joined below in order
-    matched = parallel_map(_match_gap, (rig, kfs, T_world_cam, cfg), gaps)
-    for gap, per_i in zip(gaps, matched):
-        for i, idx in enumerate(per_i):
-            j = i + gap
-            n_matches += len(idx)
-            uf.union_many((idx[:, 0] + offsets[i]).tolist(), (idx[:, 1] + offsets[j]).tolist())
-        if progress is not None:
-            progress(1)
+    # matched a batch of keyframes at a time; joined below gap by gap, in order
+    matched = match_all(rig, kfs, T_world_cam, cfg, gaps, progress)
+    pairs = [(idx[:, 0] + offsets[i], idx[:, 1] + offsets[i + gap])
+             for gap, per_i in zip(gaps, matched) for i, idx in enumerate(per_i)]
+    del matched
+    n_matches = sum(len(a) for a, _ in pairs)
+    # the union-find runs over the keypoints in a match only (numbered in order), the rest stay alone
+    used = np.unique(np.concatenate([np.concatenate(p) for p in pairs])) if pairs else np.zeros(0, np.int64)
+    uf = _Tracks(kf_of[used])
+    for a, b in pairs:
+        uf.union_many(np.searchsorted(used, a).tolist(), np.searchsorted(used, b).tolist())
+    del pairs
     n = int(offsets[-1])
-    empty = [np.zeros(0, np.int64) for _ in kfs]
+    empty = [np.zeros(0, np.int64) for _ in range(len(kfs))]
     if n == 0:
-        return Tracks(np.zeros((0, 6)), {}, empty, [np.zeros((0, 2), np.float32) for _ in kfs],
+        return Tracks(np.zeros((0, 6)), {}, empty, [np.zeros((0, 2), np.float32) for _ in range(len(kfs))],
                       {"keypoints": 0, "matches": 0, "tracks": 0, "observations": 0})
     find = uf.find
-    roots = np.fromiter((find(i) for i in range(n)), dtype=np.int64, count=n)
+    roots = np.arange(n, dtype=np.int64)
+    roots[used] = used[np.fromiter((find(i) for i in range(len(used))), dtype=np.int64, count=len(used))]
+    conflicts = uf.conflicts
+    del uf, find
     uniq_roots, inv, counts = np.unique(roots, return_inverse=True, return_counts=True)
-    good = counts >= cfg.min_track_length
+    good = counts >= MIN_TRACK_LENGTH
     sel = good[inv]
     if align is not None:
         kfs, kept = align(kfs, kf_of, np.where(sel, inv, -1))
         sel &= kept
         counts = np.bincount(inv[sel], minlength=len(uniq_roots))
-        good = counts >= cfg.min_track_length
+        good = counts >= MIN_TRACK_LENGTH
         sel &= good[inv]
     tid = np.cumsum(good) - 1  # track id of each good root
     rows = []
     kf_ids, kf_xy = [], []
     Xw_sum = np.zeros((int(good.sum()), 3))
-    for k, kf in enumerate(kfs):
+    for k in range(len(kfs)):
+        kf = kfs[k]
         s = slice(offsets[k], offsets[k + 1])
         m = sel[s]
         ids = tid[inv[s][m]]
@@ -402,8 +462,8 @@ def build_tracks(rig: Rig, kfs: list[KeyframeFeatures], T_world_cam: np.ndarray,
         if not m.any():
             continue
         w = np.ones(len(ids))
-        if cfg.size_weighting_px > 0:
-            w = np.minimum(1.0, cfg.size_weighting_px / np.maximum(kf.feats.size[m].astype(float), 1e-3))
+        if SIZE_WEIGHTING_PX > 0:
+            w = np.minimum(1.0, SIZE_WEIGHTING_PX / np.maximum(kf.feats.size[m].astype(float), 1e-3))
         rows.append(np.column_stack([np.full(len(ids), k), ids, np.zeros(len(ids)), kf.uv0[m], w]))
         rows.append(np.column_stack([np.full(len(ids), k), ids, np.ones(len(ids)), kf.uv1[m], w]))
         T = T_world_cam[k]
@@ -413,7 +473,7 @@ def build_tracks(rig: Rig, kfs: list[KeyframeFeatures], T_world_cam: np.ndarray,
     points = {int(i): Xw_sum[i] / n_per[i] for i in range(len(Xw_sum)) if n_per[i]}
     lengths = counts[good]
     stats = {"keyframes": len(kfs), "keypoints": n, "matches": n_matches, "tracks": int(good.sum()),
-             "observations": int(len(obs)), "conflicting_matches": uf.conflicts,
+             "observations": int(len(obs)), "conflicting_matches": conflicts,
              "mean_track_length": float(lengths.mean()) if len(lengths) else 0.0,
              "max_track_length": int(lengths.max()) if len(lengths) else 0}
     log.info("tracks: %d keypoints, %d matches, %d tracks (mean length %.1f keyframes), %d observations",
@@ -421,17 +481,28 @@ def build_tracks(rig: Rig, kfs: list[KeyframeFeatures], T_world_cam: np.ndarray,
     return Tracks(obs, points, kf_ids, kf_xy, stats)
 
 
-def frame_observations(rig: Rig, kf_left: np.ndarray, kf_xy: np.ndarray, kf_ids: np.ndarray,
-                       points: dict[int, np.ndarray], left: np.ndarray, right: np.ndarray,
-                       T_world_cam_guess: np.ndarray, cfg: TrackConfig) -> np.ndarray:
-    """Observations of a keyframe's tracked points in another (nearby) frame, for motion-only refinement.
+@dataclass(frozen=True)
+class TrackedKeypoints:
+    """A keyframe's left image and the keypoints it has in tracks: raw (distorted) pixels and point ids."""
+
+    left: np.ndarray
+    xy: np.ndarray
+    ids: np.ndarray
+
+
+def frame_observations(rig: Rig, kf: TrackedKeypoints, points: dict[int, np.ndarray],
+                       frame: tuple[np.ndarray, np.ndarray], T_world_cam_guess: np.ndarray,
+                       cfg: TrackConfig) -> np.ndarray:
+    """Observations of a keyframe's tracked points in another (nearby) frame (its ``(left, right)``
+    images), for motion-only refinement.
 
     Each keypoint is followed by one KLT step from the keyframe image straight into ``left``
     (seeded by projecting its point with ``T_world_cam_guess``; no chaining, so no drift) and
     located in ``right`` the same way as at keyframes.  Rows ``(0, point id, cam, u, v, 1)``
     in undistorted pixels (the caller sets the pose index).
     """
-    kf_left, left, right = gray(kf_left), gray(left), gray(right)
+    kf_left, kf_xy, kf_ids = gray(kf.left), kf.xy, kf.ids
+    left, right = gray(frame[0]), gray(frame[1])
     known = np.array([int(i) in points for i in kf_ids], dtype=bool) if len(kf_ids) else np.zeros(0, bool)
     if not known.any():
         return np.zeros((0, 6))
@@ -440,17 +511,17 @@ def frame_observations(rig: Rig, kf_left: np.ndarray, kf_xy: np.ndarray, kf_ids:
     X = np.array([points[int(i)] for i in ids])
     T_cw = invert_pose(T_world_cam_guess)
     Xc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
-    front = Xc[:, 2] > cfg.min_depth_m
+    front = Xc[:, 2] > cfg.stereo.min_depth_m
     ids, xy, Xc = ids[front], xy[front], Xc[front]
     if len(ids) == 0:
         return np.zeros((0, 6))
     K0, d0, K1, d1 = rig.cam0.K, rig.cam0.dist, rig.cam1.K, rig.cam1.dist
     guess = cv2.projectPoints(Xc.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K0, d0)[0].reshape(-1, 2)
-    lk = dict(winSize=(cfg.klt_window, cfg.klt_window), maxLevel=cfg.seeded_klt_levels,
+    lk = dict(winSize=(cfg.stereo.klt_window, cfg.stereo.klt_window), maxLevel=cfg.stereo.seeded_klt_levels,
               criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 0.005))
-    p1, both, fb = forward_backward(kf_left, left, xy, guess, lk, cfg.seeded_klt_levels)
+    p1, both, fb = forward_backward(kf_left, left, xy, guess, lk, cfg.stereo.seeded_klt_levels)
     w, h = rig.cam0.size
-    ok = both & (fb < cfg.fb_max_px)
+    ok = both & (fb < cfg.stereo.fb_max_px)
     ok &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
     ids, p1, Xc = ids[ok], p1[ok], Xc[ok]
     if len(ids) == 0:
@@ -458,7 +529,7 @@ def frame_observations(rig: Rig, kf_left: np.ndarray, kf_xy: np.ndarray, kf_ids:
     Xr = Xc @ rig.R.T + rig.T
     Xr[:, 2] = np.maximum(Xr[:, 2], 1e-3)
     gr = cv2.projectPoints(Xr.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K1, d1)[0].reshape(-1, 2)
-    pr, okr = stereo_right(rig, left, right, p1, gr, cfg, levels=cfg.seeded_klt_levels)
+    pr, okr = stereo_right(rig, left, right, p1, gr, cfg.stereo, levels=cfg.stereo.seeded_klt_levels)
     ul = undistort_px(p1, K0, d0)
     ur = undistort_px(pr[okr], K1, d1)
     rows = [np.column_stack([np.zeros(len(ids)), ids, np.zeros(len(ids)), ul, np.ones(len(ids))])]

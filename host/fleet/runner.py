@@ -49,7 +49,7 @@ class FleetOptions:
     ray: str = "auto"  # "auto": start a local Ray; otherwise the address of a running cluster
     num_cpus: int | None = None  # CPUs of the local Ray (None: the machine's); ignored with an address
     task_cpus: float = 1.0  # CPUs declared per session task
-    task_memory_gb: float = 1.0  # memory declared per session task (the dense model needs ~1 GB)
+    task_memory_gb: float = 1.5  # memory declared per session task (bench_scale.py: peak 1.23-1.33 GB, 400-800 frames)
     max_in_flight: int | None = None  # None: as many as the cluster holds
     retries: int = 3  # re-runs of a task whose worker or node died
     path_map: PathMap = field(default_factory=PathMap)

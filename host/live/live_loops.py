@@ -90,7 +90,7 @@ class LiveLoopCloser:
 
     def _check(self, j: int):
         """The best verified loop between keyframe ``j`` and an earlier keyframe, or None."""
-        from stereopath.host.backend.loops import descriptor_matches, candidate_pairs, verify_pair
+        from stereopath.host.backend.loops import LoopCandidate, candidate_pairs, descriptor_matches, verify_pair
 
         T = self.poses()
         pairs = [i for i, jj in candidate_pairs(T, self.cfg) if jj == j]
@@ -100,8 +100,8 @@ class LiveLoopCloser:
         along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(C, axis=0), axis=1))])
         scored = sorted(((descriptor_matches(self.feats[i], self.feats[j]), i) for i in pairs), key=lambda mi: -len(mi[0]))
         for m, i in scored[:self.cfg.candidates_per_keyframe]:
-            loop, why = verify_pair(self.rig, self.feats[i], self.feats[j], T[i], T[j], along[j] - along[i], self.cfg,
-                                    i, j, m)
+            cand = LoopCandidate(self.feats[i], self.feats[j], T[i], T[j], float(along[j] - along[i]), i, j, m)
+            loop, why = verify_pair(self.rig, cand, self.cfg)
             log.debug("live loop candidate %d-%d: %s", i, j, why)
             if loop is not None:
                 return loop

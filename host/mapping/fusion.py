@@ -19,13 +19,18 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from stereopath.device.core.config import check_range
 from stereopath.device.errors import ConfigError, StereopathError
 from stereopath.device.formats.fileio import replacing
+
+if TYPE_CHECKING:
+    import open3d
+
+    from stereopath.host.mapping.depth import DepthMap
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +100,16 @@ class TsdfVolume:
     def block_count(self) -> int:
         return int(self._grid.hashmap().size())
 
+    @property
+    def voxel_bytes(self) -> int:
+        """Bytes of one voxel's attributes (TSDF and weight, plus colour when fused: float32 each)."""
+        return 4 * (5 if self.config.color else 2)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the allocated voxel blocks (the hash map's own tables not counted)."""
+        return self.block_count * self.config.block_resolution ** 3 * self.voxel_bytes
+
     def integrate(self, depth_m: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
                   color_rgb: np.ndarray | None = None) -> None:
         """Fuse one depth map (float32 metres, 0 = none) seen by a camera ``K`` at ``T_world_cam``.
@@ -133,12 +148,12 @@ class TsdfVolume:
         else:
             self._grid.integrate(blocks, dimg, intrinsic, extrinsic, 1.0, dmax, trunc)
 
-    def integrate_depth_map(self, depth_map: Any, T_world_cam0: np.ndarray) -> None:
+    def integrate_depth_map(self, depth_map: DepthMap, T_world_cam0: np.ndarray) -> None:
         """Fuse a :class:`stereopath.host.mapping.depth.DepthMap` given the pose of camera 0 (not the rectified camera)."""
         color = depth_map.colors_rgb() if self.config.color else None
         self.integrate(depth_map.depth_m, depth_map.K, depth_map.pose_world_rect(T_world_cam0), color)
 
-    def extract_mesh(self) -> Any:
+    def extract_mesh(self) -> open3d.geometry.TriangleMesh:
         """Legacy ``open3d.geometry.TriangleMesh`` (vertex normals, and colours when fused)."""
         if self.block_count == 0:
             return self._o3d.geometry.TriangleMesh()
@@ -148,7 +163,7 @@ class TsdfVolume:
             mesh.compute_vertex_normals()
         return mesh
 
-    def extract_cloud(self) -> Any:
+    def extract_cloud(self) -> open3d.geometry.PointCloud:
         """Legacy ``open3d.geometry.PointCloud`` of the zero crossings (normals, colours when fused)."""
         if self.block_count == 0:
             return self._o3d.geometry.PointCloud()
@@ -171,7 +186,7 @@ def _write_ply(path: str | Path, count: int, what: str, write) -> Path:
     return p
 
 
-def write_mesh(mesh: Any, path: str | Path) -> Path:
+def write_mesh(mesh: open3d.geometry.TriangleMesh, path: str | Path) -> Path:
     """Write a legacy triangle mesh (binary PLY) atomically: temporary file, then rename."""
     import open3d as o3d
 
@@ -179,7 +194,7 @@ def write_mesh(mesh: Any, path: str | Path) -> Path:
         t, mesh, write_ascii=False, compressed=False, print_progress=False))
 
 
-def write_cloud(cloud: Any, path: str | Path) -> Path:
+def write_cloud(cloud: open3d.geometry.PointCloud, path: str | Path) -> Path:
     """Write a legacy point cloud (binary PLY) atomically."""
     import open3d as o3d
 
@@ -187,7 +202,7 @@ def write_cloud(cloud: Any, path: str | Path) -> Path:
         t, cloud, write_ascii=False, compressed=False, print_progress=False))
 
 
-def mesh_arrays(mesh: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def mesh_arrays(mesh: open3d.geometry.TriangleMesh) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """``(vertices (N, 3), triangles (M, 3), vertex colours (N, 3) in [0, 1] or None)`` of a legacy mesh."""
     v = np.asarray(mesh.vertices, dtype=np.float64)
     t = np.asarray(mesh.triangles, dtype=np.int64)

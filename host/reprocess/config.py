@@ -8,12 +8,15 @@ Each stage module (``stage_estimate``, ``stage_tracks``, ``stage_ba``, ``stage_m
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from stereopath.device.core.stereo_config import DisparityOffsetConfig, KeyframePolicy, StereoConfig
+from stereopath.host.backend.ba_common import BAConfig
 from stereopath.host.backend.loops import LoopConfig
+from stereopath.host.reprocess.memory import MemoryLedger
 from stereopath.host.reprocess.preset_names import DEFAULT_PRESET, PRESET_ABOUT
 from stereopath.host.backend.tracks import TrackConfig
 
@@ -41,20 +44,13 @@ class ReprocessPreset:
     estimator_options: StereoConfig = field(default_factory=offline_stereo)
     tracks: TrackConfig = field(default_factory=TrackConfig)
     loops: LoopConfig = field(default_factory=LoopConfig)  # loop closure between keyframes (tracks stage)
-    ba_loss: str = "huber"
-    ba_robust_px: float = 1.0
-    ba_max_iterations: int = 30
-    ba_outlier_px: float = 3.0
-    ba_outlier_rounds: int = 1
-    ba_disparity_offset: bool = True  # estimate a constant disparity error (right principal point) in BA
-    ba_disparity_offset_min_px: float = 0.02  # smaller estimates are noise: not applied
+    # the keyframe bundle adjustment; with ba.imu, IMU preintegration between keyframes (GTSAM back end):
+    # CombinedImuFactors with the recorded noise, velocity and bias unknowns, gravity direction estimated
+    # jointly (started from the still start, else from the path); left out (with a warning) when the session
+    # has no IMU or no T_body_cam0, or when its readings do not fit the path
+    ba: BAConfig = field(default_factory=BAConfig)
     refine_frames: bool = True  # motion-only refinement of the frames between keyframes
     frame_points: int = 300  # keypoints per neighbouring keyframe followed into each frame
-    # IMU preintegration between keyframes (GTSAM back end): CombinedImuFactors with the recorded
-    # noise, velocity and bias unknowns, gravity direction estimated jointly (started from the still start,
-    # else from the path); left out (with a warning) when the session has no IMU or no T_body_cam0, or when
-    # its readings do not fit the path
-    ba_imu: bool = True
     imu_rotation_priors: bool = False  # gyro-integrated relative rotations between keyframes as BA terms
     gyro_sigma_rad_per_sqrt_s: float = 0.002
     # the right images in the left camera's grey levels for the tracks, ba and map stages where the two
@@ -112,3 +108,7 @@ class StageInputs:
     progress: bool | None = None
     results: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)  # e.g. the map stage's folder and settings
+    memory: MemoryLedger = field(default_factory=MemoryLedger)  # sizes of what the stage holds
+    # the stage's folder of partial results (kept until the stage is stored: an interrupted stage
+    # resumes from them); None: held in memory
+    parts: Path | None = None

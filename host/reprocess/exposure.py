@@ -46,7 +46,7 @@ def probe_relation(rig, left: np.ndarray, right: np.ndarray, cfg) -> GainOffset 
         return None
     xy = c.reshape(-1, 2).astype(np.float32)
     guess = right_guess_at_depth(rig, undistort_px(xy, rig.cam0.K, rig.cam0.dist), cfg)
-    return measure_relation(left, right, xy, lambda image: stereo_right(rig, left, image, xy, guess, cfg))
+    return measure_relation(left, right, xy, lambda image: stereo_right(rig, left, image, xy, guess, cfg.stereo))
 
 
 class ExposureMatchedSequence(SequenceBase):

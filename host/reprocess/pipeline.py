@@ -15,11 +15,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import shutil
 import time
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -33,6 +35,7 @@ from stereopath.host.reprocess.config import (  # noqa: F401  (re-exported: the 
     StageInputs,
     resolve_preset,
 )
+from stereopath.host.reprocess.memory import MemoryLedger
 from stereopath.host.reprocess.outputs import STAGES, RunSummary, write_outputs
 from stereopath.host.reprocess.stage_ba import gyro_rotation_priors  # noqa: F401  (re-exported)
 from stereopath.host.reprocess.stage_map import MODEL_FILES  # noqa: F401  (re-exported)
@@ -45,6 +48,9 @@ from stereopath.host.reprocess.store import (  # noqa: F401  (re-exported)
     stage_key,
     stored_stats,
 )
+
+if TYPE_CHECKING:
+    from stereopath.host.mapping.mapper import MapConfig
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +68,7 @@ class ReprocessResult:
     files: list[str]
 
 
-def _one_blas_thread() -> Any:
+def _one_blas_thread() -> AbstractContextManager[object]:
     """A context with every BLAS (NumPy's, SciPy's and OpenCV's OpenBLAS) limited to one thread."""
     import cv2  # noqa: F401 - each library brings its own BLAS, which must be loaded to be limited
     import scipy.linalg  # noqa: F401
@@ -85,6 +91,7 @@ class _Runner:
             self.matched = ExposureMatchedSequence(seq, config.tracks, config.exposure_tolerance)
         self.progress, self.after_stage = progress, after_stage
         self.store = StageStore(stages_dir)
+        self.memory = MemoryLedger()
         self.status: dict[str, str] = {}
         self.cache: dict[str, dict[str, np.ndarray]] = {}
         self.keys: dict[str, str] = {}
@@ -97,18 +104,25 @@ class _Runner:
 
     def run_stage(self, name: str, files: list[str], compute: Callable[[], Any]) -> Any:
         self.store.forget(name)
+        self.memory.start()
         t0 = time.perf_counter()
         # one BLAS thread: a multi-threaded BLAS sums long dot products in an order that depends on
         # its thread count, so the adjusted poses would change in the last bits from a 2-core
         # laptop to a 16-core one or a Ray worker (OMP_NUM_THREADS=1); pinned, they do not
         with _one_blas_thread():
             result = compute()
-        self.store.finish(name, self.keys[name], files, time.perf_counter() - t0, self.settings.get(name))
+        self.store.finish(name, self.keys[name], files, time.perf_counter() - t0, self.settings.get(name),
+                          self.memory.summary())
+        shutil.rmtree(self.parts_dir(name), ignore_errors=True)  # the stage's partial results: stored whole now
         self.status[name] = "computed"
         log.info("stage %s: computed in %.1f s", name, time.perf_counter() - t0)
         if self.after_stage is not None:
             self.after_stage(name)
         return result
+
+    def parts_dir(self, name: str) -> Path:
+        """The folder of a stage's partial results (``OUT/stages/<stage>.parts``; one subfolder per key)."""
+        return self.dir / f"{name}.parts"
 
     def reusable(self, name: str) -> bool:
         return not self.force and self.store.done(name, self.keys[name]) and self.status.get(name) != "computed"
@@ -129,8 +143,11 @@ class _Runner:
                 return data
 
         def compute() -> dict[str, np.ndarray]:
+            if self.force:  # --force: nothing of an earlier run is read back, partial results neither
+                shutil.rmtree(self.parts_dir(name), ignore_errors=True)
             inputs = StageInputs(self.seq if name == "estimate" else self.matched, self.progress,
-                                 {d: self.get(d) for d in _DEPENDS[name]})
+                                 {d: self.get(d) for d in _DEPENDS[name]}, memory=self.memory,
+                                 parts=self.parts_dir(name) / self.keys[name])
             data = _ARRAY_STAGES[name].run(self.config, inputs)
             save_npz(path, **data)
             return data
@@ -138,7 +155,7 @@ class _Runner:
         self.cache[name] = self.run_stage(name, [path.name], compute)
         return self.cache[name]
 
-    def map(self, map_cfg: Any, final: Trajectory, label: str) -> dict[str, Any] | None:
+    def map(self, map_cfg: MapConfig | str, final: Trajectory, label: str) -> dict[str, Any] | None:
         """Run or reuse the map stage; its map.json statistics (or the error)."""
         self.settings["map"] = stage_map.settings(map_cfg)
         self.keys["map"] = stage_key("map", PIPELINE_VERSION, self.keys["ba"], self.settings["map"])
@@ -146,7 +163,8 @@ class _Runner:
         if not self.force and self.store.done("map", self.keys["map"]):
             self.status["map"] = "reused"
         else:
-            inputs = StageInputs(self.matched, self.progress, extra={"dst": dst, "trajectory": final, "label": label})
+            inputs = StageInputs(self.matched, self.progress, extra={"dst": dst, "trajectory": final, "label": label},
+                                 memory=self.memory)
             try:
                 self.run_stage("map", [f"map/{f}" for f in MODEL_FILES], lambda: stage_map.run(map_cfg, inputs))
             except StereopathError as exc:  # e.g. no valid depth with this map preset: keep the path outputs
@@ -192,6 +210,7 @@ def reprocess_sequence(seq: Any, out_dir: str | Path, preset: str | ReprocessPre
     trk_stats = (json.loads(str(runner.cache["tracks"]["stats"])) if "tracks" in runner.cache
                  else stored_stats(stages_dir / "tracks.npz"))
     final = Trajectory(est["t_ns"], ba["T_frames"])
+    runner.cache.pop("tracks", None)  # the model needs only the path: the tracks are not held while it is built
     map_stats = None
     if map_cfg is not None:
         map_stats = runner.map(map_cfg, final, label)

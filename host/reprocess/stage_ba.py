@@ -2,7 +2,7 @@
 
 The keyframes: :func:`stereopath.host.backend.gtsam_ba.bundle_adjust` on GTSAM (reprojection
 error in both cameras, robust loss; the rig's constant disparity error estimated too and applied
-when it exceeds ``ba_disparity_offset_min_px``; the verified loops; IMU preintegration between
+when it exceeds ``ba.disparity_offset_min_px``; the verified loops; IMU preintegration between
 keyframes when the session has a usable IMU; optional gyro rotation priors), outlier removal and
 a second solve.  Every other frame: the keyframe corrections interpolated in time, then a
 motion-only refinement on the adjusted points (each frame observes its neighbouring keyframes'
@@ -17,14 +17,17 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 
+from stereopath.device.core.rig import Rig
 from stereopath.device.errors import EstimationError, ImuMismatchError
 from stereopath.device.estimation.base import TrackStatus
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
 from stereopath.host.progress import Bar, progress_bar
+from stereopath.host.reprocess.memory import MB, peak_rss_mb, rss_mb
 from stereopath.host.reprocess.store import json_array, meta
 
 log = logging.getLogger(__name__)
@@ -88,12 +91,12 @@ def end_to_start(T: np.ndarray) -> dict[str, float]:
 
 def imu_terms_of(config: ReprocessPreset, inputs: StageInputs):
     """Preintegrated IMU between the keyframes, and whether the IMU may be used at all: (None, False)
-    without ``ba_imu`` or an IMU, or when its readings were shown not to fit the path; (None, True)
+    without ``ba.imu`` or an IMU, or when its readings were shown not to fit the path; (None, True)
     when it was not refused but gives no factors (too few keyframe intervals, e.g. a session that
     rests: then the checks against the path could not run either)."""
     from stereopath.host.backend.imu_factors import imu_terms
 
-    if not config.ba_imu or getattr(inputs.seq, "imu", None) is None:
+    if not config.ba.imu or getattr(inputs.seq, "imu", None) is None:
         return None, False
     est, trk = inputs.results["estimate"], inputs.results["tracks"]
     try:
@@ -118,38 +121,49 @@ def imu_report(terms, res, t_kf: np.ndarray) -> dict[str, Any] | None:
 
 def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list, imu=None):
     """Bundle adjustment of the keyframes (a ``BAResult``); EstimationError when there is too little."""
+    from stereopath.host.backend.ba_common import BAProblem
     from stereopath.host.backend.gtsam_ba import bundle_adjust
+    from stereopath.host.backend.windowed_ba import BATCH_KEYFRAMES, adjust_in_windows, window_starts
 
     trk = inputs.results["tracks"]
     points = {int(i): x for i, x in zip(trk["point_ids"], trk["point_xyz"])}
-    bar = progress_bar(config.ba_max_iterations * (1 + config.ba_outlier_rounds), "bundle adjustment",
+    problem = BAProblem(trk["T_kf"], points, trk["observations"], loops=loops_of(trk), imu=imu)
+    if len(trk["T_kf"]) > BATCH_KEYFRAMES:  # a long session: windows of keyframes, memory independent of its length
+        with Bar(len(window_starts(len(trk["T_kf"]))), "bundle adjustment", inputs.progress, "window") as tick:
+            return adjust_in_windows(inputs.seq.rig, problem, config.ba, priors, on_window=tick)
+    bar = progress_bar(config.ba.max_iterations * (1 + config.ba.outlier_rounds), "bundle adjustment",
                        inputs.progress, "iteration")
     try:
-        return bundle_adjust(inputs.seq.rig, trk["T_kf"], points, trk["observations"], huber_px=config.ba_robust_px,
-                             loss=config.ba_loss, max_iterations=config.ba_max_iterations,
-                             outlier_px=config.ba_outlier_px, outlier_rounds=config.ba_outlier_rounds,
-                             rotation_priors=priors, estimate_disparity_offset=config.ba_disparity_offset,
-                             disparity_offset_min_px=config.ba_disparity_offset_min_px,
-                             on_iteration=None if bar is None else bar.update, loops=loops_of(trk), imu=imu)
+        return bundle_adjust(inputs.seq.rig, problem, config.ba, priors, on_iteration=None if bar is None else bar.update)
     finally:
         if bar is not None:
             bar.close()
 
 
+def solver_stats(n_keyframes: int) -> dict[str, Any]:
+    """How the keyframes were adjusted, for a session above the batch's length (nothing below it)."""
+    from stereopath.host.backend.windowed_ba import BATCH_KEYFRAMES, OVERLAP, WINDOW, window_starts
+
+    if n_keyframes <= BATCH_KEYFRAMES:
+        return {}
+    return {"solver": {"windows": len(window_starts(n_keyframes)), "window_keyframes": WINDOW, "overlap": OVERLAP}}
+
+
 def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.ndarray,
-                is_kf: np.ndarray) -> list[np.ndarray]:
-    """Observations of the adjusted points in every non-keyframe (KLT from its two keyframes)."""
-    from stereopath.host.backend.tracks import frame_observations
+                is_kf: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
+    """Each non-keyframe's observations of the adjusted points (KLT from its two keyframes), one frame
+    at a time: ``(frame index, rows)``."""
+    from stereopath.host.backend.tracks import TrackedKeypoints, frame_observations
 
     seq, est, trk = inputs.seq, inputs.results["estimate"], inputs.results["tracks"]
     kf, offs = trk["kf_index"], trk["kf_offsets"]
     kf_img: dict[int, np.ndarray] = {}
-    rows = []
     todo = np.flatnonzero(~is_kf)
     with Bar(len(todo), "frame refinement", inputs.progress, "frame") as tick:
         for i in todo:
             j = int(np.searchsorted(kf, i))
             fr = seq.frame(int(est["seq"][i]))
+            rows = []
             for k in (j - 1, j):
                 if not 0 <= k < len(kf):
                     continue
@@ -161,15 +175,16 @@ def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.
                 if len(ids) > config.frame_points:
                     pick = np.linspace(0, len(ids) - 1, config.frame_points).astype(int)
                     ids, xy = ids[pick], xy[pick]
-                o = frame_observations(seq.rig, kf_img[k], xy, ids, res.points, fr.left, fr.right,
+                o = frame_observations(seq.rig, TrackedKeypoints(kf_img[k], xy, ids), res.points, (fr.left, fr.right),
                                        T_frames[i], config.tracks)
                 o[:, 0] = i
                 rows.append(o)
             tick(1)
-    return rows
+            if rows:
+                yield int(i), np.vstack(rows)
 
 
-def refine_frame(rig: Any, T_world_cam: np.ndarray, points: dict[int, np.ndarray], rows: np.ndarray,
+def refine_frame(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarray], rows: np.ndarray,
                  huber_px: float, disparity_offset_px: float, min_obs: int = 6) -> np.ndarray | None:
     """One frame's pose moved to fit the fixed adjusted ``points`` (its observation ``rows``); None
     with fewer than ``min_obs`` rows.  Each frame is independent once the points are fixed, so this is
@@ -191,19 +206,16 @@ def refine_frame(rig: Any, T_world_cam: np.ndarray, points: dict[int, np.ndarray
 
 
 def refine_frames(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.ndarray) -> int:
-    """Motion-only refinement of the non-keyframes of ``T_frames`` (in place); the number refined."""
+    """Motion-only refinement of the non-keyframes of ``T_frames`` (in place), one frame at a time; the
+    number refined."""
     is_kf = np.zeros(len(T_frames), bool)
     is_kf[inputs.results["tracks"]["kf_index"]] = True
-    rows = _frame_rows(config, inputs, res, T_frames, is_kf)
-    if not rows:
-        return 0
-    obs = np.vstack(rows)
-    obs = obs[np.argsort(obs[:, 0], kind="stable")]
-    frames, starts = np.unique(obs[:, 0].astype(np.int64), return_index=True)
     n = 0
-    for i, part in zip(frames, np.split(obs, starts[1:])):
-        T = refine_frame(inputs.seq.rig, T_frames[i], res.points, part, config.ba_robust_px, res.disparity_offset_px)
-        if T is not None and not is_kf[i]:
+    for i, part in _frame_rows(config, inputs, res, T_frames, is_kf):
+        if not len(part):
+            continue
+        T = refine_frame(inputs.seq.rig, T_frames[i], res.points, part, config.ba.robust_px, res.disparity_offset_px)
+        if T is not None:
             T_frames[i] = T
             n += 1
     return n
@@ -258,8 +270,11 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
         priors = gyro_rotation_priors(inputs.seq, est["t_ns"][kf], config.gyro_sigma_rad_per_sqrt_s, T_kf)
     t0 = time.perf_counter()
     imu, imu_usable = imu_terms_of(config, inputs)
+    inputs.memory.note("observations", trk["observations"].nbytes)
+    rss0 = rss_mb()
     try:
         res = adjust_keyframes(config, inputs, priors, imu)
+        inputs.memory.note("gtsam_graph", int((peak_rss_mb() - rss0) * MB))  # the solver's growth of the peak
     except EstimationError as exc:
         # too little structure to adjust (e.g. a very short or featureless session): keep the re-estimate
         log.warning("bundle adjustment not possible (%s): the re-estimated path is kept", exc)
@@ -275,8 +290,8 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
              "rms_before_px": res.rms_before_px, "rms_after_px": res.rms_after_px, "iterations": res.iterations,
              "inlier_fraction": res.inlier_fraction, "rotation_priors": len(priors),
              "pixel_sigma_px": res.pixel_sigma_px,
-             "disparity_offset_px": res.disparity_offset_px if config.ba_disparity_offset else None,
-             "frames_refined": n_refined, "ba_seconds": round(t_ba, 3),
+             "disparity_offset_px": res.disparity_offset_px if config.ba.disparity_offset else None,
+             "frames_refined": n_refined, "ba_seconds": round(t_ba, 3), **solver_stats(len(kf)),
              "frame_refinement_seconds": round(time.perf_counter() - t1, 3),
              "loops": [lp.as_dict() for lp in loops_of(trk)],
              "imu": imu_report(imu, res, est["t_ns"][kf]),

@@ -12,29 +12,35 @@ import dataclasses
 import json
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from stereopath.host.reprocess.config import StageInputs
+
+if TYPE_CHECKING:
+    from stereopath.host.mapping.mapper import MapConfig
 
 NAME = "map"
 MODEL_FILES = ("mesh.ply", "cloud.ply", "model.png", "map.json")
 
 
-def settings(config: Any) -> dict[str, Any]:
+def settings(config: MapConfig | str) -> dict[str, Any]:
     """What the stage's key hashes: the depth settings in their recorded (``map.json``) form, constants included."""
     if isinstance(config, str):
         return {"preset": config}
     return {**dataclasses.asdict(config), "depth": config.depth.record()}
 
 
-def run(config: Any, inputs: StageInputs) -> list[str]:
+def run(config: MapConfig | str, inputs: StageInputs) -> list[str]:
     from stereopath.host.mapping.mapper import map_sequence
 
     dst = Path(inputs.extra["dst"])
     if dst.exists():
         shutil.rmtree(dst)
-    map_sequence(inputs.seq, inputs.extra["trajectory"], dst, config, progress=inputs.progress,
-                 source=inputs.extra["label"])
+    result = map_sequence(inputs.seq, inputs.extra["trajectory"], dst, config, progress=inputs.progress,
+                          source=inputs.extra["label"])
+    fusion = result.stats["config"]["fusion"]
+    voxel_bytes = 4 * (5 if fusion["color"] else 2)  # TsdfVolume.voxel_bytes: float32 TSDF, weight (, colour)
+    inputs.memory.note("tsdf_volume", result.stats["blocks"] * fusion["block_resolution"] ** 3 * voxel_bytes)
     return [f for f in MODEL_FILES if (dst / f).is_file()]
 
 

@@ -159,11 +159,15 @@ class StageStore:
             return False
         return all((self.root / f).exists() for f in ent.get("files", []))
 
-    def finish(self, name: str, key: str, files: list[str], seconds: float, settings: Any) -> None:
+    def finish(self, name: str, key: str, files: list[str], seconds: float, settings: Any,
+               memory: dict[str, float] | None = None) -> None:
+        """Record a finished stage (``memory``: its peak resident set and held structures, MB)."""
         self.data["stages"][name] = {
             "key": key, "files": files, "seconds": round(seconds, 3), "settings": plain(settings),
             "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
+        if memory:
+            self.data["stages"][name]["memory"] = memory
         self.root.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.path, json.dumps(self.data, indent=2) + "\n")
 

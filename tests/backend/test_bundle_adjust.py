@@ -7,6 +7,7 @@ from stereopath.device.core.geometry import invert_pose, make_pose, rotation_ang
 from stereopath.device.core.rig import paper_rig
 from stereopath.host.backend import gtsam_ba
 from stereopath.host.backend.ba_common import RotationPrior, interpolate_corrections, propagate_to_frames
+from tests.backend.ba_support import adjust
 
 @pytest.fixture
 def ba():
@@ -37,7 +38,7 @@ def test_bundle_adjustment_recovers_perturbed_poses(ba):
     for k in range(1, len(T_noisy)):
         T_noisy[k] = T_noisy[k] @ make_pose(so3_exp(rng.normal(0, 0.01, 3)), rng.normal(0, 0.02, 3))
     pts_noisy = {i: X + rng.normal(0, 0.02, 3) for i, X in pts.items()}
-    res = ba.bundle_adjust(rig, T_noisy, pts_noisy, obs)
+    res = adjust(rig, T_noisy, pts_noisy, obs)
     assert res.rms_after_px < 0.5 < res.rms_before_px
     for k in range(len(T_true)):
         assert np.linalg.norm(res.T_world_cam[k][:3, 3] - T_true[k][:3, 3]) < 2e-3
@@ -48,9 +49,9 @@ def test_bundle_adjustment_rejects_too_little_data(ba):
     rng = np.random.default_rng(1)
     rig, T_true, pts, obs = _problem(rng, n_kf=2, n_pts=5)
     with pytest.raises(EstimationError):
-        ba.bundle_adjust(rig, T_true, pts, obs)
+        adjust(rig, T_true, pts, obs)
     with pytest.raises(EstimationError):
-        ba.bundle_adjust(rig, T_true[:1], pts, obs)
+        adjust(rig, T_true[:1], pts, obs)
 
 
 def test_propagation_moves_frames_with_their_keyframe():
@@ -74,8 +75,8 @@ def test_disparity_offset_is_estimated_and_removes_the_scale_error(ba):
     rig, T_true, pts, obs = _problem(rng, n_kf=8, n_pts=300)
     shifted = obs.copy()
     shifted[shifted[:, 2] == 1, 3] += 0.5  # a constant disparity error of 0.5 px
-    plain = ba.bundle_adjust(rig, T_true, pts, shifted)
-    fitted = ba.bundle_adjust(rig, T_true, pts, shifted, estimate_disparity_offset=True)
+    plain = adjust(rig, T_true, pts, shifted)
+    fitted = adjust(rig, T_true, pts, shifted, disparity_offset=True)
     assert fitted.disparity_offset_px == pytest.approx(0.5, abs=0.05)
     assert plain.disparity_offset_px == 0.0
 
@@ -84,7 +85,7 @@ def test_disparity_offset_is_estimated_and_removes_the_scale_error(ba):
 
     assert path_error(fitted) < 2e-3 < path_error(plain)
     # an offset below the threshold is treated as noise and not applied
-    tiny = ba.bundle_adjust(rig, T_true, pts, obs, estimate_disparity_offset=True, disparity_offset_min_px=0.2)
+    tiny = adjust(rig, T_true, pts, obs, disparity_offset=True, disparity_offset_min_px=0.2)
     assert tiny.disparity_offset_px == 0.0
 
 
@@ -95,10 +96,10 @@ def test_an_offset_within_its_standard_error_is_not_applied(ba, monkeypatch):
     rig, T_true, pts, obs = _problem(rng, n_kf=3, n_pts=40)
     obs = obs.copy()
     obs[:, 3:5] += rng.normal(0, 0.7, (len(obs), 2))
-    kept = ba.bundle_adjust(rig, T_true, pts, obs, estimate_disparity_offset=True, disparity_offset_min_px=0.0)
+    kept = adjust(rig, T_true, pts, obs, disparity_offset=True, disparity_offset_min_px=0.0)
     assert kept.disparity_offset_px == 0.0
     monkeypatch.setattr(ba, "OFFSET_SIGNIFICANCE", 0.0)  # without the test the noise would be applied
-    noisy = ba.bundle_adjust(rig, T_true, pts, obs, estimate_disparity_offset=True, disparity_offset_min_px=0.0)
+    noisy = adjust(rig, T_true, pts, obs, disparity_offset=True, disparity_offset_min_px=0.0)
     assert abs(noisy.disparity_offset_px) > 0.02
 
 
@@ -109,17 +110,17 @@ def test_gross_outliers_are_removed_and_weights_scale_residuals(ba):
     obs = obs.copy()
     obs[bad, 3:5] += rng.uniform(20, 40, (100, 2))
     T_noisy, pts_noisy = _perturbed(rng, T_true, pts)
-    res = ba.bundle_adjust(rig, T_noisy, pts_noisy, obs, outlier_px=3.0, outlier_rounds=1)
+    res = adjust(rig, T_noisy, pts_noisy, obs, outlier_px=3.0, outlier_rounds=1)
     assert res.n_obs <= len(obs) - 100
     for k in range(len(T_true)):
         assert np.linalg.norm(res.T_world_cam[k][:3, 3] - T_true[k][:3, 3]) < 2e-3
     # a 6th column scales residuals: halving every weight halves the rms
     w = np.column_stack([obs, np.full(len(obs), 0.5)])
-    r_full = ba.bundle_adjust(rig, T_true, pts, obs, max_iterations=1, outlier_rounds=0)
-    r_half = ba.bundle_adjust(rig, T_true, pts, w, max_iterations=1, outlier_rounds=0)
+    r_full = adjust(rig, T_true, pts, obs, max_iterations=1, outlier_rounds=0)
+    r_half = adjust(rig, T_true, pts, w, max_iterations=1, outlier_rounds=0)
     assert r_half.rms_before_px == pytest.approx(0.5 * r_full.rms_before_px, rel=1e-9)
     with pytest.raises(EstimationError, match="rows"):
-        ba.bundle_adjust(rig, T_true, pts, obs[:, :4])
+        adjust(rig, T_true, pts, obs[:, :4])
 
 
 def test_motion_only_refinement_with_fixed_points():
@@ -155,9 +156,9 @@ def test_rotation_priors_pull_the_relative_rotation(ba):
     obs = obs[obs[:, 2] == 0]  # one camera only: weaker geometry
     R01_true = invert_pose(T_true[0])[:3, :3] @ invert_pose(T_true[1])[:3, :3].T
     wrong = so3_exp([0.0, 0.0, 0.02]) @ R01_true
-    free = ba.bundle_adjust(rig, T_true, pts, obs, n_fixed=1)
-    pulled = ba.bundle_adjust(rig, T_true, pts, obs, n_fixed=1,
-                           rotation_priors=[RotationPrior(0, 1, wrong, 1e-5)])
+    free = adjust(rig, T_true, pts, obs, n_fixed=1)
+    pulled = adjust(rig, T_true, pts, obs, n_fixed=1,
+                           priors=[RotationPrior(0, 1, wrong, 1e-5)])
 
     def rel(res):
         return invert_pose(res.T_world_cam[0])[:3, :3] @ invert_pose(res.T_world_cam[1])[:3, :3].T
@@ -221,7 +222,7 @@ def test_gtsam_reaches_the_least_squares_optimum(monkeypatch):
     rng = np.random.default_rng(7)
     rig, T_true, pts, obs = _problem(rng, n_kf=4, n_pts=40)
     T_noisy, pts_noisy = _perturbed(rng, T_true, pts, 0.005, 0.01, 0.01)
-    a = gtsam_ba.bundle_adjust(rig, T_noisy, pts_noisy, obs, loss="linear", outlier_rounds=0, max_iterations=50,
+    a = adjust(rig, T_noisy, pts_noisy, obs, loss="linear", outlier_rounds=0, max_iterations=50,
                                relative_tol=1e-12)
     T_ref, P_ref, _ = _least_squares_optimum(rig, T_noisy, pts_noisy, obs)
     for k in range(len(T_true)):
@@ -232,8 +233,8 @@ def test_gtsam_reaches_the_least_squares_optimum(monkeypatch):
     bad[bad[:, 2] == 1, 3] += 0.4
     hit = rng.random(len(bad)) < 0.05
     bad[hit, 3:5] += rng.normal(0, 8, (hit.sum(), 2))
-    a = gtsam_ba.bundle_adjust(rig, T_noisy, pts_noisy, bad, huber_px=1.0, outlier_rounds=0, max_iterations=100,
-                               estimate_disparity_offset=True, relative_tol=1e-12)
+    a = adjust(rig, T_noisy, pts_noisy, bad, robust_px=1.0, outlier_rounds=0, max_iterations=100,
+                               disparity_offset=True, relative_tol=1e-12)
     T_ref, P_ref, d_ref = _least_squares_optimum(rig, T_noisy, pts_noisy, bad, huber_px=1.0, offset=True)
     assert a.disparity_offset_px == pytest.approx(d_ref, abs=1e-4)
     for k in range(len(T_true)):
@@ -250,9 +251,9 @@ def test_gtsam_loop_factor_constrains_the_relative_pose():
     rel = invert_pose(T_true[0]) @ T_true[5]
     meas = rel.copy()
     meas[:3, 3] *= 1.02  # a measured loop 2 % longer than the truth
-    free = gtsam_ba.bundle_adjust(rig, T_true, pts, obs, outlier_rounds=0)
+    free = adjust(rig, T_true, pts, obs, outlier_rounds=0)
     loop = Loop(0, 5, meas, 100, 120, 1e-5, 1e-5, 0.0)
-    tied = gtsam_ba.bundle_adjust(rig, T_true, pts, obs, outlier_rounds=0, loops=[loop])
+    tied = adjust(rig, T_true, pts, obs, outlier_rounds=0, loops=[loop])
 
     def length(res):
         return np.linalg.norm((invert_pose(res.T_world_cam[0]) @ res.T_world_cam[5])[:3, 3])
@@ -288,9 +289,9 @@ def test_precise_observations_outweigh_a_loose_prior_once_their_noise_is_measure
         rel = invert_pose(res.T_world_cam[0])[:3, :3] @ invert_pose(res.T_world_cam[1])[:3, :3].T
         return rotation_angle_deg(rel.T @ R01_true)
 
-    measured = ba.bundle_adjust(rig, T_true, pts, obs, n_fixed=1, rotation_priors=prior)
+    measured = adjust(rig, T_true, pts, obs, n_fixed=1, priors=prior)
     assert measured.pixel_sigma_px == pytest.approx(0.3, rel=0.2)
     monkeypatch.setattr(gtsam_ba, "pixel_noise_px", lambda *a: 1.0)
-    nominal = ba.bundle_adjust(rig, T_true, pts, obs, n_fixed=1, rotation_priors=prior)
+    nominal = adjust(rig, T_true, pts, obs, n_fixed=1, priors=prior)
     assert pull(nominal) > 3 * pull(measured)
-    assert ba.bundle_adjust(rig, T_true, pts, obs, n_fixed=1).pixel_sigma_px is None  # observations alone: unchanged
+    assert adjust(rig, T_true, pts, obs, n_fixed=1).pixel_sigma_px is None  # observations alone: unchanged

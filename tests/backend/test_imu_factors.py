@@ -8,8 +8,8 @@ import pytest
 from stereopath.device.core.geometry import invert_pose, make_pose, so3_exp
 from stereopath.device.core.stereo import project
 from stereopath.device.errors import EstimationError, ImuMismatchError
-from stereopath.host.backend import gtsam_ba
 from stereopath.host.backend.imu_factors import ImuNoise, imu_terms
+from tests.backend.ba_support import adjust
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +67,7 @@ def visual(sim):
     rig, t_kf, T_true, T_noisy, pts, obs = _visual_problem(sim)
     for a in (t_kf, T_true, T_noisy, obs, *pts.values()):
         a.setflags(write=False)
-    vision = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0)
+    vision = adjust(rig, T_noisy, pts, obs, outlier_rounds=0)
     return (rig, t_kf, T_true, T_noisy, pts, obs), vision
 
 
@@ -75,7 +75,7 @@ def test_imu_factors_recover_the_simulated_biases_and_keep_the_path(sim, visual)
     (rig, t_kf, T_true, T_noisy, pts, obs), vision = visual
     terms = imu_terms(sim, t_kf, T_noisy)
     assert terms.noise == ImuNoise.of(sim) and terms.noise.accel_random_walk == sim.imu_model.accel_bias_walk_m_s3_rthz
-    fused = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0, imu=terms)
+    fused = adjust(rig, T_noisy, pts, obs, outlier_rounds=0, imu=terms)
     assert vision.imu_biases is None and fused.imu_biases.shape == (len(t_kf), 6)
     # the path: no worse than vision only, and the first pose stays where it was held
     assert _ate(fused.T_world_cam, T_true) <= _ate(vision.T_world_cam, T_true) * 1.001
@@ -172,7 +172,7 @@ def test_without_a_still_start_gravity_and_the_gyro_bias_come_from_the_path(sim,
     terms = imu_terms(moving, t_kf, T_noisy)
     g_cam0 = sim.groundtruth.T_world_cam[0][:3, :3].T @ np.array([0.0, 0.0, -1.0])
     assert np.arccos(terms.gravity_world @ g_cam0 / np.linalg.norm(terms.gravity_world)) < 5e-3
-    fused = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0, imu=terms)
+    fused = adjust(rig, T_noisy, pts, obs, outlier_rounds=0, imu=terms)
     assert _ate(fused.T_world_cam, T_cam0) <= _ate(vision.T_world_cam, T_cam0) * 1.001
     t_imu = sim.imu.t_ns
     for est, true in ((fused.imu_biases[:, :3], sim.imu_biases.accel_m_s2), (fused.imu_biases[:, 3:], sim.imu_biases.gyro_rad_s)):
@@ -256,7 +256,7 @@ def test_an_imu_that_starts_late_gives_factors_only_where_it_covers_the_keyframe
     first = int(np.searchsorted(t_kf, sim.t_ns[103]))  # the first keyframe after the IMU's start
     assert [i for i, _, _ in terms.pims] == list(range(first, len(t_kf) - 1))
     assert np.isfinite(terms.velocities).all()  # the keyframes no interval touches: central differences
-    fused = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0, imu=terms)
+    fused = adjust(rig, T_noisy, pts, obs, outlier_rounds=0, imu=terms)
     assert _ate(fused.T_world_cam, T_cam0) <= _ate(vision.T_world_cam, T_cam0) * 1.001
 
 
@@ -279,7 +279,7 @@ def test_a_session_without_a_still_start_is_leveled_by_the_gravity_the_adjustmen
     g_true = sim.groundtruth.T_world_cam[0][:3, :3].T @ np.array([0.0, 0.0, -g])  # in the first camera's world
     # the adjustment starts from gravity 3 deg off and reports where it put it, in the world of its poses
     g_start = so3_exp(np.array([np.radians(3.0), 0.0, 0.0])) @ g_true
-    fused = gtsam_ba.bundle_adjust(rig, T_noisy, pts, obs, outlier_rounds=0,
+    fused = adjust(rig, T_noisy, pts, obs, outlier_rounds=0,
                                    imu=imu_terms(_moving(sim), t_kf, T_noisy, gravity_world=g_start))
     assert fused.gravity_world is not None and np.linalg.norm(fused.gravity_world) == pytest.approx(g)
     assert np.degrees(np.arccos(fused.gravity_world @ g_true / g ** 2)) < 0.1  # measured 0.011 deg
@@ -415,7 +415,7 @@ def test_an_imu_refused_for_disagreeing_with_the_path_does_not_level_the_world(s
     assert stage_ba.imu_terms_of(config, inputs) == (None, False)
     monkeypatch.setattr(imu_factors, "imu_terms", raising(EstimationError("needs at least three keyframe intervals")))
     assert stage_ba.imu_terms_of(config, inputs) == (None, True)
-    assert stage_ba.imu_terms_of(replace(config, ba_imu=False), inputs) == (None, False)
+    assert stage_ba.imu_terms_of(replace(config, ba=replace(config.ba, imu=False)), inputs) == (None, False)
 
     still = _moving(open_sim(SimConfig(frames=60, trajectory="still")))
     T0inv = invert_pose(still.groundtruth.T_world_cam[0])

@@ -8,7 +8,7 @@ import pytest
 from stereopath.device.core.features import Features
 from stereopath.device.core.geometry import invert_pose, make_pose, so3_exp
 from stereopath.device.core.rig import paper_rig
-from stereopath.host.backend.loops import LoopConfig, detect_loops, verify_pair
+from stereopath.host.backend.loops import LoopCandidate, LoopConfig, detect_loops, verify_pair
 from stereopath.host.backend.tracks import KeyframeFeatures
 
 SHIFT = np.array([3.0, 0.0, 0.0])  # the second copy of the textured wall
@@ -71,7 +71,7 @@ def test_a_repeated_texture_gives_no_false_loop(scene):
     T_b = make_pose(np.eye(3), SHIFT)  # looks at the copy: the same image as from T_a
     a, b = _keyframe(rig, X, desc, T_a, rng), _keyframe(rig, X, desc, T_b, rng)
     cfg = LoopConfig(min_separation=0, max_distance_m=10.0)  # let the pair through the space gate
-    loop, why = verify_pair(rig, a, b, T_a, T_b, path_m=6.0, cfg=cfg)
+    loop, why = verify_pair(rig, LoopCandidate(a, b, T_a, T_b, path_m=6.0), cfg)
     assert loop is None and "disagrees with the path" in why
     # the same in a whole path: out to the copy and back, every keyframe a candidate of every other
     T_path = np.array([T_a, *[make_pose(np.eye(3), SHIFT * s) for s in np.linspace(0.1, 0.9, 8)], T_b])

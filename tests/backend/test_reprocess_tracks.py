@@ -6,8 +6,15 @@ import numpy as np
 import pytest
 
 from stereopath.device.core.geometry import invert_pose
-from stereopath.host.backend.gtsam_ba import bundle_adjust
-from stereopath.host.backend.tracks import TrackConfig, build_tracks, frame_observations, stereo_features
+from stereopath.host.backend.tracks import (
+    PairMatch,
+    TrackConfig,
+    TrackedKeypoints,
+    build_tracks,
+    frame_observations,
+    stereo_features,
+)
+from tests.backend.ba_support import adjust
 
 
 @pytest.fixture(scope="module")
@@ -42,14 +49,14 @@ def test_tracks_over_keyframes_fit_the_true_poses(scan):
     feats = [stereo_features(sess.rig, frames[i].left, frames[i].right, cfg) for i in idx]
     ticks = []
     tr = build_tracks(sess.rig, feats, T, cfg, progress=ticks.append)
-    assert len(ticks) == 3
+    assert sum(ticks) == len(feats)  # every keyframe matched, a batch at a time
     assert tr.stats["tracks"] > 300 and tr.stats["mean_track_length"] > 2.0
     assert tr.observations.shape[1] == 6 and set(np.unique(tr.observations[:, 2])) == {0.0, 1.0}
     # no track holds two keypoints of one keyframe
     pairs = tr.observations[tr.observations[:, 2] == 0][:, :2]
     assert len(np.unique(pairs, axis=0)) == len(pairs)
     # with the true poses held fixed, the tracks' points reproject within a fraction of a pixel
-    res = bundle_adjust(sess.rig, T, tr.points, tr.observations, n_fixed=len(T), outlier_rounds=0)
+    res = adjust(sess.rig, T, tr.points, tr.observations, n_fixed=len(T), outlier_rounds=0)
     assert res.rms_after_px < 0.4
     # per-keyframe bookkeeping matches the observations
     for k in range(len(idx)):
@@ -64,8 +71,8 @@ def test_frame_observations_follow_keyframe_points_into_a_frame(scan):
     kf = stereo_features(sess.rig, frames[12].left, frames[12].right, cfg)
     points = {i: X @ T[12][:3, :3].T + T[12][:3, 3] for i, X in enumerate(kf.X_cam)}
     ids = np.arange(len(kf))
-    obs = frame_observations(sess.rig, frames[12].left, kf.feats.xy, ids, points, frames[14].left,
-                             frames[14].right, T[14], cfg)
+    obs = frame_observations(sess.rig, TrackedKeypoints(frames[12].left, kf.feats.xy, ids), points,
+                             (frames[14].left, frames[14].right), T[14], cfg)
     left = obs[obs[:, 2] == 0]
     assert len(left) > 0.7 * len(kf) and np.sum(obs[:, 2] == 1) > 0.5 * len(kf)
     # the observed pixels agree with the points projected at the true pose
@@ -134,12 +141,12 @@ def test_matches_after_driving_forward_are_kept_and_wrong_ones_rejected():
         return np.isin(np.arange(n), idx[:, 0])
 
     # the matches the descriptors find at all (keypoints closer than a few pixels collapse)
-    found = kept(TrackConfig(verify_px=50.0, verify_disparity_px=50.0))
+    found = kept(TrackConfig(match=PairMatch(verify_px=50.0, verify_disparity_px=50.0)))
     ok = found & ~wrong
     new = kept(TrackConfig())
     assert new[ok].mean() > 0.97 and new[found & wrong].mean() < 0.05
     # without the depth allowance many correct matches were lost
-    old = kept(TrackConfig(verify_depth_sigmas=0.0))
+    old = kept(TrackConfig(match=PairMatch(verify_depth_sigmas=0.0)))
     assert old[ok].mean() < 0.8
 
 
@@ -174,7 +181,7 @@ def test_offline_keyframes_follow_the_viewpoint_change_not_the_estimators_keyfra
     assert kf[0] == 0 and kf[-1] == n_frames - 1 and list(kf) == asked and len(fs) == len(kf)
 
     def within(k0, k1):
-        angle, motion = view_change(rig, feats, T[k0], T[k1], cfg.min_depth_m)
+        angle, motion = view_change(rig, feats, T[k0], T[k1], cfg.stereo.min_depth_m)
         return angle <= cfg.keyframe_parallax_deg and motion <= cfg.keyframe_motion_px
 
     for k0, k1 in zip(kf[:-1], kf[1:]):

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stereopath.host.backend.slanted_stereo import refine_slanted
+from stereopath.host.backend.slanted_stereo import SlantedFit, refine_slanted
 
 
 def plane_wave_texture(x: np.ndarray, y: np.ndarray, seed: int) -> np.ndarray:
@@ -63,7 +63,7 @@ def test_a_slanted_surface_is_matched_at_the_window_centre_where_a_translational
     true = truth(xy)
     klt, st = _translational(left, right, xy, true + 0.3)
     assert st.all()
-    ref, ok = refine_slanted(left, right, xy, klt, half=10)  # the offline tracks' 21 px window
+    ref, ok = refine_slanted(left, right, xy, klt, SlantedFit(half=10))  # the offline tracks' 21 px window
     assert ok.mean() > 0.95
     err_klt = np.abs(klt[:, 0] - true[:, 0])
     err = np.abs(ref[ok, 0] - true[ok, 0])
@@ -158,10 +158,10 @@ def test_real_stereo_pairs_are_matched_closer_to_the_true_disparity(data_dir, sc
 
 def test_the_track_setting_takes_off_or_a_window_size_and_rejects_others():
     from stereopath.device.errors import ConfigError
-    from stereopath.host.backend.tracks import TrackConfig
+    from stereopath.host.backend.tracks import StereoMatch, TrackConfig
 
-    assert TrackConfig().slanted_window == TrackConfig().klt_window  # by default the KLT's own window
-    assert TrackConfig(slanted_window=0).slanted_window == 0
+    assert TrackConfig().stereo.slanted_window == TrackConfig().stereo.klt_window  # by default the KLT's own window
+    assert TrackConfig(stereo=StereoMatch(slanted_window=0)).stereo.slanted_window == 0
     for bad in (3, 43, -1):
         with pytest.raises(ConfigError, match="slanted_window"):
-            TrackConfig(slanted_window=bad)
+            TrackConfig(stereo=StereoMatch(slanted_window=bad))

@@ -79,7 +79,7 @@ def test_aligned_tracks_see_one_surface_point_where_detections_scatter():
     """On the simulated scan, each observation lifted to the scene with the true depth: the points
     of one track agree far better after the alignment than the detected keypoints did."""
     from stereopath.device.sim.session import SimConfig, SimSession
-    from stereopath.host.backend.tracks import TrackConfig, build_tracks, stereo_features
+    from stereopath.host.backend.tracks import StereoMatch, TrackConfig, build_tracks, stereo_features
 
     s = SimSession(SimConfig(frames=60))
     frames = [0, 8, 16, 24, 32]
@@ -125,7 +125,7 @@ def test_aligned_tracks_see_one_surface_point_where_detections_scatter():
 @pytest.mark.parametrize("window", [3, 4, 43])
 def test_the_alignment_window_must_be_off_or_a_sensible_size(window):
     from stereopath.device.errors import ConfigError
-    from stereopath.host.backend.tracks import TrackConfig
+    from stereopath.host.backend.tracks import StereoMatch, TrackConfig
 
     with pytest.raises(ConfigError, match="align_window"):
         TrackConfig(align_window=window)
@@ -139,13 +139,13 @@ def test_a_match_known_within_a_pixel_is_refined_from_there(slanted_window):
 
     from stereopath.device.core.features import gray
     from stereopath.device.sim.session import SimConfig, SimSession
-    from stereopath.host.backend.tracks import TrackConfig, stereo_points
+    from stereopath.host.backend.tracks import StereoMatch, TrackConfig, stereo_points
 
     s = SimSession(SimConfig(frames=5))
     f = s.frame(2)
     L, R = gray(f.left), gray(f.right)
     xy = cv2.goodFeaturesToTrack(L, 300, 0.01, 10).reshape(-1, 2)
-    cfg = TrackConfig(slanted_window=slanted_window)
+    cfg = TrackConfig(stereo=StereoMatch(slanted_window=slanted_window))
     _, uv1, _, ok = stereo_points(s.rig, L, R, xy, cfg)
     guess = uv1[ok] + np.random.default_rng(2).uniform(-0.4, 0.4, (int(ok.sum()), 2))  # no distortion: raw = undistorted
     _, uv1_g, _, ok_g = stereo_points(s.rig, L, R, xy[ok], cfg, guess_right=guess)

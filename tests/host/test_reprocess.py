@@ -132,7 +132,8 @@ def test_the_refined_rig_is_written_only_when_a_disparity_offset_was_applied(ful
     out, _, _ = full_run
     shutil.copytree(out / "stages", tmp_path / "stages")  # the estimate and tracks stages are reused
     (tmp_path / "rig_refined.yaml").write_text("# an earlier run's\n")
-    preset = dataclasses.replace(REPROCESS_PRESETS["standard"], ba_disparity_offset_min_px=min_px,
+    preset = dataclasses.replace(REPROCESS_PRESETS["standard"],
+                                 ba=dataclasses.replace(REPROCESS_PRESETS["standard"].ba, disparity_offset_min_px=min_px),
                                  refine_frames=False)
     res = reprocess_session(session, tmp_path, preset=preset, do_map=False, progress=False)
     assert res.stages["estimate"] == res.stages["tracks"] == "reused" and res.stages["ba"] == "computed"
@@ -228,9 +229,12 @@ def test_ctrl_c_inside_a_stage_leaves_no_half_written_stage(session, tmp_path, m
     with pytest.raises(KeyboardInterrupt):
         reprocess_session(session, out, do_map=False, progress=False)
     stages = out / "stages"
-    assert sorted(p.name for p in stages.iterdir()) == ["estimate.npz", "manifest.json"]
+    assert sorted(p.name for p in stages.iterdir() if p.is_file()) == ["estimate.npz", "manifest.json"]
     man = json.loads((stages / "manifest.json").read_text())
     assert list(man["stages"]) == ["estimate"]
+    # what the interrupted stage had finished: every keyframe's keypoints, for the next run to read back
+    parts = [p for p in (stages / "tracks.parts").rglob("kf_*.npz")]
+    assert parts and all(p.stat().st_size > 0 for p in parts)
 
 
 def test_bad_input_raises_and_writes_nothing(session, tmp_path):

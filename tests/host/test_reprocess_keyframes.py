@@ -167,3 +167,31 @@ def test_nothing_is_guessed_while_every_core_is_busy(orbit, keypoints_once, monk
         assert looked == [] and cores.calls == [] and len(keypoints_once) - n0 == len(kf)
     else:
         assert looked and cores.calls  # guessed while cores were idle
+
+
+def test_keyframe_keypoints_stored_on_disk_give_the_same_tracks_and_resume(orbit, keypoints_once, tmp_path):
+    """With a folder of partial results each keyframe's keypoints go to a file and are read back a
+    batch at a time (one after another and guessed ahead alike): the stage's output is that of the run
+    that holds them all; a run interrupted after them reads them back instead of computing them."""
+    import dataclasses
+
+    from stereopath.host.backend.parallel import spread_with
+    from stereopath.host.reprocess import stage_tracks
+    from stereopath.host.reprocess.config import REPROCESS_PRESETS, StageInputs
+
+    base = REPROCESS_PRESETS["quick"]
+    config = dataclasses.replace(base, tracks=dataclasses.replace(base.tracks, feature_preset="sift", window=2,
+                                                                  gaps=(1, 2)))
+    est = _estimate(orbit)
+    held = stage_tracks.run(config, StageInputs(orbit, False, {"estimate": est}))
+    stored = stage_tracks.run(config, StageInputs(orbit, False, {"estimate": est}, parts=tmp_path / "a"))
+    with spread_with(_in_reverse([])):
+        ahead = stage_tracks.run(config, StageInputs(orbit, False, {"estimate": est}, parts=tmp_path / "b"))
+    files = sorted(p.name for p in (tmp_path / "a").iterdir())
+    assert len(files) == len(held["kf_index"]) and files == sorted(p.name for p in (tmp_path / "b").iterdir())
+    n = len(keypoints_once)
+    again = stage_tracks.run(config, StageInputs(orbit, False, {"estimate": est}, parts=tmp_path / "a"))
+    assert len(keypoints_once) == n  # every keyframe's keypoints read back
+    for name in held:
+        for other in (stored, ahead, again):
+            assert np.array_equal(held[name], other[name]), name

@@ -13,6 +13,7 @@ from stereopath.device.estimation.stereo_measure import StereoMeasure
 from stereopath.device.estimation.stereo_vo import StereoConfig
 from stereopath.device.formats.rig_files import load_rig_yaml
 from stereopath.host.reprocess.rig_refine import RIG_REFINED_FILE, report_entry, write_refined_rig
+from tests.backend.ba_support import adjust
 
 F, B, CX, CY = 700.0, 0.5, 600.0, 185.0
 BIAS_PX = 0.3  # the right image sits 0.3 px too far right: every disparity 0.3 px too small
@@ -40,12 +41,11 @@ def _scene(rng, rig, n_kf=6, n_pts=300):
 
 
 def test_the_refined_rig_round_trip_removes_the_offset(tmp_path):
-    from stereopath.host.backend.gtsam_ba import bundle_adjust
-
+    
     rng = np.random.default_rng(7)
     rig = _kitti_like_rig()
     T_wc, pts, obs = _scene(rng, rig)
-    res = bundle_adjust(rig, T_wc, pts, obs, estimate_disparity_offset=True, disparity_offset_min_px=0.02)
+    res = adjust(rig, T_wc, pts, obs, disparity_offset=True, disparity_offset_min_px=0.02)
     assert res.disparity_offset_px == pytest.approx(BIAS_PX, abs=0.02)
     entry = report_entry(rig, {"disparity_offset_px": res.disparity_offset_px})
     assert entry["file"] == RIG_REFINED_FILE

@@ -1,0 +1,96 @@
+import numpy as np
+import pytest
+
+from stereopath.device.core.geometry import invert_pose, make_pose
+from stereopath.host.backend import windowed_ba
+from stereopath.host.backend.ba_common import BAConfig, BAProblem
+from stereopath.host.backend.loops import Loop
+from stereopath.device.core.rig import paper_rig
+from stereopath.device.core.stereo import project
+from tests.backend.ba_support import adjust
+from tests.backend.test_bundle_adjust import _perturbed
+
+
+def _corridor(rng, n_kf=40, n_pts=600):
+    """Keyframes sliding 7.5 cm apart along a textured wall 1.5-2.5 m away; each sees the points in
+    front of it (stereo observations with 0.3 px noise)."""
+    rig = paper_rig()
+    length = 0.075 * n_kf
+    pts = {i: np.array([rng.uniform(-0.6, length + 0.6), rng.uniform(-0.5, 0.5), rng.uniform(1.5, 2.5)])
+           for i in range(n_pts)}
+    T_wc = np.array([make_pose(np.eye(3), [0.075 * k, 0, 0]) for k in range(n_kf)])
+    obs = []
+    for k, T in enumerate(T_wc):
+        for i, X in pts.items():
+            Xc = X - T[:3, 3]
+            if abs(Xc[0]) > 0.6:
+                continue
+            uv0, _ = project(rig.cam0.K, Xc[None])
+            uv1, _ = project(rig.cam1.K, (rig.R @ Xc + rig.T)[None])
+            obs.append([k, i, 0, *(uv0[0] + rng.normal(0, 0.3, 2))])
+            obs.append([k, i, 1, *(uv1[0] + rng.normal(0, 0.3, 2))])
+    return rig, T_wc, pts, np.array(obs)
+
+
+@pytest.mark.parametrize("n", [1, 5, 24, 25, 40, 41, 100, 1000])
+def test_windows_cover_every_keyframe_and_overlap(n):
+    starts = windowed_ba.window_starts(n)
+    W, O = windowed_ba.WINDOW, windowed_ba.OVERLAP
+    assert starts[0] == 0 and starts == sorted(set(starts))
+    assert min(n, starts[-1] + W) == n  # the last window ends at the last keyframe
+    assert all(b - a <= W - O for a, b in zip(starts, starts[1:]))  # each window overlaps the last by OVERLAP or more
+
+
+@pytest.fixture
+def small_windows(monkeypatch):
+    """Windows of 24 keyframes overlapping by 8: several on a 40-keyframe problem."""
+    monkeypatch.setattr(windowed_ba, "WINDOW", 24)
+    monkeypatch.setattr(windowed_ba, "OVERLAP", 8)
+
+
+def test_windows_recover_the_poses_a_batch_recovers(small_windows):
+    rng = np.random.default_rng(11)
+    rig, T_true, pts, obs = _corridor(rng)
+    T_noisy, pts_noisy = _perturbed(rng, T_true, pts, 0.002, 0.005, 0.01)
+    cfg = BAConfig(disparity_offset=False)
+    ticks = []
+    res = windowed_ba.adjust_in_windows(rig, BAProblem(T_noisy, pts_noisy, obs), cfg, on_window=ticks.append)
+    assert sum(ticks) == len(windowed_ba.window_starts(40)) >= 2
+    batch = adjust(rig, T_noisy, pts_noisy, obs, max_iterations=30)
+
+    def err(r):
+        return np.array([np.linalg.norm(r.T_world_cam[k][:3, 3] - T_true[k][:3, 3]) for k in range(len(T_true))])
+
+    assert err(res).max() < 1.3 * err(batch).max() and err(res).mean() < 1.3 * err(batch).mean()
+    assert max(np.linalg.norm(res.T_world_cam[k][:3, 3] - batch.T_world_cam[k][:3, 3]) for k in range(40)) < 2e-3
+    assert res.n_points == batch.n_points and res.rms_after_px < 0.5 < res.rms_before_px
+    assert np.median([np.linalg.norm(res.points[i] - pts[i]) for i in res.points]) < 5e-3
+
+
+def test_a_loop_back_to_an_earlier_window_holds_that_keyframe_in_the_window(small_windows, monkeypatch):
+    """The window holding a loop's later keyframe gets the earlier keyframe as a held anchor, the loop
+    between them, and everything else renumbered after it; the windows before it get neither."""
+    from stereopath.host.backend import gtsam_ba
+
+    rng = np.random.default_rng(12)
+    rig, T_true, pts, obs = _corridor(rng, n_pts=300)
+    loop = Loop(2, 39, invert_pose(T_true[2]) @ T_true[39], 100, 100, 1e-4, 1e-4, 0.0)
+    seen = []
+    solve = gtsam_ba.bundle_adjust
+
+    def spy(rig, problem, config, priors=(), on_iteration=None):
+        seen.append(problem)
+        return solve(rig, problem, config, priors, on_iteration)
+
+    monkeypatch.setattr(gtsam_ba, "bundle_adjust", spy)
+    res = windowed_ba.adjust_in_windows(rig, BAProblem(T_true, pts, obs, [loop]), BAConfig(disparity_offset=False))
+    starts = windowed_ba.window_starts(40)
+    assert len(seen) == len(starts)
+    for pb, s in zip(seen, starts):
+        if s + windowed_ba.WINDOW <= 39:  # a window without the loop's later keyframe
+            assert not pb.loops and len(pb.T_world_cam) == windowed_ba.WINDOW
+            continue
+        assert len(pb.T_world_cam) == windowed_ba.WINDOW + 1 and np.allclose(pb.T_world_cam[0], T_true[2], atol=2e-3)
+        assert pb.n_fixed == 1 + windowed_ba.OVERLAP and [(lp.i, lp.j) for lp in pb.loops] == [(0, 1 + 39 - s)]
+        assert pb.observations[:, 0].min() >= 1  # the anchor has no observations of its own
+    assert np.abs(res.T_world_cam[2] - T_true[2]).max() < 2e-3
