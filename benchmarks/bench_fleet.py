@@ -57,7 +57,7 @@ sys.path.insert(0, str(ROOT))
 from stereopath.host.fleet.compare import differences  # noqa: E402
 from stereopath.host.fleet.runner import FleetOptions, ReprocessSettings, run_fleet  # noqa: E402
 from stereopath.host.fleet.sessions import PathMap, expand_sessions  # noqa: E402
-from stereopath.host.reprocess.pipeline import reprocess_session  # noqa: E402
+from stereopath.host.reprocess.pipeline import RunChoices, reprocess_session  # noqa: E402
 
 TRAJECTORIES = ("arc", "line", "orbit", "arc")
 CORES = os.cpu_count() or 2
@@ -199,8 +199,9 @@ def sequential(sessions, out: Path, settings: ReprocessSettings) -> Phase:
         ph.per_session = []
         for s in sessions:
             c0, w0 = time.process_time(), time.perf_counter()
-            reprocess_session(s.path, out / s.id, preset=settings.preset, do_map=settings.do_map,
-                              map_preset=settings.map_preset, progress=False, force=True)
+            reprocess_session(s.path, out / s.id, preset=settings.preset,
+                              run=RunChoices(do_map=settings.do_map, map_preset=settings.map_preset, progress=False,
+                                             force=True))
             ph.per_session.append(f"{s.id} wall {time.perf_counter() - w0:.1f} s CPU {time.process_time() - c0:.1f} s")
         ph.stop()
     return ph
@@ -220,11 +221,11 @@ def fleet_local(sessions, out: Path, settings: ReprocessSettings, on_update=None
 ONE_THREAD = """
 import json, sys, time
 from stereopath.host.fleet.worker import limit_threads
-from stereopath.host.reprocess.pipeline import reprocess_session
+from stereopath.host.reprocess.pipeline import RunChoices, reprocess_session
 limit_threads(1)
 c0, w0 = time.process_time(), time.perf_counter()
-reprocess_session(sys.argv[1], sys.argv[2], preset=sys.argv[3], do_map=sys.argv[4] == "1", map_preset=sys.argv[5],
-                  progress=False, force=True)
+reprocess_session(sys.argv[1], sys.argv[2], preset=sys.argv[3],
+                  run=RunChoices(do_map=sys.argv[4] == "1", map_preset=sys.argv[5], progress=False, force=True))
 print(json.dumps({"cpu_s": time.process_time() - c0, "wall_s": time.perf_counter() - w0}))
 """
 
@@ -273,8 +274,9 @@ def profile(session, out: Path, settings: ReprocessSettings, threads: int | None
     cv_threads = cv2.getNumThreads()
     with threadpool_limits(limits=threads) if threads else contextlib.nullcontext():
         cv2.setNumThreads(threads or cv_threads)  # as a fleet task's limit_threads does
-        reprocess_session(session.path, out, preset=settings.preset, do_map=settings.do_map,
-                          map_preset=settings.map_preset, progress=False, force=True, after_stage=hook)
+        reprocess_session(session.path, out, preset=settings.preset,
+                          run=RunChoices(do_map=settings.do_map, map_preset=settings.map_preset, progress=False,
+                                         force=True, after_stage=hook))
         hook("outputs")
     cv2.setNumThreads(cv_threads)
     print(f"  {session.id}, {threads or 'default'} thread(s) (OpenCV {threads or cv_threads}):")

@@ -49,7 +49,7 @@ sys.path.insert(0, str(ROOT))
 
 from stereopath.host.evaluation.evaluate import evaluate  # noqa: E402
 from stereopath.host.evaluation.odometry import estimate_sequence  # noqa: E402
-from stereopath.host.reprocess.pipeline import REPROCESS_PRESETS, reprocess_sequence, reprocess_session  # noqa: E402
+from stereopath.host.reprocess.pipeline import REPROCESS_PRESETS, RunChoices, reprocess_sequence, reprocess_session  # noqa: E402
 from stereopath.device.formats.source import open_source  # noqa: E402
 
 DATA = Path(os.environ.get("STEREOPATH_DATA", ROOT.parent / "shared" / "data"))
@@ -141,7 +141,7 @@ def compare_tracks(name: str, seq, tmp: Path, base, ate_on: float, unit: float, 
             for f in ("estimate.npz", "manifest.json"):
                 shutil.copy(tmp / name / "stages" / f, out / "stages" / f)
             c = time.process_time()
-            res = reprocess_sequence(seq, out, preset=preset, do_map=False, progress=False)
+            res = reprocess_sequence(seq, out, preset=preset, run=RunChoices(do_map=False, progress=False))
             fig[v]["cpu"].append(time.process_time() - c)
             fig[v]["ate"].append(res.report["ate_rmse_m"])
             ba = json.loads(str(np.load(out / "stages" / "ba.npz")["stats"]))
@@ -223,7 +223,7 @@ def loop_figures(tmp: Path, frames: int, base, seed: int = 0) -> None:
     print(f"loop session (seed {seed}): {len(seq)} frames, {seq.groundtruth.path_length_m():.2f} m; on-board ATE {mm(ate_on)}, "
           f"end-to-start error {mm(gap_on)} (target: >= 10 mm)")
     t = time.perf_counter()
-    res = reprocess_sequence(seq, out, preset=base, do_map=False, progress=False, onboard=run.trajectory)
+    res = reprocess_sequence(seq, out, preset=base, run=RunChoices(do_map=False, progress=False), onboard=run.trajectory)
     lp = res.report["extra"]["loops"]
     after = res.report["ate_rmse_m"]
     err = lp["end_to_start_error_m"]
@@ -282,7 +282,7 @@ def main() -> int:
                 k_on, _ = onboard_ate(kseq)
                 print(f"KITTI 06 frames 0-{len(kseq) - 1}: on-board stereo ATE {k_on:.4f} m")
                 if not (args.reuse and (tmp / "kitti" / "stages" / "tracks.npz").is_file()):
-                    reprocess_sequence(kseq, tmp / "kitti", preset=base, do_map=False, progress=False, force=True)
+                    reprocess_sequence(kseq, tmp / "kitti", preset=base, run=RunChoices(do_map=False, progress=False, force=True))
                 compare_solvers("kitti", kseq, tmp / "kitti" / "stages", base, args.runs, k_on, 1, "m")
                 compare_tracks("kitti", kseq, tmp, base, k_on, 1, "m", args.tracks_runs)
                 sequences.append(("kitti", kseq, k_on))
@@ -350,7 +350,7 @@ def sim_figures(tmp: Path, args, base, figures: dict):
     figures[f"{key}.ate_onboard_m"] = ate_on
     if not (args.reuse and (tmp / "sim" / "stages" / "tracks.npz").is_file()):
         t = time.perf_counter()
-        res = reprocess_session(session, tmp / "sim", preset=base, progress=False, force=True)
+        res = reprocess_session(session, tmp / "sim", preset=base, run=RunChoices(progress=False, force=True))
         st = res.seconds
         wall = time.perf_counter() - t
         if args.preset == "standard":
@@ -376,7 +376,7 @@ def ablations(tmp: Path, base, sequences) -> None:
     }
     for name, s, ref in sequences:
         for vname, preset in variants.items():
-            r = reprocess_sequence(s, tmp / f"abl_{name}", preset=preset, do_map=False, progress=False)
+            r = reprocess_sequence(s, tmp / f"abl_{name}", preset=preset, run=RunChoices(do_map=False, progress=False))
             a = r.report["ate_rmse_m"]
             print(f"  ablation {name:5s} {vname:32s}: ATE {a * 1000:.3f} mm, ratio {a / ref:.3f}")
 

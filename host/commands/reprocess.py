@@ -141,16 +141,16 @@ def run_fleet_command(args: argparse.Namespace) -> int:
 def run_one(args: argparse.Namespace) -> int:
     import time
 
-    from stereopath.host.reprocess.pipeline import reprocess_session
+    from stereopath.host.reprocess.pipeline import RunChoices, reprocess_session
 
     from stereopath.device.formats.fileio import check_out_folder
 
     check_out_folder(args.out, inputs=[args.session], not_a_session=True)
     start = time.perf_counter()
     try:
-        res = reprocess_session(args.session, args.out, preset=args.preset, do_map=not args.no_map,
-                                map_preset=args.map_preset, force=args.force, imu_priors=args.imu_priors,
-                                progress=False if args.no_progress else None,
+        choices = RunChoices(do_map=not args.no_map, map_preset=args.map_preset, force=args.force,
+                             imu_priors=args.imu_priors, progress=False if args.no_progress else None)
+        res = reprocess_session(args.session, args.out, preset=args.preset, run=choices,
                                 strict=bool(getattr(args, "strict", False)))
     except KeyboardInterrupt:
         print(f"interrupted: finished stages are kept in {args.out}/stages; run the same command again to resume",

@@ -310,7 +310,8 @@ def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any
     A :class:`StereopathError` (bad input) propagates: the driver reports the session failed.
     """
     from stereopath.host.backend.parallel import spread_with
-    from stereopath.host.reprocess.pipeline import reprocess_session
+    from stereopath.host.reprocess.pipeline import RunChoices, reprocess_session
+    from stereopath.host.reprocess.preset_names import DEFAULT_PRESET
 
     part = plan.part
     if plan.threads is not None:
@@ -336,10 +337,10 @@ def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any
     spreader = RaySpreader(lead=plan.lead) if plan.spread else None
     try:
         with spread_with(spreader):
-            res = reprocess_session(session, out_dir, progress=False, after_stage=hook, **settings)
+            choices = {k: v for k, v in settings.items() if k != "preset"}
+            res = reprocess_session(session, out_dir, preset=settings.get("preset", DEFAULT_PRESET),
+                                    run=RunChoices(progress=False, after_stage=hook, **choices))
     except _Stop:
-        from stereopath.host.reprocess.preset_names import DEFAULT_PRESET
-
         out = first_part(session, out_dir, settings.get("preset", DEFAULT_PRESET), t0, c0)
     else:  # CPU: this task's and its pieces'
         cpu_s = time.process_time() - c0 + (spreader.cpu_s if spreader else 0.0)

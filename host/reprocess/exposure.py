@@ -68,7 +68,14 @@ class ExposureMatchedSequence(SequenceBase):
     imu = property(lambda self: self.inner.imu)
     groundtruth = property(lambda self: self.inner.groundtruth)
     skipped_frames = property(lambda self: self.inner.skipped_frames)
-    strict = property(lambda self: self.inner.strict, lambda self, v: setattr(self.inner, "strict", v))
+
+    @property
+    def strict(self) -> bool:
+        return self.inner.strict
+
+    @strict.setter
+    def strict(self, value: bool) -> None:  # unreadable frames: skipped (False) or stop the run (True)
+        self.inner.strict = value
 
     def __len__(self) -> int:
         return len(self.inner)

@@ -174,21 +174,32 @@ class _Runner:
         return stage_map.read_stats(dst)
 
 
+@dataclass(frozen=True)
+class RunChoices:
+    """How one reprocessing run goes: the command line's choices, the same for any input."""
+
+    do_map: bool = True             # build the dense model (the map stage)
+    map_preset: str = "auto"        # the model's preset (``auto``: chosen from the scene)
+    force: bool = False             # recompute every stage instead of reusing stored ones
+    progress: bool | None = None    # progress bars (None: when the output is a terminal)
+    imu_priors: bool = False        # gyro rotation priors between consecutive keyframes in the adjustment
+    after_stage: Callable[[str], None] | None = None  # called with a stage's name once it is stored
+
+
 def reprocess_sequence(seq: Any, out_dir: str | Path, preset: str | ReprocessPreset = DEFAULT_PRESET,
-                       do_map: bool = True, map_preset: str = "auto", force: bool = False,
-                       progress: bool | None = None, onboard: Trajectory | None = None,
-                       source_label: str | None = None, imu_priors: bool = False,
-                       after_stage: Callable[[str], None] | None = None) -> ReprocessResult:
+                       run: RunChoices = RunChoices(), onboard: Trajectory | None = None,
+                       source_label: str | None = None) -> ReprocessResult:
     """Run the stages on any sequence (``rig``, ``t_ns``, ``frame(i)``, ``frames()``, ``imu``,
     ``groundtruth``) and write the outputs into ``out_dir`` (see the module doc).
 
-    ``onboard``: the path estimated on the device (for the before/after figures).  ``force``
-    recomputes every stage.  ``imu_priors`` adds gyro rotation priors between consecutive
+    ``onboard``: the path estimated on the device (for the before/after figures).  ``run.force``
+    recomputes every stage.  ``run.imu_priors`` adds gyro rotation priors between consecutive
     keyframes to the bundle adjustment (sequences with an IMU and ``rig.T_body_cam0``).
-    ``after_stage(name)`` is called after each stage is stored (a hook for tests and progress).
+    ``run.after_stage(name)`` is called after each stage is stored (a hook for tests and progress).
     """
+    do_map, map_preset = run.do_map, run.map_preset
     preset_name, P = resolve_preset(preset)
-    if imu_priors:
+    if run.imu_priors:
         P = dataclasses.replace(P, imu_rotation_priors=True)
         preset_name += "+imu"
     map_cfg = None
@@ -201,7 +212,7 @@ def reprocess_sequence(seq: Any, out_dir: str | Path, preset: str | ReprocessPre
         raise StereopathError(f"output {out} exists and is not a folder")
     stages_dir = out / "stages"
     stages_dir.mkdir(parents=True, exist_ok=True)
-    runner = _Runner(seq, stages_dir, P, force, progress, after_stage)
+    runner = _Runner(seq, stages_dir, P, run.force, run.progress, run.after_stage)
     label = source_label or str(getattr(seq, "spec", "")) or "sequence"
 
     est = runner.get("estimate")
@@ -242,9 +253,7 @@ def open_session_checked(session_dir: str | Path) -> Any:
 
 
 def reprocess_session(session_dir: str | Path, out_dir: str | Path, preset: str | ReprocessPreset = DEFAULT_PRESET,
-                      do_map: bool = True, map_preset: str = "auto", force: bool = False,
-                      progress: bool | None = None, imu_priors: bool = False,
-                      after_stage: Callable[[str], None] | None = None, strict: bool = False) -> ReprocessResult:
+                      run: RunChoices = RunChoices(), strict: bool = False) -> ReprocessResult:
     """``stereopath host reprocess``: a recorded session folder -> ``out_dir`` (see the module doc).
 
     The input is checked before anything is written: a missing or empty folder, a folder that is
@@ -265,6 +274,4 @@ def reprocess_session(session_dir: str | Path, out_dir: str | Path, preset: str 
     except DatasetError as exc:  # only the before figures need it: the images are what is reprocessed
         log.warning("on-board path not used (no before/after figures): %s", exc)
         onboard = None
-    return reprocess_sequence(seq, out_dir, preset=preset, do_map=do_map, map_preset=map_preset, force=force,
-                              progress=progress, onboard=onboard, source_label=str(session_dir),
-                              imu_priors=imu_priors, after_stage=after_stage)
+    return reprocess_sequence(seq, out_dir, preset=preset, run=run, onboard=onboard, source_label=str(session_dir))

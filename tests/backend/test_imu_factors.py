@@ -371,10 +371,10 @@ def test_euroc_is_leveled_where_it_rests_after_its_cameras_start(data_dir, tmp_p
     from stereopath.device.core.geometry import quat_xyzw_to_matrix
     from stereopath.device.formats import open_source
     from stereopath.device.formats.tum import read_tum
-    from stereopath.host.reprocess.pipeline import reprocess_session
+    from stereopath.host.reprocess.pipeline import RunChoices, reprocess_session
 
     src = data_dir / "euroc_v1_01_head"
-    reprocess_session(str(src), tmp_path, progress=False, do_map=False)
+    reprocess_session(str(src), tmp_path, run=RunChoices(progress=False, do_map=False))
     rep = json.loads((tmp_path / "report.json").read_text())
     assert rep["world_frame"] == "gravity_aligned"
     assert rep["extra"]["bundle_adjustment"]["leveled"]["by"] == "still_imu"

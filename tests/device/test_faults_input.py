@@ -91,15 +91,15 @@ def test_odometry_skips_and_counts_a_bad_frame_and_strict_stops(session, tmp_pat
 
 
 def test_reprocess_skips_a_bad_frame(session, tmp_path):
-    from stereopath.host.reprocess.pipeline import reprocess_session
+    from stereopath.host.reprocess.pipeline import RunChoices, reprocess_session
 
     d = _copy(session, tmp_path)
     _break_frame(d)
-    res = reprocess_session(d, tmp_path / "out", preset="quick", do_map=False, progress=False)
+    res = reprocess_session(d, tmp_path / "out", preset="quick", run=RunChoices(do_map=False, progress=False))
     assert res.report["extra"]["frames_skipped"] == 1
     assert (tmp_path / "out" / "trajectory.tum").is_file()
     with pytest.raises(DatasetError, match="cannot be decoded"):
-        reprocess_session(d, tmp_path / "out2", preset="quick", do_map=False, progress=False, strict=True)
+        reprocess_session(d, tmp_path / "out2", preset="quick", run=RunChoices(do_map=False, progress=False), strict=True)
 
 
 def test_map_skips_a_bad_keyframe_image(session, tmp_path):

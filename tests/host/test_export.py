@@ -27,10 +27,10 @@ def session(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def reprocessed(session, tmp_path_factory) -> Path:
     """The session reprocessed once (no dense model: the exports read the path, points and tracks)."""
-    from stereopath.host.reprocess.pipeline import reprocess_session
+    from stereopath.host.reprocess.pipeline import RunChoices, reprocess_session
 
     out = tmp_path_factory.mktemp("export") / "reprocessed"
-    reprocess_session(session, out, preset="quick", do_map=False, progress=False)
+    reprocess_session(session, out, preset="quick", run=RunChoices(do_map=False, progress=False))
     return out
 
 

@@ -92,13 +92,13 @@ def test_fleet_results_equal_the_one_session_command(fleet_run, sessions, tmp_pa
     import numpy as np
 
     from stereopath.host.fleet.compare import npz_contents
-    from stereopath.host.reprocess.pipeline import reprocess_session
+    from stereopath.host.reprocess.pipeline import RunChoices, reprocess_session
 
     out, res, updates = fleet_run
     ids = _ids(sessions)
     for name in ("a", "b"):
         one = tmp_path / name  # this process: the one-session command's default threads
-        reprocess_session(sessions.absolute() / name, one, preset=SETTINGS.preset, progress=False)
+        reprocess_session(sessions.absolute() / name, one, preset=SETTINGS.preset, run=RunChoices(progress=False))
         assert differences(one, out / ids[name]) == []
         assert (out / ids[name] / "report.html").is_file()
         # every stage's arrays byte for byte (the worker ran one thread of everything), records untimed

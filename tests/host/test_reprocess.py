@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from stereopath.device.errors import CalibrationError, ConfigError, DatasetError
-from stereopath.host.reprocess.pipeline import REPROCESS_PRESETS, reprocess_session
+from stereopath.host.reprocess.pipeline import REPROCESS_PRESETS, RunChoices, reprocess_session
 from stereopath.host.evaluation.report import REPORT_KEYS
 
 FRAMES = 60
@@ -51,7 +51,7 @@ def full_run(session, tmp_path_factory):
     """One uninterrupted reprocessing of the session (the reference for the other tests)."""
     out = tmp_path_factory.mktemp("reprocess") / "full"
     seen: list[str] = []
-    res = reprocess_session(session, out, progress=False, after_stage=seen.append)
+    res = reprocess_session(session, out, run=RunChoices(progress=False, after_stage=seen.append))
     return out, res, seen
 
 
@@ -109,7 +109,7 @@ def test_rerun_reuses_every_stage_and_gives_identical_outputs(full_run, session)
     traj_before = (out / "trajectory.tum").read_bytes()
     mt = _mtimes(out / "stages")
     seen: list[str] = []
-    res = reprocess_session(session, out, progress=False, after_stage=seen.append)
+    res = reprocess_session(session, out, run=RunChoices(progress=False, after_stage=seen.append))
     assert seen == [] and set(res.stages.values()) == {"reused"}
     assert _mtimes(out / "stages") == mt
     assert (out / "trajectory.tum").read_bytes() == traj_before
@@ -135,7 +135,7 @@ def test_the_refined_rig_is_written_only_when_a_disparity_offset_was_applied(ful
     preset = dataclasses.replace(REPROCESS_PRESETS["standard"],
                                  ba=dataclasses.replace(REPROCESS_PRESETS["standard"].ba, disparity_offset_min_px=min_px),
                                  refine_frames=False)
-    res = reprocess_session(session, tmp_path, preset=preset, do_map=False, progress=False)
+    res = reprocess_session(session, tmp_path, preset=preset, run=RunChoices(do_map=False, progress=False))
     assert res.stages["estimate"] == res.stages["tracks"] == "reused" and res.stages["ba"] == "computed"
     off = res.report["extra"]["bundle_adjustment"]["disparity_offset_px"]
     entry = json.loads((tmp_path / "report.json").read_text())["extra"]["rig_refined"]
@@ -172,14 +172,14 @@ def test_resume_after_an_interruption(full_run, session, tmp_path):
     man["stages"] = {k: v for k, v in man["stages"].items() if k in ("estimate", "tracks")}
     (stages / "manifest.json").write_text(json.dumps(man))
     with pytest.raises(KeyboardInterrupt):
-        reprocess_session(session, out, progress=False, after_stage=stop_after_ba)
+        reprocess_session(session, out, run=RunChoices(progress=False, after_stage=stop_after_ba))
     assert seen == ["ba"]
     assert sorted(p.name for p in stages.iterdir()) == ["ba.npz", "estimate.npz", "manifest.json", "tracks.npz"]
     assert not (out / "trajectory.tum").exists()
     _no_temp_files(out)
     mt = _mtimes(stages)
     seen.clear()
-    res = reprocess_session(session, out, progress=False, after_stage=seen.append)
+    res = reprocess_session(session, out, run=RunChoices(progress=False, after_stage=seen.append))
     assert seen == ["map"]  # the earlier stages were not recomputed
     assert res.stages == {"estimate": "reused", "tracks": "reused", "ba": "reused", "map": "computed"}
     assert _mtimes(stages) == mt
@@ -192,14 +192,14 @@ def test_resume_after_an_interruption(full_run, session, tmp_path):
     # a corrupted stage file is recomputed (and only it), with the same result
     (stages / "ba.npz").write_bytes(b"not an npz")
     seen.clear()
-    res = reprocess_session(session, out, progress=False, after_stage=seen.append)
+    res = reprocess_session(session, out, run=RunChoices(progress=False, after_stage=seen.append))
     assert seen == ["ba"]
     assert (out / "trajectory.tum").read_bytes() == (ref_out / "trajectory.tum").read_bytes()
 
     # a deleted stage is recomputed too; later stages keyed on its settings are reused
     (stages / "tracks.npz").unlink()
     seen.clear()
-    reprocess_session(session, out, progress=False, after_stage=seen.append)
+    reprocess_session(session, out, run=RunChoices(progress=False, after_stage=seen.append))
     assert seen == ["tracks"]
     _no_temp_files(out)
 
@@ -212,7 +212,7 @@ def test_the_session_named_another_way_reuses_the_stored_stages(full_run, sessio
     for i, name in enumerate([Path(session.name), tmp_path / "link", session / "mav0" / ".."]):
         out = tmp_path / f"out{i}"
         shutil.copytree(ref_out / "stages", out / "stages")
-        res = reprocess_session(name, out, do_map=False, progress=False)
+        res = reprocess_session(name, out, run=RunChoices(do_map=False, progress=False))
         assert res.stages == {"estimate": "reused", "tracks": "reused", "ba": "reused", "map": "skipped"}, name
         assert res.report["source"].endswith(str(name))  # messages and the report name it as it was given
         assert (out / "trajectory.tum").read_bytes() == (ref_out / "trajectory.tum").read_bytes()
@@ -227,7 +227,7 @@ def test_ctrl_c_inside_a_stage_leaves_no_half_written_stage(session, tmp_path, m
     monkeypatch.setattr(stereopath.host.backend.tracks, "build_tracks", interrupted)
     out = tmp_path / "out"
     with pytest.raises(KeyboardInterrupt):
-        reprocess_session(session, out, do_map=False, progress=False)
+        reprocess_session(session, out, run=RunChoices(do_map=False, progress=False))
     stages = out / "stages"
     assert sorted(p.name for p in stages.iterdir() if p.is_file()) == ["estimate.npz", "manifest.json"]
     man = json.loads((stages / "manifest.json").read_text())
@@ -268,7 +268,7 @@ def test_cli_reprocess(full_run, session, capsys):
 
 
 def test_onboard_path_of_the_session_is_the_before_figure(session_with_onboard, tmp_path):
-    res = reprocess_session(session_with_onboard, tmp_path / "out", do_map=False, progress=False)
+    res = reprocess_session(session_with_onboard, tmp_path / "out", run=RunChoices(do_map=False, progress=False))
     ba = res.report["extra"]["before_after"]
     assert ba["onboard"]["frames"] == FRAMES and ba["onboard"]["ate_rmse_m"] > 0
     after, onboard = ba["bundle_adjusted"]["ate_rmse_m"], ba["onboard"]["ate_rmse_m"]
@@ -283,7 +283,7 @@ def test_a_tiny_session_still_gives_a_path(tmp_path):
 
     d = tmp_path / "tiny"
     record_sequence(open_sim(SimConfig(frames=3)), d, config_dict={"source": "sim"})
-    res = reprocess_session(d, tmp_path / "out", do_map=False, progress=False)
+    res = reprocess_session(d, tmp_path / "out", run=RunChoices(do_map=False, progress=False))
     assert len(res.trajectory) == 3 and np.all(np.isfinite(res.trajectory.T_world_cam))
     assert (tmp_path / "out" / "report.html").is_file()
 

@@ -15,7 +15,7 @@ from stereopath.device.formats.sequence import SequenceBase
 from stereopath.device.formats.source import open_source
 from stereopath.host.reprocess.config import REPROCESS_PRESETS
 from stereopath.host.reprocess.exposure import ExposureMatchedSequence, probe_relation
-from stereopath.host.reprocess.pipeline import reprocess_session
+from stereopath.host.reprocess.pipeline import RunChoices, reprocess_session
 from stereopath.host.backend.tracks import TrackConfig
 
 GAIN, OFFSET = 0.75, -12.0  # the right camera: right = 0.75 * left - 12, so left = 1.333 * right + 16
@@ -142,9 +142,9 @@ def test_reprocessing_a_darker_right_camera_keeps_its_tracks(dark_session, tmp_p
     # plain SIFT keyframe features (preset 'quick', about half the time): the matching is the same
     on = REPROCESS_PRESETS["quick"]
     assert on.match_exposure
-    res = reprocess_session(dark_session, tmp_path / "on", preset=on, do_map=False, progress=False)
+    res = reprocess_session(dark_session, tmp_path / "on", preset=on, run=RunChoices(do_map=False, progress=False))
     off = dataclasses.replace(on, match_exposure=False)
-    res_off = reprocess_session(dark_session, tmp_path / "off", preset=off, do_map=False, progress=False)
+    res_off = reprocess_session(dark_session, tmp_path / "off", preset=off, run=RunChoices(do_map=False, progress=False))
     trk = res.report["extra"]["tracks"]
     trk_off = res_off.report["extra"]["tracks"]
     assert trk["exposure"]["corrected"] == trk["exposure"]["frames"] > 0
