@@ -59,7 +59,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     f.add_argument("--cpus", type=int, default=None, metavar="N", help="CPUs of the local Ray (default: all)")
     f.add_argument("--task-cpus", type=finite_number("CPUs", allow_minimum=False), default=1.0, metavar="N", help="CPUs declared per session (default 1)")
     f.add_argument("--task-memory-gb", type=finite_number("GB"), default=None, metavar="GB",
-                   help="memory declared per session (default 1.0 with the dense model, 0.6 without)")
+                   help="memory declared per session (default 1.5 with the dense model, 1.2 without: the peaks benchmarks/bench_scale.py measures up to 800 frames)")
     f.add_argument("--max-in-flight", type=int, default=None, metavar="N",
                    help="sessions at a time (default: what the cluster's CPUs and memory hold)")
     f.add_argument("--retries", type=int, default=3, metavar="N",
@@ -94,6 +94,7 @@ def run_fleet_command(args: argparse.Namespace) -> int:
 
     from stereopath.host.fleet.progress import FleetProgress
     from stereopath.host.fleet.runner import FleetOptions, ReprocessSettings, run_fleet
+    from stereopath.host.fleet.state import TASK_MEMORY_GB, TASK_MEMORY_NO_MAP_GB
     from stereopath.host.fleet.sessions import PathMap, expand_sessions
 
     from stereopath.device.formats.fileio import check_out_folder
@@ -106,7 +107,8 @@ def run_fleet_command(args: argparse.Namespace) -> int:
     settings = ReprocessSettings(preset=args.preset, do_map=not args.no_map, map_preset=args.map_preset,
                                  imu_priors=args.imu_priors, force=args.force,
                                  strict=bool(getattr(args, "strict", False)))
-    memory = args.task_memory_gb if args.task_memory_gb is not None else (1.0 if settings.do_map else 0.6)
+    memory = (args.task_memory_gb if args.task_memory_gb is not None
+              else TASK_MEMORY_GB if settings.do_map else TASK_MEMORY_NO_MAP_GB)
     options = FleetOptions(ray=args.ray or "auto", num_cpus=args.cpus, task_cpus=args.task_cpus,
                            task_memory_gb=memory, max_in_flight=args.max_in_flight, retries=args.retries,
                            path_map=PathMap.parse(args.path_map), ray_logs=args.verbose > 0)

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 from stereopath.device.errors import ConfigError, StereopathError
 from stereopath.host.fleet.sessions import FleetSession, PathMap, frame_count
-from stereopath.host.fleet.state import FleetResult, ReprocessSettings, SessionState
+from stereopath.host.fleet.state import TASK_MEMORY_GB, FleetResult, ReprocessSettings, SessionState
 from stereopath.host.fleet.worker import STAGE_ORDER
 
 if TYPE_CHECKING:
@@ -49,7 +49,7 @@ class FleetOptions:
     ray: str = "auto"  # "auto": start a local Ray; otherwise the address of a running cluster
     num_cpus: int | None = None  # CPUs of the local Ray (None: the machine's); ignored with an address
     task_cpus: float = 1.0  # CPUs declared per session task
-    task_memory_gb: float = 1.5  # memory declared per session task (bench_scale.py: peak 1.23-1.33 GB, 400-800 frames)
+    task_memory_gb: float = TASK_MEMORY_GB  # memory declared per session task
     max_in_flight: int | None = None  # None: as many as the cluster holds
     retries: int = 3  # re-runs of a task whose worker or node died
     path_map: PathMap = field(default_factory=PathMap)

@@ -11,6 +11,13 @@ from typing import Any
 from stereopath.host.fleet.sessions import FleetSession
 
 
+# memory declared per session task (GB): the peak resident set of one reprocessing, with and without the
+# dense model, that benchmarks/bench_scale.py measures on the simulated scan up to 800 frames (1.23-1.36 GB
+# with the model, at most 1.18 GB without), rounded up
+TASK_MEMORY_GB = 1.5
+TASK_MEMORY_NO_MAP_GB = 1.2
+
+
 @dataclass(frozen=True)
 class ReprocessSettings:
     """The one-session command's settings, the same for every session of the run."""

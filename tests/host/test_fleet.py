@@ -244,7 +244,8 @@ def test_options_and_path_map_check_their_input():
     with pytest.raises(ConfigError):
         FleetOptions(max_in_flight=0)
     gb = 1024**3
-    assert capacity({"CPU": 8.0, "memory": 3.5 * gb}, FleetOptions()) == 3  # memory bound
+    assert capacity({"CPU": 8.0, "memory": 3.5 * gb}, FleetOptions(task_memory_gb=1.0)) == 3  # memory bound
+    assert capacity({"CPU": 8.0, "memory": 3.5 * gb}, FleetOptions()) == int(3.5 // FleetOptions().task_memory_gb)
     assert capacity({"CPU": 2.0, "memory": 16 * gb}, FleetOptions()) == 2  # CPU bound
     assert capacity({"CPU": 8.0, "memory": 16 * gb}, FleetOptions(max_in_flight=5)) == 5
     with pytest.raises(ConfigError, match="cannot hold one task"):
