@@ -303,8 +303,8 @@ def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any
                    plan: TaskPlan = TaskPlan()) -> dict[str, Any]:
     """Reprocess one session (paths as this worker sees them) as ``plan`` says; returns :func:`summarise`'s dict.
 
-    ``settings``: keyword arguments of ``reprocess_session`` (preset, do_map, map_preset,
-    imu_priors, force; force applies to the first attempt only).  ``board``: a :class:`ProgressBoard` actor
+    ``settings``: the preset, ``strict`` and :class:`RunChoices` fields (do_map, map_preset, imu_priors,
+    force; force applies to the first attempt only).  ``board``: a :class:`ProgressBoard` actor
     handle or None.
     ``after_stage(name)`` is called after each stored stage, after the board is told.
     A :class:`StereopathError` (bad input) propagates: the driver reports the session failed.
@@ -337,9 +337,10 @@ def reprocess_task(sid: str, session: str, out_dir: str, settings: dict[str, Any
     spreader = RaySpreader(lead=plan.lead) if plan.spread else None
     try:
         with spread_with(spreader):
-            choices = {k: v for k, v in settings.items() if k != "preset"}
+            choices = {k: v for k, v in settings.items() if k not in ("preset", "strict")}
             res = reprocess_session(session, out_dir, preset=settings.get("preset", DEFAULT_PRESET),
-                                    run=RunChoices(progress=False, after_stage=hook, **choices))
+                                    run=RunChoices(progress=False, after_stage=hook, **choices),
+                                    strict=bool(settings.get("strict", False)))
     except _Stop:
         out = first_part(session, out_dir, settings.get("preset", DEFAULT_PRESET), t0, c0)
     else:  # CPU: this task's and its pieces'
