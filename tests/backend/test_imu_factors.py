@@ -71,6 +71,7 @@ def visual(sim):
     return (rig, t_kf, T_true, T_noisy, pts, obs), vision
 
 
+@pytest.mark.slow
 def test_imu_factors_recover_the_simulated_biases_and_keep_the_path(sim, visual):
     (rig, t_kf, T_true, T_noisy, pts, obs), vision = visual
     terms = imu_terms(sim, t_kf, T_noisy)
@@ -150,6 +151,7 @@ def test_imu_terms_need_an_imu_extrinsics_and_a_path_that_agrees_with_them(sim, 
         imu_terms(NoExtrinsics(), t_kf, T)
 
 
+@pytest.mark.slow
 def test_without_a_still_start_gravity_and_the_gyro_bias_come_from_the_path(sim, visual):
     """The IMU starts with the first frame: the gyro bias from the path's rotations, gravity and the
     velocities from its positions, and the bundle adjustment then does what it does with a still start."""
@@ -242,6 +244,7 @@ def test_gyro_rotation_priors_without_a_still_start_use_the_bias_from_the_path(s
     assert gyro_rotation_priors(moving, t_kf, 0.002) == []  # neither a still start nor a path: no priors
 
 
+@pytest.mark.slow
 def test_an_imu_that_starts_late_gives_factors_only_where_it_covers_the_keyframes(sim, visual):
     """The IMU starts after the 103rd frame, in motion: the interval it covers in part is left out (holding its
     first sample over the rest would be a wrong factor), the keyframes before it keep the path's velocities,
@@ -265,6 +268,7 @@ def _up_in_camera(R_world_cam: np.ndarray) -> np.ndarray:
     return np.asarray(R_world_cam)[..., :3, :3].swapaxes(-1, -2) @ np.array([0.0, 0.0, 1.0])
 
 
+@pytest.mark.slow
 def test_a_session_without_a_still_start_is_leveled_by_the_gravity_the_adjustment_measured(sim, visual):
     """Estimated in its first camera's world (no still start), adjusted with IMU factors: the stage
     turns the poses, the points and the gravity into a z-up world, as a still start would have given."""
@@ -362,6 +366,7 @@ def test_gravity_where_the_rig_rests_during_the_frames():
     assert gravity_from_still_frames(_moving(sim).imu, sim.t_ns, T_arc) is None
 
 
+@pytest.mark.slow
 def test_euroc_is_leveled_where_it_rests_after_its_cameras_start(data_dir, tmp_path):
     """The real EuRoC V1_01 head rests for its 95 frames and has no still IMU block before its first
     frame and too few keyframes for IMU factors: the reprocessed path comes out z up all the same, its

@@ -48,6 +48,7 @@ def _probe(tmp_path, argv):
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 def test_odometry_runs_one_blas_thread(tmp_path):
     out = _probe(tmp_path, ["-q", "odometry", "sim:frames=12", "--out", str(tmp_path / "o")])
     assert out["code"] == 0

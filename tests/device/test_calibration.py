@@ -148,6 +148,7 @@ def test_euroc_still_head_gyro_bias_matches_the_ground_truth(data_dir, window):
     assert res.gravity_m_s2 == pytest.approx(9.80665, abs=0.1)
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_euroc_gyro_bias_is_measured_by_the_estimator_from_vision(data_dir):
     """EuRoC's IMU starts with the cameras: no still block before the first frame, so the estimator

@@ -86,6 +86,7 @@ def test_keyframe_work_never_stalls_the_frame_loop_and_its_queue_is_bounded(data
     assert run.frames_tracked == len(frames)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("step", [2, 3])
 def test_fast_motion_every_nth_kitti_frame_is_tracked(data_dir, step):
     from stereopath.host.evaluation.evaluate import evaluate
@@ -196,6 +197,7 @@ def test_the_path_measured_before_the_offset_was_learned_is_re_measured_once(dat
     assert end_error[True] < end_error[False] - 0.01
 
 
+@pytest.mark.slow
 def test_online_disparity_offset_stays_at_the_prior_around_an_object():
     """An orbit around the table objects cannot tell an offset from a turn: every estimate is ignored (the
     windows of four keyframes reach down to an inflation of 8.3 here, over the limit of 7)."""
@@ -214,6 +216,7 @@ def test_online_disparity_offset_stays_at_the_prior_around_an_object():
     assert est.counts.disparity_offset_path_corrections == 0
 
 
+@pytest.mark.slow
 def test_asift_work_is_scheduled_by_view_change_not_at_every_keyframe(data_dir):
     rig, frames = _kitti_frames(data_dir, range(12))  # driving straight: little rotation
     est = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=1, background=False), asift=AsiftWork(max_frames=5)))

@@ -19,6 +19,7 @@ def _kitti(data_dir, n):
     return rig, imgs
 
 
+@pytest.mark.slow
 def test_stereo_on_kitti06_end_error_below_2_percent(data_dir):
     from stereopath.host.evaluation.evaluate import evaluate
     from stereopath.device.formats.source import open_source
@@ -57,6 +58,7 @@ def test_black_lens_cap_and_foreign_frames_are_flagged_and_tracking_continues(da
     assert np.all(np.diff(z) < 2.0)
 
 
+@pytest.mark.slow
 def test_tracking_at_the_predicted_scale_keeps_the_path_of_fast_driving(data_dir):
     """KITTI 06 taken every 2nd frame (2.4 m between frames): the tracked points' windows grow by 13 % from
     one frame to the next at the median, the nearest by 40 % and more.  Plain KLT drifts off them and the disparity offset read from the tracks comes out

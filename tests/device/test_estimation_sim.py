@@ -31,6 +31,7 @@ def stereo_run(sim):
     return _run(sim, "stereo")
 
 
+@pytest.mark.slow
 def test_stereo_on_short_sim(stereo_run):
     run, m = stereo_run
     assert m["path_length_m"] > 0.3
@@ -51,6 +52,7 @@ def test_stereo_world_frame_is_gravity_aligned(sim, stereo_run):
     assert np.max(np.abs(np.array(est_tilt) - np.array(gt_tilt))) < 0.5
 
 
+@pytest.mark.slow
 def test_paper_estimator_on_short_sim(sim):
     # Eq. 4 as written ignores the rotation between positions, which on an orbit costs about
     # depth x rotation per step; with that rotation removed the same pipeline must be accurate.
@@ -67,6 +69,7 @@ def test_paper_estimator_on_short_sim(sim):
     assert m2["end_error_m"] > 10 * m["end_error_m"]  # the simplification of the paper shows
 
 
+@pytest.mark.slow
 def test_sfm_baseline_on_short_sim(sim):
     run, m = _run(sim, "sfm")
     assert run.extra.get("oracle_scale") is True
@@ -91,6 +94,7 @@ def test_black_frames_fall_back_to_the_imu(sim):
     assert m["ate_rmse_m"] < 0.005  # the trajectory continues without a jump
 
 
+@pytest.mark.slow
 def test_gyro_bias_is_measured_from_vision_without_a_still_imu_block_before_the_first_frame(sim):
     """No IMU block before the first frame and a large gyro bias (EuRoC's size): vision measures the
     bias within the first seconds, so the rotation bridged over a blackout stays true."""

@@ -109,6 +109,7 @@ def test_a_fisheye_model_that_folds_back_is_refused():
         make_fisheye_camera("cam0", K, [0.1, 0.2, 0.3], (640, 480))
 
 
+@pytest.mark.slow
 def test_fisheye_dataset_reads_as_the_pinhole_rig_it_was_made_from(fisheye_session):
     pin, fish = fisheye_session
     a, b = open_asl(pin / "mav0"), open_asl(fish / "mav0")
@@ -127,6 +128,7 @@ def test_fisheye_dataset_reads_as_the_pinhole_rig_it_was_made_from(fisheye_sessi
         load_euroc_rig(fish / "mav0")  # the rig alone would be read with the fisheye images
 
 
+@pytest.mark.slow
 def test_estimator_tracks_the_fisheye_rig_as_the_pinhole_one(fisheye_session):
     pin, fish = fisheye_session
     out = []

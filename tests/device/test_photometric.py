@@ -80,6 +80,7 @@ def _run(seq, frames, **options):
     return run, evaluate(seq.groundtruth, run.trajectory), est.stats()
 
 
+@pytest.mark.slow
 def test_estimator_measures_a_darker_right_camera_and_tracks_as_with_matched_cameras(sim_short):
     seq, frames = sim_short
     dark = [dataclasses.replace(f, right=cv2.LUT(f.right, _lut(0.75, -12.0))) for f in frames]
@@ -96,6 +97,7 @@ def test_estimator_measures_a_darker_right_camera_and_tracks_as_with_matched_cam
     assert c_off["keyframes"] > 3 * c["keyframes"]
 
 
+@pytest.mark.slow
 def test_estimator_follows_a_right_camera_whose_exposure_keeps_changing(sim_short):
     """Two AGCs that do not agree: the right camera's gain swings 0.75-1.25 and its offset +-10 levels
     within 2.5 s.  The relation is measured at every frame (on the stereo matches of the pose solve),

@@ -33,6 +33,7 @@ def _start(service: CaptureService) -> tuple[threading.Thread, dict]:
     return thread, result
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", ["camera", "imu"])
 def test_ready_after_sources_open_watchdog_stops_when_a_sensor_hangs(tmp_path, fault):
     listener = NotifyListener(tmp_path)

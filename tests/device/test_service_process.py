@@ -93,6 +93,7 @@ def test_bad_configuration_exits_before_ready_naming_the_key(tmp_path, case):
     assert not (tmp_path / "s").exists()  # nothing opened, nothing recorded
 
 
+@pytest.mark.slow
 def test_device_run_streams_poses_and_keyframes_to_a_host(tmp_path):
     keys = make_demo_keys(tmp_path / "keys")
     tables = sim_tables(tmp_path, frames=24, rate_hz=8.0,

@@ -57,6 +57,7 @@ def test_config_rejects_unknown_keys_and_bad_values():
     assert open_sim(SimConfig(frames=3), seed=4).cfg.seed == 4
 
 
+@pytest.mark.slow
 def test_deterministic_for_a_seed_and_different_across_seeds():
     a, b, c = open_sim(frames=3, seed=7), open_sim(frames=3, seed=7), open_sim(frames=3, seed=8)
     fa, fb, fc = a.render(2), b.render(2), c.render(2)

@@ -129,6 +129,7 @@ def test_client_without_multicast_names_the_route_when_the_check_passed():
 
 # ----------------------------------------------------------------------- SyncFrames and the latch
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fps, skip_phase", [(30.0, (0, 0)), (60.0, (0, 1))])
 def test_shipped_config_first_pair_after_sync_frames(fps, skip_phase):
     """Shipped device.toml (SyncFrames 100, timeout 2 s): no CaptureError at 30 fps (3.3 s of

@@ -105,6 +105,7 @@ def test_host_killed_and_restarted_gets_every_keyframe_once(tmp_path, keys):
     assert stats["hellos"] >= 2
 
 
+@pytest.mark.slow
 def test_host_paused_device_never_blocks_and_catches_up(tmp_path, keys):
     out, log = tmp_path / "out", tmp_path / "host.log"
     dev = make_device(tmp_path, keys, "sessP", max_credit=4, heartbeat_ivl_ms=200, heartbeat_timeout_ms=1000)

@@ -46,6 +46,7 @@ def _correct(img1, img2, H, cfg, pairs) -> tuple[int, int]:
     return int(correct_mask(p1, p2, H).sum()), len(f1) + len(f2)
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 @pytest.mark.parametrize("deg, axis_deg", [(50.0, 90.0), (65.0, 30.0)])
 def test_selection_keeps_the_correct_matches_of_all_view_pairs_on_a_tilted_plane(cones, deg, axis_deg):

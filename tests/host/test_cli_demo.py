@@ -4,10 +4,13 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from stereopath.device.formats.tum import read_tum
 from stereopath.host.evaluation.report import REPORT_KEYS
 
 
+@pytest.mark.slow
 def test_demo_runs_device_and_host_and_reports(tmp_path, repo_root):
     out = tmp_path / "demo"
     proc = subprocess.run([sys.executable, "-m", "stereopath.host", "demo", "--out", str(out), "--frames", "20"],
@@ -31,6 +34,7 @@ def test_demo_runs_device_and_host_and_reports(tmp_path, repo_root):
     assert report["extra"]["model"]["keyframes"] >= 8
 
 
+@pytest.mark.slow
 def test_a_model_that_cannot_be_built_leaves_the_path_results(tmp_path, monkeypatch, capsys, caplog):
     """The shortest demo (the still start and two moving frames), its model failing: exit 0, the path's
     results and the report say why there is no model."""

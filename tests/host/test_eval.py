@@ -59,6 +59,7 @@ def test_ate_equals_evo_on_v101(traj_dir):
     assert res["accuracy_pct"] == pytest.approx(100 * (1 - res["end_error_m"] / res["path_length_m"]))
 
 
+@pytest.mark.slow
 def test_kitti_00_orb(traj_dir):
     ate, rpe_t, rpe_r, n, length = _evo_reference(traj_dir / "KITTI_00_gt.txt", traj_dir / "KITTI_00_ORB.txt",
                                                    kitti=True)

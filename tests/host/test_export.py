@@ -60,6 +60,7 @@ def _colmap_residuals(rec) -> np.ndarray:
     return np.array(res)
 
 
+@pytest.mark.slow
 def test_colmap_model_reads_back_with_our_rig_poses_and_errors(colmap_out, source):
     import pycolmap
 

@@ -101,6 +101,7 @@ def test_host_stores_the_device_rig_and_host_map_uses_it(tmp_path):
     assert (state.session_id, state.stored, state.on_device, state.state) == ("sessR", 3, 3, "complete")
 
 
+@pytest.mark.slow
 def test_host_live_map_with_the_shipped_rig_maps_with_the_device_rig(tmp_path, caplog):
     """`host live --map --rig firmware_cfg/rig_paper.yaml` against a device on another rig: mesh, rc 0."""
     from stereopath.device.streaming import DeviceStreamer, KeyframeSpool
@@ -209,6 +210,7 @@ def _device_run(tmp: Path, stream: dict, frames: int, *args: str) -> tuple[subpr
     return device_run(["--config", str(cfg), *args]), tmp / "sessions"
 
 
+@pytest.mark.slow
 def test_kill_9_device_then_restart_delivers_the_unacknowledged_keyframes(tmp_path):
     """End to end: `device run` killed mid-session with keyframes no host had; restarted; `host live`
     receives the earlier session's keyframes under its own id and the device deletes them."""

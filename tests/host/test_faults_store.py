@@ -135,6 +135,7 @@ def test_a_keyframe_refused_by_a_full_host_disk_is_asked_for_again_as_soon_as_st
     assert_exactly_once(out, "sessH", dev.spool)
 
 
+@pytest.mark.slow
 def test_a_keyframe_that_keeps_failing_does_not_set_off_a_resend_loop(tmp_path, monkeypatch):
     """Keyframe 2 never fits: the duplicates the device resends after each hello are not taken as the disk
     working again, and hellos for the refused keyframe come at most once a second (there were hundreds)."""

@@ -36,6 +36,7 @@ def counts(graf):
     return out
 
 
+@pytest.mark.slow
 def test_small_viewpoint_change_sift_and_fast_both_match_well(counts):
     sift, fast = counts[(2, "sift")], counts[(2, "fast_asym")]
     assert sift["correct"] >= 600

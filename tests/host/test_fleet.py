@@ -72,6 +72,7 @@ def fleet_run(local_ray, sessions, tmp_path_factory):
     return out, res, updates
 
 
+@pytest.mark.slow
 def test_sessions_from_folder_glob_and_ids(sessions, tmp_path):
     from_folder = expand_sessions([sessions])
     assert [s.path.name for s in from_folder] == ["a", "b", "c"]
@@ -88,6 +89,7 @@ def test_sessions_from_folder_glob_and_ids(sessions, tmp_path):
         expand_sessions([sessions / "a", tmp_path / "copy_of_a"])
 
 
+@pytest.mark.slow
 def test_fleet_results_equal_the_one_session_command(fleet_run, sessions, tmp_path):
     import numpy as np
 
@@ -156,6 +158,7 @@ def test_rerun_recomputes_nothing_finished(fleet_run, sessions):
     assert (out / ids["c"]).exists() is False or not (out / ids["c"] / "stages" / "estimate.npz").exists()
 
 
+@pytest.mark.slow
 def test_worker_killed_during_ba_resumes_from_the_stored_stages(local_ray, fleet_run, sessions, tmp_path):
     ref_out, _, _ = fleet_run
     sid = _ids(sessions)["b"]
@@ -187,6 +190,7 @@ def test_worker_killed_during_ba_resumes_from_the_stored_stages(local_ray, fleet
     assert differences(ref_out / sid, out / sid) == []
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_cleanly_and_a_rerun_resumes(local_ray, fleet_run, sessions, tmp_path):
     ref_out, _, _ = fleet_run
     sid = _ids(sessions)["b"]

@@ -88,6 +88,7 @@ def test_box_from_ground_truth_depth_has_true_dimensions(box_world):
     np.testing.assert_allclose(dims, BOX_SIZE, rtol=0.01)
 
 
+@pytest.mark.slow
 def test_box_from_stereo_depth_has_true_dimensions(box_world):
     """End to end: rendered stereo pairs -> SGBM depth (rectified frame) -> TSDF -> mesh."""
     from stereopath.host.mapping.depth import DEPTH_PRESETS, StereoDepth

@@ -58,6 +58,7 @@ def test_a_traceback_is_counted(bench, tmp_path):
     assert outcome == "traceback" and detail.startswith("ZeroDivisionError")
 
 
+@pytest.mark.slow
 def test_fuzzed_inputs_give_no_traceback(bench, tmp_path):
     targets = bench.build_workspace(tmp_path / "w", session_frames=6)
     kinds = {t.name.split("_")[0] for t in targets}

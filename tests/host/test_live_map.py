@@ -1,6 +1,7 @@
 """host live --map: keyframes fused as they arrive, mesh refreshed, full model at the end."""
 
 import numpy as np
+import pytest
 
 from stereopath.device.core.geometry import matrix_to_quat_xyzw
 from stereopath.device.wire.protocol import Keyframe, decode_keyframe, encode_image, encode_keyframe, rig_reference
@@ -21,6 +22,7 @@ def _keyframes(seq, rig, step=4, n=6, session="s1"):
     return out
 
 
+@pytest.mark.slow
 def test_live_mapper_fuses_refreshes_and_writes_the_model(tmp_path):
     seq = open_source("sim:0", frames=60)
     kfs = _keyframes(seq, seq.rig)
@@ -82,6 +84,7 @@ def _mean_distance(mesh_a, mesh_b) -> float:
     return float(np.mean(d))
 
 
+@pytest.mark.slow
 def test_a_loop_closed_while_scanning_is_in_the_next_mesh(tmp_path):
     from stereopath.host.backend.loops import LoopConfig
 

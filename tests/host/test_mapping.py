@@ -95,6 +95,7 @@ def test_presets_and_overrides():
 # from a session
 
 
+@pytest.mark.slow
 def test_map_command_on_a_session(session, tmp_path, capsys):
     out = tmp_path / "model"
     rc = cli_main(["-q", "host", "map", str(session), "--out", str(out), "--poses",

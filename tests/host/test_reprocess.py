@@ -64,6 +64,7 @@ def _no_temp_files(root: Path) -> None:
     assert leftovers == []
 
 
+@pytest.mark.slow
 def test_reprocess_writes_every_output_and_improves_the_path(full_run):
     out, res, seen = full_run
     assert seen == ["estimate", "tracks", "ba", "map"]
@@ -115,6 +116,7 @@ def test_rerun_reuses_every_stage_and_gives_identical_outputs(full_run, session)
     assert (out / "trajectory.tum").read_bytes() == traj_before
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("min_px", [0.0, 1.0])
 def test_the_refined_rig_is_written_only_when_a_disparity_offset_was_applied(full_run, session, tmp_path, min_px,
                                                                             monkeypatch):
@@ -152,6 +154,7 @@ def test_the_refined_rig_is_written_only_when_a_disparity_offset_was_applied(ful
     assert "href='rig_refined.yaml'" in (tmp_path / "report.html").read_text()
 
 
+@pytest.mark.slow
 def test_resume_after_an_interruption(full_run, session, tmp_path):
     ref_out, ref, _ = full_run
     out = tmp_path / "out"
@@ -218,6 +221,7 @@ def test_the_session_named_another_way_reuses_the_stored_stages(full_run, sessio
         assert (out / "trajectory.tum").read_bytes() == (ref_out / "trajectory.tum").read_bytes()
 
 
+@pytest.mark.slow
 def test_ctrl_c_inside_a_stage_leaves_no_half_written_stage(session, tmp_path, monkeypatch):
     import stereopath.host.backend.tracks
 
@@ -267,6 +271,7 @@ def test_cli_reprocess(full_run, session, capsys):
     assert not (out / "x").exists()
 
 
+@pytest.mark.slow
 def test_onboard_path_of_the_session_is_the_before_figure(session_with_onboard, tmp_path):
     res = reprocess_session(session_with_onboard, tmp_path / "out", run=RunChoices(do_map=False, progress=False))
     ba = res.report["extra"]["before_after"]
@@ -277,6 +282,7 @@ def test_onboard_path_of_the_session_is_the_before_figure(session_with_onboard, 
     assert "on-board (recorded)" in (tmp_path / "out" / "report.html").read_text()
 
 
+@pytest.mark.slow
 def test_a_tiny_session_still_gives_a_path(tmp_path):
     from stereopath.device.formats.recorder import record_sequence
     from stereopath.device.sim.session import SimConfig, open_sim

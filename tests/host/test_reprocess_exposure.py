@@ -81,6 +81,7 @@ def test_an_unreadable_frame_costs_its_fit_and_is_skipped_as_before(sim):
     assert got == [8, 9, 11, 12] and inner.skipped_frames == [10] and seq.skipped_frames is inner.skipped_frames
 
 
+@pytest.mark.slow
 def test_the_relations_do_not_depend_on_the_order_frames_are_read(sim):
     a = ExposureMatchedSequence(_Darker(sim, _lut(GAIN, OFFSET)), TrackConfig())
     b = ExposureMatchedSequence(_Darker(sim, _lut(GAIN, OFFSET)), TrackConfig())
@@ -136,6 +137,7 @@ def dark_session(tmp_path_factory) -> Path:
     return d
 
 
+@pytest.mark.slow
 def test_reprocessing_a_darker_right_camera_keeps_its_tracks(dark_session, tmp_path):
     """The same recorded frames with and without the matching: the stereo keypoints the tracks are
     built from, and the adjusted path's error."""

@@ -55,6 +55,7 @@ def _in_reverse(calls):
     return spread
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("trajectory, frames", [("orbit", 28), ("arc", 100)])
 def test_keyframes_guessed_ahead_are_the_keyframes_chosen_one_after_another(trajectory, frames, keypoints_once,
                                                                              monkeypatch):
@@ -102,6 +103,7 @@ def test_keyframes_guessed_ahead_are_the_keyframes_chosen_one_after_another(traj
         assert computed["bad guesses"] > computed["corners"], computed
 
 
+@pytest.mark.slow
 def test_keyframe_keypoints_are_independent_pieces_with_offline_keyframes(orbit, keypoints_once):
     """With keyframes by viewpoint change and a spreader, the keypoints go to parallel_map in batches
     (a fleet task spreads them over idle cores), and the stage's output is that of the plain run."""
@@ -142,6 +144,7 @@ class _Cores:
         return [fn(shared, it) for it in items]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("pattern", [[False], [False, False, True], [True, False]])
 def test_nothing_is_guessed_while_every_core_is_busy(orbit, keypoints_once, monkeypatch, pattern):
     """Guesses are made only while the spreader has idle cores: with none, no corner is computed and
@@ -169,6 +172,7 @@ def test_nothing_is_guessed_while_every_core_is_busy(orbit, keypoints_once, monk
         assert looked and cores.calls  # guessed while cores were idle
 
 
+@pytest.mark.slow
 def test_keyframe_keypoints_stored_on_disk_give_the_same_tracks_and_resume(orbit, keypoints_once, tmp_path):
     """With a folder of partial results each keyframe's keypoints go to a file and are read back a
     batch at a time (one after another and guessed ahead alike): the stage's output is that of the run
