@@ -13,19 +13,26 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import TYPE_CHECKING, Any, Protocol, TextIO
 
 import numpy as np
 
 from stereopath.device.core.rig import Rig
 from stereopath.device.wire.protocol import Keyframe, Pose, decode_image
+from stereopath.host.live.receiver_stats import LiveState, ReceiverStats
 
 if TYPE_CHECKING:
     import open3d as o3d
 
-    from stereopath.host.live.receiver import Receiver
-
 log = logging.getLogger(__name__)
+
+
+class LiveReport(Protocol):
+    """What a view reads of a receiver: its live state and statistics (a ``lock``, where it has one, is held
+    while they are read)."""
+
+    live: LiveState
+    stats: ReceiverStats
 
 
 def _fmt_bytes(n: int | None) -> str:
@@ -38,7 +45,7 @@ def _fmt_bytes(n: int | None) -> str:
     return f"{n}"
 
 
-def summary_lines(receiver: Receiver) -> list[str]:
+def summary_lines(receiver: LiveReport) -> list[str]:
     """The live view's text: session/pose line, rates line, device line."""
     live = receiver.live
     stats = receiver.stats
@@ -77,7 +84,7 @@ class TerminalView:
         self._next_log = time.monotonic() + log_interval_s
         self._drawn = 0
 
-    def update(self, receiver: Receiver) -> None:
+    def update(self, receiver: LiveReport) -> None:
         lock = getattr(receiver, "lock", None)
         if lock is not None:
             with lock:
