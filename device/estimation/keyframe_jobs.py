@@ -14,6 +14,8 @@ See docs/architecture.md, "The on-board estimator".
 from __future__ import annotations
 
 import logging
+import os
+import threading
 from concurrent.futures import Future
 from dataclasses import dataclass
 from enum import Enum
@@ -160,9 +162,28 @@ def resolve_previous(source: Job | LibrarySource | None,
     return lib, rigid(C_sub @ invert_pose(C)) @ T
 
 
+def lower_thread_priority(nice: int) -> int | None:
+    """Raise the calling thread's niceness by ``nice`` (at most 19); returns the new niceness, None where
+    threads have no priority of their own (Linux gives each thread one, set through its native id).
+
+    The keyframe worker calls it first: on a core the frame loop shares with it, the scheduler then
+    runs the frame loop whenever it is ready, and the worker in the time left."""
+    if nice <= 0 or not hasattr(os, "setpriority") or not hasattr(threading, "get_native_id"):
+        return None
+    tid = threading.get_native_id()
+    try:
+        target = min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice)
+        os.setpriority(os.PRIO_PROCESS, tid, target)
+        return os.getpriority(os.PRIO_PROCESS, tid)
+    except OSError as e:  # a sandbox without the call: the worker runs at the loop's priority
+        log.debug("keyframe worker priority unchanged: %s", e)
+        return None
+
+
 class KeyframeWorker:
-    """The keyframe queue: at most one job running and one waiting, on a worker thread (or in line
-    when ``keyframes.background`` is off).  :meth:`submit` takes a job, :meth:`poll` the finished ones."""
+    """The keyframe queue: at most one job running and one waiting, on a worker thread at a lower
+    priority than the frame loop (``keyframes.worker_nice``; or in line when ``keyframes.background``
+    is off).  :meth:`submit` takes a job, :meth:`poll` the finished ones."""
 
     def __init__(self, rig: Rig, cfg: StereoConfig, geo: StereoMeasure) -> None:
         self.rig = rig
@@ -174,7 +195,9 @@ class KeyframeWorker:
         if cfg.asift.enabled and cfg.keyframes.background:
             from concurrent.futures import ThreadPoolExecutor
 
-            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keyframe-features")
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keyframe-features",
+                                                initializer=lower_thread_priority,
+                                                initargs=(cfg.keyframes.worker_nice,))
 
     @property
     def in_flight(self) -> int:
