@@ -38,9 +38,10 @@ class KeyframePolicy:
     parallax_px: float = ranged(0.0, 0.0, 10000.0)  # median flow since the keyframe (0 = off)
     max_frames: int = ranged(20, 1, 1000)  # frames since the last keyframe
     background: bool = True  # keyframe ASIFT work on a worker thread (False: at the keyframe itself, deterministic)
-    # the worker thread's niceness above the frame loop's (Linux, per thread): on a busy core the frame
-    # loop runs first and the keyframe work takes what is left (0 = the same priority)
-    worker_nice: int = ranged(10, 0, 19)
+    # the worker thread's niceness above the frame loop's (Linux, per thread; 0 = the same priority): on a
+    # saturated core the frame loop runs first and the keyframe work, with fewer ASIFT corrections, takes what
+    # is left (docs/architecture.md, "Cost on fast motion and at full load")
+    worker_nice: int = ranged(0, 0, 19)
 
     def __post_init__(self) -> None:
         check_ranges(self, "keyframes.")

@@ -181,9 +181,8 @@ def lower_thread_priority(nice: int) -> int | None:
 
 
 class KeyframeWorker:
-    """The keyframe queue: at most one job running and one waiting, on a worker thread at a lower
-    priority than the frame loop (``keyframes.worker_nice``; or in line when ``keyframes.background``
-    is off).  :meth:`submit` takes a job, :meth:`poll` the finished ones."""
+    """The keyframe queue: at most one job running and one waiting, on a worker thread (below the frame
+    loop's priority when ``keyframes.worker_nice`` is set; in line when ``keyframes.background`` is off).  :meth:`submit` takes a job, :meth:`poll` the finished ones."""
 
     def __init__(self, rig: Rig, cfg: StereoConfig, geo: StereoMeasure) -> None:
         self.rig = rig
