@@ -7,7 +7,8 @@ The process pins itself to one core (as ``taskset -c CORE`` would), runs OpenCV 
 renders (or reads) every frame first, then hands them to the estimator as live frames: ``live`` at the
 camera's rate (each frame handed over at its timestamp, the estimator idle in between, as on the
 device), ``full`` back to back (a frame loop at full load: the keyframe worker gets only what the loop
-leaves).  For each keyframe worker niceness of ``--nice`` (``keyframes.worker_nice``) and each pace, in
+leaves).  For each keyframe worker niceness of ``--nice`` (``keyframes.worker_nice``, which applies because the
+process runs on one core: ``keyframes.worker_nice_max_cores``) and each pace, in
 alternating runs: the median over the frames of the process CPU from a frame's hand-over to the next
 one's (all threads: frame loop and keyframe worker), the p95 and maximum of the frame loop's wall time
 per frame (``process`` only), the ATE against the source's ground truth, and the keyframe jobs run,

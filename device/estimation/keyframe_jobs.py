@@ -26,7 +26,7 @@ import numpy as np
 from stereopath.device.core.features import Features
 from stereopath.device.core.geometry import invert_pose, project_to_se3 as rigid, rotation_angle_deg
 from stereopath.device.core.rig import Rig
-from stereopath.device.core.stereo_config import StereoConfig
+from stereopath.device.core.stereo_config import KeyframePolicy, StereoConfig
 from stereopath.device.estimation.live_state import Library, compose
 from stereopath.device.estimation.stereo_measure import StereoMeasure
 
@@ -180,9 +180,18 @@ def lower_thread_priority(nice: int) -> int | None:
         return None
 
 
+def worker_niceness(policy: KeyframePolicy) -> int:
+    """The keyframe worker's niceness above the frame loop's: ``policy.worker_nice`` when the process
+    may run on at most ``policy.worker_nice_max_cores`` cores (the worker then shares the loop's core),
+    else 0 (a core of its own: a lower priority would only lose it time to other processes)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return policy.worker_nice if cores <= policy.worker_nice_max_cores else 0
+
+
 class KeyframeWorker:
     """The keyframe queue: at most one job running and one waiting, on a worker thread (below the frame
-    loop's priority when ``keyframes.worker_nice`` is set; in line when ``keyframes.background`` is off).  :meth:`submit` takes a job, :meth:`poll` the finished ones."""
+    loop's priority when it shares the loop's core, :func:`worker_niceness`; in line when
+    ``keyframes.background`` is off).  :meth:`submit` takes a job, :meth:`poll` the finished ones."""
 
     def __init__(self, rig: Rig, cfg: StereoConfig, geo: StereoMeasure) -> None:
         self.rig = rig
@@ -196,7 +205,7 @@ class KeyframeWorker:
 
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keyframe-features",
                                                 initializer=lower_thread_priority,
-                                                initargs=(cfg.keyframes.worker_nice,))
+                                                initargs=(worker_niceness(cfg.keyframes),))
 
     @property
     def in_flight(self) -> int:

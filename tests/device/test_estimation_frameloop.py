@@ -294,24 +294,31 @@ def test_keyframe_match_simulates_views_only_for_a_large_predicted_view_change(d
         AsiftWork(views="sometimes")
 
 
-@pytest.mark.skipif(not hasattr(threading, "get_native_id") or not hasattr(os, "setpriority"),
+@pytest.mark.skipif(not hasattr(threading, "get_native_id") or not hasattr(os, "sched_getaffinity"),
                     reason="per-thread priority is a Linux feature")
-def test_keyframe_worker_thread_runs_below_the_frame_loop_priority(data_dir):
-    from stereopath.device.estimation.keyframe_jobs import lower_thread_priority
+def test_keyframe_worker_runs_below_the_frame_loop_when_it_shares_its_core(data_dir, monkeypatch):
+    from stereopath.device.estimation.keyframe_jobs import lower_thread_priority, worker_niceness
 
     rig, _ = _kitti_frames(data_dir, range(1))
     loop_nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
 
-    def worker_nice(nice):
-        est = StereoEstimator(rig, StereoConfig(KeyframePolicy(worker_nice=nice)))
+    def worker_nice(policy):
+        est = StereoEstimator(rig, StereoConfig(policy))
         try:  # the worker's own thread reports its niceness
             return est._worker._executor.submit(
                 lambda: os.getpriority(os.PRIO_PROCESS, threading.get_native_id())).result(10)
         finally:
             est.close()
 
-    assert worker_nice(10) == min(19, loop_nice + 10)
-    assert worker_nice(0) == loop_nice
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0})  # one core: worker and loop share it
+    assert worker_niceness(KeyframePolicy()) == 10
+    assert worker_nice(KeyframePolicy()) == min(19, loop_nice + 10)
+    assert worker_nice(KeyframePolicy(worker_nice=0)) == loop_nice
+    assert worker_nice(KeyframePolicy(worker_nice_max_cores=0)) == loop_nice  # never
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})  # a core of its own: the loop's priority
+    assert worker_niceness(KeyframePolicy()) == 0
+    assert worker_nice(KeyframePolicy()) == loop_nice
+    assert worker_nice(KeyframePolicy(worker_nice=5, worker_nice_max_cores=2)) == min(19, loop_nice + 5)
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == loop_nice  # the caller's is untouched
     assert lower_thread_priority(0) is None
     with pytest.raises(ConfigError, match="worker_nice"):
