@@ -38,6 +38,13 @@ class KeyframePolicy:
     parallax_px: float = ranged(0.0, 0.0, 10000.0)  # median flow since the keyframe (0 = off)
     max_frames: int = ranged(20, 1, 1000)  # frames since the last keyframe
     background: bool = True  # keyframe ASIFT work on a worker thread (False: at the keyframe itself, deterministic)
+    # the worker thread's niceness above the frame loop's (Linux, per thread; 0 = the same priority) when the
+    # process may run on at most worker_nice_max_cores cores: on a core the two share the frame loop runs
+    # first and the keyframe work, with fewer ASIFT corrections when the core is saturated, takes what is
+    # left; with a core of its own the worker keeps the loop's priority (docs/architecture.md, "Cost on fast
+    # motion and at full load")
+    worker_nice: int = ranged(10, 0, 19)
+    worker_nice_max_cores: int = ranged(1, 0, 4096)  # 0: never
 
     def __post_init__(self) -> None:
         check_ranges(self, "keyframes.")

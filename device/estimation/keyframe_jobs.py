@@ -14,6 +14,8 @@ See docs/architecture.md, "The on-board estimator".
 from __future__ import annotations
 
 import logging
+import os
+import threading
 from concurrent.futures import Future
 from dataclasses import dataclass
 from enum import Enum
@@ -24,7 +26,7 @@ import numpy as np
 from stereopath.device.core.features import Features
 from stereopath.device.core.geometry import invert_pose, project_to_se3 as rigid, rotation_angle_deg
 from stereopath.device.core.rig import Rig
-from stereopath.device.core.stereo_config import StereoConfig
+from stereopath.device.core.stereo_config import KeyframePolicy, StereoConfig
 from stereopath.device.estimation.live_state import Library, compose
 from stereopath.device.estimation.stereo_measure import StereoMeasure
 
@@ -160,9 +162,36 @@ def resolve_previous(source: Job | LibrarySource | None,
     return lib, rigid(C_sub @ invert_pose(C)) @ T
 
 
+def lower_thread_priority(nice: int) -> int | None:
+    """Raise the calling thread's niceness by ``nice`` (at most 19); returns the new niceness, None where
+    threads have no priority of their own (Linux gives each thread one, set through its native id).
+
+    The keyframe worker calls it first: on a core the frame loop shares with it, the scheduler then
+    runs the frame loop whenever it is ready, and the worker in the time left."""
+    if nice <= 0 or not hasattr(os, "setpriority") or not hasattr(threading, "get_native_id"):
+        return None
+    tid = threading.get_native_id()
+    try:
+        target = min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice)
+        os.setpriority(os.PRIO_PROCESS, tid, target)
+        return os.getpriority(os.PRIO_PROCESS, tid)
+    except OSError as e:  # a sandbox without the call: the worker runs at the loop's priority
+        log.debug("keyframe worker priority unchanged: %s", e)
+        return None
+
+
+def worker_niceness(policy: KeyframePolicy) -> int:
+    """The keyframe worker's niceness above the frame loop's: ``policy.worker_nice`` when the process
+    may run on at most ``policy.worker_nice_max_cores`` cores (the worker then shares the loop's core),
+    else 0 (a core of its own: a lower priority would only lose it time to other processes)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return policy.worker_nice if cores <= policy.worker_nice_max_cores else 0
+
+
 class KeyframeWorker:
-    """The keyframe queue: at most one job running and one waiting, on a worker thread (or in line
-    when ``keyframes.background`` is off).  :meth:`submit` takes a job, :meth:`poll` the finished ones."""
+    """The keyframe queue: at most one job running and one waiting, on a worker thread (below the frame
+    loop's priority when it shares the loop's core, :func:`worker_niceness`; in line when
+    ``keyframes.background`` is off).  :meth:`submit` takes a job, :meth:`poll` the finished ones."""
 
     def __init__(self, rig: Rig, cfg: StereoConfig, geo: StereoMeasure) -> None:
         self.rig = rig
@@ -174,7 +203,9 @@ class KeyframeWorker:
         if cfg.asift.enabled and cfg.keyframes.background:
             from concurrent.futures import ThreadPoolExecutor
 
-            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keyframe-features")
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keyframe-features",
+                                                initializer=lower_thread_priority,
+                                                initargs=(worker_niceness(cfg.keyframes),))
 
     @property
     def in_flight(self) -> int:

@@ -1,5 +1,6 @@
 """The stereo estimator's frame loop: keyframe work off the loop, bounded; fast motion; the shared stereo step."""
 
+import os
 import threading
 
 import cv2
@@ -15,6 +16,7 @@ from stereopath.device.estimation.registry import make_estimator
 from stereopath.device.core.stereo_config import AsiftWork, DisparityOffsetConfig, KeyframePolicy, StereoConfig
 from stereopath.device.estimation.stereo_measure import StereoMeasure
 from stereopath.device.estimation.stereo_vo import StereoEstimator
+from stereopath.device.errors import ConfigError
 
 
 def _kitti_frames(data_dir, idx):
@@ -104,9 +106,9 @@ def test_online_disparity_offset_is_estimated_bounded_and_used(data_dir):
     rig, frames = _kitti_frames(data_dir, range(14))
     est = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=2, background=False),
                                             disparity_offset=DisparityOffsetConfig(estimate=True)))
-    out = [est.process(f, None) for f in frames]
-    est.close()
-    assert all(e.status == "ok" for e in out)
+    run = run_estimator(est, iter(frames), None)
+    out = run.estimates
+    assert len(out) == len(frames) and all(e.status == "ok" for e in out)
     assert est._offset.n >= 3 and est._offset.ready
     assert abs(est._offset.value) <= est._offset.bound
     # from the third keyframe on, each estimate is solved over the last four keyframes
@@ -220,9 +222,9 @@ def test_online_disparity_offset_stays_at_the_prior_around_an_object():
 def test_asift_work_is_scheduled_by_view_change_not_at_every_keyframe(data_dir):
     rig, frames = _kitti_frames(data_dir, range(12))  # driving straight: little rotation
     est = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=1, background=False), asift=AsiftWork(max_frames=5)))
-    out = [est.process(f, None) for f in frames]
-    est.close()
-    assert all(e.status == "ok" for e in out) and sum(e.keyframe for e in out) >= 10
+    run = run_estimator(est, iter(frames), None)
+    out = run.estimates
+    assert len(out) == len(frames) and all(e.status == "ok" for e in out) and sum(e.keyframe for e in out) >= 10
     # the first keyframe and then one by age (5 frames) at most: the rest only top up the map
     assert 2 <= est.counts.kf_jobs <= 3
     assert est.counts.kf_jobs_deferred == est.counts.keyframes - est.counts.kf_jobs
@@ -290,3 +292,65 @@ def test_keyframe_match_simulates_views_only_for_a_large_predicted_view_change(d
 
     with pytest.raises(ConfigError):
         AsiftWork(views="sometimes")
+
+
+@pytest.mark.skipif(not hasattr(threading, "get_native_id") or not hasattr(os, "sched_getaffinity"),
+                    reason="per-thread priority is a Linux feature")
+def test_keyframe_worker_runs_below_the_frame_loop_when_it_shares_its_core(data_dir, monkeypatch):
+    from stereopath.device.estimation.keyframe_jobs import lower_thread_priority, worker_niceness
+
+    rig, _ = _kitti_frames(data_dir, range(1))
+    loop_nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    def worker_nice(policy):
+        est = StereoEstimator(rig, StereoConfig(policy))
+        try:  # the worker's own thread reports its niceness
+            return est._worker._executor.submit(
+                lambda: os.getpriority(os.PRIO_PROCESS, threading.get_native_id())).result(10)
+        finally:
+            est.close()
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0})  # one core: worker and loop share it
+    assert worker_niceness(KeyframePolicy()) == 10
+    assert worker_nice(KeyframePolicy()) == min(19, loop_nice + 10)
+    assert worker_nice(KeyframePolicy(worker_nice=0)) == loop_nice
+    assert worker_nice(KeyframePolicy(worker_nice_max_cores=0)) == loop_nice  # never
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})  # a core of its own: the loop's priority
+    assert worker_niceness(KeyframePolicy()) == 0
+    assert worker_nice(KeyframePolicy()) == loop_nice
+    assert worker_nice(KeyframePolicy(worker_nice=5, worker_nice_max_cores=2)) == min(19, loop_nice + 5)
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == loop_nice  # the caller's is untouched
+    assert lower_thread_priority(0) is None
+    with pytest.raises(ConfigError, match="worker_nice"):
+        KeyframePolicy(worker_nice=20)
+
+
+@pytest.mark.slow
+def test_fast_motion_keyframes_top_up_the_map_by_klt_corners_without_sift(data_dir):
+    from stereopath.host.evaluation.evaluate import evaluate
+    from stereopath.device.formats.source import open_source
+
+    seq = open_source(f"kitti:{data_dir / 'kitti_odometry/sequences/06'}")
+    frames = list(seq.frames(step=3))[:17]  # 30 m in 17 frames: most frames become keyframes
+    est = StereoEstimator(seq.rig, StereoConfig(KeyframePolicy(background=False), asift=AsiftWork(enabled=False)))
+    sizes = []
+    real_new = est._new_keyframe
+
+    def new_keyframe(img, T):
+        n = real_new(img, T)
+        sizes.append(n)
+        return n
+
+    est._new_keyframe = new_keyframe
+    run = run_estimator(est, iter(frames), None)
+    out = run.estimates
+    assert len(out) == len(frames) and all(e.status == "ok" for e in out)  # no SIFT, no relocalisation, nothing lost
+    assert est.counts.kf_jobs == 0 and est.counts.asift_views == 0 and est.counts.relocalised == 0
+    kf = [e for e in out[1:] if e.keyframe]
+    assert len(kf) >= len(frames) // 2
+    # each keyframe tops the map up from new corners away from the tracked points, well above what was tracked
+    assert len(sizes) == len(kf) + 1
+    assert all(n >= e.inliers + 50 for n, e in zip(sizes[1:], kf))
+    assert min(sizes) >= 0.5 * est.cfg.keyframes.max_points
+    m = evaluate(seq.groundtruth, run.trajectory)
+    assert m["end_error_m"] / m["path_length_m"] < 0.02
