@@ -1,0 +1,317 @@
+"""The ``stereo`` estimator's local window: a bundle adjustment over its last keyframes (pure compute).
+
+The last ``window.keyframes`` keyframes' poses and every point seen in stereo at two of them or more
+are solved on the rectified ``(u, v, disparity)`` observations the keyframes made (the disparity
+offset in use removed), with a Huber loss, by Gauss-Newton with the points eliminated (Schur
+complement).  With a gyro, the rotation it measured between consecutive keyframes is one more
+residual per pair (weighted by its noise and the bias's uncertainty over the interval).  The gauge
+and what leaves the window: the oldest ``window.fixed`` keyframes are held where earlier windows
+left them (no marginalisation prior: what a keyframe knew is dropped with it).
+
+:class:`WindowKeyframes` keeps the keyframe records on the frame loop's side (their poses move with
+every correction of the live state, except a window's own refinement of them); the keyframe worker
+runs :func:`solve_window` on a copy (:class:`WindowJob`) and its result comes back through
+:meth:`~stereopath.device.estimation.keyframe_jobs.KeyframeWorker.poll`.
+See docs/architecture.md, "The local window".
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from stereopath.device.core.geometry import invert_pose, so3_exp, so3_log
+from stereopath.device.core.stereo_config import WindowConfig
+from stereopath.device.estimation.disparity_offset import (RectifiedCamera, huber_weights,
+                                                          projection_and_motion_jacobians)
+from stereopath.device.estimation.inertial import VisionGyroBias
+from stereopath.device.estimation.live_state import LiveState, StereoStats
+
+log = logging.getLogger(__name__)
+
+LM_DAMPING = 1e-6  # relative damping of the reduced system's diagonal
+MIN_LINK_POINTS = 6  # consecutive keyframes sharing fewer points are not in one window
+
+
+@dataclass
+class WindowKeyframe:
+    """One keyframe as the window sees it: its stereo observations and its pose (camera 1 to world)."""
+
+    seq: int
+    T_world_cam: np.ndarray
+    ids: np.ndarray  # point ids
+    obs: np.ndarray  # (n, 3) rectified (u, v, disparity) as measured
+    C: np.ndarray  # the live state's cumulative correction the pose is expressed in
+    R_gyro: np.ndarray | None = None  # the camera's rotation from the previous keyframe by the gyro
+    dt_gyro: float = 0.0  # seconds the gyro rotation covers
+
+
+@dataclass
+class WindowJob:
+    """A window solve as the frame loop hands it over (copies, in the world of its submission)."""
+
+    seq: int  # the newest keyframe's frame
+    poses: list[np.ndarray]  # camera 1 to world, oldest first
+    seqs: list[int]
+    views: list[tuple[np.ndarray, np.ndarray]]  # (ids, rectified rows) per keyframe
+    gyro: list[tuple[np.ndarray, float] | None]  # camera rotation from the previous keyframe and its sigma (rad)
+    offset_px: float  # the disparity offset in use
+    C_sub: np.ndarray
+
+
+@dataclass
+class WindowResult:
+    """A solved window: each keyframe's refined pose (world of the job's submission)."""
+
+    seq: int
+    seqs: list[int]
+    T_before: list[np.ndarray]
+    T_after: list[np.ndarray]
+    rms_px: float
+    n_points: int
+    cpu_ms: float
+
+
+@dataclass
+class WindowKeyframes:
+    """The frame loop's side: the last keyframes' records, and the gyro rotation since the newest."""
+
+    cfg: WindowConfig
+    records: deque[WindowKeyframe] = field(default_factory=deque)
+    _R_gyro: np.ndarray | None = None
+    _dt_gyro: float = 0.0
+
+    def gyro_step(self, step: tuple[np.ndarray, float] | None, R_body_cam: np.ndarray | None) -> None:
+        """The gyro's body rotation over one frame and its length (None: no gyro, or a gap; the chain
+        since the newest keyframe is then broken)."""
+        if step is None or R_body_cam is None:
+            self._R_gyro, self._dt_gyro = None, -1.0
+            return
+        if self._dt_gyro < 0.0:
+            return
+        R_cam = R_body_cam.T @ step[0] @ R_body_cam
+        self._R_gyro = R_cam if self._R_gyro is None else self._R_gyro @ R_cam
+        self._dt_gyro += step[1]
+
+    def add(self, seq: int, T_world_cam: np.ndarray, ids: np.ndarray, obs: np.ndarray, C: np.ndarray) -> None:
+        """A new keyframe (its observations as measured, its pose in the live world of correction ``C``)."""
+        R_g = self._R_gyro if self._dt_gyro > 0.0 and self.records else None
+        self.records.append(WindowKeyframe(seq, T_world_cam.copy(), ids.copy(), obs.copy(), C.copy(), R_g,
+                                           max(self._dt_gyro, 0.0)))
+        while len(self.records) > self.cfg.keyframes:
+            self.records.popleft()
+        self._R_gyro, self._dt_gyro = None, 0.0
+
+    def linked(self) -> list[WindowKeyframe]:
+        """The newest records linked to each other by shared points (a restarted map cuts the chain)."""
+        recs = list(self.records)
+        k = len(recs) - 1
+        while k > 0 and len(np.intersect1d(recs[k - 1].ids, recs[k].ids)) >= MIN_LINK_POINTS:
+            k -= 1
+        return recs[k:]
+
+    def job(self, C: np.ndarray, offset_px: float, bias: VisionGyroBias | None) -> WindowJob | None:
+        """The window to solve now (the live world of correction ``C``; ``bias``: the gyro bias's
+        estimate, whose uncertainty weighs the gyro residuals), None when it is too short."""
+        recs = self.linked()
+        if len(recs) < self.cfg.fixed + 1:
+            return None
+        poses = [_project(C @ invert_pose(r.C) @ r.T_world_cam) for r in recs]
+        bias_sigma = max(self.cfg.gyro_bias_floor_rad_s, 0.0 if bias is None else bias.sigma_rad_s)
+        gyro: list[tuple[np.ndarray, float] | None] = [None]
+        for r in recs[1:]:
+            if r.R_gyro is None or not self.cfg.gyro:
+                gyro.append(None)
+            else:
+                dt = r.dt_gyro
+                gyro.append((r.R_gyro, float(np.hypot(self.cfg.gyro_noise_rad_s_rthz * np.sqrt(dt), bias_sigma * dt))))
+        return WindowJob(recs[-1].seq, poses, [r.seq for r in recs], [(r.ids, r.obs) for r in recs], gyro,
+                         offset_px, C.copy())
+
+    def joined(self, res: WindowResult, G: np.ndarray | None, C_since: np.ndarray, state: LiveState,
+               counts: StereoStats) -> None:
+        """A solved window comes back (on the frame loop): its newest keyframe's correction ``G`` (None:
+        refused) moves the live state; its refined keyframes are kept for the next windows (``C_since``
+        maps its world to the live one)."""
+        if G is not None:
+            state.apply(G)
+            counts.window_corrections += 1
+        counts.window_cpu_us += int(round(1000 * res.cpu_ms))
+        if G is None:
+            return
+        after = dict(zip(res.seqs, res.T_after))
+        for r in self.records:
+            if r.seq in after:
+                r.T_world_cam = _project(C_since @ after[r.seq])
+                r.C = state.C.copy()
+
+
+def _project(T: np.ndarray) -> np.ndarray:
+    from stereopath.device.core.geometry import project_to_se3
+
+    return project_to_se3(T)
+
+
+@dataclass(frozen=True)
+class _Observations:
+    """Every stereo observation of the window, grouped by point: rows, keyframe, point index, group starts."""
+
+    M: np.ndarray
+    kf: np.ndarray
+    pt: np.ndarray
+    starts: np.ndarray
+
+
+def _gather(views: list[tuple[np.ndarray, np.ndarray]], offset_px: float) -> tuple[_Observations, np.ndarray] | None:
+    """The observations of points seen at two keyframes or more (offset removed), and those points' ids."""
+    kf, ids, M = [], [], []
+    for j, (i, obs) in enumerate(views):
+        obs = np.asarray(obs, float).reshape(-1, 3)
+        ok = np.isfinite(obs).all(1) & (obs[:, 2] - offset_px > 0.5)
+        kf.append(np.full(int(ok.sum()), j))
+        ids.append(np.asarray(i, np.int64)[ok])
+        M.append(obs[ok])
+    kf_a, id_a, M_a = np.concatenate(kf), np.concatenate(ids), np.concatenate(M)
+    uniq, counts = np.unique(id_a, return_counts=True)
+    keep = uniq[counts >= 2]
+    if len(keep) == 0:
+        return None
+    sel = np.isin(id_a, keep)
+    pt = np.searchsorted(keep, id_a[sel])
+    order = np.lexsort((kf_a[sel], pt))
+    kf_s, pt_s, M_s = kf_a[sel][order], pt[order], M_a[sel][order].copy()
+    M_s[:, 2] -= offset_px
+    starts = np.flatnonzero(np.r_[True, pt_s[1:] != pt_s[:-1]])
+    return _Observations(M_s, kf_s, pt_s, starts), keep
+
+
+def _to_rectified(T_world_cam: np.ndarray, R0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World -> rectified camera 1 (``x = R X + t``) of a camera-1 pose."""
+    T_cw = invert_pose(T_world_cam)
+    return R0 @ T_cw[:3, :3], R0 @ T_cw[:3, 3]
+
+
+def _from_rectified(R: np.ndarray, t: np.ndarray, R0: np.ndarray) -> np.ndarray:
+    T_cw = np.eye(4)
+    T_cw[:3, :3], T_cw[:3, 3] = R0.T @ R, R0.T @ t
+    return invert_pose(T_cw)
+
+
+def solve_window(job: WindowJob, cam: RectifiedCamera, R0: np.ndarray, cfg: WindowConfig) -> WindowResult | None:
+    """The window's bundle adjustment (see the module's docstring); None when it has too few points or the
+    solve fails.  ``cam`` and ``R0``: the rig's rectified left camera and its rectifying rotation."""
+    t_cpu = time.thread_time()
+    got = _gather(job.views, job.offset_px)
+    if got is None or len(got[1]) < cfg.min_points:
+        return None
+    seen, _ = got
+    K = len(job.poses)
+    Rt = [_to_rectified(T, R0) for T in job.poses]
+    R = [a for a, _ in Rt]
+    t = [b for _, b in Rt]
+    X = _initial_points(seen, R, t, cam)
+    nf = min(cfg.fixed, K - 1)
+    gyro = [None if g is None else (R0 @ g[0] @ R0.T, g[1]) for g in job.gyro]
+    rms = float("nan")
+    for _ in range(cfg.iterations):
+        step = _gauss_newton_step(R, t, X, seen, cam, gyro, nf, cfg.huber_px)
+        if step is None:
+            return None
+        dg, dX, rms = step
+        for k in range(nf, K):
+            o = 6 * (k - nf)
+            R[k] = so3_exp(dg[o + 3:o + 6]) @ R[k]
+            t[k] = t[k] + dg[o:o + 3]
+        X = X + dX
+        if np.abs(dg).max(initial=0.0) < 1e-7:
+            break
+    after = [job.poses[k].copy() if k < nf else _from_rectified(R[k], t[k], R0) for k in range(K)]
+    cpu_ms = 1000.0 * (time.thread_time() - t_cpu)
+    return WindowResult(job.seq, list(job.seqs), [T.copy() for T in job.poses], after, rms, len(X), cpu_ms)
+
+
+def _initial_points(seen: _Observations, R: list[np.ndarray], t: list[np.ndarray], cam: RectifiedCamera) -> np.ndarray:
+    """Each point triangulated at its newest observation (world)."""
+    last = np.r_[seen.starts[1:], len(seen.M)] - 1
+    u, v, d = seen.M[last].T
+    z = cam.fb / d
+    xr = np.column_stack([(u - cam.cx) / cam.f * z, (v - cam.cy) / cam.f * z, z])
+    Rs, ts = np.stack(R)[seen.kf[last]], np.stack(t)[seen.kf[last]]
+    return np.einsum("nji,nj->ni", Rs, xr - ts)
+
+
+def _gauss_newton_step(R: list[np.ndarray], t: list[np.ndarray], X: np.ndarray, seen: _Observations,
+                       cam: RectifiedCamera, gyro: list[tuple[np.ndarray, float] | None], nf: int,
+                       huber_px: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """One step ``(d poses, d points, rms px)``: the free poses' (dt, dtheta) and each point's move."""
+    K = len(R)
+    ng = 6 * (K - nf)
+    Ra, ta = np.stack(R)[seen.kf], np.stack(t)[seen.kf]
+    RX = np.matmul(Ra, X[seen.pt][:, :, None])[:, :, 0]
+    Xc = RX + ta
+    z = np.maximum(Xc[:, 2], 1e-9)
+    f, cx, cy, fb = cam.f, cam.cx, cam.cy, cam.fb
+    r = np.column_stack([f * Xc[:, 0] / z + cx, f * Xc[:, 1] / z + cy, fb / z]) - seen.M
+    w = huber_weights(r, z, huber_px)
+    dproj, dX = projection_and_motion_jacobians(Xc, RX, z, f, fb)
+    Jp = np.matmul(dproj, Ra)  # (o, 3, 3) by the point
+    Jpose = np.matmul(dproj, dX)  # (o, 3, 6) by the observing pose
+    free = seen.kf >= nf
+    Jg = np.zeros((len(z), 3, ng))
+    rows = np.flatnonzero(free)
+    cols = 6 * (seen.kf[free] - nf)
+    for c in range(6):
+        Jg[rows, :, cols + c] = Jpose[free, :, c]
+    Jgw, Jpw = Jg * w[:, :, None], Jp * w[:, :, None]
+    H = Jgw.reshape(-1, ng).T @ Jg.reshape(-1, ng)
+    b = Jgw.reshape(-1, ng).T @ r.reshape(-1)
+    _add_gyro_terms(H, b, R, gyro, nf)
+    starts = seen.starts
+    Hgp = np.add.reduceat(np.matmul(Jgw.transpose(0, 2, 1), Jp), starts, axis=0)
+    Hpp = np.add.reduceat(np.matmul(Jpw.transpose(0, 2, 1), Jp), starts, axis=0) + 1e-9 * np.eye(3)
+    bp = np.add.reduceat(np.matmul(Jpw.transpose(0, 2, 1), r[:, :, None])[:, :, 0], starts, axis=0)
+    try:
+        Hpp_inv = np.linalg.inv(Hpp)
+        W = np.matmul(Hgp, Hpp_inv)
+        Wf = W.transpose(1, 0, 2).reshape(ng, -1)
+        S = H - Wf @ Hgp.transpose(1, 0, 2).reshape(ng, -1).T
+        S = S + LM_DAMPING * np.diag(np.diag(S)) + 1e-12 * np.eye(ng)
+        dg = -np.linalg.solve(S, b - Wf @ bp.reshape(-1))
+    except np.linalg.LinAlgError:
+        return None
+    dp = -np.matmul(Hpp_inv, (bp + np.matmul(Hgp.transpose(0, 2, 1), dg))[:, :, None])[:, :, 0]
+    good = w.min(1) > 0
+    rms = float(np.sqrt(np.mean(r[good] ** 2))) if good.any() else float("nan")
+    return dg, dp, rms
+
+
+def _add_gyro_terms(H: np.ndarray, b: np.ndarray, R: list[np.ndarray], gyro: list[tuple[np.ndarray, float] | None],
+                    nf: int) -> None:
+    """The gyro's rotation between consecutive keyframes: ``e = log(D^T R_i R_j^T)`` with ``D`` the
+    measured ``R_i R_j^T`` (world -> rectified rotations), ``de/da_i = (R_i R_j^T)^T`` and ``de/da_j = -I``
+    for left perturbations ``exp(a) R``, over its sigma."""
+    for j in range(1, len(R)):
+        g = gyro[j]
+        if g is None:
+            continue
+        D, sigma = g
+        i = j - 1
+        M = R[i] @ R[j].T
+        e = so3_log(D.T @ M)
+        Ji, Jj = M.T, -np.eye(3)
+        s2 = 1.0 / sigma**2
+        blocks = [(i, Ji), (j, Jj)]
+        for k, Jk in blocks:
+            if k < nf:
+                continue
+            ok = 6 * (k - nf) + 3
+            b[ok:ok + 3] += s2 * Jk.T @ e
+            for m, Jm in blocks:
+                if m < nf:
+                    continue
+                om = 6 * (m - nf) + 3
+                H[ok:ok + 3, om:om + 3] += s2 * Jk.T @ Jm
