@@ -151,11 +151,15 @@ class WindowConfig:
     fixed: int = ranged(1, 1, 29)  # the oldest ones held (the gauge; nothing is marginalised)
     iterations: int = ranged(5, 1, 50)  # Gauss-Newton steps at most
     huber_px: float = ranged(1.0, 0.1, 20.0)
+    disparity_weight: float = ranged(1.0, 0.0, 10.0)  # of the disparity residual against the pixel's (u, v)
     min_points: int = ranged(20, 6, 100000)  # points seen at two keyframes or more, else no solve
     gyro: bool = True  # the gyro's rotation between consecutive keyframes as a residual
     gyro_noise_rad_s_rthz: float = ranged(2e-3, 1e-6, 1.0)  # the gyro's white noise (rad/s/sqrt(Hz))
     gyro_bias_floor_rad_s: float = ranged(1e-3, 0.0, 1.0)  # the bias's uncertainty at least (rad/s)
     max_correction_deg: float = ranged(2.0, 0.0, 180.0)  # larger corrections of the newest keyframe are refused
+    # the tracked map's points (each the mean of its stereo triangulations) as a prior of the window's, at
+    # this weight times sqrt(their count): what keyframes that left the window knew (0 = no prior)
+    map_prior_weight: float = ranged(0.0, 0.0, 10.0)
 
     def __post_init__(self) -> None:
         check_ranges(self, "window.")

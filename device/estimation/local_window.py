@@ -3,10 +3,12 @@
 The last ``window.keyframes`` keyframes' poses and every point seen in stereo at two of them or more
 are solved on the rectified ``(u, v, disparity)`` observations the keyframes made (the disparity
 offset in use removed), with a Huber loss, by Gauss-Newton with the points eliminated (Schur
-complement).  With a gyro, the rotation it measured between consecutive keyframes is one more
+complement).  The tracked map's points (each the running mean of its stereo triangulations since it
+was mapped) can enter as a prior of the window's points, seen from the oldest keyframe: what the
+keyframes that left the window knew of them.  With a gyro, the rotation it measured between consecutive keyframes is one more
 residual per pair (weighted by its noise and the bias's uncertainty over the interval).  The gauge
 and what leaves the window: the oldest ``window.fixed`` keyframes are held where earlier windows
-left them (no marginalisation prior: what a keyframe knew is dropped with it).
+left them; without the map prior, what a keyframe knew leaves with it.
 
 :class:`WindowKeyframes` keeps the keyframe records on the frame loop's side (their poses move with
 every correction of the live state, except a window's own refinement of them); the keyframe worker
@@ -30,6 +32,7 @@ from stereopath.device.estimation.disparity_offset import (RectifiedCamera, hube
                                                           projection_and_motion_jacobians)
 from stereopath.device.estimation.inertial import VisionGyroBias
 from stereopath.device.estimation.live_state import LiveState, StereoStats
+from stereopath.device.estimation.tracked_map import TrackedMap
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +64,7 @@ class WindowJob:
     gyro: list[tuple[np.ndarray, float] | None]  # camera rotation from the previous keyframe and its sigma (rad)
     offset_px: float  # the disparity offset in use
     C_sub: np.ndarray
+    map_points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # tracked map: ids, X (world), nobs
 
 
 @dataclass
@@ -114,9 +118,11 @@ class WindowKeyframes:
             k -= 1
         return recs[k:]
 
-    def job(self, C: np.ndarray, offset_px: float, bias: VisionGyroBias | None) -> WindowJob | None:
+    def job(self, C: np.ndarray, offset_px: float, bias: VisionGyroBias | None,
+            tracked: TrackedMap | None = None) -> WindowJob | None:
         """The window to solve now (the live world of correction ``C``; ``bias``: the gyro bias's
-        estimate, whose uncertainty weighs the gyro residuals), None when it is too short."""
+        estimate, whose uncertainty weighs the gyro residuals; ``tracked``: the map, for the map prior),
+        None when it is too short."""
         recs = self.linked()
         if len(recs) < self.cfg.fixed + 1:
             return None
@@ -129,8 +135,11 @@ class WindowKeyframes:
             else:
                 dt = r.dt_gyro
                 gyro.append((r.R_gyro, float(np.hypot(self.cfg.gyro_noise_rad_s_rthz * np.sqrt(dt), bias_sigma * dt))))
+        points = None
+        if tracked is not None and self.cfg.map_prior_weight > 0.0:
+            points = (tracked.ids.copy(), tracked.X.copy(), tracked.nobs.copy())
         return WindowJob(recs[-1].seq, poses, [r.seq for r in recs], [(r.ids, r.obs) for r in recs], gyro,
-                         offset_px, C.copy())
+                         offset_px, C.copy(), points)
 
     def joined(self, res: WindowResult, G: np.ndarray | None, C_since: np.ndarray, state: LiveState,
                counts: StereoStats) -> None:
@@ -164,29 +173,69 @@ class _Observations:
     kf: np.ndarray
     pt: np.ndarray
     starts: np.ndarray
+    weight: np.ndarray  # 1 for a measurement, the map prior's weight for its rows
+    prior: np.ndarray  # the map prior's rows
 
 
-def _gather(views: list[tuple[np.ndarray, np.ndarray]], offset_px: float) -> tuple[_Observations, np.ndarray] | None:
-    """The observations of points seen at two keyframes or more (offset removed), and those points' ids."""
-    kf, ids, M = [], [], []
+def _gather(views: list[tuple[np.ndarray, np.ndarray]], offset_px: float,
+            prior: MapPrior | None = None) -> tuple[_Observations, np.ndarray] | None:
+    """The observations of points seen at two keyframes or more (offset removed), and those points' ids;
+    ``prior``: rows of the tracked map's points at the oldest keyframe (its pose is held), weighted."""
+    kf, ids, M, wt, pr = [], [], [], [], []
     for j, (i, obs) in enumerate(views):
         obs = np.asarray(obs, float).reshape(-1, 3)
         ok = np.isfinite(obs).all(1) & (obs[:, 2] - offset_px > 0.5)
         kf.append(np.full(int(ok.sum()), j))
         ids.append(np.asarray(i, np.int64)[ok])
-        M.append(obs[ok])
-    kf_a, id_a, M_a = np.concatenate(kf), np.concatenate(ids), np.concatenate(M)
+        M.append(obs[ok] - np.array([0.0, 0.0, offset_px]))
+        wt.append(np.ones(int(ok.sum())))
+        pr.append(np.zeros(int(ok.sum()), bool))
+    kf_a, id_a = np.concatenate(kf), np.concatenate(ids)
     uniq, counts = np.unique(id_a, return_counts=True)
     keep = uniq[counts >= 2]
     if len(keep) == 0:
         return None
+    if prior is not None:
+        on = np.isin(prior.ids, keep)
+        kf.append(np.zeros(int(on.sum()), np.int64))
+        ids.append(prior.ids[on])
+        M.append(prior.rows[on])
+        wt.append(prior.weight[on])
+        pr.append(np.ones(int(on.sum()), bool))
+        kf_a, id_a = np.concatenate(kf), np.concatenate(ids)
+    M_a, wt_a, pr_a = np.concatenate(M), np.concatenate(wt), np.concatenate(pr)
     sel = np.isin(id_a, keep)
     pt = np.searchsorted(keep, id_a[sel])
-    order = np.lexsort((kf_a[sel], pt))
-    kf_s, pt_s, M_s = kf_a[sel][order], pt[order], M_a[sel][order].copy()
-    M_s[:, 2] -= offset_px
+    # by point, then keyframe, measurements before a prior row of the same keyframe
+    order = np.lexsort((pr_a[sel], kf_a[sel], pt))
+    kf_s, pt_s = kf_a[sel][order], pt[order]
     starts = np.flatnonzero(np.r_[True, pt_s[1:] != pt_s[:-1]])
-    return _Observations(M_s, kf_s, pt_s, starts), keep
+    return _Observations(M_a[sel][order], kf_s, pt_s, starts, wt_a[sel][order], pr_a[sel][order]), keep
+
+
+@dataclass(frozen=True)
+class MapPrior:
+    """The tracked map's points as a prior of the window's: each one's (u, v, disparity) at the oldest
+    keyframe and its weight."""
+
+    ids: np.ndarray
+    rows: np.ndarray
+    weight: np.ndarray
+
+
+def map_prior(job: WindowJob, cam: RectifiedCamera, R0: np.ndarray, scale: float) -> MapPrior | None:
+    """The map's points of ``job`` (each the mean of ``nobs`` stereo triangulations) seen from its
+    oldest keyframe, each weighing ``scale * sqrt(nobs)`` (its mean's standard error in observations)."""
+    if job.map_points is None or scale <= 0.0:
+        return None
+    ids, X, nobs = job.map_points
+    R, t = _to_rectified(job.poses[0], R0)
+    Xr = X @ R.T + t
+    ok = Xr[:, 2] > 1e-3
+    z = Xr[ok, 2]
+    rows = np.column_stack([cam.f * Xr[ok, 0] / z + cam.cx, cam.f * Xr[ok, 1] / z + cam.cy, cam.fb / z])
+    w = scale * np.sqrt(np.maximum(nobs[ok], 1.0))
+    return MapPrior(np.asarray(ids, np.int64)[ok], rows, w)
 
 
 def _to_rectified(T_world_cam: np.ndarray, R0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -205,7 +254,7 @@ def solve_window(job: WindowJob, cam: RectifiedCamera, R0: np.ndarray, cfg: Wind
     """The window's bundle adjustment (see the module's docstring); None when it has too few points or the
     solve fails.  ``cam`` and ``R0``: the rig's rectified left camera and its rectifying rotation."""
     t_cpu = time.thread_time()
-    got = _gather(job.views, job.offset_px)
+    got = _gather(job.views, job.offset_px, map_prior(job, cam, R0, cfg.map_prior_weight))
     if got is None or len(got[1]) < cfg.min_points:
         return None
     seen, _ = got
@@ -218,7 +267,7 @@ def solve_window(job: WindowJob, cam: RectifiedCamera, R0: np.ndarray, cfg: Wind
     gyro = [None if g is None else (R0 @ g[0] @ R0.T, g[1]) for g in job.gyro]
     rms = float("nan")
     for _ in range(cfg.iterations):
-        step = _gauss_newton_step(R, t, X, seen, cam, gyro, nf, cfg.huber_px)
+        step = _gauss_newton_step(R, t, X, seen, cam, gyro, nf, cfg)
         if step is None:
             return None
         dg, dX, rms = step
@@ -246,8 +295,9 @@ def _initial_points(seen: _Observations, R: list[np.ndarray], t: list[np.ndarray
 
 def _gauss_newton_step(R: list[np.ndarray], t: list[np.ndarray], X: np.ndarray, seen: _Observations,
                        cam: RectifiedCamera, gyro: list[tuple[np.ndarray, float] | None], nf: int,
-                       huber_px: float) -> tuple[np.ndarray, np.ndarray, float] | None:
-    """One step ``(d poses, d points, rms px)``: the free poses' (dt, dtheta) and each point's move."""
+                       cfg: WindowConfig) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """One step ``(d poses, d points, rms px)``: the free poses' (dt, dtheta) and each point's move (the
+    first ``nf`` poses held).  The disparity residual weighs ``cfg.disparity_weight`` (u and v: 1)."""
     K = len(R)
     ng = 6 * (K - nf)
     Ra, ta = np.stack(R)[seen.kf], np.stack(t)[seen.kf]
@@ -255,38 +305,56 @@ def _gauss_newton_step(R: list[np.ndarray], t: list[np.ndarray], X: np.ndarray, 
     Xc = RX + ta
     z = np.maximum(Xc[:, 2], 1e-9)
     f, cx, cy, fb = cam.f, cam.cx, cam.cy, cam.fb
-    r = np.column_stack([f * Xc[:, 0] / z + cx, f * Xc[:, 1] / z + cy, fb / z]) - seen.M
-    w = huber_weights(r, z, huber_px)
+    scale = np.array([1.0, 1.0, cfg.disparity_weight])
+    ws = seen.weight[:, None] * scale
+    r = (np.column_stack([f * Xc[:, 0] / z + cx, f * Xc[:, 1] / z + cy, fb / z]) - seen.M) * ws
+    w = huber_weights(r, z, cfg.huber_px)
     dproj, dX = projection_and_motion_jacobians(Xc, RX, z, f, fb)
+    dproj = dproj * ws[:, :, None]
     Jp = np.matmul(dproj, Ra)  # (o, 3, 3) by the point
     Jpose = np.matmul(dproj, dX)  # (o, 3, 6) by the observing pose
-    free = seen.kf >= nf
-    Jg = np.zeros((len(z), 3, ng))
-    rows = np.flatnonzero(free)
-    cols = 6 * (seen.kf[free] - nf)
-    for c in range(6):
-        Jg[rows, :, cols + c] = Jpose[free, :, c]
-    Jgw, Jpw = Jg * w[:, :, None], Jp * w[:, :, None]
-    H = Jgw.reshape(-1, ng).T @ Jg.reshape(-1, ng)
-    b = Jgw.reshape(-1, ng).T @ r.reshape(-1)
+    Jpose_w, Jp_w = Jpose * w[:, :, None], Jp * w[:, :, None]
+    # each observation touches one pose and one point: the normal equations by blocks, as stacks of
+    # small products (no large BLAS call: a multi-threaded BLAS on a busy machine costs a hundred times more)
+    H = np.zeros((ng, ng))
+    b = np.zeros(ng)
+    for k in range(nf, K):
+        at = seen.kf == k
+        o = 6 * (k - nf)
+        H[o:o + 6, o:o + 6] = np.matmul(Jpose_w[at].transpose(0, 2, 1), Jpose[at]).sum(0)
+        b[o:o + 6] = np.matmul(Jpose_w[at].transpose(0, 2, 1), r[at][:, :, None]).sum(0)[:, 0]
     _add_gyro_terms(H, b, R, gyro, nf)
     starts = seen.starts
-    Hgp = np.add.reduceat(np.matmul(Jgw.transpose(0, 2, 1), Jp), starts, axis=0)
-    Hpp = np.add.reduceat(np.matmul(Jpw.transpose(0, 2, 1), Jp), starts, axis=0) + 1e-9 * np.eye(3)
-    bp = np.add.reduceat(np.matmul(Jpw.transpose(0, 2, 1), r[:, :, None])[:, :, 0], starts, axis=0)
+    Jp_wT = Jp_w.transpose(0, 2, 1)
+    Hpp = np.add.reduceat(np.matmul(Jp_wT, Jp), starts, axis=0) + 1e-9 * np.eye(3)
+    bp = np.add.reduceat(np.matmul(Jp_wT, r[:, :, None])[:, :, 0], starts, axis=0)
     try:
         Hpp_inv = np.linalg.inv(Hpp)
-        W = np.matmul(Hgp, Hpp_inv)
-        Wf = W.transpose(1, 0, 2).reshape(ng, -1)
-        S = H - Wf @ Hgp.transpose(1, 0, 2).reshape(ng, -1).T
-        S = S + LM_DAMPING * np.diag(np.diag(S)) + 1e-12 * np.eye(ng)
-        dg = -np.linalg.solve(S, b - Wf @ bp.reshape(-1))
+    except np.linalg.LinAlgError:
+        return None
+    if ng == 0:  # every pose held: the points alone
+        return np.zeros(0), -np.matmul(Hpp_inv, bp[:, :, None])[:, :, 0], _rms(r, w, seen.prior)
+    free = np.flatnonzero(seen.kf >= nf)
+    Hgp = np.zeros((len(starts), ng, 3))  # pose-point blocks (a point is seen once per keyframe)
+    blocks = np.matmul(Jpose_w[free].transpose(0, 2, 1), Jp[free])
+    cols = 6 * (seen.kf[free] - nf)
+    for c in range(6):
+        Hgp[seen.pt[free], cols + c, :] = blocks[:, c, :]
+    W = np.matmul(Hgp, Hpp_inv)
+    S = H - np.matmul(W, Hgp.transpose(0, 2, 1)).sum(0)
+    S = S + LM_DAMPING * np.diag(np.diag(S)) + 1e-12 * np.eye(ng)
+    try:
+        dg = -np.linalg.solve(S, b - np.matmul(W, bp[:, :, None]).sum(0)[:, 0])
     except np.linalg.LinAlgError:
         return None
     dp = -np.matmul(Hpp_inv, (bp + np.matmul(Hgp.transpose(0, 2, 1), dg))[:, :, None])[:, :, 0]
-    good = w.min(1) > 0
-    rms = float(np.sqrt(np.mean(r[good] ** 2))) if good.any() else float("nan")
-    return dg, dp, rms
+    return dg, dp, _rms(r, w, seen.prior)
+
+
+def _rms(r: np.ndarray, w: np.ndarray, prior: np.ndarray) -> float:
+    """The RMS (px) of the measurements' residuals no component of which is ignored."""
+    good = (w.min(1) > 0) & ~prior
+    return float(np.sqrt(np.mean(r[good] ** 2))) if good.any() else float("nan")
 
 
 def _add_gyro_terms(H: np.ndarray, b: np.ndarray, R: list[np.ndarray], gyro: list[tuple[np.ndarray, float] | None],

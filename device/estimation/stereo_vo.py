@@ -445,7 +445,7 @@ class StereoEstimator:
             m, st = self._state.map, self._state
             at = m.obs_kf == self.counts.keyframes
             self._window.add(self._cur_seq, T_world_cam, m.ids[at], m.obs[at], st.C)
-            job = self._window.job(st.C, self._geo.disparity_offset_px, self._bias)
+            job = self._window.job(st.C, self._geo.disparity_offset_px, self._bias, m)
             if job is not None and self._worker.submit_window(job) is not Submitted.DROPPED:
                 self.counts.window_solves += 1
 

@@ -4,6 +4,7 @@ its path through the keyframe worker."""
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -199,3 +200,21 @@ def test_estimator_with_window_corrects_through_poll(background: bool) -> None:
     c = est.counts
     assert run.frames_tracked == 80
     assert c.window_solves >= 2 and c.window_corrections >= 1 and c.window_cpu_us > 0
+
+
+def test_the_map_prior_carries_what_left_the_window() -> None:
+    """The held keyframe sees few of the window's points and the others see them noisily: the window
+    alone drifts; the map's points (known from keyframes that left the window) as a prior hold it."""
+    rng = np.random.default_rng(6)
+    truth, X = _scene(K=4)
+    views = [_observe(T, X, 0.5, rng) for T in truth]
+    ids0, obs0 = views[0]
+    views[0] = (ids0[:15], obs0[:15])
+    start = _perturbed(truth, rng)
+    points = (np.arange(len(X)), X.copy(), np.full(len(X), 9.0))
+    job = WindowJob(3, start, [0, 1, 2, 3], views, [None] * 4, 0.0, np.eye(4), points)
+    cfg = WindowConfig(keyframes=4, iterations=10, min_points=10)
+    alone = solve_window(job, CAM, R0, cfg)
+    prior = solve_window(job, CAM, R0, replace(cfg, map_prior_weight=1.0))
+    assert alone.n_points == prior.n_points
+    assert _errors(prior.T_after, truth)[0] < 0.5 * _errors(alone.T_after, truth)[0]
