@@ -8,6 +8,9 @@ given variants (``"dry": true``: solved, never applied), and for every window so
 * the newest keyframe's pose relative to the held oldest one, as tracked (``tracked``), as the window
   left it (``window``), and where the window converges when started at the true poses (``from truth``:
   the error of the window's optimum itself, whatever its start);
+* each point triangulated (true poses) at its first observation in the window and its later
+  observations' residuals by their age in keyframes (``drift_px_by_age``: u, v, disparity RMS):
+  residuals that grow with age are tracks that slide over the surface;
 * the window's reprojection RMS at its optimum and with every pose held at the truth (points free):
   an optimum that fits the observations better than the truth does says the observations carry an
   error the window turns into pose error.
@@ -76,6 +79,35 @@ def rms_at(job, cam, R0, cfg) -> float:
     return tuple(float(v) for v in np.sqrt(np.mean(r[keep] ** 2, axis=0)))
 
 
+def drift_by_age(job, true_poses, cam, R0) -> dict[int, tuple[float, float, float]]:
+    """With the true poses: each point triangulated at its first observation in the window, its later
+    observations' residuals (RMS of u, v, disparity, px) by their age in keyframes."""
+    from stereopath.device.estimation import local_window as lw
+
+    got = lw._gather(job.views, job.offset_px)
+    if got is None:
+        return {}
+    seen, _ = got
+    Rt = [lw._to_rectified(T, R0) for T in true_poses]
+    first = seen.starts
+    u, v, d = seen.M[first].T
+    z = cam.fb / d
+    xr = np.column_stack([(u - cam.cx) / cam.f * z, (v - cam.cy) / cam.f * z, z])
+    k0 = seen.kf[first]
+    Rs, ts = np.stack([a for a, _ in Rt]), np.stack([b for _, b in Rt])
+    X = np.einsum("nji,nj->ni", Rs[k0], xr - ts[k0])
+    Xc = np.einsum("nij,nj->ni", Rs[seen.kf], X[seen.pt]) + ts[seen.kf]
+    zc = Xc[:, 2]
+    r = np.column_stack([cam.f * Xc[:, 0] / zc + cam.cx, cam.f * Xc[:, 1] / zc + cam.cy, cam.fb / zc]) - seen.M
+    age = seen.kf - k0[seen.pt]
+    out = {}
+    for a in range(1, len(true_poses)):
+        at = (age == a) & (np.abs(r).max(1) < 5.0)
+        if at.sum() >= 20:
+            out[a] = tuple(float(x) for x in np.sqrt(np.mean(r[at] ** 2, axis=0)))
+    return out
+
+
 def study(spec: str, frames: int, window: dict | None) -> dict:
     from stereopath.device.core.geometry import invert_pose
     from stereopath.device.estimation import local_window as lw
@@ -88,6 +120,7 @@ def study(spec: str, frames: int, window: dict | None) -> dict:
     options: dict = {"keyframes": {"background": False}}
     window = dict(window or {})
     dry = bool(window.pop("dry", False))
+    anchor_tracked = window.pop("anchor", "window") == "tracked"
     if window:
         options["window"] = window
     est = make_estimator("stereo", seq.rig, options=options)
@@ -104,6 +137,18 @@ def study(spec: str, frames: int, window: dict | None) -> dict:
     from stereopath.device.estimation.keyframe_jobs import KeyframeWorker
 
     correction = KeyframeWorker._window_correction
+    joined = lw.WindowKeyframes.joined
+    if anchor_tracked:  # the records keep the frame loop's poses: the window's own corrections do not move them
+
+        def joined_tracked(self, res, G, C_since, state, counts):
+            if G is not None:
+                C_old = state.C.copy()
+                state.apply(G)
+                counts.window_corrections += 1
+                for r in self.records:  # C_new inv(r.C') = C_old inv(r.C): the record stays where it was
+                    r.C = r.C @ invert_pose(C_old) @ state.C
+
+        lw.WindowKeyframes.joined = joined_tracked
     if dry:  # solved and measured, never applied: the tracked poses stay the frame loop's own
         KeyframeWorker._window_correction = lambda self, res, C_since: replace(correction(self, res, C_since), G=None)
     t_of: dict[int, int] = {}
@@ -118,6 +163,7 @@ def study(spec: str, frames: int, window: dict | None) -> dict:
     finally:
         lw.solve_window = original
         KeyframeWorker._window_correction = correction
+        lw.WindowKeyframes.joined = joined
         est.close()
     m = evaluate(seq.groundtruth, run.trajectory)
     gt = seq.groundtruth
@@ -133,7 +179,8 @@ def study(spec: str, frames: int, window: dict | None) -> dict:
         truth_job = replace(job, poses=[A @ T for T in Tt])
         from_truth = original(truth_job, cam, R0, cfg)
         ft = _err(true_rel, _rel(from_truth.T_after[0], from_truth.T_after[-1])) if from_truth else (np.nan, np.nan)
-        rows.append((tracked, window_err, ft, res.rms_px, rms_at(truth_job, cam, R0, cfg), res.cpu_ms))
+        rows.append((tracked, window_err, ft, res.rms_px, rms_at(truth_job, cam, R0, cfg), res.cpu_ms,
+                     drift_by_age(job, truth_job.poses, cam, R0)))
     out = dict(ate_mm=1000.0 * m["ate_rmse_m"], end_pct=m["end_error_pct"], windows=len(rows),
                corrections=est.counts.window_corrections)
     if rows:
@@ -142,6 +189,9 @@ def study(spec: str, frames: int, window: dict | None) -> dict:
                    window_deg=med(1, 1), from_truth_deg=med(2, 1), rms_opt_px=med(3),
                    rms_truth_u_px=med(4, 0), rms_truth_v_px=med(4, 1), rms_truth_d_px=med(4, 2),
                    cpu_ms=statistics.median(r[5] for r in rows))
+        ages = sorted({a for r in rows for a in r[6]})
+        out["drift_px_by_age"] = {a: [round(float(np.median([r[6][a][c] for r in rows if a in r[6]])), 3)
+                                      for c in range(3)] for a in ages}
     return out
 
 
