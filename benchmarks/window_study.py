@@ -1,16 +1,21 @@
 """Why a local window can make a simulated scan worse: the window's solves measured against the truth.
 
-    .venv/bin/python benchmarks/window_study.py [--spec sim:0] [--frames 400] [--variant NAME=JSON ...]
+    .venv/bin/python benchmarks/window_study.py [--spec sim:0] [--frames 400]
+        [--variant NAME=JSON ...]
 
 Runs our ``stereo`` estimator (keyframe work in line, so runs repeat) with the window off and in the
-given variants (``"dry": true``: solved, never applied), and for every window solved prints, against the simulator's true poses:
+given variants (``[estimator.stereo.window]`` keys, and ``"dry": true``: solved, never applied;
+``"anchor": "tracked"``: the window's own corrections do not move its keyframes, so each window holds
+its oldest keyframe where the frame loop put it), and for every window solved prints, against the
+simulator's true poses:
 
 * the newest keyframe's pose relative to the held oldest one, as tracked (``tracked``), as the window
   left it (``window``), and where the window converges when started at the true poses (``from truth``:
   the error of the window's optimum itself, whatever its start);
 * each point triangulated (true poses) at its first observation in the window and its later
-  observations' residuals by their age in keyframes (``drift_px_by_age``: u, v, disparity RMS):
-  residuals that grow with age are tracks that slide over the surface;
+  observations' residuals by their age in keyframes (``drift_px_by_age``: u, v, disparity RMS);
+  they grow with the baseline through the first triangulation's depth error as well as with tracks
+  that slide over the surface, so they bound the slide rather than measure it;
 * the window's reprojection RMS at its optimum and with every pose held at the truth (points free):
   an optimum that fits the observations better than the truth does says the observations carry an
   error the window turns into pose error.

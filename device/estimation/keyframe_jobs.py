@@ -4,8 +4,8 @@ One worker thread, one job running and one waiting (a newer keyframe replaces th
 keyframe's affine views are detected, its SIFT matched against the previous keyframe's library around
 the positions the tracked pose predicts, the keyframe pose solved from those matches and the tracked
 map, and the keyframe's own library built.  The local window's solve
-(:mod:`~stereopath.device.estimation.local_window`) runs on the same thread, in submission order.  The frame loop polls the worker once per frame and never waits: each finished job
-gives a correction of the live state (pose and map, one rigid motion) mapped through the corrections
+(:mod:`~stereopath.device.estimation.local_window`) runs on the same thread, in submission order.
+The frame loop polls the worker once per frame and never waits: each finished job gives a correction of the live state (pose and map, one rigid motion) mapped through the corrections
 applied since the job was submitted, which the estimator applies to its
 :class:`~stereopath.device.estimation.live_state.LiveState`.  The worker never sees that state: a job
 carries copies of what it needs.
@@ -200,7 +200,8 @@ class KeyframeWorker:
             return Submitted.DROPPED
         rect = self._geo.rect
         args = (job, RectifiedCamera.of(rect), rect.R0, self.cfg.window)
-        fut: Future | Ready = self._executor.submit(solve_window, *args) if self._executor else Ready(solve_window(*args))
+        fut: Future | Ready = (self._executor.submit(solve_window, *args) if self._executor
+                               else Ready(solve_window(*args)))
         self._order += 1
         self._windows.append(Job(fut, job.C_sub, None, self._order))
         return Submitted.REPLACED if replaced else Submitted.QUEUED

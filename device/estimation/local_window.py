@@ -5,8 +5,9 @@ are solved on the rectified ``(u, v, disparity)`` observations the keyframes mad
 offset in use removed), with a Huber loss, by Gauss-Newton with the points eliminated (Schur
 complement).  The tracked map's points (each the running mean of its stereo triangulations since it
 was mapped) can enter as a prior of the window's points, seen from the oldest keyframe: what the
-keyframes that left the window knew of them.  With a gyro, the rotation it measured between consecutive keyframes is one more
-residual per pair (weighted by its noise and the bias's uncertainty over the interval).  The gauge
+keyframes that left the window knew of them.  With a gyro, the rotation it measured between
+consecutive keyframes is one more residual per pair (weighted by its noise and the bias's
+uncertainty over the interval).  The gauge
 and what leaves the window: the oldest ``window.fixed`` keyframes are held where earlier windows
 left them; without the map prior, what a keyframe knew leaves with it.
 
@@ -14,7 +15,7 @@ left them; without the map prior, what a keyframe knew leaves with it.
 every correction of the live state, except a window's own refinement of them); the keyframe worker
 runs :func:`solve_window` on a copy (:class:`WindowJob`) and its result comes back through
 :meth:`~stereopath.device.estimation.keyframe_jobs.KeyframeWorker.poll`.
-See docs/architecture.md, "The local window".
+See docs/architecture.md, "The on-board estimator" (the local window, and why it is off by default).
 """
 
 from __future__ import annotations

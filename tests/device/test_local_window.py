@@ -43,7 +43,8 @@ def _observe(T_world_cam: np.ndarray, X: np.ndarray, noise_px: float = 0.0,
     return np.flatnonzero(ok), obs
 
 
-def _perturbed(poses: list[np.ndarray], rng: np.random.Generator, rot: float = 0.01, trans: float = 0.02) -> list[np.ndarray]:
+def _perturbed(poses: list[np.ndarray], rng: np.random.Generator, rot: float = 0.01,
+               trans: float = 0.02) -> list[np.ndarray]:
     out = [poses[0].copy()]
     for T in poses[1:]:
         out.append(make_pose(so3_exp(rng.normal(0, rot, 3)) @ T[:3, :3], T[:3, 3] + rng.normal(0, trans, 3)))
