@@ -20,22 +20,19 @@ See docs/architecture.md, "The on-board estimator" (the local window, and why it
 
 from __future__ import annotations
 
-import logging
 import time
 from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from stereopath.device.core.geometry import invert_pose, so3_exp, so3_log
+from stereopath.device.core.geometry import invert_pose, project_to_se3, so3_exp, so3_log
 from stereopath.device.core.stereo_config import WindowConfig
 from stereopath.device.estimation.disparity_offset import (RectifiedCamera, huber_weights,
                                                           projection_and_motion_jacobians)
 from stereopath.device.estimation.inertial import VisionGyroBias
 from stereopath.device.estimation.live_state import LiveState, StereoStats
 from stereopath.device.estimation.tracked_map import TrackedMap
-
-log = logging.getLogger(__name__)
 
 LM_DAMPING = 1e-6  # relative damping of the reduced system's diagonal
 MIN_LINK_POINTS = 6  # consecutive keyframes sharing fewer points are not in one window
@@ -127,7 +124,7 @@ class WindowKeyframes:
         recs = self.linked()
         if len(recs) < self.cfg.fixed + 1:
             return None
-        poses = [_project(C @ invert_pose(r.C) @ r.T_world_cam) for r in recs]
+        poses = [project_to_se3(C @ invert_pose(r.C) @ r.T_world_cam) for r in recs]
         bias_sigma = max(self.cfg.gyro_bias_floor_rad_s, 0.0 if bias is None else bias.sigma_rad_s)
         gyro: list[tuple[np.ndarray, float] | None] = [None]
         for r in recs[1:]:
@@ -156,14 +153,8 @@ class WindowKeyframes:
         after = dict(zip(res.seqs, res.T_after))
         for r in self.records:
             if r.seq in after:
-                r.T_world_cam = _project(C_since @ after[r.seq])
+                r.T_world_cam = project_to_se3(C_since @ after[r.seq])
                 r.C = state.C.copy()
-
-
-def _project(T: np.ndarray) -> np.ndarray:
-    from stereopath.device.core.geometry import project_to_se3
-
-    return project_to_se3(T)
 
 
 @dataclass(frozen=True)
