@@ -33,15 +33,17 @@ from dataclasses import replace
 
 import numpy as np
 
-DEFAULT_VARIANTS = {
-    "dry_gyro": {"enabled": True, "dry": True},
-    "dry_vision": {"enabled": True, "gyro": False, "dry": True},
-    "gyro": {"enabled": True},
-    "vision": {"enabled": True, "gyro": False},
-    "vision_k3": {"enabled": True, "gyro": False, "keyframes": 3},
+DEFAULT_VARIANTS = {  # the figures of the docs (fixed: 1 unless named)
+    "dry_gyro": {"enabled": True, "fixed": 1, "dry": True},
+    "dry_vision": {"enabled": True, "fixed": 1, "gyro": False, "dry": True},
+    "gyro": {"enabled": True, "fixed": 1},
+    "vision": {"enabled": True, "fixed": 1, "gyro": False},
+    "vision_k3": {"enabled": True, "fixed": 1, "gyro": False, "keyframes": 3},
     "vision_fixed3": {"enabled": True, "gyro": False, "fixed": 3},
-    "vision_huber3": {"enabled": True, "gyro": False, "huber_px": 3.0},
-    "vision_disp0.2": {"enabled": True, "gyro": False, "disparity_weight": 0.2},
+    "vision_huber3": {"enabled": True, "fixed": 1, "gyro": False, "huber_px": 3.0},
+    "vision_disp0.2": {"enabled": True, "fixed": 1, "gyro": False, "disparity_weight": 0.2},
+    "prior3_gyro": {"enabled": True, "fixed": 1, "map_prior_weight": 3.0},
+    "anchor_tracked": {"enabled": True, "fixed": 1, "gyro": False, "anchor": "tracked"},
 }
 
 

@@ -148,7 +148,7 @@ class WindowConfig:
 
     enabled: bool = False
     keyframes: int = ranged(6, 2, 30)  # keyframes in the window
-    fixed: int = ranged(1, 1, 29)  # the oldest ones held (the gauge; nothing is marginalised)
+    fixed: int = ranged(3, 1, 29)  # the oldest ones held (the gauge; fewer let the windows' errors chain)
     iterations: int = ranged(5, 1, 50)  # Gauss-Newton steps at most
     huber_px: float = ranged(1.0, 0.1, 20.0)
     disparity_weight: float = ranged(1.0, 0.0, 10.0)  # of the disparity residual against the pixel's (u, v)

@@ -68,7 +68,7 @@ def test_window_removes_pose_noise_and_holds_the_oldest_keyframe() -> None:
     truth, X = _scene()
     views = [_observe(T, X) for T in truth]
     start = _perturbed(truth, rng)
-    res = solve_window(_job(start, views), CAM, R0, WindowConfig(iterations=10))
+    res = solve_window(_job(start, views), CAM, R0, WindowConfig(iterations=10, fixed=1))
     assert res is not None and res.n_points > 100
     t0, r0 = _errors(start, truth)
     t1, r1 = _errors(res.T_after, truth)
@@ -97,8 +97,8 @@ def test_disparity_offset_is_removed_from_the_observations() -> None:
     views = [(ids, obs + np.array([0.0, 0.0, 0.4])) for ids, obs in (_observe(T, X) for T in truth)]
     rng = np.random.default_rng(3)
     start = _perturbed(truth, rng)
-    with_offset = solve_window(_job(start, views, offset_px=0.4), CAM, R0, WindowConfig(iterations=10))
-    ignored = solve_window(_job(start, views, offset_px=0.0), CAM, R0, WindowConfig(iterations=10))
+    with_offset = solve_window(_job(start, views, offset_px=0.4), CAM, R0, WindowConfig(iterations=10, fixed=1))
+    ignored = solve_window(_job(start, views, offset_px=0.0), CAM, R0, WindowConfig(iterations=10, fixed=1))
     assert _errors(with_offset.T_after, truth)[0] < 1e-5
     assert _errors(ignored.T_after, truth)[0] > 3e-4  # an offset left in scales the path
 
@@ -112,7 +112,7 @@ def test_gyro_rotations_pull_the_rotations_where_vision_is_weak() -> None:
     start = _perturbed(truth, rng)
     gyro: list[tuple[np.ndarray, float] | None] = [None] + [
         (truth[k - 1][:3, :3].T @ truth[k][:3, :3], 1e-4) for k in range(1, len(truth))]
-    cfg = WindowConfig(iterations=10, min_points=10)
+    cfg = WindowConfig(iterations=10, min_points=10, fixed=1)
     vision = solve_window(_job(start, views), CAM, R0, cfg)
     both = solve_window(_job(start, views, gyro), CAM, R0, cfg)
     r_vision, r_both = _errors(vision.T_after, truth)[1], _errors(both.T_after, truth)[1]
@@ -122,12 +122,12 @@ def test_gyro_rotations_pull_the_rotations_where_vision_is_weak() -> None:
 def test_too_few_shared_points_is_no_solve() -> None:
     truth, X = _scene(K=3)
     views = [(ids + 1000 * k, obs) for k, (ids, obs) in enumerate(_observe(T, X) for T in truth)]
-    assert solve_window(_job(truth, views), CAM, R0, WindowConfig()) is None
+    assert solve_window(_job(truth, views), CAM, R0, WindowConfig(fixed=1)) is None
 
 
 def test_records_slide_follow_the_live_state_and_take_the_refined_poses() -> None:
     truth, X = _scene(K=5)
-    win = WindowKeyframes(WindowConfig(keyframes=3, gyro=True))
+    win = WindowKeyframes(WindowConfig(keyframes=3, fixed=1, gyro=True))
     C = np.eye(4)
     R_body_cam = so3_exp(np.array([0.2, 0.1, -0.3]))
     for k, T in enumerate(truth):
@@ -147,7 +147,7 @@ def test_records_slide_follow_the_live_state_and_take_the_refined_poses() -> Non
     moved = win.job(st.C, 0.0, None)
     np.testing.assert_allclose(moved.poses[0], G @ truth[2], atol=1e-12)
     # a window's own correction: the refined poses are kept where it put them
-    res = solve_window(moved, CAM, R0, WindowConfig(iterations=3))
+    res = solve_window(moved, CAM, R0, WindowConfig(iterations=3, fixed=1))
     counts = StereoStats()
     G2 = make_pose(np.eye(3), np.array([0.0, 0.002, 0.0]))
     win.joined(res, G2, np.eye(4), st, counts)
@@ -159,7 +159,7 @@ def test_records_slide_follow_the_live_state_and_take_the_refined_poses() -> Non
 
 def test_a_restarted_map_cuts_the_window() -> None:
     truth, X = _scene(K=4)
-    win = WindowKeyframes(WindowConfig(keyframes=6))
+    win = WindowKeyframes(WindowConfig(keyframes=6, fixed=1))
     for k, T in enumerate(truth):
         ids, obs = _observe(T, X)
         win.add(k, T, ids + (10000 if k >= 2 else 0), obs, np.eye(4))
@@ -170,7 +170,9 @@ def test_window_config_is_checked() -> None:
     with pytest.raises(ConfigError, match="window.fixed"):
         WindowConfig(keyframes=3, fixed=3)
     with pytest.raises(ConfigError, match="window.keyframes"):
-        WindowConfig(keyframes=1)
+        WindowConfig(keyframes=1, fixed=1)
+    with pytest.raises(ConfigError, match="window.fixed"):
+        WindowConfig(keyframes=3)  # three held need a fourth keyframe
 
 
 def test_the_window_needs_no_gtsam() -> None:
@@ -190,7 +192,7 @@ from stereopath.device.estimation.local_window import solve_window
 from stereopath.device.estimation.stereo_vo import StereoEstimator
 truth, X = _scene()
 views = [_observe(T, X) for T in truth]
-res = solve_window(_job(_perturbed(truth, np.random.default_rng(5)), views), CAM, R0, WindowConfig(iterations=10))
+res = solve_window(_job(_perturbed(truth, np.random.default_rng(5)), views), CAM, R0, WindowConfig(iterations=10, fixed=1))
 assert _errors(res.T_after, truth)[0] < 1e-5
 assert "gtsam" not in {m for m in sys.modules if sys.modules[m] is not None}
 print("ok")
@@ -233,7 +235,7 @@ def test_the_map_prior_carries_what_left_the_window() -> None:
     start = _perturbed(truth, rng)
     points = (np.arange(len(X)), X.copy(), np.full(len(X), 9.0))
     job = WindowJob(3, start, [0, 1, 2, 3], views, [None] * 4, 0.0, np.eye(4), points)
-    cfg = WindowConfig(keyframes=4, iterations=10, min_points=10)
+    cfg = WindowConfig(keyframes=4, iterations=10, min_points=10, fixed=1)
     alone = solve_window(job, CAM, R0, cfg)
     prior = solve_window(job, CAM, R0, replace(cfg, map_prior_weight=1.0))
     assert alone.n_points == prior.n_points
