@@ -5,7 +5,8 @@ keyframe's affine views are detected, its SIFT matched against the previous keyf
 the positions the tracked pose predicts, the keyframe pose solved from those matches and the tracked
 map, and the keyframe's own library built.  The local window's solve
 (:mod:`~stereopath.device.estimation.local_window`) runs on the same thread, in submission order.
-The frame loop polls the worker once per frame and never waits: each finished job gives a correction of the live state (pose and map, one rigid motion) mapped through the corrections
+The frame loop polls the worker once per frame and never waits: each finished job gives a
+correction of the live state (pose and map, one rigid motion) mapped through the corrections
 applied since the job was submitted, which the estimator applies to its
 :class:`~stereopath.device.estimation.live_state.LiveState`.  The worker never sees that state: a job
 carries copies of what it needs.

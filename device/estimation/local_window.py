@@ -7,9 +7,9 @@ complement).  The tracked map's points (each the running mean of its stereo tria
 was mapped) can enter as a prior of the window's points, seen from the oldest keyframe: what the
 keyframes that left the window knew of them.  With a gyro, the rotation it measured between
 consecutive keyframes is one more residual per pair (weighted by its noise and the bias's
-uncertainty over the interval).  The gauge
-and what leaves the window: the oldest ``window.fixed`` keyframes are held where earlier windows
-left them; without the map prior, what a keyframe knew leaves with it.
+uncertainty over the interval).  The gauge and what leaves the window: the oldest ``window.fixed``
+keyframes are held where earlier windows left them; without the map prior, what a keyframe knew
+leaves with it.
 
 :class:`WindowKeyframes` keeps the keyframe records on the frame loop's side (their poses move with
 every correction of the live state, except a window's own refinement of them); the keyframe worker

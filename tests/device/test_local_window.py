@@ -192,7 +192,8 @@ from stereopath.device.estimation.local_window import solve_window
 from stereopath.device.estimation.stereo_vo import StereoEstimator
 truth, X = _scene()
 views = [_observe(T, X) for T in truth]
-res = solve_window(_job(_perturbed(truth, np.random.default_rng(5)), views), CAM, R0, WindowConfig(iterations=10, fixed=1))
+start = _perturbed(truth, np.random.default_rng(5))
+res = solve_window(_job(start, views), CAM, R0, WindowConfig(iterations=10, fixed=1))
 assert _errors(res.T_after, truth)[0] < 1e-5
 assert "gtsam" not in {m for m in sys.modules if sys.modules[m] is not None}
 print("ok")
