@@ -10,7 +10,8 @@ estimator's ``options`` (``make_estimator("stereo", rig, options={"klt": {...}})
 ``geometry``          stereo points and the pose solve (depth range, thresholds);
 ``gyro``              the gyro bias refined from the tracked rotation;
 ``disparity_offset``  the stereo disparity offset (its prior, and whether it is refined on line);
-``exposure``          the right camera's grey levels fitted to the left's.
+``exposure``          the right camera's grey levels fitted to the left's;
+``window``            the local window: a bundle adjustment over the last keyframes on the keyframe worker.
 
 They live in the core (below the settings schema, which embeds them) because the offline tracks'
 configuration shares the KLT and stereo-geometry settings.  The estimator itself is
@@ -146,6 +147,33 @@ class ExposureConfig:
 
 
 @dataclass(frozen=True)
+class WindowConfig:
+    """The local window (:mod:`~stereopath.device.estimation.local_window`): the last keyframes' poses and
+    their stereo points solved together on the keyframe worker at every keyframe, the oldest held, the
+    gyro's rotations between them when there is a gyro; the newest keyframe's refinement corrects the
+    live state."""
+
+    enabled: bool = False
+    keyframes: int = ranged(6, 2, 30)  # keyframes in the window
+    fixed: int = ranged(3, 1, 29)  # the oldest ones held (the gauge; fewer let the windows' errors chain)
+    iterations: int = ranged(5, 1, 50)  # Gauss-Newton steps at most
+    huber_px: float = ranged(1.0, 0.1, 20.0)
+    disparity_weight: float = ranged(1.0, 0.0, 10.0)  # of the disparity residual against the pixel's (u, v)
+    min_points: int = ranged(20, 6, 100000)  # points seen at two keyframes or more, else no solve
+    gyro: bool = True  # the gyro's rotation between consecutive keyframes as a residual
+    gyro_noise_rad_s_rthz: float = ranged(2e-3, 1e-6, 1.0)  # the gyro's white noise (rad/s/sqrt(Hz))
+    gyro_bias_floor_rad_s: float = ranged(1e-3, 0.0, 1.0)  # the bias's uncertainty at least (rad/s)
+    max_correction_deg: float = ranged(2.0, 0.0, 180.0)  # larger corrections of the newest keyframe are refused
+    # the tracked map's points (each the mean of its stereo triangulations) as a prior of the window's, at
+    # this weight times sqrt(their count): what keyframes that left the window knew (0 = no prior)
+    map_prior_weight: float = ranged(0.0, 0.0, 10.0)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "window.")
+        check_range("window.fixed", self.fixed, 1, self.keyframes - 1)
+
+
+@dataclass(frozen=True)
 class StereoConfig:
     """The ``stereo`` estimator's settings by stage (``[estimator.stereo.*]``)."""
 
@@ -156,4 +184,5 @@ class StereoConfig:
     gyro: GyroBiasConfig = field(default_factory=GyroBiasConfig)
     disparity_offset: DisparityOffsetConfig = field(default_factory=DisparityOffsetConfig)
     exposure: ExposureConfig = field(default_factory=ExposureConfig)
+    window: WindowConfig = field(default_factory=WindowConfig)
 

@@ -3,8 +3,10 @@
 One worker thread, one job running and one waiting (a newer keyframe replaces the waiting one): the
 keyframe's affine views are detected, its SIFT matched against the previous keyframe's library around
 the positions the tracked pose predicts, the keyframe pose solved from those matches and the tracked
-map, and the keyframe's own library built.  The frame loop polls the worker once per frame and never waits: each finished job
-gives a correction of the live state (pose and map, one rigid motion) mapped through the corrections
+map, and the keyframe's own library built.  The local window's solve
+(:mod:`~stereopath.device.estimation.local_window`) runs on the same thread, in submission order.
+The frame loop polls the worker once per frame and never waits: each finished job gives a
+correction of the live state (pose and map, one rigid motion) mapped through the corrections
 applied since the job was submitted, which the estimator applies to its
 :class:`~stereopath.device.estimation.live_state.LiveState`.  The worker never sees that state: a job
 carries copies of what it needs.
@@ -28,6 +30,7 @@ from stereopath.device.core.geometry import invert_pose, project_to_se3 as rigid
 from stereopath.device.core.rig import Rig
 from stereopath.device.core.stereo_config import KeyframePolicy, StereoConfig
 from stereopath.device.estimation.live_state import Library, compose
+from stereopath.device.estimation.local_window import WindowJob, WindowResult
 from stereopath.device.estimation.stereo_measure import StereoMeasure
 
 log = logging.getLogger(__name__)
@@ -61,6 +64,7 @@ class Job:
     future: Future | Ready
     C_sub: np.ndarray  # the cumulative live-state correction when it was submitted
     prev: Job | LibrarySource | None  # what it matches against: a joined library, or the previous job
+    order: int = 0  # submission order among the worker's jobs of both kinds
 
 
 @dataclass
@@ -86,6 +90,8 @@ class KeyframeCorrection:
     n_views: int
     library: Library | None
     T_library: np.ndarray | None
+    window: WindowResult | None = None  # a local window's solve (G: its newest keyframe's correction)
+    C_since: np.ndarray | None = None  # ... and the corrections applied since it was submitted
 
 
 class Submitted(Enum):
@@ -198,9 +204,11 @@ class KeyframeWorker:
         self.cfg = cfg
         self._geo = geo
         self._jobs: list[Job] = []  # in flight, oldest first: at most one running, one waiting
+        self._windows: list[Job] = []  # local window solves in flight, the same way
+        self._order = 0
         self._feature_cfg = None
         self._executor = None
-        if cfg.asift.enabled and cfg.keyframes.background:
+        if (cfg.asift.enabled or cfg.window.enabled) and cfg.keyframes.background:
             from concurrent.futures import ThreadPoolExecutor
 
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keyframe-features",
@@ -209,8 +217,26 @@ class KeyframeWorker:
 
     @property
     def in_flight(self) -> int:
-        """Jobs submitted and not yet polled."""
+        """Keyframe (ASIFT) jobs submitted and not yet polled."""
         return len(self._jobs)
+
+    def submit_window(self, job: WindowJob) -> Submitted:
+        """Queue a local window's solve (one running and one waiting at most: the newest wins)."""
+        from stereopath.device.estimation.disparity_offset import RectifiedCamera
+        from stereopath.device.estimation.local_window import solve_window
+
+        replaced = len(self._windows) >= 2 and self._windows[-1].future.cancel()
+        if replaced:  # the waiting solve never started: this newer window takes its place
+            self._windows.pop()
+        elif len(self._windows) >= 2:
+            return Submitted.DROPPED
+        rect = self._geo.rect
+        args = (job, RectifiedCamera.of(rect), rect.R0, self.cfg.window)
+        fut: Future | Ready = (self._executor.submit(solve_window, *args) if self._executor
+                               else Ready(solve_window(*args)))
+        self._order += 1
+        self._windows.append(Job(fut, job.C_sub, None, self._order))
+        return Submitted.REPLACED if replaced else Submitted.QUEUED
 
     def close(self) -> None:
         """Stop the worker thread (idempotent)."""
@@ -239,21 +265,34 @@ class KeyframeWorker:
             fut: Future | Ready = self._executor.submit(self.run, job, prev)
         else:
             fut = Ready(self.run(job, prev))
-        self._jobs.append(Job(fut, job.C_sub, prev))
+        self._order += 1
+        self._jobs.append(Job(fut, job.C_sub, prev, self._order))
         return outcome
 
     def poll(self, C: np.ndarray) -> list[KeyframeCorrection]:
         """The finished jobs, oldest first (never waits), as corrections of a live state whose cumulative
         correction is ``C``; each correction is expressed for the live state the ones before it moved."""
         out = []
-        while self._jobs and self._jobs[0].future.done():
-            job = self._jobs.pop(0)
+        while True:
+            queues = [q for q in (self._jobs, self._windows) if q]
+            if not queues:
+                break
+            first = min(queues, key=lambda q: q[0].order)
+            if not first[0].future.done():
+                break
+            job = first.pop(0)
             try:
-                res: KeyframeResult | None = job.future.result()
-            except Exception:  # a failed job costs one keyframe's ASIFT, never the session
-                log.exception("keyframe feature job failed")
+                res = job.future.result()
+            except Exception:  # a failed job costs one keyframe's work, never the session
+                log.exception("keyframe job failed")
                 continue
             if res is None:
+                continue
+            if isinstance(res, WindowResult):
+                corr = self._window_correction(res, C @ invert_pose(job.C_sub))
+                out.append(corr)
+                if corr.G is not None:
+                    C = compose(corr.G, C)
                 continue
             # the job worked in the world of its submission; corrections applied since map it to the live one
             C_since = C @ invert_pose(job.C_sub)
@@ -273,6 +312,17 @@ class KeyframeWorker:
             if G is not None:
                 C = compose(G, C)
         return out
+
+    def _window_correction(self, res: WindowResult, C_since: np.ndarray) -> KeyframeCorrection:
+        """A solved window as the live state takes it: its newest keyframe's refinement."""
+        G = rigid(C_since @ res.T_after[-1] @ invert_pose(res.T_before[-1]) @ invert_pose(C_since))
+        ang = rotation_angle_deg(G[:3, :3])
+        log.debug("window at keyframe %d: %d points, %.2f px, correction %.3f deg, %.4f m, %.1f ms", res.seq,
+                  res.n_points, res.rms_px, ang, float(np.linalg.norm(G[:3, 3])), res.cpu_ms)
+        if ang > self.cfg.window.max_correction_deg or not np.isfinite(G).all():
+            log.info("window at keyframe %d: correction of %.2f deg refused", res.seq, ang)
+            return KeyframeCorrection(res.seq, None, 0, 0, None, None, res, C_since)
+        return KeyframeCorrection(res.seq, G, 0, 0, None, None, res, C_since)
 
     def _asift_matches(self, prev: Library, prev_X: np.ndarray, feats0: Features, T_tracked: np.ndarray) -> np.ndarray:
         """(current, previous) index pairs of the keyframe's original view against the previous library."""

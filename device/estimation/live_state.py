@@ -85,3 +85,6 @@ class StereoStats:
     right_gain_milli: int = 1000  # the right camera's grey levels in the left's: gain (x 1000) ...
     right_offset_centi: int = 0  # ... and offset (x 100)
     disparity_offset_mpx: int = 0  # the disparity offset in use (millipixels)
+    window_solves: int = 0  # local window solves submitted ...
+    window_corrections: int = 0  # ... whose newest keyframe's correction was applied
+    window_cpu_us: int = 0  # the solves' CPU time (the worker thread's)

@@ -33,6 +33,7 @@ from stereopath.device.estimation.disparity_offset import (KeyframeObservations,
 from stereopath.device.estimation.offset_window import offset_over_keyframes
 from stereopath.device.estimation.keyframe_jobs import KeyframeJob, KeyframeWorker, Submitted
 from stereopath.device.estimation.live_state import LiveState, StereoStats
+from stereopath.device.estimation.local_window import WindowKeyframes
 from stereopath.device.estimation.stereo_measure import StereoMeasure
 from stereopath.device.estimation.tracked_map import TrackedMap
 from stereopath.device.core.frames import ImuSamples, StereoFrame
@@ -103,6 +104,7 @@ class StereoEstimator:
                          criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
         self._next_id = 0
         self._cur_seq = 0
+        self._window = WindowKeyframes(self.cfg.window) if self.cfg.window.enabled else None
 
     # ------------------------------------------------------------------ public
 
@@ -128,6 +130,8 @@ class StereoEstimator:
         self._join_keyframe_work()
         dt = (frame.t_ns - self._t_prev) * 1e-9
         T_pred, have_rot_prior = self._predict(frame.t_ns, dt, imu)
+        if self._window is not None:
+            self._window.gyro_step(self._gyro_step, self._R_body_cam)
         est = self._track(frame, img, T_pred, have_rot_prior)
         self._refine_gyro_bias(est)
         self._state.T_prev_prev = self._state.T_world_cam
@@ -141,6 +145,9 @@ class StereoEstimator:
         path's re-measure with a newly learned disparity offset, each one rigid motion of the live state."""
         st = self._state
         for c in self._worker.poll(st.C):
+            if c.window is not None:
+                self._window.joined(c.window, c.G, c.C_since, st, self.counts)
+                continue
             if c.G is not None:
                 st.apply(c.G)
                 self.counts.kf_corrections += 1
@@ -425,11 +432,22 @@ class StereoEstimator:
             # window's solve (its motions are unknowns), so a later keyframe correction does not stale it
             at = m.obs_kf == self.counts.keyframes
             self._offset_views.append((m.ids[at].copy(), m.obs[at].copy(), T_world_cam.copy()))
+        self._submit_window(T_world_cam)
         self._since_kf = 0
         self._state.T_kf = T_world_cam.copy()
         self._n_at_kf = len(m)
         self.counts.keyframes += 1
         return len(m)
+
+    def _submit_window(self, T_world_cam: np.ndarray) -> None:
+        """This keyframe's stereo observations into the local window, and its solve to the worker."""
+        if self._window is not None:
+            m, st = self._state.map, self._state
+            at = m.obs_kf == self.counts.keyframes
+            self._window.add(self._cur_seq, T_world_cam, m.ids[at], m.obs[at], st.C)
+            job = self._window.job(st.C, self._geo.disparity_offset_px, self._bias, m)
+            if job is not None and self._worker.submit_window(job) is not Submitted.DROPPED:
+                self.counts.window_solves += 1
 
     def _asift_needed(self, T_world_cam: np.ndarray) -> bool:
         """ASIFT work where the view changed: a rotation since the last ASIFT keyframe (the tilt the
