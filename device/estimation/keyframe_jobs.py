@@ -315,6 +315,9 @@ class KeyframeWorker:
 
     def _window_correction(self, res: WindowResult, C_since: np.ndarray) -> KeyframeCorrection:
         """A solved window as the live state takes it: its newest keyframe's refinement."""
+        if not (np.isfinite(res.T_after[-1]).all() and np.isfinite(res.T_before[-1]).all()):
+            log.info("window at keyframe %d: non-finite result refused", res.seq)
+            return KeyframeCorrection(res.seq, None, 0, 0, None, None, res, C_since)
         G = rigid(C_since @ res.T_after[-1] @ invert_pose(res.T_before[-1]) @ invert_pose(C_since))
         ang = rotation_angle_deg(G[:3, :3])
         log.debug("window at keyframe %d: %d points, %.2f px, correction %.3f deg, %.4f m, %.1f ms", res.seq,

@@ -263,6 +263,8 @@ def solve_window(job: WindowJob, cam: RectifiedCamera, R0: np.ndarray, cfg: Wind
         if step is None:
             return None
         dg, dX, rms = step
+        if not (np.isfinite(dg).all() and np.isfinite(dX).all()):
+            return None
         for k in range(nf, K):
             o = 6 * (k - nf)
             R[k] = so3_exp(dg[o + 3:o + 6]) @ R[k]
@@ -331,9 +333,9 @@ def _gauss_newton_step(R: list[np.ndarray], t: list[np.ndarray], X: np.ndarray, 
     blocks = np.matmul(Jpose_w[free].transpose(0, 2, 1), Jp[free])
     cols = 6 * (seen.kf[free] - nf)
     for c in range(6):
-        Hgp[seen.pt[free], cols + c, :] = blocks[:, c, :]
+        np.add.at(Hgp, (seen.pt[free], cols + c), blocks[:, c, :])
     W = np.matmul(Hgp, Hpp_inv)
-    S = H - np.matmul(W, Hgp.transpose(0, 2, 1)).sum(0)
+    S = H - np.einsum("pik,pjk->ij", W, Hgp)
     S = S + LM_DAMPING * np.diag(np.diag(S)) + 1e-12 * np.eye(ng)
     try:
         dg = -np.linalg.solve(S, b - np.matmul(W, bp[:, :, None]).sum(0)[:, 0])

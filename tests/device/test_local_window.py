@@ -151,7 +151,7 @@ def test_records_slide_follow_the_live_state_and_take_the_refined_poses() -> Non
     counts = StereoStats()
     G2 = make_pose(np.eye(3), np.array([0.0, 0.002, 0.0]))
     win.joined(res, G2, np.eye(4), st, counts)
-    assert counts.window_corrections == 1 and counts.window_cpu_us >= 0
+    assert counts.window_corrections == 1 and counts.window_cpu_us > 0
     again = win.job(st.C, 0.0, None)
     for a, b in zip(again.poses, res.T_after):
         np.testing.assert_allclose(a, b, atol=1e-9)
@@ -213,15 +213,27 @@ def test_estimator_with_window_corrects_through_poll(background: bool) -> None:
     from stereopath.device.estimation.stereo_vo import StereoEstimator
     from stereopath.device.formats.source import open_source
 
+    import threading
+
     seq = open_source("sim:1", frames=80)
     cfg = from_mapping(StereoConfig, {"window": {"enabled": True}, "keyframes": {"background": background}})
     est = StereoEstimator(seq.rig, cfg)
+    applied_on: list[threading.Thread] = []
+    real_apply = LiveState.apply
+
+    def recording_apply(self: LiveState, G: np.ndarray) -> None:
+        applied_on.append(threading.current_thread())
+        real_apply(self, G)
+
+    LiveState.apply = recording_apply  # type: ignore[method-assign]
     try:
         run = run_estimator(est, seq.frames(), seq.imu)
     finally:
+        LiveState.apply = real_apply  # type: ignore[method-assign]
         est.close()
     c = est.counts
     assert run.frames_tracked == 80
+    assert applied_on and {t.ident for t in applied_on} == {threading.main_thread().ident}
     assert c.window_solves >= 2 and c.window_corrections >= 1 and c.window_cpu_us > 0
 
 
@@ -241,3 +253,21 @@ def test_the_map_prior_carries_what_left_the_window() -> None:
     prior = solve_window(job, CAM, R0, replace(cfg, map_prior_weight=1.0))
     assert alone.n_points == prior.n_points
     assert _errors(prior.T_after, truth)[0] < 0.5 * _errors(alone.T_after, truth)[0]
+
+
+def test_a_non_finite_window_result_is_refused_not_raised() -> None:
+    """A window whose solve diverged (non-finite poses) is refused on the frame loop: no correction, no
+    exception into the estimator."""
+    from stereopath.device.estimation.keyframe_jobs import KeyframeWorker
+    from stereopath.device.estimation.local_window import WindowResult
+
+    truth, _ = _scene(K=3)
+    bad = [T.copy() for T in truth]
+    bad[-1][0, 3] = np.nan
+    res = WindowResult(2, [0, 1, 2], [T.copy() for T in truth], bad, 0.5, 100, 1.0)
+    worker = KeyframeWorker.__new__(KeyframeWorker)
+    worker.cfg = StereoConfig()
+    corr = worker._window_correction(res, np.eye(4))
+    assert corr.G is None
+    ok = WindowResult(2, [0, 1, 2], [T.copy() for T in truth], [T.copy() for T in truth], 0.5, 100, 1.0)
+    assert worker._window_correction(ok, np.eye(4)).G is not None
