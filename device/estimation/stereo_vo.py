@@ -33,6 +33,7 @@ from stereopath.device.estimation.disparity_offset import (KeyframeObservations,
 from stereopath.device.estimation.offset_window import offset_over_keyframes
 from stereopath.device.estimation.keyframe_jobs import KeyframeJob, KeyframeWorker, Submitted
 from stereopath.device.estimation.live_state import LiveState, StereoStats
+from stereopath.device.estimation.moving_start import MovingStart
 from stereopath.device.estimation.stereo_measure import StereoMeasure
 from stereopath.device.estimation.tracked_map import TrackedMap
 from stereopath.device.core.frames import ImuSamples, StereoFrame
@@ -97,6 +98,10 @@ class StereoEstimator:
         self._failures = 0
         self._gyro: GyroIntegrator | None = None
         self._bias: VisionGyroBias | None = None
+        self._start: MovingStart | None = None  # a start in motion, until the path gives gyro bias and gravity
+        # (first frame seq in the new world, the rigid motion): a world made gravity aligned after a start
+        # in motion; the poses given before that frame map into it by the motion
+        self.world_rebase: tuple[int, np.ndarray] | None = None
         self._gyro_step: tuple[np.ndarray, float] | None = None  # the gyro's body rotation over the last frame
         self._R_body_cam = None if rig.T_body_cam0 is None else rig.T_body_cam0[:3, :3]
         self._klt = dict(winSize=(self.cfg.klt.klt_window, self.cfg.klt.klt_window), maxLevel=self.cfg.klt.klt_levels,
@@ -130,6 +135,8 @@ class StereoEstimator:
         T_pred, have_rot_prior = self._predict(frame.t_ns, dt, imu)
         est = self._track(frame, img, T_pred, have_rot_prior)
         self._refine_gyro_bias(est)
+        if self._start is not None:
+            self._feed_moving_start(est, imu)
         self._state.T_prev_prev = self._state.T_world_cam
         self._state.T_world_cam = est.T_world_cam
         self._t_prev = frame.t_ns
@@ -151,6 +158,33 @@ class StereoEstimator:
         if self._pending_G is not None:  # the path since the start, re-measured with the learned offset
             st.apply(self._pending_G)
             self._pending_G = None
+        if self._start is not None:
+            self._take_moving_start()
+
+    def _feed_moving_start(self, est: PoseEstimate, imu: ImuSamples | None) -> None:
+        """A start in motion: the frame's IMU samples, a tracked keyframe's pose, a solve on the worker."""
+        self._start.add_imu(imu)
+        if est.keyframe and est.status is TrackStatus.OK:
+            self._start.add_keyframe(est.t_ns, est.T_world_cam, self._state.C)
+            if self._start.submit(self._worker, self._state.C, self._cur_seq):
+                self.counts.start_solves += 1
+
+    def _take_moving_start(self) -> None:
+        """A start in motion, once solved: the gyro bias, and one rotation of the live state about the
+        world's origin that makes the world gravity aligned as a still start would have."""
+        st = self._state
+        solved = self._start.poll(st.C)
+        if solved is None:
+            return
+        self._start = None
+        self._gyro.bias = solved.fit.gyro.bias_rad_s.copy()
+        if self._bias is not None:
+            self._bias.reset(solved.fit.gyro.bias_rad_s, max(solved.fit.gyro.sigma_rad_s, STILL_BIAS_SIGMA_RAD_S))
+            st.T_bias_start = None if st.T_bias_start is None else st.T_world_cam.copy()
+        G = solved.leveling(st.C[:3, :3], self._R_body_cam)
+        st.apply(G)
+        self.world_frame, self.world_rebase = "gravity_aligned", (self._cur_seq, G)
+        self.counts.start_solved_frame = self._cur_seq
 
     # ------------------------------------------------------------------ stages
 
@@ -170,8 +204,10 @@ class StereoEstimator:
             else:
                 self._gyro = GyroIntegrator(None)
                 bias0, sigma0 = None, UNKNOWN_BIAS_SIGMA_RAD_S
-                log.warning("IMU not still before the first frame: gyro bias unknown until vision measures it"
-                            " (estimate_gyro_bias), world frame = first camera")
+                self._start = MovingStart(self.rig.T_body_cam0)
+                self._start.add_imu(imu)
+                log.info("IMU not still before the first frame: world frame = first camera until the first"
+                         " keyframes' path gives the gyro bias and gravity")
             self._gyro.feed_and_integrate(imu, frame.t_ns, frame.t_ns)
             if self.cfg.gyro.estimate_bias:
                 self._bias = VisionGyroBias(bias0, sigma0, window_s=GYRO_BIAS_WINDOW_S)
@@ -189,6 +225,8 @@ class StereoEstimator:
                     left, right, xy, lambda image: self._geo.stereo_points(left, image, xy, z0)[::2]))
         n = self._new_keyframe(StereoImages(left, self._exposure_corrected(right), right), T)
         status = TrackStatus.OK if n >= self.cfg.geometry.min_pnp_inliers else TrackStatus.LOST
+        if self._start is not None and status is TrackStatus.OK:
+            self._start.add_keyframe(frame.t_ns, T, self._state.C)
         return PoseEstimate(frame.seq, frame.t_ns, T.copy(), status, inliers=n, keyframe=True,
                             note="" if status is TrackStatus.OK else "no_stereo_points")
 

@@ -1,0 +1,114 @@
+"""A start in motion on board: the gyro bias and gravity solved from the first keyframes' path.
+
+A rig that rests before its first frame gives both by averaging (:func:`~stereopath.device.estimation.inertial.estimate_still`).
+One switched on in the hand does not rest: :class:`MovingStart` keeps the IMU samples and the tracked
+keyframe poses from the first frame on, and once they span :data:`~stereopath.device.estimation.inertial_init.START_MIN_SPAN_S`
+hands :func:`~stereopath.device.estimation.inertial_init.start_from_path` to the keyframe worker (copies:
+the frame loop goes on).  A solve that does not pass its checks is tried again at a later keyframe on
+the longer path, over the last :data:`MAX_SPAN_S` at most.  The estimator takes the solved start once:
+the gyro bias, and the rotation that levels its world (:meth:`MovingStart.leveling`).
+"""
+
+from __future__ import annotations
+
+import logging
+from concurrent.futures import Future
+from dataclasses import dataclass
+from typing import Callable, Protocol
+
+import numpy as np
+
+from stereopath.device.core.frames import ImuSamples
+from stereopath.device.core.geometry import invert_pose, make_pose
+from stereopath.device.estimation.inertial import leveling_rotation
+from stereopath.device.estimation.inertial_init import START_MIN_SPAN_S, StartFit, start_from_path
+
+log = logging.getLogger(__name__)
+
+MAX_SPAN_S = 4.0  # the path and IMU kept for the solve: the last this many seconds
+
+
+class Runner(Protocol):
+    def run_aside(self, fn: Callable[[], StartFit | None]) -> Future: ...
+
+
+@dataclass(frozen=True)
+class SolvedStart:
+    """A solved start in the live world: the fit, gravity (m/s^2, the live world's frame) and the frame seq."""
+
+    fit: StartFit
+    gravity_world: np.ndarray
+    seq: int
+
+    def leveling(self, R_world_cam0: np.ndarray, R_body_cam: np.ndarray) -> np.ndarray:
+        """The rigid motion (a rotation about the world's origin) that takes the live world onto the
+        gravity-aligned one a still start would have given, its yaw that of the first camera
+        (whose orientation in the live world is ``R_world_cam0``)."""
+        return make_pose(leveling_rotation(R_world_cam0, R_body_cam, self.gravity_world), np.zeros(3))
+
+
+class MovingStart:
+    """The path and IMU since the first frame until the start is solved (see the module doc)."""
+
+    def __init__(self, T_body_cam: np.ndarray) -> None:
+        self._T_cam_body = invert_pose(np.asarray(T_body_cam, float))
+        self._imu: list[ImuSamples] = []
+        self._kf: list[tuple[int, np.ndarray, np.ndarray]] = []  # (t_ns, T_world_cam, C when recorded)
+        self._job: tuple[Future, np.ndarray, int] | None = None  # (future, C at submission, seq)
+        self._tried_at = -1  # keyframes recorded at the last submission
+        self.solved = False
+        self.attempts = 0
+
+    def add_imu(self, block: ImuSamples | None) -> None:
+        if block is not None and len(block) and not self.solved:
+            self._imu.append(block)
+
+    def add_keyframe(self, t_ns: int, T_world_cam: np.ndarray, C: np.ndarray) -> None:
+        """A tracked keyframe's pose in the live world whose cumulative correction is ``C``."""
+        if self.solved:
+            return
+        self._kf.append((int(t_ns), np.array(T_world_cam, float), np.array(C, float)))
+        t_new = self._kf[-1][0]
+        while self._kf and (t_new - self._kf[0][0]) * 1e-9 > MAX_SPAN_S:
+            self._kf.pop(0)
+
+    def submit(self, worker: Runner, C: np.ndarray, seq: int) -> bool:
+        """Hand a solve to the worker when none is in flight, the path is long enough and has grown
+        since the last one; True when one was submitted."""
+        if self.solved or self._job is not None or len(self._kf) <= self._tried_at or len(self._kf) < 2:
+            return False
+        if (self._kf[-1][0] - self._kf[0][0]) * 1e-9 < START_MIN_SPAN_S:
+            return False
+        t0 = self._kf[0][0] - 100_000_000
+        imu = ImuSamples.concat(self._imu).between(t0, self._kf[-1][0] + 100_000_000)
+        self._imu = [imu]  # what is older than the path kept is not needed again
+        t = np.array([k[0] for k in self._kf], np.int64)
+        # every pose in the world of the submission, then the body's
+        T_body = np.array([C @ invert_pose(Ck) @ T @ self._T_cam_body for _, T, Ck in self._kf])
+        self._job = (worker.run_aside(lambda: start_from_path(imu, t, T_body)), np.array(C, float), int(seq))
+        self._tried_at = len(self._kf)
+        self.attempts += 1
+        return True
+
+    def poll(self, C: np.ndarray) -> SolvedStart | None:
+        """The solved start once its solve is done and passed (gravity mapped into the live world whose
+        cumulative correction is ``C``); None otherwise (never waits)."""
+        if self._job is None or not self._job[0].done():
+            return None
+        fut, C_sub, seq = self._job
+        self._job = None
+        try:
+            fit = fut.result()
+        except Exception:  # a failed solve is tried again on a longer path
+            log.exception("start solve failed")
+            return None
+        if fit is None:
+            return None
+        self.solved = True
+        self._imu, self._kf = [], []
+        R_since = (C @ invert_pose(C_sub))[:3, :3]
+        log.info("start in motion solved on the path up to frame %d (%d tries): gyro bias %s rad/s (+- %.5f), "
+                 "|g| = %.3f m/s^2, residual %.2f mm per interval; the world becomes gravity aligned", seq,
+                 self.attempts, np.round(fit.gyro.bias_rad_s, 5), fit.gyro.sigma_rad_s,
+                 float(np.linalg.norm(fit.gravity.gravity_world)), 1e3 * fit.gravity.rms_m)
+        return SolvedStart(fit, R_since @ fit.gravity.gravity_world, seq)
