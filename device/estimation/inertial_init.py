@@ -200,9 +200,9 @@ def preintegrate(imu: ImuSamples, t0: int, t1: int, gyro_bias_rad_s: np.ndarray)
 
 START_MIN_SPAN_S = 1.0  # the path measured before the start is solved: at least this long ...
 START_MIN_INTERVALS = 4  # ... in at least this many intervals
-START_INTERVAL_S = 0.2  # keyframes closer than this to the previous one used are skipped
+START_INTERVAL_S = 0.2  # poses closer than this to the previous one used are skipped
 MAX_START_GRAVITY_DEV_M_S2 = 0.4  # the solved gravity: 1 g within this
-MAX_START_RMS_M = 0.003  # the increments' position residual per interval at the solution
+MAX_START_RMS_M = 0.0015  # the increments' position residual per interval at the solution
 MAX_START_BIAS_SIGMA_RAD_S = 0.005  # the gyro bias fit's formal standard deviation
 
 
@@ -220,7 +220,7 @@ class StartFit:
 
 def start_from_path(imu: ImuSamples, t_ns: np.ndarray, T_world_body: np.ndarray) -> StartFit | None:
     """Gyro bias, then gravity (increments preintegrated with that bias), from body poses ``T_world_body``
-    ((K, 4, 4), metric) at times ``t_ns``: keyframes at least :data:`START_INTERVAL_S` apart are chained.
+    ((K, 4, 4), metric) at times ``t_ns``: poses at least :data:`START_INTERVAL_S` apart are chained.
     None when the path is too short (:data:`START_MIN_SPAN_S`, :data:`START_MIN_INTERVALS`) or a fit
     does not pass its checks (gravity's norm, the position residual, the bias's spread): the caller
     tries again with a longer path."""

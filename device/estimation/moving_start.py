@@ -2,9 +2,9 @@
 
 A rig that rests before its first frame gives both by averaging (:func:`~stereopath.device.estimation.inertial.estimate_still`).
 One switched on in the hand does not rest: :class:`MovingStart` keeps the IMU samples and the tracked
-keyframe poses from the first frame on, and once they span :data:`~stereopath.device.estimation.inertial_init.START_MIN_SPAN_S`
+poses (every :data:`~stereopath.device.estimation.inertial_init.START_INTERVAL_S`) from the first frame on, and once they span :data:`~stereopath.device.estimation.inertial_init.START_MIN_SPAN_S`
 hands :func:`~stereopath.device.estimation.inertial_init.start_from_path` to the keyframe worker (copies:
-the frame loop goes on).  A solve that does not pass its checks is tried again at a later keyframe on
+the frame loop goes on).  A solve that does not pass its checks is tried again with the next pose on
 the longer path, over the last :data:`MAX_SPAN_S` at most.  The estimator takes the solved start once:
 the gyro bias, and the rotation that levels its world (:meth:`MovingStart.leveling`).
 """
@@ -21,7 +21,7 @@ import numpy as np
 from stereopath.device.core.frames import ImuSamples
 from stereopath.device.core.geometry import invert_pose, make_pose
 from stereopath.device.estimation.inertial import leveling_rotation
-from stereopath.device.estimation.inertial_init import START_MIN_SPAN_S, StartFit, start_from_path
+from stereopath.device.estimation.inertial_init import START_INTERVAL_S, START_MIN_SPAN_S, StartFit, start_from_path
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +34,7 @@ class Runner(Protocol):
 
 @dataclass(frozen=True)
 class SolvedStart:
-    """A solved start in the live world: the fit, gravity (m/s^2, the live world's frame) and the frame seq."""
+    """A solved start: the fit, gravity (m/s^2, in the world of the path) and the frame seq of the path's end."""
 
     fit: StartFit
     gravity_world: np.ndarray
@@ -53,8 +53,8 @@ class MovingStart:
     def __init__(self, T_body_cam: np.ndarray) -> None:
         self._T_cam_body = invert_pose(np.asarray(T_body_cam, float))
         self._imu: list[ImuSamples] = []
-        self._kf: list[tuple[int, np.ndarray, np.ndarray]] = []  # (t_ns, T_world_cam, C when recorded)
-        self._job: tuple[Future, np.ndarray, int] | None = None  # (future, C at submission, seq)
+        self._kf: list[tuple[int, np.ndarray]] = []  # (t_ns, T_world_cam as tracked)
+        self._job: tuple[Future, int] | None = None  # (future, frame seq at submission)
         self._tried_at = -1  # keyframes recorded at the last submission
         self.solved = False
         self.attempts = 0
@@ -63,16 +63,19 @@ class MovingStart:
         if block is not None and len(block) and not self.solved:
             self._imu.append(block)
 
-    def add_keyframe(self, t_ns: int, T_world_cam: np.ndarray, C: np.ndarray) -> None:
-        """A tracked keyframe's pose in the live world whose cumulative correction is ``C``."""
-        if self.solved:
-            return
-        self._kf.append((int(t_ns), np.array(T_world_cam, float), np.array(C, float)))
+    def add_pose(self, t_ns: int, T_world_cam: np.ndarray) -> bool:
+        """A tracked frame's pose as the frame loop gave it, kept when it is :data:`START_INTERVAL_S` after
+        the last one kept (True then).  The path is kept as given: a keyframe correction moves the live
+        state to agree with the older poses, which stay where they were."""
+        if self.solved or self._kf and (int(t_ns) - self._kf[-1][0]) * 1e-9 < START_INTERVAL_S:
+            return False
+        self._kf.append((int(t_ns), np.array(T_world_cam, float)))
         t_new = self._kf[-1][0]
         while self._kf and (t_new - self._kf[0][0]) * 1e-9 > MAX_SPAN_S:
             self._kf.pop(0)
+        return True
 
-    def submit(self, worker: Runner, C: np.ndarray, seq: int) -> bool:
+    def submit(self, worker: Runner, seq: int) -> bool:
         """Hand a solve to the worker when none is in flight, the path is long enough and has grown
         since the last one; True when one was submitted."""
         if self.solved or self._job is not None or len(self._kf) <= self._tried_at or len(self._kf) < 2:
@@ -83,19 +86,17 @@ class MovingStart:
         imu = ImuSamples.concat(self._imu).between(t0, self._kf[-1][0] + 100_000_000)
         self._imu = [imu]  # what is older than the path kept is not needed again
         t = np.array([k[0] for k in self._kf], np.int64)
-        # every pose in the world of the submission, then the body's
-        T_body = np.array([C @ invert_pose(Ck) @ T @ self._T_cam_body for _, T, Ck in self._kf])
-        self._job = (worker.run_aside(lambda: start_from_path(imu, t, T_body)), np.array(C, float), int(seq))
+        T_body = np.array([T @ self._T_cam_body for _, T in self._kf])
+        self._job = (worker.run_aside(lambda: start_from_path(imu, t, T_body)), int(seq))
         self._tried_at = len(self._kf)
         self.attempts += 1
         return True
 
-    def poll(self, C: np.ndarray) -> SolvedStart | None:
-        """The solved start once its solve is done and passed (gravity mapped into the live world whose
-        cumulative correction is ``C``); None otherwise (never waits)."""
+    def poll(self) -> SolvedStart | None:
+        """The solved start once its solve is done and passed; None otherwise (never waits)."""
         if self._job is None or not self._job[0].done():
             return None
-        fut, C_sub, seq = self._job
+        fut, seq = self._job
         self._job = None
         try:
             fit = fut.result()
@@ -106,9 +107,8 @@ class MovingStart:
             return None
         self.solved = True
         self._imu, self._kf = [], []
-        R_since = (C @ invert_pose(C_sub))[:3, :3]
         log.info("start in motion solved on the path up to frame %d (%d tries): gyro bias %s rad/s (+- %.5f), "
                  "|g| = %.3f m/s^2, residual %.2f mm per interval; the world becomes gravity aligned", seq,
                  self.attempts, np.round(fit.gyro.bias_rad_s, 5), fit.gyro.sigma_rad_s,
                  float(np.linalg.norm(fit.gravity.gravity_world)), 1e3 * fit.gravity.rms_m)
-        return SolvedStart(fit, R_since @ fit.gravity.gravity_world, seq)
+        return SolvedStart(fit, fit.gravity.gravity_world, seq)

@@ -162,18 +162,17 @@ class StereoEstimator:
             self._take_moving_start()
 
     def _feed_moving_start(self, est: PoseEstimate, imu: ImuSamples | None) -> None:
-        """A start in motion: the frame's IMU samples, a tracked keyframe's pose, a solve on the worker."""
+        """A start in motion: the frame's IMU samples, a tracked pose, a solve on the worker."""
         self._start.add_imu(imu)
-        if est.keyframe and est.status is TrackStatus.OK:
-            self._start.add_keyframe(est.t_ns, est.T_world_cam, self._state.C)
-            if self._start.submit(self._worker, self._state.C, self._cur_seq):
+        if est.status is TrackStatus.OK and self._start.add_pose(est.t_ns, est.T_world_cam):
+            if self._start.submit(self._worker, self._cur_seq):
                 self.counts.start_solves += 1
 
     def _take_moving_start(self) -> None:
         """A start in motion, once solved: the gyro bias, and one rotation of the live state about the
         world's origin that makes the world gravity aligned as a still start would have."""
         st = self._state
-        solved = self._start.poll(st.C)
+        solved = self._start.poll()
         if solved is None:
             return
         self._start = None
@@ -226,7 +225,7 @@ class StereoEstimator:
         n = self._new_keyframe(StereoImages(left, self._exposure_corrected(right), right), T)
         status = TrackStatus.OK if n >= self.cfg.geometry.min_pnp_inliers else TrackStatus.LOST
         if self._start is not None and status is TrackStatus.OK:
-            self._start.add_keyframe(frame.t_ns, T, self._state.C)
+            self._start.add_pose(frame.t_ns, T)
         return PoseEstimate(frame.seq, frame.t_ns, T.copy(), status, inliers=n, keyframe=True,
                             note="" if status is TrackStatus.OK else "no_stereo_points")
 
