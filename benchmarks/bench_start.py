@@ -11,7 +11,8 @@ ground truth once (SE(3), the alignment of ``stereopath eval``).  It prints the 
 p90 and maximum over the first ``--start-s`` seconds and over the rest (mm), the world frame the estimator
 ended in and its on-board start (the gyro bias and gravity solved from the path), medians over ``--runs``.
 ``--session DIR`` estimates that session instead of simulating one (its case name is ``session``);
-``--keep DIR`` keeps the simulated sessions there and reuses them on the next call.
+``--keep DIR`` keeps the simulated sessions there and reuses them on the next call; ``--json-out``
+writes the figures as the other benchmarks do (``benchmarks/results``).
 """
 
 from __future__ import annotations
@@ -79,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_start_"))
-    figures: dict[str, float | str] = {}
+    figures: dict[str, float | None] = {}
     try:
         cases = ["session"] if args.session else [c for c in args.cases.split(",") if c]
         for case in cases:
@@ -104,9 +105,11 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{label:14s} {vals[0]:10.2f} {vals[1]:8.2f} {vals[2]:8.2f}")
                 for q, v in zip(QUANTITIES, vals):
                     figures[f"start.{case}.{part}.{q}_mm"] = round(v, 3)
-            figures[f"start.{case}.world_frame"] = str(world)
+            figures[f"start.{case}.gravity_aligned"] = float(world == "gravity_aligned")
         if args.json_out:
-            Path(args.json_out).write_text(json.dumps(figures, indent=1, sort_keys=True) + "\n")
+            from results_file import write_results
+
+            write_results(args.json_out, "bench_start.py", figures)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return 0

@@ -176,8 +176,8 @@ class StereoEstimator:
         if solved is None:
             return
         self._start = None
-        self._gyro.bias = solved.fit.gyro.bias_rad_s.copy()
-        if self._bias is not None:
+        if self._bias is not None:  # the gyro bias estimated on line (gyro.estimate_bias)
+            self._gyro.bias = solved.fit.gyro.bias_rad_s.copy()
             self._bias.reset(solved.fit.gyro.bias_rad_s, max(solved.fit.gyro.sigma_rad_s, STILL_BIAS_SIGMA_RAD_S))
             st.T_bias_start = None if st.T_bias_start is None else st.T_world_cam.copy()
         G = solved.leveling(st.C[:3, :3], self._R_body_cam)
