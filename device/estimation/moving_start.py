@@ -5,14 +5,13 @@ One switched on in the hand does not rest: :class:`MovingStart` keeps the IMU sa
 poses (every :data:`~stereopath.device.estimation.inertial_init.START_INTERVAL_S`) from the first frame on, and once they span :data:`~stereopath.device.estimation.inertial_init.START_MIN_SPAN_S`
 hands :func:`~stereopath.device.estimation.inertial_init.start_from_path` to the keyframe worker (copies:
 the frame loop goes on).  A solve that does not pass its checks is tried again with the next pose on
-the longer path, over the last :data:`MAX_SPAN_S` at most.  The estimator takes the solved start once:
+the longer path, over the last :data:`MAX_SPAN_S` at most, up to :data:`MAX_ATTEMPTS` times.  The estimator takes the solved start once:
 the gyro bias, and the rotation that levels its world (:meth:`MovingStart.leveling`).
 """
 
 from __future__ import annotations
 
 import logging
-from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
@@ -26,10 +25,21 @@ from stereopath.device.estimation.inertial_init import START_INTERVAL_S, START_M
 log = logging.getLogger(__name__)
 
 MAX_SPAN_S = 4.0  # the path and IMU kept for the solve: the last this many seconds
+MAX_ATTEMPTS = 25  # solves refused in a row before the start is given up (the world stays the first camera's)
+
+
+class Pending(Protocol):
+    """Work handed to the worker: a Future, or the result of work done in line."""
+
+    def done(self) -> bool: ...
+
+    def result(self) -> StartFit | None: ...
 
 
 class Runner(Protocol):
-    def run_aside(self, fn: Callable[[], StartFit | None]) -> Future: ...
+    """Where the solve runs: :meth:`~stereopath.device.estimation.keyframe_jobs.KeyframeWorker.run_aside`."""
+
+    def run_aside(self, fn: Callable[[], StartFit | None]) -> Pending: ...
 
 
 @dataclass(frozen=True)
@@ -54,22 +64,29 @@ class MovingStart:
         self._T_cam_body = invert_pose(np.asarray(T_body_cam, float))
         self._imu: list[ImuSamples] = []
         self._kf: list[tuple[int, np.ndarray]] = []  # (t_ns, T_world_cam as tracked)
-        self._job: tuple[Future, int] | None = None  # (future, frame seq at submission)
-        self._tried_at = -1  # keyframes recorded at the last submission
+        self._job: tuple[Pending, int] | None = None  # (future, frame seq at submission)
+        self._kept = 0  # poses kept so far ...
+        self._tried_at = 0  # ... and at the last submission
         self.solved = False
         self.attempts = 0
 
+    @property
+    def open(self) -> bool:
+        """Still collecting: neither solved nor given up."""
+        return not self.solved and self.attempts < MAX_ATTEMPTS
+
     def add_imu(self, block: ImuSamples | None) -> None:
-        if block is not None and len(block) and not self.solved:
+        if block is not None and len(block) and self.open:
             self._imu.append(block)
 
     def add_pose(self, t_ns: int, T_world_cam: np.ndarray) -> bool:
         """A tracked frame's pose as the frame loop gave it, kept when it is :data:`START_INTERVAL_S` after
         the last one kept (True then).  The path is kept as given: a keyframe correction moves the live
         state to agree with the older poses, which stay where they were."""
-        if self.solved or self._kf and (int(t_ns) - self._kf[-1][0]) * 1e-9 < START_INTERVAL_S:
+        if not self.open or self._kf and (int(t_ns) - self._kf[-1][0]) * 1e-9 < START_INTERVAL_S:
             return False
         self._kf.append((int(t_ns), np.array(T_world_cam, float)))
+        self._kept += 1
         t_new = self._kf[-1][0]
         while self._kf and (t_new - self._kf[0][0]) * 1e-9 > MAX_SPAN_S:
             self._kf.pop(0)
@@ -78,7 +95,7 @@ class MovingStart:
     def submit(self, worker: Runner, seq: int) -> bool:
         """Hand a solve to the worker when none is in flight, the path is long enough and has grown
         since the last one; True when one was submitted."""
-        if self.solved or self._job is not None or len(self._kf) <= self._tried_at or len(self._kf) < 2:
+        if not self.open or self._job is not None or self._kept <= self._tried_at or len(self._kf) < 2:
             return False
         if (self._kf[-1][0] - self._kf[0][0]) * 1e-9 < START_MIN_SPAN_S:
             return False
@@ -88,7 +105,7 @@ class MovingStart:
         t = np.array([k[0] for k in self._kf], np.int64)
         T_body = np.array([T @ self._T_cam_body for _, T in self._kf])
         self._job = (worker.run_aside(lambda: start_from_path(imu, t, T_body)), int(seq))
-        self._tried_at = len(self._kf)
+        self._tried_at = self._kept
         self.attempts += 1
         return True
 
@@ -104,6 +121,10 @@ class MovingStart:
             log.exception("start solve failed")
             return None
         if fit is None:
+            if not self.open:
+                log.warning("start in motion: %d solves of gyro bias and gravity refused; the world stays the "
+                            "first camera's", self.attempts)
+                self._imu, self._kf = [], []
             return None
         self.solved = True
         self._imu, self._kf = [], []

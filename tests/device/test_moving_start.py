@@ -166,3 +166,27 @@ def test_the_solve_waits_for_a_long_enough_path_and_runs_once():
     g_new = L[:3, :3] @ solved.gravity_world
     assert np.degrees(np.arccos(-g_new[2] / np.linalg.norm(g_new))) < 0.1
     assert inertial_init.START_MIN_SPAN_S <= t
+
+
+def test_a_path_the_imu_never_fits_is_given_up(monkeypatch):
+    from stereopath.device.estimation import moving_start
+    from stereopath.device.estimation.keyframe_jobs import Ready
+
+    class InLine:
+        def run_aside(self, fn):
+            return Ready(fn())
+
+    monkeypatch.setattr(moving_start, "MAX_ATTEMPTS", 3)
+    imu, pose = _moving_start(np.eye(3), np.zeros(3))
+    start, worker = moving_start.MovingStart(np.eye(4)), InLine()
+    rng = np.random.default_rng(1)
+    for k, t in enumerate(np.arange(0.05, 2.9, 0.05)):
+        t_ns = int(t * 1e9)
+        start.add_imu(imu.between(int((t - 0.05) * 1e9), t_ns))
+        T = pose(t)
+        T[:3, 3] += rng.normal(0.0, 0.01, 3)  # a path 1 cm off at every pose
+        if start.add_pose(t_ns, T):
+            start.submit(worker, k)
+        assert start.poll() is None
+    assert start.attempts == 3 and not start.open and not start.solved
+    assert not start.add_pose(int(3e9), pose(3.0)) and not start.submit(worker, 99)
