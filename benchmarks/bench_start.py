@@ -97,8 +97,10 @@ def main(argv: list[str] | None = None) -> int:
                                             args.start_s), rep))
             world = rows[-1][1].get("world_frame")
             stats = rows[-1][1].get("extra", {}).get("estimator_stats", {})
-            print(f"{case}: world frame {world}; on-board start solved at frame "
-                  f"{stats.get('start_solved_frame', '-')}; ATE {statistics.median(r[1]['ate_rmse_m'] for r in rows) * 1e3:.2f} mm")
+            ates = ", ".join(f"{r[1]['ate_rmse_m'] * 1e3:.2f}" for r in rows)
+            print(f"{case}: world frame {world}; on-board start solved at frame {stats.get('start_solved_frame', '-')}; "
+                  f"ATE {statistics.median(r[1]['ate_rmse_m'] for r in rows) * 1e3:.2f} mm (runs {ates}), end error "
+                  f"{statistics.median(r[1]['end_error_pct'] for r in rows):.3f} % of the path")
             print(f"{'':14s} {'median mm':>10s} {'p90 mm':>8s} {'max mm':>8s}")
             for part, label in (("start", f"first {args.start_s:g} s"), ("rest", "the rest")):
                 vals = [statistics.median(r[0][part][q] for r in rows) * 1e3 for q in QUANTITIES]
