@@ -6,7 +6,10 @@ poses (every :data:`~stereopath.device.estimation.inertial_init.START_INTERVAL_S
 hands :func:`~stereopath.device.estimation.inertial_init.start_from_path` to the keyframe worker (copies:
 the frame loop goes on).  A solve that does not pass its checks is tried again with the next pose on
 the longer path, over the last :data:`MAX_SPAN_S` at most, up to :data:`MAX_ATTEMPTS` times.  The estimator takes the solved start once:
-the gyro bias, and the rotation that levels its world (:meth:`MovingStart.leveling`).
+the gyro bias, and the rotation that levels its world (:meth:`SolvedStart.leveling`).  The poses it gave
+before are in the first camera's world; the estimator's ``world_rebase`` (the first frame seq in the
+new world, the rotation) lets :func:`~stereopath.device.estimation.base.run_estimator` map them into
+the new one.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import numpy as np
 
 from stereopath.device.core.frames import ImuSamples
 from stereopath.device.core.geometry import invert_pose, make_pose
+from stereopath.device.estimation.base import PoseEstimate, TrackStatus
 from stereopath.device.estimation.inertial import leveling_rotation
 from stereopath.device.estimation.inertial_init import START_INTERVAL_S, START_MIN_SPAN_S, StartFit, start_from_path
 
@@ -91,6 +95,12 @@ class MovingStart:
         while self._kf and (t_new - self._kf[0][0]) * 1e-9 > MAX_SPAN_S:
             self._kf.pop(0)
         return True
+
+    def feed(self, est: PoseEstimate, imu: ImuSamples | None, worker: Runner) -> bool:
+        """One frame of the frame loop: its IMU samples, its pose if tracked, a solve handed to ``worker``
+        when due (True then)."""
+        self.add_imu(imu)
+        return est.status is TrackStatus.OK and self.add_pose(est.t_ns, est.T_world_cam) and self.submit(worker, est.seq)
 
     def submit(self, worker: Runner, seq: int) -> bool:
         """Hand a solve to the worker when none is in flight, the path is long enough and has grown

@@ -99,9 +99,7 @@ class StereoEstimator:
         self._gyro: GyroIntegrator | None = None
         self._bias: VisionGyroBias | None = None
         self._start: MovingStart | None = None  # a start in motion, until the path gives gyro bias and gravity
-        # (first frame seq in the new world, the rigid motion): a world made gravity aligned after a start
-        # in motion; the poses given before that frame map into it by the motion
-        self.world_rebase: tuple[int, np.ndarray] | None = None
+        self.world_rebase: tuple[int, np.ndarray] | None = None  # see MovingStart: (frame seq, motion)
         self._gyro_step: tuple[np.ndarray, float] | None = None  # the gyro's body rotation over the last frame
         self._R_body_cam = None if rig.T_body_cam0 is None else rig.T_body_cam0[:3, :3]
         self._klt = dict(winSize=(self.cfg.klt.klt_window, self.cfg.klt.klt_window), maxLevel=self.cfg.klt.klt_levels,
@@ -136,7 +134,7 @@ class StereoEstimator:
         est = self._track(frame, img, T_pred, have_rot_prior)
         self._refine_gyro_bias(est)
         if self._start is not None:
-            self._feed_moving_start(est, imu)
+            self.counts.start_solves += self._start.feed(est, imu, self._worker)
         self._state.T_prev_prev = self._state.T_world_cam
         self._state.T_world_cam = est.T_world_cam
         self._t_prev = frame.t_ns
@@ -160,13 +158,6 @@ class StereoEstimator:
             self._pending_G = None
         if self._start is not None:
             self._take_moving_start()
-
-    def _feed_moving_start(self, est: PoseEstimate, imu: ImuSamples | None) -> None:
-        """A start in motion: the frame's IMU samples, a tracked pose, a solve on the worker."""
-        self._start.add_imu(imu)
-        if est.status is TrackStatus.OK and self._start.add_pose(est.t_ns, est.T_world_cam):
-            if self._start.submit(self._worker, self._cur_seq):
-                self.counts.start_solves += 1
 
     def _take_moving_start(self) -> None:
         """A start in motion, once solved: the gyro bias, and one rotation of the live state about the
