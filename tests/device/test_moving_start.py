@@ -92,13 +92,23 @@ def test_a_start_in_motion_levels_the_world_once(monkeypatch):
     whose z is up."""
     from stereopath.device.estimation.base import run_estimator
     from stereopath.device.estimation.live_state import LiveState
+    from stereopath.device.estimation.moving_start import MovingStart
     from stereopath.device.estimation.registry import make_estimator
+    from stereopath.device.estimation.stereo_vo import StereoEstimator
     from stereopath.host.evaluation.evaluate import evaluate
 
     seq = _handheld(40)
-    moves = []
-    apply = LiveState.apply
+    moves, solved, taken = [], [], []
+    apply, poll, take = LiveState.apply, MovingStart.poll, StereoEstimator._take_moving_start
     monkeypatch.setattr(LiveState, "apply", lambda self, G: (moves.append(np.array(G)), apply(self, G))[1])
+    monkeypatch.setattr(MovingStart, "poll", lambda self: (s := poll(self), s and solved.append(s))[0])
+
+    def take_and_look(self):  # the gyro bias in use right after the start is taken
+        take(self)
+        if self._start is None and not taken:
+            taken.append((self._gyro.bias.copy(), self._bias.bias.copy()))
+
+    monkeypatch.setattr(StereoEstimator, "_take_moving_start", take_and_look)
     est = make_estimator("stereo", seq.rig)
     run = run_estimator(est, iter(list(seq.frames())), seq.imu)
     assert run.world_frame == "gravity_aligned"
@@ -107,7 +117,9 @@ def test_a_start_in_motion_levels_the_world_once(monkeypatch):
     assert sum(np.array_equal(M, G) for M in moves) == 1  # one leveling move among the keyframe corrections
     assert np.allclose(G[:3, 3], 0.0) and 2.0 < np.degrees(np.linalg.norm(so3_log(G[:3, :3])))
     true_bias = seq.imu_biases.gyro_rad_s[np.searchsorted(seq.imu.t_ns, seq.t_ns[seq_solved])]
-    assert np.all(np.abs(est.gyro_bias_rad_s - true_bias) < 3e-4)  # 0.02 deg/s
+    assert len(solved) == 1 and np.all(np.abs(solved[0].fit.gyro.bias_rad_s - true_bias) < 2e-4)  # 0.01 deg/s
+    assert all(np.array_equal(b, solved[0].fit.gyro.bias_rad_s) for b in taken[0])  # taken as solved
+    assert np.all(np.abs(est.gyro_bias_rad_s - true_bias) < 3e-4)
     # gravity: the truth's world is z up; every pose's z, before the move and after it, within 1 deg
     R_gt, R_est = seq.groundtruth.T_world_cam[:, :3, :3], run.trajectory.T_world_cam[:, :3, :3]
     up = np.einsum("nij,nkj,k->ni", R_gt, R_est, np.array([0.0, 0.0, 1.0]))  # the estimate's z in the truth's world
