@@ -172,7 +172,8 @@ class StereoEstimator:
             self._bias.reset(solved.fit.gyro.bias_rad_s, max(solved.fit.gyro.sigma_rad_s, STILL_BIAS_SIGMA_RAD_S))
             st.T_bias_start = None if st.T_bias_start is None else st.T_world_cam.copy()
         G = solved.leveling(st.C[:3, :3], self._R_body_cam)
-        st.apply(G)
+        st.apply(G)  # and the offset window's starting poses, which its motions start from
+        self._offset_views = deque([(i, b, G @ T) for i, b, T in self._offset_views], maxlen=self._offset_views.maxlen)
         self.world_frame, self.world_rebase = "gravity_aligned", (self._cur_seq, G)
         self.counts.start_solved_frame = self._cur_seq
 
@@ -196,8 +197,8 @@ class StereoEstimator:
                 bias0, sigma0 = None, UNKNOWN_BIAS_SIGMA_RAD_S
                 self._start = MovingStart(self.rig.T_body_cam0)
                 self._start.add_imu(imu)
-                log.info("IMU not still before the first frame: world frame = first camera until the first"
-                         " keyframes' path gives the gyro bias and gravity")
+                log.info("IMU not still before the first frame: world frame = first camera until the tracked"
+                         " path gives the gyro bias and gravity")
             self._gyro.feed_and_integrate(imu, frame.t_ns, frame.t_ns)
             if self.cfg.gyro.estimate_bias:
                 self._bias = VisionGyroBias(bias0, sigma0, window_s=GYRO_BIAS_WINDOW_S)
