@@ -107,6 +107,12 @@ def run_estimator(estimator: Estimator, frames: Iterable[StereoFrame], imu: ImuS
     close = getattr(estimator, "close", None)
     if close is not None:
         close()
+    rebase = getattr(estimator, "world_rebase", None)
+    if rebase is not None:  # the world was redefined during the run: the poses given before, in the new one
+        seq, G = rebase
+        for e in estimates:
+            if e.seq < seq:
+                e.T_world_cam = G @ e.T_world_cam
     extra = getattr(estimator, "stats", lambda: {})()
     extra["frames_in"] = len(frame_ms)
     return EstimateRun(estimates, frame_ms, estimator.world_frame, estimator.name, extra=extra)

@@ -151,6 +151,13 @@ class VisionGyroBias:
         """Forget the window's gyro steps (the caller starts it at a new tracked pose)."""
         self._R_gyro, self._A, self._T = np.eye(3), np.zeros((3, 3)), 0.0
 
+    def reset(self, bias_rad_s: np.ndarray, sigma_rad_s: float) -> None:
+        """A bias measured otherwise, with its spread: the estimate and the window restart there (the
+        counts are kept)."""
+        self.bias = np.asarray(bias_rad_s, float).copy()
+        self.var = float(sigma_rad_s) ** 2
+        self.restart()
+
     def add(self, R_step_body: np.ndarray, dt_s: float) -> None:
         """The gyro's body rotation from the previous tracked frame to this one (current bias)."""
         R_step_body = np.asarray(R_step_body, float)

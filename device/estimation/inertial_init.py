@@ -176,3 +176,74 @@ def gravity_from_still_frames(imu: ImuSamples, t_ns: np.ndarray, T_world_body: n
         if f is not None and abs(np.linalg.norm(f) - GRAVITY_M_S2) <= MAX_STILL_ACCEL_DEV_M_S2:
             return -(T[frames[len(frames) // 2], :3, :3] @ f)
     return None
+
+
+def preintegrate(imu: ImuSamples, t0: int, t1: int, gyro_bias_rad_s: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The gravity-free increments ``(dp, dv)`` over ``[t0, t1]`` (ns) in the body frame at ``t0``: the
+    accelerometer integrated twice through the gyro's rotation at ``gyro_bias_rad_s`` (accelerometer
+    bias zero), piecewise-linear samples; None when the samples do not cover the interval."""
+    blk = imu.between(t0 - 50_000_000, t1 + 50_000_000)
+    if len(blk) < 2 or blk.t_ns[0] > t0 + 5_000_000 or blk.t_ns[-1] < t1 - 5_000_000:
+        return None
+    t = blk.t_ns.astype(np.int64)
+    wm, dt = midpoint_rates(t, blk.gyro_rad_s - np.asarray(gyro_bias_rad_s, float), t0, t1)
+    am, _ = midpoint_rates(t, blk.accel_m_s2, t0, t1)
+    R, dp, dv = np.eye(3), np.zeros(3), np.zeros(3)
+    for w, a, d in zip(wm, am, dt):
+        step = so3_exp(w * d)
+        Ra = R @ (so3_exp(0.5 * w * d) @ a)  # the specific force at the step's middle rotation
+        dp = dp + dv * d + 0.5 * Ra * d * d
+        dv = dv + Ra * d
+        R = R @ step
+    return dp, dv
+
+
+START_MIN_SPAN_S = 1.0  # the path measured before the start is solved: at least this long ...
+START_MIN_INTERVALS = 4  # ... in at least this many intervals
+START_INTERVAL_S = 0.2  # poses closer than this to the previous one used are skipped
+MAX_START_GRAVITY_DEV_M_S2 = 0.4  # the solved gravity: 1 g within this
+MAX_START_RMS_M = 0.0015  # the increments' position residual per interval at the solution
+MAX_START_BIAS_SIGMA_RAD_S = 0.005  # the gyro bias fit's formal standard deviation
+
+
+@dataclass(frozen=True)
+class StartFit:
+    """A start in motion, solved from the path: the gyro bias and gravity (in the path's world)."""
+
+    gyro: GyroBiasFit
+    gravity: GravityFit
+
+    @property
+    def gravity_dev_m_s2(self) -> float:
+        return abs(float(np.linalg.norm(self.gravity.gravity_world)) - GRAVITY_M_S2)
+
+
+def start_from_path(imu: ImuSamples, t_ns: np.ndarray, T_world_body: np.ndarray) -> StartFit | None:
+    """Gyro bias, then gravity (increments preintegrated with that bias), from body poses ``T_world_body``
+    ((K, 4, 4), metric) at times ``t_ns``: poses at least :data:`START_INTERVAL_S` apart are chained.
+    None when the path is too short (:data:`START_MIN_SPAN_S`, :data:`START_MIN_INTERVALS`) or a fit
+    does not pass its checks (gravity's norm, the position residual, the bias's spread): the caller
+    tries again with a longer path."""
+    t_ns = np.asarray(t_ns, np.int64)
+    keep = [0]
+    for k in range(1, len(t_ns)):
+        if (t_ns[k] - t_ns[keep[-1]]) * 1e-9 >= START_INTERVAL_S:
+            keep.append(k)
+    if len(keep) < START_MIN_INTERVALS + 1 or (t_ns[keep[-1]] - t_ns[keep[0]]) * 1e-9 < START_MIN_SPAN_S:
+        return None
+    t_kf, T = t_ns[keep], np.asarray(T_world_body, float)[keep]
+    gyro = gyro_bias_from_path(imu, t_kf, T[:, :3, :3])
+    if gyro is None or gyro.sigma_rad_s > MAX_START_BIAS_SIGMA_RAD_S:
+        return None
+    increments = []
+    for i in range(len(t_kf) - 1):
+        inc = preintegrate(imu, int(t_kf[i]), int(t_kf[i + 1]), gyro.bias_rad_s)
+        if inc is not None:
+            increments.append((i, i + 1, *inc))
+    gravity = gravity_from_path(t_kf, T, increments)
+    if gravity is None:
+        return None
+    fit = StartFit(gyro, gravity)
+    if fit.gravity_dev_m_s2 > MAX_START_GRAVITY_DEV_M_S2 or gravity.rms_m > MAX_START_RMS_M:
+        return None
+    return fit

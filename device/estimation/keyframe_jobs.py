@@ -21,6 +21,7 @@ import threading
 from concurrent.futures import Future
 from dataclasses import dataclass
 from enum import Enum
+from typing import Callable, Generic, TypeVar
 
 import cv2
 import numpy as np
@@ -34,6 +35,8 @@ from stereopath.device.estimation.local_window import WindowJob, WindowResult
 from stereopath.device.estimation.stereo_measure import StereoMeasure
 
 log = logging.getLogger(__name__)
+
+ResultT = TypeVar("ResultT")
 
 MAX_SIMULATED_TILT = 4.0  # larger predicted view changes are simulated at this tilt (latitude ~76 deg)
 
@@ -102,10 +105,10 @@ class Submitted(Enum):
     DROPPED = "dropped"  # one running and one waiting that had started: not queued
 
 
-class Ready:
+class Ready(Generic[ResultT]):
     """A finished result with the Future interface (the synchronous mode)."""
 
-    def __init__(self, value: KeyframeResult | None) -> None:
+    def __init__(self, value: ResultT) -> None:
         self._value = value
 
     def done(self) -> bool:
@@ -114,7 +117,7 @@ class Ready:
     def cancel(self) -> bool:
         return False
 
-    def result(self) -> KeyframeResult | None:
+    def result(self) -> ResultT:
         return self._value
 
 
@@ -243,6 +246,13 @@ class KeyframeWorker:
         if self._executor is not None:
             self._executor.shutdown(wait=True)
             self._executor = None
+
+    def run_aside(self, fn: Callable[[], ResultT]) -> Future | Ready:
+        """Other keyframe-rate work (``fn``, pure compute on copies) on the worker thread after the jobs
+        queued, or in line without a worker thread; the caller polls its ``done()``."""
+        if self._executor is None:
+            return Ready(fn())
+        return self._executor.submit(fn)
 
     def features(self, img: np.ndarray, views: list[int] | None = None) -> Features:
         from stereopath.device.core.features import detect, get_preset

@@ -82,6 +82,8 @@ class StereoStats:
     exposure_corrected_frames: int = 0
     gyro_bias_updates: int = 0
     gyro_bias_rejected: int = 0
+    start_solves: int = 0  # a start in motion: solves of gyro bias and gravity handed to the worker ...
+    start_solved_frame: int = -1  # ... and the frame whose live state the solved one moved (-1: none)
     right_gain_milli: int = 1000  # the right camera's grey levels in the left's: gain (x 1000) ...
     right_offset_centi: int = 0  # ... and offset (x 100)
     disparity_offset_mpx: int = 0  # the disparity offset in use (millipixels)

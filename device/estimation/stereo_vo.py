@@ -24,8 +24,7 @@ from stereopath.device.estimation.base import PoseEstimate, TrackStatus, WorldFr
 from stereopath.device.estimation.inertial import (GyroIntegrator, VisionGyroBias, estimate_still,
                                                    gravity_aligned_rotation)
 from stereopath.device.core.features import gray
-from stereopath.device.core.photometric import (GainOffset, correct_right, fit_gain_offset, measure_relation,
-                                                relation_matters)
+from stereopath.device.core.photometric import measure_relation
 from stereopath.device.core.stereo import stereo_right
 from stereopath.device.core.scaled_klt import track_scaled
 from stereopath.device.estimation.disparity_offset import (KeyframeObservations, OffsetFilter, PriorPath,
@@ -34,6 +33,8 @@ from stereopath.device.estimation.offset_window import offset_over_keyframes
 from stereopath.device.estimation.keyframe_jobs import KeyframeJob, KeyframeWorker, Submitted
 from stereopath.device.estimation.live_state import LiveState, StereoStats
 from stereopath.device.estimation.local_window import WindowKeyframes
+from stereopath.device.estimation.moving_start import MovingStart
+from stereopath.device.estimation.right_exposure import RightExposure
 from stereopath.device.estimation.stereo_measure import StereoMeasure
 from stereopath.device.estimation.tracked_map import TrackedMap
 from stereopath.device.core.frames import ImuSamples, StereoFrame
@@ -85,8 +86,7 @@ class StereoEstimator:
         self._t_prev: int | None = None
         self._dt_prev: float | None = None
         self._prev_left: np.ndarray | None = None  # the last tracked image (its camera's pose: T_prev_left)
-        self._exposure: GainOffset | None = None  # the right camera's grey levels -> the left's, when it matters
-        self._exposure_fits: list[GainOffset] = []  # the last fits (used or not)
+        self._exposure = RightExposure(self.cfg.exposure.tolerance, self.counts)  # the right camera's grey levels
         self._asift_frame = -(10**9)  # the frame of the last keyframe whose ASIFT work was submitted
         self._offset = OffsetFilter(prior=float(self.cfg.disparity_offset.prior_px))
         # keyframe pairs measured with the prior offset, kept until the offset is first learned
@@ -98,6 +98,8 @@ class StereoEstimator:
         self._failures = 0
         self._gyro: GyroIntegrator | None = None
         self._bias: VisionGyroBias | None = None
+        self._start: MovingStart | None = None  # a start in motion, until the path gives gyro bias and gravity
+        self.world_rebase: tuple[int, np.ndarray] | None = None  # see MovingStart: (frame seq, motion)
         self._gyro_step: tuple[np.ndarray, float] | None = None  # the gyro's body rotation over the last frame
         self._R_body_cam = None if rig.T_body_cam0 is None else rig.T_body_cam0[:3, :3]
         self._klt = dict(winSize=(self.cfg.klt.klt_window, self.cfg.klt.klt_window), maxLevel=self.cfg.klt.klt_levels,
@@ -126,7 +128,7 @@ class StereoEstimator:
         self._cur_seq = frame.seq
         if self._state.T_world_cam is None:
             return self._initialise(frame, left, right, imu)
-        img = StereoImages(left, self._exposure_corrected(right), right)
+        img = StereoImages(left, self._exposure.corrected(right), right)
         self._join_keyframe_work()
         dt = (frame.t_ns - self._t_prev) * 1e-9
         T_pred, have_rot_prior = self._predict(frame.t_ns, dt, imu)
@@ -134,6 +136,8 @@ class StereoEstimator:
             self._window.gyro_step(self._gyro_step, self._R_body_cam)
         est = self._track(frame, img, T_pred, have_rot_prior)
         self._refine_gyro_bias(est)
+        if self._start is not None:
+            self.counts.start_solves += self._start.feed(est, imu, self._worker)
         self._state.T_prev_prev = self._state.T_world_cam
         self._state.T_world_cam = est.T_world_cam
         self._t_prev = frame.t_ns
@@ -158,6 +162,26 @@ class StereoEstimator:
         if self._pending_G is not None:  # the path since the start, re-measured with the learned offset
             st.apply(self._pending_G)
             self._pending_G = None
+        if self._start is not None:
+            self._take_moving_start()
+
+    def _take_moving_start(self) -> None:
+        """A start in motion, once solved: the gyro bias, and one rotation of the live state about the
+        world's origin that makes the world gravity aligned as a still start would have."""
+        st = self._state
+        solved = self._start.poll()
+        if solved is None:
+            return
+        self._start = None
+        if self._bias is not None:  # the gyro bias estimated on line (gyro.estimate_bias)
+            self._gyro.bias = solved.fit.gyro.bias_rad_s.copy()
+            self._bias.reset(solved.fit.gyro.bias_rad_s, max(solved.fit.gyro.sigma_rad_s, STILL_BIAS_SIGMA_RAD_S))
+            st.T_bias_start = None if st.T_bias_start is None else st.T_world_cam.copy()
+        G = solved.leveling(st.C[:3, :3], self._R_body_cam)
+        st.apply(G)  # and the offset window's starting poses, which its motions start from
+        self._offset_views = deque([(i, b, G @ T) for i, b, T in self._offset_views], maxlen=self._offset_views.maxlen)
+        self.world_frame, self.world_rebase = "gravity_aligned", (self._cur_seq, G)
+        self.counts.start_solved_frame = self._cur_seq
 
     # ------------------------------------------------------------------ stages
 
@@ -177,8 +201,10 @@ class StereoEstimator:
             else:
                 self._gyro = GyroIntegrator(None)
                 bias0, sigma0 = None, UNKNOWN_BIAS_SIGMA_RAD_S
-                log.warning("IMU not still before the first frame: gyro bias unknown until vision measures it"
-                            " (estimate_gyro_bias), world frame = first camera")
+                self._start = MovingStart(self.rig.T_body_cam0)
+                self._start.add_imu(imu)
+                log.info("IMU not still before the first frame: world frame = first camera until the tracked"
+                         " path gives the gyro bias and gravity")
             self._gyro.feed_and_integrate(imu, frame.t_ns, frame.t_ns)
             if self.cfg.gyro.estimate_bias:
                 self._bias = VisionGyroBias(bias0, sigma0, window_s=GYRO_BIAS_WINDOW_S)
@@ -192,10 +218,12 @@ class StereoEstimator:
             xy = self._corners(left, np.full(left.shape[:2], 255, np.uint8), self.cfg.keyframes.max_points)
             if len(xy):
                 z0 = self._default_depth()
-                self._use_exposure_fit(measure_relation(
+                self._exposure.take(measure_relation(
                     left, right, xy, lambda image: self._geo.stereo_points(left, image, xy, z0)[::2]))
-        n = self._new_keyframe(StereoImages(left, self._exposure_corrected(right), right), T)
+        n = self._new_keyframe(StereoImages(left, self._exposure.corrected(right), right), T)
         status = TrackStatus.OK if n >= self.cfg.geometry.min_pnp_inliers else TrackStatus.LOST
+        if self._start is not None and status is TrackStatus.OK:
+            self._start.add_pose(frame.t_ns, T)
         return PoseEstimate(frame.seq, frame.t_ns, T.copy(), status, inliers=n, keyframe=True,
                             note="" if status is TrackStatus.OK else "no_stereo_points")
 
@@ -245,7 +273,7 @@ class StereoEstimator:
                     note = "pose_failed"
                     continue
                 if pairs:  # the cameras' exposure, measured at every frame
-                    self._fit_exposure(left, img.right_raw, *pairs[0])
+                    self._exposure.fit(left, img.right_raw, *pairs[0])
                 m.uv = uv_new.astype(np.float32)
                 m.keep(good)
                 m.keep(inl)
@@ -416,7 +444,7 @@ class StereoEstimator:
             # corners (not SIFT keypoints) become tracked map points, up to max_points
             sel = np.flatnonzero(ok)[: max(0, need)]
         if cfg.exposure.match:
-            self._fit_exposure(left, img.right_raw, np.vstack([seen[0], cands_all[sel]]), np.vstack([seen[1], uvr[sel]]))
+            self._exposure.fit(left, img.right_raw, np.vstack([seen[0], cands_all[sel]]), np.vstack([seen[1], uvr[sel]]))
         new_ids = np.arange(self._next_id, self._next_id + len(sel), dtype=np.int64)
         self._next_id += len(sel)
         m.X = np.vstack([m.X, Xw[sel]])
@@ -483,34 +511,6 @@ class StereoEstimator:
         c = cv2.goodFeaturesToTrack(left, maxCorners=n, qualityLevel=0.005,
                                     minDistance=NEW_CORNER_SPACING_PX, mask=mask, blockSize=5)
         return np.zeros((0, 2), np.float32) if c is None else c.reshape(-1, 2).astype(np.float32)
-
-    def _exposure_corrected(self, right: np.ndarray) -> np.ndarray:
-        """``right`` in the left camera's grey levels when the two cameras differ."""
-        if self._exposure is None:
-            return right
-        self.counts.exposure_corrected_frames += 1
-        return correct_right(right, self._exposure)
-
-    def _fit_exposure(self, left: np.ndarray, right_raw: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray) -> None:
-        """Re-measure the right camera's grey levels against the left's on these stereo matches (the median
-        of the last fits); the correction is used from the next frame if it matters, dropped if it no
-        longer does, kept if these matches do not identify it."""
-        self._use_exposure_fit(fit_gain_offset(left, right_raw, xy_left, xy_right))
-
-    def _use_exposure_fit(self, rel: GainOffset | None) -> None:
-        """Take one fit into the median of the last five; None (not identifiable) changes nothing."""
-        if rel is None:
-            return
-        # one fit is noisy: the median of the last five (a fit at every tracked frame, on the pose solve's
-        # right-image matches, and one at each keyframe), a quarter of a second at 20 Hz, so two AGCs that
-        # disagree from moment to moment are followed; fits at keyframes alone would lag behind them
-        self._exposure_fits = (self._exposure_fits + [rel])[-5:]
-        med = np.median([(f.gain, f.offset, f.change) for f in self._exposure_fits], axis=0)
-        rel = GainOffset(float(med[0]), float(med[1]), rel.n, float(med[2]))
-        self.counts.exposure_fits += 1
-        self.counts.right_gain_milli = int(round(1000 * rel.gain))
-        self.counts.right_offset_centi = int(round(100 * rel.offset))
-        self._exposure = rel if relation_matters(rel, self.cfg.exposure.tolerance) else None
 
     def _observe_map(self, img: StereoImages, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Stereo of the tracked points at this keyframe: the running mean of each point's
