@@ -93,7 +93,31 @@ class AslSequence(SequenceBase):
         if self.session_dir is None:
             return None
         p = self.session_dir / layout.TRAJECTORY
-        return read_tum_poses(p, torn_tail_ok=True) if p.is_file() else None
+        if not p.is_file():
+            return None
+        return rebased_trajectory(read_tum_poses(p, torn_tail_ok=True), self.session_dir / "estimator.json")
+
+
+def rebased_trajectory(traj: Trajectory, estimator_json: Path) -> Trajectory:
+    """The recorded path in one world: when the on-board estimator levelled its world during the session
+    (``world_rebase`` in ``estimator.json``: a start in motion), the poses recorded before it are mapped."""
+    if not estimator_json.is_file():
+        return traj
+    try:
+        info = json.loads(estimator_json.read_text())
+        rebase = info.get("world_rebase") if isinstance(info, dict) else None
+        if rebase is None:
+            return traj
+        G = np.asarray(rebase["T_new_old"], float)
+        t0 = int(rebase["from_t_ns"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise DatasetError(f"{estimator_json}: unreadable world_rebase ({exc})") from None
+    if G.shape != (4, 4) or not np.isfinite(G).all():
+        raise DatasetError(f"{estimator_json}: world_rebase.T_new_old is not a finite 4x4 matrix")
+    T = traj.T_world_cam.copy()
+    before = traj.t_ns < t0
+    T[before] = G @ T[before]
+    return Trajectory(traj.t_ns, T)
 
 
 def open_asl(mav0_dir: str | Path, spec: str | None = None) -> AslSequence:

@@ -44,6 +44,9 @@ class PipelineCounters:
     stage_ms: dict[str, float] = field(default_factory=dict)  # average time per frame of each stage (ms)
     # the estimator's own time per frame (ms), kept for the session's estimator.json
     estimate_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=200_000))
+    # the estimator redefined its world (a start in motion, levelled once): poses given before this frame
+    # time are in the earlier world, ``T_new_old`` maps them (kept for the session's estimator.json)
+    world_rebase: dict[str, object] | None = None
 
     def average(self, stage: str, seconds: float) -> None:
         """Exponential average of a stage's time per frame (ms)."""
@@ -167,6 +170,8 @@ class FramePipeline:
             return
         c.last_estimate = est
         c.frames_done += 1
+        if c.world_rebase is None:
+            self._note_world_rebase(frame)
         c.tracked_frames += est.status is TrackStatus.OK
         c.keyframes += bool(est.keyframe)
         for sink in self.sinks:
@@ -174,6 +179,17 @@ class FramePipeline:
             sink.add_estimate(frame, est)
             spent[sink.name] += time.perf_counter() - t0
         self._note_times(spent)
+
+    def _note_world_rebase(self, frame: StereoFrame) -> None:
+        """The estimator levelled its world at this frame: the poses recorded and streamed before it are
+        in the earlier world; the session's estimator.json says how to map them."""
+        rebase = getattr(self.estimator, "world_rebase", None)
+        if rebase is None:
+            return
+        _, G = rebase
+        self.counters.world_rebase = {"from_t_ns": int(frame.t_ns), "T_new_old": [[float(v) for v in row] for row in G]}
+        log.info("world frame levelled at frame %d: poses before it are in the first camera's world "
+                 "(estimator.json world_rebase maps them)", frame.seq)
 
     def _note_times(self, spent: dict[str, float]) -> None:
         for name, seconds in spent.items():
@@ -199,6 +215,7 @@ class FramePipeline:
             "estimator": getattr(self.estimator, "name", "?"),
             "world_frame": getattr(self.estimator, "world_frame", "first_camera"),
             "frames": int(c.frames_done), "frames_tracked": int(c.tracked_frames),
+            **({"world_rebase": c.world_rebase} if c.world_rebase is not None else {}),
             "median_frame_ms": float(np.median(ms)), "p95_frame_ms": float(np.percentile(ms, 95)),
             "stats": {k: v for k, v in stats.items() if isinstance(v, (int, float, bool, str))},
             "frame_ms": [round(float(v), 3) for v in ms],

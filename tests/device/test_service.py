@@ -172,3 +172,64 @@ def test_capture_failure_exits_1_with_one_log_line(tmp_path, caplog):
     status = json.loads((tmp_path / "status.json").read_text())
     assert status["state"] == "failed" and "left camera silent" in status["last_error"]
     assert open_source(f"session:{tmp_path / 's'}").manifest["status"] == "closed"
+
+
+class _LevellingEstimator(FakeEstimator):
+    """Levels its world once at its 5th frame (as a start in motion does): the poses before it were given in
+    the first camera's world, the later ones in the levelled world."""
+
+    world_frame = "first_camera"
+
+    def __init__(self) -> None:
+        super().__init__()
+        import numpy as np
+
+        from stereopath.device.core.geometry import make_pose, so3_exp
+
+        self.G = make_pose(so3_exp(np.array([0.3, -0.1, 0.05])), np.zeros(3))
+        self.world_rebase = None
+
+    def process(self, frame, imu):
+        est = super().process(frame, imu)
+        if len(self.frames) >= 5:
+            est.T_world_cam = self.G @ est.T_world_cam
+            if self.world_rebase is None:
+                self.world_rebase, self.world_frame = (frame.seq, self.G), "gravity_aligned"
+        return est
+
+
+def test_a_world_levelled_during_the_run_is_recorded_and_the_path_reads_in_one_world(tmp_path):
+    import numpy as np
+
+    cfg_path = write_toml(tmp_path / "device.toml", sim_tables(tmp_path))
+    opts = RunOptions(frames=12, out=str(tmp_path / "s"))
+    estimator = _LevellingEstimator()
+    service = CaptureService(load_config(cfg_path, opts), opts, cfg_path, environ={}, seams=RunSeams(estimator=estimator))
+    assert service.run() == 0
+    info = json.loads((tmp_path / "s" / "estimator.json").read_text())
+    seq = open_source(f"session:{tmp_path / 's'}")
+    raw = read_tum(tmp_path / "s" / "trajectory.tum")
+    assert info["world_frame"] == "gravity_aligned"
+    assert info["world_rebase"]["from_t_ns"] == int(raw.t_ns[4])
+    np.testing.assert_allclose(info["world_rebase"]["T_new_old"], estimator.G, atol=1e-12)
+    # as recorded, the first four poses are in the first camera's world; read back, all are in the new one
+    traj = seq.trajectory
+    expect = np.stack([estimator.G @ np.r_[np.c_[np.eye(3), [0.01 * k, 0, 0]], [[0, 0, 0, 1]]] for k in range(1, 13)])
+    np.testing.assert_allclose(traj.T_world_cam, expect, atol=1e-6)
+    assert not np.allclose(raw.T_world_cam[:4], expect[:4], atol=1e-3)
+
+
+def test_an_unreadable_world_rebase_is_named(tmp_path):
+    import numpy as np
+
+    from stereopath.device.errors import DatasetError
+    from stereopath.device.formats.asl import rebased_trajectory
+    from stereopath.device.formats.tum import Trajectory
+
+    traj = Trajectory(np.arange(3, dtype=np.int64), np.stack([np.eye(4)] * 3))
+    p = tmp_path / "estimator.json"
+    p.write_text(json.dumps({"world_rebase": {"from_t_ns": 1, "T_new_old": [[1, 0], [0, 1]]}}))
+    with pytest.raises(DatasetError, match="world_rebase"):
+        rebased_trajectory(traj, p)
+    p.write_text(json.dumps({"frames": 3}))
+    assert rebased_trajectory(traj, p) is traj
