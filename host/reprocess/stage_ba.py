@@ -123,14 +123,16 @@ def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list,
     """Bundle adjustment of the keyframes (a ``BAResult``); EstimationError when there is too little."""
     from stereopath.host.backend.ba_common import BAProblem
     from stereopath.host.backend.gtsam_ba import bundle_adjust
-    from stereopath.host.backend.windowed_ba import BATCH_KEYFRAMES, adjust_in_windows, window_starts
+    from stereopath.host.backend.windowed_ba import BATCH_KEYFRAMES, WindowCheckpoint, adjust_in_windows, window_starts
 
     trk = inputs.results["tracks"]
     points = {int(i): x for i, x in zip(trk["point_ids"], trk["point_xyz"])}
     problem = BAProblem(trk["T_kf"], points, trk["observations"], loops=loops_of(trk), imu=imu)
     if len(trk["T_kf"]) > BATCH_KEYFRAMES:  # a long session: windows of keyframes, memory independent of its length
         with Bar(len(window_starts(len(trk["T_kf"]))), "bundle adjustment", inputs.progress, "window") as tick:
-            return adjust_in_windows(inputs.seq.rig, problem, config.ba, priors, on_window=tick)
+            # each window's outcome is stored: a stage interrupted on a long session resumes after the last one
+            store = None if inputs.parts is None else WindowCheckpoint(inputs.parts)
+            return adjust_in_windows(inputs.seq.rig, problem, config.ba, priors, on_window=tick, checkpoint=store)
     bar = progress_bar(config.ba.max_iterations * (1 + config.ba.outlier_rounds), "bundle adjustment",
                        inputs.progress, "iteration")
     try:

@@ -94,3 +94,57 @@ def test_a_loop_back_to_an_earlier_window_holds_that_keyframe_in_the_window(smal
         assert pb.n_fixed == 1 + windowed_ba.OVERLAP and [(lp.i, lp.j) for lp in pb.loops] == [(0, 1 + 39 - s)]
         assert pb.observations[:, 0].min() >= 1  # the anchor has no observations of its own
     assert np.abs(res.T_world_cam[2] - T_true[2]).max() < 2e-3
+
+
+class _Interrupted(Exception):
+    pass
+
+
+def test_windows_interrupted_resume_after_the_last_stored_window_with_the_same_result(small_windows, monkeypatch,
+                                                                                     tmp_path):
+    """A run stopped in its third window resumes from the two stored ones (solving only the windows after
+    them) and ends where a run without interruption ends, bit for bit."""
+    from stereopath.host.backend import gtsam_ba
+
+    rng = np.random.default_rng(13)
+    rig, T_true, pts, obs = _corridor(rng, n_kf=72, n_pts=600)
+    T_noisy, pts_noisy = _perturbed(rng, T_true, pts, 0.002, 0.005, 0.01)
+    loop = Loop(3, 66, invert_pose(T_true[3]) @ T_true[66], 100, 100, 1e-4, 1e-4, 0.0)
+    problem = BAProblem(T_noisy, pts_noisy, obs, [loop])
+    cfg = BAConfig(disparity_offset=True)
+    n_windows = len(windowed_ba.window_starts(72))
+    assert n_windows >= 4
+    whole = windowed_ba.adjust_in_windows(rig, problem, cfg)
+
+    solve, calls = gtsam_ba.bundle_adjust, []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise _Interrupted
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(gtsam_ba, "bundle_adjust", failing)
+    store = windowed_ba.WindowCheckpoint(tmp_path / "parts")
+    with pytest.raises(_Interrupted):
+        windowed_ba.adjust_in_windows(rig, problem, cfg, checkpoint=store)
+    ticks: list[int] = []
+    calls.clear()
+    resumed = windowed_ba.adjust_in_windows(rig, problem, cfg, on_window=ticks.append, checkpoint=store)
+    assert len(calls) == n_windows - 2 and sum(ticks) == n_windows and ticks[0] == 2
+    assert np.array_equal(resumed.T_world_cam, whole.T_world_cam)
+    assert resumed.points.keys() == whole.points.keys()
+    assert all(np.array_equal(resumed.points[i], whole.points[i]) for i in whole.points)
+    assert (resumed.rms_after_px, resumed.iterations, resumed.history, resumed.disparity_offset_px) == \
+        (whole.rms_after_px, whole.iterations, whole.history, whole.disparity_offset_px)
+
+
+def test_a_checkpoint_of_another_problem_is_not_resumed(small_windows, tmp_path):
+    rng = np.random.default_rng(14)
+    rig, T_true, pts, obs = _corridor(rng, n_kf=40, n_pts=300)
+    store = windowed_ba.WindowCheckpoint(tmp_path)
+    cfg = BAConfig(disparity_offset=False)
+    windowed_ba.adjust_in_windows(rig, BAProblem(T_true, pts, obs), cfg, checkpoint=store)
+    assert store.load(40, pts) is not None and store.load(41, pts) is None
+    store.path.write_bytes(b"not an npz")
+    assert store.load(40, pts) is None
