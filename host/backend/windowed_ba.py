@@ -5,15 +5,22 @@ elimination factor at once: its memory grows with the scan (about 17 MB per keyf
 simulated table scan).  Up to :data:`BATCH_KEYFRAMES` keyframes the batch runs as it is (the reference);
 above, :func:`adjust_in_windows`:
 
-windows of :data:`WINDOW` consecutive keyframes, each overlapping the last by :data:`OVERLAP`, are
+the verified loops are first closed on the whole path by a pose graph
+(:func:`stereopath.host.backend.gtsam_ba.pose_graph`: the keyframes' relative motion and the loops,
+poses only, a few MB at any length), so that the windows start from a path without the drift the loops
+measured; then windows of :data:`WINDOW` consecutive keyframes, each overlapping the last by :data:`OVERLAP`, are
 adjusted one after another (the same solver on the window's observations, loops, rotation priors and
-IMU terms); the overlap's poses are held where the last window put them, so the windows join without a
-seam, and only one window's problem is in memory at a time.  A loop from a window's keyframe back to an
+IMU terms); the first :data:`HELD` keyframes of the overlap are held where the last window put them, so
+the windows join without a seam, and the rest of the overlap is adjusted again: the last window had
+them at its end, seen from one side only, and this window sees them from both, at no extra cost.  Only one window's problem is in memory at a time, and its memory is handed back
+to the system before the next.  A loop from a window's keyframe back to an
 earlier one brings that keyframe in, held where its window put it (an anchor): the loop pulls the new
 window onto the path already adjusted instead of letting the windows drift apart.  The disparity offset
 is estimated in the first window and held after it.
 
-``on_window(n)`` after each window: a progress bar with a remaining-time estimate.
+``on_window(n)`` after each window: a progress bar with a remaining-time estimate.  Each window's outcome
+can be stored (:class:`WindowCheckpoint`): an adjustment interrupted on a long session resumes after
+the last window stored, with the result a run without interruption gives.
 """
 
 from __future__ import annotations
@@ -42,7 +49,8 @@ log = logging.getLogger(__name__)
 
 BATCH_KEYFRAMES = 80  # up to this many keyframes: one batch adjustment
 WINDOW = 48  # keyframes per window above it ...
-OVERLAP = 24  # ... of which this many are the last window's, held
+OVERLAP = 24  # ... of which this many are the last window's ...
+HELD = 8  # ... and the first this many of them held (the others adjusted again, now with neighbours on both sides)
 
 
 def window_starts(n_keyframes: int) -> list[int]:
@@ -202,7 +210,7 @@ def _adjust_window(rig: Rig, problem: BAProblem, config: BAConfig, priors: Seque
     # first pose's tilt was settled in the first window)
     T_w = np.concatenate([T[list(win.anchors)].reshape(-1, 4, 4), T[s:e]])
     pb = BAProblem(T_w, prog.points, o, _loops_window(loops, win), _imu_window(problem.imu, win),
-                   n_fixed=na + (problem.n_fixed if w == 0 else OVERLAP), disparity_offset_px=prog.offset,
+                   n_fixed=na + (problem.n_fixed if w == 0 else HELD), disparity_offset_px=prog.offset,
                    held_may_tilt=problem.held_may_tilt and w == 0 and na == 0)
     try:
         res = bundle_adjust(rig, pb, cfg, _priors_window(priors, win))
@@ -244,6 +252,10 @@ def adjust_in_windows(rig: Rig, problem: BAProblem, config: BAConfig, priors: Se
         if on_window is not None and prog.done:
             on_window(prog.done)
     else:
+        if problem.loops:  # the loops closed on the whole path first: the windows start from a consistent one
+            from stereopath.host.backend.gtsam_ba import pose_graph
+
+            T = pose_graph(T, list(problem.loops))
         prog = _Progress(T, dict(problem.points), set(), float(problem.disparity_offset_px), config.disparity_offset,
                          np.full((len(T), 6), np.nan) if problem.imu is not None else None)
     for w in range(prog.done, len(starts)):

@@ -144,11 +144,12 @@ def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list,
 
 def solver_stats(n_keyframes: int) -> dict[str, Any]:
     """How the keyframes were adjusted, for a session above the batch's length (nothing below it)."""
-    from stereopath.host.backend.windowed_ba import BATCH_KEYFRAMES, OVERLAP, WINDOW, window_starts
+    from stereopath.host.backend.windowed_ba import BATCH_KEYFRAMES, HELD, OVERLAP, WINDOW, window_starts
 
     if n_keyframes <= BATCH_KEYFRAMES:
         return {}
-    return {"solver": {"windows": len(window_starts(n_keyframes)), "window_keyframes": WINDOW, "overlap": OVERLAP}}
+    return {"solver": {"windows": len(window_starts(n_keyframes)), "window_keyframes": WINDOW, "overlap": OVERLAP,
+                       "held": HELD, "loops_closed_first": True}}
 
 
 def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.ndarray,

@@ -43,9 +43,10 @@ def test_windows_cover_every_keyframe_and_overlap(n):
 
 @pytest.fixture
 def small_windows(monkeypatch):
-    """Windows of 24 keyframes overlapping by 8: several on a 40-keyframe problem."""
+    """Windows of 24 keyframes overlapping by 8, the first 4 held: several on a 40-keyframe problem."""
     monkeypatch.setattr(windowed_ba, "WINDOW", 24)
     monkeypatch.setattr(windowed_ba, "OVERLAP", 8)
+    monkeypatch.setattr(windowed_ba, "HELD", 4)
 
 
 def test_windows_recover_the_poses_a_batch_recovers(small_windows):
@@ -91,7 +92,7 @@ def test_a_loop_back_to_an_earlier_window_holds_that_keyframe_in_the_window(smal
             assert not pb.loops and len(pb.T_world_cam) == windowed_ba.WINDOW
             continue
         assert len(pb.T_world_cam) == windowed_ba.WINDOW + 1 and np.allclose(pb.T_world_cam[0], T_true[2], atol=2e-3)
-        assert pb.n_fixed == 1 + windowed_ba.OVERLAP and [(lp.i, lp.j) for lp in pb.loops] == [(0, 1 + 39 - s)]
+        assert pb.n_fixed == 1 + windowed_ba.HELD and [(lp.i, lp.j) for lp in pb.loops] == [(0, 1 + 39 - s)]
         assert pb.observations[:, 0].min() >= 1  # the anchor has no observations of its own
     assert np.abs(res.T_world_cam[2] - T_true[2]).max() < 2e-3
 
@@ -148,3 +149,27 @@ def test_a_checkpoint_of_another_problem_is_not_resumed(small_windows, tmp_path)
     assert store.load(40, pts) is not None and store.load(41, pts) is None
     store.path.write_bytes(b"not an npz")
     assert store.load(40, pts) is None
+
+
+def test_the_windows_start_from_the_path_with_its_loops_closed(small_windows, monkeypatch):
+    """A path drifting along its length with a loop back to its start: the first window is handed the
+    loop-closed path (the pose graph's), whose far end the loop has pulled back towards the truth."""
+    from stereopath.host.backend import gtsam_ba
+
+    rng = np.random.default_rng(15)
+    rig, T_true, pts, obs = _corridor(rng, n_pts=300)
+    drift = np.array([make_pose(np.eye(3), [0.0, 0.0, 0.0005 * k]) for k in range(40)])  # 2 cm at the end
+    T_drift = np.einsum("nij,njk->nik", drift, T_true)
+    loop = Loop(2, 39, invert_pose(T_true[2]) @ T_true[39], 100, 100, 1e-4, 1e-4, 0.0)
+    seen = []
+    solve = gtsam_ba.bundle_adjust
+
+    def spy(rig, problem, config, priors=(), on_iteration=None):
+        seen.append(problem.T_world_cam.copy())
+        return solve(rig, problem, config, priors, on_iteration)
+
+    monkeypatch.setattr(gtsam_ba, "bundle_adjust", spy)
+    windowed_ba.adjust_in_windows(rig, BAProblem(T_drift, pts, obs, [loop]), BAConfig(disparity_offset=False))
+    closed = gtsam_ba.pose_graph(T_drift, [loop])
+    assert np.allclose(seen[0], closed[:windowed_ba.WINDOW])
+    assert abs(closed[39][2, 3] - T_true[39][2, 3]) < 0.5 * abs(T_drift[39][2, 3] - T_true[39][2, 3])
