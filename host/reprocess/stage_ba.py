@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from stereopath.device.core.rig import Rig
+from stereopath.device.formats.sequence import SequenceBase
 from stereopath.device.errors import EstimationError, ImuMismatchError
 from stereopath.device.estimation.base import TrackStatus
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
@@ -40,7 +41,7 @@ def settings(config: ReprocessPreset) -> dict[str, Any]:
             if k not in ("description", "tracks", "estimator_preset", "estimator_options")}
 
 
-def gyro_rotation_priors(seq: Any, t_kf: np.ndarray, sigma_rad_per_sqrt_s: float,
+def gyro_rotation_priors(seq: SequenceBase, t_kf: np.ndarray, sigma_rad_per_sqrt_s: float,
                          T_kf: np.ndarray | None = None) -> list:
     """Relative rotations between consecutive keyframes from the gyro (bias from the still start; without
     one, from the keyframe path ``T_kf``; with neither, none: an unknown bias would bend the path)."""
