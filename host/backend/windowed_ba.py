@@ -2,21 +2,22 @@
 
 A batch adjustment (:func:`stereopath.host.backend.gtsam_ba.bundle_adjust`) holds every point's
 elimination factor at once: its memory grows with the scan (about 17 MB per keyframe on the
-simulated table scan).  Up to :data:`BATCH_KEYFRAMES` keyframes the batch runs as it is (the reference);
-above, :func:`adjust_in_windows`:
+simulated table scan).  Up to :data:`BATCH_KEYFRAMES` keyframes the batch runs as it is (the
+reference); above, :func:`adjust_in_windows`:
 
 the verified loops are first closed on the whole path by a pose graph
 (:func:`stereopath.host.backend.gtsam_ba.pose_graph`: the keyframes' relative motion and the loops,
-poses only, a few MB at any length), so that the windows start from a path without the drift the loops
-measured; then windows of :data:`WINDOW` consecutive keyframes, each overlapping the last by :data:`OVERLAP`, are
-adjusted one after another (the same solver on the window's observations, loops, rotation priors and
-IMU terms); the first :data:`HELD` keyframes of the overlap are held where the last window put them, so
-the windows join without a seam, and the rest of the overlap is adjusted again: the last window had
-them at its end, seen from one side only, and this window sees them from both, at no extra cost.  Only one window's problem is in memory at a time, and its memory is handed back
-to the system before the next.  A loop from a window's keyframe back to an
-earlier one brings that keyframe in, held where its window put it (an anchor): the loop pulls the new
-window onto the path already adjusted instead of letting the windows drift apart.  The disparity offset
-is estimated in the first window and held after it.
+poses only, a few MB at any length), so that the windows start from a path without the drift the
+loops measured; then windows of :data:`WINDOW` consecutive keyframes, each overlapping the last by
+:data:`OVERLAP`, are adjusted one after another (the same solver on the window's observations,
+loops, rotation priors and IMU terms).  The first :data:`HELD` keyframes of the overlap are held
+where the last window put them, so the windows join without a seam; the rest of the overlap is
+adjusted again: the last window had them at its end, seen from one side only, and this window sees
+them from both, at no extra cost.  Only one window's problem is in memory at a time, and its memory
+is handed back to the system before the next.  A loop from a window's keyframe back to an earlier
+one brings that keyframe in, held where its window put it (an anchor): the loop pulls the new window
+onto the path already adjusted instead of letting the windows drift apart.  The disparity offset is
+estimated in the first window and held after it.
 
 ``on_window(n)`` after each window: a progress bar with a remaining-time estimate.  Each window's outcome
 can be stored (:class:`WindowCheckpoint`): an adjustment interrupted on a long session resumes after
