@@ -100,9 +100,10 @@ def print_row(frames: int, r: dict) -> None:
         if st is None:
             continue
         held = ", ".join(f"{k[:-3]} {v:.0f} MB" for k, v in st.items() if k.endswith("_mb") and k not in
-                         ("peak_rss_mb", "rss_mb"))
-        print(f"|   {s}: {st['seconds']:.0f} s, peak {st.get('peak_rss_mb', float('nan')):.0f} MB, "
-              f"after {st.get('rss_mb', float('nan')):.0f} MB; held: {held or '-'} |", flush=True)
+                         ("peak_rss_mb", "rss_mb", "start_rss_mb"))
+        print(f"|   {s}: {st['seconds']:.0f} s, start {st.get('start_rss_mb', float('nan')):.0f} MB, "
+              f"peak {st.get('peak_rss_mb', float('nan')):.0f} MB, after {st.get('rss_mb', float('nan')):.0f} MB; "
+              f"held: {held or '-'} |", flush=True)
 
 
 def main() -> int:

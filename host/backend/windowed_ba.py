@@ -2,26 +2,38 @@
 
 A batch adjustment (:func:`stereopath.host.backend.gtsam_ba.bundle_adjust`) holds every point's
 elimination factor at once: its memory grows with the scan (about 17 MB per keyframe on the
-simulated table scan).  Up to :data:`BATCH_KEYFRAMES` keyframes the batch runs as it is (the reference);
-above, :func:`adjust_in_windows`:
+simulated table scan).  Up to :data:`BATCH_KEYFRAMES` keyframes the batch runs as it is (the
+reference); above, :func:`adjust_in_windows`:
 
-windows of :data:`WINDOW` consecutive keyframes, each overlapping the last by :data:`OVERLAP`, are
-adjusted one after another (the same solver on the window's observations, loops, rotation priors and
-IMU terms); the overlap's poses are held where the last window put them, so the windows join without a
-seam, and only one window's problem is in memory at a time.  A loop from a window's keyframe back to an
-earlier one brings that keyframe in, held where its window put it (an anchor): the loop pulls the new
-window onto the path already adjusted instead of letting the windows drift apart.  The disparity offset
-is estimated in the first window and held after it.
+the verified loops are first closed on the whole path by a pose graph
+(:func:`stereopath.host.backend.gtsam_ba.pose_graph`: the keyframes' relative motion and the loops,
+poses only, a few MB at any length), so that the windows start from a path without the drift the
+loops measured; then windows of :data:`WINDOW` consecutive keyframes, each overlapping the last by
+:data:`OVERLAP`, are adjusted one after another (the same solver on the window's observations,
+loops, rotation priors and IMU terms).  The first :data:`HELD` keyframes of the overlap are held
+where the last window put them, so the windows join without a seam; the rest of the overlap is
+adjusted again: the last window had them at its end, seen from one side only, and this window sees
+them from both, at no extra cost.  Only one window's problem is in memory at a time, and its memory
+is handed back to the system before the next.  A loop from a window's keyframe back to an earlier
+one brings that keyframe in, held where its window put it (an anchor): the loop pulls the new window
+onto the path already adjusted instead of letting the windows drift apart.  The disparity offset is
+estimated in the first window and held after it.
 
-``on_window(n)`` after each window: a progress bar with a remaining-time estimate.
+``on_window(n)`` after each window: a progress bar with a remaining-time estimate.  Each window's outcome
+can be stored (:class:`WindowCheckpoint`): an adjustment interrupted on a long session resumes after
+the last window stored, with the result a run without interruption gives.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import os
+import zipfile
+import zlib
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -38,7 +50,8 @@ log = logging.getLogger(__name__)
 
 BATCH_KEYFRAMES = 80  # up to this many keyframes: one batch adjustment
 WINDOW = 48  # keyframes per window above it ...
-OVERLAP = 24  # ... of which this many are the last window's, held
+OVERLAP = 24  # ... of which this many are the last window's ...
+HELD = 8  # ... and the first this many of them held (the others adjusted again, now with neighbours on both sides)
 
 
 def window_starts(n_keyframes: int) -> list[int]:
@@ -93,73 +106,186 @@ def _priors_window(priors: Sequence[RotationPrior], win: _Window) -> list[Rotati
     return [dataclasses.replace(p, i=win.at(p.i), j=win.at(p.j)) for p in priors if win.s <= p.i and p.j < win.e]
 
 
-def adjust_in_windows(rig: Rig, problem: BAProblem, config: BAConfig, priors: Sequence[RotationPrior] = (),
-                      on_window: Callable[[int], object] | None = None) -> BAResult:
-    """The windowed adjustment of the module doc (any number of keyframes; EstimationError when a window
-    has too little to adjust)."""
+@dataclass
+class _Progress:
+    """What the windows adjusted so far have settled: the poses, the points they adjusted, the disparity
+    offset (and whether it is still to be estimated), the IMU biases, the first window's gravity and
+    pixel noise, and the per-window figures the result averages.  ``done`` windows are in it."""
+
+    T: np.ndarray
+    points: dict[int, np.ndarray]  # every point: as the windows left it, or as given
+    adjusted: set[int]
+    offset: float
+    estimate_offset: bool
+    biases: np.ndarray | None
+    done: int = 0
+    gravity_world: np.ndarray | None = None
+    pixel_sigma_px: float | None = None
+    figures: list[tuple[float, float, float, int]] = field(default_factory=list)  # rms before, after, inliers, n
+    iterations: int = 0
+    history: list[float] = field(default_factory=list)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        ids = np.array(sorted(self.adjusted), np.int64)
+        out = {"T": self.T, "point_ids": ids,
+               "point_xyz": np.array([self.points[int(i)] for i in ids], float).reshape(-1, 3),
+               "offset": np.array(self.offset), "estimate_offset": np.array(self.estimate_offset),
+               "done": np.array(self.done), "figures": np.array(self.figures, float).reshape(-1, 4),
+               "iterations": np.array(self.iterations), "history": np.array(self.history, float)}
+        if self.biases is not None:
+            out["biases"] = self.biases
+        if self.gravity_world is not None:
+            out["gravity_world"] = np.asarray(self.gravity_world, float)
+        if self.pixel_sigma_px is not None:
+            out["pixel_sigma_px"] = np.array(self.pixel_sigma_px)
+        return out
+
+    @classmethod
+    def from_arrays(cls, a: dict[str, np.ndarray], points: dict[int, np.ndarray]) -> _Progress:
+        """The progress stored by :meth:`arrays` on the problem's ``points``."""
+        ids = [int(i) for i in a["point_ids"]]
+        points = {**points, **dict(zip(ids, a["point_xyz"]))}
+        return cls(a["T"], points, set(ids), float(a["offset"]),
+                   bool(a["estimate_offset"]), a.get("biases"), int(a["done"]), a.get("gravity_world"),
+                   float(a["pixel_sigma_px"]) if "pixel_sigma_px" in a else None,
+                   [(float(r[0]), float(r[1]), float(r[2]), int(r[3])) for r in a["figures"]],
+                   int(a["iterations"]), [float(x) for x in a["history"]])
+
+
+class WindowCheckpoint:
+    """The windows' progress in a folder (``window_progress.npz``, replaced after each window): a
+    stage interrupted on a long session resumes after the last window stored there.  The folder must
+    belong to this one problem (the reprocessing's stage key names it)."""
+
+    FILE = "window_progress.npz"
+
+    def __init__(self, folder: Path) -> None:
+        self.path = Path(folder) / self.FILE
+
+    def load(self, n_keyframes: int, points: dict[int, np.ndarray]) -> _Progress | None:
+        """The stored progress on the problem's ``points`` (None when there is none, it is unreadable or
+        not of ``n_keyframes``)."""
+        if not self.path.is_file():
+            return None
+        try:
+            with np.load(self.path, allow_pickle=False) as z:
+                prog = _Progress.from_arrays({k: z[k] for k in z.files}, points)
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+            log.warning("%s unreadable (%s): the windows start from the first", self.path, exc)
+            return None
+        return prog if len(prog.T) == n_keyframes else None
+
+    def save(self, prog: _Progress) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_name(self.path.stem + ".tmp.npz")
+        np.savez(tmp, **prog.arrays())
+        os.replace(tmp, self.path)
+
+
+def _release_freed() -> None:
+    """Hand the freed window's memory back to the system (glibc keeps freed heap pages otherwise, and the
+    resident set would stay at the largest window's until the stage ends); nothing elsewhere."""
+    import ctypes
+
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+def _adjust_window(rig: Rig, problem: BAProblem, config: BAConfig, priors: Sequence[RotationPrior],
+                   prog: _Progress, w: int, s: int) -> None:
+    """Window ``w`` (keyframes from ``s``) adjusted from ``prog`` and its outcome put into ``prog``."""
     from stereopath.host.backend.gtsam_ba import bundle_adjust
 
+    T, loops = prog.T, list(problem.loops)
+    e = min(len(T), s + WINDOW)
+    win = _window(loops, s, e)
+    na = len(win.anchors)
+    obs = problem.observations  # in keyframe order (adjust_in_windows)
+    lo, hi = np.searchsorted(obs[:, 0], [s, e])
+    o = obs[lo:hi].copy()
+    o[:, 0] += na - s
+    cfg = dataclasses.replace(config, disparity_offset=prog.estimate_offset)
+    # held: the anchors, and after the first window the overlap, where the last windows put them (the
+    # first pose's tilt was settled in the first window)
+    T_w = np.concatenate([T[list(win.anchors)].reshape(-1, 4, 4), T[s:e]])
+    pb = BAProblem(T_w, prog.points, o, _loops_window(loops, win), _imu_window(problem.imu, win),
+                   n_fixed=na + (problem.n_fixed if w == 0 else HELD), disparity_offset_px=prog.offset,
+                   held_may_tilt=problem.held_may_tilt and w == 0 and na == 0)
+    try:
+        res = bundle_adjust(rig, pb, cfg, _priors_window(priors, win))
+    except EstimationError as exc:  # a window with too little structure keeps its poses
+        log.warning("bundle adjustment window %d (keyframes %d-%d) left as it was: %s", w, s, e - 1, exc)
+        return
+    T[s:e] = res.T_world_cam[na:]
+    prog.points.update(res.points)
+    prog.adjusted.update(res.points)
+    prog.offset, prog.estimate_offset = res.disparity_offset_px, False
+    if prog.biases is not None and res.imu_biases is not None:
+        ok = np.isfinite(res.imu_biases[na:, 0])
+        prog.biases[s:e][ok] = res.imu_biases[na:][ok]
+    if not prog.figures:  # the first window adjusted
+        prog.gravity_world, prog.pixel_sigma_px = res.gravity_world, res.pixel_sigma_px
+    prog.figures.append((res.rms_before_px, res.rms_after_px, res.inlier_fraction, res.n_obs))
+    prog.iterations += res.iterations
+    prog.history += res.history
+    log.info("bundle adjustment window %d: keyframes %d-%d, %d observations, %d loop anchors", w, s, e - 1,
+             res.n_obs, na)
+
+
+def adjust_in_windows(rig: Rig, problem: BAProblem, config: BAConfig, priors: Sequence[RotationPrior] = (),
+                      on_window: Callable[[int], object] | None = None,
+                      checkpoint: WindowCheckpoint | None = None) -> BAResult:
+    """The windowed adjustment of the module doc (any number of keyframes; EstimationError when no
+    window has enough to adjust).  With a ``checkpoint`` the progress is stored after each window and a
+    run finding progress stored there continues after its last window (the same result as a run
+    without interruption)."""
     T = np.asarray(problem.T_world_cam, float).reshape(-1, 4, 4).copy()
     obs = as_observations(problem.observations)
     if np.any(np.diff(obs[:, 0]) < 0):  # the tracks stage writes them in keyframe order: no copy then
         obs = obs[np.argsort(obs[:, 0], kind="stable")]
-    k_of = obs[:, 0]
-    points = dict(problem.points)
-    offset, estimate_offset = float(problem.disparity_offset_px), config.disparity_offset
-    biases = np.full((len(T), 6), np.nan) if problem.imu is not None else None
-    first: BAResult | None = None
-    rms0, rms1, n_obs, iters, inliers = [], [], 0, 0, []
-    history: list[float] = []
-    adjusted: set[int] = set()
-    loops = list(problem.loops)
-    for w, s in enumerate(window_starts(len(T))):
-        e = min(len(T), s + WINDOW)
-        win = _window(loops, s, e)
-        na = len(win.anchors)
-        lo, hi = np.searchsorted(k_of, [s, e])
-        o = obs[lo:hi].copy()
-        o[:, 0] += na - s
-        cfg = dataclasses.replace(config, disparity_offset=estimate_offset)
-        # held: the anchors, and after the first window the overlap, where the last windows put them (the
-        # first pose's tilt was settled in the first window)
-        T_w = np.concatenate([T[list(win.anchors)].reshape(-1, 4, 4), T[s:e]])
-        pb = BAProblem(T_w, points, o, _loops_window(loops, win), _imu_window(problem.imu, win),
-                       n_fixed=na + (problem.n_fixed if w == 0 else OVERLAP), disparity_offset_px=offset,
-                       held_may_tilt=problem.held_may_tilt and w == 0 and na == 0)
-        try:
-            res = bundle_adjust(rig, pb, cfg, _priors_window(priors, win))
-        except EstimationError as exc:  # a window with too little structure keeps its poses
-            log.warning("bundle adjustment window %d (keyframes %d-%d) left as it was: %s", w, s, e - 1, exc)
-            if on_window is not None:
-                on_window(1)
-            continue
-        T[s:e] = res.T_world_cam[na:]
-        points.update(res.points)
-        offset, estimate_offset = res.disparity_offset_px, False
-        if biases is not None and res.imu_biases is not None:
-            ok = np.isfinite(res.imu_biases[na:, 0])
-            biases[s:e][ok] = res.imu_biases[na:][ok]
-        first = first or res
-        rms0.append((res.rms_before_px, res.n_obs))
-        rms1.append((res.rms_after_px, res.n_obs))
-        inliers.append((res.inlier_fraction, res.n_obs))
-        n_obs, iters, history = n_obs + res.n_obs, iters + res.iterations, history + res.history
-        adjusted.update(res.points)
-        log.info("bundle adjustment window %d: keyframes %d-%d, %d observations, %d loop anchors", w, s, e - 1,
-                 res.n_obs, na)
+    problem = dataclasses.replace(problem, observations=obs)
+    starts = window_starts(len(T))
+    prog = checkpoint.load(len(T), problem.points) if checkpoint is not None else None
+    if prog is not None:
+        log.info("bundle adjustment: %d of %d windows stored, resuming after them", prog.done, len(starts))
+        if on_window is not None and prog.done:
+            on_window(prog.done)
+    else:
+        if problem.loops:  # the loops closed on the whole path first: the windows start from a consistent one
+            from stereopath.host.backend.gtsam_ba import pose_graph
+
+            T = pose_graph(T, list(problem.loops))
+        prog = _Progress(T, dict(problem.points), set(), float(problem.disparity_offset_px), config.disparity_offset,
+                         np.full((len(T), 6), np.nan) if problem.imu is not None else None)
+    for w in range(prog.done, len(starts)):
+        _adjust_window(rig, problem, config, priors, prog, w, starts[w])
+        prog.done = w + 1
+        _release_freed()
+        if checkpoint is not None:
+            checkpoint.save(prog)
         if on_window is not None:
             on_window(1)
-    points = {i: points[i] for i in sorted(adjusted)}
+    return _result(prog)
 
-    def mean(pairs: list[tuple[float, int]]) -> float:
-        v, n = np.array([p[0] for p in pairs], float), np.array([p[1] for p in pairs], float)
+
+def _result(prog: _Progress) -> BAResult:
+    """The windows' outcome as one :class:`BAResult` (figures averaged over the windows by observations)."""
+    if not prog.figures:
+        raise EstimationError("bundle adjustment: no window had enough structure to adjust")
+    f = np.array(prog.figures, float)
+    n = f[:, 3]
+    n_obs = int(n.sum())
+
+    def mean(v: np.ndarray) -> float:
         return float(np.sqrt(np.sum(v ** 2 * n) / np.sum(n))) if n.sum() else float("nan")
 
-    if first is None:
-        raise EstimationError("bundle adjustment: no window had enough structure to adjust")
-    out = BAResult(T, points, mean(rms0), mean(rms1), n_obs, len(points), iters, history[0], history[-1],
-                   float(np.sum([f * n for f, n in inliers]) / max(n_obs, 1)), history, offset)
-    out.imu_biases = biases
-    out.gravity_world = first.gravity_world
-    out.pixel_sigma_px = first.pixel_sigma_px
+    points = {i: prog.points[i] for i in sorted(prog.adjusted)}
+    out = BAResult(prog.T, points, mean(f[:, 0]), mean(f[:, 1]), n_obs, len(points), prog.iterations,
+                   prog.history[0], prog.history[-1], float(np.sum(f[:, 2] * n) / max(n_obs, 1)), prog.history,
+                   prog.offset)
+    out.imu_biases = prog.biases
+    out.gravity_world = prog.gravity_world
+    out.pixel_sigma_px = prog.pixel_sigma_px
     return out

@@ -92,6 +92,7 @@ class MemoryLedger:
     """The sizes (bytes) of the structures one stage holds, the largest seen of each."""
 
     held: dict[str, int] = field(default_factory=dict)
+    start_mb: float | None = None  # the resident set the stage started from (after the last one's was freed)
 
     def note(self, name: str, size_bytes: int) -> None:
         self.held[name] = max(int(size_bytes), self.held.get(name, 0))
@@ -101,9 +102,13 @@ class MemoryLedger:
         self.held.clear()
         release_freed()
         reset_peak()
+        self.start_mb = rss_mb()
 
     def summary(self) -> dict[str, float]:
-        """``peak_rss_mb``, ``rss_mb`` and each structure's MB (for the stage manifest)."""
+        """``start_rss_mb`` (when started), ``peak_rss_mb``, ``rss_mb`` and each structure's MB (for the stage
+        manifest)."""
         out = {"peak_rss_mb": round(peak_rss_mb(), 1), "rss_mb": round(rss_mb(), 1)}
+        if self.start_mb is not None:
+            out["start_rss_mb"] = round(self.start_mb, 1)
         out.update({f"{k}_mb": round(v / MB, 1) for k, v in sorted(self.held.items())})
         return out

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from stereopath.device.core.rig import Rig
+from stereopath.device.formats.sequence import SequenceBase
 from stereopath.device.errors import EstimationError, ImuMismatchError
 from stereopath.device.estimation.base import TrackStatus
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
@@ -40,7 +41,7 @@ def settings(config: ReprocessPreset) -> dict[str, Any]:
             if k not in ("description", "tracks", "estimator_preset", "estimator_options")}
 
 
-def gyro_rotation_priors(seq: Any, t_kf: np.ndarray, sigma_rad_per_sqrt_s: float,
+def gyro_rotation_priors(seq: SequenceBase, t_kf: np.ndarray, sigma_rad_per_sqrt_s: float,
                          T_kf: np.ndarray | None = None) -> list:
     """Relative rotations between consecutive keyframes from the gyro (bias from the still start; without
     one, from the keyframe path ``T_kf``; with neither, none: an unknown bias would bend the path)."""
@@ -123,14 +124,16 @@ def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list,
     """Bundle adjustment of the keyframes (a ``BAResult``); EstimationError when there is too little."""
     from stereopath.host.backend.ba_common import BAProblem
     from stereopath.host.backend.gtsam_ba import bundle_adjust
-    from stereopath.host.backend.windowed_ba import BATCH_KEYFRAMES, adjust_in_windows, window_starts
+    from stereopath.host.backend.windowed_ba import BATCH_KEYFRAMES, WindowCheckpoint, adjust_in_windows, window_starts
 
     trk = inputs.results["tracks"]
     points = {int(i): x for i, x in zip(trk["point_ids"], trk["point_xyz"])}
     problem = BAProblem(trk["T_kf"], points, trk["observations"], loops=loops_of(trk), imu=imu)
     if len(trk["T_kf"]) > BATCH_KEYFRAMES:  # a long session: windows of keyframes, memory independent of its length
         with Bar(len(window_starts(len(trk["T_kf"]))), "bundle adjustment", inputs.progress, "window") as tick:
-            return adjust_in_windows(inputs.seq.rig, problem, config.ba, priors, on_window=tick)
+            # each window's outcome is stored: a stage interrupted on a long session resumes after the last one
+            store = None if inputs.parts is None else WindowCheckpoint(inputs.parts)
+            return adjust_in_windows(inputs.seq.rig, problem, config.ba, priors, on_window=tick, checkpoint=store)
     bar = progress_bar(config.ba.max_iterations * (1 + config.ba.outlier_rounds), "bundle adjustment",
                        inputs.progress, "iteration")
     try:
@@ -142,11 +145,12 @@ def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list,
 
 def solver_stats(n_keyframes: int) -> dict[str, Any]:
     """How the keyframes were adjusted, for a session above the batch's length (nothing below it)."""
-    from stereopath.host.backend.windowed_ba import BATCH_KEYFRAMES, OVERLAP, WINDOW, window_starts
+    from stereopath.host.backend.windowed_ba import BATCH_KEYFRAMES, HELD, OVERLAP, WINDOW, window_starts
 
     if n_keyframes <= BATCH_KEYFRAMES:
         return {}
-    return {"solver": {"windows": len(window_starts(n_keyframes)), "window_keyframes": WINDOW, "overlap": OVERLAP}}
+    return {"solver": {"windows": len(window_starts(n_keyframes)), "window_keyframes": WINDOW, "overlap": OVERLAP,
+                       "held": HELD, "loops_closed_first": True}}
 
 
 def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.ndarray,

@@ -30,6 +30,17 @@ def settings(config: MapConfig | str) -> dict[str, Any]:
     return {**dataclasses.asdict(config), "depth": config.depth.record()}
 
 
+def table_blocks(blocks: int, initial_blocks: int) -> int:
+    """The blocks the volume's hash table holds room for once ``blocks`` are in use: Open3D's
+    ``VoxelBlockGrid`` starts with ``initial_blocks`` and doubles its table when it fills, every slot
+    allocated (and resident) whether used or not, the old table and the new one both held while it
+    grows."""
+    cap = max(int(initial_blocks), 1)
+    while cap < blocks:
+        cap *= 2
+    return cap
+
+
 def run(config: MapConfig | str, inputs: StageInputs) -> list[str]:
     from stereopath.host.mapping.mapper import map_sequence
 
@@ -40,7 +51,9 @@ def run(config: MapConfig | str, inputs: StageInputs) -> list[str]:
                           source=inputs.extra["label"])
     fusion = result.stats["config"]["fusion"]
     voxel_bytes = 4 * (5 if fusion["color"] else 2)  # TsdfVolume.voxel_bytes: float32 TSDF, weight (, colour)
-    inputs.memory.note("tsdf_volume", result.stats["blocks"] * fusion["block_resolution"] ** 3 * voxel_bytes)
+    block_bytes = fusion["block_resolution"] ** 3 * voxel_bytes
+    inputs.memory.note("tsdf_volume", result.stats["blocks"] * block_bytes)
+    inputs.memory.note("tsdf_table", table_blocks(result.stats["blocks"], fusion["initial_blocks"]) * block_bytes)
     return [f for f in MODEL_FILES if (dst / f).is_file()]
 
 

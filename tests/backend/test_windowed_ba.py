@@ -43,9 +43,10 @@ def test_windows_cover_every_keyframe_and_overlap(n):
 
 @pytest.fixture
 def small_windows(monkeypatch):
-    """Windows of 24 keyframes overlapping by 8: several on a 40-keyframe problem."""
+    """Windows of 24 keyframes overlapping by 8, the first 4 held: several on a 40-keyframe problem."""
     monkeypatch.setattr(windowed_ba, "WINDOW", 24)
     monkeypatch.setattr(windowed_ba, "OVERLAP", 8)
+    monkeypatch.setattr(windowed_ba, "HELD", 4)
 
 
 def test_windows_recover_the_poses_a_batch_recovers(small_windows):
@@ -91,6 +92,84 @@ def test_a_loop_back_to_an_earlier_window_holds_that_keyframe_in_the_window(smal
             assert not pb.loops and len(pb.T_world_cam) == windowed_ba.WINDOW
             continue
         assert len(pb.T_world_cam) == windowed_ba.WINDOW + 1 and np.allclose(pb.T_world_cam[0], T_true[2], atol=2e-3)
-        assert pb.n_fixed == 1 + windowed_ba.OVERLAP and [(lp.i, lp.j) for lp in pb.loops] == [(0, 1 + 39 - s)]
+        assert pb.n_fixed == 1 + windowed_ba.HELD and [(lp.i, lp.j) for lp in pb.loops] == [(0, 1 + 39 - s)]
         assert pb.observations[:, 0].min() >= 1  # the anchor has no observations of its own
     assert np.abs(res.T_world_cam[2] - T_true[2]).max() < 2e-3
+
+
+class _Interrupted(Exception):
+    pass
+
+
+def test_windows_interrupted_resume_after_the_last_stored_window_with_the_same_result(small_windows, monkeypatch,
+                                                                                     tmp_path):
+    """A run stopped in its third window resumes from the two stored ones (solving only the windows after
+    them) and ends where a run without interruption ends, bit for bit."""
+    from stereopath.host.backend import gtsam_ba
+
+    rng = np.random.default_rng(13)
+    rig, T_true, pts, obs = _corridor(rng, n_kf=72, n_pts=600)
+    T_noisy, pts_noisy = _perturbed(rng, T_true, pts, 0.002, 0.005, 0.01)
+    loop = Loop(3, 66, invert_pose(T_true[3]) @ T_true[66], 100, 100, 1e-4, 1e-4, 0.0)
+    problem = BAProblem(T_noisy, pts_noisy, obs, [loop])
+    cfg = BAConfig(disparity_offset=True)
+    n_windows = len(windowed_ba.window_starts(72))
+    assert n_windows >= 4
+    whole = windowed_ba.adjust_in_windows(rig, problem, cfg)
+
+    solve, calls = gtsam_ba.bundle_adjust, []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise _Interrupted
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(gtsam_ba, "bundle_adjust", failing)
+    store = windowed_ba.WindowCheckpoint(tmp_path / "parts")
+    with pytest.raises(_Interrupted):
+        windowed_ba.adjust_in_windows(rig, problem, cfg, checkpoint=store)
+    ticks: list[int] = []
+    calls.clear()
+    resumed = windowed_ba.adjust_in_windows(rig, problem, cfg, on_window=ticks.append, checkpoint=store)
+    assert len(calls) == n_windows - 2 and sum(ticks) == n_windows and ticks[0] == 2
+    assert np.array_equal(resumed.T_world_cam, whole.T_world_cam)
+    assert resumed.points.keys() == whole.points.keys()
+    assert all(np.array_equal(resumed.points[i], whole.points[i]) for i in whole.points)
+    assert (resumed.rms_after_px, resumed.iterations, resumed.history, resumed.disparity_offset_px) == \
+        (whole.rms_after_px, whole.iterations, whole.history, whole.disparity_offset_px)
+
+
+def test_a_checkpoint_of_another_problem_is_not_resumed(small_windows, tmp_path):
+    rng = np.random.default_rng(14)
+    rig, T_true, pts, obs = _corridor(rng, n_kf=40, n_pts=300)
+    store = windowed_ba.WindowCheckpoint(tmp_path)
+    cfg = BAConfig(disparity_offset=False)
+    windowed_ba.adjust_in_windows(rig, BAProblem(T_true, pts, obs), cfg, checkpoint=store)
+    assert store.load(40, pts) is not None and store.load(41, pts) is None
+    store.path.write_bytes(b"not an npz")
+    assert store.load(40, pts) is None
+
+
+def test_the_windows_start_from_the_path_with_its_loops_closed(small_windows, monkeypatch):
+    """A path drifting along its length with a loop back to its start: the first window is handed the
+    loop-closed path (the pose graph's), whose far end the loop has pulled back towards the truth."""
+    from stereopath.host.backend import gtsam_ba
+
+    rng = np.random.default_rng(15)
+    rig, T_true, pts, obs = _corridor(rng, n_pts=300)
+    drift = np.array([make_pose(np.eye(3), [0.0, 0.0, 0.0005 * k]) for k in range(40)])  # 2 cm at the end
+    T_drift = np.einsum("nij,njk->nik", drift, T_true)
+    loop = Loop(2, 39, invert_pose(T_true[2]) @ T_true[39], 100, 100, 1e-4, 1e-4, 0.0)
+    seen = []
+    solve = gtsam_ba.bundle_adjust
+
+    def spy(rig, problem, config, priors=(), on_iteration=None):
+        seen.append(problem.T_world_cam.copy())
+        return solve(rig, problem, config, priors, on_iteration)
+
+    monkeypatch.setattr(gtsam_ba, "bundle_adjust", spy)
+    windowed_ba.adjust_in_windows(rig, BAProblem(T_drift, pts, obs, [loop]), BAConfig(disparity_offset=False))
+    closed = gtsam_ba.pose_graph(T_drift, [loop])
+    assert np.allclose(seen[0], closed[:windowed_ba.WINDOW])
+    assert abs(closed[39][2, 3] - T_true[39][2, 3]) < 0.5 * abs(T_drift[39][2, 3] - T_true[39][2, 3])

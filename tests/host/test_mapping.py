@@ -299,3 +299,20 @@ def test_the_map_stage_key_hashes_every_depth_setting():
     assert recorded == config.depth.record()
     assert {"uniqueness_ratio", "pre_filter_cap", "speckle_window_px", "edge_dilate_px"} <= set(recorded)
     assert stage_map.settings("auto") == {"preset": "auto"}
+
+
+def test_the_volume_table_is_counted_as_open3d_allocates_it():
+    """The hash table of the model's voxel blocks doubles when it fills: what it holds is the next
+    doubling of the initial size at or above the blocks in use (as Open3D's VoxelBlockGrid grows)."""
+    import open3d as o3d
+
+    from stereopath.host.reprocess.stage_map import table_blocks
+
+    assert table_blocks(19000, 20000) == 20000 and table_blocks(20128, 20000) == 40000
+    assert table_blocks(60226, 20000) == 80000 and table_blocks(0, 20000) == 20000
+    f32 = o3d.core.float32
+    grid = o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight"), (f32, f32), (1, 1), 0.01, 8, 64, o3d.core.Device("CPU:0"))
+    keys = np.stack(np.meshgrid(np.arange(10), np.arange(10), np.arange(2), indexing="ij"), -1).reshape(-1, 3)
+    for part in np.array_split(keys.astype(np.int32), 20):  # a few blocks at a time, as keyframes add them
+        grid.hashmap().activate(o3d.core.Tensor(part))
+    assert grid.hashmap().size() == 200 and grid.hashmap().capacity() == table_blocks(200, 64) == 256

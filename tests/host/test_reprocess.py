@@ -366,3 +366,44 @@ def test_a_damaged_stage_file_reads_as_missing(tmp_path, damage, caplog):
     assert "unreadable" in caplog.text
     # the stats are another member: they still read when only the first member is damaged
     assert stored_stats(path) == ({"keyframes": 3} if damage == "member" else {})
+
+
+@pytest.mark.slow
+def test_bundle_adjustment_windows_interrupted_resume_from_the_last_stored_one(session, tmp_path, monkeypatch):
+    """With windows (made small here), an adjustment stopped in its second window leaves the first one
+    stored in ``ba.parts``; the next run solves only the windows after it and writes the path an
+    uninterrupted run writes."""
+    from stereopath.host.backend import gtsam_ba, windowed_ba
+
+    for name, value in (("BATCH_KEYFRAMES", 2), ("WINDOW", 3), ("OVERLAP", 2), ("HELD", 1)):
+        monkeypatch.setattr(windowed_ba, name, value)
+    run = RunChoices(do_map=False, progress=False)
+    whole = tmp_path / "whole"
+    reprocess_session(session, whole, run=run)
+    n_windows = len(windowed_ba.window_starts(len(np.load(whole / "stages" / "tracks.npz")["kf_index"])))
+    assert n_windows >= 3
+    # the uninterrupted run's first two stages, as if an earlier run had stopped after them
+    stages = tmp_path / "out" / "stages"
+    stages.mkdir(parents=True)
+    for name in ("estimate.npz", "tracks.npz"):
+        shutil.copy2(whole / "stages" / name, stages / name)
+    man = json.loads((whole / "stages" / "manifest.json").read_text())
+    man["stages"] = {k: v for k, v in man["stages"].items() if k in ("estimate", "tracks")}
+    (stages / "manifest.json").write_text(json.dumps(man))
+    solve, calls = gtsam_ba.bundle_adjust, []
+
+    def stopping(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(gtsam_ba, "bundle_adjust", stopping)
+    with pytest.raises(KeyboardInterrupt):
+        reprocess_session(session, tmp_path / "out", run=run)
+    stored = list((stages / "ba.parts").rglob(windowed_ba.WindowCheckpoint.FILE))
+    assert len(stored) == 1 and int(np.load(stored[0])["done"]) == 1
+    res = reprocess_session(session, tmp_path / "out", run=run)
+    assert res.stages["ba"] == "computed" and len(calls) - 2 == n_windows - 1
+    assert not (stages / "ba.parts").exists()  # the stage is stored whole: its partial results are gone
+    assert (tmp_path / "out" / "trajectory.tum").read_bytes() == (whole / "trajectory.tum").read_bytes()
