@@ -42,6 +42,7 @@ def table_blocks(blocks: int, initial_blocks: int) -> int:
 
 
 def run(config: MapConfig | str, inputs: StageInputs) -> list[str]:
+    from stereopath.host.mapping.fusion import FusionConfig
     from stereopath.host.mapping.mapper import map_sequence
 
     dst = Path(inputs.extra["dst"])
@@ -50,7 +51,7 @@ def run(config: MapConfig | str, inputs: StageInputs) -> list[str]:
     result = map_sequence(inputs.seq, inputs.extra["trajectory"], dst, config, progress=inputs.progress,
                           source=inputs.extra["label"])
     fusion = result.stats["config"]["fusion"]
-    voxel_bytes = 4 * (5 if fusion["color"] else 2)  # TsdfVolume.voxel_bytes: float32 TSDF, weight (, colour)
+    voxel_bytes = FusionConfig(**fusion).voxel_bytes
     block_bytes = fusion["block_resolution"] ** 3 * voxel_bytes
     inputs.memory.note("tsdf_volume", result.stats["blocks"] * block_bytes)
     inputs.memory.note("tsdf_table", table_blocks(result.stats["blocks"], fusion["initial_blocks"]) * block_bytes)
