@@ -65,6 +65,17 @@ def _no_temp_files(root: Path) -> None:
 
 
 @pytest.mark.slow
+
+def _stopped_after_tracks(done: Path, stages: Path) -> Path:
+    """``stages`` holding ``done``'s estimate and tracks stages only, as a run stopped after them leaves it."""
+    stages.mkdir(parents=True)
+    for name in ("estimate.npz", "tracks.npz"):
+        shutil.copy2(done / name, stages / name)
+    man = json.loads((done / "manifest.json").read_text())
+    man["stages"] = {k: v for k, v in man["stages"].items() if k in ("estimate", "tracks")}
+    (stages / "manifest.json").write_text(json.dumps(man))
+    return stages
+
 def test_reprocess_writes_every_output_and_improves_the_path(full_run):
     out, res, seen = full_run
     assert seen == ["estimate", "tracks", "ba", "map"]
@@ -167,13 +178,7 @@ def test_resume_after_an_interruption(full_run, session, tmp_path):
 
     # the uninterrupted run's first two stages, as if an earlier run had stopped after them; this
     # run computes the bundle adjustment and is stopped as it finishes
-    stages = out / "stages"
-    stages.mkdir(parents=True)
-    for name in ("estimate.npz", "tracks.npz"):
-        shutil.copy2(ref_out / "stages" / name, stages / name)
-    man = json.loads((ref_out / "stages" / "manifest.json").read_text())
-    man["stages"] = {k: v for k, v in man["stages"].items() if k in ("estimate", "tracks")}
-    (stages / "manifest.json").write_text(json.dumps(man))
+    stages = _stopped_after_tracks(ref_out / "stages", out / "stages")
     with pytest.raises(KeyboardInterrupt):
         reprocess_session(session, out, run=RunChoices(progress=False, after_stage=stop_after_ba))
     assert seen == ["ba"]
@@ -383,13 +388,7 @@ def test_bundle_adjustment_windows_interrupted_resume_from_the_last_stored_one(s
     n_windows = len(windowed_ba.window_starts(len(np.load(whole / "stages" / "tracks.npz")["kf_index"])))
     assert n_windows >= 3
     # the uninterrupted run's first two stages, as if an earlier run had stopped after them
-    stages = tmp_path / "out" / "stages"
-    stages.mkdir(parents=True)
-    for name in ("estimate.npz", "tracks.npz"):
-        shutil.copy2(whole / "stages" / name, stages / name)
-    man = json.loads((whole / "stages" / "manifest.json").read_text())
-    man["stages"] = {k: v for k, v in man["stages"].items() if k in ("estimate", "tracks")}
-    (stages / "manifest.json").write_text(json.dumps(man))
+    stages = _stopped_after_tracks(whole / "stages", tmp_path / "out" / "stages")
     solve, calls = gtsam_ba.bundle_adjust, []
 
     def stopping(*args, **kwargs):
