@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 import threading
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -177,16 +178,18 @@ def lower_thread_priority(nice: int) -> int | None:
 
     The keyframe worker calls it first: on a core the frame loop shares with it, the scheduler then
     runs the frame loop whenever it is ready, and the worker in the time left."""
-    if nice <= 0 or not hasattr(os, "setpriority") or not hasattr(threading, "get_native_id"):
-        return None
+    if nice <= 0 or not sys.platform.startswith("linux") or not hasattr(threading, "get_native_id"):
+        return None  # elsewhere PRIO_PROCESS with a thread id would name a process
     tid = threading.get_native_id()
     try:
         target = min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice)
         os.setpriority(os.PRIO_PROCESS, tid, target)
-        return os.getpriority(os.PRIO_PROCESS, tid)
+        got = os.getpriority(os.PRIO_PROCESS, tid)
     except OSError as e:  # a sandbox without the call: the worker runs at the loop's priority
-        log.debug("keyframe worker priority unchanged: %s", e)
+        log.info("keyframe worker priority unchanged (%s): it runs at the frame loop's", e)
         return None
+    log.info("keyframe worker at niceness %d (one core shared with the frame loop)", got)
+    return got
 
 
 def worker_niceness(policy: KeyframePolicy) -> int:
