@@ -30,7 +30,7 @@ from stereopath.device.core.scaled_klt import track_scaled
 from stereopath.device.estimation.disparity_offset import (KeyframeObservations, OffsetFilter, PriorPath,
                                                           offset_between_keyframes)
 from stereopath.device.estimation.offset_window import offset_over_keyframes
-from stereopath.device.estimation.keyframe_jobs import KeyframeJob, KeyframeWorker, Submitted
+from stereopath.device.estimation.keyframe_jobs import KeyframeJob, KeyframeWorker, Ready, Submitted
 from stereopath.device.estimation.live_state import LiveState, StereoStats
 from stereopath.device.estimation.local_window import WindowKeyframes
 from stereopath.device.estimation.moving_start import MovingStart
@@ -116,6 +116,13 @@ class StereoEstimator:
     def close(self) -> None:
         """Stop the background keyframe worker (idempotent)."""
         self._worker.close()
+
+    def settle(self) -> None:
+        """Let the background work in flight finish, its results kept for the next frame as usual: the
+        estimator can then be pickled and resumed (a reprocessing stage's stored progress)."""
+        self._worker.settle()
+        if self._start is not None:
+            self._start.settle(Ready.of)
 
     def __del__(self) -> None:  # the worker thread must not outlive the estimator
         try:

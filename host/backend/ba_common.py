@@ -4,8 +4,8 @@ propagation of keyframe corrections to the other frames.
 
 Observations are rows ``(pose index, point id, cam, u, v[, weight])`` in undistorted pixels
 (cam 0 left, 1 right); the optional weight scales the residual (``sigma_nominal / sigma``).  They come
-as a float (N, 5) or (N, 6) array, or held compact (:func:`compact_observations`: int32 ids, float32
-pixels, 21 bytes a row instead of 48) and widened a window at a time by :func:`as_observations`.
+as a float (N, 5) or (N, 6) array, or held compact (:mod:`~stereopath.host.backend.observations`) and
+widened a window at a time by :func:`as_observations`.
 
 Pure computation: no I/O.
 """
@@ -21,6 +21,7 @@ from stereopath.device.core.config import check_ranges, ranged
 from stereopath.device.core.geometry import invert_pose, so3_exp, so3_log
 from stereopath.device.core.rig import Rig
 from stereopath.device.errors import ConfigError, EstimationError
+from stereopath.host.backend.observations import widened
 
 if TYPE_CHECKING:
     from stereopath.host.backend.imu_factors import ImuTerms
@@ -101,44 +102,11 @@ class RotationPrior:
     sigma_rad: float
 
 
-# one compact observation row (packed): keyframe and point id int32, cam uint8, pixels and weight float32
-OBSERVATION_DTYPE = np.dtype([("kf", "<i4"), ("point", "<i4"), ("cam", "u1"), ("u", "<f4"), ("v", "<f4"),
-                              ("w", "<f4")])
-_INT32_MAX = np.iinfo(np.int32).max
-
-
-def compact_observations(kf: np.ndarray, point: np.ndarray, cam: np.ndarray, uv: np.ndarray,
-                         w: np.ndarray) -> np.ndarray:
-    """Observation rows as a packed :data:`OBSERVATION_DTYPE` array; EstimationError when an id does
-    not fit in int32."""
-    kf, point = np.asarray(kf), np.asarray(point)
-    for name, ids in (("keyframe index", kf), ("point id", point)):
-        if len(ids) and (ids.min() < 0 or ids.max() > _INT32_MAX):
-            raise EstimationError(f"{name}s must lie in 0..{_INT32_MAX} for compact observations, "
-                                  f"got {ids.min()}..{ids.max()}")
-    out = np.empty(len(kf), OBSERVATION_DTYPE)
-    out["kf"], out["point"], out["cam"] = kf, point, cam
-    uv = np.asarray(uv).reshape(-1, 2)
-    out["u"], out["v"], out["w"] = uv[:, 0], uv[:, 1], w
-    return out
-
-
-def observation_keyframes(observations: np.ndarray) -> np.ndarray:
-    """The pose index of each observation row (either form), without widening the rows."""
-    obs = np.asarray(observations)
-    if obs.dtype.names is not None:
-        return obs["kf"]
-    return obs[:, 0] if obs.ndim == 2 and len(obs) else np.zeros(0)
-
-
 def as_observations(observations: np.ndarray) -> np.ndarray:
     """``observations`` (either form) as a float (N, 5) or (N, 6) array; EstimationError on any other shape."""
     raw = np.asarray(observations)
     if raw.dtype.names is not None:
-        if raw.dtype != OBSERVATION_DTYPE:
-            raise EstimationError(f"compact observations must have the fields {OBSERVATION_DTYPE.names}, "
-                                  f"got {raw.dtype.names}")
-        return np.column_stack([raw[f].astype(float) for f in OBSERVATION_DTYPE.names]).reshape(-1, 6)
+        return widened(raw)
     obs = np.asarray(raw, dtype=float)
     if obs.size == 0:
         return np.zeros((0, 5))

@@ -27,7 +27,7 @@ from stereopath.device.core.scaled_klt import forward_backward
 from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import Rig
 from stereopath.device.errors import ConfigError
-from stereopath.host.backend.ba_common import OBSERVATION_DTYPE, compact_observations
+from stereopath.host.backend.observations import OBSERVATION_DTYPE, compact_observations
 from stereopath.host.backend.parallel import parallel_map
 from stereopath.host.backend.slanted_stereo import SlantedFit, refine_slanted
 

@@ -46,8 +46,8 @@ from stereopath.host.backend.ba_common import (
     BAResult,
     RotationPrior,
     as_observations,
-    observation_keyframes,
 )
+from stereopath.host.backend.observations import observation_keyframes
 
 if TYPE_CHECKING:
     from stereopath.host.backend.imu_factors import ImuTerms

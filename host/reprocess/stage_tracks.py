@@ -22,7 +22,7 @@ import numpy as np
 
 from stereopath.device.estimation.base import TrackStatus
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
-from stereopath.host.backend.ba_common import OBSERVATION_DTYPE
+from stereopath.host.backend.observations import OBSERVATION_DTYPE
 from stereopath.host.backend.loops import detect_loops, loops_to_array
 from stereopath.host.backend.parallel import parallel_map, spare_cores, spreading
 from stereopath.host.progress import Bar

@@ -14,7 +14,8 @@ from stereopath.host.backend.tracks import (
     frame_observations,
     stereo_features,
 )
-from stereopath.host.backend.ba_common import OBSERVATION_DTYPE, as_observations
+from stereopath.host.backend.ba_common import as_observations
+from stereopath.host.backend.observations import OBSERVATION_DTYPE
 from tests.backend.ba_support import adjust
 
 

@@ -8,9 +8,8 @@ from stereopath.host.backend.ba_common import (
     BAConfig,
     BAProblem,
     as_observations,
-    compact_observations,
-    observation_keyframes,
 )
+from stereopath.host.backend.observations import compact_observations, observation_keyframes
 from stereopath.host.backend.loops import Loop
 from stereopath.device.core.rig import paper_rig
 from stereopath.device.core.stereo import project
