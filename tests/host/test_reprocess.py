@@ -475,3 +475,34 @@ def test_estimate_progress_of_another_build_or_cut_short_is_not_used(tmp_path, c
     with caplog.at_level(logging.WARNING):
         assert store.load() is None
     assert "another version" in caplog.text
+
+
+def test_map_stage_interrupted_resumes_from_its_stored_volume(session, tmp_path, monkeypatch):
+    """The map stage stores its volume every CHUNK_KEYFRAMES keyframes (made small here) in
+    ``map.parts``; the next run fuses only the keyframes after the stored ones, and the stage's parts
+    are gone once it is stored."""
+    from stereopath.host.mapping import fusion, map_progress, mapper
+
+    monkeypatch.setattr(map_progress, "CHUNK_KEYFRAMES", 2)
+    monkeypatch.setattr(mapper, "DEPTH_BATCH", 2)
+    integrate, calls = fusion.TsdfVolume.integrate_depth_map, []
+
+    def stopping(self, dm, T):
+        calls.append(1)
+        if len(calls) == 5 and stop:
+            raise KeyboardInterrupt
+        return integrate(self, dm, T)
+
+    monkeypatch.setattr(fusion.TsdfVolume, "integrate_depth_map", stopping)
+    out = tmp_path / "out"
+    run, stop = RunChoices(progress=False, map_preset="object"), [True]
+    with pytest.raises(KeyboardInterrupt):
+        reprocess_session(session, out, run=run)
+    chunks = list((out / "stages" / "map.parts").rglob("chunk-*"))
+    assert [c.name for c in chunks] == ["chunk-000004"] and (chunks[0] / "mapper.json").is_file()
+    calls.clear()
+    stop.clear()
+    res = reprocess_session(session, out, run=run)
+    n = json.loads((out / "map.json").read_text())["keyframes"]
+    assert res.stages["map"] == "computed" and len(calls) == n - 4
+    assert not (out / "stages" / "map.parts").exists()
