@@ -23,6 +23,8 @@ from stereopath.device.core.stereo import (
     undistort_px,
 )
 
+FB_STEREO_LEVELS = 1  # pyramid of a new point's backward (check) track: it starts at the known answer
+
 
 class StereoMeasure:
     """Right-image correspondences, stereo points and poses for one rig: the estimator's stereo geometry and
@@ -94,7 +96,8 @@ class StereoMeasure:
 
         The right-image search starts from each pixel's ray at depth ``z0``; ``fb_check`` as in
         :func:`~stereopath.device.core.stereo.stereo_right`."""
-        uvr, ok = stereo_right(self.rig, left, right, xy, self.right_guess(self.rays(xy) * z0), self.klt, fb_check)
+        uvr, ok = stereo_right(self.rig, left, right, xy, self.right_guess(self.rays(xy) * z0), self.klt, fb_check,
+                               fb_levels=FB_STEREO_LEVELS)
         Xc, err = self.triangulate(xy, uvr)
         return uvr, Xc, ok & self.good_points(Xc, err)
 
