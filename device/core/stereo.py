@@ -221,8 +221,7 @@ KLT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 0.005)
 
 
 def stereo_right(rig: Rig, left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, guess_right: np.ndarray,
-                 cfg: KltStereoParams, fb_check: bool = True, levels: int | None = None,
-                 fb_levels: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 cfg: KltStereoParams, fb_check: bool = True, levels: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Locate left-image points in the right image; returns right pixels (float32) and the accepted mask.
 
     Pyramidal KLT from left to right seeded by ``guess_right`` (e.g. a projection at an expected
@@ -230,8 +229,7 @@ def stereo_right(rig: Rig, left: np.ndarray, right: np.ndarray, xy_left: np.ndar
     ``cfg.epipolar_max_dy_px``, the disparity is positive and the point lies inside the right
     image; ``fb_check`` adds the right-to-left track back (within ``cfg.fb_max_px``), which new
     points need and known inliers (refinement) can skip.  ``levels`` overrides ``cfg.klt_levels``
-    (a guess from a known 3D point needs no coarse levels); ``fb_levels`` caps the backward track's pyramid
-    (it starts at the known answer: a refinement).  Images are grey, as captured (the
+    (a guess from a known 3D point needs no coarse levels).  Images are grey, as captured (the
     rectified-row test undistorts and rectifies the two point sets, not the images).
     """
     if len(xy_left) == 0:
@@ -243,8 +241,7 @@ def stereo_right(rig: Rig, left: np.ndarray, right: np.ndarray, xy_left: np.ndar
     p1, st, _ = cv2.calcOpticalFlowPyrLK(left, right, p0, g.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
     ok = st.ravel() == 1
     if fb_check:
-        back = lk if fb_levels is None else dict(lk, maxLevel=min(lk["maxLevel"], fb_levels))
-        pb, stb, _ = cv2.calcOpticalFlowPyrLK(right, left, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **back)
+        pb, stb, _ = cv2.calcOpticalFlowPyrLK(right, left, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
         ok &= (stb.ravel() == 1) & (np.linalg.norm((pb - p0).reshape(-1, 2), axis=1) < cfg.fb_max_px)
     p1 = p1.reshape(-1, 2)
     r = rig.rectification()

@@ -25,6 +25,7 @@ from stereopath.device.core.stereo import (
     undistort_px,
 )
 
+
 @dataclass(frozen=True)
 class RightMatches:
     """The right-image matches a pose solve measured: ``index`` of each point among the solve's, its left and
@@ -39,9 +40,6 @@ class RightMatches:
         out = np.full((n, 2), np.nan, np.float32)
         out[self.index] = self.right
         return out
-
-
-FB_STEREO_LEVELS = 1  # pyramid of a new point's backward (check) track: it starts at the known answer
 
 
 class StereoMeasure:
@@ -114,8 +112,7 @@ class StereoMeasure:
 
         The right-image search starts from each pixel's ray at depth ``z0``; ``fb_check`` as in
         :func:`~stereopath.device.core.stereo.stereo_right`."""
-        uvr, ok = stereo_right(self.rig, left, right, xy, self.right_guess(self.rays(xy) * z0), self.klt, fb_check,
-                               fb_levels=FB_STEREO_LEVELS)
+        uvr, ok = stereo_right(self.rig, left, right, xy, self.right_guess(self.rays(xy) * z0), self.klt, fb_check)
         Xc, err = self.triangulate(xy, uvr)
         return uvr, Xc, ok & self.good_points(Xc, err)
 
