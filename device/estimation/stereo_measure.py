@@ -21,6 +21,7 @@ from stereopath.device.core.stereo import (
     refine_pose_lm,
     rvec_tvec_to_pose,
     stereo_right,
+    tracks_back,
     triangulate,
     undistort_px,
 )
@@ -112,9 +113,12 @@ class StereoMeasure:
 
         The right-image search starts from each pixel's ray at depth ``z0``; ``fb_check`` as in
         :func:`~stereopath.device.core.stereo.stereo_right`."""
-        uvr, ok = stereo_right(self.rig, left, right, xy, self.right_guess(self.rays(xy) * z0), self.klt, fb_check)
+        uvr, ok = stereo_right(self.rig, left, right, xy, self.right_guess(self.rays(xy) * z0), self.klt, False)
         Xc, err = self.triangulate(xy, uvr)
-        return uvr, Xc, ok & self.good_points(Xc, err)
+        ok &= self.good_points(Xc, err)
+        if fb_check:  # last: the backward track is the dearest test
+            ok &= tracks_back(left, right, xy, uvr, self.klt, where=ok)
+        return uvr, Xc, ok
 
     def solve_pose(self, left: np.ndarray, right: np.ndarray, X: np.ndarray, uv: np.ndarray, T_guess: np.ndarray,
                    seed: int, use_guess: bool = True, stereo_out: list[RightMatches] | None = None
