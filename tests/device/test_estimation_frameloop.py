@@ -146,10 +146,10 @@ def test_each_offset_estimate_is_solved_over_the_last_four_keyframes_stereo_obse
         measured.append(out.copy())
         return out
 
-    def new_keyframe(self, img, T_world_cam):
+    def new_keyframe(self, img, T_world_cam, map_right=None):
         before = set(self._state.map.ids.tolist())
         measured.clear()
-        n = real_new_keyframe(self, img, T_world_cam)
+        n = real_new_keyframe(self, img, T_world_cam, map_right)
         m = self._state.map
         at = m.obs_kf == self.counts.keyframes - 1
         kept.append((T_world_cam.copy(), m.ids[at].copy(), m.obs[at].copy(), before, np.vstack(measured)))
@@ -336,8 +336,8 @@ def test_fast_motion_keyframes_top_up_the_map_by_klt_corners_without_sift(data_d
     sizes = []
     real_new = est._new_keyframe
 
-    def new_keyframe(img, T):
-        n = real_new(img, T)
+    def new_keyframe(img, T, map_right=None):
+        n = real_new(img, T, map_right)
         sizes.append(n)
         return n
 
