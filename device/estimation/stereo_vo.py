@@ -381,10 +381,15 @@ class StereoEstimator:
                 z_prev = m.X @ T_pw[2, :3] + T_pw[2, 3]
                 known = front & (z_prev > 1e-3)
                 scale[known] = z_prev[known] / Xc[known, 2]
-        # forward, then back from the new positions seeded with the old ones: a true track converges there at once
-        p1, both, fb = track_scaled(self._prev_left, left, m.uv, guess, scale, self.cfg.klt.klt_scale_step,
-                                    dict(self._klt, maxLevel=levels), min(levels, FB_KLT_LEVELS))
+        # a point predicted farther outside the image than KLT's coarsest level reaches has left the view
         w, h = self.rig.cam0.size
+        reach = (self.cfg.klt.klt_window // 2 + 2) * 2**levels + 2
+        live = np.flatnonzero(((guess >= -reach) & (guess < (w - 1 + reach, h - 1 + reach))).all(1))
+        p1, both, fb = guess.astype(np.float32), np.zeros(len(guess), bool), np.full(len(guess), np.inf)
+        # forward, then back from the new positions seeded with the old ones: a true track converges there at once
+        p1[live], both[live], fb[live] = track_scaled(self._prev_left, left, m.uv[live], guess[live], scale[live],
+                                                      self.cfg.klt.klt_scale_step, dict(self._klt, maxLevel=levels),
+                                                      min(levels, FB_KLT_LEVELS))
         good = both & (fb < self.cfg.klt.fb_max_px)
         good &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
         return p1, good
