@@ -354,3 +354,37 @@ def test_fast_motion_keyframes_top_up_the_map_by_klt_corners_without_sift(data_d
     assert min(sizes) >= 0.5 * est.cfg.keyframes.max_points
     m = evaluate(seq.groundtruth, run.trajectory)
     assert m["end_error_m"] / m["path_length_m"] < 0.02
+
+
+def test_points_predicted_beyond_klt_reach_outside_the_image_are_not_tracked(data_dir, monkeypatch):
+    """Fast motion: a tracked point predicted farther outside the image than KLT's coarsest level reaches
+    has left the view; it is dropped before the KLT, the others are tracked (KITTI 06, every 3rd frame)."""
+    from stereopath.device.estimation import stereo_vo
+    from stereopath.device.formats.source import open_source
+
+    seq = open_source(f"kitti:{data_dir / 'kitti_odometry/sequences/06'}")
+    frames = list(seq.frames(step=3))[:8]
+    est = StereoEstimator(seq.rig, StereoConfig(KeyframePolicy(background=False), asift=AsiftWork(enabled=False)))
+    real_track, real_klt = stereo_vo.track_scaled, stereo_vo.StereoEstimator._klt_track
+    passed, dropped = [], []
+
+    def track(prev, cur, p0, guess, *args):
+        passed.append(np.asarray(guess).copy())
+        return real_track(prev, cur, p0, guess, *args)
+
+    def klt(self, left, T_pred, levels):
+        n = len(self._state.map)
+        uv, good = real_klt(self, left, T_pred, levels)
+        reach = (self.cfg.klt.klt_window // 2 + 2) * 2**levels + 2
+        w, h = self.rig.cam0.size
+        tracked = len(passed[-1]) if passed else n
+        dropped.append((n - tracked, reach, w, h))
+        return uv, good
+
+    monkeypatch.setattr(stereo_vo, "track_scaled", track)
+    monkeypatch.setattr(stereo_vo.StereoEstimator, "_klt_track", klt)
+    run = run_estimator(est, iter(frames), None)
+    assert all(e.status == "ok" for e in run.estimates)
+    assert sum(d for d, *_ in dropped) > 20  # points leave the view every frame at this speed
+    for g, (_, reach, w, h) in zip(passed, dropped):
+        assert ((g >= -reach) & (g < (w - 1 + reach, h - 1 + reach))).all()
