@@ -35,7 +35,7 @@ from stereopath.device.estimation.live_state import LiveState, StereoStats
 from stereopath.device.estimation.local_window import WindowKeyframes
 from stereopath.device.estimation.moving_start import MovingStart
 from stereopath.device.estimation.right_exposure import RightExposure
-from stereopath.device.estimation.stereo_measure import StereoMeasure
+from stereopath.device.estimation.stereo_measure import RightMatches, StereoMeasure
 from stereopath.device.estimation.tracked_map import TrackedMap
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, so3_log
@@ -268,19 +268,21 @@ class StereoEstimator:
             attempts = [(T_pred, TRACK_KLT_LEVELS)]
             if RETRY_KLT_LEVELS > TRACK_KLT_LEVELS:
                 attempts.append((None, RETRY_KLT_LEVELS))
+            map_right = None  # the right-image pixels of the kept points the pose solve measured (NaN: none)
             for k, (T_guess, levels) in enumerate(attempts):
                 uv_new, good = self._klt_track(left, T_guess, levels)
                 if good.sum() < cfg.geometry.min_pnp_inliers:
                     note = "too_few_tracked"
                     continue
-                pairs: list[tuple[np.ndarray, np.ndarray]] = []
+                pairs: list[RightMatches] = []
                 T_est, n_inl, inl = self._geo.solve_pose(left, img.right, m.X[good], uv_new[good], T_pred,
-                                                         self._cur_seq, stereo_out=pairs if cfg.exposure.match else None)
+                                                         self._cur_seq, stereo_out=pairs)
                 if T_est is None:
                     note = "pose_failed"
                     continue
-                if pairs:  # the cameras' exposure, measured at every frame
-                    self._exposure.fit(left, img.right_raw, *pairs[0])
+                if cfg.exposure.match:  # the cameras' exposure, measured at every frame
+                    self._exposure.fit(left, img.right_raw, pairs[0].left, pairs[0].right)
+                map_right = pairs[0].per_point(len(inl))[inl]
                 m.uv = uv_new.astype(np.float32)
                 m.keep(good)
                 m.keep(inl)
@@ -304,7 +306,7 @@ class StereoEstimator:
                                     note="relocalised")
             is_kf = self._need_keyframe(T_est, n_inl)
             if is_kf:
-                self._new_keyframe(img, T_est)
+                self._new_keyframe(img, T_est, map_right)
             return PoseEstimate(frame.seq, frame.t_ns, T_est, TrackStatus.OK, inliers=n_inl, keyframe=is_kf)
         # Vision failed (black frame, lens cap, no overlap, blur): fall back to the IMU rotation (or
         # constant velocity), flagged.  The map and the last good image are kept so the next good
@@ -386,10 +388,15 @@ class StereoEstimator:
                 z_prev = m.X @ T_pw[2, :3] + T_pw[2, 3]
                 known = front & (z_prev > 1e-3)
                 scale[known] = z_prev[known] / Xc[known, 2]
-        # forward, then back from the new positions seeded with the old ones: a true track converges there at once
-        p1, both, fb = track_scaled(self._prev_left, left, m.uv, guess, scale, self.cfg.klt.klt_scale_step,
-                                    dict(self._klt, maxLevel=levels), min(levels, FB_KLT_LEVELS))
+        # a point predicted farther outside the image than KLT's coarsest level reaches has left the view
         w, h = self.rig.cam0.size
+        reach = (self.cfg.klt.klt_window // 2 + 2) * 2**levels + 2
+        live = np.flatnonzero(((guess >= -reach) & (guess < (w - 1 + reach, h - 1 + reach))).all(1))
+        p1, both, fb = guess.astype(np.float32), np.zeros(len(guess), bool), np.full(len(guess), np.inf)
+        # forward, then back from the new positions seeded with the old ones: a true track converges there at once
+        p1[live], both[live], fb[live] = track_scaled(self._prev_left, left, m.uv[live], guess[live], scale[live],
+                                                      self.cfg.klt.klt_scale_step, dict(self._klt, maxLevel=levels),
+                                                      min(levels, FB_KLT_LEVELS))
         good = both & (fb < self.cfg.klt.fb_max_px)
         good &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
         return p1, good
@@ -417,8 +424,9 @@ class StereoEstimator:
 
     # ------------------------------------------------------------------ keyframes
 
-    def _new_keyframe(self, img: StereoImages, T_world_cam: np.ndarray) -> int:
-        """Top up the map with new stereo points; hand the keyframe's ASIFT work to the worker."""
+    def _new_keyframe(self, img: StereoImages, T_world_cam: np.ndarray, map_right: np.ndarray | None = None) -> int:
+        """Top up the map with new stereo points; hand the keyframe's ASIFT work to the worker.  ``map_right``: the
+        map's right-image pixels the frame's pose solve measured (NaN: none), else they are measured here."""
         cfg = self.cfg
         m = self._state.map
         left, right = img.left, img.right
@@ -441,7 +449,7 @@ class StereoEstimator:
         # observations of the existing points at this keyframe (refinement, disparity offset)
         seen = (np.zeros((0, 2)), np.zeros((0, 2)))
         if len(m):
-            seen = self._observe_map(img, T_world_cam)
+            seen = self._observe_map(img, T_world_cam, map_right)
         sel = np.zeros(0, np.int64)
         uvr = np.zeros((0, 2), np.float32)
         Xw = np.zeros((0, 3))
@@ -519,17 +527,20 @@ class StereoEstimator:
                                     minDistance=NEW_CORNER_SPACING_PX, mask=mask, blockSize=5)
         return np.zeros((0, 2), np.float32) if c is None else c.reshape(-1, 2).astype(np.float32)
 
-    def _observe_map(self, img: StereoImages, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _observe_map(self, img: StereoImages, T_world_cam: np.ndarray,
+                     map_right: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """Stereo of the tracked points at this keyframe: the running mean of each point's
         triangulations, and the disparity offset from the last keyframe to this one.
         Returns the left and right pixels of the points found in the right image."""
         cfg = self.cfg
         m = self._state.map
-        left, right = img.left, img.right
-        T_cw = invert_pose(T_world_cam)
-        Xc_old = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
-        uvr_old, ok_old = stereo_right(self.rig, left, right, m.uv, self._geo.right_guess(Xc_old), cfg.klt, fb_check=False,
-                                      levels=cfg.klt.seeded_stereo_levels)
+        if map_right is None:
+            T_cw = invert_pose(T_world_cam)
+            Xc_old = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
+            uvr_old, ok_old = stereo_right(self.rig, img.left, img.right, m.uv, self._geo.right_guess(Xc_old), cfg.klt,
+                                          fb_check=False, levels=cfg.klt.seeded_stereo_levels)
+        else:
+            uvr_old, ok_old = map_right, np.isfinite(map_right[:, 0])
         idx_o = np.flatnonzero(ok_old)
         seen = (m.uv[idx_o], uvr_old[idx_o])  # copies (index arrays)
         if not ok_old.any():
