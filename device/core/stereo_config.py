@@ -115,9 +115,19 @@ class StereoGeometry:
 
 @dataclass(frozen=True)
 class GyroBiasConfig:
-    """The gyro bias refined from the tracked rotation, window by window."""
+    """The gyro bias refined from the tracked rotation, window by window; and the gyro's rotation over
+    each frame as a prior of the frame's pose refinement, weighed by its error model
+    (:mod:`~stereopath.device.estimation.gyro_prior`) against the frame's measured pixel noise."""
 
     estimate_bias: bool = True
+    rotation_prior: bool = True
+    # the prior's error model: white noise density (rad/s/sqrt(Hz); datasheets: MPU-6050 8.7e-5, ADIS16448
+    # 1.7e-4) and the relative error of a measured rotation (scale factor and body-to-camera alignment)
+    noise_rad_s_rthz: float = ranged(2e-4, 1e-6, 1.0)
+    relative_error: float = ranged(0.005, 0.0, 0.5)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "gyro.")
 
 
 @dataclass(frozen=True)

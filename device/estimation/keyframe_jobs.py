@@ -33,7 +33,7 @@ from stereopath.device.core.rig import Rig
 from stereopath.device.core.stereo_config import KeyframePolicy, StereoConfig
 from stereopath.device.estimation.live_state import Library, compose
 from stereopath.device.estimation.local_window import WindowJob, WindowResult
-from stereopath.device.estimation.stereo_measure import StereoMeasure
+from stereopath.device.estimation.stereo_measure import PoseGuess, StereoMeasure
 
 log = logging.getLogger(__name__)
 
@@ -379,7 +379,7 @@ class KeyframeWorker:
             if len(idx) >= self.cfg.geometry.min_pnp_inliers:
                 X = np.vstack([prev_X[idx[:, 1]], job.X_map])
                 uv = np.vstack([cur.xy[idx[:, 0]].astype(np.float64), job.uv_map])
-                T_new, _, mask = self._geo.solve_pose(left, right, X, uv, T_tracked, seed=job.seq)
+                T_new, _, mask = self._geo.solve_pose(left, right, X, uv, PoseGuess(T_tracked), seed=job.seq)
                 # the tracked map must still fit the joint pose: ASIFT matches that pull the pose away
                 # from it (repeated texture, a wrong 3D point) would turn its points into outliers
                 if T_new is not None and mask[len(idx):].sum() >= self.cfg.asift.map_agreement * len(job.X_map):

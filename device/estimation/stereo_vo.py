@@ -30,12 +30,13 @@ from stereopath.device.core.scaled_klt import track_scaled
 from stereopath.device.estimation.disparity_offset import (KeyframeObservations, OffsetFilter, PriorPath,
                                                           offset_between_keyframes)
 from stereopath.device.estimation.offset_window import offset_over_keyframes
+from stereopath.device.estimation.gyro_prior import GyroRotation, GyroRotationModel, gyro_rotation
 from stereopath.device.estimation.keyframe_jobs import KeyframeJob, KeyframeWorker, Submitted
 from stereopath.device.estimation.live_state import LiveState, StereoStats
 from stereopath.device.estimation.local_window import WindowKeyframes
 from stereopath.device.estimation.moving_start import MovingStart
 from stereopath.device.estimation.right_exposure import RightExposure
-from stereopath.device.estimation.stereo_measure import StereoMeasure
+from stereopath.device.estimation.stereo_measure import PoseGuess, StereoMeasure
 from stereopath.device.estimation.tracked_map import TrackedMap
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, so3_log
@@ -98,6 +99,9 @@ class StereoEstimator:
         self._failures = 0
         self._gyro: GyroIntegrator | None = None
         self._bias: VisionGyroBias | None = None
+        self._bias_sigma = UNKNOWN_BIAS_SIGMA_RAD_S  # the bias's uncertainty when it is not refined on line
+        g = self.cfg.gyro
+        self._gyro_model = GyroRotationModel(g.noise_rad_s_rthz, g.relative_error) if g.rotation_prior else None
         self._start: MovingStart | None = None  # a start in motion, until the path gives gyro bias and gravity
         self.world_rebase: tuple[int, np.ndarray] | None = None  # see MovingStart: (frame seq, motion)
         self._gyro_step: tuple[np.ndarray, float] | None = None  # the gyro's body rotation over the last frame
@@ -134,7 +138,7 @@ class StereoEstimator:
         T_pred, have_rot_prior = self._predict(frame.t_ns, dt, imu)
         if self._window is not None:
             self._window.gyro_step(self._gyro_step, self._R_body_cam)
-        est = self._track(frame, img, T_pred, have_rot_prior)
+        est = self._track(frame, img, T_pred, have_rot_prior, self._gyro_rotation(T_pred))
         self._refine_gyro_bias(est)
         if self._start is not None:
             self.counts.start_solves += self._start.feed(est, imu, self._worker)
@@ -206,6 +210,7 @@ class StereoEstimator:
                 log.info("IMU not still before the first frame: world frame = first camera until the tracked"
                          " path gives the gyro bias and gravity")
             self._gyro.feed_and_integrate(imu, frame.t_ns, frame.t_ns)
+            self._bias_sigma = sigma0
             if self.cfg.gyro.estimate_bias:
                 self._bias = VisionGyroBias(bias0, sigma0, window_s=GYRO_BIAS_WINDOW_S)
         T = make_pose(R_world_cam, np.zeros(3))
@@ -247,7 +252,16 @@ class StereoEstimator:
                 have_rot = True
         return T_prev @ make_pose(R_rel, t_rel), have_rot
 
-    def _track(self, frame: StereoFrame, img: StereoImages, T_pred: np.ndarray, have_rot: bool) -> PoseEstimate:
+    def _gyro_rotation(self, T_pred: np.ndarray) -> GyroRotation | None:
+        """The gyro's orientation of this frame and its error (the pose solve's prior), when it measured it."""
+        if self._gyro_model is None or self._gyro_step is None or self._R_body_cam is None:
+            return None
+        Rbc = self._R_body_cam
+        sigma_b = self._bias.sigma_rad_s if self._bias is not None else self._bias_sigma
+        return gyro_rotation(T_pred, Rbc.T @ self._gyro_step[0] @ Rbc, self._gyro_step[1], sigma_b, self._gyro_model)
+
+    def _track(self, frame: StereoFrame, img: StereoImages, T_pred: np.ndarray, have_rot: bool,
+               gyro: GyroRotation | None) -> PoseEstimate:
         cfg = self.cfg
         left = img.left
         m = self._state.map
@@ -267,7 +281,7 @@ class StereoEstimator:
                     note = "too_few_tracked"
                     continue
                 pairs: list[tuple[np.ndarray, np.ndarray]] = []
-                T_est, n_inl, inl = self._geo.solve_pose(left, img.right, m.X[good], uv_new[good], T_pred,
+                T_est, n_inl, inl = self._geo.solve_pose(left, img.right, m.X[good], uv_new[good], PoseGuess(T_pred, gyro=gyro),
                                                          self._cur_seq, stereo_out=pairs if cfg.exposure.match else None)
                 if T_est is None:
                     note = "pose_failed"
@@ -401,8 +415,8 @@ class StereoEstimator:
             return None, 0
         T_l = self._state.T_library
         X = lib.X_cam[idx[:, 1]] @ T_l[:3, :3].T + T_l[:3, 3]
-        T, n, _ = self._geo.solve_pose(img.left, img.right, X, feats0.xy[idx[:, 0]].astype(np.float64), T_pred,
-                                       self._cur_seq, use_guess=False)
+        T, n, _ = self._geo.solve_pose(img.left, img.right, X, feats0.xy[idx[:, 0]].astype(np.float64),
+                                       PoseGuess(T_pred, trusted=False), self._cur_seq)
         if T is None:
             return None, 0
         log.info("frame %d relocalised against keyframe %d (%d inliers)", self._cur_seq, lib.seq, n)

@@ -1,0 +1,88 @@
+"""The gyro's rotation over one frame as a prior of that frame's pose solve (pure compute).
+
+The frame loop predicts the camera's rotation from the previous frame's pose and the gyro integrated
+over the frame interval with the bias in use.  That rotation is a measurement with a known error:
+
+* the gyro's white noise over the interval, ``n * sqrt(dt)`` (``n``: its noise density);
+* the bias's uncertainty carried over the interval, ``sigma_b * dt``;
+* a relative error of the rotation itself, ``k * |theta|``: the gyro's scale factor and the
+  body-to-camera rotation's calibration, which grow with the rotation measured.
+
+Those add in quadrature into one isotropic ``sigma`` (radians).  The pose refinement minimises the
+sum of squared reprojection errors (pixels); a pixel error of standard deviation ``sigma_px`` makes
+the prior's residual ``log(R R_gyro^T) * sigma_px / sigma`` the same kind of term (both whitened, then
+scaled by ``sigma_px``).  ``sigma_px`` is measured on the frame itself: the RMS of the PnP consensus's
+inlier errors (:func:`pixel_sigma`).  The images say how well they measure, the gyro's model how
+well it does, and the solve weighs them so: the visual constraint's information grows with its
+points, so a frame with few inliers or blurred, spread residuals leans on the gyro, and a sharp,
+well-textured frame on its points.  Without a gyro or before the bias is known (its uncertainty is
+then a MEMS gyro's whole bias range) the prior weighs little or nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stereopath.device.core.geometry import so3_log
+from stereopath.device.core.stereo import RotationPrior
+from stereopath.device.errors import ConfigError
+
+MIN_PIXEL_SIGMA_PX = 0.05  # the pixel noise at least (a near-perfect fit on few points says little)
+
+
+@dataclass(frozen=True)
+class GyroRotationModel:
+    """The error model of a gyro-integrated rotation (see the module doc)."""
+
+    noise_rad_s_rthz: float  # the gyro's white noise density
+    relative: float  # relative error of a measured rotation (scale factor and body-to-camera alignment)
+
+    def __post_init__(self) -> None:
+        if not (self.noise_rad_s_rthz >= 0.0 and self.relative >= 0.0):
+            raise ConfigError(f"gyro rotation model: noise {self.noise_rad_s_rthz!r} and relative error "
+                              f"{self.relative!r} must be >= 0")
+
+    def sigma_rad(self, R_step: np.ndarray, dt_s: float, bias_sigma_rad_s: float) -> float:
+        """The standard deviation (radians) of rotation ``R_step`` integrated over ``dt_s`` seconds with a
+        bias known to ``bias_sigma_rad_s``."""
+        dt = max(float(dt_s), 0.0)
+        angle = float(np.linalg.norm(so3_log(np.asarray(R_step, float))))
+        var = self.noise_rad_s_rthz**2 * dt + (bias_sigma_rad_s * dt) ** 2 + (self.relative * angle) ** 2
+        return float(np.sqrt(var))
+
+
+@dataclass(frozen=True, eq=False)
+class GyroRotation:
+    """The frame's camera orientation predicted by the gyro (``R_cam_world``: the previous frame's pose
+    times the gyro's rotation over the frame) and its standard deviation (radians)."""
+
+    R_cam_world: np.ndarray
+    sigma_rad: float
+
+    def prior(self, pixel_sigma_px: float) -> RotationPrior:
+        """The refinement's prior when its pixels are measured to ``pixel_sigma_px``."""
+        return RotationPrior(self.R_cam_world, float(pixel_sigma_px) / max(self.sigma_rad, 1e-9))
+
+
+def gyro_rotation(T_world_pred: np.ndarray, R_step_cam: np.ndarray, dt_s: float, bias_sigma_rad_s: float,
+                  model: GyroRotationModel) -> GyroRotation:
+    """The gyro's prediction of the frame's orientation: ``T_world_pred`` (whose rotation is the previous
+    frame's times ``R_step_cam``, the gyro's camera rotation over ``dt_s`` seconds) and its error."""
+    return GyroRotation(np.asarray(T_world_pred, float)[:3, :3].T.copy(),
+                        model.sigma_rad(R_step_cam, dt_s, bias_sigma_rad_s))
+
+
+def pixel_sigma(errors_px: np.ndarray, threshold_px: float, ceiling_px: float, n_params: int = 6) -> float:
+    """The pixel noise of a pose fit: the RMS of its errors under ``threshold_px`` (the inliers), corrected
+    for the ``n_params`` the fit took from them (two residuals per point), within
+    [:data:`MIN_PIXEL_SIGMA_PX`, ``ceiling_px``] (beyond the robust loss's width errors are not Gaussian).
+    Few inliers say little: the ceiling then."""
+    e = np.asarray(errors_px, float)
+    e = e[np.isfinite(e) & (e < threshold_px)]
+    dof = 2 * len(e) - n_params
+    if dof <= 0:
+        return float(ceiling_px)
+    rms = float(np.sqrt(np.sum(e**2) / dof))
+    return float(np.clip(rms, MIN_PIXEL_SIGMA_PX, ceiling_px))
