@@ -335,8 +335,12 @@ class KeyframeWorker:
         ang = rotation_angle_deg(G[:3, :3])
         log.debug("window at keyframe %d: %d points, %.2f px, correction %.3f deg, %.4f m, %.1f ms", res.seq,
                   res.n_points, res.rms_px, ang, float(np.linalg.norm(G[:3, 3])), res.cpu_ms)
-        if ang > self.cfg.window.max_correction_deg or not np.isfinite(G).all():
-            log.info("window at keyframe %d: correction of %.2f deg refused", res.seq, ang)
+        # the newest keyframe's own shift, bounded as its rotation is: a shift s at the points' depth z moves
+        # them as a rotation of s / z would
+        shift = float(np.linalg.norm(res.T_after[-1][:3, 3] - res.T_before[-1][:3, 3]))
+        max_shift = np.radians(self.cfg.window.max_correction_deg) * res.depth_m if np.isfinite(res.depth_m) else np.inf
+        if ang > self.cfg.window.max_correction_deg or not np.isfinite(G).all() or not shift <= max_shift:
+            log.info("window at keyframe %d: correction of %.2f deg, %.4f m refused", res.seq, ang, shift)
             return KeyframeCorrection(res.seq, None, 0, 0, None, None, res, C_since)
         return KeyframeCorrection(res.seq, G, 0, 0, None, None, res, C_since)
 
