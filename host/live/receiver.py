@@ -463,10 +463,10 @@ class Receiver:
                 log.error("session %s: world rebase from t=%d ns not written to %s: %s", sid, rebase.from_t_ns,
                           self.out / sid, exc.strerror or exc)
                 n = 0
+            if self.on_rebase is not None:  # under the lock: no pose mapped here reaches the view before it
+                self.on_rebase(msg)
         log.info("session %s: the device's world was redefined at t=%d ns; %d stored poses mapped into it "
                  "(world_rebase.json maps the keyframes before it)", sid, rebase.from_t_ns, n)
-        if self.on_rebase is not None:
-            self.on_rebase(msg)
 
     def _update_live(self, now: float) -> None:
         with self.lock:

@@ -68,6 +68,13 @@ class SessionRebases:
         held.append(new)
         return new
 
+    def map_matrix(self, session_id: str, t_ns: int, T_world_cam: np.ndarray) -> np.ndarray:
+        """A pose of the session timed ``t_ns``, as sent, in the session's current world."""
+        for r in self._by_session.get(session_id, ()):
+            if t_ns < r.from_t_ns:
+                T_world_cam = r.T_new_old @ T_world_cam
+        return T_world_cam
+
     def map_pose(self, pose: Pose) -> Pose:
         """A live pose in its session's current world (one timed before a rebase was sent in the earlier one)."""
         for r in self._by_session.get(pose.session_id, ()):
