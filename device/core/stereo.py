@@ -74,10 +74,10 @@ class LMOptions:
 @dataclass(frozen=True, eq=False)
 class RotationPrior:
     """A prior on ``R_cam_world`` (e.g. gyro-integrated): ``weight * log(R prior^T)`` residuals
-    (radians scaled to pixels by the weight: a number, or a 3x3 square-root information matrix)."""
+    (radians scaled to pixels by the weight)."""
 
     R: np.ndarray
-    weight: float | np.ndarray
+    weight: float
 
 
 @dataclass
@@ -87,7 +87,6 @@ class RefineResult:
     inliers_right: np.ndarray
     rms_px: float
     iterations: int
-    hessian: np.ndarray | None = None  # the normal equations' 6x6 matrix at the returned pose (px^2 units)
 
 
 def _residuals(T: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray, T_extra: np.ndarray | None):
@@ -147,10 +146,7 @@ def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, left: PointObservations, r
     X_world, uv_left = left.X_world, left.uv
     X_world_r, uv_right = (None, None) if right is None else (right.X_world, right.uv)
     huber_px, max_iter, outlier_px = options.huber_px, options.max_iter, options.outlier_px
-    prior_R, prior_W = (None, None) if prior is None else (prior.R, np.asarray(prior.weight, float))
-    if prior_W is not None:
-        prior_W = prior_W * np.eye(3) if prior_W.ndim == 0 else prior_W
-        prior_R = None if not np.any(prior_W) else prior_R
+    prior_R, prior_weight = (None, 0.0) if prior is None else (prior.R, prior.weight)
     T = T_cam_world.copy()
     cutoff = 10 * outlier_px if options.cutoff_px is None else options.cutoff_px
     K0, K1 = rig.cam0.K, rig.cam1.K
@@ -167,13 +163,13 @@ def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, left: PointObservations, r
         for X, uv, K, Te in blocks:
             c, Hc, gc = _camera_system(T, X, uv, K, Te, huber_px, cutoff)
             cost, H, g = cost + c, H + Hc, g + gc
-        if prior_R is not None:
+        if prior_R is not None and prior_weight > 0:
             from stereopath.device.core.geometry import so3_log
 
-            rr = prior_W @ so3_log(T[:3, :3] @ prior_R.T)
+            rr = so3_log(T[:3, :3] @ prior_R.T) * prior_weight
             cost += float(rr @ rr)
             Jr = np.zeros((3, 6))
-            Jr[:, 3:] = prior_W
+            Jr[:, 3:] = np.eye(3) * prior_weight
             H += Jr.T @ Jr
             g += Jr.T @ rr
         return cost, H, g
@@ -209,7 +205,7 @@ def refine_pose_lm(rig: Rig, T_cam_world: np.ndarray, left: PointObservations, r
         errs.append(er)
     allerr = np.concatenate(errs)
     rms = float(np.sqrt(np.mean(allerr**2))) if len(allerr) else float("inf")
-    return RefineResult(T, inl, inr, rms, n_iter, H)
+    return RefineResult(T, inl, inr, rms, n_iter)
 
 
 class KltStereoParams(Protocol):

@@ -8,11 +8,7 @@ over the frame interval with the bias in use.  That rotation is a measurement wi
 * a relative error of the rotation itself, ``k * |theta|``: the gyro's scale factor and the
   body-to-camera rotation's calibration, which grow with the rotation measured.
 
-Those add in quadrature into one isotropic ``sigma`` (radians).  The prediction starts from the
-previous frame's orientation, which the images measured with an error of their own (large about the
-axes where a rotation and a translation look alike to a narrow view): that covariance, from the
-previous refinement's normal equations, is carried over the step and added (a Kalman prediction), so
-the prior is anisotropic and never more certain than the orientation it starts from.  The pose refinement minimises the
+Those add in quadrature into one isotropic ``sigma`` (radians).  The pose refinement minimises the
 sum of squared reprojection errors (pixels); a pixel error of standard deviation ``sigma_px`` makes
 the prior's residual ``log(R R_gyro^T) * sigma_px / sigma`` the same kind of term (both whitened, then
 scaled by ``sigma_px``).  ``sigma_px`` is measured on the frame itself: the RMS of the PnP consensus's
@@ -60,43 +56,22 @@ class GyroRotationModel:
 @dataclass(frozen=True, eq=False)
 class GyroRotation:
     """The frame's camera orientation predicted by the gyro (``R_cam_world``: the previous frame's pose
-    times the gyro's rotation over the frame) and its covariance (rad^2, in the camera frame: the
-    refinement's left perturbation): the previous orientation's, carried over the step, plus the gyro's."""
+    times the gyro's rotation over the frame) and its standard deviation (radians)."""
 
     R_cam_world: np.ndarray
-    cov: np.ndarray
-
-    @property
-    def sigma_rad(self) -> float:
-        """The largest standard deviation (radians)."""
-        return float(np.sqrt(np.max(np.linalg.eigvalsh(self.cov))))
+    sigma_rad: float
 
     def prior(self, pixel_sigma_px: float) -> RotationPrior:
-        """The refinement's prior when its pixels are measured to ``pixel_sigma_px``: the square-root
-        information ``pixel_sigma_px * cov^(-1/2)``."""
-        w, V = np.linalg.eigh(self.cov)
-        return RotationPrior(self.R_cam_world, float(pixel_sigma_px) * (V / np.sqrt(np.maximum(w, 1e-18))) @ V.T)
+        """The refinement's prior when its pixels are measured to ``pixel_sigma_px``."""
+        return RotationPrior(self.R_cam_world, float(pixel_sigma_px) / max(self.sigma_rad, 1e-9))
 
 
 def gyro_rotation(T_world_pred: np.ndarray, R_step_cam: np.ndarray, dt_s: float, bias_sigma_rad_s: float,
-                  model: GyroRotationModel, cov_prev: np.ndarray) -> GyroRotation:
+                  model: GyroRotationModel) -> GyroRotation:
     """The gyro's prediction of the frame's orientation: ``T_world_pred`` (whose rotation is the previous
-    frame's times ``R_step_cam``, the gyro's camera rotation over ``dt_s`` seconds) and its covariance: the
-    previous orientation's ``cov_prev`` (its camera frame) carried into this camera's, plus the gyro's."""
-    R = np.asarray(R_step_cam, float)
-    sigma = model.sigma_rad(R, dt_s, bias_sigma_rad_s)
-    cov = R.T @ np.asarray(cov_prev, float) @ R + sigma**2 * np.eye(3)
-    return GyroRotation(np.asarray(T_world_pred, float)[:3, :3].T.copy(), 0.5 * (cov + cov.T))
-
-
-def posterior_rotation_cov(hessian: np.ndarray, pixel_sigma_px: float) -> np.ndarray:
-    """The rotation's covariance (rad^2) after a pose refinement whose normal equations are ``hessian``
-    (6x6, translation first, pixel units) with pixels measured to ``pixel_sigma_px``."""
-    try:
-        C = np.linalg.inv(np.asarray(hessian, float))[3:, 3:]
-    except np.linalg.LinAlgError:
-        return np.full((3, 3), np.inf)
-    return float(pixel_sigma_px) ** 2 * 0.5 * (C + C.T)
+    frame's times ``R_step_cam``, the gyro's camera rotation over ``dt_s`` seconds) and its error."""
+    return GyroRotation(np.asarray(T_world_pred, float)[:3, :3].T.copy(),
+                        model.sigma_rad(R_step_cam, dt_s, bias_sigma_rad_s))
 
 
 def pixel_sigma(errors_px: np.ndarray, threshold_px: float, ceiling_px: float, n_params: int = 6) -> float:

@@ -24,7 +24,7 @@ from stereopath.device.core.stereo import (
     triangulate,
     undistort_px,
 )
-from stereopath.device.estimation.gyro_prior import GyroRotation, pixel_sigma, posterior_rotation_cov
+from stereopath.device.estimation.gyro_prior import GyroRotation, pixel_sigma
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,14 +112,13 @@ class StereoMeasure:
         return uvr, Xc, ok & self.good_points(Xc, err)
 
     def solve_pose(self, left: np.ndarray, right: np.ndarray, X: np.ndarray, uv: np.ndarray, guess: PoseGuess,
-                   seed: int, stereo_out: list[tuple[np.ndarray, np.ndarray]] | None = None,
-                   rotation_cov_out: list[np.ndarray] | None = None) -> tuple[np.ndarray | None, int, np.ndarray | None]:
+                   seed: int, stereo_out: list[tuple[np.ndarray, np.ndarray]] | None = None
+                   ) -> tuple[np.ndarray | None, int, np.ndarray | None]:
         """PnP RANSAC (from the guess when it is trusted), then LM in both cameras over every point in
         front (nothing beyond twice the inlier threshold weighs; the guess's gyro orientation as a prior,
         weighed against the consensus's pixel noise), inliers classified at the refined pose.
         Returns (T_world_cam, n_inliers, mask).  ``stereo_out``: a list that receives the right-image
-        matches the refinement used, ``(left pixels, right pixels)`` (distorted, as in the images);
-        ``rotation_cov_out``: a list that receives the refined orientation's covariance (rad^2)."""
+        matches the refinement used, ``(left pixels, right pixels)`` (distorted, as in the images)."""
         geo = self.geometry
         K0, d0 = self.rig.cam0.K, self.rig.cam0.dist
         uv_u = undistort_px(uv, K0, d0)
@@ -149,13 +148,12 @@ class StereoMeasure:
         if stereo_out is not None:
             stereo_out.append((np.asarray(uv)[ridx], uvr[okr]))
         uvr_u = self.right_ideal(uvr[okr])
-        prior, sigma_px = None, 0.0
-        if guess.gyro is not None or rotation_cov_out is not None:
+        prior = None
+        if guess.gyro is not None:
             fx, fy, cx, cy = K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]
             Xi = Xc[idx]
             err = np.hypot(fx * Xi[:, 0] / Xi[:, 2] + cx - uv_u[idx, 0], fy * Xi[:, 1] / Xi[:, 2] + cy - uv_u[idx, 1])
-            sigma_px = pixel_sigma(err, geo.pnp_reproj_px, geo.huber_px)
-            prior = None if guess.gyro is None else guess.gyro.prior(sigma_px)
+            prior = guess.gyro.prior(pixel_sigma(err, geo.pnp_reproj_px, geo.huber_px))
         res = refine_pose_lm(self.rig, T_cw, PointObservations(X[idx], uv_u[idx]), PointObservations(X[ridx], uvr_u),
                              LMOptions(huber_px=geo.huber_px, outlier_px=geo.pnp_reproj_px, cutoff_px=2 * geo.pnp_reproj_px),
                              prior)
@@ -163,6 +161,4 @@ class StereoMeasure:
         final[idx[res.inliers_left]] = True
         if final.sum() < geo.min_pnp_inliers:
             return None, 0, None
-        if rotation_cov_out is not None and res.hessian is not None:
-            rotation_cov_out.append(posterior_rotation_cov(res.hessian, sigma_px))
         return invert_pose(res.T_cam_world), int(final.sum()), final

@@ -100,7 +100,6 @@ class StereoEstimator:
         self._gyro: GyroIntegrator | None = None
         self._bias: VisionGyroBias | None = None
         self._bias_sigma = UNKNOWN_BIAS_SIGMA_RAD_S  # the bias's uncertainty when it is not refined on line
-        self._rot_cov: np.ndarray | None = None  # the last pose's orientation covariance (None: not measured)
         g = self.cfg.gyro
         self._gyro_model = GyroRotationModel(g.noise_rad_s_rthz, g.relative_error) if g.rotation_prior else None
         self._start: MovingStart | None = None  # a start in motion, until the path gives gyro bias and gravity
@@ -215,7 +214,7 @@ class StereoEstimator:
             if self.cfg.gyro.estimate_bias:
                 self._bias = VisionGyroBias(bias0, sigma0, window_s=GYRO_BIAS_WINDOW_S)
         T = make_pose(R_world_cam, np.zeros(3))
-        self._state.T_world_cam, self._rot_cov = T, np.zeros((3, 3))  # the first pose defines the world
+        self._state.T_world_cam = T
         self._state.T_bias_start = T.copy()
         self._t_prev = frame.t_ns
         self._prev_left, self._state.T_prev_left = left, T.copy()
@@ -255,12 +254,11 @@ class StereoEstimator:
 
     def _gyro_rotation(self, T_pred: np.ndarray) -> GyroRotation | None:
         """The gyro's orientation of this frame and its error (the pose solve's prior), when it measured it."""
-        if self._gyro_model is None or self._gyro_step is None or self._R_body_cam is None or self._rot_cov is None:
+        if self._gyro_model is None or self._gyro_step is None or self._R_body_cam is None:
             return None
         Rbc = self._R_body_cam
         sigma_b = self._bias.sigma_rad_s if self._bias is not None else self._bias_sigma
-        return gyro_rotation(T_pred, Rbc.T @ self._gyro_step[0] @ Rbc, self._gyro_step[1], sigma_b, self._gyro_model,
-                             self._rot_cov)
+        return gyro_rotation(T_pred, Rbc.T @ self._gyro_step[0] @ Rbc, self._gyro_step[1], sigma_b, self._gyro_model)
 
     def _track(self, frame: StereoFrame, img: StereoImages, T_pred: np.ndarray, have_rot: bool,
                gyro: GyroRotation | None) -> PoseEstimate:
@@ -270,7 +268,7 @@ class StereoEstimator:
         T_est = None
         n_inl = 0
         note = ""
-        relocalised, rot_cov = False, []
+        relocalised = False
         if len(m) >= cfg.geometry.min_pnp_inliers and self._prev_left is not None:
             # first from the predicted pose; then a deeper pyramid from the last positions (a motion
             # the prediction missed: the first frames without a velocity, a jolt, dropped frames)
@@ -284,7 +282,7 @@ class StereoEstimator:
                     continue
                 pairs: list[tuple[np.ndarray, np.ndarray]] = []
                 T_est, n_inl, inl = self._geo.solve_pose(left, img.right, m.X[good], uv_new[good], PoseGuess(T_pred, gyro=gyro),
-                                                         self._cur_seq, pairs if cfg.exposure.match else None, rot_cov)
+                                                         self._cur_seq, stereo_out=pairs if cfg.exposure.match else None)
                 if T_est is None:
                     note = "pose_failed"
                     continue
@@ -302,7 +300,6 @@ class StereoEstimator:
             T_est, n_inl = self._relocalise(img, T_pred)
             relocalised = T_est is not None
         self._since_kf += 1
-        self._rot_cov = rot_cov[-1] if rot_cov and not relocalised else None
         if T_est is not None:
             self._failures = 0
             self._prev_left, self._state.T_prev_left = left, T_est.copy()
