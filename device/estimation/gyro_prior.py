@@ -8,7 +8,10 @@ over the frame interval with the bias in use.  That rotation is a measurement wi
 * a relative error of the rotation itself, ``k * |theta|``: the gyro's scale factor and the
   body-to-camera rotation's calibration, which grow with the rotation measured.
 
-Those add in quadrature into one isotropic ``sigma`` (radians).  The pose refinement minimises the
+Those add in quadrature into one isotropic ``sigma`` (radians).  The rotation is integrated from the last
+keyframe (:class:`GyroSinceKeyframe`), whose pose the tracked map was measured from: the prior then
+agrees with the map's own frame, error and all, and over the interval the gyro's error grows as the
+model says.  The pose refinement minimises the
 sum of squared reprojection errors (pixels); a pixel error of standard deviation ``sigma_px`` makes
 the prior's residual ``log(R R_gyro^T) * sigma_px / sigma`` the same kind of term (both whitened, then
 scaled by ``sigma_px``).  ``sigma_px`` is measured on the frame itself: the RMS of the PnP consensus's
@@ -66,10 +69,34 @@ class GyroRotation:
         return RotationPrior(self.R_cam_world, float(pixel_sigma_px) / max(self.sigma_rad, 1e-9))
 
 
+class GyroSinceKeyframe:
+    """The gyro's camera rotation since the last keyframe: the prior's anchor is the keyframe's pose, from
+    which the tracked map's newest points were measured, not the previous frame's (whose error against
+    the map a frame-to-frame prior would carry on, and the translation would then absorb)."""
+
+    def __init__(self) -> None:
+        self.R_cam = np.eye(3)
+        self.dt_s = 0.0
+        self.unbroken = False  # until a keyframe anchors it
+
+    def restart(self) -> None:
+        """A new keyframe: the anchor."""
+        self.R_cam, self.dt_s, self.unbroken = np.eye(3), 0.0, True
+
+    def add(self, step: tuple[np.ndarray, float] | None) -> None:
+        """One frame's camera rotation and its length (None: no gyro over it, the chain breaks until the next
+        keyframe)."""
+        if step is None:
+            self.unbroken = False
+        elif self.unbroken:
+            self.R_cam, self.dt_s = self.R_cam @ step[0], self.dt_s + float(step[1])
+
+
 def gyro_rotation(T_world_pred: np.ndarray, R_step_cam: np.ndarray, dt_s: float, bias_sigma_rad_s: float,
                   model: GyroRotationModel) -> GyroRotation:
-    """The gyro's prediction of the frame's orientation: ``T_world_pred`` (whose rotation is the previous
-    frame's times ``R_step_cam``, the gyro's camera rotation over ``dt_s`` seconds) and its error."""
+    """The gyro's prediction of the frame's orientation: ``T_world_pred`` (whose rotation is the anchor's,
+    the last keyframe's, times ``R_step_cam``, the gyro's camera rotation over the ``dt_s`` seconds since)
+    and its error."""
     return GyroRotation(np.asarray(T_world_pred, float)[:3, :3].T.copy(),
                         model.sigma_rad(R_step_cam, dt_s, bias_sigma_rad_s))
 

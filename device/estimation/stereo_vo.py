@@ -30,7 +30,7 @@ from stereopath.device.core.scaled_klt import track_scaled
 from stereopath.device.estimation.disparity_offset import (KeyframeObservations, OffsetFilter, PriorPath,
                                                           offset_between_keyframes)
 from stereopath.device.estimation.offset_window import offset_over_keyframes
-from stereopath.device.estimation.gyro_prior import GyroRotation, GyroRotationModel, gyro_rotation
+from stereopath.device.estimation.gyro_prior import GyroRotation, GyroRotationModel, GyroSinceKeyframe, gyro_rotation
 from stereopath.device.estimation.keyframe_jobs import KeyframeJob, KeyframeWorker, Submitted
 from stereopath.device.estimation.live_state import LiveState, StereoStats
 from stereopath.device.estimation.local_window import WindowKeyframes
@@ -102,6 +102,7 @@ class StereoEstimator:
         self._bias_sigma = UNKNOWN_BIAS_SIGMA_RAD_S  # the bias's uncertainty when it is not refined on line
         g = self.cfg.gyro
         self._gyro_model = GyroRotationModel(g.noise_rad_s_rthz, g.relative_error) if g.rotation_prior else None
+        self._gyro_kf = GyroSinceKeyframe()
         self._start: MovingStart | None = None  # a start in motion, until the path gives gyro bias and gravity
         self.world_rebase: tuple[int, np.ndarray] | None = None  # see MovingStart: (frame seq, motion)
         self._gyro_step: tuple[np.ndarray, float] | None = None  # the gyro's body rotation over the last frame
@@ -138,7 +139,7 @@ class StereoEstimator:
         T_pred, have_rot_prior = self._predict(frame.t_ns, dt, imu)
         if self._window is not None:
             self._window.gyro_step(self._gyro_step, self._R_body_cam)
-        est = self._track(frame, img, T_pred, have_rot_prior, self._gyro_rotation(T_pred))
+        est = self._track(frame, img, T_pred, have_rot_prior, self._gyro_rotation())
         self._refine_gyro_bias(est)
         if self._start is not None:
             self.counts.start_solves += self._start.feed(est, imu, self._worker)
@@ -252,13 +253,15 @@ class StereoEstimator:
                 have_rot = True
         return T_prev @ make_pose(R_rel, t_rel), have_rot
 
-    def _gyro_rotation(self, T_pred: np.ndarray) -> GyroRotation | None:
-        """The gyro's orientation of this frame and its error (the pose solve's prior), when it measured it."""
-        if self._gyro_model is None or self._gyro_step is None or self._R_body_cam is None:
+    def _gyro_rotation(self) -> GyroRotation | None:
+        """The gyro's orientation of this frame since the last keyframe and its error (the pose solve's prior)."""
+        Rbc, kf = self._R_body_cam, self._gyro_kf
+        kf.add(None if self._gyro_step is None or Rbc is None else (Rbc.T @ self._gyro_step[0] @ Rbc, self._gyro_step[1]))
+        if self._gyro_model is None or not kf.unbroken or self._state.T_kf is None:
             return None
-        Rbc = self._R_body_cam
         sigma_b = self._bias.sigma_rad_s if self._bias is not None else self._bias_sigma
-        return gyro_rotation(T_pred, Rbc.T @ self._gyro_step[0] @ Rbc, self._gyro_step[1], sigma_b, self._gyro_model)
+        return gyro_rotation(self._state.T_kf @ make_pose(kf.R_cam, np.zeros(3)), kf.R_cam, kf.dt_s, sigma_b,
+                             self._gyro_model)
 
     def _track(self, frame: StereoFrame, img: StereoImages, T_pred: np.ndarray, have_rot: bool,
                gyro: GyroRotation | None) -> PoseEstimate:
@@ -477,6 +480,7 @@ class StereoEstimator:
         self._submit_window(T_world_cam)
         self._since_kf = 0
         self._state.T_kf = T_world_cam.copy()
+        self._gyro_kf.restart()
         self._n_at_kf = len(m)
         self.counts.keyframes += 1
         return len(m)

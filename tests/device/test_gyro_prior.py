@@ -63,3 +63,22 @@ def test_the_prediction_carries_the_previous_pose_and_the_gyro_step():
     g = gyro_rotation(T_pred, R_step, 0.05, 1e-3, GyroRotationModel(2e-4, 0.0))
     np.testing.assert_allclose(g.R_cam_world, invert_pose(T_pred)[:3, :3], atol=1e-12)
     assert g.prior(0.5).weight == pytest.approx(0.5 / g.sigma_rad)
+
+
+def test_the_rotation_since_the_keyframe_chains_and_breaks():
+    from stereopath.device.estimation.gyro_prior import GyroSinceKeyframe
+
+    g = GyroSinceKeyframe()
+    step = (so3_exp(np.array([0.0, 0.01, 0.0])), 0.05)
+    g.add(step)
+    assert not g.unbroken  # no keyframe anchors it yet
+    g.restart()
+    for _ in range(3):
+        g.add(step)
+    np.testing.assert_allclose(g.R_cam, so3_exp(np.array([0.0, 0.03, 0.0])), atol=1e-12)
+    assert g.dt_s == pytest.approx(0.15)
+    g.add(None)  # a frame the gyro did not cover: no prior until the next keyframe
+    g.add(step)
+    assert not g.unbroken
+    g.restart()
+    assert g.unbroken and g.dt_s == 0.0
