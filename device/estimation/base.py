@@ -79,29 +79,52 @@ class EstimateRun:
         return sum(1 for e in self.estimates if e.status is TrackStatus.OK)
 
 
+@dataclass
+class EstimateProgress:
+    """A run's results so far and where it stands: the next frame's ``seq`` (a recorded sequence's
+    index) and the last frame's time (the IMU samples after it go to the next frame)."""
+
+    estimates: list[PoseEstimate] = field(default_factory=list)
+    frame_ms: list[float] = field(default_factory=list)
+    next_seq: int = 0
+    prev_t: int | None = None
+
+
+@dataclass(frozen=True)
+class Chunks:
+    """``save(progress)`` called after every ``frames`` frames processed (a stage's stored progress)."""
+
+    frames: int
+    save: Callable[[EstimateProgress], None]
+
+
 def run_estimator(estimator: Estimator, frames: Iterable[StereoFrame], imu: ImuSamples | None,
-                  progress: Callable[[int], None] | None = None) -> EstimateRun:
+                  progress: Callable[[int], None] | None = None, resume: EstimateProgress | None = None,
+                  chunks: Chunks | None = None) -> EstimateRun:
     """Run ``estimator`` over ``frames``, handing it the IMU samples since the previous frame.
 
     Frame times count only the estimator's own work (``process``), not the
-    source (rendering or decoding happens inside the iterator, outside the timer).
+    source (rendering or decoding happens inside the iterator, outside the timer).  ``resume``: the
+    progress of an earlier run of this estimator that ``frames`` continue; ``chunks``: where the
+    progress goes every so many frames.
     """
-    estimates: list[PoseEstimate] = []
-    frame_ms: list[float] = []
-    prev_t: int | None = None
+    done = resume if resume is not None else EstimateProgress()
+    estimates, frame_ms = done.estimates, done.frame_ms
     for frame in frames:
         block = None
         if imu is not None and len(imu):
-            t0 = int(imu.t_ns[0]) - 1 if prev_t is None else prev_t
+            t0 = int(imu.t_ns[0]) - 1 if done.prev_t is None else done.prev_t
             block = imu.between(t0, frame.t_ns)
         start = time.perf_counter()
         est = estimator.process(frame, block)
         frame_ms.append((time.perf_counter() - start) * 1e3)
         if est is not None:
             estimates.append(est)
-        prev_t = frame.t_ns
+        done.prev_t, done.next_seq = frame.t_ns, frame.seq + 1
         if progress is not None:
             progress(1)
+        if chunks is not None and len(frame_ms) % chunks.frames == 0:
+            chunks.save(done)
     if not estimates:
         raise EstimationError("no frames to estimate")
     close = getattr(estimator, "close", None)

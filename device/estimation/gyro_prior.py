@@ -28,8 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stereopath.device.core.geometry import so3_log
+from stereopath.device.core.geometry import make_pose, so3_log
 from stereopath.device.core.stereo import RotationPrior
+from stereopath.device.core.stereo_config import GyroBiasConfig
 from stereopath.device.errors import ConfigError
 
 MIN_PIXEL_SIGMA_PX = 0.05  # the pixel noise at least (a near-perfect fit on few points says little)
@@ -38,6 +39,11 @@ MIN_PIXEL_SIGMA_PX = 0.05  # the pixel noise at least (a near-perfect fit on few
 @dataclass(frozen=True)
 class GyroRotationModel:
     """The error model of a gyro-integrated rotation (see the module doc)."""
+
+    @classmethod
+    def of(cls, cfg: GyroBiasConfig) -> GyroRotationModel | None:
+        """The model of a ``[estimator.stereo.gyro]`` section (None: the prior is off)."""
+        return cls(cfg.noise_rad_s_rthz, cfg.relative_error) if cfg.rotation_prior else None
 
     noise_rad_s_rthz: float  # the gyro's white noise density
     relative: float  # relative error of a measured rotation (scale factor and body-to-camera alignment)
@@ -69,6 +75,14 @@ class GyroRotation:
         return RotationPrior(self.R_cam_world, float(pixel_sigma_px) / max(self.sigma_rad, 1e-9))
 
 
+def camera_step(step_body: tuple[np.ndarray, float] | None,
+                R_body_cam: np.ndarray | None) -> tuple[np.ndarray, float] | None:
+    """A gyro step (body rotation, seconds) as the camera's rotation (None without either)."""
+    if step_body is None or R_body_cam is None:
+        return None
+    return R_body_cam.T @ step_body[0] @ R_body_cam, step_body[1]
+
+
 class GyroSinceKeyframe:
     """The gyro's camera rotation since the last keyframe: the prior's anchor is the keyframe's pose, from
     which the tracked map's newest points were measured, not the previous frame's (whose error against
@@ -90,6 +104,16 @@ class GyroSinceKeyframe:
             self.unbroken = False
         elif self.unbroken:
             self.R_cam, self.dt_s = self.R_cam @ step[0], self.dt_s + float(step[1])
+
+    def frame(self, step: tuple[np.ndarray, float] | None, T_world_kf: np.ndarray | None, bias_sigma_rad_s: float,
+              model: GyroRotationModel | None) -> GyroRotation | None:
+        """:meth:`add` this frame's step; the prior of its pose solve from the keyframe's pose ``T_world_kf``
+        (None: no prior, when the model is off, the chain broken or no keyframe)."""
+        self.add(step)
+        if model is None or not self.unbroken or T_world_kf is None:
+            return None
+        return gyro_rotation(T_world_kf @ make_pose(self.R_cam, np.zeros(3)), self.R_cam, self.dt_s, bias_sigma_rad_s,
+                             model)
 
 
 def gyro_rotation(T_world_pred: np.ndarray, R_step_cam: np.ndarray, dt_s: float, bias_sigma_rad_s: float,

@@ -19,7 +19,7 @@ import logging
 import os
 import sys
 import threading
-from concurrent.futures import Future
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from enum import Enum
 from typing import Callable, Generic, TypeVar
@@ -31,6 +31,7 @@ from stereopath.device.core.features import Features
 from stereopath.device.core.geometry import invert_pose, project_to_se3 as rigid, rotation_angle_deg
 from stereopath.device.core.rig import Rig
 from stereopath.device.core.stereo_config import KeyframePolicy, StereoConfig
+from stereopath.device.errors import EstimationError
 from stereopath.device.estimation.live_state import Library, compose
 from stereopath.device.estimation.local_window import WindowJob, WindowResult
 from stereopath.device.estimation.stereo_measure import PoseGuess, StereoMeasure
@@ -107,10 +108,21 @@ class Submitted(Enum):
 
 
 class Ready(Generic[ResultT]):
-    """A finished result with the Future interface (the synchronous mode)."""
+    """A finished result with the Future interface (the synchronous mode, and settled work)."""
 
-    def __init__(self, value: ResultT) -> None:
+    def __init__(self, value: ResultT, error: BaseException | None = None) -> None:
         self._value = value
+        self._error = error
+
+    @classmethod
+    def of(cls, fut: Future | Ready) -> Ready:
+        """The finished ``fut`` (its result or its exception) held as plain data (waits for it)."""
+        if isinstance(fut, Ready):
+            return fut
+        try:
+            return cls(fut.result())
+        except Exception as exc:  # kept: poll() reports it as it would have from the Future
+            return cls(None, exc)
 
     def done(self) -> bool:
         return True
@@ -119,6 +131,8 @@ class Ready(Generic[ResultT]):
         return False
 
     def result(self) -> ResultT:
+        if self._error is not None:
+            raise self._error
         return self._value
 
 
@@ -213,13 +227,36 @@ class KeyframeWorker:
         self._windows: list[Job] = []  # local window solves in flight, the same way
         self._order = 0
         self._feature_cfg = None
-        self._executor = None
-        if (cfg.asift.enabled or cfg.window.enabled) and cfg.keyframes.background:
-            from concurrent.futures import ThreadPoolExecutor
+        self._executor = self._start_executor()
 
-            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keyframe-features",
-                                                initializer=lower_thread_priority,
-                                                initargs=(worker_niceness(cfg.keyframes),))
+    def _start_executor(self) -> ThreadPoolExecutor | None:
+        cfg = self.cfg
+        if not ((cfg.asift.enabled or cfg.window.enabled) and cfg.keyframes.background):
+            return None
+        return ThreadPoolExecutor(max_workers=1, thread_name_prefix="keyframe-features",
+                                  initializer=lower_thread_priority, initargs=(worker_niceness(cfg.keyframes),))
+
+    def settle(self) -> None:
+        """Wait for the work in flight and hold every result as plain data (:class:`Ready`), which
+        :meth:`poll` takes as before: the worker can then be pickled (a stage's stored progress)."""
+        if self._executor is not None:
+            self._executor.submit(int).result()  # one worker thread, in order: all the work before it is done
+        for queue in (self._jobs, self._windows):
+            for job in queue:
+                j: Job | LibrarySource | None = job
+                while isinstance(j, Job):  # the jobs it matches against too
+                    j.future = Ready.of(j.future)
+                    j = j.prev
+
+    def __getstate__(self) -> dict[str, object]:
+        pending = [j for q in (self._jobs, self._windows) for j in q if not isinstance(j.future, Ready)]
+        if pending:
+            raise EstimationError(f"{len(pending)} keyframe job(s) in flight: settle() before pickling the worker")
+        return {k: v for k, v in self.__dict__.items() if k != "_executor"}
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update(state)
+        self._executor = self._start_executor()
 
     @property
     def in_flight(self) -> int:

@@ -119,6 +119,11 @@ class MovingStart:
         self.attempts += 1
         return True
 
+    def settle(self, freeze: Callable[[Pending], Pending]) -> None:
+        """The solve in flight, if any, replaced by ``freeze(it)`` (its result held as plain data)."""
+        if self._job is not None:
+            self._job = (freeze(self._job[0]), self._job[1])
+
     def poll(self) -> SolvedStart | None:
         """The solved start once its solve is done and passed; None otherwise (never waits)."""
         if self._job is None or not self._job[0].done():

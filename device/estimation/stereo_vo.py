@@ -30,8 +30,8 @@ from stereopath.device.core.scaled_klt import track_scaled
 from stereopath.device.estimation.disparity_offset import (KeyframeObservations, OffsetFilter, PriorPath,
                                                           offset_between_keyframes)
 from stereopath.device.estimation.offset_window import offset_over_keyframes
-from stereopath.device.estimation.gyro_prior import GyroRotation, GyroRotationModel, GyroSinceKeyframe, gyro_rotation
-from stereopath.device.estimation.keyframe_jobs import KeyframeJob, KeyframeWorker, Submitted
+from stereopath.device.estimation.gyro_prior import GyroRotation, GyroRotationModel, GyroSinceKeyframe, camera_step
+from stereopath.device.estimation.keyframe_jobs import KeyframeJob, KeyframeWorker, Ready, Submitted
 from stereopath.device.estimation.live_state import LiveState, StereoStats
 from stereopath.device.estimation.local_window import WindowKeyframes
 from stereopath.device.estimation.moving_start import MovingStart
@@ -100,9 +100,7 @@ class StereoEstimator:
         self._gyro: GyroIntegrator | None = None
         self._bias: VisionGyroBias | None = None
         self._bias_sigma = UNKNOWN_BIAS_SIGMA_RAD_S  # the bias's uncertainty when it is not refined on line
-        g = self.cfg.gyro
-        self._gyro_model = GyroRotationModel(g.noise_rad_s_rthz, g.relative_error) if g.rotation_prior else None
-        self._gyro_kf = GyroSinceKeyframe()
+        self._gyro_model, self._gyro_kf = GyroRotationModel.of(self.cfg.gyro), GyroSinceKeyframe()  # the pose's prior
         self._start: MovingStart | None = None  # a start in motion, until the path gives gyro bias and gravity
         self.world_rebase: tuple[int, np.ndarray] | None = None  # see MovingStart: (frame seq, motion)
         self._gyro_step: tuple[np.ndarray, float] | None = None  # the gyro's body rotation over the last frame
@@ -121,6 +119,13 @@ class StereoEstimator:
     def close(self) -> None:
         """Stop the background keyframe worker (idempotent)."""
         self._worker.close()
+
+    def settle(self) -> None:
+        """Let the background work in flight finish, its results kept for the next frame as usual: the
+        estimator can then be pickled and resumed (a reprocessing stage's stored progress)."""
+        self._worker.settle()
+        if self._start is not None:
+            self._start.settle(Ready.of)
 
     def __del__(self) -> None:  # the worker thread must not outlive the estimator
         try:
@@ -255,16 +260,12 @@ class StereoEstimator:
 
     def _gyro_rotation(self) -> GyroRotation | None:
         """The gyro's orientation of this frame since the last keyframe and its error (the pose solve's prior)."""
-        Rbc, kf = self._R_body_cam, self._gyro_kf
-        kf.add(None if self._gyro_step is None or Rbc is None else (Rbc.T @ self._gyro_step[0] @ Rbc, self._gyro_step[1]))
-        if self._gyro_model is None or not kf.unbroken or self._state.T_kf is None:
-            return None
         sigma_b = self._bias.sigma_rad_s if self._bias is not None else self._bias_sigma
-        return gyro_rotation(self._state.T_kf @ make_pose(kf.R_cam, np.zeros(3)), kf.R_cam, kf.dt_s, sigma_b,
-                             self._gyro_model)
+        step = camera_step(self._gyro_step, self._R_body_cam)
+        return self._gyro_kf.frame(step, self._state.T_kf, sigma_b, self._gyro_model)
 
-    def _track(self, frame: StereoFrame, img: StereoImages, T_pred: np.ndarray, have_rot: bool,
-               gyro: GyroRotation | None) -> PoseEstimate:
+    def _track(self, frame: StereoFrame, img: StereoImages, T_pred: np.ndarray, have_rot: bool, gyro: GyroRotation | None
+               ) -> PoseEstimate:
         cfg = self.cfg
         left = img.left
         m = self._state.map

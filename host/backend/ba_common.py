@@ -3,7 +3,9 @@ priors, the reprojection residuals (NumPy, for statistics and outlier removal) a
 propagation of keyframe corrections to the other frames.
 
 Observations are rows ``(pose index, point id, cam, u, v[, weight])`` in undistorted pixels
-(cam 0 left, 1 right); the optional weight scales the residual (``sigma_nominal / sigma``).
+(cam 0 left, 1 right); the optional weight scales the residual (``sigma_nominal / sigma``).  They come
+as a float (N, 5) or (N, 6) array, or held compact (:mod:`~stereopath.host.backend.observations`) and
+widened a window at a time by :func:`as_observations`.
 
 Pure computation: no I/O.
 """
@@ -19,6 +21,7 @@ from stereopath.device.core.config import check_ranges, ranged
 from stereopath.device.core.geometry import invert_pose, so3_exp, so3_log
 from stereopath.device.core.rig import Rig
 from stereopath.device.errors import ConfigError, EstimationError
+from stereopath.host.backend.observations import widened
 
 if TYPE_CHECKING:
     from stereopath.host.backend.imu_factors import ImuTerms
@@ -100,8 +103,11 @@ class RotationPrior:
 
 
 def as_observations(observations: np.ndarray) -> np.ndarray:
-    """``observations`` as a float (N, 5) or (N, 6) array; EstimationError on any other shape."""
-    obs = np.asarray(observations, dtype=float)
+    """``observations`` (either form) as a float (N, 5) or (N, 6) array; EstimationError on any other shape."""
+    raw = np.asarray(observations)
+    if raw.dtype.names is not None:
+        return widened(raw)
+    obs = np.asarray(raw, dtype=float)
     if obs.size == 0:
         return np.zeros((0, 5))
     if obs.ndim != 2 or obs.shape[1] not in (5, 6):

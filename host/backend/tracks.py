@@ -12,6 +12,7 @@ See docs/architecture.md, "Reprocessing".
 
 from __future__ import annotations
 
+import array
 import logging
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -26,6 +27,7 @@ from stereopath.device.core.scaled_klt import forward_backward
 from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import Rig
 from stereopath.device.errors import ConfigError
+from stereopath.host.backend.observations import OBSERVATION_DTYPE, compact_observations
 from stereopath.host.backend.parallel import parallel_map
 from stereopath.host.backend.slanted_stereo import SlantedFit, refine_slanted
 
@@ -194,8 +196,10 @@ class _Tracks:
     """Union-find over keypoints that never joins two keypoints of one keyframe into a track."""
 
     def __init__(self, kf_of: np.ndarray) -> None:
-        self.parent = list(range(len(kf_of)))
-        self.kf_of = [int(k) for k in kf_of]
+        # int32 arrays, not lists: 4 bytes a keypoint instead of a Python int object and a pointer (the
+        # union-find over a long scan's millions of matched keypoints was the tracks stage's largest part)
+        self.parent = array.array("i", np.arange(len(kf_of), dtype=np.int32).tobytes())
+        self.kf_of = array.array("i", np.asarray(kf_of, dtype=np.int32).tobytes())
         self.kfs: dict[int, set[int]] = {}
         self.conflicts = 0
 
@@ -394,7 +398,7 @@ class KeyframeList(Protocol):
 class Tracks:
     """Feature tracks over keyframes (see :func:`build_tracks`)."""
 
-    observations: np.ndarray  # (N, 6) rows (keyframe, point id, cam, u, v, weight), undistorted pixels
+    observations: np.ndarray  # compact rows (keyframe, point id, cam, u, v, weight), undistorted pixels (ba_common)
     points: dict[int, np.ndarray]  # point id -> world XYZ (mean of its stereo points)
     kf_ids: list[np.ndarray]  # per keyframe: point ids of its keypoints in tracks
     kf_xy: list[np.ndarray]  # per keyframe: their raw (distorted) left pixel positions
@@ -405,8 +409,9 @@ def build_tracks(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, cfg: Trac
                  progress=None, align=None, sizes: list[int] | None = None) -> Tracks:
     """Join the keyframes' stereo keypoints into tracks (see the module doc).
 
-    Observation rows are ``(keyframe, point id, cam, u, v, weight)`` in undistorted pixels, one
-    left and one right row per keypoint in a track; ``weight`` scales the residual (large
+    Observation rows are ``(keyframe, point id, cam, u, v, weight)`` in undistorted pixels, held
+    compact (:func:`~stereopath.host.backend.ba_common.compact_observations`), one left and one right
+    row per keypoint in a track; ``weight`` scales the residual (large
     keypoints are located less precisely).  ``progress(n)`` is called after each batch of ``n``
     keyframes matched (:func:`match_all`).  ``sizes``: the keyframes' keypoint counts when known
     (``kfs`` is then read in order, a batch at a time).
@@ -430,9 +435,9 @@ def build_tracks(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, cfg: Trac
         uf.union_many(np.searchsorted(used, a).tolist(), np.searchsorted(used, b).tolist())
     del pairs
     n = int(offsets[-1])
-    empty = [np.zeros(0, np.int64) for _ in range(len(kfs))]
+    empty = [np.zeros(0, np.int32) for _ in range(len(kfs))]
     if n == 0:
-        return Tracks(np.zeros((0, 6)), {}, empty, [np.zeros((0, 2), np.float32) for _ in range(len(kfs))],
+        return Tracks(np.zeros(0, OBSERVATION_DTYPE), {}, empty, [np.zeros((0, 2), np.float32) for _ in range(len(kfs))],
                       {"keypoints": 0, "matches": 0, "tracks": 0, "observations": 0})
     find = uf.find
     roots = np.arange(n, dtype=np.int64)
@@ -449,7 +454,7 @@ def build_tracks(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, cfg: Trac
         good = counts >= MIN_TRACK_LENGTH
         sel &= good[inv]
     tid = np.cumsum(good) - 1  # track id of each good root
-    rows = []
+    rows: list[np.ndarray] = []
     kf_ids, kf_xy = [], []
     Xw_sum = np.zeros((int(good.sum()), 3))
     for k in range(len(kfs)):
@@ -457,18 +462,20 @@ def build_tracks(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, cfg: Trac
         s = slice(offsets[k], offsets[k + 1])
         m = sel[s]
         ids = tid[inv[s][m]]
-        kf_ids.append(ids.astype(np.int64))
+        kf_ids.append(ids.astype(np.int32))
         kf_xy.append(kf.feats.xy[m].astype(np.float32))
         if not m.any():
             continue
         w = np.ones(len(ids))
         if SIZE_WEIGHTING_PX > 0:
             w = np.minimum(1.0, SIZE_WEIGHTING_PX / np.maximum(kf.feats.size[m].astype(float), 1e-3))
-        rows.append(np.column_stack([np.full(len(ids), k), ids, np.zeros(len(ids)), kf.uv0[m], w]))
-        rows.append(np.column_stack([np.full(len(ids), k), ids, np.ones(len(ids)), kf.uv1[m], w]))
+        kk = np.full(len(ids), k)
+        rows.append(compact_observations(kk, ids, np.zeros(len(ids), np.uint8), kf.uv0[m], w))
+        rows.append(compact_observations(kk, ids, np.ones(len(ids), np.uint8), kf.uv1[m], w))
         T = T_world_cam[k]
         np.add.at(Xw_sum, ids, kf.X_cam[m] @ T[:3, :3].T + T[:3, 3])
-    obs = np.vstack(rows) if rows else np.zeros((0, 6))
+    obs = np.concatenate(rows) if rows else np.zeros(0, OBSERVATION_DTYPE)
+    del rows
     n_per = np.bincount(tid[inv[sel]], minlength=len(Xw_sum))
     points = {int(i): Xw_sum[i] / n_per[i] for i in range(len(Xw_sum)) if n_per[i]}
     lengths = counts[good]

@@ -40,7 +40,14 @@ import numpy as np
 
 from stereopath.device.core.rig import Rig
 from stereopath.device.errors import EstimationError
-from stereopath.host.backend.ba_common import BAConfig, BAProblem, BAResult, RotationPrior, as_observations
+from stereopath.host.backend.ba_common import (
+    BAConfig,
+    BAProblem,
+    BAResult,
+    RotationPrior,
+    as_observations,
+)
+from stereopath.host.backend.observations import observation_keyframes
 
 if TYPE_CHECKING:
     from stereopath.host.backend.imu_factors import ImuTerms
@@ -202,9 +209,9 @@ def _adjust_window(rig: Rig, problem: BAProblem, config: BAConfig, priors: Seque
     e = min(len(T), s + WINDOW)
     win = _window(loops, s, e)
     na = len(win.anchors)
-    obs = problem.observations  # in keyframe order (adjust_in_windows)
-    lo, hi = np.searchsorted(obs[:, 0], [s, e])
-    o = obs[lo:hi].copy()
+    obs = problem.observations  # in keyframe order (adjust_in_windows), either form: widened here, a window at a time
+    lo, hi = np.searchsorted(observation_keyframes(obs), [s, e])
+    o = as_observations(obs[lo:hi]).copy()
     o[:, 0] += na - s
     cfg = dataclasses.replace(config, disparity_offset=prog.estimate_offset)
     # held: the anchors, and after the first window the overlap, where the last windows put them (the
@@ -242,9 +249,12 @@ def adjust_in_windows(rig: Rig, problem: BAProblem, config: BAConfig, priors: Se
     run finding progress stored there continues after its last window (the same result as a run
     without interruption)."""
     T = np.asarray(problem.T_world_cam, float).reshape(-1, 4, 4).copy()
-    obs = as_observations(problem.observations)
-    if np.any(np.diff(obs[:, 0]) < 0):  # the tracks stage writes them in keyframe order: no copy then
-        obs = obs[np.argsort(obs[:, 0], kind="stable")]
+    obs = problem.observations  # kept in the form given (compact rows stay compact)
+    if np.asarray(obs).dtype.names is None:
+        obs = as_observations(obs)
+    kfs = observation_keyframes(obs)
+    if np.any(np.diff(kfs) < 0):  # the tracks stage writes them in keyframe order: no copy then
+        obs = obs[np.argsort(kfs, kind="stable")]
     problem = dataclasses.replace(problem, observations=obs)
     starts = window_starts(len(T))
     prog = checkpoint.load(len(T), problem.points) if checkpoint is not None else None

@@ -16,6 +16,7 @@ Open3D is imported inside the functions that need it.
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -103,6 +104,7 @@ class TsdfVolume:
             attrs, dtypes, channels = ("tsdf", "weight", "color"), (f32, wc, wc), (1, 1, 3)
         else:
             attrs, dtypes, channels = ("tsdf", "weight"), (f32, f32), (1, 1)
+        self._attrs, self._dtypes, self._channels = attrs, dtypes, channels
         self._grid = o3d.t.geometry.VoxelBlockGrid(attrs, dtypes, channels, float(c.voxel_m),
                                                    int(c.block_resolution), int(c.initial_blocks), self._device)
         self.frames_integrated = 0
@@ -164,6 +166,50 @@ class TsdfVolume:
         """Fuse a :class:`stereopath.host.mapping.depth.DepthMap` given the pose of camera 0 (not the rectified camera)."""
         color = depth_map.colors_rgb() if self.config.color else None
         self.integrate(depth_map.depth_m, depth_map.K, depth_map.pose_world_rect(T_world_cam0), color)
+
+    def store(self, folder: Path) -> None:
+        """Write the volume into ``folder`` (created): the hash map's keys, its active slots and each
+        attribute's block buffer, written from the map's own memory (no copy of the volume is made);
+        :meth:`restore` reads it back."""
+        hm = self._grid.hashmap()
+        folder.mkdir(parents=True, exist_ok=True)
+        np.save(folder / "keys.npy", hm.key_tensor().numpy())
+        np.save(folder / "active.npy", hm.active_buf_indices().numpy())
+        for name in self._attrs:
+            np.save(folder / f"{name}.npy", self._grid.attribute(name).numpy())
+        (folder / "volume.json").write_text(json.dumps({
+            "capacity": int(hm.capacity()), "blocks": self.block_count, "frames_integrated": self.frames_integrated,
+            "pixels_integrated": self.pixels_integrated}))
+
+    def restore(self, folder: Path) -> None:
+        """Replace this (empty) volume's blocks by the ones :meth:`store` wrote into ``folder``, a slice of
+        blocks at a time (StereopathError when they do not fit this volume's settings)."""
+        o3d = self._o3d
+        info = json.loads((folder / "volume.json").read_text())
+        active = np.load(folder / "active.npy")
+        keys = np.load(folder / "keys.npy", mmap_mode="r")
+        if len(active) != info["blocks"] or keys.ndim != 2 or keys.shape[1] != 3:
+            raise StereopathError(f"{folder}: the stored volume is inconsistent")
+        c = self.config
+        self._grid = o3d.t.geometry.VoxelBlockGrid(self._attrs, self._dtypes, self._channels, float(c.voxel_m),
+                                                   int(c.block_resolution), int(info["capacity"]), self._device)
+        hm = self._grid.hashmap()
+        stored = [np.load(folder / f"{name}.npy", mmap_mode="r") for name in self._attrs]
+        views = [self._grid.attribute(name).numpy() for name in self._attrs]
+        for v, src in zip(views, stored):
+            if src.shape[1:] != v.shape[1:] or src.dtype != v.dtype:
+                raise StereopathError(f"{folder}: stored blocks {src.shape[1:]} {src.dtype} do not fit the volume's "
+                                      f"{v.shape[1:]} {v.dtype}")
+        for s in range(0, len(active), 4096):
+            old = np.sort(active[s:s + 4096])
+            buf, ok = hm.activate(o3d.core.Tensor(np.ascontiguousarray(keys[old])))
+            new = buf.numpy()
+            if not ok.numpy().all():
+                raise StereopathError(f"{folder}: the stored volume holds a block twice")
+            for v, src in zip(views, stored):
+                v[new] = src[old]
+        self.frames_integrated = int(info["frames_integrated"])
+        self.pixels_integrated = int(info["pixels_integrated"])
 
     def extract_mesh(self) -> open3d.geometry.TriangleMesh:
         """Legacy ``open3d.geometry.TriangleMesh`` (vertex normals, and colours when fused)."""

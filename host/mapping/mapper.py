@@ -46,6 +46,7 @@ if TYPE_CHECKING:
     import open3d as o3d
 
     from stereopath.host.mapping.inputs import MapKeyframe
+    from stereopath.host.mapping.map_progress import MapCheckpoint
 
 log = logging.getLogger(__name__)
 
@@ -136,6 +137,13 @@ class DenseMapper:
     @property
     def keyframes(self) -> int:
         return len(self.poses)
+
+    def reset(self) -> None:
+        """Back to an empty volume and no keyframe fused."""
+        self.volume = TsdfVolume(self.config.fusion)
+        self.poses, self.indices, self.valid_fractions = [], [], []
+        self.depth_maps = [] if self.depth_maps is not None else None
+        self.timings = {"load": 0.0, "depth": 0.0, "fusion": 0.0}
 
     def add(self, left: np.ndarray, right: np.ndarray, T_world_cam0: np.ndarray,
             index: int | None = None) -> DepthMap:
@@ -254,20 +262,30 @@ def _depth_map(depth: StereoDepth, images: tuple[np.ndarray, np.ndarray]) -> Dep
 
 
 def build_map(inp: MapInput, config: MapConfig, progress: bool | None = None,
-              on_keyframe: Callable[[int, Any], None] | None = None, strict: bool = False) -> MapResult:
-    """Depth and fusion of every keyframe of ``inp``, then mesh, cloud and preview (no file I/O).
+              on_keyframe: Callable[[int, Any], None] | None = None, strict: bool = False,
+              checkpoint: MapCheckpoint | None = None) -> MapResult:
+    """Depth and fusion of every keyframe of ``inp``, then mesh, cloud and preview (no file I/O but
+    the ``checkpoint``'s).
 
     ``progress``: tqdm bar on stderr (None = only when stderr is a terminal).  ``on_keyframe(k,
     depth_map)`` is called after each keyframe is fused (for live views).  A keyframe whose
     images cannot be read is skipped and counted (``stats["keyframes_skipped"]``) unless ``strict``.
+    ``checkpoint``: the volume is stored there every so many keyframes, and a build finding one
+    stored goes on after it.
     """
     if not inp.keyframes:
         raise DatasetError(f"{inp.source}: no keyframes to map")
     t_start = time.perf_counter()
     mapper = DenseMapper(inp.rig, config, source=inp.source)
+    first = 0
+    resumed = checkpoint.load(mapper) if checkpoint is not None else None
+    if resumed is not None:
+        first, inp.skipped[:] = resumed
     bar = progress_bar(len(inp.keyframes), "depth + fusion", progress, unit="kf")
     try:
-        for start in range(0, len(inp.keyframes), DEPTH_BATCH):
+        if bar is not None and first:
+            bar.update(first)
+        for start in range(first, len(inp.keyframes), DEPTH_BATCH):
             loaded = []
             for k in range(start, min(start + DEPTH_BATCH, len(inp.keyframes))):
                 kf, t0 = inp.keyframes[k], time.perf_counter()
@@ -289,6 +307,9 @@ def build_map(inp: MapInput, config: MapConfig, progress: bool | None = None,
                     on_keyframe(k, dm)
                 if bar is not None:
                     bar.update(1)
+            done = min(start + DEPTH_BATCH, len(inp.keyframes))
+            if checkpoint is not None and done < len(inp.keyframes) and done // checkpoint.every > start // checkpoint.every:
+                checkpoint.save(mapper, done, inp.skipped)
     finally:
         if bar is not None:
             bar.close()
@@ -356,10 +377,11 @@ def asked_choice(config: MapConfig) -> dict[str, Any]:
 
 
 def map_sequence(seq: SequenceBase, trajectory: Trajectory, out_dir: str | Path | None, config: MapConfig | str,
-                 progress: bool | None = None, source: str = "") -> MapResult:
+                 progress: bool | None = None, source: str = "", checkpoint: MapCheckpoint | None = None) -> MapResult:
     """Map any sequence (``rig``, ``t_ns``, ``frame(i)``) with the poses of ``trajectory``; write the
     model into ``out_dir`` when given.  (For reprocessing and the demo.)  ``config`` may be
-    :data:`AUTO`: the preset is chosen from the keyframes' stereo depth."""
+    :data:`AUTO`: the preset is chosen from the keyframes' stereo depth.  ``checkpoint``: see
+    :func:`build_map`."""
     source = source or str(getattr(seq, "spec", ""))
     if isinstance(config, str) and config == AUTO:
         config, choice = auto_config(seq.rig, lambda sel: keyframes_from_sequence(seq, trajectory, sel,
@@ -368,7 +390,7 @@ def map_sequence(seq: SequenceBase, trajectory: Trajectory, out_dir: str | Path 
         config = map_preset(config) if isinstance(config, str) else config
         choice = asked_choice(config)
     inp = keyframes_from_sequence(seq, trajectory, config.keyframes, source=source)
-    result = build_map(inp, config, progress=progress)
+    result = build_map(inp, config, progress=progress, checkpoint=checkpoint)
     result.stats["preset_choice"] = choice
     if out_dir is not None:
         write_map(result, out_dir)

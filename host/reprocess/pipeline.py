@@ -163,8 +163,10 @@ class _Runner:
         if not self.force and self.store.done("map", self.keys["map"]):
             self.status["map"] = "reused"
         else:
+            if self.force:
+                shutil.rmtree(self.parts_dir("map"), ignore_errors=True)
             inputs = StageInputs(self.matched, self.progress, extra={"dst": dst, "trajectory": final, "label": label},
-                                 memory=self.memory)
+                                 memory=self.memory, parts=self.parts_dir("map") / self.keys["map"])
             try:
                 self.run_stage("map", [f"map/{f}" for f in MODEL_FILES], lambda: stage_map.run(map_cfg, inputs))
             except StereopathError as exc:  # e.g. no valid depth with this map preset: keep the path outputs

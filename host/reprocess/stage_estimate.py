@@ -2,6 +2,8 @@
 
 Outputs (``estimate.npz``): per-frame ``t_ns``, ``seq``, ``T_world_cam``, ``status``
 (:attr:`TrackStatus.code`), ``keyframe``, ``frame_ms`` and ``meta`` (world frame, estimator, its stats).
+Every :data:`CHUNK_FRAMES` frames the estimator and its results are stored in the stage's parts folder
+(:mod:`~stereopath.host.reprocess.estimate_progress`); an interrupted stage continues from there.
 """
 
 from __future__ import annotations
@@ -11,13 +13,14 @@ from typing import Any
 import numpy as np
 
 from stereopath.device.core.config import as_dict
+from stereopath.device.estimation.base import EstimateProgress
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
 from stereopath.host.progress import Bar
+from stereopath.host.reprocess.estimate_progress import EstimateCheckpoint
 from stereopath.host.reprocess.store import json_array
 
 NAME = "estimate"
-
-
+CHUNK_FRAMES = 500  # frames between two stored progress records (a few seconds of work each)
 
 def settings(config: ReprocessPreset) -> dict[str, Any]:
     """The settings that make up this stage's key."""
@@ -25,14 +28,24 @@ def settings(config: ReprocessPreset) -> dict[str, Any]:
 
 
 def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
-    from stereopath.device.estimation.base import run_estimator
+    from stereopath.device.estimation.base import Chunks, run_estimator
     from stereopath.device.estimation.registry import make_estimator
 
     seq = inputs.seq
-    est = make_estimator("stereo", seq.rig, preset=config.estimator_preset, options=config.estimator_options)
+    # the estimator and its results are stored every CHUNK_FRAMES frames: an interrupted stage goes on from there
+    store = EstimateCheckpoint(inputs.parts) if inputs.parts is not None else None
+    stored = store.load() if store is not None else None
+    if stored is not None:
+        est, done = stored
+    else:
+        est = make_estimator("stereo", seq.rig, preset=config.estimator_preset, options=config.estimator_options)
+        done = EstimateProgress()
+    chunks = None if store is None else Chunks(CHUNK_FRAMES, lambda progress: store.save(est, progress))
     try:
         with Bar(len(seq), "re-estimate", inputs.progress, "frame") as tick:
-            res = run_estimator(est, seq.frames(), getattr(seq, "imu", None), progress=tick)
+            tick(done.next_seq)
+            res = run_estimator(est, seq.frames(start=done.next_seq), getattr(seq, "imu", None), progress=tick,
+                                resume=done, chunks=chunks)
     finally:
         if hasattr(est, "close"):
             est.close()

@@ -48,8 +48,13 @@ def run(config: MapConfig | str, inputs: StageInputs) -> list[str]:
     dst = Path(inputs.extra["dst"])
     if dst.exists():
         shutil.rmtree(dst)
+    from stereopath.host.mapping import map_progress
+
+    # the volume stored every CHUNK_KEYFRAMES keyframes: an interrupted stage goes on from there
+    checkpoint = (map_progress.MapCheckpoint(inputs.parts, map_progress.CHUNK_KEYFRAMES)
+                  if inputs.parts is not None else None)
     result = map_sequence(inputs.seq, inputs.extra["trajectory"], dst, config, progress=inputs.progress,
-                          source=inputs.extra["label"])
+                          source=inputs.extra["label"], checkpoint=checkpoint)
     fusion = result.stats["config"]["fusion"]
     voxel_bytes = FusionConfig(**fusion).voxel_bytes
     block_bytes = fusion["block_resolution"] ** 3 * voxel_bytes

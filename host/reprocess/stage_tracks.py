@@ -5,7 +5,8 @@ apart in the sequence found and verified on the same keypoints (:mod:`stereopath
 
 These fresh detections replace the estimator's chained KLT tracks, whose drift grows with track
 age and would bend the path in bundle adjustment.  Outputs (``tracks.npz``): the keyframes'
-frame indices ``kf_index`` and poses ``T_kf``, ``observations`` rows, the tracks' first 3D
+frame indices ``kf_index`` and poses ``T_kf``, ``observations`` rows (compact: int32 ids, float32
+pixels; :data:`~stereopath.host.backend.ba_common.OBSERVATION_DTYPE`), the tracks' first 3D
 points (``point_ids``, ``point_xyz``) and every keyframe's keypoints (``kf_offsets``,
 ``kf_ids``, ``kf_xy``) for the frame refinement, ``loops`` (rows of
 :func:`~stereopath.host.backend.loops.loops_to_array`), plus ``stats``.
@@ -21,6 +22,7 @@ import numpy as np
 
 from stereopath.device.estimation.base import TrackStatus
 from stereopath.host.reprocess.config import ReprocessPreset, StageInputs
+from stereopath.host.backend.observations import OBSERVATION_DTYPE
 from stereopath.host.backend.loops import detect_loops, loops_to_array
 from stereopath.host.backend.parallel import parallel_map, spare_cores, spreading
 from stereopath.host.progress import Bar
@@ -206,9 +208,9 @@ def view_points(rig, left: np.ndarray, right: np.ndarray, cfg):
 
 def _empty(est: dict[str, np.ndarray], kf: np.ndarray, reason: str) -> dict[str, np.ndarray]:
     log.warning("no tracks: %s", reason)
-    return {"kf_index": kf, "T_kf": est["T_world_cam"][kf], "observations": np.zeros((0, 6)),
+    return {"kf_index": kf, "T_kf": est["T_world_cam"][kf], "observations": np.zeros(0, OBSERVATION_DTYPE),
             "point_ids": np.zeros(0, np.int64), "point_xyz": np.zeros((0, 3)),
-            "kf_offsets": np.zeros(len(kf) + 1, np.int64), "kf_ids": np.zeros(0, np.int64),
+            "kf_offsets": np.zeros(len(kf) + 1, np.int64), "kf_ids": np.zeros(0, np.int32),
             "kf_xy": np.zeros((0, 2), np.float32), "loops": loops_to_array([]),
             "stats": json_array({"skipped": reason, "keyframes": len(kf)})}
 
@@ -286,7 +288,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
         "point_ids": ids,
         "point_xyz": xyz,
         "kf_offsets": np.concatenate([[0], np.cumsum([len(a) for a in tr.kf_ids])]).astype(np.int64),
-        "kf_ids": np.concatenate(tr.kf_ids) if tr.kf_ids else np.zeros(0, np.int64),
+        "kf_ids": np.concatenate(tr.kf_ids) if tr.kf_ids else np.zeros(0, np.int32),
         "kf_xy": np.concatenate(tr.kf_xy) if tr.kf_xy else np.zeros((0, 2), np.float32),
         "loops": loops_to_array(loops),
         "stats": json_array({**tr.stats, "loops": len(loops), **exposure_stats(seq, est["seq"][kf])}),

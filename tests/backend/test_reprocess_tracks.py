@@ -14,6 +14,8 @@ from stereopath.host.backend.tracks import (
     frame_observations,
     stereo_features,
 )
+from stereopath.host.backend.ba_common import as_observations
+from stereopath.host.backend.observations import OBSERVATION_DTYPE
 from tests.backend.ba_support import adjust
 
 
@@ -51,16 +53,20 @@ def test_tracks_over_keyframes_fit_the_true_poses(scan):
     tr = build_tracks(sess.rig, feats, T, cfg, progress=ticks.append)
     assert sum(ticks) == len(feats)  # every keyframe matched, a batch at a time
     assert tr.stats["tracks"] > 300 and tr.stats["mean_track_length"] > 2.0
-    assert tr.observations.shape[1] == 6 and set(np.unique(tr.observations[:, 2])) == {0.0, 1.0}
+    # held compact: 21 bytes a row, int32 ids, float32 pixels
+    assert tr.observations.dtype == OBSERVATION_DTYPE and tr.observations.dtype.itemsize == 21
+    obs = as_observations(tr.observations)
+    assert obs.shape == (len(tr.observations), 6) and set(np.unique(obs[:, 2])) == {0.0, 1.0}
     # no track holds two keypoints of one keyframe
-    pairs = tr.observations[tr.observations[:, 2] == 0][:, :2]
+    pairs = obs[obs[:, 2] == 0][:, :2]
     assert len(np.unique(pairs, axis=0)) == len(pairs)
     # with the true poses held fixed, the tracks' points reproject within a fraction of a pixel
     res = adjust(sess.rig, T, tr.points, tr.observations, n_fixed=len(T), outlier_rounds=0)
     assert res.rms_after_px < 0.4
     # per-keyframe bookkeeping matches the observations
     for k in range(len(idx)):
-        ids = tr.observations[(tr.observations[:, 0] == k) & (tr.observations[:, 2] == 0), 1]
+        ids = obs[(obs[:, 0] == k) & (obs[:, 2] == 0), 1]
+        assert tr.kf_ids[k].dtype == np.int32
         assert np.array_equal(np.sort(ids), np.sort(tr.kf_ids[k].astype(float)))
 
 

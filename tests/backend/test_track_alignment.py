@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from stereopath.host.backend.ba_common import as_observations
 from stereopath.host.backend.track_alignment import facing_affine, refine_affine
 from tests.backend.test_slanted_stereo import plane_wave_texture
 
@@ -92,8 +93,9 @@ def test_aligned_tracks_see_one_surface_point_where_detections_scatter():
         """Median over tracks of the points' distance from their median, in pixels at their depth."""
         K = s.rig.cam0.K
         world, ids, z_all = [], [], []
+        rows = as_observations(tracks.observations)
         for k, (_, _, depth) in enumerate(rendered):
-            o = tracks.observations[(tracks.observations[:, 0] == k) & (tracks.observations[:, 2] == 0)]
+            o = rows[(rows[:, 0] == k) & (rows[:, 2] == 0)]
             x0, y0 = np.floor(o[:, 3]).astype(int), np.floor(o[:, 4]).astype(int)
             fx, fy = o[:, 3] - x0, o[:, 4] - y0
             corners = np.stack([depth[y0, x0], depth[y0, x0 + 1], depth[y0 + 1, x0], depth[y0 + 1, x0 + 1]])

@@ -3,7 +3,13 @@ import pytest
 
 from stereopath.device.core.geometry import invert_pose, make_pose
 from stereopath.host.backend import windowed_ba
-from stereopath.host.backend.ba_common import BAConfig, BAProblem
+from stereopath.device.errors import EstimationError
+from stereopath.host.backend.ba_common import (
+    BAConfig,
+    BAProblem,
+    as_observations,
+)
+from stereopath.host.backend.observations import compact_observations, observation_keyframes
 from stereopath.host.backend.loops import Loop
 from stereopath.device.core.rig import paper_rig
 from stereopath.device.core.stereo import project
@@ -173,3 +179,35 @@ def test_the_windows_start_from_the_path_with_its_loops_closed(small_windows, mo
     closed = gtsam_ba.pose_graph(T_drift, [loop])
     assert np.allclose(seen[0], closed[:windowed_ba.WINDOW])
     assert abs(closed[39][2, 3] - T_true[39][2, 3]) < 0.5 * abs(T_drift[39][2, 3] - T_true[39][2, 3])
+
+
+def test_compact_observations_give_the_windows_the_same_poses(small_windows):
+    """Rows held compact (int32 ids, float32 pixels) and widened a window at a time: the same poses as
+    float rows within the float32 rounding of the pixels (far below the 0.3 px noise)."""
+    rng = np.random.default_rng(5)
+    rig, T_true, pts, obs = _corridor(rng)
+    T_noisy, pts_noisy = _perturbed(rng, T_true, pts, 0.002, 0.005, 0.01)
+    obs = np.column_stack([obs, rng.uniform(0.5, 1.0, len(obs))])
+    packed = compact_observations(obs[:, 0].astype(int), obs[:, 1].astype(int), obs[:, 2].astype(np.uint8),
+                                  obs[:, 3:5], obs[:, 5])
+    assert packed.nbytes < 0.45 * obs.nbytes
+    cfg = BAConfig(disparity_offset=False)
+    wide = windowed_ba.adjust_in_windows(rig, BAProblem(T_noisy, pts_noisy, obs), cfg)
+    slim = windowed_ba.adjust_in_windows(rig, BAProblem(T_noisy, pts_noisy, packed), cfg)
+    moved = [np.linalg.norm(slim.T_world_cam[k][:3, 3] - wide.T_world_cam[k][:3, 3]) for k in range(len(T_true))]
+    assert max(moved) < 1e-5 and slim.n_obs == wide.n_obs
+
+
+def test_compact_observations_round_trip_and_reject_what_does_not_fit():
+    rows = np.array([[3, 70000, 1, 512.25, 300.125, 0.75], [0, 2, 0, 10.5, 20.0, 1.0]])
+    packed = compact_observations(rows[:, 0].astype(int), rows[:, 1].astype(int), rows[:, 2].astype(np.uint8),
+                                  rows[:, 3:5], rows[:, 5])
+    assert np.array_equal(as_observations(packed), rows)  # these values are exact in float32
+    assert np.array_equal(observation_keyframes(packed), [3, 0])
+    with pytest.raises(EstimationError, match="point ids"):
+        compact_observations(np.zeros(1, int), np.array([2**31]), np.zeros(1, np.uint8), np.zeros((1, 2)), np.ones(1))
+    with pytest.raises(EstimationError, match="keyframe index"):
+        compact_observations(np.array([-1]), np.zeros(1, int), np.zeros(1, np.uint8), np.zeros((1, 2)), np.ones(1))
+    other = np.zeros(2, [("kf", "<i4"), ("u", "<f4")])
+    with pytest.raises(EstimationError, match="fields"):
+        as_observations(other)

@@ -354,3 +354,44 @@ def test_fast_motion_keyframes_top_up_the_map_by_klt_corners_without_sift(data_d
     assert min(sizes) >= 0.5 * est.cfg.keyframes.max_points
     m = evaluate(seq.groundtruth, run.trajectory)
     assert m["end_error_m"] / m["path_length_m"] < 0.02
+
+
+def test_a_settled_estimator_pickles_mid_run_and_goes_on_like_the_original(data_dir):
+    """Keyframe jobs in flight on the worker thread keep the estimator from pickling; settled (the jobs
+    finished, their results held for the next frame) it pickles, and the copy tracks the next frames
+    with the poses the original gives."""
+    import pickle
+
+    from stereopath.device.errors import EstimationError
+
+    rig, frames = _kitti_frames(data_dir, range(10))
+    est = StereoEstimator(rig, StereoConfig(KeyframePolicy(max_frames=1), asift=AsiftWork(min_rotation_deg=0.0)))
+    release = threading.Event()
+    real_job = est._worker.run
+
+    def held_job(job, prev):
+        release.wait(30)
+        return real_job(job, prev)
+
+    est._worker.run = held_job
+    try:
+        for f in frames[:5]:
+            est.process(f, None)
+        assert est._worker.in_flight >= 1
+        with pytest.raises(EstimationError, match="settle"):
+            pickle.dumps(est._worker)
+        release.set()
+        est._worker.run = real_job
+        est.settle()
+        copy = pickle.loads(pickle.dumps(est))
+        try:
+            assert copy._worker.in_flight == est._worker.in_flight >= 1
+            for f in frames[5:]:
+                a, b = est.process(f, None), copy.process(f, None)
+                est.settle(), copy.settle()  # the same order of events in both
+                assert a.status == b.status == "ok" and np.allclose(a.T_world_cam, b.T_world_cam, atol=1e-9)
+        finally:
+            copy.close()
+    finally:
+        release.set()
+        est.close()

@@ -316,3 +316,51 @@ def test_the_volume_table_is_counted_as_open3d_allocates_it():
     for part in np.array_split(keys.astype(np.int32), 20):  # a few blocks at a time, as keyframes add them
         grid.hashmap().activate(o3d.core.Tensor(part))
     assert grid.hashmap().size() == 200 and grid.hashmap().capacity() == table_blocks(200, 64) == 256
+
+
+def test_an_interrupted_map_build_goes_on_from_its_last_stored_volume(session, tmp_path, monkeypatch):
+    """With the volume stored every 4 keyframes (batches of 2 here), a build stopped at its 7th keyframe
+    resumes after the 4th with the stored volume (no copy of it is made) and gives the model of an
+    uninterrupted build: the same blocks, the same surface."""
+    from stereopath.device.formats import open_source
+    from stereopath.host.mapping import mapper as mapper_mod
+    from stereopath.host.mapping.inputs import keyframes_from_sequence
+    from stereopath.host.mapping.map_progress import MapCheckpoint
+
+    monkeypatch.setattr(mapper_mod, "DEPTH_BATCH", 2)
+    seq = open_source(f"session:{session}")
+    sel = KeyframeSelection(stride=6, max_keyframes=10)
+    cfg = _fast_config(max_keyframes=10)
+    whole = build_map(keyframes_from_sequence(seq, seq.groundtruth, sel), cfg, progress=False)
+    n = whole.stats["keyframes"]
+    assert n >= 9
+    fused: list[int] = []
+
+    def stop_at_7(k, _dm):
+        fused.append(k)
+        if len(fused) == 7:
+            raise KeyboardInterrupt
+
+    ckpt = MapCheckpoint(tmp_path / "parts", every=4)
+    with pytest.raises(KeyboardInterrupt):
+        build_map(keyframes_from_sequence(seq, seq.groundtruth, sel), cfg, progress=False, on_keyframe=stop_at_7,
+                  checkpoint=ckpt)
+    assert [p.name for p in (tmp_path / "parts").iterdir()] == ["chunk-000004"]
+    fused.clear()
+    again = build_map(keyframes_from_sequence(seq, seq.groundtruth, sel), cfg, progress=False,
+                      on_keyframe=lambda k, _dm: fused.append(k), checkpoint=ckpt)
+    assert fused == list(range(4, n))  # the first four came from the stored volume
+    for key in ("keyframes", "blocks", "keyframe_indices", "mesh_vertices", "mesh_triangles", "cloud_points"):
+        assert again.stats[key] == whole.stats[key], key
+    a, b = (np.asarray(r.mesh.vertices) for r in (whole, again))
+    assert np.array_equal(a[np.lexsort(a.T)], b[np.lexsort(b.T)])
+    ca, cb = (np.asarray(r.mesh.vertex_colors) for r in (whole, again))
+    assert np.array_equal(ca[np.lexsort(a.T)], cb[np.lexsort(b.T)])
+    # a chunk written by other settings is not used: the build starts from the first keyframe
+    fused.clear()
+    other = map_preset("object", voxel_mm=6.0, **{**FAST, "max_keyframes": 10})
+    other = other.__class__(**{**other.__dict__, "fusion": other.fusion.__class__(
+        **{**other.fusion.__dict__, "compact": False})})
+    build_map(keyframes_from_sequence(seq, seq.groundtruth, sel), other, progress=False,
+              on_keyframe=lambda k, _dm: fused.append(k), checkpoint=ckpt)
+    assert fused == list(range(n))
