@@ -400,8 +400,8 @@ class Receiver:
                 self.live.acked_seq = self.store.session(kf.session_id).acked_seq
         self.link.progress(now)
         self.link.ack(kf.session_id, kf.seq)
-        if self.on_keyframe is not None:
-            self.on_keyframe(kf, new)
+        if self.on_keyframe is not None:  # in the session's current world (stored as sent: world_rebase.json maps it)
+            self.on_keyframe(self.rebases.map_keyframe(kf), new)
 
     def _storage_failed(self, what: str, exc: OSError) -> None:
         """Log a storage failure once per streak; the device resends what was not acknowledged."""

@@ -135,7 +135,7 @@ class RerunView:
         self._kf_points: dict[str, list[tuple[float, float, float]]] = {}
         self._path_t: dict[str, list[int]] = {}  # the device times of each path's points (a world rebase maps them)
         self._kf_t: dict[str, list[int]] = {}
-        self._rebases = SessionRebases()  # keyframes arrive as sent, in the world of their time
+        self._rebases = SessionRebases()  # the rebases applied to what the view holds (each once)
         self._pinhole_size: dict[str, tuple[int, int]] = {}
         self._next_path = 0.0
         self._t0: dict[str, int] = {}
@@ -209,7 +209,7 @@ class RerunView:
         if self._pinhole_size.get(sid) != (w, h):
             self._log_pinhole(sid, w, h)
         pts, times = self._kf_points.setdefault(sid, []), self._kf_t.setdefault(sid, [])
-        pts.append(tuple(self._rebases.map_matrix(sid, kf.t_ns, kf.T_world_cam)[:3, 3]))  # type: ignore[arg-type]
+        pts.append(tuple(kf.position_m))  # type: ignore[arg-type]
         times.append(kf.t_ns)
         del pts[: max(0, len(pts) - self.MAX_PATH_POINTS)], times[: max(0, len(times) - self.MAX_PATH_POINTS)]
         self.rec.log(f"world/{sid}/keyframes", rr.Points3D(np.asarray(pts, dtype=np.float32), radii=0.01))

@@ -21,7 +21,7 @@ import numpy as np
 
 from stereopath.device.errors import DatasetError
 from stereopath.device.formats.fileio import write_json_atomic
-from stereopath.device.wire.messages import Pose, WorldRebase, pose_from_matrix
+from stereopath.device.wire.messages import Keyframe, Pose, WorldRebase, pose_from_matrix
 
 REBASE_JSON = "world_rebase.json"
 MAX_REBASES = 16  # per session: a device rebases once; more are refused (a flood cannot grow the host's state)
@@ -74,6 +74,15 @@ class SessionRebases:
             if t_ns < r.from_t_ns:
                 T_world_cam = r.T_new_old @ T_world_cam
         return T_world_cam
+
+    def map_keyframe(self, kf: Keyframe) -> Keyframe:
+        """A keyframe's pose in its session's current world (the images and the stored bytes are as sent)."""
+        T0 = kf.T_world_cam
+        T = self.map_matrix(kf.session_id, kf.t_ns, T0)
+        if T is T0:  # none applies
+            return kf
+        moved = pose_from_matrix(kf.session_id, 0, kf.t_ns, T)
+        return dataclasses.replace(kf, position_m=moved.position_m, quat_xyzw=moved.quat_xyzw)
 
     def map_pose(self, pose: Pose) -> Pose:
         """A live pose in its session's current world (one timed before a rebase was sent in the earlier one)."""

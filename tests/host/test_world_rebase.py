@@ -11,7 +11,7 @@ from stereopath.device.core.geometry import euler_xyz_to_matrix, make_pose
 from stereopath.device.formats.tum import read_tum
 from stereopath.device.wire.protocol import make_rebase, pose_from_matrix
 from stereopath.host.live.world_rebase import REBASE_JSON, SessionRebases, read_rebases, record, rewrite_tum
-from tests.device.test_streaming_support import make_device, wait_for
+from tests.device.test_streaming_support import make_device, small_images, wait_for
 from tests.host.test_streaming_integration import _receiver
 
 pytestmark = pytest.mark.timeout(60)
@@ -65,8 +65,9 @@ def test_the_host_holds_one_world_after_the_device_rebases(tmp_path):
     world for every pose, the rebase applied once although the device repeats it with every status."""
     dev = make_device(tmp_path, None, "sessR")
     rx = _receiver(dev, None, tmp_path / "out")
-    seen = []
+    seen, kfs = [], []
     rx.on_rebase = seen.append
+    rx.on_keyframe = lambda kf, new: kfs.append(kf)
     try:
         assert wait_for(lambda: rx.live.connected, 5, between=lambda: rx.poll(0.02))
         wait_for(lambda: False, 0.3, between=lambda: rx.poll(0.02))  # let the SUB subscription propagate
@@ -78,6 +79,9 @@ def test_the_host_holds_one_world_after_the_device_rebases(tmp_path):
         for i in range(10, 30):
             dev.publish_pose(i, _t(i), G @ _T(i))
             rx.poll(0.01)
+        assert wait_for(lambda: rx.stats.received.rebase >= 1, 10, between=lambda: rx.poll(0.02))
+        # a keyframe of the earlier world that reaches the host after the rebase (a resend, a late host)
+        assert dev.offer_keyframe(5, _t(5), _T(5), *small_images(5))
         # repeated with every status (0.2 s here): seen several times, applied once
         assert wait_for(lambda: rx.stats.received.rebase >= 3, 10, between=lambda: rx.poll(0.02))
         wait_for(lambda: False, 0.3, between=lambda: rx.poll(0.02))
@@ -86,6 +90,7 @@ def test_the_host_holds_one_world_after_the_device_rebases(tmp_path):
         rx.close()
         dev.close()
     assert len(seen) == 1 and seen[0].from_t_ns == _t(10)
+    assert len(kfs) == 1 and np.allclose(kfs[0].T_world_cam, G @ _T(5), atol=1e-5)  # shown in the new world
     traj = read_tum(tmp_path / "out" / "sessR" / "poses.tum")
     idx = [int(round((t - _t(0)) / 50_000_000)) for t in traj.t_ns]
     assert min(idx) < 10 <= max(idx)
