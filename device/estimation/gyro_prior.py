@@ -1,17 +1,17 @@
-"""The gyro's rotation over one frame as a prior of that frame's pose solve (pure compute).
+"""The gyro's rotation as a prior of each frame's pose solve (pure compute).
 
-The frame loop predicts the camera's rotation from the previous frame's pose and the gyro integrated
-over the frame interval with the bias in use.  That rotation is a measurement with a known error:
+The camera's orientation at a frame is predicted from the last keyframe's pose and the gyro integrated
+since, with the bias in use (:class:`GyroSinceKeyframe`).  The anchor is the keyframe because the
+tracked map was measured from it: the prediction then agrees with the map's own frame, error and all.
+Anchored at the previous frame instead, the prior would carry that frame's error against the map on,
+and the translation would absorb it.  The integrated rotation is a measurement with a known error:
 
 * the gyro's white noise over the interval, ``n * sqrt(dt)`` (``n``: its noise density);
 * the bias's uncertainty carried over the interval, ``sigma_b * dt``;
 * a relative error of the rotation itself, ``k * |theta|``: the gyro's scale factor and the
   body-to-camera rotation's calibration, which grow with the rotation measured.
 
-Those add in quadrature into one isotropic ``sigma`` (radians).  The rotation is integrated from the last
-keyframe (:class:`GyroSinceKeyframe`), whose pose the tracked map was measured from: the prior then
-agrees with the map's own frame, error and all, and over the interval the gyro's error grows as the
-model says.  The pose refinement minimises the
+Those add in quadrature into one isotropic ``sigma`` (radians).  The pose refinement minimises the
 sum of squared reprojection errors (pixels); a pixel error of standard deviation ``sigma_px`` makes
 the prior's residual ``log(R R_gyro^T) * sigma_px / sigma`` the same kind of term (both whitened, then
 scaled by ``sigma_px``).  ``sigma_px`` is measured on the frame itself: the RMS of the PnP consensus's
@@ -40,13 +40,13 @@ MIN_PIXEL_SIGMA_PX = 0.05  # the pixel noise at least (a near-perfect fit on few
 class GyroRotationModel:
     """The error model of a gyro-integrated rotation (see the module doc)."""
 
+    noise_rad_s_rthz: float  # the gyro's white noise density
+    relative: float  # relative error of a measured rotation (scale factor and body-to-camera alignment)
+
     @classmethod
     def of(cls, cfg: GyroBiasConfig) -> GyroRotationModel | None:
         """The model of a ``[estimator.stereo.gyro]`` section (None: the prior is off)."""
         return cls(cfg.noise_rad_s_rthz, cfg.relative_error) if cfg.rotation_prior else None
-
-    noise_rad_s_rthz: float  # the gyro's white noise density
-    relative: float  # relative error of a measured rotation (scale factor and body-to-camera alignment)
 
     def __post_init__(self) -> None:
         if not (self.noise_rad_s_rthz >= 0.0 and self.relative >= 0.0):
@@ -64,8 +64,8 @@ class GyroRotationModel:
 
 @dataclass(frozen=True, eq=False)
 class GyroRotation:
-    """The frame's camera orientation predicted by the gyro (``R_cam_world``: the previous frame's pose
-    times the gyro's rotation over the frame) and its standard deviation (radians)."""
+    """The frame's camera orientation predicted by the gyro (``R_cam_world``: the last keyframe's pose times
+    the gyro's rotation since) and its standard deviation (radians)."""
 
     R_cam_world: np.ndarray
     sigma_rad: float
