@@ -56,7 +56,7 @@ def test_the_prior_holds_the_rotation_where_the_points_are_few_and_noisy():
     np.testing.assert_allclose(errs["loose"], errs["none"], atol=2e-3)
 
 
-def test_the_prediction_carries_the_previous_pose_and_the_gyro_step():
+def test_the_prediction_carries_the_anchor_pose_and_the_gyro_rotation():
     T_prev = make_pose(so3_exp(np.array([0.1, 0.2, -0.1])), np.array([1.0, 2.0, 3.0]))
     R_step = so3_exp(np.array([0.0, 0.02, 0.0]))
     T_pred = T_prev @ make_pose(R_step, np.zeros(3))
