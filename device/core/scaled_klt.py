@@ -50,6 +50,9 @@ def _crop(img: np.ndarray, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
     h, w = img.shape[:2]
     if 0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h:
         return np.ascontiguousarray(img[y0:y1, x0:x1])
+    cx0, cy0, cx1, cy1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+    if cx0 < cx1 and cy0 < cy1:  # the part inside the image, its border replicated outward (no resampling)
+        return cv2.copyMakeBorder(img[cy0:cy1, cx0:cx1], cy0 - y0, y1 - cy1, cx0 - x0, x1 - cx1, cv2.BORDER_REPLICATE)
     return cv2.warpAffine(img, np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0]]), (x1 - x0, y1 - y0),
                           flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
 

@@ -234,15 +234,11 @@ def stereo_right(rig: Rig, left: np.ndarray, right: np.ndarray, xy_left: np.ndar
     """
     if len(xy_left) == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, bool)
-    lk = dict(winSize=(cfg.klt_window, cfg.klt_window), maxLevel=cfg.klt_levels if levels is None else levels,
-              criteria=KLT_CRITERIA)
+    lk = _stereo_lk(cfg, levels)
     p0 = np.asarray(xy_left, np.float32).reshape(-1, 1, 2)
     g = np.asarray(guess_right, np.float32).reshape(-1, 1, 2)
     p1, st, _ = cv2.calcOpticalFlowPyrLK(left, right, p0, g.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
     ok = st.ravel() == 1
-    if fb_check:
-        pb, stb, _ = cv2.calcOpticalFlowPyrLK(right, left, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-        ok &= (stb.ravel() == 1) & (np.linalg.norm((pb - p0).reshape(-1, 2), axis=1) < cfg.fb_max_px)
     p1 = p1.reshape(-1, 2)
     r = rig.rectification()
     rl = cv2.undistortPoints(p0, rig.cam0.K, rig.cam0.dist, R=r.R0, P=r.P0).reshape(-1, 2)
@@ -251,7 +247,33 @@ def stereo_right(rig: Rig, left: np.ndarray, right: np.ndarray, xy_left: np.ndar
     ok &= np.abs(rl[:, 1] - rr[:, 1]) <= cfg.epipolar_max_dy_px
     ok &= rl[:, 0] - rr[:, 0] > 0
     ok &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
+    if fb_check:
+        ok &= tracks_back(left, right, xy_left, p1, cfg, levels, where=ok)
     return p1.astype(np.float32), ok
+
+
+def _stereo_lk(cfg: KltStereoParams, levels: int | None) -> dict:
+    return dict(winSize=(cfg.klt_window, cfg.klt_window), maxLevel=cfg.klt_levels if levels is None else levels,
+                criteria=KLT_CRITERIA)
+
+
+def tracks_back(left: np.ndarray, right: np.ndarray, xy_left: np.ndarray, xy_right: np.ndarray, cfg: KltStereoParams,
+                levels: int | None = None, where: np.ndarray | None = None) -> np.ndarray:
+    """The forward-backward check of left-right matches: whether KLT from each right pixel back into the left
+    image (seeded at its left pixel, the pyramid of :func:`stereo_right`) converges within ``cfg.fb_max_px``
+    of it.  Only the matches set in ``where`` are tracked (the others are False): each point's track is
+    independent of the others', so checking the survivors of cheaper tests last gives the same answer."""
+    n = len(xy_left)
+    out = np.zeros(n, bool)
+    idx = np.arange(n) if where is None else np.flatnonzero(where)
+    if len(idx) == 0:
+        return out
+    p0 = np.asarray(xy_left, np.float32).reshape(-1, 2)[idx].reshape(-1, 1, 2)
+    p1 = np.asarray(xy_right, np.float32).reshape(-1, 2)[idx].reshape(-1, 1, 2)
+    pb, stb, _ = cv2.calcOpticalFlowPyrLK(right, left, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                                          **_stereo_lk(cfg, levels))
+    out[idx] = (stb.ravel() == 1) & (np.linalg.norm((pb - p0).reshape(-1, 2), axis=1) < cfg.fb_max_px)
+    return out
 
 
 def pose_to_rvec_tvec(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -267,5 +289,5 @@ def rvec_tvec_to_pose(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     return T
 
 
-__all__ = ["undistort_px", "project", "triangulate", "refine_pose_lm", "PointObservations", "LMOptions", "RotationPrior", "RefineResult", "stereo_right", "KltStereoParams",
+__all__ = ["undistort_px", "project", "triangulate", "refine_pose_lm", "PointObservations", "LMOptions", "RotationPrior", "RefineResult", "stereo_right", "tracks_back", "KltStereoParams",
            "pose_to_rvec_tvec", "rvec_tvec_to_pose", "skew"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -12,6 +13,8 @@ import numpy as np
 from stereopath.device.errors import EstimationError
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.formats.tum import Trajectory
+
+log = logging.getLogger(__name__)
 
 WorldFrame = Literal["first_camera", "gravity_aligned"]
 
@@ -88,6 +91,7 @@ class EstimateProgress:
     frame_ms: list[float] = field(default_factory=list)
     next_seq: int = 0
     prev_t: int | None = None
+    skipped_frames: list[int] = field(default_factory=list)  # the source's unreadable frames so far (its record)
 
 
 @dataclass(frozen=True)
@@ -124,7 +128,11 @@ def run_estimator(estimator: Estimator, frames: Iterable[StereoFrame], imu: ImuS
         if progress is not None:
             progress(1)
         if chunks is not None and len(frame_ms) % chunks.frames == 0:
-            chunks.save(done)
+            try:
+                chunks.save(done)
+            except Exception:  # noqa: BLE001 - the stored progress is a convenience: the run goes on without it
+                log.exception("the estimate's progress could not be stored; going on without storing it")
+                chunks = None
     if not estimates:
         raise EstimationError("no frames to estimate")
     close = getattr(estimator, "close", None)

@@ -72,12 +72,15 @@ class KeyframeObservations:
 @dataclass(frozen=True)
 class SolveOptions:
     """How an offset or motion solve runs: Huber width (px), the fewest points it accepts, Gauss-Newton
-    iterations, and (offset solves) the variance inflation above which it gives up at once."""
+    iterations, (offset solves) the variance inflation above which it gives up at once, and (the window's
+    solve) the offset step below which it has converged: 1 % of the offset filter's floor
+    (:attr:`OffsetFilter.floor_sigma`), which trusts no estimate more than that."""
 
     huber_px: float = 0.5
     min_points: int = 30
     iterations: int = 10
     max_inflation: float | None = None
+    offset_step_px: float = 1e-3
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ from stereopath.device.core.geometry import make_pose, so3_log
 from stereopath.device.core.stereo import RotationPrior
 from stereopath.device.core.stereo_config import GyroBiasConfig
 from stereopath.device.errors import ConfigError
+from stereopath.device.estimation.inertial import VisionGyroBias
 
 MIN_PIXEL_SIGMA_PX = 0.05  # the pixel noise at least (a near-perfect fit on few points says little)
 
@@ -114,6 +115,29 @@ class GyroSinceKeyframe:
             return None
         return gyro_rotation(T_world_kf @ make_pose(self.R_cam, np.zeros(3)), self.R_cam, self.dt_s, bias_sigma_rad_s,
                              model)
+
+
+class GyroPrior:
+    """The pose solve's prior frame by frame: the model of ``[estimator.stereo.gyro]`` (None: off), the
+    rotation since the last keyframe (restarted when the keyframe count moves) and the bias's uncertainty
+    (``unknown_bias_sigma_rad_s`` while the bias is not refined on line)."""
+
+    def __init__(self, cfg: GyroBiasConfig, R_body_cam: np.ndarray | None, unknown_bias_sigma_rad_s: float) -> None:
+        self.model = GyroRotationModel.of(cfg)
+        self.R_body_cam = R_body_cam
+        self.unknown_bias_sigma_rad_s = float(unknown_bias_sigma_rad_s)
+        self.since = GyroSinceKeyframe()
+        self._keyframes = -1
+
+    def frame(self, step_body: tuple[np.ndarray, float] | None, T_world_kf: np.ndarray | None, keyframes: int,
+              bias: VisionGyroBias | None) -> GyroRotation | None:
+        """This frame's prior from the gyro's body step over it, the last keyframe's pose and the number of
+        keyframes so far (a new one restarts the chain), or None."""
+        if keyframes != self._keyframes:
+            self.since.restart()
+            self._keyframes = keyframes
+        sigma_b = self.unknown_bias_sigma_rad_s if bias is None else bias.sigma_rad_s
+        return self.since.frame(camera_step(step_body, self.R_body_cam), T_world_kf, sigma_b, self.model)
 
 
 def gyro_rotation(T_world_pred: np.ndarray, R_step_cam: np.ndarray, dt_s: float, bias_sigma_rad_s: float,

@@ -242,11 +242,8 @@ class KeyframeWorker:
         if self._executor is not None:
             self._executor.submit(int).result()  # one worker thread, in order: all the work before it is done
         for queue in (self._jobs, self._windows):
-            for job in queue:
-                j: Job | LibrarySource | None = job
-                while isinstance(j, Job):  # the jobs it matches against too
-                    j.future = Ready.of(j.future)
-                    j = j.prev
+            for job in queue:  # every job has run: what it matched against is no longer needed
+                job.future, job.prev = Ready.of(job.future), None
 
     def __getstate__(self) -> dict[str, object]:
         pending = [j for q in (self._jobs, self._windows) for j in q if not isinstance(j.future, Ready)]
@@ -331,6 +328,7 @@ class KeyframeWorker:
             if not first[0].future.done():
                 break
             job = first.pop(0)
+            job.prev = None  # it has run (the next job reads only this one's result): the chain ends here
             try:
                 res = job.future.result()
             except Exception:  # a failed job costs one keyframe's work, never the session

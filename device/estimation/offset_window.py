@@ -95,8 +95,9 @@ def offset_from_keyframes(views: list[tuple[np.ndarray, np.ndarray]], motions: l
         d0 += float(dg[-1])
         P = P + dp
         P[:, 2] = np.maximum(P[:, 2], 1e-9)
-        # converged: the offset moves by less than 1e-4 px and the motions by micrometres / microradians
-        if abs(dg[-1]) < 1e-4 and np.abs(dg[:-1]).max(initial=0.0) < 1e-6:
+        # converged: the offset, the one unknown the window is solved for, moves by less than its step
+        # (the motions and points are nuisance unknowns: their last micrometres do not move the offset)
+        if abs(dg[-1]) < options.offset_step_px:
             break
     r, _, _, z = _window_system(_WindowUnknowns(R, t, d0, P), seen, cam, jacobians=False)
     # inlier points: every residual of every observation under 3 Huber widths (as the pair counts them)

@@ -21,6 +21,7 @@ from stereopath.device.core.stereo import (
     refine_pose_lm,
     rvec_tvec_to_pose,
     stereo_right,
+    tracks_back,
     triangulate,
     undistort_px,
 )
@@ -35,6 +36,22 @@ class PoseGuess:
     T_world_cam: np.ndarray
     trusted: bool = True
     gyro: GyroRotation | None = None
+
+
+@dataclass(frozen=True)
+class RightMatches:
+    """The right-image matches a pose solve measured: ``index`` of each point among the solve's, its left and
+    right pixels (distorted, as in the images)."""
+
+    index: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+
+    def per_point(self, n: int) -> np.ndarray:
+        """(n, 2) right pixels of the solve's ``n`` points, NaN where there is no match."""
+        out = np.full((n, 2), np.nan, np.float32)
+        out[self.index] = self.right
+        return out
 
 
 class StereoMeasure:
@@ -107,18 +124,21 @@ class StereoMeasure:
 
         The right-image search starts from each pixel's ray at depth ``z0``; ``fb_check`` as in
         :func:`~stereopath.device.core.stereo.stereo_right`."""
-        uvr, ok = stereo_right(self.rig, left, right, xy, self.right_guess(self.rays(xy) * z0), self.klt, fb_check)
+        uvr, ok = stereo_right(self.rig, left, right, xy, self.right_guess(self.rays(xy) * z0), self.klt, False)
         Xc, err = self.triangulate(xy, uvr)
-        return uvr, Xc, ok & self.good_points(Xc, err)
+        ok &= self.good_points(Xc, err)
+        if fb_check:  # last: the backward track is the dearest test
+            ok &= tracks_back(left, right, xy, uvr, self.klt, where=ok)
+        return uvr, Xc, ok
 
     def solve_pose(self, left: np.ndarray, right: np.ndarray, X: np.ndarray, uv: np.ndarray, guess: PoseGuess,
-                   seed: int, stereo_out: list[tuple[np.ndarray, np.ndarray]] | None = None
+                   seed: int, stereo_out: list[RightMatches] | None = None
                    ) -> tuple[np.ndarray | None, int, np.ndarray | None]:
         """PnP RANSAC (from the guess when it is trusted), then LM in both cameras over every point in
         front (nothing beyond twice the inlier threshold weighs; the guess's gyro orientation as a prior,
         weighed against the consensus's pixel noise), inliers classified at the refined pose.
         Returns (T_world_cam, n_inliers, mask).  ``stereo_out``: a list that receives the right-image
-        matches the refinement used, ``(left pixels, right pixels)`` (distorted, as in the images)."""
+        matches the refinement used (:class:`RightMatches`)."""
         geo = self.geometry
         K0, d0 = self.rig.cam0.K, self.rig.cam0.dist
         uv_u = undistort_px(uv, K0, d0)
@@ -146,7 +166,7 @@ class StereoMeasure:
                                 levels=self.klt.seeded_stereo_levels)
         ridx = idx[okr]
         if stereo_out is not None:
-            stereo_out.append((np.asarray(uv)[ridx], uvr[okr]))
+            stereo_out.append(RightMatches(ridx, np.asarray(uv)[ridx], uvr[okr]))
         uvr_u = self.right_ideal(uvr[okr])
         prior = None
         if guess.gyro is not None:

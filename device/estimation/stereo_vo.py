@@ -30,13 +30,13 @@ from stereopath.device.core.scaled_klt import track_scaled
 from stereopath.device.estimation.disparity_offset import (KeyframeObservations, OffsetFilter, PriorPath,
                                                           offset_between_keyframes)
 from stereopath.device.estimation.offset_window import offset_over_keyframes
-from stereopath.device.estimation.gyro_prior import GyroRotation, GyroRotationModel, GyroSinceKeyframe, camera_step
+from stereopath.device.estimation.gyro_prior import GyroPrior, GyroRotation
 from stereopath.device.estimation.keyframe_jobs import KeyframeJob, KeyframeWorker, Ready, Submitted
 from stereopath.device.estimation.live_state import LiveState, StereoStats
 from stereopath.device.estimation.local_window import WindowKeyframes
 from stereopath.device.estimation.moving_start import MovingStart
 from stereopath.device.estimation.right_exposure import RightExposure
-from stereopath.device.estimation.stereo_measure import PoseGuess, StereoMeasure
+from stereopath.device.estimation.stereo_measure import PoseGuess, RightMatches, StereoMeasure
 from stereopath.device.estimation.tracked_map import TrackedMap
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, so3_log
@@ -99,12 +99,11 @@ class StereoEstimator:
         self._failures = 0
         self._gyro: GyroIntegrator | None = None
         self._bias: VisionGyroBias | None = None
-        self._bias_sigma = UNKNOWN_BIAS_SIGMA_RAD_S  # the bias's uncertainty when it is not refined on line
-        self._gyro_model, self._gyro_kf = GyroRotationModel.of(self.cfg.gyro), GyroSinceKeyframe()  # the pose's prior
         self._start: MovingStart | None = None  # a start in motion, until the path gives gyro bias and gravity
         self.world_rebase: tuple[int, np.ndarray] | None = None  # see MovingStart: (frame seq, motion)
         self._gyro_step: tuple[np.ndarray, float] | None = None  # the gyro's body rotation over the last frame
         self._R_body_cam = None if rig.T_body_cam0 is None else rig.T_body_cam0[:3, :3]
+        self._prior = GyroPrior(self.cfg.gyro, self._R_body_cam, UNKNOWN_BIAS_SIGMA_RAD_S)  # the pose solve's
         self._klt = dict(winSize=(self.cfg.klt.klt_window, self.cfg.klt.klt_window), maxLevel=self.cfg.klt.klt_levels,
                          criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
         self._next_id = 0
@@ -141,10 +140,10 @@ class StereoEstimator:
         img = StereoImages(left, self._exposure.corrected(right), right)
         self._join_keyframe_work()
         dt = (frame.t_ns - self._t_prev) * 1e-9
-        T_pred, have_rot_prior = self._predict(frame.t_ns, dt, imu)
+        T_pred, have_rot_prior, gyro = self._predict(frame.t_ns, dt, imu)
         if self._window is not None:
             self._window.gyro_step(self._gyro_step, self._R_body_cam)
-        est = self._track(frame, img, T_pred, have_rot_prior, self._gyro_rotation())
+        est = self._track(frame, img, T_pred, have_rot_prior, gyro)
         self._refine_gyro_bias(est)
         if self._start is not None:
             self.counts.start_solves += self._start.feed(est, imu, self._worker)
@@ -216,7 +215,6 @@ class StereoEstimator:
                 log.info("IMU not still before the first frame: world frame = first camera until the tracked"
                          " path gives the gyro bias and gravity")
             self._gyro.feed_and_integrate(imu, frame.t_ns, frame.t_ns)
-            self._bias_sigma = sigma0
             if self.cfg.gyro.estimate_bias:
                 self._bias = VisionGyroBias(bias0, sigma0, window_s=GYRO_BIAS_WINDOW_S)
         T = make_pose(R_world_cam, np.zeros(3))
@@ -238,7 +236,7 @@ class StereoEstimator:
         return PoseEstimate(frame.seq, frame.t_ns, T.copy(), status, inliers=n, keyframe=True,
                             note="" if status is TrackStatus.OK else "no_stereo_points")
 
-    def _predict(self, t_ns: int, dt: float, imu: ImuSamples | None) -> tuple[np.ndarray, bool]:
+    def _predict(self, t_ns: int, dt: float, imu: ImuSamples | None) -> tuple[np.ndarray, bool, GyroRotation | None]:
         T_prev = self._state.T_world_cam
         # constant velocity (translation and rotation) from the last two poses
         if self._state.T_prev_prev is not None and self._dt_prev:
@@ -256,16 +254,9 @@ class StereoEstimator:
                 Rbc = self._R_body_cam
                 R_rel = Rbc.T @ R_b @ Rbc
                 have_rot = True
-        return T_prev @ make_pose(R_rel, t_rel), have_rot
+        return T_prev @ make_pose(R_rel, t_rel), have_rot, self._prior.frame(self._gyro_step, self._state.T_kf, self.counts.keyframes, self._bias)
 
-    def _gyro_rotation(self) -> GyroRotation | None:
-        """The gyro's orientation of this frame since the last keyframe and its error (the pose solve's prior)."""
-        sigma_b = self._bias.sigma_rad_s if self._bias is not None else self._bias_sigma
-        step = camera_step(self._gyro_step, self._R_body_cam)
-        return self._gyro_kf.frame(step, self._state.T_kf, sigma_b, self._gyro_model)
-
-    def _track(self, frame: StereoFrame, img: StereoImages, T_pred: np.ndarray, have_rot: bool, gyro: GyroRotation | None
-               ) -> PoseEstimate:
+    def _track(self, frame: StereoFrame, img: StereoImages, T_pred: np.ndarray, have_rot: bool, gyro: GyroRotation | None) -> PoseEstimate:
         cfg = self.cfg
         left = img.left
         m = self._state.map
@@ -279,19 +270,21 @@ class StereoEstimator:
             attempts = [(T_pred, TRACK_KLT_LEVELS)]
             if RETRY_KLT_LEVELS > TRACK_KLT_LEVELS:
                 attempts.append((None, RETRY_KLT_LEVELS))
+            map_right = None  # the right-image pixels of the kept points the pose solve measured (NaN: none)
             for k, (T_guess, levels) in enumerate(attempts):
                 uv_new, good = self._klt_track(left, T_guess, levels)
                 if good.sum() < cfg.geometry.min_pnp_inliers:
                     note = "too_few_tracked"
                     continue
-                pairs: list[tuple[np.ndarray, np.ndarray]] = []
+                pairs: list[RightMatches] = []
                 T_est, n_inl, inl = self._geo.solve_pose(left, img.right, m.X[good], uv_new[good], PoseGuess(T_pred, gyro=gyro),
-                                                         self._cur_seq, stereo_out=pairs if cfg.exposure.match else None)
+                                                         self._cur_seq, stereo_out=pairs)
                 if T_est is None:
                     note = "pose_failed"
                     continue
-                if pairs:  # the cameras' exposure, measured at every frame
-                    self._exposure.fit(left, img.right_raw, *pairs[0])
+                if cfg.exposure.match:  # the cameras' exposure, measured at every frame
+                    self._exposure.fit(left, img.right_raw, pairs[0].left, pairs[0].right)
+                map_right = pairs[0].per_point(len(inl))[inl]
                 m.uv = uv_new.astype(np.float32)
                 m.keep(good)
                 m.keep(inl)
@@ -315,7 +308,7 @@ class StereoEstimator:
                                     note="relocalised")
             is_kf = self._need_keyframe(T_est, n_inl)
             if is_kf:
-                self._new_keyframe(img, T_est)
+                self._new_keyframe(img, T_est, map_right)
             return PoseEstimate(frame.seq, frame.t_ns, T_est, TrackStatus.OK, inliers=n_inl, keyframe=is_kf)
         # Vision failed (black frame, lens cap, no overlap, blur): fall back to the IMU rotation (or
         # constant velocity), flagged.  The map and the last good image are kept so the next good
@@ -397,10 +390,15 @@ class StereoEstimator:
                 z_prev = m.X @ T_pw[2, :3] + T_pw[2, 3]
                 known = front & (z_prev > 1e-3)
                 scale[known] = z_prev[known] / Xc[known, 2]
-        # forward, then back from the new positions seeded with the old ones: a true track converges there at once
-        p1, both, fb = track_scaled(self._prev_left, left, m.uv, guess, scale, self.cfg.klt.klt_scale_step,
-                                    dict(self._klt, maxLevel=levels), min(levels, FB_KLT_LEVELS))
+        # a point predicted farther outside the image than KLT's coarsest level reaches has left the view
         w, h = self.rig.cam0.size
+        reach = (self.cfg.klt.klt_window // 2 + 2) * 2**levels + 2
+        live = np.flatnonzero(((guess >= -reach) & (guess < (w - 1 + reach, h - 1 + reach))).all(1))
+        p1, both, fb = guess.astype(np.float32), np.zeros(len(guess), bool), np.full(len(guess), np.inf)
+        # forward, then back from the new positions seeded with the old ones: a true track converges there at once
+        p1[live], both[live], fb[live] = track_scaled(self._prev_left, left, m.uv[live], guess[live], scale[live],
+                                                      self.cfg.klt.klt_scale_step, dict(self._klt, maxLevel=levels),
+                                                      min(levels, FB_KLT_LEVELS))
         good = both & (fb < self.cfg.klt.fb_max_px)
         good &= (p1[:, 0] >= 0) & (p1[:, 0] < w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < h - 1)
         return p1, good
@@ -428,8 +426,9 @@ class StereoEstimator:
 
     # ------------------------------------------------------------------ keyframes
 
-    def _new_keyframe(self, img: StereoImages, T_world_cam: np.ndarray) -> int:
-        """Top up the map with new stereo points; hand the keyframe's ASIFT work to the worker."""
+    def _new_keyframe(self, img: StereoImages, T_world_cam: np.ndarray, map_right: np.ndarray | None = None) -> int:
+        """Top up the map with new stereo points; hand the keyframe's ASIFT work to the worker.  ``map_right``: the
+        map's right-image pixels the frame's pose solve measured (NaN: none), else they are measured here."""
         cfg = self.cfg
         m = self._state.map
         left, right = img.left, img.right
@@ -452,7 +451,7 @@ class StereoEstimator:
         # observations of the existing points at this keyframe (refinement, disparity offset)
         seen = (np.zeros((0, 2)), np.zeros((0, 2)))
         if len(m):
-            seen = self._observe_map(img, T_world_cam)
+            seen = self._observe_map(img, T_world_cam, map_right)
         sel = np.zeros(0, np.int64)
         uvr = np.zeros((0, 2), np.float32)
         Xw = np.zeros((0, 3))
@@ -481,7 +480,6 @@ class StereoEstimator:
         self._submit_window(T_world_cam)
         self._since_kf = 0
         self._state.T_kf = T_world_cam.copy()
-        self._gyro_kf.restart()
         self._n_at_kf = len(m)
         self.counts.keyframes += 1
         return len(m)
@@ -531,17 +529,20 @@ class StereoEstimator:
                                     minDistance=NEW_CORNER_SPACING_PX, mask=mask, blockSize=5)
         return np.zeros((0, 2), np.float32) if c is None else c.reshape(-1, 2).astype(np.float32)
 
-    def _observe_map(self, img: StereoImages, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _observe_map(self, img: StereoImages, T_world_cam: np.ndarray,
+                     map_right: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """Stereo of the tracked points at this keyframe: the running mean of each point's
         triangulations, and the disparity offset from the last keyframe to this one.
         Returns the left and right pixels of the points found in the right image."""
         cfg = self.cfg
         m = self._state.map
-        left, right = img.left, img.right
-        T_cw = invert_pose(T_world_cam)
-        Xc_old = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
-        uvr_old, ok_old = stereo_right(self.rig, left, right, m.uv, self._geo.right_guess(Xc_old), cfg.klt, fb_check=False,
-                                      levels=cfg.klt.seeded_stereo_levels)
+        if map_right is None:
+            T_cw = invert_pose(T_world_cam)
+            Xc_old = m.X @ T_cw[:3, :3].T + T_cw[:3, 3]
+            uvr_old, ok_old = stereo_right(self.rig, img.left, img.right, m.uv, self._geo.right_guess(Xc_old), cfg.klt,
+                                          fb_check=False, levels=cfg.klt.seeded_stereo_levels)
+        else:
+            uvr_old, ok_old = map_right, np.isfinite(map_right[:, 0])
         idx_o = np.flatnonzero(ok_old)
         seen = (m.uv[idx_o], uvr_old[idx_o])  # copies (index arrays)
         if not ok_old.any():

@@ -201,7 +201,7 @@ def _release_freed() -> None:
 
 
 def _adjust_window(rig: Rig, problem: BAProblem, config: BAConfig, priors: Sequence[RotationPrior],
-                   prog: _Progress, w: int, s: int) -> None:
+                   prog: _Progress, w: int, s: int, kfs: np.ndarray) -> None:
     """Window ``w`` (keyframes from ``s``) adjusted from ``prog`` and its outcome put into ``prog``."""
     from stereopath.host.backend.gtsam_ba import bundle_adjust
 
@@ -210,8 +210,10 @@ def _adjust_window(rig: Rig, problem: BAProblem, config: BAConfig, priors: Seque
     win = _window(loops, s, e)
     na = len(win.anchors)
     obs = problem.observations  # in keyframe order (adjust_in_windows), either form: widened here, a window at a time
-    lo, hi = np.searchsorted(observation_keyframes(obs), [s, e])
-    o = as_observations(obs[lo:hi]).copy()
+    lo, hi = np.searchsorted(kfs, [s, e])  # kfs: the rows' keyframes, one contiguous column
+    o = as_observations(obs[lo:hi])
+    if np.may_share_memory(o, obs):  # a view of float rows given as they are: not to be changed
+        o = o.copy()
     o[:, 0] += na - s
     cfg = dataclasses.replace(config, disparity_offset=prog.estimate_offset)
     # held: the anchors, and after the first window the overlap, where the last windows put them (the
@@ -252,9 +254,10 @@ def adjust_in_windows(rig: Rig, problem: BAProblem, config: BAConfig, priors: Se
     obs = problem.observations  # kept in the form given (compact rows stay compact)
     if np.asarray(obs).dtype.names is None:
         obs = as_observations(obs)
-    kfs = observation_keyframes(obs)
+    kfs = np.ascontiguousarray(observation_keyframes(obs))
     if np.any(np.diff(kfs) < 0):  # the tracks stage writes them in keyframe order: no copy then
-        obs = obs[np.argsort(kfs, kind="stable")]
+        order = np.argsort(kfs, kind="stable")
+        obs, kfs = obs[order], kfs[order]
     problem = dataclasses.replace(problem, observations=obs)
     starts = window_starts(len(T))
     prog = checkpoint.load(len(T), problem.points) if checkpoint is not None else None
@@ -270,7 +273,7 @@ def adjust_in_windows(rig: Rig, problem: BAProblem, config: BAConfig, priors: Se
         prog = _Progress(T, dict(problem.points), set(), float(problem.disparity_offset_px), config.disparity_offset,
                          np.full((len(T), 6), np.nan) if problem.imu is not None else None)
     for w in range(prog.done, len(starts)):
-        _adjust_window(rig, problem, config, priors, prog, w, starts[w])
+        _adjust_window(rig, problem, config, priors, prog, w, starts[w], kfs)
         prog.done = w + 1
         _release_freed()
         if checkpoint is not None:

@@ -16,8 +16,10 @@ Open3D is imported inside the functions that need it.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -168,46 +170,49 @@ class TsdfVolume:
         self.integrate(depth_map.depth_m, depth_map.K, depth_map.pose_world_rect(T_world_cam0), color)
 
     def store(self, folder: Path) -> None:
-        """Write the volume into ``folder`` (created): the hash map's keys, its active slots and each
-        attribute's block buffer, written from the map's own memory (no copy of the volume is made);
-        :meth:`restore` reads it back."""
+        """Write the volume into ``folder`` (created): its blocks' keys and attributes, the active ones
+        only, a slice at a time from the hash map's own buffers (no copy of the volume is made), and
+        ``volume.json`` (counts and the fusion settings); :meth:`restore` reads it back."""
         hm = self._grid.hashmap()
+        active = np.sort(hm.active_buf_indices().numpy().astype(np.int64))
         folder.mkdir(parents=True, exist_ok=True)
-        np.save(folder / "keys.npy", hm.key_tensor().numpy())
-        np.save(folder / "active.npy", hm.active_buf_indices().numpy())
+        _write_rows(folder / "keys.npy", hm.key_tensor().numpy(), active)
         for name in self._attrs:
-            np.save(folder / f"{name}.npy", self._grid.attribute(name).numpy())
+            _write_rows(folder / f"{name}.npy", self._grid.attribute(name).numpy(), active)
         (folder / "volume.json").write_text(json.dumps({
-            "capacity": int(hm.capacity()), "blocks": self.block_count, "frames_integrated": self.frames_integrated,
-            "pixels_integrated": self.pixels_integrated}))
+            "capacity": int(hm.capacity()), "blocks": len(active), "fusion": dataclasses.asdict(self.config),
+            "frames_integrated": self.frames_integrated, "pixels_integrated": self.pixels_integrated}))
 
     def restore(self, folder: Path) -> None:
-        """Replace this (empty) volume's blocks by the ones :meth:`store` wrote into ``folder``, a slice of
-        blocks at a time (StereopathError when they do not fit this volume's settings)."""
+        """Replace this (empty) volume by the one :meth:`store` wrote into ``folder``, a slice of blocks at a
+        time; StereopathError when it was stored with other fusion settings or is inconsistent."""
         o3d = self._o3d
         info = json.loads((folder / "volume.json").read_text())
-        active = np.load(folder / "active.npy")
-        keys = np.load(folder / "keys.npy", mmap_mode="r")
-        if len(active) != info["blocks"] or keys.ndim != 2 or keys.shape[1] != 3:
-            raise StereopathError(f"{folder}: the stored volume is inconsistent")
+        if info.get("fusion") != dataclasses.asdict(self.config):
+            raise StereopathError(f"{folder}: the volume was stored with other fusion settings")
+        n, cap = int(info["blocks"]), int(info["capacity"])
+        if not 0 <= n <= cap <= 10_000_000:
+            raise StereopathError(f"{folder}: {n} blocks in a table of {cap}")
         c = self.config
-        self._grid = o3d.t.geometry.VoxelBlockGrid(self._attrs, self._dtypes, self._channels, float(c.voxel_m),
-                                                   int(c.block_resolution), int(info["capacity"]), self._device)
-        hm = self._grid.hashmap()
-        stored = [np.load(folder / f"{name}.npy", mmap_mode="r") for name in self._attrs]
-        views = [self._grid.attribute(name).numpy() for name in self._attrs]
-        for v, src in zip(views, stored):
-            if src.shape[1:] != v.shape[1:] or src.dtype != v.dtype:
-                raise StereopathError(f"{folder}: stored blocks {src.shape[1:]} {src.dtype} do not fit the volume's "
-                                      f"{v.shape[1:]} {v.dtype}")
-        for s in range(0, len(active), 4096):
-            old = np.sort(active[s:s + 4096])
-            buf, ok = hm.activate(o3d.core.Tensor(np.ascontiguousarray(keys[old])))
-            new = buf.numpy()
-            if not ok.numpy().all():
-                raise StereopathError(f"{folder}: the stored volume holds a block twice")
-            for v, src in zip(views, stored):
-                v[new] = src[old]
+        grid = o3d.t.geometry.VoxelBlockGrid(self._attrs, self._dtypes, self._channels, float(c.voxel_m),
+                                             int(c.block_resolution), cap, self._device)
+        hm = grid.hashmap()
+        views = [grid.attribute(name).numpy() for name in self._attrs]
+        with _RowReader(folder / "keys.npy", (3,), np.dtype(np.int32), n) as keys:
+            readers = [_RowReader(folder / f"{name}.npy", v.shape[1:], v.dtype, n) for name, v in zip(self._attrs, views)]
+            try:
+                for s in range(0, n, _SLICE):
+                    k = keys.read(min(_SLICE, n - s))
+                    buf, ok = hm.activate(o3d.core.Tensor(k))
+                    if not ok.numpy().all():
+                        raise StereopathError(f"{folder}: the stored volume holds a block twice")
+                    rows = buf.numpy().astype(np.int64)
+                    for v, r in zip(views, readers):
+                        v[rows] = r.read(len(k))
+            finally:
+                for r in readers:
+                    r.close()
+        self._grid = grid
         self.frames_integrated = int(info["frames_integrated"])
         self.pixels_integrated = int(info["pixels_integrated"])
 
@@ -227,6 +232,56 @@ class TsdfVolume:
             return self._o3d.geometry.PointCloud()
         p = self._grid.extract_point_cloud(weight_threshold=float(self.config.min_weight))
         return p.to_legacy()
+
+
+_SLICE = 4096  # blocks written or read at a time when a volume is stored or restored
+
+
+def _write_rows(path: Path, arr: np.ndarray, rows: np.ndarray) -> None:
+    """``arr[rows]`` as a .npy file, written a slice of rows at a time (never all of them copied), synced."""
+    header = {"descr": np.lib.format.dtype_to_descr(arr.dtype), "fortran_order": False,
+              "shape": (len(rows), *arr.shape[1:])}
+    with open(path, "wb") as f:
+        np.lib.format.write_array_header_1_0(f, header)
+        for s in range(0, len(rows), _SLICE):
+            f.write(np.ascontiguousarray(arr[rows[s:s + _SLICE]]).tobytes())
+        f.flush()
+        os.fsync(f.fileno())
+
+
+class _RowReader:
+    """Rows of a .npy file written by :func:`_write_rows`, read in order a slice at a time; StereopathError
+    when its shape or type is not the one expected."""
+
+    def __init__(self, path: Path, row_shape: tuple[int, ...], dtype: np.dtype, n: int) -> None:
+        self._f = open(path, "rb")
+        try:
+            if np.lib.format.read_magic(self._f) != (1, 0):
+                raise StereopathError(f"{path}: not a stored volume file")
+            shape, fortran, file_dtype = np.lib.format.read_array_header_1_0(self._f)
+        except (ValueError, EOFError) as exc:
+            self._f.close()
+            raise StereopathError(f"{path}: not a stored volume file ({exc})") from None
+        if tuple(shape) != (n, *row_shape) or fortran or file_dtype != dtype:
+            self._f.close()
+            raise StereopathError(f"{path}: holds {shape} {file_dtype}, expected {(n, *row_shape)} {dtype}")
+        self._row_shape, self._dtype = row_shape, dtype
+        self._per_row = int(np.prod(row_shape))
+
+    def read(self, count: int) -> np.ndarray:
+        a = np.fromfile(self._f, self._dtype, count * self._per_row)
+        if a.size != count * self._per_row:
+            raise StereopathError(f"{self._f.name}: cut short")
+        return a.reshape(count, *self._row_shape)
+
+    def close(self) -> None:
+        self._f.close()
+
+    def __enter__(self) -> _RowReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 # ---------------------------------------------------------------------------------------------

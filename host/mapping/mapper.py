@@ -138,6 +138,21 @@ class DenseMapper:
     def keyframes(self) -> int:
         return len(self.poses)
 
+    def progress(self) -> dict[str, Any]:
+        """The keyframes fused so far, as JSON values (what :meth:`resume` restores besides the volume)."""
+        return {"poses": np.asarray(self.poses).tolist(), "indices": list(self.indices),
+                "valid_fractions": list(self.valid_fractions), "timings": dict(self.timings)}
+
+    def resume(self, volume_folder: Path, state: dict[str, Any]) -> None:
+        """Continue from a stored build: the volume in ``volume_folder``, the rest from :meth:`progress`."""
+        poses = [np.asarray(T, float).reshape(4, 4) for T in state["poses"]]
+        indices, fractions = [int(i) for i in state["indices"]], [float(f) for f in state["valid_fractions"]]
+        if not len(poses) == len(indices) == len(fractions):
+            raise StereopathError("stored progress: poses, indices and depth fractions differ in number")
+        self.volume.restore(volume_folder)
+        self.poses, self.indices, self.valid_fractions = poses, indices, fractions
+        self.timings.update({k: float(v) for k, v in state["timings"].items() if k in self.timings})
+
     def reset(self) -> None:
         """Back to an empty volume and no keyframe fused."""
         self.volume = TsdfVolume(self.config.fusion)
@@ -281,10 +296,8 @@ def build_map(inp: MapInput, config: MapConfig, progress: bool | None = None,
     resumed = checkpoint.load(mapper) if checkpoint is not None else None
     if resumed is not None:
         first, inp.skipped[:] = resumed
-    bar = progress_bar(len(inp.keyframes), "depth + fusion", progress, unit="kf")
+    bar = progress_bar(len(inp.keyframes), "depth + fusion", progress, unit="kf", initial=first)
     try:
-        if bar is not None and first:
-            bar.update(first)
         for start in range(first, len(inp.keyframes), DEPTH_BATCH):
             loaded = []
             for k in range(start, min(start + DEPTH_BATCH, len(inp.keyframes))):

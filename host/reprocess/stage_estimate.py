@@ -22,6 +22,7 @@ from stereopath.host.reprocess.store import json_array
 NAME = "estimate"
 CHUNK_FRAMES = 500  # frames between two stored progress records (a few seconds of work each)
 
+
 def settings(config: ReprocessPreset) -> dict[str, Any]:
     """The settings that make up this stage's key."""
     return {"preset": config.estimator_preset, "options": as_dict(config.estimator_options)}
@@ -35,15 +36,22 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     # the estimator and its results are stored every CHUNK_FRAMES frames: an interrupted stage goes on from there
     store = EstimateCheckpoint(inputs.parts) if inputs.parts is not None else None
     stored = store.load() if store is not None else None
+    skipped = getattr(seq, "skipped_frames", None)  # the unreadable frames the source has met (the report's)
     if stored is not None:
         est, done = stored
+        if skipped is not None:
+            skipped.extend(i for i in done.skipped_frames if i not in skipped)
     else:
         est = make_estimator("stereo", seq.rig, preset=config.estimator_preset, options=config.estimator_options)
         done = EstimateProgress()
-    chunks = None if store is None else Chunks(CHUNK_FRAMES, lambda progress: store.save(est, progress))
+
+    def save(progress: EstimateProgress) -> None:
+        progress.skipped_frames = list(skipped or [])
+        store.save(est, progress)
+
+    chunks = None if store is None else Chunks(CHUNK_FRAMES, save)
     try:
-        with Bar(len(seq), "re-estimate", inputs.progress, "frame") as tick:
-            tick(done.next_seq)
+        with Bar(len(seq), "re-estimate", inputs.progress, "frame", initial=done.next_seq) as tick:
             res = run_estimator(est, seq.frames(start=done.next_seq), getattr(seq, "imu", None), progress=tick,
                                 resume=done, chunks=chunks)
     finally:

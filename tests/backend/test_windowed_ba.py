@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from stereopath.device.core.geometry import invert_pose, make_pose
-from stereopath.host.backend import windowed_ba
+from stereopath.host.backend import ba_common, windowed_ba
 from stereopath.device.errors import EstimationError
 from stereopath.host.backend.ba_common import (
     BAConfig,
@@ -181,7 +181,7 @@ def test_the_windows_start_from_the_path_with_its_loops_closed(small_windows, mo
     assert abs(closed[39][2, 3] - T_true[39][2, 3]) < 0.5 * abs(T_drift[39][2, 3] - T_true[39][2, 3])
 
 
-def test_compact_observations_give_the_windows_the_same_poses(small_windows):
+def test_compact_observations_give_the_windows_the_same_poses(small_windows, monkeypatch):
     """Rows held compact (int32 ids, float32 pixels) and widened a window at a time: the same poses as
     float rows within the float32 rounding of the pixels (far below the 0.3 px noise)."""
     rng = np.random.default_rng(5)
@@ -193,7 +193,15 @@ def test_compact_observations_give_the_windows_the_same_poses(small_windows):
     assert packed.nbytes < 0.45 * obs.nbytes
     cfg = BAConfig(disparity_offset=False)
     wide = windowed_ba.adjust_in_windows(rig, BAProblem(T_noisy, pts_noisy, obs), cfg)
+    widen, widened_rows = ba_common.widened, []
+
+    def counting(rows):
+        widened_rows.append(len(rows))
+        return widen(rows)
+
+    monkeypatch.setattr(ba_common, "widened", counting)
     slim = windowed_ba.adjust_in_windows(rig, BAProblem(T_noisy, pts_noisy, packed), cfg)
+    assert len(widened_rows) >= 2 and max(widened_rows) < 0.8 * len(packed)  # a window's rows at a time
     moved = [np.linalg.norm(slim.T_world_cam[k][:3, 3] - wide.T_world_cam[k][:3, 3]) for k in range(len(T_true))]
     assert max(moved) < 1e-5 and slim.n_obs == wide.n_obs
 

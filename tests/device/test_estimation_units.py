@@ -293,6 +293,52 @@ def test_pose_inliers_are_classified_at_the_refined_pose_not_by_the_ransac_conse
     assert checked > 6 * 150
 
 
+def test_the_stereo_backward_check_on_the_survivors_gives_the_check_on_all():
+    """New stereo points are checked backward last, on the matches that passed the cheaper tests: each
+    point's KLT track is independent of the others', so the accepted set and pixels are those of the
+    check on every candidate (rendered stereo pair, a guess from a wrong depth)."""
+    from stereopath.device.core.stereo import stereo_right, tracks_back
+
+    geo, left, right, xy, X = _rendered_points()
+    guess = geo.right_guess(geo.rays(xy) * 1.5)
+    full, ok_full = stereo_right(geo.rig, left, right, xy, guess, geo.klt, fb_check=True)
+    fwd, ok_fwd = stereo_right(geo.rig, left, right, xy, guess, geo.klt, fb_check=False)
+    np.testing.assert_array_equal(full, fwd)
+    back_all = tracks_back(left, right, xy, fwd, geo.klt)
+    back_some = tracks_back(left, right, xy, fwd, geo.klt, where=ok_fwd)
+    np.testing.assert_array_equal(back_some, back_all & ok_fwd)
+    np.testing.assert_array_equal(ok_full, ok_fwd & back_all)
+    assert 0 < ok_full.sum() < ok_fwd.sum() <= len(xy)  # the backward check rejects some forward matches
+    uvr, _, ok = geo.stereo_points(left, right, xy, 1.5)
+    np.testing.assert_array_equal(uvr, full)
+    Xc, err = geo.triangulate(xy, full)
+    np.testing.assert_array_equal(ok, ok_full & geo.good_points(Xc, err))
+
+
+def test_the_pose_solve_right_matches_are_what_a_search_from_the_solved_pose_finds():
+    """A keyframe takes the tracked points' right-image matches from the frame's pose solve (searched from
+    the consensus pose) instead of searching again from the refined pose: the same points, the same pixels
+    within KLT's tolerance."""
+    from stereopath.device.core.stereo import stereo_right
+    from stereopath.device.estimation.stereo_measure import RightMatches
+
+    geo, left, right, xy, X = _rendered_points()
+    uv = (xy + np.random.default_rng(6).normal(0.0, 0.3, xy.shape)).astype(np.float32)
+    out: list[RightMatches] = []
+    T, n, mask = geo.solve_pose(left, right, X, uv, PoseGuess(_NEAR_IDENTITY), 0, stereo_out=out)
+    assert T is not None and len(out) == 1
+    reused = out[0].per_point(len(X))
+    np.testing.assert_array_equal(reused[out[0].index], out[0].right)
+    assert np.isnan(np.delete(reused, out[0].index, axis=0)).all()
+    T_cw = invert_pose(T)
+    again, ok = stereo_right(geo.rig, left, right, uv, geo.right_guess(X @ T_cw[:3, :3].T + T_cw[:3, 3]), geo.klt,
+                             fb_check=False, levels=geo.klt.seeded_stereo_levels)
+    found = np.isfinite(reused[:, 0])
+    assert found.sum() > 0.8 * len(X) and (found == ok).mean() > 0.99
+    both = found & ok
+    assert np.median(np.linalg.norm(reused[both] - again[both], axis=1)) < 0.01
+
+
 def test_a_block_of_consistently_wrong_matches_does_not_pull_the_pose():
     """Repeated texture matched one period off: half the points agree on a wrong 6 px shift.  The
     consensus holds the true pose and those points weigh nothing in its refinement."""

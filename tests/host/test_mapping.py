@@ -356,11 +356,26 @@ def test_an_interrupted_map_build_goes_on_from_its_last_stored_volume(session, t
     assert np.array_equal(a[np.lexsort(a.T)], b[np.lexsort(b.T)])
     ca, cb = (np.asarray(r.mesh.vertex_colors) for r in (whole, again))
     assert np.array_equal(ca[np.lexsort(a.T)], cb[np.lexsort(b.T)])
-    # a chunk written by other settings is not used: the build starts from the first keyframe
+    # a chunk written with another voxel size is not used: the build starts from the first keyframe
     fused.clear()
-    other = map_preset("object", voxel_mm=6.0, **{**FAST, "max_keyframes": 10})
-    other = other.__class__(**{**other.__dict__, "fusion": other.fusion.__class__(
-        **{**other.fusion.__dict__, "compact": False})})
+    shutil.rmtree(tmp_path / "parts")  # the finished build's last chunk (the stage removes it)
+    with pytest.raises(KeyboardInterrupt):
+        build_map(keyframes_from_sequence(seq, seq.groundtruth, sel), cfg, progress=False, on_keyframe=stop_at_7,
+                  checkpoint=ckpt)
+    fused.clear()
+    other = map_preset("object", voxel_mm=5.0, **{**FAST, "max_keyframes": 10})
     build_map(keyframes_from_sequence(seq, seq.groundtruth, sel), other, progress=False,
+              on_keyframe=lambda k, _dm: fused.append(k), checkpoint=MapCheckpoint(tmp_path / "parts", every=100))
+    assert fused == list(range(n))
+    # nor a damaged one (a file cut short)
+    fused.clear()
+    shutil.rmtree(tmp_path / "parts")
+    with pytest.raises(KeyboardInterrupt):
+        build_map(keyframes_from_sequence(seq, seq.groundtruth, sel), cfg, progress=False, on_keyframe=stop_at_7,
+                  checkpoint=ckpt)
+    tsdf = tmp_path / "parts" / "chunk-000004" / "tsdf.npy"
+    tsdf.write_bytes(tsdf.read_bytes()[:-100])
+    fused.clear()
+    build_map(keyframes_from_sequence(seq, seq.groundtruth, sel), cfg, progress=False,
               on_keyframe=lambda k, _dm: fused.append(k), checkpoint=ckpt)
     assert fused == list(range(n))

@@ -419,6 +419,7 @@ def test_estimate_interrupted_resumes_from_its_last_stored_chunk(session, tmp_pa
     from stereopath.host.reprocess.config import resolve_preset
 
     monkeypatch.setattr(stage_estimate, "CHUNK_FRAMES", 20)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))  # the progress files' key
     _, preset = resolve_preset("standard")
     opts = preset.estimator_options
     preset = dataclasses.replace(preset, estimator_options=dataclasses.replace(
@@ -449,28 +450,36 @@ def test_estimate_interrupted_resumes_from_its_last_stored_chunk(session, tmp_pa
         assert np.array_equal(a[key], b[key]), key
 
 
-def test_estimate_progress_of_another_build_or_cut_short_is_not_used(tmp_path, caplog):
+def test_estimate_progress_of_another_build_or_cut_short_is_not_used(tmp_path, caplog, monkeypatch):
     from stereopath.device.estimation.base import EstimateProgress
     from stereopath.device.estimation.registry import make_estimator
     from stereopath.device.core.rig import paper_rig
     from stereopath.host.reprocess.estimate_progress import EstimateCheckpoint
 
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     store = EstimateCheckpoint(tmp_path / "parts")
     assert store.load() is None  # nothing stored
     est = make_estimator("stereo", paper_rig())
     store.save(est, EstimateProgress(next_seq=7, prev_t=123))
+    assert (tmp_path / "cache" / "stereopath" / "progress.key").stat().st_mode & 0o777 == 0o600
     loaded = store.load()
     assert loaded is not None and loaded[1].next_seq == 7 and loaded[1].prev_t == 123
     loaded[0].close()
     est.close()
-    store.path.write_bytes(store.path.read_bytes()[:50])  # cut short
+    data = store.path.read_bytes()
+    store.path.write_bytes(data[:-1] + bytes([data[-1] ^ 1]))  # altered: its HMAC no longer matches
+    with caplog.at_level(logging.WARNING):
+        assert store.load() is None
+    assert "altered" in caplog.text
+    caplog.clear()
+    store.path.write_bytes(data[:50])  # cut short
     with caplog.at_level(logging.WARNING):
         assert store.load() is None
     assert "not usable" in caplog.text and "first frame" in caplog.text
     import pickle
 
-    store.path.write_bytes(pickle.dumps({"identity": {"format": 1, "code": "other"}, "estimator": None,
-                                         "progress": EstimateProgress()}))
+    store.path.write_bytes(pickle.dumps((None, EstimateProgress())))
+    store.sidecar.write_text(json.dumps({"format": 2, "code": "another build", "python": [3, 11], "hmac": ""}))
     caplog.clear()
     with caplog.at_level(logging.WARNING):
         assert store.load() is None
