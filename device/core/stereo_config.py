@@ -115,9 +115,19 @@ class StereoGeometry:
 
 @dataclass(frozen=True)
 class GyroBiasConfig:
-    """The gyro bias refined from the tracked rotation, window by window."""
+    """The gyro bias refined from the tracked rotation, window by window; and the gyro's rotation over
+    each frame as a prior of the frame's pose refinement, weighed by its error model
+    (:mod:`~stereopath.device.estimation.gyro_prior`) against the frame's measured pixel noise."""
 
     estimate_bias: bool = True
+    rotation_prior: bool = True
+    # the prior's error model: white noise density (rad/s/sqrt(Hz); datasheets: MPU-6050 8.7e-5, ADIS16448
+    # 1.7e-4) and the relative error of a measured rotation (scale factor and body-to-camera alignment)
+    noise_rad_s_rthz: float = ranged(2e-4, 1e-6, 1.0)
+    relative_error: float = ranged(0.005, 0.0, 0.5)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, "gyro.")
 
 
 @dataclass(frozen=True)
@@ -158,12 +168,16 @@ class WindowConfig:
     fixed: int = ranged(3, 1, 29)  # the oldest ones held (the gauge; fewer let the windows' errors chain)
     iterations: int = ranged(5, 1, 50)  # Gauss-Newton steps at most
     huber_px: float = ranged(1.0, 0.1, 20.0)
-    disparity_weight: float = ranged(1.0, 0.0, 10.0)  # of the disparity residual against the pixel's (u, v)
+    # of the disparity residual against the pixel's (u, v); not 0: a point seen from keyframes along its
+    # ray would have no depth
+    disparity_weight: float = ranged(1.0, 0.01, 10.0)
     min_points: int = ranged(20, 6, 100000)  # points seen at two keyframes or more, else no solve
     gyro: bool = True  # the gyro's rotation between consecutive keyframes as a residual
     gyro_noise_rad_s_rthz: float = ranged(2e-3, 1e-6, 1.0)  # the gyro's white noise (rad/s/sqrt(Hz))
     gyro_bias_floor_rad_s: float = ranged(1e-3, 0.0, 1.0)  # the bias's uncertainty at least (rad/s)
-    max_correction_deg: float = ranged(2.0, 0.0, 180.0)  # larger corrections of the newest keyframe are refused
+    # larger corrections of the newest keyframe are refused, and shifts larger than this angle subtends at
+    # the median depth of its points
+    max_correction_deg: float = ranged(2.0, 0.0, 180.0)
     # the tracked map's points (each the mean of its stereo triangulations) as a prior of the window's, at
     # this weight times sqrt(their count): what keyframes that left the window knew (0 = no prior)
     map_prior_weight: float = ranged(0.0, 0.0, 10.0)

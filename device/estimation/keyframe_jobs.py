@@ -34,7 +34,7 @@ from stereopath.device.core.stereo_config import KeyframePolicy, StereoConfig
 from stereopath.device.errors import EstimationError
 from stereopath.device.estimation.live_state import Library, compose
 from stereopath.device.estimation.local_window import WindowJob, WindowResult
-from stereopath.device.estimation.stereo_measure import StereoMeasure
+from stereopath.device.estimation.stereo_measure import PoseGuess, StereoMeasure
 
 log = logging.getLogger(__name__)
 
@@ -370,8 +370,12 @@ class KeyframeWorker:
         ang = rotation_angle_deg(G[:3, :3])
         log.debug("window at keyframe %d: %d points, %.2f px, correction %.3f deg, %.4f m, %.1f ms", res.seq,
                   res.n_points, res.rms_px, ang, float(np.linalg.norm(G[:3, 3])), res.cpu_ms)
-        if ang > self.cfg.window.max_correction_deg or not np.isfinite(G).all():
-            log.info("window at keyframe %d: correction of %.2f deg refused", res.seq, ang)
+        # the newest keyframe's own shift, bounded as its rotation is: a shift s at the points' depth z moves
+        # them as a rotation of s / z would
+        shift = float(np.linalg.norm(res.T_after[-1][:3, 3] - res.T_before[-1][:3, 3]))
+        max_shift = np.radians(self.cfg.window.max_correction_deg) * res.depth_m if np.isfinite(res.depth_m) else np.inf
+        if ang > self.cfg.window.max_correction_deg or not np.isfinite(G).all() or not shift <= max_shift:
+            log.info("window at keyframe %d: correction of %.2f deg, %.4f m refused", res.seq, ang, shift)
             return KeyframeCorrection(res.seq, None, 0, 0, None, None, res, C_since)
         return KeyframeCorrection(res.seq, G, 0, 0, None, None, res, C_since)
 
@@ -414,7 +418,7 @@ class KeyframeWorker:
             if len(idx) >= self.cfg.geometry.min_pnp_inliers:
                 X = np.vstack([prev_X[idx[:, 1]], job.X_map])
                 uv = np.vstack([cur.xy[idx[:, 0]].astype(np.float64), job.uv_map])
-                T_new, _, mask = self._geo.solve_pose(left, right, X, uv, T_tracked, seed=job.seq)
+                T_new, _, mask = self._geo.solve_pose(left, right, X, uv, PoseGuess(T_tracked), seed=job.seq)
                 # the tracked map must still fit the joint pose: ASIFT matches that pull the pose away
                 # from it (repeated texture, a wrong 3D point) would turn its points into outliers
                 if T_new is not None and mask[len(idx):].sum() >= self.cfg.asift.map_agreement * len(job.X_map):

@@ -76,6 +76,7 @@ class WindowResult:
     rms_px: float
     n_points: int
     cpu_ms: float
+    depth_m: float = float("nan")  # the median depth of the newest keyframe's points (the translation gate's scale)
 
 
 @dataclass
@@ -258,6 +259,8 @@ def solve_window(job: WindowJob, cam: RectifiedCamera, R0: np.ndarray, cfg: Wind
     nf = min(cfg.fixed, K - 1)
     gyro = [None if g is None else (R0 @ g[0] @ R0.T, g[1]) for g in job.gyro]
     rms = float("nan")
+    cost0 = best = _window_cost(R, t, X, seen, cam, gyro, cfg)
+    kept = (list(R), list(t), X, rms)
     for _ in range(cfg.iterations):
         step = _gauss_newton_step(R, t, X, seen, cam, gyro, nf, cfg)
         if step is None:
@@ -270,11 +273,20 @@ def solve_window(job: WindowJob, cam: RectifiedCamera, R0: np.ndarray, cfg: Wind
             R[k] = so3_exp(dg[o + 3:o + 6]) @ R[k]
             t[k] = t[k] + dg[o:o + 3]
         X = X + dX
+        cost = _window_cost(R, t, X, seen, cam, gyro, cfg)
+        if not cost < best:  # a step that does not lower the robust cost: the last good state
+            break
+        best, kept = cost, (list(R), list(t), X, rms)
         if np.abs(dg).max(initial=0.0) < 1e-7:
             break
+    if not best < cost0:  # the solve did not lower the cost: nothing to correct with
+        return None
+    R, t, X, rms = kept
     after = [job.poses[k].copy() if k < nf else _from_rectified(R[k], t[k], R0) for k in range(K)]
+    newest = seen.kf == K - 1
+    depth = float(np.median(cam.fb / seen.M[newest, 2])) if newest.any() else float("nan")
     cpu_ms = 1000.0 * (time.thread_time() - t_cpu)
-    return WindowResult(job.seq, list(job.seqs), [T.copy() for T in job.poses], after, rms, len(X), cpu_ms)
+    return WindowResult(job.seq, list(job.seqs), [T.copy() for T in job.poses], after, rms, len(X), cpu_ms, depth)
 
 
 def _initial_points(seen: _Observations, R: list[np.ndarray], t: list[np.ndarray], cam: RectifiedCamera) -> np.ndarray:
@@ -285,6 +297,25 @@ def _initial_points(seen: _Observations, R: list[np.ndarray], t: list[np.ndarray
     xr = np.column_stack([(u - cam.cx) / cam.f * z, (v - cam.cy) / cam.f * z, z])
     Rs, ts = np.stack(R)[seen.kf[last]], np.stack(t)[seen.kf[last]]
     return np.einsum("nji,nj->ni", Rs, xr - ts)
+
+
+def _window_cost(R: list[np.ndarray], t: list[np.ndarray], X: np.ndarray, seen: _Observations, cam: RectifiedCamera,
+                 gyro: list[tuple[np.ndarray, float] | None], cfg: WindowConfig) -> float:
+    """The robust cost the Gauss-Newton steps lower: each residual component's Huber loss (capped where the
+    step's weights ignore it) and the gyro's whitened rotation residuals."""
+    Ra, ta = np.stack(R)[seen.kf], np.stack(t)[seen.kf]
+    Xc = np.matmul(Ra, X[seen.pt][:, :, None])[:, :, 0] + ta
+    z = np.maximum(Xc[:, 2], 1e-9)
+    ws = seen.weight[:, None] * np.array([1.0, 1.0, cfg.disparity_weight])
+    r = (np.column_stack([cam.f * Xc[:, 0] / z + cam.cx, cam.f * Xc[:, 1] / z + cam.cy, cam.fb / z]) - seen.M) * ws
+    k = cfg.huber_px
+    e = np.minimum(np.abs(r), 20 * k)
+    cost = float(np.sum(np.where(e < k, e * e, 2 * k * e - k * k)))
+    for j in range(1, len(R)):
+        if gyro[j] is not None:
+            D, sigma = gyro[j]
+            cost += float(np.sum(so3_log(D.T @ R[j - 1] @ R[j].T) ** 2)) / sigma**2
+    return cost
 
 
 def _gauss_newton_step(R: list[np.ndarray], t: list[np.ndarray], X: np.ndarray, seen: _Observations,

@@ -25,6 +25,17 @@ from stereopath.device.core.stereo import (
     triangulate,
     undistort_px,
 )
+from stereopath.device.estimation.gyro_prior import GyroRotation, pixel_sigma
+
+
+@dataclass(frozen=True, eq=False)
+class PoseGuess:
+    """Where a pose solve starts: a pose (camera 1 to world), whether PnP RANSAC starts from it (else it
+    only places the right-image search), and the gyro's orientation as a prior of the refinement."""
+
+    T_world_cam: np.ndarray
+    trusted: bool = True
+    gyro: GyroRotation | None = None
 
 
 @dataclass(frozen=True)
@@ -120,17 +131,19 @@ class StereoMeasure:
             ok &= tracks_back(left, right, xy, uvr, self.klt, where=ok)
         return uvr, Xc, ok
 
-    def solve_pose(self, left: np.ndarray, right: np.ndarray, X: np.ndarray, uv: np.ndarray, T_guess: np.ndarray,
-                   seed: int, use_guess: bool = True, stereo_out: list[RightMatches] | None = None
+    def solve_pose(self, left: np.ndarray, right: np.ndarray, X: np.ndarray, uv: np.ndarray, guess: PoseGuess,
+                   seed: int, stereo_out: list[RightMatches] | None = None
                    ) -> tuple[np.ndarray | None, int, np.ndarray | None]:
-        """PnP RANSAC (from the guess), then LM in both cameras over every point in front (nothing beyond
-        twice the inlier threshold weighs), inliers classified at the refined pose.
+        """PnP RANSAC (from the guess when it is trusted), then LM in both cameras over every point in
+        front (nothing beyond twice the inlier threshold weighs; the guess's gyro orientation as a prior,
+        weighed against the consensus's pixel noise), inliers classified at the refined pose.
         Returns (T_world_cam, n_inliers, mask).  ``stereo_out``: a list that receives the right-image
         matches the refinement used (:class:`RightMatches`)."""
         geo = self.geometry
         K0, d0 = self.rig.cam0.K, self.rig.cam0.dist
         uv_u = undistort_px(uv, K0, d0)
-        T_cw = invert_pose(T_guess)
+        use_guess = guess.trusted
+        T_cw = invert_pose(guess.T_world_cam)
         rvec, tvec = pose_to_rvec_tvec(T_cw)
         # RANSAC draws do not depend on what ran before (OpenCV's RNG is per thread)
         cv2.setRNGSeed(seed)
@@ -155,8 +168,15 @@ class StereoMeasure:
         if stereo_out is not None:
             stereo_out.append(RightMatches(ridx, np.asarray(uv)[ridx], uvr[okr]))
         uvr_u = self.right_ideal(uvr[okr])
+        prior = None
+        if guess.gyro is not None:
+            fx, fy, cx, cy = K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]
+            Xi = Xc[idx]
+            err = np.hypot(fx * Xi[:, 0] / Xi[:, 2] + cx - uv_u[idx, 0], fy * Xi[:, 1] / Xi[:, 2] + cy - uv_u[idx, 1])
+            prior = guess.gyro.prior(pixel_sigma(err, geo.pnp_reproj_px, geo.huber_px))
         res = refine_pose_lm(self.rig, T_cw, PointObservations(X[idx], uv_u[idx]), PointObservations(X[ridx], uvr_u),
-                             LMOptions(huber_px=geo.huber_px, outlier_px=geo.pnp_reproj_px, cutoff_px=2 * geo.pnp_reproj_px))
+                             LMOptions(huber_px=geo.huber_px, outlier_px=geo.pnp_reproj_px, cutoff_px=2 * geo.pnp_reproj_px),
+                             prior)
         final = np.zeros(len(X), bool)
         final[idx[res.inliers_left]] = True
         if final.sum() < geo.min_pnp_inliers:

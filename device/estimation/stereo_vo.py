@@ -30,12 +30,13 @@ from stereopath.device.core.scaled_klt import track_scaled
 from stereopath.device.estimation.disparity_offset import (KeyframeObservations, OffsetFilter, PriorPath,
                                                           offset_between_keyframes)
 from stereopath.device.estimation.offset_window import offset_over_keyframes
+from stereopath.device.estimation.gyro_prior import GyroPrior, GyroRotation
 from stereopath.device.estimation.keyframe_jobs import KeyframeJob, KeyframeWorker, Ready, Submitted
 from stereopath.device.estimation.live_state import LiveState, StereoStats
 from stereopath.device.estimation.local_window import WindowKeyframes
 from stereopath.device.estimation.moving_start import MovingStart
 from stereopath.device.estimation.right_exposure import RightExposure
-from stereopath.device.estimation.stereo_measure import RightMatches, StereoMeasure
+from stereopath.device.estimation.stereo_measure import PoseGuess, RightMatches, StereoMeasure
 from stereopath.device.estimation.tracked_map import TrackedMap
 from stereopath.device.core.frames import ImuSamples, StereoFrame
 from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, so3_log
@@ -102,6 +103,7 @@ class StereoEstimator:
         self.world_rebase: tuple[int, np.ndarray] | None = None  # see MovingStart: (frame seq, motion)
         self._gyro_step: tuple[np.ndarray, float] | None = None  # the gyro's body rotation over the last frame
         self._R_body_cam = None if rig.T_body_cam0 is None else rig.T_body_cam0[:3, :3]
+        self._prior = GyroPrior(self.cfg.gyro, self._R_body_cam, UNKNOWN_BIAS_SIGMA_RAD_S)  # the pose solve's
         self._klt = dict(winSize=(self.cfg.klt.klt_window, self.cfg.klt.klt_window), maxLevel=self.cfg.klt.klt_levels,
                          criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
         self._next_id = 0
@@ -138,10 +140,10 @@ class StereoEstimator:
         img = StereoImages(left, self._exposure.corrected(right), right)
         self._join_keyframe_work()
         dt = (frame.t_ns - self._t_prev) * 1e-9
-        T_pred, have_rot_prior = self._predict(frame.t_ns, dt, imu)
+        T_pred, have_rot_prior, gyro = self._predict(frame.t_ns, dt, imu)
         if self._window is not None:
             self._window.gyro_step(self._gyro_step, self._R_body_cam)
-        est = self._track(frame, img, T_pred, have_rot_prior)
+        est = self._track(frame, img, T_pred, have_rot_prior, gyro)
         self._refine_gyro_bias(est)
         if self._start is not None:
             self.counts.start_solves += self._start.feed(est, imu, self._worker)
@@ -234,7 +236,7 @@ class StereoEstimator:
         return PoseEstimate(frame.seq, frame.t_ns, T.copy(), status, inliers=n, keyframe=True,
                             note="" if status is TrackStatus.OK else "no_stereo_points")
 
-    def _predict(self, t_ns: int, dt: float, imu: ImuSamples | None) -> tuple[np.ndarray, bool]:
+    def _predict(self, t_ns: int, dt: float, imu: ImuSamples | None) -> tuple[np.ndarray, bool, GyroRotation | None]:
         T_prev = self._state.T_world_cam
         # constant velocity (translation and rotation) from the last two poses
         if self._state.T_prev_prev is not None and self._dt_prev:
@@ -252,9 +254,9 @@ class StereoEstimator:
                 Rbc = self._R_body_cam
                 R_rel = Rbc.T @ R_b @ Rbc
                 have_rot = True
-        return T_prev @ make_pose(R_rel, t_rel), have_rot
+        return T_prev @ make_pose(R_rel, t_rel), have_rot, self._prior.frame(self._gyro_step, self._state.T_kf, self.counts.keyframes, self._bias)
 
-    def _track(self, frame: StereoFrame, img: StereoImages, T_pred: np.ndarray, have_rot: bool) -> PoseEstimate:
+    def _track(self, frame: StereoFrame, img: StereoImages, T_pred: np.ndarray, have_rot: bool, gyro: GyroRotation | None) -> PoseEstimate:
         cfg = self.cfg
         left = img.left
         m = self._state.map
@@ -275,7 +277,7 @@ class StereoEstimator:
                     note = "too_few_tracked"
                     continue
                 pairs: list[RightMatches] = []
-                T_est, n_inl, inl = self._geo.solve_pose(left, img.right, m.X[good], uv_new[good], T_pred,
+                T_est, n_inl, inl = self._geo.solve_pose(left, img.right, m.X[good], uv_new[good], PoseGuess(T_pred, gyro=gyro),
                                                          self._cur_seq, stereo_out=pairs)
                 if T_est is None:
                     note = "pose_failed"
@@ -415,8 +417,8 @@ class StereoEstimator:
             return None, 0
         T_l = self._state.T_library
         X = lib.X_cam[idx[:, 1]] @ T_l[:3, :3].T + T_l[:3, 3]
-        T, n, _ = self._geo.solve_pose(img.left, img.right, X, feats0.xy[idx[:, 0]].astype(np.float64), T_pred,
-                                       self._cur_seq, use_guess=False)
+        T, n, _ = self._geo.solve_pose(img.left, img.right, X, feats0.xy[idx[:, 0]].astype(np.float64),
+                                       PoseGuess(T_pred, trusted=False), self._cur_seq)
         if T is None:
             return None, 0
         log.info("frame %d relocalised against keyframe %d (%d inliers)", self._cur_seq, lib.seq, n)

@@ -188,6 +188,8 @@ class FramePipeline:
             return
         _, G = rebase
         self.counters.world_rebase = {"from_t_ns": int(frame.t_ns), "T_new_old": [[float(v) for v in row] for row in G]}
+        for sink in self.sinks:  # the hosts hold poses of the earlier world: they are told how to map them
+            sink.world_rebased(int(frame.t_ns), G)
         log.info("world frame levelled at frame %d: poses before it are in the first camera's world "
                  "(estimator.json world_rebase maps them)", frame.seq)
 

@@ -13,6 +13,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Protocol
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from stereopath.device.core.frames import ImuSamples, StereoFrame
     from stereopath.device.core.trajectory import Trajectory
     from stereopath.device.estimation.base import PoseEstimate
@@ -33,6 +35,8 @@ class FrameSink(Protocol):
 
     def add_estimate(self, frame: StereoFrame, est: PoseEstimate) -> None: ...
 
+    def world_rebased(self, from_t_ns: int, T_new_old: np.ndarray) -> None: ...
+
     def status_fields(self) -> dict[str, Any]: ...
 
     def close(self) -> None: ...
@@ -52,6 +56,9 @@ class NullSink:
 
     def add_estimate(self, frame: StereoFrame, est: PoseEstimate) -> None:
         pass
+
+    def world_rebased(self, from_t_ns: int, T_new_old: np.ndarray) -> None:
+        """The estimator redefined its world at ``from_t_ns``: what came before maps by ``T_new_old``."""
 
     def status_fields(self) -> dict[str, Any]:
         return {}
@@ -175,6 +182,10 @@ class StreamingSink(NoStreaming):
                         keyframe=bool(est.keyframe))
         if est.keyframe:
             st.offer_keyframe(frame.seq, frame.t_ns, est.T_world_cam, frame.left, frame.right)
+
+    def world_rebased(self, from_t_ns: int, T_new_old: np.ndarray) -> None:
+        """The poses and keyframes already sent are in the earlier world: the hosts are told how to map them."""
+        self.streamer.publish_rebase(from_t_ns, T_new_old)
 
     def stats(self) -> dict[str, Any]:
         try:

@@ -39,7 +39,8 @@ import numpy as np
 
 from stereopath.device.errors import ConfigError, DatasetError, ProtocolError
 from stereopath.device.wire.protocol import HEALTH_FIELDS, DeviceHealth, SessionInfo, Status, check_session_id, encode_keyframe, \
-    decode_session, encode_pose, encode_session, encode_status, make_keyframe, make_session_info, pose_from_matrix, rig_reference
+    decode_session, encode_pose, encode_rebase, encode_session, encode_status, make_keyframe, make_rebase, make_session_info, \
+    pose_from_matrix, rig_reference
 from stereopath.device.streaming.backlog import Backlog, find_backlog, write_marker
 from stereopath.device.streaming import health
 from stereopath.device.settings import KeySettings, StreamSettings
@@ -121,6 +122,7 @@ class DeviceStreamer:
             "keyframes_spooled": 0, "keyframes_failed": 0, "max_keyframe_queue": 0,
             "max_call_s": 0.0, "io_thread_cpu_s": 0.0, "writer_thread_cpu_s": 0.0, "status_built": 0,
         }
+        self._rebase: bytes | None = None  # the session's world rebase, sent with every status from then on
         self._closed = False
         self._writer = threading.Thread(target=self._writer_loop, name="stereopath-spool", daemon=True)
         self._io = threading.Thread(target=self._io_loop, name="stereopath-stream-io", daemon=True)
@@ -199,6 +201,18 @@ class DeviceStreamer:
         self._status_due.set()
         self._wake()
         self._note_call(t0)
+
+    def publish_rebase(self, from_t_ns: int, T_new_old: np.ndarray) -> None:
+        """The estimator redefined the session's world: the poses and keyframes timed before ``from_t_ns``
+        were sent in the earlier one, ``T_new_old`` maps them.  Sent at once and with every status after
+        (a host that connects later gets it too; hosts apply it once).
+
+        Raises :class:`ProtocolError` for a motion that is not a finite rigid 4x4 matrix."""
+        data = encode_rebase(make_rebase(self.session_id, from_t_ns, T_new_old))
+        with self._lock:
+            self._rebase = data
+        self._status_due.set()
+        self._wake()
 
     def stats(self) -> dict[str, Any]:
         """A snapshot of counters (queues, drops, keyframes sent/resent, rejected control messages, hosts)."""
@@ -379,6 +393,10 @@ class DeviceStreamer:
                 if now >= next_status or self._status_due.is_set():
                     self._status_due.clear()
                     server.broadcast_status(self._status_bytes())
+                    with self._lock:
+                        rebase = self._rebase
+                    if rebase is not None:
+                        server.broadcast_status(rebase)
                     next_status = now + interval
                 self._counters["io_thread_cpu_s"] = time.thread_time()
         except Exception:  # a bug here must not pass silently: log it, the producer side stays non-blocking

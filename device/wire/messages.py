@@ -2,7 +2,7 @@
 
 See :mod:`stereopath.device.wire.protocol` for the encoding; this module holds the shapes
 (:class:`Pose`, :class:`Keyframe`, :class:`Status` with :class:`DeviceHealth`, :class:`SessionInfo`, :class:`Hello`,
-:class:`Ack`, :class:`Credit`), the limits applied to untrusted bytes and the session-id rules.
+:class:`Ack`, :class:`Credit`, :class:`WorldRebase`), the limits applied to untrusted bytes and the session-id rules.
 """
 
 from __future__ import annotations
@@ -212,7 +212,24 @@ class Credit:
     n: int
 
 
-Message = Pose | Keyframe | Status | SessionInfo | Hello | Ack | Credit
+@dataclass(frozen=True)
+class WorldRebase:
+    """Device -> host: the on-board estimator redefined its world once during the session (a start in
+    motion, levelled when gravity became known).  The session's poses and keyframes timed before
+    ``from_t_ns`` were given in the earlier world; ``T_new_old`` (a rigid motion, sent as position and
+    unit quaternion) maps them into the one the later poses are in."""
+
+    session_id: str
+    from_t_ns: int
+    position_m: tuple[float, float, float]
+    quat_xyzw: tuple[float, float, float, float]
+
+    @property
+    def T_new_old(self) -> np.ndarray:
+        return pose_matrix(self.position_m, self.quat_xyzw)
+
+
+Message = Pose | Keyframe | Status | SessionInfo | Hello | Ack | Credit | WorldRebase
 
 
 # --------------------------------------------------------------------------- helpers

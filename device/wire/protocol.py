@@ -12,6 +12,9 @@ Every message is one msgpack map with a schema version ``v`` and a ``type``:
               before its keyframes (also for an earlier session's undelivered keyframes);
 ``status``    device health, about 1 Hz (frame and IMU rates, drops, CPU, temperature, disk,
               recorder state) plus streaming counters -- on the keyframe channel;
+``rebase``    the session's world was redefined once (a start in motion): the rigid motion
+              ``T_new_old`` (position and unit quaternion) of the poses timed before ``t`` --
+              on the keyframe channel, with every status from then on (a host applies it once);
 ``hello``     host -> device: (re)start of the keyframe flow, with the host's last stored
               keyframe seq of the session it knows and its credit window;
 ``ack``       host -> device: keyframe ``seq`` of ``sid`` is stored, with more credit;
@@ -45,8 +48,8 @@ from stereopath.device.wire.messages import (
     CONTROL_LIMITS, HEALTH_FIELDS, I63, IMAGE_CHANNELS, IMAGE_ENCODINGS, KEYFRAME_LIMITS, MAX_CREDIT, MAX_IMAGE_SIDE,
     MAX_POSITION_M, POSE_LIMITS, POSE_MAX_BYTES, PROTOCOL_VERSION, RAW_DTYPES, RECORDER_STATE_RE, RIG_HASH_RE,
     RIG_NAME_RE, SESSION_ID_RE, SESSION_LIMITS, TRACKING_STATES, U32, Ack, Credit, DecodeError, DeviceHealth,
-    EncodedImage, Hello, Keyframe, Limits, Message, Pose, SessionInfo, Status, check_session_id, new_session_id,
-    pose_from_matrix, pose_matrix, rig_reference,
+    EncodedImage, Hello, Keyframe, Limits, Message, Pose, SessionInfo, Status, WorldRebase, check_session_id,
+    new_session_id, pose_from_matrix, pose_matrix, rig_reference,
 )
 
 # the protocol's public names, one import away for both sides
@@ -55,10 +58,10 @@ __all__ = [
     "MAX_IMAGE_SIDE", "POSE_LIMITS", "POSE_MAX_BYTES", "PROTOCOL_VERSION", "RAW_DTYPES", "RECORDER_STATE_RE",
     "RIG_HASH_RE", "RIG_NAME_RE", "SESSION_ID_RE", "SESSION_LIMITS", "TRACKING_STATES", "Ack", "Credit", "DecodeError",
     "DeviceHealth", "EncodedImage", "Hello", "Keyframe", "Limits", "Message", "Pose", "SessionInfo", "Status",
-    "check_session_id", "decode_control", "decode_image", "decode_keyframe", "decode_message", "decode_pose",
+    "WorldRebase", "check_session_id", "decode_control", "decode_image", "decode_keyframe", "decode_message", "decode_pose",
     "decode_session", "decode_status", "encode_ack", "encode_credit", "encode_hello", "encode_image",
     "encode_keyframe", "encode_message", "encode_pose", "encode_session", "encode_status", "image_header_size",
-    "make_keyframe", "make_session_info", "new_session_id", "pose_from_matrix", "pose_matrix", "rig_of",
+    "make_keyframe", "make_session_info", "make_rebase", "encode_rebase", "decode_rebase", "new_session_id", "pose_from_matrix", "pose_matrix", "rig_of",
     "rig_reference",
 ]
 
@@ -226,6 +229,42 @@ def _decode_status(obj: dict[str, Any]) -> Status:
                   recorder_state=field_str(obj, "rec", RECORDER_STATE_RE), **values)
 
 
+# --------------------------------------------------------------------------- world rebase
+
+_REBASE_KEYS = ("type", "v", "sid", "t", "p", "q")
+
+
+def make_rebase(session_id: str, from_t_ns: int, T_new_old: np.ndarray) -> WorldRebase:
+    """The :class:`WorldRebase` of a 4x4 rigid motion (refused: not 4x4, not finite, not rigid)."""
+    from stereopath.device.core.geometry import matrix_to_quat_xyzw
+
+    T = np.asarray(T_new_old, dtype=float)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ProtocolError(f"rebase: T_new_old must be a finite 4x4 matrix, got shape {T.shape}")
+    R = T[:3, :3]
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0 or np.abs(T[3] - [0, 0, 0, 1]).max() > 0:
+        raise ProtocolError("rebase: T_new_old is not a rigid motion")
+    return WorldRebase(session_id, int(from_t_ns), tuple(float(v) for v in T[:3, 3]),  # type: ignore[arg-type]
+                       tuple(float(v) for v in matrix_to_quat_xyzw(R)))  # type: ignore[arg-type]
+
+
+def encode_rebase(msg: WorldRebase) -> bytes:
+    check_common(msg.session_id, 0, msg.from_t_ns, "rebase")
+    p, q = check_pose_fields(msg.position_m, msg.quat_xyzw, "rebase")
+    return pack({"type": "rebase", "v": PROTOCOL_VERSION, "sid": msg.session_id, "t": int(msg.from_t_ns),
+                 "p": p, "q": q})
+
+
+def _decode_rebase(obj: dict[str, Any]) -> WorldRebase:
+    exact_keys(obj, _REBASE_KEYS, "rebase")
+    return WorldRebase(check_session_id(obj["sid"]), field_int(obj, "t", 0, I63),
+                       field_vec(obj, "p", 3, MAX_POSITION_M), field_quat(obj, "q"))  # type: ignore[arg-type]
+
+
+def decode_rebase(data: bytes, limits: Limits = CONTROL_LIMITS) -> WorldRebase:
+    return _expect(decode_message(data, limits, ("rebase",)), WorldRebase)
+
+
 # --------------------------------------------------------------------------- session
 
 _SESSION_KEYS = ("type", "v", "sid", "rig", "cal", "kfs", "live")
@@ -353,6 +392,7 @@ _DECODERS: dict[str, Callable[[dict[str, Any]], Any]] = {
     "hello": _decode_hello,
     "ack": _decode_ack,
     "credit": _decode_credit,
+    "rebase": _decode_rebase,
 }
 
 
@@ -360,7 +400,7 @@ def encode_message(msg: Message) -> bytes:
     """Encode any message type."""
     encoders: dict[type, Callable[[Any], bytes]] = {
         Pose: encode_pose, Keyframe: encode_keyframe, Status: encode_status, SessionInfo: encode_session,
-        Hello: encode_hello, Ack: encode_ack, Credit: encode_credit}
+        Hello: encode_hello, Ack: encode_ack, Credit: encode_credit, WorldRebase: encode_rebase}
     for cls, encode in encoders.items():
         if isinstance(msg, cls):
             return encode(msg)

@@ -125,7 +125,8 @@ def run(args: argparse.Namespace) -> int:
     term = TerminalView()
     receiver = Receiver(config, args.out,
                         on_pose=on_pose if (rerun_view or sink) else None,
-                        on_keyframe=on_keyframe if (rerun_view or mapper or sink) else None)
+                        on_keyframe=on_keyframe if (rerun_view or mapper or sink) else None,
+                        on_rebase=rerun_view.on_rebase if rerun_view else None)
     t0 = time.monotonic()
     before = _counts(receiver.stats)  # receiver.json's counters run on over restarts with the same OUT
     try:

@@ -6,7 +6,11 @@ each device session id it sees keeps a folder ``OUT/<session>/`` with
 * ``poses.tum``  every received pose, appended and flushed as it arrives;
 * ``keyframes/`` every keyframe exactly once (see :mod:`stereopath.host.live.store`);
 * ``rig.yaml`` and ``session.json``: the device's rig and keyframe count, from its ``session``
-  message (see :mod:`stereopath.host.live.receiver_sessions`).  Keyframes of an earlier session
+  message (see :mod:`stereopath.host.live.receiver_sessions`);
+* ``world_rebase.json`` when the device's estimator redefined its world during the session (a start
+  in motion): the poses held (``poses.tum``, the live pose, later arrivals) are mapped into the new
+  world once; the keyframes keep the poses they came with and that file maps them
+  (see :mod:`stereopath.host.live.world_rebase`).  Keyframes of an earlier session
   the device still held (it was killed before a host had them) arrive after the live ones and
   are stored under their own session id; incomplete sessions are logged at start and at the end.
 
@@ -40,9 +44,9 @@ from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Callable, TextIO
 
-from stereopath.device.errors import ConfigError
+from stereopath.device.errors import ConfigError, StereopathError
 from stereopath.device.wire.protocol import KEYFRAME_LIMITS, POSE_LIMITS, SESSION_LIMITS, DecodeError, \
-    Keyframe, Limits, Pose, SessionInfo, Status, decode_message
+    Keyframe, Limits, Pose, SessionInfo, Status, WorldRebase, decode_message
 from stereopath.device.wire.security import load_host_keys
 from stereopath.device.wire.sockets import CurveKeys, secure_channel
 from stereopath.device.formats.tum import ns_to_seconds_str
@@ -52,6 +56,7 @@ from stereopath.host.live.receiver_link import Link
 from stereopath.host.live.receiver_sessions import SessionCatalog, describe_incomplete
 from stereopath.host.live.receiver_stats import EventRate, LiveState, ReceiverStats, SessionStats
 from stereopath.host.live.store import STATE_NAME, KeyframeStore, list_sessions
+from stereopath.host.live.world_rebase import SessionRebases, read_rebases, record, rewrite_tum
 
 if TYPE_CHECKING:
     import zmq
@@ -82,13 +87,17 @@ class Receiver:
     def __init__(self, config: ReceiverConfig, out_dir: str | Path,
                  on_pose: Callable[[Pose], None] | None = None,
                  on_keyframe: Callable[[Keyframe, bool], None] | None = None,
-                 on_status: Callable[[Status], None] | None = None) -> None:
+                 on_status: Callable[[Status], None] | None = None,
+                 on_rebase: Callable[[WorldRebase], None] | None = None) -> None:
         import zmq
 
         self._zmq = zmq
         self.config = config
         self.out = Path(out_dir)
         self.on_pose, self.on_keyframe, self.on_status = on_pose, on_keyframe, on_status
+        self.on_rebase = on_rebase
+        self.rebases = SessionRebases()
+        self._tum_lock = threading.Lock()  # a pose's mapping and append against a rebase's rewrite of the file
         curve = secure_channel(config.insecure, (config.pose_endpoint, config.keyframe_endpoint),
                                lambda: CurveKeys(*load_host_keys(config.keys_dir or "", config.device_key)),
                                "receiving")
@@ -219,7 +228,7 @@ class Receiver:
                 if channel == "pose":
                     msg = decode_message(frames[0], POSE_LIMITS, ("pose",))
                 else:
-                    msg = decode_message(frames[0], self._kf_limits, ("keyframe", "status", "session"))
+                    msg = decode_message(frames[0], self._kf_limits, ("keyframe", "status", "session", "rebase"))
             except DecodeError as exc:
                 self._reject(channel, exc.reason, str(exc))
                 continue
@@ -235,6 +244,8 @@ class Receiver:
                 self._handle_status(msg)
             elif isinstance(msg, SessionInfo):
                 self._handle_session(msg)
+            elif isinstance(msg, WorldRebase):
+                self._handle_rebase(msg)
         return n
 
     def _admit_session(self, sid: str) -> tuple[str, str] | None:
@@ -291,6 +302,10 @@ class Receiver:
         return s
 
     def _handle_pose(self, pose: Pose) -> None:
+        with self._tum_lock:  # mapped and stored in one world, whatever rebase arrives meanwhile
+            self._take_pose(self.rebases.map_pose(pose))
+
+    def _take_pose(self, pose: Pose) -> None:
         now = time.monotonic()
         with self.lock:
             self.stats.received.pose += 1
@@ -385,8 +400,8 @@ class Receiver:
                 self.live.acked_seq = self.store.session(kf.session_id).acked_seq
         self.link.progress(now)
         self.link.ack(kf.session_id, kf.seq)
-        if self.on_keyframe is not None:
-            self.on_keyframe(kf, new)
+        if self.on_keyframe is not None:  # in the session's current world (stored as sent: world_rebase.json maps it)
+            self.on_keyframe(self.rebases.map_keyframe(kf), new)
 
     def _storage_failed(self, what: str, exc: OSError) -> None:
         """Log a storage failure once per streak; the device resends what was not acknowledged."""
@@ -420,6 +435,38 @@ class Receiver:
             self.sessions.on_session(info)
         except OSError as exc:  # the next connection sends it again
             self._storage_failed(f"the rig of session {info.session_id}", exc)
+
+    def _handle_rebase(self, msg: WorldRebase) -> None:
+        """The device redefined the session's world: the poses held from before it are mapped once (the
+        device repeats the message with every status), and the rebase is recorded in the session folder."""
+        sid = msg.session_id
+        with self._tum_lock:
+            if not self.rebases.of(sid):  # after a restart of the receiver: what it applied before
+                try:
+                    self.rebases.load(sid, read_rebases(self.out / sid))
+                except StereopathError as exc:
+                    log.warning("%s; the rebase is applied again", exc)
+            rebase = self.rebases.add(msg)
+            with self.lock:
+                self.stats.received.rebase += 1
+                if rebase is not None and self.live.pose is not None and self.live.pose.session_id == sid:
+                    self.live.pose = rebase.map(self.live.pose)
+            if rebase is None:
+                return
+            fh = self._tum.pop(sid, None)
+            try:
+                if fh is not None:
+                    fh.close()
+                n = rewrite_tum(self.out / sid / "poses.tum", rebase)
+                record(self.out / sid, self.rebases.of(sid))
+            except OSError as exc:
+                log.error("session %s: world rebase from t=%d ns not written to %s: %s", sid, rebase.from_t_ns,
+                          self.out / sid, exc.strerror or exc)
+                n = 0
+            if self.on_rebase is not None:  # under the lock: no pose mapped here reaches the view before it
+                self.on_rebase(msg)
+        log.info("session %s: the device's world was redefined at t=%d ns; %d stored poses mapped into it "
+                 "(world_rebase.json maps the keyframes before it)", sid, rebase.from_t_ns, n)
 
     def _update_live(self, now: float) -> None:
         with self.lock:

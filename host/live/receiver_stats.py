@@ -37,9 +37,10 @@ class MessageCounts:
     keyframe: int = 0
     status: int = 0
     session: int = 0
+    rebase: int = 0  # world rebases (repeated with every status; each applied once)
 
     def total(self) -> int:
-        return self.pose + self.keyframe + self.status + self.session
+        return self.pose + self.keyframe + self.status + self.session + self.rebase
 
     def to_json(self) -> dict[str, int]:
         return asdict(self)

@@ -18,8 +18,9 @@ from typing import TYPE_CHECKING, Any, Protocol, TextIO
 import numpy as np
 
 from stereopath.device.core.rig import Rig
-from stereopath.device.wire.protocol import Keyframe, Pose, decode_image
+from stereopath.device.wire.protocol import Keyframe, Pose, WorldRebase, decode_image
 from stereopath.host.live.receiver_stats import LiveState, ReceiverStats
+from stereopath.host.live.world_rebase import SessionRebases
 
 if TYPE_CHECKING:
     import open3d as o3d
@@ -132,6 +133,9 @@ class RerunView:
         self.rig = rig
         self._paths: dict[str, list[tuple[float, float, float]]] = {}
         self._kf_points: dict[str, list[tuple[float, float, float]]] = {}
+        self._path_t: dict[str, list[int]] = {}  # the device times of each path's points (a world rebase maps them)
+        self._kf_t: dict[str, list[int]] = {}
+        self._rebases = SessionRebases()  # the rebases applied to what the view holds (each once)
         self._pinhole_size: dict[str, tuple[int, int]] = {}
         self._next_path = 0.0
         self._t0: dict[str, int] = {}
@@ -153,10 +157,11 @@ class RerunView:
         rr = self.rr
         sid = pose.session_id
         self._time(sid, pose.t_ns)
-        path = self._paths.setdefault(sid, [])
+        path, times = self._paths.setdefault(sid, []), self._path_t.setdefault(sid, [])
         path.append(tuple(pose.position_m))  # type: ignore[arg-type]
+        times.append(pose.t_ns)
         if len(path) > self.MAX_PATH_POINTS:
-            del path[: len(path) - self.MAX_PATH_POINTS]
+            del path[: len(path) - self.MAX_PATH_POINTS], times[: len(times) - self.MAX_PATH_POINTS]
         self.rec.log(f"world/{sid}/camera", rr.Transform3D(translation=pose.position_m,
                                                             quaternion=rr.Quaternion(xyzw=pose.quat_xyzw)))
         if sid not in self._pinhole_size:
@@ -203,9 +208,10 @@ class RerunView:
         h, w = kf.left.shape[:2]
         if self._pinhole_size.get(sid) != (w, h):
             self._log_pinhole(sid, w, h)
-        pts = self._kf_points.setdefault(sid, [])
+        pts, times = self._kf_points.setdefault(sid, []), self._kf_t.setdefault(sid, [])
         pts.append(tuple(kf.position_m))  # type: ignore[arg-type]
-        del pts[: max(0, len(pts) - self.MAX_PATH_POINTS)]
+        times.append(kf.t_ns)
+        del pts[: max(0, len(pts) - self.MAX_PATH_POINTS)], times[: max(0, len(times) - self.MAX_PATH_POINTS)]
         self.rec.log(f"world/{sid}/keyframes", rr.Points3D(np.asarray(pts, dtype=np.float32), radii=0.01))
         for name, img in (("left", kf.left), ("right", kf.right)):
             entity = f"world/{sid}/camera/image" if name == "left" else f"images/{sid}/right"
@@ -214,6 +220,26 @@ class RerunView:
                 self.rec.log(entity, rr.EncodedImage(contents=img.data, media_type=media))
             else:
                 self.rec.log(entity, rr.Image(decode_image(img)))
+
+    def on_rebase(self, msg: WorldRebase) -> None:
+        """The device redefined the session's world: the path and keyframe points shown from before it move
+        into the new world (the receiver maps the live poses that arrive after this)."""
+        with self._lock:
+            new = self._rebases.add(msg)
+            if new is None:
+                return
+            sid = msg.session_id
+            for points, times, entity in ((self._paths, self._path_t, "path"), (self._kf_points, self._kf_t, "keyframes")):
+                pts = points.get(sid)
+                if not pts:
+                    continue
+                P = np.asarray(pts, float)
+                before = np.asarray(times[sid]) < new.from_t_ns
+                P[before] = P[before] @ new.T_new_old[:3, :3].T + new.T_new_old[:3, 3]
+                points[sid] = [tuple(p) for p in P]
+                data = np.asarray(points[sid], dtype=np.float32)
+                self.rec.log(f"world/{sid}/{entity}", self.rr.LineStrips3D([data]) if entity == "path"
+                             else self.rr.Points3D(data, radii=0.01))
 
     def close(self) -> None:
         self.rec.flush()

@@ -9,6 +9,7 @@ from stereopath.device.core.stereo import LMOptions, PointObservations, project,
 from stereopath.device.core.frames import ImuSamples
 from stereopath.device.core.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, so3_log
 from stereopath.device.core.rig import paper_rig
+from stereopath.device.estimation.stereo_measure import PoseGuess
 
 rng = np.random.default_rng(3)
 
@@ -280,7 +281,7 @@ def test_pose_inliers_are_classified_at_the_refined_pose_not_by_the_ransac_conse
     uv[gross] += rng.uniform(8.0, 30.0, (gross.sum(), 2)) * rng.choice([-1, 1], (gross.sum(), 2))
     checked = 0
     for seed in range(6):
-        T, n, mask = geo.solve_pose(left, right, X, uv.astype(np.float32), _NEAR_IDENTITY, seed)
+        T, n, mask = geo.solve_pose(left, right, X, uv.astype(np.float32), PoseGuess(_NEAR_IDENTITY), seed)
         assert T is not None and n == mask.sum()
         assert not (mask & gross).any()
         uv_at_T, _ = project(rig.cam0.K, X @ invert_pose(T)[:3, :3].T + invert_pose(T)[:3, 3])
@@ -324,7 +325,7 @@ def test_the_pose_solve_right_matches_are_what_a_search_from_the_solved_pose_fin
     geo, left, right, xy, X = _rendered_points()
     uv = (xy + np.random.default_rng(6).normal(0.0, 0.3, xy.shape)).astype(np.float32)
     out: list[RightMatches] = []
-    T, n, mask = geo.solve_pose(left, right, X, uv, _NEAR_IDENTITY, 0, stereo_out=out)
+    T, n, mask = geo.solve_pose(left, right, X, uv, PoseGuess(_NEAR_IDENTITY), 0, stereo_out=out)
     assert T is not None and len(out) == 1
     reused = out[0].per_point(len(X))
     np.testing.assert_array_equal(reused[out[0].index], out[0].right)
@@ -347,7 +348,7 @@ def test_a_block_of_consistently_wrong_matches_does_not_pull_the_pose():
         uv = xy + rng.normal(0.0, 0.5, xy.shape)
         wrong = rng.random(len(uv)) < 0.45
         uv[wrong] += np.array([6.0, 0.0]) + rng.normal(0.0, 0.5, (wrong.sum(), 2))
-        T, n, mask = geo.solve_pose(left, right, X, uv.astype(np.float32), _NEAR_IDENTITY, seed)
+        T, n, mask = geo.solve_pose(left, right, X, uv.astype(np.float32), PoseGuess(_NEAR_IDENTITY), seed)
         assert T is not None and not (mask & wrong).any()
         assert np.linalg.norm(T[:3, 3]) < 1.5e-3 and rotation_angle_deg(T[:3, :3]) < 0.05
 

@@ -271,3 +271,56 @@ def test_a_non_finite_window_result_is_refused_not_raised() -> None:
     assert corr.G is None
     ok = WindowResult(2, [0, 1, 2], [T.copy() for T in truth], [T.copy() for T in truth], 0.5, 100, 1.0)
     assert worker._window_correction(ok, np.eye(4)).G is not None
+
+
+def test_a_window_shift_beyond_the_angle_at_its_points_depth_is_refused() -> None:
+    """The newest keyframe's shift is gated as its rotation is: ``max_correction_deg`` (2 deg) at the
+    median depth of its points (2 m: 0.07 m)."""
+    from stereopath.device.estimation.keyframe_jobs import KeyframeWorker
+    from stereopath.device.estimation.local_window import WindowResult
+
+    truth, _ = _scene(K=3)
+    worker = KeyframeWorker.__new__(KeyframeWorker)
+    worker.cfg = StereoConfig()
+    for shift, taken in ((0.05, True), (0.10, False)):
+        after = [T.copy() for T in truth]
+        after[-1][:3, 3] += np.array([0.0, shift, 0.0])
+        res = WindowResult(2, [0, 1, 2], [T.copy() for T in truth], after, 0.5, 100, 1.0, depth_m=2.0)
+        assert (worker._window_correction(res, np.eye(4)).G is not None) is taken, shift
+
+
+def test_a_window_whose_steps_raise_the_cost_is_no_correction(monkeypatch) -> None:
+    """Steps are kept only while they lower the robust cost: a solve that never does gives no result, one
+    that overshoots later keeps its best state."""
+    import stereopath.device.estimation.local_window as lw
+
+    rng = np.random.default_rng(3)
+    truth, X = _scene()
+    views = [_observe(T, X) for T in truth]
+    start = _perturbed(truth, rng)
+    real = lw._gauss_newton_step
+    calls = []
+
+    def overshoot(*args, **kw):
+        out = real(*args, **kw)
+        calls.append(1)
+        if out is None or len(calls) < first_bad:
+            return out
+        dg, dX, rms = out
+        return dg + 0.3, dX, rms  # every pose thrown 0.3 m and 0.3 rad away
+
+    first_bad = 1
+    monkeypatch.setattr(lw, "_gauss_newton_step", overshoot)
+    assert solve_window(_job(start, views), CAM, R0, WindowConfig(iterations=5, fixed=1)) is None
+    calls.clear()
+    first_bad = 3
+    res = solve_window(_job(start, views), CAM, R0, WindowConfig(iterations=5, fixed=1))
+    assert res is not None and len(calls) == 3
+    assert _errors(res.T_after, truth)[0] < 1e-3  # the second step's state: converged, not the thrown one
+
+
+def test_a_zero_disparity_weight_is_refused() -> None:
+    """Without the disparity residual a point seen along its ray has no depth: the solve would be singular."""
+    with pytest.raises(ConfigError, match="window.disparity_weight"):
+        WindowConfig(disparity_weight=0.0)
+    assert WindowConfig(disparity_weight=0.01).disparity_weight == 0.01

@@ -352,3 +352,30 @@ def test_arithmetic_errors_in_validators_become_decode_errors(monkeypatch):
     monkeypatch.setitem(protocol._DECODERS, "hello", overflow)
     data = encode_hello(Hello("20250101T000000Z-abcdef", 1, 4))
     assert _reason(data, CONTROL_LIMITS) == "field"
+
+
+# ----------------------------------------------------------------------------- world rebase
+
+
+def test_world_rebase_round_trip_and_its_checks():
+    from stereopath.device.wire.protocol import WorldRebase, decode_rebase, encode_rebase, make_rebase
+
+    G = make_pose(euler_xyz_to_matrix(np.radians([12, -3, 40])), [0.2, -0.1, 0.05])
+    msg = make_rebase("sessA", 1_500_000_000, G)
+    data = encode_rebase(msg)
+    assert len(data) < CONTROL_LIMITS.max_message_bytes
+    back = decode_rebase(data)
+    assert isinstance(back, WorldRebase) and back.session_id == "sessA" and back.from_t_ns == 1_500_000_000
+    np.testing.assert_allclose(back.T_new_old, G, atol=1e-9)
+    assert decode_message(encode_message(msg), KEYFRAME_LIMITS) == back
+    with pytest.raises(ProtocolError, match="not a rigid motion"):
+        make_rebase("sessA", 1, np.diag([1.0, 1.0, 2.0, 1.0]))
+    with pytest.raises(ProtocolError, match="finite 4x4"):
+        make_rebase("sessA", 1, np.eye(3))
+    good = _wire(data)
+    for bad, what in (({**good, "q": [0.0, 0.0, 0.5, 0.5]}, "unit quaternion"), ({**good, "t": -1}, "t="),
+                      ({**good, "p": [0.0, float("nan"), 0.0]}, "finite"), ({**good, "x": 1}, "rebase"),
+                      ({k: v for k, v in good.items() if k != "p"}, "rebase")):
+        with pytest.raises(DecodeError, match=what) as exc:
+            decode_message(_raw(bad), KEYFRAME_LIMITS, ("rebase",))
+        assert exc.value.reason == "field"

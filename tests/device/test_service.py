@@ -219,6 +219,40 @@ def test_a_world_levelled_during_the_run_is_recorded_and_the_path_reads_in_one_w
     assert not np.allclose(raw.T_world_cam[:4], expect[:4], atol=1e-3)
 
 
+def test_the_sinks_are_told_of_the_world_rebase_once():
+    """The streaming sink must tell the hosts how to map the poses it already sent: every sink hears of the
+    rebase once, at the frame it happened, before that frame's estimate."""
+    import numpy as np
+
+    from stereopath.device.core.frames import StereoFrame
+    from stereopath.device.service.pipeline import FrameInputs, FramePipeline
+    from stereopath.device.service.sinks import NullSink
+
+    class Sink(NullSink):
+        name = "probe"
+
+        def __init__(self) -> None:
+            self.calls: list[tuple[str, int, object]] = []
+
+        def add_estimate(self, frame, est) -> None:
+            self.calls.append(("pose", frame.t_ns, None))
+
+        def world_rebased(self, from_t_ns, T_new_old) -> None:
+            self.calls.append(("rebase", from_t_ns, T_new_old))
+
+    estimator, sink = _LevellingEstimator(), Sink()
+    pipe = FramePipeline(FrameInputs([], None, None, estimator), [sink], stop=threading.Event(),
+                         request_stop=lambda reason: None)
+    img = np.zeros((4, 4), np.uint8)
+    for k in range(8):
+        pipe._handle(StereoFrame(k, 1_000 + 50 * k, img, img))
+    rebases = [c for c in sink.calls if c[0] == "rebase"]
+    assert len(rebases) == 1 and rebases[0][1] == 1_000 + 50 * 4
+    np.testing.assert_allclose(rebases[0][2], estimator.G)
+    at = sink.calls.index(rebases[0])
+    assert sink.calls[at + 1] == ("pose", 1_000 + 50 * 4, None)  # before the first estimate in the new world
+
+
 def test_an_unreadable_world_rebase_is_named(tmp_path):
     import numpy as np
 

@@ -23,7 +23,7 @@ def test_receiver_json_keeps_its_keys_and_drops_unknown_counters():
     st.link.connects, st.link.poses_unsaved, st.received.pose, st.received.session = 2, 1, 7, 1
     data = st.to_json()
     assert list(data["link"]) == LINK_KEYS and data["link"]["connects"] == 2
-    assert data["received"] == {"pose": 7, "keyframe": 0, "status": 0, "session": 1}
+    assert data["received"] == {"pose": 7, "keyframe": 0, "status": 0, "session": 1, "rebase": 0}
     back = ReceiverStats.from_json({**data, "link": {**data["link"], "a_future_counter": 9},
                                     "received": {**data["received"], "ping": 3}})
     assert back.link == st.link and back.received == st.received and back.received.total() == 8

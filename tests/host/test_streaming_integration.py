@@ -288,7 +288,9 @@ def test_host_rejects_malformed_device_messages_and_carries_on(tmp_path, keys):
     bad_kf["l"]["dtype"] = "<f8"
     garbage = [rng.bytes(int(rng.integers(1, 2000))), good[: len(good) // 2], msgpack.packb(bad_kf),
                msgpack.packb({"v": 2, "type": "status"}), b"\x91" * 3000 + b"\xc0", b"\xc6\xff\xff\xff\xff",
-               encode_status(Status("fake", 1))[:-3], msgpack.packb({"v": 1, "type": "hello", "sid": None})]
+               encode_status(Status("fake", 1))[:-3], msgpack.packb({"v": 1, "type": "hello", "sid": None}),
+               msgpack.packb({"v": 1, "type": "rebase", "sid": "fake", "t": -1, "p": [0.0, 0.0, 0.0],
+                              "q": [0.0, 0.0, 0.0, 1.0]})]  # a rebase whose time is out of range
     try:
         rid: list[bytes] = []
 
@@ -318,7 +320,7 @@ def test_host_rejects_malformed_device_messages_and_carries_on(tmp_path, keys):
     st = rx.stats
     assert st.rejected_by_reason.get("frames") == 1 and st.rejected_by_reason.get("version", 0) >= n // len(garbage)
     assert st.rejected_by_channel["pose"] <= 50  # conflated SUB: some garbage is replaced before it is read
-    assert st.received.keyframe == 1
+    assert st.received.keyframe == 1 and st.received.rebase == 0
 
 
 def test_live_command_writes_rerun_recording(tmp_path, keys):
