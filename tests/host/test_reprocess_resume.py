@@ -5,26 +5,12 @@ from __future__ import annotations
 
 import json
 import logging
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from stereopath.host.reprocess.pipeline import RunChoices, reprocess_session
-
-FRAMES = 60
-
-
-@pytest.fixture(scope="module")
-def session(tmp_path_factory) -> Path:
-    """A short simulated session (what `stereopath sim --out DIR --frames 60` writes)."""
-    from stereopath.device.formats.recorder import record_sequence
-    from stereopath.device.sim.session import SimConfig, open_sim
-
-    d = tmp_path_factory.mktemp("resume") / "session"
-    man = record_sequence(open_sim(SimConfig(frames=FRAMES)), d, config_dict={"source": "sim"})
-    assert man["status"] == "closed"
-    return d
+from tests.host.test_reprocess import FRAMES, session  # noqa: F401  (the same 60-frame session fixture)
 
 
 class _StopAfterEstimate(Exception):
