@@ -9,7 +9,7 @@ folder (default ``$TMPDIR/stereopath_scale``; reused by later runs, so record th
 reprocessed from scratch as a user would (``stereopath host reprocess SESSION --out OUT --no-progress``,
 one child process at a time).  Printed per length: wall seconds, CPU seconds of the child (user +
 sys, every thread), its peak resident set, CPU per frame and the ATE after reprocessing (mm; the
-session's ground truth); then per stage: seconds, the stage's own peak resident set and the size of
+session's ground truth); then per stage: seconds, CPU seconds (all threads) and CPU per frame, the stage's own peak resident set and the size of
 each structure it noted (images, keypoints and descriptors, tracks, observations, the GTSAM graph,
 the TSDF volume: ``OUT/stages/manifest.json``, written by :mod:`stereopath.host.reprocess.memory`).
 Prints figures; asserts nothing.
@@ -87,7 +87,8 @@ def reprocess(sess: Path, out: Path, preset: str, do_map: bool) -> dict:
     man = out / "stages" / "manifest.json"
     if man.is_file():
         stages = json.loads(man.read_text())["stages"]
-        row["stages"] = {s: {"seconds": e.get("seconds"), **e.get("memory", {})} for s, e in stages.items()}
+        row["stages"] = {s: {"seconds": e.get("seconds"), "cpu_seconds": e.get("cpu_seconds"), **e.get("memory", {})}
+                         for s, e in stages.items()}
     return row
 
 
@@ -101,7 +102,9 @@ def print_row(frames: int, r: dict) -> None:
             continue
         held = ", ".join(f"{k[:-3]} {v:.0f} MB" for k, v in st.items() if k.endswith("_mb") and k not in
                          ("peak_rss_mb", "rss_mb", "start_rss_mb"))
-        print(f"|   {s}: {st['seconds']:.0f} s, start {st.get('start_rss_mb', float('nan')):.0f} MB, "
+        cpu = "" if st.get("cpu_seconds") is None else \
+            f" ({st['cpu_seconds']:.0f} s CPU, {st['cpu_seconds'] / frames:.3f} s/frame)"
+        print(f"|   {s}: {st['seconds']:.0f} s{cpu}, start {st.get('start_rss_mb', float('nan')):.0f} MB, "
               f"peak {st.get('peak_rss_mb', float('nan')):.0f} MB, after {st.get('rss_mb', float('nan')):.0f} MB; "
               f"held: {held or '-'} |", flush=True)
 

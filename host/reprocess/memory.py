@@ -49,6 +49,12 @@ def peak_rss_mb() -> float:
     return kb / 1024.0
 
 
+def process_cpu_s() -> float:
+    """CPU seconds of this process so far: user + system, every thread."""
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return ru.ru_utime + ru.ru_stime
+
+
 def reset_peak() -> bool:
     """Start a new high-water mark at the current resident set (Linux); False where not possible."""
     try:

@@ -35,7 +35,7 @@ from stereopath.host.reprocess.config import (  # noqa: F401  (re-exported: the 
     StageInputs,
     resolve_preset,
 )
-from stereopath.host.reprocess.memory import MemoryLedger
+from stereopath.host.reprocess.memory import MemoryLedger, process_cpu_s
 from stereopath.host.reprocess.outputs import STAGES, RunSummary, write_outputs
 from stereopath.host.reprocess.stage_ba import gyro_rotation_priors  # noqa: F401  (re-exported)
 from stereopath.host.reprocess.stage_map import MODEL_FILES  # noqa: F401  (re-exported)
@@ -105,14 +105,14 @@ class _Runner:
     def run_stage(self, name: str, files: list[str], compute: Callable[[], Any]) -> Any:
         self.store.forget(name)
         self.memory.start()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), process_cpu_s()
         # one BLAS thread: a multi-threaded BLAS sums long dot products in an order that depends on
         # its thread count, so the adjusted poses would change in the last bits from a 2-core
         # laptop to a 16-core one or a Ray worker (OMP_NUM_THREADS=1); pinned, they do not
         with _one_blas_thread():
             result = compute()
         self.store.finish(name, self.keys[name], files, time.perf_counter() - t0, self.settings.get(name),
-                          self.memory.summary())
+                          self.memory.summary(), process_cpu_s() - c0)
         shutil.rmtree(self.parts_dir(name), ignore_errors=True)  # the stage's partial results: stored whole now
         self.status[name] = "computed"
         log.info("stage %s: computed in %.1f s", name, time.perf_counter() - t0)

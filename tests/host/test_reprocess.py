@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import shutil
 from pathlib import Path
 
@@ -114,6 +115,8 @@ def test_reprocess_writes_every_output_and_improves_the_path(full_run):
     assert "bundle adjusted" in html
     man = json.loads((out / "stages" / "manifest.json").read_text())
     assert set(man["stages"]) == {"estimate", "tracks", "ba", "map"}
+    for name, st in man["stages"].items():  # each stage's CPU time (all threads) beside its wall time
+        assert 0 < st["cpu_seconds"] <= st["seconds"] * (os.cpu_count() or 1) + 1.0, name
 
 
 def test_rerun_reuses_every_stage_and_gives_identical_outputs(full_run, session):
