@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections import OrderedDict
 from typing import Any
 
 import cv2
@@ -61,6 +62,10 @@ class ExposureMatchedSequence(SequenceBase):
         self.name = getattr(seq, "name", "sequence")
         self.spec = getattr(seq, "spec", "")
         self._fits: dict[int, GainOffset | None] = {}
+        # the last frames read as recorded: a fit reads the grid frames ahead of the one asked for, and a
+        # stage going through the frames in order asks for those next (read once, not twice)
+        self._recent: OrderedDict[int, StereoFrame] = OrderedDict()
+        self._keep = self.stride * self.span + 1  # the farthest a fit reads ahead, plus the frame itself
 
     # the inner sequence's state, shared rather than copied
     rig = property(lambda self: self.inner.rig)
@@ -90,7 +95,7 @@ class ExposureMatchedSequence(SequenceBase):
         frame when the caller has read it already."""
         if g not in self._fits:
             try:
-                fr = frame if frame is not None else self.inner.frame(g)
+                fr = frame if frame is not None else self._recorded(g)
             except DatasetError as exc:
                 log.warning("%s: exposure probe skips unreadable frame %d: %s", self.name, g, exc)
                 self._fits[g] = None
@@ -114,8 +119,22 @@ class ExposureMatchedSequence(SequenceBase):
         rel = self.measured(i)
         return rel if relation_matters(rel, self.tolerance) else None
 
+    def _recorded(self, i: int) -> StereoFrame:
+        """Frame ``i`` as recorded (the last ``stride * span + 1`` frames read are kept: 11 by default, 8 MB
+        of 752 x 480 pairs)."""
+        fr = self._recent.pop(i, None)
+        if fr is None:
+            fr = self.inner.frame(i)
+            for image in (fr.left, fr.right):  # shared by whoever asks for the frame next: not to be changed
+                if isinstance(image, np.ndarray):
+                    image.flags.writeable = False
+        self._recent[i] = fr
+        while len(self._recent) > self._keep:
+            self._recent.popitem(last=False)
+        return fr
+
     def _load(self, i: int) -> StereoFrame:
-        fr = self.inner.frame(i)
+        fr = self._recorded(i)
         if i % self.stride == 0:  # a grid frame: fitted on the images just read, not read again
             self._fit(i, fr)
         rel = self.relation(i)

@@ -77,6 +77,30 @@ def release_freed() -> None:
         pass
 
 
+# glibc's mallopt parameters
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+HEAP_ARRAYS_MB = 32  # arrays up to this size come from the heap (glibc's largest allowed threshold) ...
+HEAP_KEEP_MB = 256  # ... and up to this much freed memory at its top is kept for the next ones
+
+
+def reuse_freed_heap() -> bool:
+    """Serve the stages' many large temporary arrays from the heap and keep what they free for the next
+    ones (glibc ``mallopt``); False where not possible.
+
+    By default glibc maps each array above 128 kB on its own and unmaps it when freed, and trims the
+    heap's top as soon as it is freed, so every new temporary faults its pages in again: the kernel
+    zeroes them, system time that was about a tenth of the tracks stage's CPU.  The memory a stage
+    freed is still handed back between stages and bundle-adjustment windows (:func:`release_freed`)."""
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        return bool(libc.mallopt(_M_MMAP_THRESHOLD, HEAP_ARRAYS_MB << 20)) and bool(
+            libc.mallopt(_M_TRIM_THRESHOLD, HEAP_KEEP_MB << 20))
+    except (OSError, AttributeError):
+        return False
+
+
 def nbytes(obj: object, _depth: int = 0) -> int:
     """Bytes held by ``obj``: NumPy arrays' buffers plus the containers (dicts, lists, tuples, sets and
     dataclasses) around them, followed a few levels deep."""

@@ -35,7 +35,7 @@ from stereopath.host.reprocess.config import (  # noqa: F401  (re-exported: the 
     StageInputs,
     resolve_preset,
 )
-from stereopath.host.reprocess.memory import MemoryLedger, process_cpu_s
+from stereopath.host.reprocess.memory import MemoryLedger, process_cpu_s, reuse_freed_heap
 from stereopath.host.reprocess.outputs import STAGES, RunSummary, write_outputs
 from stereopath.host.reprocess.stage_ba import gyro_rotation_priors  # noqa: F401  (re-exported)
 from stereopath.host.reprocess.stage_map import MODEL_FILES  # noqa: F401  (re-exported)
@@ -83,6 +83,7 @@ class _Runner:
     def __init__(self, seq: Any, stages_dir: Path, config: ReprocessPreset, force: bool,
                  progress: bool | None, after_stage: Callable[[str], None] | None) -> None:
         self.seq, self.dir, self.config, self.force = seq, stages_dir, config, force
+        reuse_freed_heap()
         # what the stages after the estimate read: the right images in the left camera's grey levels
         self.matched = seq
         if config.match_exposure:

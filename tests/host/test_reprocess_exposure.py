@@ -94,6 +94,20 @@ def test_the_relations_do_not_depend_on_the_order_frames_are_read(sim):
     assert np.array_equal(a.frame(17).right, b.frame(17).right)
 
 
+def test_frames_read_in_order_are_each_read_once(sim):
+    """A fit reads the grid frames ahead of the frame asked for; reading on, a stage gets those
+    frames again from the frames kept, and the images it gets are not to be changed."""
+    inner = _Darker(sim, _lut(GAIN, OFFSET))
+    seq = ExposureMatchedSequence(inner, TrackConfig())
+    got = [f.seq for f in seq.frames(0, 20)]
+    assert got == list(range(20))
+    assert inner.loads == 20 + 2  # and the grid frames 20 and 22, whose fits frames 18 and 19 use
+    fr = seq.frame(19)
+    assert inner.loads == 22 and not fr.left.flags.writeable
+    with pytest.raises(ValueError):
+        fr.left[0, 0] = 0
+
+
 class _Swinging(SequenceBase):
     """The right camera's gain swinging 0.75-1.25 within 30 frames (an AGC of its own)."""
 
