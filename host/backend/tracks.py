@@ -499,17 +499,17 @@ class TrackedKeypoints:
 
 def frame_observations(rig: Rig, kf: TrackedKeypoints, points: dict[int, np.ndarray],
                        frame: tuple[np.ndarray, np.ndarray], T_world_cam_guess: np.ndarray,
-                       cfg: TrackConfig) -> np.ndarray:
+                       cfg: TrackConfig, right_image: bool = True) -> np.ndarray:
     """Observations of a keyframe's tracked points in another (nearby) frame (its ``(left, right)``
     images), for motion-only refinement.
 
     Each keypoint is followed by one KLT step from the keyframe image straight into ``left``
-    (seeded by projecting its point with ``T_world_cam_guess``; no chaining, so no drift) and
-    located in ``right`` the same way as at keyframes.  Rows ``(0, point id, cam, u, v, 1)``
-    in undistorted pixels (the caller sets the pose index).
+    (seeded by projecting its point with ``T_world_cam_guess``; no chaining, so no drift) and, with
+    ``right_image``, located in ``right`` the same way as at keyframes (without, ``right`` is not
+    read).  Rows ``(0, point id, cam, u, v, 1)`` in undistorted pixels (the caller sets the pose index).
     """
     kf_left, kf_xy, kf_ids = gray(kf.left), kf.xy, kf.ids
-    left, right = gray(frame[0]), gray(frame[1])
+    left = gray(frame[0])
     known = np.array([int(i) in points for i in kf_ids], dtype=bool) if len(kf_ids) else np.zeros(0, bool)
     if not known.any():
         return np.zeros((0, 6))
@@ -533,11 +533,14 @@ def frame_observations(rig: Rig, kf: TrackedKeypoints, points: dict[int, np.ndar
     ids, p1, Xc = ids[ok], p1[ok], Xc[ok]
     if len(ids) == 0:
         return np.zeros((0, 6))
+    ul = undistort_px(p1, K0, d0)
+    if not right_image:
+        return np.column_stack([np.zeros(len(ids)), ids, np.zeros(len(ids)), ul, np.ones(len(ids))])
+    right = gray(frame[1])
     Xr = Xc @ rig.R.T + rig.T
     Xr[:, 2] = np.maximum(Xr[:, 2], 1e-3)
     gr = cv2.projectPoints(Xr.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K1, d1)[0].reshape(-1, 2)
     pr, okr = stereo_right(rig, left, right, p1, gr, cfg.stereo, levels=cfg.stereo.seeded_klt_levels)
-    ul = undistort_px(p1, K0, d0)
     ur = undistort_px(pr[okr], K1, d1)
     rows = [np.column_stack([np.zeros(len(ids)), ids, np.zeros(len(ids)), ul, np.ones(len(ids))])]
     if okr.any():

@@ -50,7 +50,7 @@ class ReprocessPreset:
     # has no IMU or no T_body_cam0, or when its readings do not fit the path
     ba: BAConfig = field(default_factory=BAConfig)
     refine_frames: bool = True  # motion-only refinement of the frames between keyframes
-    frame_points: int = 300  # keypoints per neighbouring keyframe followed into each frame
+    frame_points: int = 600  # keypoints per neighbouring keyframe followed into each frame's left image
     imu_rotation_priors: bool = False  # gyro-integrated relative rotations between keyframes as BA terms
     gyro_sigma_rad_per_sqrt_s: float = 0.002
     # the right images in the left camera's grey levels for the tracks, ba and map stages where the two

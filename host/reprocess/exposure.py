@@ -133,6 +133,14 @@ class ExposureMatchedSequence(SequenceBase):
             self._recent.popitem(last=False)
         return fr
 
+    def frame_as_recorded(self, i: int) -> StereoFrame:
+        """Frame ``i`` without the correction (nothing is fitted for it): for a stage that reads only
+        its left image, which the correction leaves as it is."""
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"{self.name}: frame {i} out of range (0..{n - 1})")
+        return self._recorded(i % n)
+
     def _load(self, i: int) -> StereoFrame:
         fr = self._recorded(i)
         if i % self.stride == 0:  # a grid frame: fitted on the images just read, not read again
