@@ -90,6 +90,20 @@ class LivePoseGraph:
         self.isam.update(graph, self.g.Values())
         self._settle()
 
+    def rebase(self, T_new_old: np.ndarray, moved: np.ndarray) -> None:
+        """The world redefined (a device's world rebase): the keyframes flagged ``moved`` were given in the
+        earlier world and are mapped by the rigid motion ``T_new_old``, on-board poses and current
+        estimates alike; the loops (relative poses) stay as they are."""
+        A = np.asarray(T_new_old, float)
+        moved = np.asarray(moved, bool)
+        if len(moved) != len(self.onboard):
+            raise ValueError(f"rebase: {len(moved)} flags for {len(self.onboard)} keyframes")
+        onboard = [A @ T if m else T for T, m in zip(self.onboard, moved)]
+        if len(self._poses) >= len(moved):
+            self._poses = self._poses.copy()
+            self._poses[:len(moved)][moved] = A @ self._poses[:len(moved)][moved]
+        self.rebuild(np.array(onboard).reshape(-1, 4, 4), self.loops)
+
     def rebuild(self, T_world_cam: np.ndarray, loops: list) -> None:
         """Start again from these keyframe poses and loops (after a keyframe was taken back): the
         whole graph in one update, started from the current estimate (the on-board poses when no

@@ -77,6 +77,11 @@ class LiveLoopCloser:
                  loop.i, loop.j, loop.inliers, 1000 * loop.correction_m, len(self.graph))
         return True
 
+    def rebase(self, T_new_old: np.ndarray, moved: np.ndarray) -> None:
+        """The session's world redefined: the keyframes flagged ``moved`` (sent before the rebase) map by
+        ``T_new_old`` (:meth:`LivePoseGraph.rebase`)."""
+        self.graph.rebase(T_new_old, moved)
+
     def discard_last(self) -> None:
         """Forget the last keyframe (it could not be fused) and any loop it closed."""
         if len(self.graph):

@@ -7,6 +7,11 @@ by default) a closed loop (:class:`stereopath.host.live.live_loops.LiveLoopClose
 keyframe and re-integrates the TSDF from the kept depth maps, and the mesh is refreshed at once.  Each
 session is mapped with the rig its keyframes were taken with: the device's own (``rig_for``), else the
 given ``rig`` when its hash matches; a given rig that differs from the device's is named in one warning.
+A device that redefines its world during the session (a start in motion, levelled once gravity is known:
+:class:`~stereopath.device.wire.messages.WorldRebase`, handed over by the receiver through
+:meth:`LiveMapper.on_rebase`) has the keyframes fused before it moved into the new world: their poses
+(and the loop closer's) are mapped and the TSDF is integrated again from the kept depth maps, so the
+model stays in one world; the depth maps are kept for that whether loops are on or not.
 See docs/architecture.md, "A keyframe on the host".
 """
 
@@ -18,8 +23,11 @@ import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
+import numpy as np
+
 from stereopath.device.errors import CalibrationError, StereopathError
 from stereopath.device.core.rig import Rig
+from stereopath.device.wire.messages import WorldRebase
 from stereopath.device.wire.protocol import Keyframe
 
 if TYPE_CHECKING:
@@ -51,16 +59,23 @@ class LiveMapper:
         self.loops = loops
         self._closers: dict[str, LiveLoopCloser] = {}
         self.loops_closed = 0
-        self._q: queue.Queue[Keyframe | None] = queue.Queue()
+        self._fused_t: dict[str, list[int]] = {}  # each session's fused keyframes' times, in the mapper's order
+        self._q: queue.Queue[Keyframe | WorldRebase | None] = queue.Queue()
         self._thread = threading.Thread(target=self._work, name="live-map", daemon=True)
         self._thread.start()
         self.rejected = 0
         self.fused = 0
         self.refreshes = 0
+        self.rebased = 0  # world rebases applied to a model
 
     def on_keyframe(self, kf: Keyframe, new: bool) -> None:
         if new:
             self._q.put(kf)
+
+    def on_rebase(self, msg: WorldRebase) -> None:
+        """A session's world redefined (the receiver applies each rebase once): the keyframes fused from
+        before it are moved into the new world, in turn with the keyframes handed over around it."""
+        self._q.put(msg)
 
     def _rig_of(self, kf: Keyframe) -> Rig:
         """The rig ``kf`` was taken with: the device's (stored from its session message), else ``rig``."""
@@ -91,8 +106,9 @@ class LiveMapper:
         from stereopath.host.mapping.mapper import DenseMapper, map_preset
 
         if session not in self._mappers:
+            # the depth maps are kept for a loop's or a world rebase's re-integration
             self._mappers[session] = DenseMapper(rig, map_preset(self.preset), source=f"live:{session}",
-                                                 keep_depth=bool(self.loops))
+                                                 keep_depth=True)
         return self._mappers[session]
 
     def _fuse(self, kf: Keyframe, rig: Rig) -> bool:
@@ -104,6 +120,7 @@ class LiveMapper:
         left, right = decode_image(kf.left), decode_image(kf.right)
         if not self.loops:
             m.add(left, right, kf.T_world_cam, kf.seq)
+            self._fused_t.setdefault(kf.session_id, []).append(int(kf.t_ns))
             return False
         closer = self._closers.get(kf.session_id)
         if closer is None:
@@ -115,18 +132,20 @@ class LiveMapper:
         except StereopathError:
             closer.discard_last()  # the map and the closer keep the same keyframes
             raise
+        self._fused_t.setdefault(kf.session_id, []).append(int(kf.t_ns))
         if closed:
             m.repose(T)
             self.loops_closed += 1
         return closed
 
     def _work(self) -> None:
-        from stereopath.host.mapping.fusion import write_mesh
-
         while True:
             kf = self._q.get()
             if kf is None:
                 return
+            if isinstance(kf, WorldRebase):
+                self._rebase(kf)
+                continue
             try:
                 rig = self._rig_of(kf)
                 closed = self._fuse(kf, rig)
@@ -137,15 +156,45 @@ class LiveMapper:
                 log.warning("live map: keyframe %s not fused: %s", getattr(kf, "seq", "?"), exc)
                 continue
             if m.keyframes % self.every == 0 or closed:  # a closed loop is shown at once
-                mesh = m.mesh()
-                if len(mesh.triangles) == 0:  # too few views of any surface yet
-                    continue
-                path = self.out / kf.session_id / "model" / "mesh.ply"
-                path.parent.mkdir(parents=True, exist_ok=True)
-                write_mesh(mesh, path)
-                self.refreshes += 1
-                if self.on_mesh is not None:
-                    self.on_mesh(kf.session_id, mesh)
+                self._refresh(kf.session_id, m)
+
+    def _refresh(self, session: str, m: DenseMapper) -> None:
+        """The session's mesh written and shown (nothing while no surface has enough views)."""
+        from stereopath.host.mapping.fusion import write_mesh
+
+        mesh = m.mesh()
+        if len(mesh.triangles) == 0:
+            return
+        path = self.out / session / "model" / "mesh.ply"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_mesh(mesh, path)
+        self.refreshes += 1
+        if self.on_mesh is not None:
+            self.on_mesh(session, mesh)
+
+    def _rebase(self, msg: WorldRebase) -> None:
+        """The keyframes of ``msg``'s session fused before ``from_t_ns`` moved by ``T_new_old`` (see the module
+        doc); the mesh shown again at once."""
+        m = self._mappers.get(msg.session_id)
+        times = self._fused_t.get(msg.session_id, [])
+        moved = np.array([t < msg.from_t_ns for t in times], bool)
+        if m is None or not moved.any():
+            return
+        A = msg.T_new_old
+        closer = self._closers.get(msg.session_id)
+        if closer is not None:
+            closer.rebase(A, moved)
+            T = closer.poses()
+        else:
+            T = np.array([A @ Tk if mv else Tk for Tk, mv in zip(m.poses, moved)])
+        try:
+            m.repose(T)
+        except StereopathError as exc:
+            log.error("live map: session %s's model not moved into the rebased world: %s", msg.session_id, exc)
+            return
+        self.rebased += 1
+        log.info("live map: session %s's world rebased: %d fused keyframes moved", msg.session_id, int(moved.sum()))
+        self._refresh(msg.session_id, m)
 
     def close(self) -> dict[str, Path]:
         """Finish the worker and write each session's full model; returns the model folders."""

@@ -110,6 +110,31 @@ def test_rebuild_without_the_last_keyframe_and_its_loop_is_a_graph_that_never_ha
     assert np.abs(g.poses()[:, :3, 3] - fresh.poses()[:, :3, 3]).max() < 1e-6
 
 
+def test_a_world_rebase_moves_the_keyframes_before_it_and_keeps_the_loops():
+    """Every keyframe sent before a rebase (here all of them, a loop among them) in the new world: the
+    graph is the one that had been given the moved poses from the start."""
+    rng = np.random.default_rng(5)
+    T_true = _walk(60)
+    T_on = _drifted(T_true, rng)
+    loops = _loops(T_true, 5)
+    A = make_pose(so3_exp([0.05, -0.1, 0.4]), [0.2, -0.1, 0.05])
+    g = LivePoseGraph()
+    _feed(g, T_on, loops)
+    with pytest.raises(ValueError, match="flags"):
+        g.rebase(A, np.ones(5, bool))
+    g.rebase(A, np.ones(60, bool))
+    fresh = LivePoseGraph()
+    _feed(fresh, A @ T_on, loops)
+    assert len(g.loops) == len(loops)
+    assert np.abs(g.poses()[:, :3, 3] - fresh.poses()[:, :3, 3]).max() < 1e-6
+    # without loops, exactly the flagged keyframes move
+    h = LivePoseGraph()
+    _feed(h, T_on[:10], [])
+    moved = np.arange(10) < 4
+    h.rebase(A, moved)
+    assert np.allclose(h.poses()[:4], A @ T_on[:4], atol=1e-9) and np.allclose(h.poses()[4:], T_on[4:10], atol=1e-9)
+
+
 def test_the_live_closer_forgets_a_keyframe_it_could_not_fuse_and_the_loop_it_closed():
     from stereopath.device.core.rig import paper_rig
     from stereopath.host.live.live_loops import LiveLoopCloser

@@ -117,3 +117,47 @@ def test_a_loop_closed_while_scanning_is_in_the_next_mesh(tmp_path):
     drifting = mapper.mesh()
     assert _mean_distance(mesh_loop, truth) < 0.7 * _mean_distance(drifting, truth)
     assert (models["s"] / "mesh.ply").stat().st_size > 0
+
+
+@pytest.mark.parametrize("loops", [False, True])
+def test_a_world_rebase_moves_what_was_fused_before_it(tmp_path, loops):
+    """A device started in motion levels its world once gravity is known: the keyframes it sent before
+    came in the earlier world.  After the rebase the fused keyframes are where the later ones put them,
+    and the model is the one fused at those poses throughout."""
+    from stereopath.device.core.geometry import invert_pose, make_pose, so3_exp
+    from stereopath.device.wire.messages import WorldRebase
+
+    seq = open_source("sim:0", frames=60)
+    kfs = _keyframes(seq, seq.rig)
+    T_true = np.array([kf.T_world_cam for kf in kfs])
+    A = make_pose(so3_exp([0.05, -0.12, 0.3]), [0.1, -0.05, 0.02])  # T_new_old: the levelling turn
+    before = [
+        Keyframe(kf.session_id, kf.seq, kf.frame_seq, kf.t_ns, tuple((invert_pose(A) @ T)[:3, 3]),
+                 tuple(matrix_to_quat_xyzw((invert_pose(A) @ T)[:3, :3])), kf.left, kf.right, kf.rig_name, kf.rig_hash)
+        for kf, T in zip(kfs[:4], T_true[:4])]
+    q = matrix_to_quat_xyzw(A[:3, :3])
+    rebase = WorldRebase("s1", kfs[4].t_ns, tuple(A[:3, 3]), tuple(q))
+    shown = []
+    m = LiveMapper(seq.rig, tmp_path, every=1000, loops=loops, on_mesh=lambda s, mesh: shown.append(mesh))
+    for kf in before:
+        m.on_keyframe(kf, True)
+    m.on_rebase(rebase)
+    for kf in kfs[4:]:
+        m.on_keyframe(kf, True)
+    m.on_rebase(WorldRebase("other", kfs[4].t_ns, tuple(A[:3, 3]), tuple(q)))  # no model of that session
+    models = m.close()
+    mapper = m._mappers["s1"]
+    assert m.fused == 6 and m.rebased == 1 and mapper.reposed == 1
+    assert np.allclose(np.array(mapper.poses), T_true, atol=1e-6)
+    assert len(shown) == 1  # shown at once in the new world
+    moved = mapper.mesh()
+    mapper.repose(T_true)  # the model fused at the new world's poses throughout
+    truth = mapper.mesh()
+    assert len(moved.vertices) == len(truth.vertices) > 1000
+    assert _mean_distance(moved, truth) < 1e-5
+    # the mesh shown at the rebase (four keyframes) lies on the model, not where the earlier world had it
+    import open3d as o3d
+
+    old = o3d.geometry.TriangleMesh(shown[0]).transform(invert_pose(A))
+    assert _mean_distance(shown[0], truth) < 0.1 * _mean_distance(old, truth)
+    assert (models["s1"] / "mesh.ply").stat().st_size > 0
