@@ -13,9 +13,9 @@ from stereopath.host.fleet.sessions import FleetSession
 
 # memory declared per session task (GB): the peak resident set of one reprocessing, with and without the
 # dense model, that benchmarks/bench_scale.py measures on the simulated scan from 200 to 4,000 frames
-# (0.75-1.93 GB with the model; without it the bundle adjustment's window is the peak, at most 1.38 GB),
-# rounded up
-TASK_MEMORY_GB = 2.0
+# (0.75-2.09 GB with the model; without it the bundle adjustment's window is the peak, at most 1.47 GB),
+# rounded up to half a GB
+TASK_MEMORY_GB = 2.5
 TASK_MEMORY_NO_MAP_GB = 1.5
 
 
