@@ -57,10 +57,8 @@ log = logging.getLogger(__name__)
 
 BATCH_KEYFRAMES = 80  # up to this many keyframes: one batch adjustment
 WINDOW = 48  # keyframes per window above it ...
-OVERLAP = 16  # ... of which this many are the last window's ...
+OVERLAP = 24  # ... of which this many are the last window's ...
 HELD = 8  # ... and the first this many of them held (the others adjusted again, now with neighbours on both sides)
-# a keyframe is final once at least HELD keyframes beyond it were adjusted with it; more overlap costs a
-# solve per keyframe more and was no closer to the batch (see CHANGELOG, "Long scans")
 
 
 def window_starts(n_keyframes: int) -> list[int]:
