@@ -54,8 +54,7 @@ class LoopConfig:
     max_angle_deg: float = ranged(35.0, 0.0, 180.0)
     min_matches: int = ranged(40, 1, 100_000)
     candidates_per_keyframe: int = ranged(1, 1, 1000)
-    nearest_checked: int = ranged(3, 1, 1000)  # appearance is scored for the spatially nearest candidates only ...
-    score_keypoints: int = ranged(1500, 0, 1_000_000)  # ... on their strongest keypoints (0: all)
+    nearest_checked: int = ranged(3, 1, 1000)  # appearance is scored for the spatially nearest candidates only
     check: LoopCheck = field(default_factory=LoopCheck)
 
     def __post_init__(self) -> None:
@@ -117,22 +116,6 @@ def descriptor_matches(a: KeyframeFeatures, b: KeyframeFeatures) -> np.ndarray:
     from stereopath.device.core.matching import MatchConfig, match
 
     return match(a.feats, b.feats, MatchConfig(ratio=0.8, mutual=True, per_view=False)).idx
-
-
-def strongest(kf: KeyframeFeatures, n: int):
-    """The descriptors of ``kf``'s ``n`` strongest keypoints (detector response; all when fewer): what a
-    candidate's appearance is scored on."""
-    f = kf.feats
-    if n <= 0 or len(f) <= n:
-        return f
-    return f.subset(np.sort(np.argsort(-np.asarray(f.response), kind="stable")[:n]))
-
-
-def appearance_score(a, b) -> int:
-    """Descriptor matches between two keypoint sets (:func:`strongest`): a candidate's rank."""
-    from stereopath.device.core.matching import MatchConfig, match
-
-    return len(match(a, b, MatchConfig(ratio=0.8, mutual=True, per_view=False)).idx)
 
 
 def _pnp(rig: Rig, X_i: np.ndarray, uv_j: np.ndarray, cfg: LoopCheck
@@ -204,16 +187,9 @@ def detect_loops(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, cfg: Loop
         by_i.setdefault(i, []).append(j)
     loops = []
     for i, js in by_i.items():
-        # appearance: the candidates with the most matches among their strongest keypoints first (a full
-        # match of two keyframes costs about 0.3 s of CPU; on a scan that keeps coming back, every
-        # keyframe has candidates), then the chosen ones matched in full for the verification
-        if len(js) > cfg.candidates_per_keyframe:
-            mine = strongest(kfs[i], cfg.score_keypoints)
-            ranked = sorted(js, key=lambda j: -appearance_score(mine, strongest(kfs[j], cfg.score_keypoints)))
-        else:
-            ranked = list(js)
-        for j in ranked[:cfg.candidates_per_keyframe]:
-            m = descriptor_matches(kfs[i], kfs[j])
+        # appearance: the candidates with the most descriptor matches first
+        scored = sorted(((descriptor_matches(kfs[i], kfs[j]), j) for j in js), key=lambda mj: -len(mj[0]))
+        for m, j in scored[:cfg.candidates_per_keyframe]:
             if len(m) < cfg.min_matches:
                 continue
             cand = LoopCandidate(kfs[i], kfs[j], T_world_cam[i], T_world_cam[j], float(along[j] - along[i]), i, j, m)

@@ -81,32 +81,3 @@ def test_a_repeated_texture_gives_no_false_loop(scene):
         T_ij = invert_pose(T_path[lp.i]) @ T_path[lp.j]
         assert np.linalg.norm(lp.T_ci_cj[:3, 3] - T_ij[:3, 3]) < 0.01
     assert not any(abs(lp.i - lp.j) == 9 for lp in loops)
-
-
-def test_candidates_are_ranked_on_their_strongest_keypoints(scene):
-    """A keyframe with three candidates near it: the one that sees its place is chosen when the ranking
-    reads only each keyframe's strongest keypoints, and the loop is verified on all of them."""
-    from stereopath.host.backend.loops import appearance_score, descriptor_matches, strongest
-
-    rig, rng = paper_rig(), np.random.default_rng(3)
-    X, desc = scene
-    a = _keyframe(rig, X, desc, make_pose(np.eye(3), [0.0, 0.0, 0.0]), rng)
-    a.feats.response[:] = rng.uniform(0.1, 1.0, len(a))
-    top = strongest(a, 50)
-    best = np.sort(np.argsort(-a.feats.response)[:50])  # the 50 strongest, in their own order
-    assert np.array_equal(top.xy, a.feats.xy[best]) and np.array_equal(top.desc, a.feats.desc[best])
-    assert strongest(a, 0) is a.feats and strongest(a, 10 ** 6) is a.feats
-    # the same place (a loop) against two views of other texture
-    same = _keyframe(rig, X, desc, make_pose(so3_exp([0, 0.03, 0]), [0.05, 0.0, 0.0]), rng)
-    other_desc = np.roll(desc, 7, axis=1)
-    others = [_keyframe(rig, X, other_desc, make_pose(np.eye(3), [d, 0.0, 0.0]), rng) for d in (0.02, 0.04)]
-    for k in [same, *others]:
-        k.feats.response[:] = rng.uniform(0.1, 1.0, len(k))
-    assert appearance_score(top, strongest(same, 50)) > max(appearance_score(top, strongest(o, 50)) for o in others)
-    kfs = [a, *others, same]
-    T = np.array([make_pose(np.eye(3), [0.01 * k, 0.0, 0.0]) for k in range(4)])
-    cfg = LoopConfig(min_separation=0, max_distance_m=10.0, nearest_checked=3, candidates_per_keyframe=1,
-                     score_keypoints=120)
-    loops = [lp for lp in detect_loops(rig, kfs, T, cfg) if lp.i == 0]
-    assert [lp.j for lp in loops] == [3]
-    assert loops[0].matches == len(descriptor_matches(a, same)) > 120  # verified on every keypoint
