@@ -89,7 +89,7 @@ def reuse_freed_heap() -> bool:
 
     By default glibc maps each array above 128 kB on its own and unmaps it when freed, and trims the
     heap's top as soon as it is freed, so every new temporary faults its pages in again: the kernel
-    zeroes them, system time that was about a tenth of the tracks stage's CPU.  The memory a stage
+    zeroes them (system time; figures in CHANGELOG).  The memory a stage
     freed is still handed back between stages and bundle-adjustment windows (:func:`release_freed`)."""
     import ctypes
 
