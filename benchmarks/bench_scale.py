@@ -87,7 +87,8 @@ def reprocess(sess: Path, out: Path, preset: str, do_map: bool) -> dict:
     man = out / "stages" / "manifest.json"
     if man.is_file():
         stages = json.loads(man.read_text())["stages"]
-        row["stages"] = {s: {"seconds": e.get("seconds"), "cpu_seconds": e.get("cpu_seconds"), **e.get("memory", {})}
+        row["stages"] = {s: {"seconds": e.get("seconds"), "cpu_seconds": e.get("cpu_seconds"),
+                             "cpu_steps": e.get("cpu_steps", {}), **e.get("memory", {})}
                          for s, e in stages.items()}
     return row
 
@@ -102,8 +103,9 @@ def print_row(frames: int, r: dict) -> None:
             continue
         held = ", ".join(f"{k[:-3]} {v:.0f} MB" for k, v in st.items() if k.endswith("_mb") and k not in
                          ("peak_rss_mb", "rss_mb", "start_rss_mb"))
+        steps = "".join(f"; {k} {v / frames:.3f}" for k, v in st.get("cpu_steps", {}).items())
         cpu = "" if st.get("cpu_seconds") is None else \
-            f" ({st['cpu_seconds']:.0f} s CPU, {st['cpu_seconds'] / frames:.3f} s/frame)"
+            f" ({st['cpu_seconds']:.0f} s CPU, {st['cpu_seconds'] / frames:.3f} s/frame{steps})"
         print(f"|   {s}: {st['seconds']:.0f} s{cpu}, start {st.get('start_rss_mb', float('nan')):.0f} MB, "
               f"peak {st.get('peak_rss_mb', float('nan')):.0f} MB, after {st.get('rss_mb', float('nan')):.0f} MB; "
               f"held: {held or '-'} |", flush=True)

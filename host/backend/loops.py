@@ -2,11 +2,12 @@
 
 A loop is a pair of keyframes ``(i, j)``, ``j - i > min_separation``, that see the same part of the
 scene: camera centres within ``max_distance_m`` and viewing directions within ``max_angle_deg`` on the
-estimated path, at least ``min_matches`` descriptor matches (the best ``candidates_per_keyframe`` per
-keyframe verified), then PnP RANSAC of keyframe i's stereo points on keyframe j's pixels with enough
-inliers, a consistent scale between the two keyframes' stereo points, and a relative pose within the
-drift the path could have accumulated (a repeated texture elsewhere fails this).  Each accepted loop is
-a relative-pose constraint ``T_ci_cj`` with a deviation from the PnP residuals (:class:`Loop`).  Pure
+estimated path, at least ``min_matches`` descriptor matches, then PnP RANSAC of keyframe i's stereo
+points on keyframe j's pixels with enough inliers, a consistent scale between the two keyframes' stereo
+points, and a relative pose within the drift the path could have accumulated (a repeated texture
+elsewhere fails this).  A keyframe's candidates are tried nearest first, and the first
+``candidates_per_keyframe`` accepted are kept.  Each accepted loop is a relative-pose constraint
+``T_ci_cj`` with a deviation from the PnP residuals (:class:`Loop`).  Pure
 computation on arrays.  See docs/architecture.md, "Reprocessing".
 """
 
@@ -54,7 +55,7 @@ class LoopConfig:
     max_angle_deg: float = ranged(35.0, 0.0, 180.0)
     min_matches: int = ranged(40, 1, 100_000)
     candidates_per_keyframe: int = ranged(1, 1, 1000)
-    nearest_checked: int = ranged(3, 1, 1000)  # appearance is scored for the spatially nearest candidates only
+    nearest_checked: int = ranged(3, 1, 1000)  # the spatially nearest candidates tried (nearest first)
     check: LoopCheck = field(default_factory=LoopCheck)
 
     def __post_init__(self) -> None:
@@ -185,19 +186,28 @@ def detect_loops(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, cfg: Loop
     by_i: dict[int, list[int]] = {}
     for i, j in candidate_pairs(T_world_cam, cfg):
         by_i.setdefault(i, []).append(j)
-    loops = []
+    loops, tried = [], 0
     for i, js in by_i.items():
-        # appearance: the candidates with the most descriptor matches first
-        scored = sorted(((descriptor_matches(kfs[i], kfs[j]), j) for j in js), key=lambda mj: -len(mj[0]))
-        for m, j in scored[:cfg.candidates_per_keyframe]:
+        # the spatially nearest candidates first, each matched and verified, until one is accepted: on a
+        # scan that keeps coming back every keyframe has candidates, and a full descriptor match of two
+        # keyframes is the costly part, so the ones after an accepted loop are not matched at all
+        found = 0
+        for j in js:
+            m = descriptor_matches(kfs[i], kfs[j])
+            tried += 1
             if len(m) < cfg.min_matches:
+                log.debug("loop candidate %d-%d: %d descriptor matches", i, j, len(m))
                 continue
             cand = LoopCandidate(kfs[i], kfs[j], T_world_cam[i], T_world_cam[j], float(along[j] - along[i]), i, j, m)
             loop, why = verify_pair(rig, cand, cfg)
             log.debug("loop candidate %d-%d: %s", i, j, why)
             if loop is not None:
                 loops.append(loop)
-    log.info("loop closure: %d candidate pairs, %d loops accepted", sum(map(len, by_i.values())), len(loops))
+                found += 1
+                if found >= cfg.candidates_per_keyframe:
+                    break
+    log.info("loop closure: %d candidate pairs, %d matched, %d loops accepted", sum(map(len, by_i.values())), tried,
+             len(loops))
     return loops
 
 

@@ -5,11 +5,14 @@ structures it holds (``note("keypoints_descriptors", nbytes)``, the largest valu
 runner records them with the stage's peak resident set in ``OUT/stages/manifest.json``
 (``benchmarks/bench_scale.py`` prints them).  The peak is the kernel's high-water mark of the
 process (``VmHWM``), reset at each stage start where Linux allows it (``/proc/self/clear_refs``), so
-each stage's figure is its own; elsewhere it is the process's peak so far.
+each stage's figure is its own; elsewhere it is the process's peak so far.  The ledger also sums the
+CPU time of a stage's named steps (``with ledger.timed("loops"): ...``), recorded beside the stage's
+total (``cpu_steps``), so the part of a stage that grows with the session's length can be seen.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import resource
 import sys
@@ -119,10 +122,21 @@ def nbytes(obj: object, _depth: int = 0) -> int:
 
 @dataclass
 class MemoryLedger:
-    """The sizes (bytes) of the structures one stage holds, the largest seen of each."""
+    """The sizes (bytes) of the structures one stage holds, the largest seen of each, and the CPU time
+    of its named steps."""
 
     held: dict[str, int] = field(default_factory=dict)
     start_mb: float | None = None  # the resident set the stage started from (after the last one's was freed)
+    cpu_steps: dict[str, float] = field(default_factory=dict)  # CPU seconds of the stage's named steps
+
+    @contextlib.contextmanager
+    def timed(self, step: str):
+        """Add the process's CPU time (every thread) over the ``with`` block to step ``step``."""
+        c0 = process_cpu_s()
+        try:
+            yield
+        finally:
+            self.cpu_steps[step] = self.cpu_steps.get(step, 0.0) + process_cpu_s() - c0
 
     def note(self, name: str, size_bytes: int) -> None:
         self.held[name] = max(int(size_bytes), self.held.get(name, 0))
@@ -130,6 +144,7 @@ class MemoryLedger:
     def start(self) -> None:
         """A new stage: forget the structures of the last one, return what it freed, restart the peak."""
         self.held.clear()
+        self.cpu_steps.clear()
         release_freed()
         reset_peak()
         self.start_mb = rss_mb()

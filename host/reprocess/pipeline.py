@@ -113,7 +113,7 @@ class _Runner:
         with _one_blas_thread():
             result = compute()
         self.store.finish(name, self.keys[name], files, time.perf_counter() - t0, self.settings.get(name),
-                          self.memory.summary(), process_cpu_s() - c0)
+                          self.memory.summary(), process_cpu_s() - c0, self.memory.cpu_steps)
         shutil.rmtree(self.parts_dir(name), ignore_errors=True)  # the stage's partial results: stored whole now
         self.status[name] = "computed"
         log.info("stage %s: computed in %.1f s", name, time.perf_counter() - t0)

@@ -287,7 +287,8 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     inputs.memory.note("observations", trk["observations"].nbytes)
     rss0 = rss_mb()
     try:
-        res = adjust_keyframes(config, inputs, priors, imu)
+        with inputs.memory.timed("bundle_adjustment"):
+            res = adjust_keyframes(config, inputs, priors, imu)
         inputs.memory.note("gtsam_graph", int((peak_rss_mb() - rss0) * MB))  # the solver's growth of the peak
     except EstimationError as exc:
         # too little structure to adjust (e.g. a very short or featureless session): keep the re-estimate
@@ -298,7 +299,8 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     T_frames = interpolate_corrections(est["t_ns"], est["T_world_cam"], est["t_ns"][kf], T_kf, res.T_world_cam)
     T_frames[kf] = res.T_world_cam
     t1 = time.perf_counter()
-    n_refined = refine_frames(config, inputs, res, T_frames) if config.refine_frames else 0
+    with inputs.memory.timed("frame_refinement"):
+        n_refined = refine_frames(config, inputs, res, T_frames) if config.refine_frames else 0
     leveled = level_world(inputs, res, T_frames, imu_usable)
     stats = {"poses": len(kf), "points": res.n_points, "observations": res.n_obs,
              "rms_before_px": res.rms_before_px, "rms_after_px": res.rms_after_px, "iterations": res.iterations,

@@ -243,25 +243,26 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     def features_of(i: int):
         return store.features(i, lambda j: _keyframe_features((seq.rig, cfg), images_of(j)))
 
-    if cfg.keyframe_parallax_deg > 0:
-        if spreading():  # keypoints of guessed keyframes ahead, in parallel (the same keyframes)
-            with Bar(None, "keyframe features", inputs.progress, "kf") as tick:
-                kf, feats = keyframes_ahead(seq.rig, est, images_of, cfg, tick, into=store)
-        else:  # one after another: nothing is computed that is not used
-            n_ok = int(np.count_nonzero(est["status"] == TrackStatus.OK.code))
-            with Bar(n_ok, "keyframe features", inputs.progress, "frame") as tick:
-                kf, feats = keyframes_by_view_change(seq.rig, est, features_of, cfg, tick, into=store)
-    else:
-        kf = choose_keyframes(est)
-        with Bar(len(kf), "keyframe features", inputs.progress, "kf") as tick:
-            # independent per keyframe: a fleet task spreads them over idle cores (same results, same order),
-            # a batch at a time
-            for s in range(0, len(kf), KEYFRAME_BATCH):
-                part = [int(i) for i in kf[s:s + KEYFRAME_BATCH]]
-                for i, f in zip(part, parallel_map(_keyframe_features, (seq.rig, cfg), [images_of(i) for i in part])):
-                    store.append(i, store.features(i, lambda _j, f=f: f))
-                tick(len(part))
-        feats = store
+    with inputs.memory.timed("keyframe_features"):
+        if cfg.keyframe_parallax_deg > 0:
+            if spreading():  # keypoints of guessed keyframes ahead, in parallel (the same keyframes)
+                with Bar(None, "keyframe features", inputs.progress, "kf") as tick:
+                    kf, feats = keyframes_ahead(seq.rig, est, images_of, cfg, tick, into=store)
+            else:  # one after another: nothing is computed that is not used
+                n_ok = int(np.count_nonzero(est["status"] == TrackStatus.OK.code))
+                with Bar(n_ok, "keyframe features", inputs.progress, "frame") as tick:
+                    kf, feats = keyframes_by_view_change(seq.rig, est, features_of, cfg, tick, into=store)
+        else:
+            kf = choose_keyframes(est)
+            with Bar(len(kf), "keyframe features", inputs.progress, "kf") as tick:
+                # independent per keyframe: a fleet task spreads them over idle cores (same results, same order),
+                # a batch at a time
+                for s in range(0, len(kf), KEYFRAME_BATCH):
+                    part = [int(i) for i in kf[s:s + KEYFRAME_BATCH]]
+                    for i, f in zip(part, parallel_map(_keyframe_features, (seq.rig, cfg), [images_of(i) for i in part])):
+                        store.append(i, store.features(i, lambda _j, f=f: f))
+                    tick(len(part))
+            feats = store
     inputs.memory.note("keypoints_descriptors", store.held_bytes())
     if len(kf) < 2:
         return _empty(est, kf, f"{len(kf)} tracked keyframe(s) in the re-estimate; bundle adjustment needs two")
@@ -273,12 +274,13 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
         images = [images_of(i) for i in kf]
         inputs.memory.note("images", nbytes(images))
         align = functools.partial(align_tracks, seq.rig, [a for a, _ in images], [b for _, b in images], T_kf, cfg)
-    with Bar(len(kf), "track matching", inputs.progress, "kf") as tick:
+    with Bar(len(kf), "track matching", inputs.progress, "kf") as tick, inputs.memory.timed("track_matching"):
         tr = tracks_mod.build_tracks(seq.rig, feats, T_kf, cfg, progress=tick, align=align, sizes=store.sizes)
     inputs.memory.note("keypoints_descriptors", store.held_bytes())
     inputs.memory.note("observations", tr.observations.nbytes)
     inputs.memory.note("tracks", nbytes(tr.points) + nbytes(tr.kf_ids) + nbytes(tr.kf_xy))
-    loops = detect_loops(seq.rig, feats, T_kf, config.loops)
+    with inputs.memory.timed("loops"):
+        loops = detect_loops(seq.rig, feats, T_kf, config.loops)
     ids = np.fromiter(tr.points.keys(), np.int64, len(tr.points))
     xyz = np.array([tr.points[int(i)] for i in ids]).reshape(-1, 3)
     return {

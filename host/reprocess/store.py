@@ -160,15 +160,19 @@ class StageStore:
         return all((self.root / f).exists() for f in ent.get("files", []))
 
     def finish(self, name: str, key: str, files: list[str], seconds: float, settings: Any,
-               memory: dict[str, float] | None = None, cpu_seconds: float | None = None) -> None:
+               memory: dict[str, float] | None = None, cpu_seconds: float | None = None,
+               cpu_steps: dict[str, float] | None = None) -> None:
         """Record a finished stage (``memory``: its peak resident set and held structures, MB;
-        ``cpu_seconds``: the process's CPU time over the stage, user + system, every thread)."""
+        ``cpu_seconds``: the process's CPU time over the stage, user + system, every thread;
+        ``cpu_steps``: that of its named steps)."""
         self.data["stages"][name] = {
             "key": key, "files": files, "seconds": round(seconds, 3), "settings": plain(settings),
             "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
         if cpu_seconds is not None:
             self.data["stages"][name]["cpu_seconds"] = round(cpu_seconds, 3)
+        if cpu_steps:
+            self.data["stages"][name]["cpu_steps"] = {k: round(v, 3) for k, v in cpu_steps.items()}
         if memory:
             self.data["stages"][name]["memory"] = memory
         self.root.mkdir(parents=True, exist_ok=True)

@@ -81,3 +81,44 @@ def test_a_repeated_texture_gives_no_false_loop(scene):
         T_ij = invert_pose(T_path[lp.i]) @ T_path[lp.j]
         assert np.linalg.norm(lp.T_ci_cj[:3, 3] - T_ij[:3, 3]) < 0.01
     assert not any(abs(lp.i - lp.j) == 9 for lp in loops)
+
+
+def test_candidates_are_tried_nearest_first_and_none_after_an_accepted_loop(scene, monkeypatch):
+    from stereopath.host.backend import loops as loops_mod
+
+    rig, rng = paper_rig(), np.random.default_rng(3)
+    X, desc = scene
+    T_true = _path(40)
+    kfs = [_keyframe(rig, X, desc, T, rng) for T in T_true]
+    matched: list[tuple[int, int]] = []
+    real = loops_mod.descriptor_matches
+
+    def counting(a, b):
+        matched.append((next(k for k, f in enumerate(kfs) if f is a), next(k for k, f in enumerate(kfs) if f is b)))
+        return real(a, b)
+
+    monkeypatch.setattr(loops_mod, "descriptor_matches", counting)
+    cfg = LoopConfig(min_separation=25, nearest_checked=3)
+    loops = detect_loops(rig, kfs, T_true, cfg)
+    by_i: dict[int, list[int]] = {}
+    for i, j in loops_mod.candidate_pairs(T_true, cfg):
+        by_i.setdefault(i, []).append(j)
+    assert len(loops) >= 3 and len({lp.i for lp in loops}) == len(loops)  # one loop per keyframe at most
+    accepted = {lp.i: lp.j for lp in loops}
+    for i, js in by_i.items():
+        tried = [j for ii, j in matched if ii == i]
+        assert tried == js[:len(tried)]  # nearest first
+        if i in accepted:  # nothing matched after the accepted one
+            assert tried[-1] == accepted[i]
+    # the true path's nearest candidate sees the same view: it is the one accepted, and the only one matched
+    assert sum(len([j for ii, j in matched if ii == i]) for i in accepted) == len(accepted)
+    # a nearest candidate that fails (its descriptors scrambled) is passed over for the next one
+    i0 = min(accepted)
+    j_near = by_i[i0][0]
+    bad = kfs[j_near]
+    kfs[j_near] = KeyframeFeatures(
+        Features(bad.feats.xy, np.ascontiguousarray(bad.feats.desc[::-1]), bad.feats.size, bad.feats.angle,
+                 bad.feats.response, bad.feats.view), bad.uv0, bad.uv1, bad.X_cam)
+    matched.clear()
+    again = {lp.i: lp.j for lp in detect_loops(rig, kfs, T_true, cfg)}
+    assert len(by_i[i0]) > 1 and again.get(i0) == by_i[i0][1]

@@ -117,6 +117,12 @@ def test_reprocess_writes_every_output_and_improves_the_path(full_run):
     assert set(man["stages"]) == {"estimate", "tracks", "ba", "map"}
     for name, st in man["stages"].items():  # each stage's CPU time (all threads) beside its wall time
         assert 0 < st["cpu_seconds"] <= st["seconds"] * (os.cpu_count() or 1) + 1.0, name
+    steps = {name: st.get("cpu_steps", {}) for name, st in man["stages"].items()}
+    assert set(steps["tracks"]) == {"keyframe_features", "track_matching", "loops"}
+    assert set(steps["ba"]) == {"bundle_adjustment", "frame_refinement"}
+    for name in ("tracks", "ba"):  # the named steps are parts of the stage's CPU time
+        assert all(v >= 0 for v in steps[name].values())
+        assert sum(steps[name].values()) <= man["stages"][name]["cpu_seconds"] + 0.01, name
 
 
 def test_rerun_reuses_every_stage_and_gives_identical_outputs(full_run, session):

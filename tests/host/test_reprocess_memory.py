@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import platform
 import sys
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +53,29 @@ def test_the_ledger_keeps_each_structures_largest_size_and_the_stage_peak():
     led.start()  # the next stage: the last one's structures forgotten, its memory handed back
     s2 = led.summary()
     assert "tracks_mb" not in s2 and s2["peak_rss_mb"] < s["peak_rss_mb"] - 30  # a peak of its own
+
+
+def test_the_ledger_sums_the_cpu_time_of_named_steps():
+    led = MemoryLedger()
+    led.start()
+
+    def spin(seconds: float) -> None:
+        c0 = time.process_time()
+        while time.process_time() - c0 < seconds:
+            pass
+
+    with led.timed("loops"):
+        spin(0.05)
+    with led.timed("loops"):
+        spin(0.05)
+    with led.timed("matching"):
+        pass
+    assert 0.1 <= led.cpu_steps["loops"] < 1.0 and 0 <= led.cpu_steps["matching"] < 0.05
+    with pytest.raises(ValueError), led.timed("failing"):  # a step that fails still counts what it used
+        raise ValueError
+    assert "failing" in led.cpu_steps
+    led.start()
+    assert led.cpu_steps == {}
 
 
 @pytest.mark.skipif(sys.platform != "linux" or platform.libc_ver()[0] != "glibc", reason="glibc's mallopt")
