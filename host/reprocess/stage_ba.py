@@ -156,7 +156,8 @@ def solver_stats(n_keyframes: int) -> dict[str, Any]:
 def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.ndarray,
                 is_kf: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
     """Each non-keyframe's observations of the adjusted points (KLT from its two keyframes into its left
-    image), one frame at a time: ``(frame index, rows)``.
+    image, each point followed from where it projects in the keyframe: :func:`adjusted_pixels`), one
+    frame at a time: ``(frame index, rows)``.
 
     The left image only: with the points fixed, a frame's pose needs no depth from it, and at the same
     CPU twice as many left points (``frame_points`` from each keyframe) fit it better than left and
@@ -166,7 +167,7 @@ def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.
 
     seq, est, trk = inputs.seq, inputs.results["estimate"], inputs.results["tracks"]
     kf, offs = trk["kf_index"], trk["kf_offsets"]
-    kf_img: dict[int, np.ndarray] = {}
+    kf_img: dict[int, TrackedKeypoints] = {}
     read = getattr(seq, "frame_as_recorded", seq.frame)  # the left image is never exposure-corrected
 
     def read_left(i: int) -> np.ndarray:
@@ -181,21 +182,55 @@ def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.
             for k in (j - 1, j):
                 if not 0 <= k < len(kf):
                     continue
-                if k not in kf_img:
+                if k not in kf_img:  # the keyframe's image and the points followed from it, for the frames around it
                     kf_img = {kk: v for kk, v in kf_img.items() if kk >= k - 1}  # keep the cache small
-                    kf_img[k] = read_left(int(est["seq"][kf[k]]))
-                ids = trk["kf_ids"][offs[k]:offs[k + 1]]
-                xy = trk["kf_xy"][offs[k]:offs[k + 1]]
-                if len(ids) > config.frame_points:
-                    pick = np.linspace(0, len(ids) - 1, config.frame_points).astype(int)
-                    ids, xy = ids[pick], xy[pick]
-                o = frame_observations(seq.rig, TrackedKeypoints(kf_img[k], xy, ids), res.points, (left, None),
-                                       T_frames[i], config.tracks, right_image=False)
+                    ids, xy = adjusted_pixels(seq.rig, res, k, trk["kf_ids"][offs[k]:offs[k + 1]],
+                                              trk["kf_xy"][offs[k]:offs[k + 1]])
+                    if len(ids) > config.frame_points:
+                        pick = np.linspace(0, len(ids) - 1, config.frame_points).astype(int)
+                        ids, xy = ids[pick], xy[pick]
+                    kf_img[k] = TrackedKeypoints(read_left(int(est["seq"][kf[k]])), xy, ids)
+                o = frame_observations(seq.rig, kf_img[k], res.points, (left, None), T_frames[i], config.tracks,
+                                       right_image=False)
                 o[:, 0] = i
                 rows.append(o)
             tick(1)
             if rows:
                 yield int(i), np.vstack(rows)
+
+
+# a keypoint is followed from where its adjusted point projects in the keyframe when its detection is
+# within this many of the adjustment's RMS residuals of it (about three standard deviations)
+ADJUSTED_GATE_RMS = 3.0
+
+
+def adjusted_pixels(rig: Rig, res, k: int, ids: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where keyframe ``k``'s adjusted points ``ids`` project in its left image (raw pixels), for the
+    keypoints ``xy`` (raw) whose detection lies within :data:`ADJUSTED_GATE_RMS` RMS residuals of that
+    projection (the others are dropped).
+
+    A detection carries its own noise; the adjusted point is fitted to every keyframe of its track,
+    and its projection with the adjusted pose is where the keyframe sees it.  Followed from there into
+    a frame, the frame's observation agrees with the point instead of copying one detection's error."""
+    import cv2
+
+    from stereopath.device.core.geometry import invert_pose
+
+    known = np.fromiter((int(i) in res.points for i in ids), bool, len(ids))
+    ids, xy = ids[known], xy[known]
+    if not len(ids):
+        return ids, xy
+    X = np.array([res.points[int(i)] for i in ids])
+    T_cw = invert_pose(res.T_world_cam[k])
+    Xc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
+    front = Xc[:, 2] > 1e-6
+    ids, xy, Xc = ids[front], xy[front], Xc[front]
+    if not len(ids):
+        return ids, xy
+    uv = cv2.projectPoints(Xc.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), rig.cam0.K, rig.cam0.dist)[0].reshape(-1, 2)
+    gate = ADJUSTED_GATE_RMS * max(float(res.rms_after_px), 0.05) if np.isfinite(res.rms_after_px) else np.inf
+    near = np.linalg.norm(uv - xy, axis=1) <= gate
+    return ids[near], uv[near].astype(np.float32)
 
 
 def refine_frame(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarray], rows: np.ndarray,

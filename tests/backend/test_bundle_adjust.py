@@ -295,3 +295,29 @@ def test_precise_observations_outweigh_a_loose_prior_once_their_noise_is_measure
     nominal = adjust(rig, T_true, pts, obs, n_fixed=1, priors=prior)
     assert pull(nominal) > 3 * pull(measured)
     assert adjust(rig, T_true, pts, obs, n_fixed=1).pixel_sigma_px is None  # observations alone: unchanged
+
+
+def test_frames_follow_the_adjusted_points_from_where_they_project_in_the_keyframe():
+    from types import SimpleNamespace
+
+    from stereopath.host.reprocess.stage_ba import ADJUSTED_GATE_RMS, adjusted_pixels
+
+    rng = np.random.default_rng(7)
+    rig = paper_rig()
+    T_wc = make_pose(so3_exp([0.0, 0.1, 0.0]), [0.05, 0.0, 0.0])
+    pts = {i: np.array([rng.uniform(-1, 1), rng.uniform(-0.6, 0.6), rng.uniform(1.0, 2.5)]) for i in range(100)}
+    Tcw = invert_pose(T_wc)
+    ids = np.arange(103)  # the last three have no adjusted point (dropped by the adjustment)
+    true_uv, _ = project(rig.cam0.K, np.array([Tcw[:3, :3] @ pts[i] + Tcw[:3, 3] for i in range(100)]))
+    detected = true_uv + rng.normal(0, 0.3, true_uv.shape)  # the detector's noise
+    detected[:5] += 5.0  # five detections far off their point: not followed
+    xy = np.vstack([detected, rng.uniform(0, 600, (3, 2))]).astype(np.float32)
+    res = SimpleNamespace(points=pts, T_world_cam=np.array([np.eye(4), T_wc]), rms_after_px=0.4)
+    got_ids, got_xy = adjusted_pixels(rig, res, 1, ids, xy)
+    assert got_ids.tolist() == list(range(5, 100))
+    np.testing.assert_allclose(got_xy, true_uv[5:], atol=1e-3)  # the projections, not the detections
+    assert got_xy.dtype == np.float32
+    # the gate scales with the adjustment's residuals
+    loose = SimpleNamespace(points=pts, T_world_cam=res.T_world_cam, rms_after_px=10.0 / ADJUSTED_GATE_RMS)  # 7 px off: in
+    assert len(adjusted_pixels(rig, loose, 1, ids, xy)[0]) == 100
+    assert len(adjusted_pixels(rig, res, 1, ids[:0], xy[:0])[0]) == 0
