@@ -94,7 +94,7 @@ class LiveLoopCloser:
         self.graph.rebuild(self.graph.onboard[:j], keep)
 
     def _check(self, j: int):
-        """The best verified loop between keyframe ``j`` and an earlier keyframe, or None."""
+        """A verified loop between keyframe ``j`` and an earlier keyframe (the nearest that verifies), or None."""
         from stereopath.host.backend.loops import LoopCandidate, candidate_pairs, descriptor_matches, verify_pair
 
         T = self.poses()
@@ -103,8 +103,13 @@ class LiveLoopCloser:
             return None
         C = T[:, :3, 3]
         along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(C, axis=0), axis=1))])
-        scored = sorted(((descriptor_matches(self.feats[i], self.feats[j]), i) for i in pairs), key=lambda mi: -len(mi[0]))
-        for m, i in scored[:self.cfg.candidates_per_keyframe]:
+        # the nearest first, each matched and verified until one is accepted (as offline: a full
+        # descriptor match is the costly part)
+        pairs.sort(key=lambda i: float(np.linalg.norm(C[i] - C[j])))
+        for i in pairs[:self.cfg.nearest_checked]:
+            m = descriptor_matches(self.feats[i], self.feats[j])
+            if len(m) < self.cfg.min_matches:
+                continue
             cand = LoopCandidate(self.feats[i], self.feats[j], T[i], T[j], float(along[j] - along[i]), i, j, m)
             loop, why = verify_pair(self.rig, cand, self.cfg)
             log.debug("live loop candidate %d-%d: %s", i, j, why)

@@ -122,3 +122,31 @@ def test_candidates_are_tried_nearest_first_and_none_after_an_accepted_loop(scen
     matched.clear()
     again = {lp.i: lp.j for lp in detect_loops(rig, kfs, T_true, cfg)}
     assert len(by_i[i0]) > 1 and again.get(i0) == by_i[i0][1]
+
+
+def test_the_live_closer_tries_the_nearest_earlier_keyframe_first(scene, monkeypatch):
+    from stereopath.host.backend import loops as loops_mod
+    from stereopath.host.live.live_loops import LiveLoopCloser
+
+    rig, rng = paper_rig(), np.random.default_rng(4)
+    X, desc = scene
+    T_true = _path(40)
+    kfs = [_keyframe(rig, X, desc, T, rng) for T in T_true]
+    closer = LiveLoopCloser(rig, LoopConfig(min_separation=25, nearest_checked=3))
+    for f, T in zip(kfs, T_true):  # what add() does once a keyframe's features are known
+        closer.feats.append(f)
+        closer.graph.add(T)
+    tried: list[int] = []
+    real = loops_mod.descriptor_matches
+
+    def counting(a, b):
+        tried.append(next(k for k, f in enumerate(kfs) if f is a))
+        return real(a, b)
+
+    monkeypatch.setattr(loops_mod, "descriptor_matches", counting)
+    j = 39
+    loop = closer._check(j)
+    C = T_true[:, :3, 3]
+    earlier = [i for i, jj in loops_mod.candidate_pairs(T_true, closer.cfg) if jj == j]
+    nearest = min(earlier, key=lambda i: np.linalg.norm(C[i] - C[j]))
+    assert len(earlier) >= 2 and loop is not None and loop.i == nearest and tried == [nearest]
