@@ -54,8 +54,8 @@ class LoopConfig:
     max_distance_m: float = ranged(0.3, 0.0, 1000.0)
     max_angle_deg: float = ranged(35.0, 0.0, 180.0)
     min_matches: int = ranged(40, 1, 100_000)
-    candidates_per_keyframe: int = ranged(1, 1, 1000)
-    nearest_checked: int = ranged(3, 1, 1000)  # the spatially nearest candidates tried (nearest first)
+    candidates_per_keyframe: int = ranged(1, 1, 1000)  # loops kept per keyframe (the live closer keeps one) ...
+    nearest_checked: int = ranged(3, 1, 1000)  # ... of its spatially nearest candidates, tried nearest first
     check: LoopCheck = field(default_factory=LoopCheck)
 
     def __post_init__(self) -> None:
@@ -188,7 +188,7 @@ def detect_loops(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, cfg: Loop
         by_i.setdefault(i, []).append(j)
     loops, tried = [], 0
     for i, js in by_i.items():
-        # the spatially nearest candidates first, each matched and verified, until one is accepted: on a
+        # the spatially nearest candidates first, each matched and verified, until enough are accepted: on a
         # scan that keeps coming back every keyframe has candidates, and a full descriptor match of two
         # keyframes is the costly part, so the ones after an accepted loop are not matched at all
         found = 0

@@ -490,7 +490,8 @@ def build_tracks(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, cfg: Trac
 
 @dataclass(frozen=True)
 class TrackedKeypoints:
-    """A keyframe's left image and the keypoints it has in tracks: raw (distorted) pixels and point ids."""
+    """A keyframe's left image, the raw (distorted) pixels its tracked points are followed from (their
+    detections, or where their adjusted points project) and the points' ids."""
 
     left: np.ndarray
     xy: np.ndarray

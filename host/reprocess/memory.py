@@ -131,7 +131,8 @@ class MemoryLedger:
 
     @contextlib.contextmanager
     def timed(self, step: str):
-        """Add the process's CPU time (every thread) over the ``with`` block to step ``step``."""
+        """Add the process's CPU time (every thread) over the ``with`` block to step ``step`` (work a
+        spreader hands to other processes, a fleet's Ray tasks, is not in it)."""
         c0 = process_cpu_s()
         try:
             yield

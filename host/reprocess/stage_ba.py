@@ -6,7 +6,7 @@ when it exceeds ``ba.disparity_offset_min_px``; the verified loops; IMU preinteg
 keyframes when the session has a usable IMU; optional gyro rotation priors), outlier removal and
 a second solve.  Every other frame: the keyframe corrections interpolated in time, then a
 motion-only refinement on the adjusted points (each frame observes its neighbouring keyframes'
-tracked keypoints by one KLT step each).
+adjusted points by one KLT step each, from where they project in the keyframe).
 
 Outputs (``ba.npz``): ``T_kf``, ``T_frames`` (every frame), the adjusted ``point_ids`` and
 ``point_xyz``, and ``stats``.
@@ -200,8 +200,10 @@ def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.
 
 
 # a keypoint is followed from where its adjusted point projects in the keyframe when its detection is
-# within this many of the adjustment's RMS residuals of it (about three standard deviations)
+# within this many of the adjustment's RMS residuals of it (``rms_after_px``: per coordinate, both
+# cameras, the observations weighted by their keypoint size as in the adjustment) ...
 ADJUSTED_GATE_RMS = 3.0
+MIN_GATE_RMS_PX = 0.05  # ... taken as at least this (an adjustment of exact synthetic pixels)
 
 
 def adjusted_pixels(rig: Rig, res, k: int, ids: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -228,7 +230,8 @@ def adjusted_pixels(rig: Rig, res, k: int, ids: np.ndarray, xy: np.ndarray) -> t
     if not len(ids):
         return ids, xy
     uv = cv2.projectPoints(Xc.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), rig.cam0.K, rig.cam0.dist)[0].reshape(-1, 2)
-    gate = ADJUSTED_GATE_RMS * max(float(res.rms_after_px), 0.05) if np.isfinite(res.rms_after_px) else np.inf
+    rms = float(res.rms_after_px)
+    gate = ADJUSTED_GATE_RMS * max(rms, MIN_GATE_RMS_PX) if np.isfinite(rms) else np.inf  # no figure: no gate
     near = np.linalg.norm(uv - xy, axis=1) <= gate
     return ids[near], uv[near].astype(np.float32)
 

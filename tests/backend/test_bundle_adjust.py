@@ -321,3 +321,29 @@ def test_frames_follow_the_adjusted_points_from_where_they_project_in_the_keyfra
     loose = SimpleNamespace(points=pts, T_world_cam=res.T_world_cam, rms_after_px=10.0 / ADJUSTED_GATE_RMS)  # 7 px off: in
     assert len(adjusted_pixels(rig, loose, 1, ids, xy)[0]) == 100
     assert len(adjusted_pixels(rig, res, 1, ids[:0], xy[:0])[0]) == 0
+    no_figure = SimpleNamespace(points=pts, T_world_cam=res.T_world_cam, rms_after_px=float("nan"))
+    assert len(adjusted_pixels(rig, no_figure, 1, ids, xy)[0]) == 100  # no gate without a residual figure
+
+
+def test_adjusted_points_project_into_the_raw_distorted_keyframe_image():
+    import cv2
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from stereopath.host.reprocess.stage_ba import adjusted_pixels
+
+    rng = np.random.default_rng(8)
+    base = paper_rig()
+    dist = np.array([-0.25, 0.08, 0.0005, -0.0003, 0.0])
+    rig = replace(base, cam0=replace(base.cam0, dist=dist))
+    pts = {i: np.array([rng.uniform(-1.2, 1.2), rng.uniform(-0.8, 0.8), rng.uniform(1.0, 2.0)]) for i in range(80)}
+    pts[80] = np.array([0.0, 0.0, -1.0])  # behind the camera: left out
+    X = np.array(list(pts.values()))
+    raw = cv2.projectPoints(X[:80].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), rig.cam0.K, dist)[0].reshape(-1, 2)
+    pinhole, _ = project(rig.cam0.K, X[:80])
+    assert np.abs(raw - pinhole).max() > 5  # the distortion moves the points by pixels
+    xy = np.vstack([raw + rng.normal(0, 0.2, raw.shape), [[320.0, 240.0]]]).astype(np.float32)
+    res = SimpleNamespace(points=pts, T_world_cam=np.array([np.eye(4)]), rms_after_px=0.3)
+    got_ids, got_xy = adjusted_pixels(rig, res, 0, np.arange(81), xy)
+    assert got_ids.tolist() == list(range(80))
+    np.testing.assert_allclose(got_xy, raw, atol=1e-3)

@@ -110,6 +110,8 @@ def test_candidates_are_tried_nearest_first_and_none_after_an_accepted_loop(scen
         assert tried == js[:len(tried)]  # nearest first
         if i in accepted:  # nothing matched after the accepted one
             assert tried[-1] == accepted[i]
+        else:  # every candidate tried
+            assert tried == js
     # the true path's nearest candidate sees the same view: it is the one accepted, and the only one matched
     assert sum(len([j for ii, j in matched if ii == i]) for i in accepted) == len(accepted)
     # a nearest candidate that fails (its descriptors scrambled) is passed over for the next one
@@ -150,3 +152,12 @@ def test_the_live_closer_tries_the_nearest_earlier_keyframe_first(scene, monkeyp
     earlier = [i for i, jj in loops_mod.candidate_pairs(T_true, closer.cfg) if jj == j]
     nearest = min(earlier, key=lambda i: np.linalg.norm(C[i] - C[j]))
     assert len(earlier) >= 2 and loop is not None and loop.i == nearest and tried == [nearest]
+    # the nearest one failing (its descriptors scrambled), the next nearest is taken
+    bad = kfs[nearest]
+    kfs[nearest] = closer.feats[nearest] = KeyframeFeatures(
+        Features(bad.feats.xy, np.ascontiguousarray(bad.feats.desc[::-1]), bad.feats.size, bad.feats.angle,
+                 bad.feats.response, bad.feats.view), bad.uv0, bad.uv1, bad.X_cam)
+    tried.clear()
+    second = sorted(earlier, key=lambda i: np.linalg.norm(C[i] - C[j]))[1]
+    loop = closer._check(j)
+    assert loop is not None and loop.i == second and tried == [nearest, second]
