@@ -176,38 +176,45 @@ def verify_pair(rig: Rig, cand: LoopCandidate, cfg: LoopConfig) -> tuple[Loop | 
     return Loop(i, j, T_ij, int(len(inl)), int(len(m)), s_rot, s_t, corr), "accepted"
 
 
+def path_lengths(T_world_cam: np.ndarray) -> np.ndarray:
+    """The distance travelled along the poses' camera centres up to each pose."""
+    C = np.asarray(T_world_cam, float)[:, :3, 3]
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(C, axis=0), axis=1))])
+
+
+def verified_in_order(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, along: np.ndarray,
+                      pairs: list[tuple[int, int]], cfg: LoopConfig, limit: int) -> list[Loop]:
+    """The candidate ``pairs`` matched and verified in their order until ``limit`` are accepted (the
+    accepted loops).  A full descriptor match of two keyframes is the costly part, so the pairs after
+    the last accepted one are not matched at all; callers give them nearest first."""
+    loops: list[Loop] = []
+    for i, j in pairs:
+        cand = LoopCandidate(kfs[i], kfs[j], T_world_cam[i], T_world_cam[j], float(along[j] - along[i]), i, j)
+        loop, why = verify_pair(rig, cand, cfg)
+        log.debug("loop candidate %d-%d: %s", i, j, why)
+        if loop is not None:
+            loops.append(loop)
+            if len(loops) >= limit:
+                break
+    return loops
+
+
 def detect_loops(rig: Rig, kfs: KeyframeList, T_world_cam: np.ndarray, cfg: LoopConfig = LoopConfig()) -> list[Loop]:
-    """Verified loops among the keyframes ``kfs`` (:class:`~stereopath.host.backend.tracks.KeyframeFeatures`)."""
+    """Verified loops among the keyframes ``kfs`` (:class:`~stereopath.host.backend.tracks.KeyframeFeatures`):
+    each keyframe's candidates (:func:`candidate_pairs`, nearest first) until ``candidates_per_keyframe``
+    are accepted."""
     if not cfg.enabled or len(kfs) < 2:
         return []
     T_world_cam = np.asarray(T_world_cam, float)
-    C = T_world_cam[:, :3, 3]
-    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(C, axis=0), axis=1))])
+    along = path_lengths(T_world_cam)
     by_i: dict[int, list[int]] = {}
     for i, j in candidate_pairs(T_world_cam, cfg):
         by_i.setdefault(i, []).append(j)
-    loops, tried = [], 0
+    loops = []
     for i, js in by_i.items():
-        # the spatially nearest candidates first, each matched and verified, until enough are accepted: on a
-        # scan that keeps coming back every keyframe has candidates, and a full descriptor match of two
-        # keyframes is the costly part, so the ones after an accepted loop are not matched at all
-        found = 0
-        for j in js:
-            m = descriptor_matches(kfs[i], kfs[j])
-            tried += 1
-            if len(m) < cfg.min_matches:
-                log.debug("loop candidate %d-%d: %d descriptor matches", i, j, len(m))
-                continue
-            cand = LoopCandidate(kfs[i], kfs[j], T_world_cam[i], T_world_cam[j], float(along[j] - along[i]), i, j, m)
-            loop, why = verify_pair(rig, cand, cfg)
-            log.debug("loop candidate %d-%d: %s", i, j, why)
-            if loop is not None:
-                loops.append(loop)
-                found += 1
-                if found >= cfg.candidates_per_keyframe:
-                    break
-    log.info("loop closure: %d candidate pairs, %d matched, %d loops accepted", sum(map(len, by_i.values())), tried,
-             len(loops))
+        loops += verified_in_order(rig, kfs, T_world_cam, along, [(i, j) for j in js], cfg,
+                                   cfg.candidates_per_keyframe)
+    log.info("loop closure: %d candidate pairs, %d loops accepted", sum(map(len, by_i.values())), len(loops))
     return loops
 
 

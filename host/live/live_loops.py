@@ -95,24 +95,12 @@ class LiveLoopCloser:
 
     def _check(self, j: int):
         """A verified loop between keyframe ``j`` and an earlier keyframe (the nearest that verifies), or None."""
-        from stereopath.host.backend.loops import LoopCandidate, candidate_pairs, descriptor_matches, verify_pair
+        from stereopath.host.backend.loops import candidate_pairs, path_lengths, verified_in_order
 
         T = self.poses()
         pairs = [i for i, jj in candidate_pairs(T, self.cfg) if jj == j]
-        if not pairs:
-            return None
         C = T[:, :3, 3]
-        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(C, axis=0), axis=1))])
-        # the nearest first, each matched and verified until one is accepted (as offline: a full
-        # descriptor match is the costly part)
-        pairs.sort(key=lambda i: float(np.linalg.norm(C[i] - C[j])))
-        for i in pairs[:self.cfg.nearest_checked]:
-            m = descriptor_matches(self.feats[i], self.feats[j])
-            if len(m) < self.cfg.min_matches:
-                continue
-            cand = LoopCandidate(self.feats[i], self.feats[j], T[i], T[j], float(along[j] - along[i]), i, j, m)
-            loop, why = verify_pair(self.rig, cand, self.cfg)
-            log.debug("live loop candidate %d-%d: %s", i, j, why)
-            if loop is not None:
-                return loop
-        return None
+        pairs.sort(key=lambda i: float(np.linalg.norm(C[i] - C[j])))  # the nearest first, as offline
+        tried = [(i, j) for i in pairs[:self.cfg.nearest_checked]]
+        loops = verified_in_order(self.rig, self.feats, T, path_lengths(T), tried, self.cfg, 1)
+        return loops[0] if loops else None
