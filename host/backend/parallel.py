@@ -63,3 +63,17 @@ def spread_with(spreader: Spreader | None) -> Iterator[None]:
         yield
     finally:
         _SPREADER.reset(token)
+
+
+@contextmanager
+def opencv_threads(n: int) -> Iterator[None]:
+    """OpenCV's thread pool at ``n`` threads within the block, as it was after it.  The setting is the
+    process's: for a block that runs OpenCV calls side by side on threads of its own."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(n)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)

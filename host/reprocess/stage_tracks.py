@@ -216,11 +216,14 @@ def _empty(est: dict[str, np.ndarray], kf: np.ndarray, reason: str) -> dict[str,
 
 
 def _keyframe_features(shared: tuple, images: tuple[np.ndarray, np.ndarray]):
-    """One keyframe's stereo keypoints (a piece of :func:`parallel_map`; ``shared`` = rig, track config)."""
+    """One keyframe's stereo keypoints (a piece of :func:`parallel_map`; ``shared`` = rig, track config),
+    on as many threads as OpenCV may use here (one in a fleet's piece, the task's CPUs in its task)."""
+    import cv2
+
     from stereopath.host.backend.tracks import stereo_features
 
     rig, cfg = shared
-    return stereo_features(rig, images[0], images[1], cfg)
+    return stereo_features(rig, images[0], images[1], cfg, workers=max(1, cv2.getNumThreads()))
 
 
 def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:

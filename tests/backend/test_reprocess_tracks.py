@@ -43,6 +43,29 @@ def test_stereo_keypoints_have_accurate_depth():
     assert np.median(rel) < 0.01
 
 
+@pytest.mark.parametrize("preset", ["fast_asym", "sift"])
+def test_keypoints_on_threads_of_their_own_are_the_ones_found_in_line(scan, preset):
+    """Views and parts of the keypoints side by side (OpenCV at one thread meanwhile, as it was after):
+    the same keypoints, descriptors and stereo points as one after another; a blank image has none."""
+    import cv2
+
+    sess, frames = scan
+    cfg = TrackConfig(feature_preset=preset, max_features=3000)
+    fr = frames[8]
+    before = cv2.getNumThreads()
+    one = stereo_features(sess.rig, fr.left, fr.right, cfg, workers=1)
+    three = stereo_features(sess.rig, fr.left, fr.right, cfg, workers=3)
+    assert cv2.getNumThreads() == before
+    assert len(one) > 300 and len(three) == len(one)
+    for a, b in [(one.uv0, three.uv0), (one.uv1, three.uv1), (one.X_cam, three.X_cam),
+                 (one.feats.xy, three.feats.xy), (one.feats.desc, three.feats.desc), (one.feats.view, three.feats.view)]:
+        assert np.array_equal(a, b)
+    blank = np.zeros_like(fr.left)
+    for workers in (1, 2):
+        none = stereo_features(sess.rig, blank, blank, cfg, workers=workers)
+        assert len(none) == 0 and none.X_cam.shape == (0, 3)
+
+
 def test_tracks_over_keyframes_fit_the_true_poses(scan):
     sess, frames = scan
     cfg = TrackConfig(feature_preset="sift", window=3)

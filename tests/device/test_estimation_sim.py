@@ -56,13 +56,13 @@ def test_stereo_world_frame_is_gravity_aligned(sim, stereo_run):
 def test_paper_estimator_on_short_sim(sim):
     # Eq. 4 as written ignores the rotation between positions, which on an orbit costs about
     # depth x rotation per step; with that rotation removed the same pipeline must be accurate.
-    # The first 52 frames (6 still, then 46 moving; 0.33 m between the 13 positions it estimates): each
-    # position costs ~1.7 s of CPU (modified ASIFT at every step), and the two runs differ by ~45x here.
-    n = 52
+    # The first 36 frames (6 still, then 30 moving; 0.18 m between the 9 positions it estimates): each
+    # position costs modified ASIFT at every step, so the test keeps the path short.
+    n = 36
     run, m = _run(sim, "paper", n_frames=n, preset="fast_asym", options={"rotation_compensated": True})
     assert len(run.estimates) == n // 4  # one position every frame_step = 4 frames
     assert run.frames_tracked >= 0.9 * len(run.estimates)
-    assert m["path_length_m"] > 0.3
+    assert m["path_length_m"] > 0.15
     assert m["end_error_m"] < 0.10 * m["path_length_m"]
     as_written, m2 = _run(sim, "paper", n_frames=n, preset="fast_asym")
     assert len(as_written.estimates) == n // 4

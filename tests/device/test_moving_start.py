@@ -113,7 +113,10 @@ def test_a_start_in_motion_levels_the_world_once(monkeypatch):
     run = run_estimator(est, iter(list(seq.frames())), seq.imu)
     assert run.world_frame == "gravity_aligned"
     seq_solved, G = est.world_rebase
-    assert 15 <= seq_solved <= 30 and est.stats()["start_solved_frame"] == seq_solved
+    # solved on the first second's path; taken at the first frame after the worker finished (which frame
+    # depends on the worker's pace beside the frame loop)
+    assert len(solved) == 1 and 15 <= solved[0].seq <= 30 and solved[0].seq <= seq_solved < 40
+    assert est.stats()["start_solved_frame"] == seq_solved
     assert sum(np.array_equal(M, G) for M in moves) == 1  # one leveling move among the keyframe corrections
     assert np.allclose(G[:3, 3], 0.0) and 2.0 < np.degrees(np.linalg.norm(so3_log(G[:3, :3])))
     true_bias = seq.imu_biases.gyro_rad_s[np.searchsorted(seq.imu.t_ns, seq.t_ns[seq_solved])]
