@@ -77,3 +77,32 @@ def opencv_threads(n: int) -> Iterator[None]:
         yield
     finally:
         cv2.setNumThreads(before)
+
+
+class ThreadSpreader:
+    """A spreader for one process: the pieces of a call run on ``workers`` threads, OpenCV's own pool at
+    one thread meanwhile (as it was after).  For pieces whose work is OpenCV and NumPy calls that release
+    the GIL (the map stage's depth maps: two keyframes side by side cost less CPU and time than one at
+    a time with OpenCV splitting each).  Its :meth:`idle` says no: nothing is guessed ahead for it."""
+
+    def __init__(self, workers: int) -> None:
+        self.workers = max(1, int(workers))
+
+    def idle(self) -> bool:
+        return False
+
+    def __call__(self, fn: Callable[[Any, Any], Any], shared: Any, items: Sequence[Any]) -> list[Any]:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with opencv_threads(1), ThreadPoolExecutor(min(self.workers, len(items))) as pool:
+            return list(pool.map(lambda item: fn(shared, item), items))
+
+
+def local_spreader() -> ThreadSpreader | None:
+    """A :class:`ThreadSpreader` over the cores OpenCV may use here; None on one core, or when a
+    spreader is installed already (a fleet task's, which spreads over Ray)."""
+    import cv2
+
+    if _SPREADER.get() is not None or cv2.getNumThreads() < 2:
+        return None
+    return ThreadSpreader(cv2.getNumThreads())

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 from dataclasses import dataclass
 from typing import Literal
 
@@ -345,7 +346,7 @@ class StereoDepth:
         self.num_disparities = disparity_search_range(self.config, f, B)
         self.valid_left = _valid_area(self.rect.maps0, rig.cam0.size)
         self.valid_right = _valid_area(self.rect.maps1, rig.cam1.size)
-        self._matchers: dict[int, cv2.StereoSGBM] = {}
+        self._matchers: dict[tuple[int, int], cv2.StereoSGBM] = {}
         log.debug("stereo depth: f=%.1f px, B=%.4f m, %d disparities (%.2f-%.2f m)", f, B, self.num_disparities,
                   self.config.min_depth_m, self.config.max_depth_m)
 
@@ -359,9 +360,12 @@ class StereoDepth:
         return self.rect.K
 
     def _matcher(self, channels: int) -> cv2.StereoSGBM:
-        if channels not in self._matchers:
-            self._matchers[channels] = make_matcher(self.config, self.num_disparities, channels)
-        return self._matchers[channels]
+        # one per thread: a matcher keeps its work buffers between calls, so two keyframes computed side
+        # by side (a thread spreader's pieces) each need their own
+        key = (threading.get_ident(), channels)
+        if key not in self._matchers:
+            self._matchers[key] = make_matcher(self.config, self.num_disparities, channels)
+        return self._matchers[key]
 
     def disparity_rectified(self, left_rect: np.ndarray, right_rect: np.ndarray) -> np.ndarray:
         """Disparity of a rectified pair, masked to the area both rectified images cover."""

@@ -18,7 +18,7 @@ import logging
 import shutil
 import time
 from collections.abc import Callable
-from contextlib import AbstractContextManager
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -27,6 +27,7 @@ import numpy as np
 
 from stereopath.device.errors import DatasetError, StereopathError
 from stereopath.device.formats.tum import Trajectory
+from stereopath.host.backend.parallel import local_spreader, spread_with
 from stereopath.host.reprocess import stage_ba, stage_estimate, stage_map, stage_tracks
 from stereopath.host.reprocess.config import (  # noqa: F401  (re-exported: the public names)
     DEFAULT_PRESET,
@@ -168,8 +169,10 @@ class _Runner:
                 shutil.rmtree(self.parts_dir("map"), ignore_errors=True)
             inputs = StageInputs(self.matched, self.progress, extra={"dst": dst, "trajectory": final, "label": label},
                                  memory=self.memory, parts=self.parts_dir("map") / self.keys["map"])
+            spreader = local_spreader()  # the keyframes' depth maps side by side (none inside a fleet task)
             try:
-                self.run_stage("map", [f"map/{f}" for f in MODEL_FILES], lambda: stage_map.run(map_cfg, inputs))
+                with spread_with(spreader) if spreader is not None else nullcontext():
+                    self.run_stage("map", [f"map/{f}" for f in MODEL_FILES], lambda: stage_map.run(map_cfg, inputs))
             except StereopathError as exc:  # e.g. no valid depth with this map preset: keep the path outputs
                 log.warning("dense model failed: %s", exc)
                 self.status["map"] = "failed"

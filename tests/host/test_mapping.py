@@ -379,3 +379,45 @@ def test_an_interrupted_map_build_goes_on_from_its_last_stored_volume(session, t
     build_map(keyframes_from_sequence(seq, seq.groundtruth, sel), cfg, progress=False,
               on_keyframe=lambda k, _dm: fused.append(k), checkpoint=ckpt)
     assert fused == list(range(n))
+
+
+def test_depth_maps_side_by_side_give_the_model_of_one_at_a_time(session):
+    """The one-process spreader of the map stage (two keyframes' depth at once, a matcher per thread,
+    OpenCV at one thread meanwhile): the same depth maps in the same order, so the same model."""
+    import cv2
+
+    from stereopath.device.formats import open_source
+    from stereopath.host.backend.parallel import ThreadSpreader, spread_with
+    from stereopath.host.mapping.inputs import keyframes_from_sequence
+
+    seq = open_source(f"session:{session}")
+    sel = KeyframeSelection(stride=6, max_keyframes=8)
+    cfg = _fast_config(max_keyframes=8)
+    seen: dict[str, list[np.ndarray]] = {"line": [], "side": []}
+    line = build_map(keyframes_from_sequence(seq, seq.groundtruth, sel), cfg, progress=False,
+                     on_keyframe=lambda k, dm: seen["line"].append(np.nan_to_num(dm.disparity_px, nan=-1.0)))
+    before = cv2.getNumThreads()
+    with spread_with(ThreadSpreader(2)):
+        side = build_map(keyframes_from_sequence(seq, seq.groundtruth, sel), cfg, progress=False,
+                         on_keyframe=lambda k, dm: seen["side"].append(np.nan_to_num(dm.disparity_px, nan=-1.0)))
+    assert cv2.getNumThreads() == before
+    assert len(seen["line"]) == len(seen["side"]) >= 6
+    assert all(np.array_equal(a, b) for a, b in zip(seen["line"], seen["side"]))
+    for key in ("keyframes", "blocks", "mesh_vertices", "mesh_triangles"):
+        assert side.stats[key] == line.stats[key], key
+
+
+def test_each_thread_computes_depth_with_a_matcher_of_its_own(session):
+    """An OpenCV matcher keeps its work buffers between calls: two threads never share one."""
+    import threading
+
+    from stereopath.device.formats import open_source
+    from stereopath.host.mapping.depth import StereoDepth
+
+    depth = StereoDepth(open_source(f"session:{session}").rig)
+    here = depth._matcher(1)
+    there: list = []
+    t = threading.Thread(target=lambda: there.append(depth._matcher(1)))
+    t.start()
+    t.join()
+    assert depth._matcher(1) is here and there[0] is not here
