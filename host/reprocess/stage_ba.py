@@ -15,10 +15,12 @@ Outputs (``ba.npz``): ``T_kf``, ``T_frames`` (every frame), the adjusted ``point
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 import time
 from collections.abc import Iterator
-from typing import Any
+from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -31,9 +33,13 @@ from stereopath.host.progress import Bar, progress_bar
 from stereopath.host.reprocess.memory import MB, peak_rss_mb, rss_mb
 from stereopath.host.reprocess.store import json_array, meta
 
+if TYPE_CHECKING:
+    from stereopath.host.backend.tracks import TrackedKeypoints
+
 log = logging.getLogger(__name__)
 
 NAME = "ba"
+FRAME_BATCH = 16  # frames read ahead and refined side by side
 
 
 def settings(config: ReprocessPreset) -> dict[str, Any]:
@@ -153,17 +159,16 @@ def solver_stats(n_keyframes: int) -> dict[str, Any]:
                        "held": HELD, "loops_closed_first": True}}
 
 
-def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.ndarray,
-                is_kf: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
-    """Each non-keyframe's observations of the adjusted points (KLT from its two keyframes into its left
-    image, each point followed from where it projects in the keyframe: :func:`adjusted_pixels`), one
-    frame at a time: ``(frame index, rows)``.
+def _frame_jobs(config: ReprocessPreset, inputs: StageInputs, res, is_kf: np.ndarray
+                ) -> Iterator[tuple[int, np.ndarray, list[TrackedKeypoints]]]:
+    """Each non-keyframe's refinement input, one frame at a time: ``(frame index, left image, its two
+    keyframes' adjusted points as followed from each keyframe's left image)`` (:func:`adjusted_pixels`).
 
     The left image only: with the points fixed, a frame's pose needs no depth from it, and at the same
     CPU twice as many left points (``frame_points`` from each keyframe) fit it better than left and
     right observations of half as many (figures in CHANGELOG).  The left image is as recorded, so no
     exposure fit is needed for it."""
-    from stereopath.host.backend.tracks import TrackedKeypoints, frame_observations
+    from stereopath.host.backend.tracks import TrackedKeypoints
 
     seq, est, trk = inputs.seq, inputs.results["estimate"], inputs.results["tracks"]
     kf, offs = trk["kf_index"], trk["kf_offsets"]
@@ -173,30 +178,40 @@ def _frame_rows(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.
     def read_left(i: int) -> np.ndarray:
         return read(i).left
 
-    todo = np.flatnonzero(~is_kf)
-    with Bar(len(todo), "frame refinement", inputs.progress, "frame") as tick:
-        for i in todo:
-            j = int(np.searchsorted(kf, i))
-            left = read_left(int(est["seq"][i]))
-            rows = []
-            for k in (j - 1, j):
-                if not 0 <= k < len(kf):
-                    continue
-                if k not in kf_img:  # the keyframe's image and the points followed from it, for the frames around it
-                    kf_img = {kk: v for kk, v in kf_img.items() if kk >= k - 1}  # keep the cache small
-                    ids, xy = adjusted_pixels(seq.rig, res, k, trk["kf_ids"][offs[k]:offs[k + 1]],
-                                              trk["kf_xy"][offs[k]:offs[k + 1]])
-                    if len(ids) > config.frame_points:
-                        pick = np.linspace(0, len(ids) - 1, config.frame_points).astype(int)
-                        ids, xy = ids[pick], xy[pick]
-                    kf_img[k] = TrackedKeypoints(read_left(int(est["seq"][kf[k]])), xy, ids)
-                o = frame_observations(seq.rig, kf_img[k], res.points, (left, None), T_frames[i], config.tracks,
-                                       right_image=False)
-                o[:, 0] = i
-                rows.append(o)
-            tick(1)
-            if rows:
-                yield int(i), np.vstack(rows)
+    for i in np.flatnonzero(~is_kf):
+        j = int(np.searchsorted(kf, i))
+        left = read_left(int(est["seq"][i]))
+        around = []
+        for k in (j - 1, j):
+            if not 0 <= k < len(kf):
+                continue
+            if k not in kf_img:  # the keyframe's image and the points followed from it, for the frames around it
+                kf_img = {kk: v for kk, v in kf_img.items() if kk >= k - 1}  # keep the cache small
+                ids, xy = adjusted_pixels(seq.rig, res, k, trk["kf_ids"][offs[k]:offs[k + 1]],
+                                          trk["kf_xy"][offs[k]:offs[k + 1]])
+                if len(ids) > config.frame_points:
+                    pick = np.linspace(0, len(ids) - 1, config.frame_points).astype(int)
+                    ids, xy = ids[pick], xy[pick]
+                kf_img[k] = TrackedKeypoints(read_left(int(est["seq"][kf[k]])), xy, ids)
+            around.append(kf_img[k])
+        yield int(i), left, around
+
+
+def _refined_frame(config: ReprocessPreset, rig: Rig, res, T_frame: np.ndarray, job) -> np.ndarray | None:
+    """One frame of :func:`_frame_jobs` refined: the keyframes' points followed by KLT into its left
+    image, then its pose fitted to them (:func:`refine_frame`); None when it cannot be."""
+    from stereopath.host.backend.tracks import frame_observations
+
+    i, left, around = job
+    rows = []
+    for kp in around:
+        o = frame_observations(rig, kp, res.points, (left, None), T_frame, config.tracks, right_image=False)
+        o[:, 0] = i
+        rows.append(o)
+    part = np.vstack(rows) if rows else np.zeros((0, 6))
+    if not len(part):
+        return None
+    return refine_frame(rig, T_frame, res.points, part, config.ba.robust_px, res.disparity_offset_px)
 
 
 # a keypoint is followed from where its adjusted point projects in the keyframe when its detection is
@@ -260,16 +275,25 @@ def refine_frame(rig: Rig, T_world_cam: np.ndarray, points: dict[int, np.ndarray
 def refine_frames(config: ReprocessPreset, inputs: StageInputs, res, T_frames: np.ndarray) -> int:
     """Motion-only refinement of the non-keyframes of ``T_frames`` (in place), one frame at a time; the
     number refined."""
+    import cv2
+
+    from stereopath.host.backend.parallel import opencv_threads
+
     is_kf = np.zeros(len(T_frames), bool)
     is_kf[inputs.results["tracks"]["kf_index"]] = True
-    n = 0
-    for i, part in _frame_rows(config, inputs, res, T_frames, is_kf):
-        if not len(part):
-            continue
-        T = refine_frame(inputs.seq.rig, T_frames[i], res.points, part, config.ba.robust_px, res.disparity_offset_px)
-        if T is not None:
-            T_frames[i] = T
-            n += 1
+    rig, n = inputs.seq.rig, 0
+    # frames are independent once the points are fixed: read in order, refined side by side on the
+    # threads OpenCV may use (each call at one OpenCV thread), applied in order
+    workers = max(1, cv2.getNumThreads())
+    jobs = _frame_jobs(config, inputs, res, is_kf)
+    with Bar(int(np.count_nonzero(~is_kf)), "frame refinement", inputs.progress, "frame") as tick, \
+            ThreadPoolExecutor(workers) as pool, opencv_threads(1):
+        while batch := list(itertools.islice(jobs, FRAME_BATCH)):
+            for (i, _, _), T in zip(batch, pool.map(lambda b: _refined_frame(config, rig, res, T_frames[b[0]], b), batch)):
+                if T is not None:
+                    T_frames[i] = T
+                    n += 1
+            tick(len(batch))
     return n
 
 
