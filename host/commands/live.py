@@ -125,6 +125,8 @@ def run(args: argparse.Namespace) -> int:
             rerun_view.on_rebase(msg)
         if mapper is not None:
             mapper.on_rebase(msg)
+        if sink is not None:
+            sink.on_rebase(msg)
     stop = threading.Event()
     previous = signal.signal(signal.SIGTERM, lambda *_: stop.set()) \
         if threading.current_thread() is threading.main_thread() else None
@@ -132,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
     receiver = Receiver(config, args.out,
                         on_pose=on_pose if (rerun_view or sink) else None,
                         on_keyframe=on_keyframe if (rerun_view or mapper or sink) else None,
-                        on_rebase=on_rebase if (rerun_view or mapper) else None)
+                        on_rebase=on_rebase if (rerun_view or mapper or sink) else None)
     t0 = time.monotonic()
     before = _counts(receiver.stats)  # receiver.json's counters run on over restarts with the same OUT
     try:

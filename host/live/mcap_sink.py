@@ -4,13 +4,15 @@ A small sink with the receiver's two callbacks: :meth:`McapSink.on_pose` (the po
 :meth:`McapSink.on_keyframe` (the polling thread), serialised by a lock onto one
 :class:`~stereopath.host.export.mcap_recording.McapRecorder` (poses on ``/tf`` and ``/pose``, each
 new keyframe's two images on ``/cam0/image`` and ``/cam1/image`` as the device encoded them, the
-rig transform once it is known).  Messages are written as they come with their device times; the
+rig transform once it is known, a world rebase as metadata: :meth:`McapSink.on_rebase`).  Messages
+are written as they come with their device times; the
 file is complete (its summary and index written) when :meth:`close` runs.  Poses of every session
 go into the one file; the session id is in the file's metadata as sessions appear.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 from collections.abc import Callable
@@ -19,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from stereopath.device.wire.messages import WorldRebase
 from stereopath.device.wire.protocol import EncodedImage, Keyframe, Pose
 
 log = logging.getLogger(__name__)
@@ -51,6 +54,7 @@ class McapSink:
         self.sessions: set[str] = set()
         self.rigs_written: set[str] = set()
         self.failed: str | None = None
+        self.rebases = 0
 
     def _session(self, sid: str, t_ns: int) -> None:
         if sid not in self.sessions:
@@ -93,6 +97,19 @@ class McapSink:
             self.recorder.images(kf.t_ns, left, right, fmt)
 
         self._guarded("keyframe", write)
+
+    def on_rebase(self, msg: WorldRebase) -> None:
+        """A session's world redefined on board (a start in motion): the poses and images written before
+        ``msg.from_t_ns`` stay as written (an MCAP file is only appended to), and the file records the
+        rebase as metadata ``world rebase N`` (``session_id``, ``from_t_ns``, ``T_new_old``: 4x4 as JSON,
+        maps those poses into the world of the later ones), as the session folder's ``world_rebase.json`` does."""
+        def write() -> None:
+            self.rebases += 1
+            self.recorder.writer.add_metadata(f"world rebase {self.rebases}", {
+                "session_id": msg.session_id, "from_t_ns": str(int(msg.from_t_ns)),
+                "T_new_old": json.dumps(np.round(np.asarray(msg.T_new_old, float), 12).tolist())})
+
+        self._guarded("world rebase", write)
 
     def close(self) -> dict[str, int]:
         with self.lock:

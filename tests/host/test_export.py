@@ -347,6 +347,31 @@ def test_live_mcap_sink_records_poses_and_keyframes_as_they_arrive(session, tmp_
     assert sum(1 for _, m in got["/tf"] if m.child_frame_id == "cam1") == 1
 
 
+def test_live_mcap_sink_records_a_world_rebase_as_metadata(tmp_path):
+    """A start in motion levelled on board: the poses written before it stay as written, and the file
+    records the rebase (session, first pose in the new world, the map of the earlier poses)."""
+    import json
+
+    from mcap.reader import make_reader
+
+    from stereopath.device.core.geometry import make_pose, matrix_to_quat_xyzw, rot_z
+    from stereopath.device.wire.messages import Pose, WorldRebase
+    from stereopath.host.live.mcap_sink import McapSink
+
+    sink = McapSink(tmp_path / "live.mcap")
+    G = make_pose(rot_z(0.3), np.zeros(3))
+    sink.on_pose(Pose("sessR", 0, 1_000, (0.1, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
+    sink.on_rebase(WorldRebase("sessR", 2_000, (0.0, 0.0, 0.0), tuple(matrix_to_quat_xyzw(G[:3, :3]))))
+    sink.on_pose(Pose("sessR", 1, 2_000, (0.2, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
+    assert sink.close()["pose"] == 2
+    with open(tmp_path / "live.mcap", "rb") as fh:
+        meta = {m.name: m.metadata for m in make_reader(fh).iter_metadata()}
+    got = meta["world rebase 1"]
+    assert got["session_id"] == "sessR" and int(got["from_t_ns"]) == 2_000
+    assert np.allclose(np.array(json.loads(got["T_new_old"])), G, atol=1e-9)
+    assert _read_mcap(tmp_path / "live.mcap")["/pose"][0][1].pose.position.x == pytest.approx(0.1)  # as written
+
+
 def test_ros2_bag_decodes_with_the_mcap_ros2_decoder(reprocessed, source, tmp_path):
     """--ros2: read back by a second implementation (mcap-ros2-support decodes the CDR with the message
     definitions stored in the file): counts, times, poses and images equal the source."""
