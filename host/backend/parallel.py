@@ -82,8 +82,8 @@ def opencv_threads(n: int) -> Iterator[None]:
 class ThreadSpreader:
     """A spreader for one process: the pieces of a call run on ``workers`` threads, OpenCV's own pool at
     one thread meanwhile (as it was after).  For pieces whose work is OpenCV and NumPy calls that release
-    the GIL (the map stage's depth maps: two keyframes side by side cost less CPU and time than one at
-    a time with OpenCV splitting each).  Its :meth:`idle` says no: nothing is guessed ahead for it."""
+    the GIL (the map stage's depth maps, the frames between keyframes, parts of a keyframe's keypoints:
+    side by side they cost less CPU and time than one at a time with OpenCV splitting each).  Its :meth:`idle` says no: nothing is guessed ahead for it."""
 
     def __init__(self, workers: int) -> None:
         self.workers = max(1, int(workers))
@@ -94,6 +94,8 @@ class ThreadSpreader:
     def __call__(self, fn: Callable[[Any, Any], Any], shared: Any, items: Sequence[Any]) -> list[Any]:
         from concurrent.futures import ThreadPoolExecutor
 
+        if self.workers == 1 or len(items) < 2:  # nothing side by side: OpenCV's pool left as it is
+            return [fn(shared, item) for item in items]
         with opencv_threads(1), ThreadPoolExecutor(min(self.workers, len(items))) as pool:
             return list(pool.map(lambda item: fn(shared, item), items))
 

@@ -13,8 +13,8 @@ See docs/architecture.md, "Reprocessing".
 from __future__ import annotations
 
 import array
-import logging
 import dataclasses
+import logging
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -29,7 +29,7 @@ from stereopath.device.core.geometry import invert_pose
 from stereopath.device.core.rig import Rig
 from stereopath.device.errors import ConfigError
 from stereopath.host.backend.observations import OBSERVATION_DTYPE, compact_observations
-from stereopath.host.backend.parallel import parallel_map
+from stereopath.host.backend.parallel import ThreadSpreader, opencv_threads, parallel_map
 from stereopath.host.backend.slanted_stereo import SlantedFit, refine_slanted
 
 log = logging.getLogger(__name__)
@@ -151,23 +151,24 @@ def stereo_features(rig: Rig, left: np.ndarray, right: np.ndarray, cfg: TrackCon
     from stereopath.device.core.features import detect, get_preset
 
     left, right = gray(left), gray(right)
+    fc = get_preset(cfg.feature_preset)
+    views = [0] if cfg.original_view_only else None
     if workers > 1:
-        from concurrent.futures import ThreadPoolExecutor
-
-        from stereopath.host.backend.parallel import opencv_threads
-
-        with opencv_threads(1), ThreadPoolExecutor(workers) as pool:
-            fc = dataclasses.replace(get_preset(cfg.feature_preset), threads=workers)
-            feats = detect(left, fc, views=[0] if cfg.original_view_only else None)
-            feats = _strongest(feats, cfg.max_features)
-            parts = np.array_split(np.arange(len(feats)), workers)
-            got = list(pool.map(lambda idx: stereo_points(rig, left, right, feats.xy[idx], cfg, depth_guess_m), parts))
-        uv0, uv1, X, ok = (np.concatenate([g[i] for g in got]) for i in range(4))
+        with opencv_threads(1):
+            feats = detect(left, dataclasses.replace(fc, threads=workers), views=views)
     else:
-        feats = _strongest(detect(left, cfg.feature_preset, views=[0] if cfg.original_view_only else None),
-                           cfg.max_features)
-        uv0, uv1, X, ok = stereo_points(rig, left, right, feats.xy, cfg, depth_guess_m)
+        feats = detect(left, fc, views=views)
+    feats = _strongest(feats, cfg.max_features)
+    parts = np.array_split(np.arange(len(feats)), max(1, workers))
+    got = ThreadSpreader(workers)(_stereo_part, (rig, left, right, feats.xy, cfg, depth_guess_m), parts)
+    uv0, uv1, X, ok = (np.concatenate([g[i] for g in got]) for i in range(4))
     return KeyframeFeatures(feats.subset(ok), uv0[ok], uv1[ok], X[ok])
+
+
+def _stereo_part(shared: tuple, idx: np.ndarray):
+    """:func:`stereo_points` of the keypoints ``idx`` (a piece; ``shared`` = rig, images, pixels, config, depth)."""
+    rig, left, right, xy, cfg, depth_guess_m = shared
+    return stereo_points(rig, left, right, xy[idx], cfg, depth_guess_m)
 
 
 def _strongest(feats, max_features: int):

@@ -19,7 +19,6 @@ import itertools
 import logging
 import time
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -197,12 +196,15 @@ def _frame_jobs(config: ReprocessPreset, inputs: StageInputs, res, is_kf: np.nda
         yield int(i), left, around
 
 
-def _refined_frame(config: ReprocessPreset, rig: Rig, res, T_frame: np.ndarray, job) -> np.ndarray | None:
-    """One frame of :func:`_frame_jobs` refined: the keyframes' points followed by KLT into its left
-    image, then its pose fitted to them (:func:`refine_frame`); None when it cannot be."""
+def _refined_frame(shared: tuple, job) -> np.ndarray | None:
+    """One frame of :func:`_frame_jobs` refined (a piece; ``shared`` = preset, rig, adjustment, every
+    frame's pose): the keyframes' points followed by KLT into its left image, then its pose fitted to
+    them (:func:`refine_frame`); None when it cannot be."""
     from stereopath.host.backend.tracks import frame_observations
 
+    config, rig, res, T_frames = shared
     i, left, around = job
+    T_frame = T_frames[i]
     rows = []
     for kp in around:
         o = frame_observations(rig, kp, res.points, (left, None), T_frame, config.tracks, right_image=False)
@@ -277,19 +279,19 @@ def refine_frames(config: ReprocessPreset, inputs: StageInputs, res, T_frames: n
     number refined."""
     import cv2
 
-    from stereopath.host.backend.parallel import opencv_threads
+    from stereopath.host.backend.parallel import ThreadSpreader
 
     is_kf = np.zeros(len(T_frames), bool)
     is_kf[inputs.results["tracks"]["kf_index"]] = True
-    rig, n = inputs.seq.rig, 0
+    n = 0
     # frames are independent once the points are fixed: read in order, refined side by side on the
-    # threads OpenCV may use (each call at one OpenCV thread), applied in order
-    workers = max(1, cv2.getNumThreads())
+    # threads OpenCV may use, applied in order
+    spread = ThreadSpreader(max(1, cv2.getNumThreads()))
+    shared = (config, inputs.seq.rig, res, T_frames)
     jobs = _frame_jobs(config, inputs, res, is_kf)
-    with Bar(int(np.count_nonzero(~is_kf)), "frame refinement", inputs.progress, "frame") as tick, \
-            ThreadPoolExecutor(workers) as pool, opencv_threads(1):
+    with Bar(int(np.count_nonzero(~is_kf)), "frame refinement", inputs.progress, "frame") as tick:
         while batch := list(itertools.islice(jobs, FRAME_BATCH)):
-            for (i, _, _), T in zip(batch, pool.map(lambda b: _refined_frame(config, rig, res, T_frames[b[0]], b), batch)):
+            for (i, _, _), T in zip(batch, spread(_refined_frame, shared, batch)):
                 if T is not None:
                     T_frames[i] = T
                     n += 1
