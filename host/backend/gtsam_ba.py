@@ -446,35 +446,44 @@ def gauge_prior(g: ModuleType, X: Callable[[int], int], T: np.ndarray) -> gtsam.
 
 
 def pose_graph_factors(g: ModuleType, X: Callable[[int], int], T: np.ndarray, loops: list[Loop], sigma_per_m: float = 0.01,
-                       rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4) -> gtsam.NonlinearFactorGraph:
+                       rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4,
+                       edge_sigmas: np.ndarray | None = None) -> gtsam.NonlinearFactorGraph:
     """The pose graph of poses ``T``: the first held (:func:`gauge_prior`), consecutive ones tied by
-    their relative motion (:func:`odometry_factor`), and the verified ``loops``."""
+    their relative motion (:func:`odometry_factor`; with ``edge_sigmas``, (K - 1, 2) rotation and
+    translation deviations, a row given NaN keeps that model), and the verified ``loops``."""
     graph = g.NonlinearFactorGraph()
     graph.add(gauge_prior(g, X, T[0]))
     for k in range(len(T) - 1):
-        graph.add(odometry_factor(g, X, k, T[k], T[k + 1], sigma_per_m, rot_sigma_per_m, min_sigma))
+        if edge_sigmas is not None and np.all(np.isfinite(edge_sigmas[k])):
+            s_rot, s_t = edge_sigmas[k]
+            rel = np.linalg.inv(T[k]) @ T[k + 1]
+            graph.add(g.BetweenFactorPose3(X(k), X(k + 1), _pose(g, rel),
+                                           g.noiseModel.Diagonal.Sigmas(np.array([s_rot] * 3 + [s_t] * 3))))
+        else:
+            graph.add(odometry_factor(g, X, k, T[k], T[k + 1], sigma_per_m, rot_sigma_per_m, min_sigma))
     add_loop_factors(g, graph, X, loops)
     return graph
 
 
 def pose_graph(T_world_cam: np.ndarray, loops: list, odometry_sigma_per_m: float = 0.01,
                odometry_rot_sigma_per_m: float = 0.005, min_sigma: float = 1e-4, max_iterations: int = 50,
-               tol: float | None = None) -> np.ndarray:
+               tol: float | None = None, edge_sigmas: np.ndarray | None = None) -> np.ndarray:
     """Poses (K, 4, 4) re-estimated from their own relative motion and verified ``loops``.
 
     Consecutive poses are tied by their current relative pose with a standard deviation growing
-    with the distance between them (:func:`odometry_factor`); each loop adds its measured relative
-    pose (:meth:`_Graph.add_loops`); the first pose is held.  A loop therefore spreads its
-    correction over the path in proportion to the distance travelled.  Solved in one batch
-    (Levenberg-Marquardt, at most ``max_iterations``; ``tol``: its relative and absolute error
-    tolerances, GTSAM's defaults when None); :class:`stereopath.host.backend.pose_graph.LivePoseGraph`
-    is the same graph solved incrementally as poses and loops arrive."""
+    with the distance between them (:func:`odometry_factor`), or as given per pair (``edge_sigmas``,
+    :func:`pose_graph_factors`); each loop adds its measured relative pose (:func:`add_loop_factors`);
+    the first pose is held.  A loop therefore spreads its correction over the path in proportion to
+    the distance travelled.  Solved in one batch (Levenberg-Marquardt, at most ``max_iterations``;
+    ``tol``: its relative and absolute error tolerances, GTSAM's defaults when None);
+    :class:`stereopath.host.backend.pose_graph.LivePoseGraph` is the same graph solved incrementally
+    as poses and loops arrive."""
     T = np.asarray(T_world_cam, float)
     g = import_gtsam()
     values, X = g.Values(), g.symbol_shorthand.X
     for k, Tk in enumerate(T):
         values.insert(X(k), _pose(g, Tk))
-    graph = pose_graph_factors(g, X, T, loops, odometry_sigma_per_m, odometry_rot_sigma_per_m, min_sigma)
+    graph = pose_graph_factors(g, X, T, loops, odometry_sigma_per_m, odometry_rot_sigma_per_m, min_sigma, edge_sigmas)
     params = g.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     if tol is not None:

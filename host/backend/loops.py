@@ -169,11 +169,22 @@ def verify_pair(rig: Rig, cand: LoopCandidate, cfg: LoopConfig) -> tuple[Loop | 
     rot = rotation_angle_deg(T_ij[:3, :3].T @ T_ij_est[:3, :3])
     if corr > max(chk.min_drift_m, chk.drift_per_m * cand.path_m) or rot > chk.max_rotation_deg:
         return None, f"disagrees with the path by {1000 * corr:.1f} mm / {rot:.2f} deg"
-    f = rig.cam0.K[0, 0]
-    px = max(float(np.sqrt(np.mean(err[inl] ** 2))), 0.3)
-    s_rot = px / f / np.sqrt(len(inl)) * 2.0
-    s_t = s_rot * float(np.median(X_i[inl, 2]))
+    s_rot, s_t = relative_pose_sigmas(rig.cam0.K[0, 0], float(np.sqrt(np.mean(err[inl] ** 2))), len(inl),
+                                      float(np.median(X_i[inl, 2])))
     return Loop(i, j, T_ij, int(len(inl)), int(len(m)), s_rot, s_t, corr), "accepted"
+
+
+MIN_RELATIVE_PIXEL_SIGMA = 0.3  # px: a relative pose is not trusted beyond this pixel noise
+
+
+def relative_pose_sigmas(f_px: float, rms_px: float, n_points: int, depth_m: float) -> tuple[float, float]:
+    """The standard deviations (rad, m) given to a relative pose measured from ``n_points`` points at a
+    median depth ``depth_m``, fitted to ``rms_px`` (at least :data:`MIN_RELATIVE_PIXEL_SIGMA`): the
+    rotation twice ``px / f / sqrt(n)``, the translation that angle at the points' depth.  A loop and two
+    consecutive keyframes of an adjusted path are weighted by this one model."""
+    px = max(rms_px, MIN_RELATIVE_PIXEL_SIGMA)
+    s_rot = px / f_px / np.sqrt(n_points) * 2.0
+    return float(s_rot), float(s_rot * depth_m)
 
 
 def path_lengths(T_world_cam: np.ndarray) -> np.ndarray:

@@ -17,7 +17,10 @@ them from both, at no extra cost.  Only one window's problem is in memory at a t
 is handed back to the system before the next.  A loop from a window's keyframe back to an earlier
 one brings that keyframe in, held where its window put it (an anchor): the loop pulls the new window
 onto the path already adjusted instead of letting the windows drift apart.  The disparity offset is
-estimated in the first window and held after it.
+estimated in the first window and held after it.  Held as anchors, the first windows' keyframes never
+learn what the later loops measured of them; so after the last window the loops are closed once more,
+on the adjusted path (:func:`_close_loops_last`: a pose graph whose consecutive keyframes are weighted
+by the points they share, as a loop is by its inliers), and the points move with their keyframes.
 
 ``on_window(n)`` after each window: a progress bar with a remaining-time estimate.  Each window's outcome
 can be stored (:class:`WindowCheckpoint`): an adjustment interrupted on a long session resumes after
@@ -59,6 +62,7 @@ BATCH_KEYFRAMES = 80  # up to this many keyframes: one batch adjustment
 WINDOW = 48  # keyframes per window above it ...
 OVERLAP = 24  # ... of which this many are the last window's ...
 HELD = 8  # ... and the first this many of them held (the others adjusted again, now with neighbours on both sides)
+MIN_SHARED_POINTS = 6  # consecutive keyframes sharing fewer points keep the pose graph's drift model
 
 
 def window_starts(n_keyframes: int) -> list[int]:
@@ -280,7 +284,67 @@ def adjust_in_windows(rig: Rig, problem: BAProblem, config: BAConfig, priors: Se
             checkpoint.save(prog)
         if on_window is not None:
             on_window(1)
+    if problem.loops and len(starts) > 1 and prog.figures:
+        _close_loops_last(rig, problem, prog, kfs)
     return _result(prog)
+
+
+def chain_sigmas(rig: Rig, observations: np.ndarray, kfs: np.ndarray, T: np.ndarray, points: dict[int, np.ndarray],
+                 rms_px: float) -> np.ndarray:
+    """(K - 1, 2) rotation and translation deviations of consecutive keyframes' relative poses: the
+    loops' model (:func:`~stereopath.host.backend.loops.relative_pose_sigmas`) on the points both see
+    in the left camera, at their median depth in the first of the two; NaN where they share fewer than
+    :data:`MIN_SHARED_POINTS`.  ``observations`` in keyframe order (either form), ``kfs`` their keyframes."""
+    from stereopath.host.backend.loops import relative_pose_sigmas
+
+    obs = np.asarray(observations)
+    if obs.dtype.names is not None:
+        pid, left = obs["point"].astype(np.int64), obs["cam"] == 0
+    else:
+        pid, left = obs[:, 1].astype(np.int64), obs[:, 2] == 0
+    bounds = np.searchsorted(kfs, np.arange(len(T) + 1))
+    seen = [np.unique(pid[bounds[k]:bounds[k + 1]][left[bounds[k]:bounds[k + 1]]]) for k in range(len(T))]
+    out = np.full((max(len(T) - 1, 0), 2), np.nan)
+    f = float(rig.cam0.K[0, 0])
+    for k in range(len(T) - 1):
+        shared = [int(i) for i in np.intersect1d(seen[k], seen[k + 1], assume_unique=True) if int(i) in points]
+        if len(shared) < MIN_SHARED_POINTS:
+            continue
+        X = np.array([points[i] for i in shared], float)
+        z = (X - T[k][:3, 3]) @ T[k][:3, 2]  # depth along the first keyframe's optical axis
+        out[k] = relative_pose_sigmas(f, rms_px, len(shared), float(np.median(z)))
+    return out
+
+
+def _close_loops_last(rig: Rig, problem: BAProblem, prog: _Progress, kfs: np.ndarray) -> None:
+    """The loops closed once more, on the adjusted path (``prog`` updated): a window's keyframes are held
+    where they are by the loops of later windows, which pull those windows onto them, so what the later
+    loops know of the earlier keyframes reaches them only here.  A pose graph of the adjusted keyframes
+    (consecutive ones tied by their adjusted relative pose, weighted by the points they share as a loop is
+    by its inliers: :func:`chain_sigmas`) and every loop; each adjusted point moves with the keyframe
+    that saw it first."""
+    from stereopath.host.backend.gtsam_ba import pose_graph
+
+    f = np.array(prog.figures, float)
+    rms = float(np.sqrt(np.sum(f[:, 1] ** 2 * f[:, 3]) / max(np.sum(f[:, 3]), 1.0)))
+    sig = chain_sigmas(rig, problem.observations, kfs, prog.T, prog.points, rms)
+    T_old = prog.T
+    T_new = pose_graph(T_old, list(problem.loops), edge_sigmas=sig)
+    C = T_new @ np.linalg.inv(T_old)  # each keyframe's correction, world to world
+    obs = np.asarray(problem.observations)
+    pid = (obs["point"] if obs.dtype.names is not None else obs[:, 1]).astype(np.int64)
+    ids, first = np.unique(pid, return_index=True)  # rows in keyframe order: the first row is the first keyframe
+    keep = np.array([int(i) in prog.adjusted for i in ids], bool)
+    ids, first_kf = ids[keep], kfs[first[keep]].astype(np.int64)
+    if len(ids):
+        X = np.array([prog.points[int(i)] for i in ids], float)
+        X = np.einsum("nij,nj->ni", C[first_kf, :3, :3], X) + C[first_kf, :3, 3]
+        prog.points.update(zip(ids.tolist(), X))
+    moved = np.linalg.norm(T_new[:, :3, 3] - T_old[:, :3, 3], axis=1)
+    log.info("loops closed on the adjusted path: %d loops, %d of %d keyframe pairs weighted by shared points, "
+             "keyframes moved by %.3f mm median, %.3f mm at most", len(problem.loops), int(np.isfinite(sig[:, 0]).sum()),
+             len(sig), 1000 * float(np.median(moved)), 1000 * float(moved.max()))
+    prog.T = T_new
 
 
 def _result(prog: _Progress) -> BAResult:

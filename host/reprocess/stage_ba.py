@@ -155,7 +155,7 @@ def solver_stats(n_keyframes: int) -> dict[str, Any]:
     if n_keyframes <= BATCH_KEYFRAMES:
         return {}
     return {"solver": {"windows": len(window_starts(n_keyframes)), "window_keyframes": WINDOW, "overlap": OVERLAP,
-                       "held": HELD, "loops_closed_first": True}}
+                       "held": HELD, "loops_closed_first": True, "loops_closed_last": True}}
 
 
 def _frame_jobs(config: ReprocessPreset, inputs: StageInputs, res, is_kf: np.ndarray

@@ -26,7 +26,7 @@ from stereopath.device.formats.fileio import replacing, write_text_atomic
 log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.json"
-PIPELINE_VERSION = 6  # bump when a stage's computation changes (invalidates stored stages)
+PIPELINE_VERSION = 7  # bump when a stage's computation changes (invalidates stored stages)
 
 
 def plain(v: Any) -> Any:

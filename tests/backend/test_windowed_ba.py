@@ -219,3 +219,66 @@ def test_compact_observations_round_trip_and_reject_what_does_not_fit():
     other = np.zeros(2, [("kf", "<i4"), ("u", "<f4")])
     with pytest.raises(EstimationError, match="fields"):
         as_observations(other)
+
+
+def test_relative_pose_sigmas_follow_the_points_and_floor_the_pixel_noise():
+    from stereopath.host.backend.loops import MIN_RELATIVE_PIXEL_SIGMA, relative_pose_sigmas
+
+    s_rot, s_t = relative_pose_sigmas(500.0, 0.1, 100, 2.0)  # 0.1 px is below the floor
+    assert s_rot == pytest.approx(2 * MIN_RELATIVE_PIXEL_SIGMA / 500.0 / 10.0) and s_t == pytest.approx(2.0 * s_rot)
+    assert relative_pose_sigmas(500.0, 0.6, 400, 2.0)[0] == pytest.approx(s_rot)  # twice the noise, four times the points
+
+
+def test_chain_sigmas_weigh_consecutive_keyframes_by_the_points_they_share():
+    from stereopath.host.backend.loops import relative_pose_sigmas
+
+    rng = np.random.default_rng(21)
+    rig, T_true, pts, obs = _corridor(rng, n_kf=12, n_pts=300)
+    keep = ~((obs[:, 0] == 6) & (obs[:, 2] == 0) & (obs[:, 1] > 4))  # keyframe 6's left image: a few points only
+    obs = obs[keep]
+    kfs = obs[:, 0].astype(int)
+    sig = windowed_ba.chain_sigmas(rig, obs, kfs, T_true, pts, 0.3)
+    assert sig.shape == (11, 2) and np.isnan(sig[5]).all() and np.isnan(sig[6]).all()
+    left = {k: set(obs[(obs[:, 0] == k) & (obs[:, 2] == 0), 1].astype(int)) for k in range(12)}
+    shared = sorted(left[2] & left[3])
+    depth = float(np.median([pts[i][2] for i in shared]))  # the cameras look along +z
+    assert sig[2] == pytest.approx(relative_pose_sigmas(rig.cam0.K[0, 0], 0.3, len(shared), depth))
+    packed = compact_observations(obs[:, 0].astype(int), obs[:, 1].astype(int), obs[:, 2].astype(np.uint8),
+                                  obs[:, 3:5], np.ones(len(obs)))
+    assert np.array_equal(windowed_ba.chain_sigmas(rig, packed, kfs, T_true, pts, 0.3), sig, equal_nan=True)
+
+
+def test_after_the_windows_the_loops_pull_the_first_windows_too(small_windows, monkeypatch):
+    """Windows that leave a path bent along its length (the later windows held onto the earlier ones)
+    and a loop measuring its true end: the last pass moves the end most of the way back, holds the first
+    keyframe, and each point keeps its place in the keyframe that saw it first."""
+    rng = np.random.default_rng(16)
+    rig, T_true, pts, obs = _corridor(rng, n_pts=300)
+    bend = np.array([make_pose(np.eye(3), [0.0, 0.0, 0.0004 * k]) for k in range(40)])  # 1.6 cm at the end
+    T_bent = np.einsum("nij,njk->nik", bend, T_true)
+    kf_first = {int(i): int(obs[obs[:, 1] == i, 0].min()) for i in np.unique(obs[:, 1])}
+    bent_pts = {i: bend[k][:3, :3] @ pts[i] + bend[k][:3, 3] for i, k in kf_first.items()}
+
+    def windows_as_bent(rig, problem, config, priors, prog, w, s, kfs):
+        e = min(len(prog.T), s + windowed_ba.WINDOW)
+        prog.T[s:e] = T_bent[s:e]
+        prog.points.update(bent_pts)
+        prog.adjusted.update(bent_pts)
+        prog.figures.append((0.5, 0.3, 1.0, int(np.sum((kfs >= s) & (kfs < e)))))
+        prog.history += [1.0, 0.5]
+
+    monkeypatch.setattr(windowed_ba, "_adjust_window", windows_as_bent)
+    loop = Loop(2, 39, invert_pose(T_true[2]) @ T_true[39], 300, 300, 1e-4, 2e-4, 0.0)
+    res = windowed_ba.adjust_in_windows(rig, BAProblem(T_bent, pts, obs, [loop]), BAConfig(disparity_offset=False))
+    off_before = np.linalg.norm(T_bent[39][:3, 3] - T_true[39][:3, 3])
+    off_after = np.linalg.norm(res.T_world_cam[39][:3, 3] - T_true[39][:3, 3])
+    assert off_after < 0.3 * off_before
+    assert np.allclose(res.T_world_cam[0], T_bent[0], atol=1e-6)
+    for i in list(kf_first)[::50]:
+        k = kf_first[i]
+        before = invert_pose(T_bent[k]) @ np.append(bent_pts[i], 1.0)
+        after = invert_pose(res.T_world_cam[k]) @ np.append(res.points[i], 1.0)
+        assert np.allclose(before, after, atol=1e-9)
+    # no loop, or one window: the windows' path as it is
+    plain = windowed_ba.adjust_in_windows(rig, BAProblem(T_bent, pts, obs), BAConfig(disparity_offset=False))
+    assert np.array_equal(plain.T_world_cam, T_bent)
