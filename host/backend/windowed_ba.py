@@ -292,9 +292,11 @@ def adjust_in_windows(rig: Rig, problem: BAProblem, config: BAConfig, priors: Se
 def chain_sigmas(rig: Rig, observations: np.ndarray, kfs: np.ndarray, T: np.ndarray, points: dict[int, np.ndarray],
                  rms_px: float) -> np.ndarray:
     """(K - 1, 2) rotation and translation deviations of consecutive keyframes' relative poses: the
-    loops' model (:func:`~stereopath.host.backend.loops.relative_pose_sigmas`) on the points both see
-    in the left camera, at their median depth in the first of the two; NaN where they share fewer than
-    :data:`MIN_SHARED_POINTS`.  ``observations`` in keyframe order (either form), ``kfs`` their keyframes."""
+    loops' model (:func:`~stereopath.host.backend.loops.relative_pose_sigmas`) on the ``points`` both see
+    in the left camera, at their median depth in the first of the two, with the pixel error ``rms_px``
+    (per image coordinate, as the adjustment reports it: a loop's is the length of the 2D error, so it
+    is taken times sqrt(2)); NaN where they share fewer than :data:`MIN_SHARED_POINTS` or the points are
+    not in front.  ``observations`` in keyframe order (either form), ``kfs`` their keyframes."""
     from stereopath.host.backend.loops import relative_pose_sigmas
 
     obs = np.asarray(observations)
@@ -312,7 +314,9 @@ def chain_sigmas(rig: Rig, observations: np.ndarray, kfs: np.ndarray, T: np.ndar
             continue
         X = np.array([points[i] for i in shared], float)
         z = (X - T[k][:3, 3]) @ T[k][:3, 2]  # depth along the first keyframe's optical axis
-        out[k] = relative_pose_sigmas(f, rms_px, len(shared), float(np.median(z)))
+        depth = float(np.median(z))
+        if depth > 0:
+            out[k] = relative_pose_sigmas(f, np.sqrt(2.0) * rms_px, len(shared), depth)
     return out
 
 
@@ -321,30 +325,50 @@ def _close_loops_last(rig: Rig, problem: BAProblem, prog: _Progress, kfs: np.nda
     where they are by the loops of later windows, which pull those windows onto them, so what the later
     loops know of the earlier keyframes reaches them only here.  A pose graph of the adjusted keyframes
     (consecutive ones tied by their adjusted relative pose, weighted by the points they share as a loop is
-    by its inliers: :func:`chain_sigmas`) and every loop; each adjusted point moves with the keyframe
-    that saw it first."""
+    by its inliers: :func:`chain_sigmas`) and every loop; the adjusted points move with the keyframes
+    that see them (:func:`_move_points`)."""
     from stereopath.host.backend.gtsam_ba import pose_graph
 
     f = np.array(prog.figures, float)
     rms = float(np.sqrt(np.sum(f[:, 1] ** 2 * f[:, 3]) / max(np.sum(f[:, 3]), 1.0)))
-    sig = chain_sigmas(rig, problem.observations, kfs, prog.T, prog.points, rms)
+    sig = chain_sigmas(rig, problem.observations, kfs, prog.T, {i: prog.points[i] for i in prog.adjusted}, rms)
     T_old = prog.T
     T_new = pose_graph(T_old, list(problem.loops), edge_sigmas=sig)
     C = T_new @ np.linalg.inv(T_old)  # each keyframe's correction, world to world
-    obs = np.asarray(problem.observations)
-    pid = (obs["point"] if obs.dtype.names is not None else obs[:, 1]).astype(np.int64)
-    ids, first = np.unique(pid, return_index=True)  # rows in keyframe order: the first row is the first keyframe
-    keep = np.array([int(i) in prog.adjusted for i in ids], bool)
-    ids, first_kf = ids[keep], kfs[first[keep]].astype(np.int64)
-    if len(ids):
-        X = np.array([prog.points[int(i)] for i in ids], float)
-        X = np.einsum("nij,nj->ni", C[first_kf, :3, :3], X) + C[first_kf, :3, 3]
-        prog.points.update(zip(ids.tolist(), X))
+    _move_points(prog, problem.observations, kfs, C)
     moved = np.linalg.norm(T_new[:, :3, 3] - T_old[:, :3, 3], axis=1)
     log.info("loops closed on the adjusted path: %d loops, %d of %d keyframe pairs weighted by shared points, "
              "keyframes moved by %.3f mm median, %.3f mm at most", len(problem.loops), int(np.isfinite(sig[:, 0]).sum()),
              len(sig), 1000 * float(np.median(moved)), 1000 * float(moved.max()))
     prog.T = T_new
+
+
+def _move_points(prog: _Progress, observations: np.ndarray, kfs: np.ndarray, C: np.ndarray, chunk: int = 1 << 20) -> None:
+    """Each adjusted point moved by the mean of its left-camera observations' keyframe corrections ``C``
+    (K, 4, 4), world to world: a point seen before and after a loop takes both sides' corrections, not
+    only its first keyframe's.  Rows in chunks of ``chunk`` (millions on a long scan)."""
+    obs = np.asarray(observations)
+    if obs.dtype.names is not None:
+        pid, left = obs["point"].astype(np.int64), obs["cam"] == 0
+    else:
+        pid, left = obs[:, 1].astype(np.int64), obs[:, 2] == 0
+    ids = np.array(sorted(prog.adjusted), np.int64)
+    if not len(ids):
+        return
+    X = np.array([prog.points[int(i)] for i in ids], float).reshape(-1, 3)
+    total, count = np.zeros_like(X), np.zeros(len(ids))
+    rows = np.flatnonzero(left)
+    for a in range(0, len(rows), chunk):
+        r = rows[a:a + chunk]
+        at = np.searchsorted(ids, pid[r])
+        ok = at < len(ids)
+        ok[ok] = ids[at[ok]] == pid[r][ok]
+        at, k = at[ok], kfs[r][ok].astype(np.int64)
+        np.add.at(total, at, np.einsum("nij,nj->ni", C[k, :3, :3], X[at]) + C[k, :3, 3])
+        np.add.at(count, at, 1.0)
+    seen = count > 0
+    X[seen] = total[seen] / count[seen, None]
+    prog.points.update(zip(ids[seen].tolist(), X[seen]))
 
 
 def _result(prog: _Progress) -> BAResult:

@@ -148,14 +148,15 @@ def adjust_keyframes(config: ReprocessPreset, inputs: StageInputs, priors: list,
             bar.close()
 
 
-def solver_stats(n_keyframes: int) -> dict[str, Any]:
+def solver_stats(n_keyframes: int, n_loops: int) -> dict[str, Any]:
     """How the keyframes were adjusted, for a session above the batch's length (nothing below it)."""
     from stereopath.host.backend.windowed_ba import BATCH_KEYFRAMES, HELD, OVERLAP, WINDOW, window_starts
 
     if n_keyframes <= BATCH_KEYFRAMES:
         return {}
-    return {"solver": {"windows": len(window_starts(n_keyframes)), "window_keyframes": WINDOW, "overlap": OVERLAP,
-                       "held": HELD, "loops_closed_first": True, "loops_closed_last": True}}
+    n_windows = len(window_starts(n_keyframes))
+    return {"solver": {"windows": n_windows, "window_keyframes": WINDOW, "overlap": OVERLAP,
+                       "held": HELD, "loops_closed_first": n_loops > 0, "loops_closed_last": n_loops > 0 and n_windows > 1}}
 
 
 def _frame_jobs(config: ReprocessPreset, inputs: StageInputs, res, is_kf: np.ndarray
@@ -371,7 +372,7 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
              "inlier_fraction": res.inlier_fraction, "rotation_priors": len(priors),
              "pixel_sigma_px": res.pixel_sigma_px,
              "disparity_offset_px": res.disparity_offset_px if config.ba.disparity_offset else None,
-             "frames_refined": n_refined, "ba_seconds": round(t_ba, 3), **solver_stats(len(kf)),
+             "frames_refined": n_refined, "ba_seconds": round(t_ba, 3), **solver_stats(len(kf), len(loops_of(trk))),
              "frame_refinement_seconds": round(time.perf_counter() - t1, 3),
              "loops": [lp.as_dict() for lp in loops_of(trk)],
              "imu": imu_report(imu, res, est["t_ns"][kf]),
