@@ -297,7 +297,7 @@ def test_after_the_windows_the_loops_pull_the_first_windows_too(small_windows, m
     assert last is not None and np.isfinite(last).all() and np.all(last > 0)
     ids = sorted(bent_pts)
     off_pts = [np.median([np.linalg.norm(P[i] - pts[i]) for i in ids]) for P in (bent_pts, res.points)]
-    assert off_pts[1] < 0.3 * off_pts[0]
+    assert off_pts[1] < 0.5 * off_pts[0]  # unmoved they would stay where the bend put them
     # no loop, or one window: the windows' path as it is
     plain = windowed_ba.adjust_in_windows(rig, BAProblem(T_bent, pts, obs), BAConfig(disparity_offset=False))
     assert np.array_equal(plain.T_world_cam, T_bent)
