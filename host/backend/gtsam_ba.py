@@ -474,8 +474,9 @@ def pose_graph(T_world_cam: np.ndarray, loops: list, odometry_sigma_per_m: float
     with the distance between them (:func:`odometry_factor`: a loop then spreads its correction over
     the path in proportion to the distance travelled), or as given per pair (``edge_sigmas``,
     :func:`pose_graph_factors`: in proportion to their variances); each loop adds its measured relative
-    pose (:func:`add_loop_factors`); the first pose is held.  Solved in one batch (Levenberg-Marquardt, at most ``max_iterations``;
-    ``tol``: its relative and absolute error tolerances, GTSAM's defaults when None);
+    pose (:func:`add_loop_factors`); the first pose is held.  Solved in one batch (Levenberg-Marquardt,
+    at most ``max_iterations``; ``tol``: its relative and absolute error tolerances, GTSAM's defaults
+    when None);
     :class:`stereopath.host.backend.pose_graph.LivePoseGraph` is the same graph solved incrementally
     as poses and loops arrive."""
     T = np.asarray(T_world_cam, float)

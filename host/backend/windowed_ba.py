@@ -289,6 +289,14 @@ def adjust_in_windows(rig: Rig, problem: BAProblem, config: BAConfig, priors: Se
     return _result(prog)
 
 
+def _points_and_left(observations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each observation row's point id and whether it is in the left camera (either form of rows)."""
+    obs = np.asarray(observations)
+    if obs.dtype.names is not None:
+        return obs["point"].astype(np.int64), obs["cam"] == 0
+    return obs[:, 1].astype(np.int64), obs[:, 2] == 0
+
+
 def chain_sigmas(rig: Rig, observations: np.ndarray, kfs: np.ndarray, T: np.ndarray, points: dict[int, np.ndarray],
                  rms_px: float) -> np.ndarray:
     """(K - 1, 2) rotation and translation deviations of consecutive keyframes' relative poses: the
@@ -299,11 +307,7 @@ def chain_sigmas(rig: Rig, observations: np.ndarray, kfs: np.ndarray, T: np.ndar
     not in front.  ``observations`` in keyframe order (either form), ``kfs`` their keyframes."""
     from stereopath.host.backend.loops import relative_pose_sigmas
 
-    obs = np.asarray(observations)
-    if obs.dtype.names is not None:
-        pid, left = obs["point"].astype(np.int64), obs["cam"] == 0
-    else:
-        pid, left = obs[:, 1].astype(np.int64), obs[:, 2] == 0
+    pid, left = _points_and_left(observations)
     bounds = np.searchsorted(kfs, np.arange(len(T) + 1))
     seen = [np.unique(pid[bounds[k]:bounds[k + 1]][left[bounds[k]:bounds[k + 1]]]) for k in range(len(T))]
     out = np.full((max(len(T) - 1, 0), 2), np.nan)
@@ -347,11 +351,7 @@ def _move_points(prog: _Progress, observations: np.ndarray, kfs: np.ndarray, C: 
     """Each adjusted point moved by the mean of its left-camera observations' keyframe corrections ``C``
     (K, 4, 4), world to world: a point seen before and after a loop takes both sides' corrections, not
     only its first keyframe's.  Rows in chunks of ``chunk`` (millions on a long scan)."""
-    obs = np.asarray(observations)
-    if obs.dtype.names is not None:
-        pid, left = obs["point"].astype(np.int64), obs["cam"] == 0
-    else:
-        pid, left = obs[:, 1].astype(np.int64), obs[:, 2] == 0
+    pid, left = _points_and_left(observations)
     ids = np.array(sorted(prog.adjusted), np.int64)
     if not len(ids):
         return
