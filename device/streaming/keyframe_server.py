@@ -182,7 +182,7 @@ class KeyframeServer:
         if isinstance(msg, Hello):
             self.stats["hellos"] += 1
             if peer is None:
-                same_key = sum(1 for p in self._peers.values() if p.key == key and p.connected)
+                same_key = sum(1 for p in list(self._peers.values()) if p.key == key and p.connected)
                 if same_key:
                     self._peer_log.log(logging.INFO, "same:" + key[:64], "host %s: another connection with the same "
                                        "key (%d already connected); each gets every keyframe", key[:20], same_key)
@@ -253,8 +253,8 @@ class KeyframeServer:
 
     def _add_peer(self, key: str, rid: bytes) -> _Peer:
         if len(self._peers) >= self.config.bounds.max_peers:
-            oldest = min(self._peers.values(), key=lambda p: (p.connected, p.last_heard))
-            del self._peers[oldest.conn]
+            oldest = min(list(self._peers.values()), key=lambda p: (p.connected, p.last_heard))
+            self._peers.pop(oldest.conn, None)
             self.stats["peers_evicted"] += 1
             self._peer_log.log(logging.WARNING, "evict", "too many host connections (max %d): "
                                "forgetting one of %s", self.config.bounds.max_peers, oldest.key[:20])
@@ -363,11 +363,14 @@ class KeyframeServer:
             if peer.connected:
                 self._send_to(peer, data, status=True)
             if not peer.connected:  # unreachable: that connection is gone (a reconnection says hello)
-                del self._peers[peer.conn]
+                self._peers.pop(peer.conn, None)
 
     def peers(self) -> list[dict[str, Any]]:
+        """Each connection's state.  Read from the service's status thread while the I/O thread adds and
+        forgets connections: the connections are taken as one snapshot first (every walk over them here
+        does the same)."""
         return [{"key": p.key, "connected": p.connected, "acked": p.acked, "next_seq": p.next_seq,
-                 "credit": p.credit, "max_sent": p.max_sent} for p in self._peers.values()]
+                 "credit": p.credit, "max_sent": p.max_sent} for p in list(self._peers.values())]
 
     def close(self) -> None:
         self.sock.close(linger=0)

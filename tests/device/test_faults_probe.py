@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import socket
+import sys
 import threading
 from pathlib import Path
 
@@ -94,6 +95,36 @@ def test_rate_limited_log_forgets_the_oldest_keys():
     for i in range(100):
         rl.log(logging.DEBUG, f"k{i}", "x")
     assert len(rl._keys) == 4
+
+
+def test_the_connections_can_be_read_while_hosts_come_and_go(tmp_path):
+    """The service's status thread reads the connections (``peers()``) while they are added and forgotten
+    (more hosts than ``max_peers``): neither side sees the table change under it."""
+    dev = make_device(tmp_path, None, "sessP")
+    errors: list[BaseException] = []
+    stop = threading.Event()
+
+    def read_status() -> None:
+        while not stop.is_set():
+            try:
+                dev._server.peers()
+            except Exception as exc:  # noqa: BLE001 - the failure this test looks for
+                errors.append(exc)
+                return
+
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(1e-5)  # switch threads often, as a loaded machine does
+    reader = threading.Thread(target=read_status)
+    reader.start()
+    try:
+        for i in range(3000):
+            dev._server.handle(f"curve:host{i % 24}", i.to_bytes(4, "big"), Hello("sessP", -1, 4))
+    finally:
+        stop.set()
+        reader.join()
+        sys.setswitchinterval(switch)
+        dev.close()
+    assert not errors and dev._server.stats["peers_evicted"] > 0
 
 
 def test_a_peer_flooding_hellos_gets_one_journal_line_per_interval(tmp_path, caplog):
