@@ -83,7 +83,8 @@ class ThreadSpreader:
     """A spreader for one process: the pieces of a call run on ``workers`` threads, OpenCV's own pool at
     one thread meanwhile (as it was after).  For pieces whose work is OpenCV and NumPy calls that release
     the GIL (the map stage's depth maps, the frames between keyframes, parts of a keyframe's keypoints:
-    side by side they cost less CPU and time than one at a time with OpenCV splitting each).  Its :meth:`idle` says no: nothing is guessed ahead for it."""
+    side by side they cost less CPU and time than one at a time with OpenCV splitting each).  Its
+    :meth:`idle` says no: nothing is guessed ahead for it."""
 
     def __init__(self, workers: int) -> None:
         self.workers = max(1, int(workers))

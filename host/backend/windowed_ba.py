@@ -333,8 +333,7 @@ def _close_loops_last(rig: Rig, problem: BAProblem, prog: _Progress, kfs: np.nda
     that see them (:func:`_move_points`)."""
     from stereopath.host.backend.gtsam_ba import pose_graph
 
-    f = np.array(prog.figures, float)
-    rms = float(np.sqrt(np.sum(f[:, 1] ** 2 * f[:, 3]) / max(np.sum(f[:, 3]), 1.0)))
+    rms = _over_windows(np.array(prog.figures, float), 1)
     sig = chain_sigmas(rig, problem.observations, kfs, prog.T, {i: prog.points[i] for i in prog.adjusted}, rms)
     T_old = prog.T
     T_new = pose_graph(T_old, list(problem.loops), edge_sigmas=sig)
@@ -371,6 +370,12 @@ def _move_points(prog: _Progress, observations: np.ndarray, kfs: np.ndarray, C: 
     prog.points.update(zip(ids[seen].tolist(), X[seen]))
 
 
+def _over_windows(figures: np.ndarray, column: int) -> float:
+    """An RMS figure (``column`` of the windows' figures) over every window, weighted by observations."""
+    n = figures[:, 3]
+    return float(np.sqrt(np.sum(figures[:, column] ** 2 * n) / np.sum(n))) if n.sum() else float("nan")
+
+
 def _result(prog: _Progress) -> BAResult:
     """The windows' outcome as one :class:`BAResult` (figures averaged over the windows by observations)."""
     if not prog.figures:
@@ -378,12 +383,8 @@ def _result(prog: _Progress) -> BAResult:
     f = np.array(prog.figures, float)
     n = f[:, 3]
     n_obs = int(n.sum())
-
-    def mean(v: np.ndarray) -> float:
-        return float(np.sqrt(np.sum(v ** 2 * n) / np.sum(n))) if n.sum() else float("nan")
-
     points = {i: prog.points[i] for i in sorted(prog.adjusted)}
-    out = BAResult(prog.T, points, mean(f[:, 0]), mean(f[:, 1]), n_obs, len(points), prog.iterations,
+    out = BAResult(prog.T, points, _over_windows(f, 0), _over_windows(f, 1), n_obs, len(points), prog.iterations,
                    prog.history[0], prog.history[-1], float(np.sum(f[:, 2] * n) / max(n_obs, 1)), prog.history,
                    prog.offset)
     out.imu_biases = prog.biases

@@ -367,14 +367,15 @@ def run(config: ReprocessPreset, inputs: StageInputs) -> dict[str, np.ndarray]:
     with inputs.memory.timed("frame_refinement"):
         n_refined = refine_frames(config, inputs, res, T_frames) if config.refine_frames else 0
     leveled = level_world(inputs, res, T_frames, imu_usable)
+    loops = loops_of(trk)
     stats = {"poses": len(kf), "points": res.n_points, "observations": res.n_obs,
              "rms_before_px": res.rms_before_px, "rms_after_px": res.rms_after_px, "iterations": res.iterations,
              "inlier_fraction": res.inlier_fraction, "rotation_priors": len(priors),
              "pixel_sigma_px": res.pixel_sigma_px,
              "disparity_offset_px": res.disparity_offset_px if config.ba.disparity_offset else None,
-             "frames_refined": n_refined, "ba_seconds": round(t_ba, 3), **solver_stats(len(kf), len(loops_of(trk))),
+             "frames_refined": n_refined, "ba_seconds": round(t_ba, 3), **solver_stats(len(kf), len(loops)),
              "frame_refinement_seconds": round(time.perf_counter() - t1, 3),
-             "loops": [lp.as_dict() for lp in loops_of(trk)],
+             "loops": [lp.as_dict() for lp in loops],
              "imu": imu_report(imu, res, est["t_ns"][kf]),
              "world_frame": "gravity_aligned" if leveled is not None else meta(est, "meta").get("world_frame"),
              "leveled": leveled,
