@@ -79,11 +79,14 @@ def reprocess(sess: Path, out: Path, preset: str, do_map: bool) -> dict:
     if not do_map:
         cmd.append("--no-map")
     rc, wall, cpu, peak = run_child(cmd)
-    row = {"status": rc, "wall_s": wall, "cpu_s": cpu, "peak_rss_mb": peak, "ate_mm": None, "stages": {}}
+    row = {"status": rc, "wall_s": wall, "cpu_s": cpu, "peak_rss_mb": peak, "ate_mm": None, "keyframes": None,
+           "stages": {}}
     report = out / "report.json"
     if report.is_file():
-        ba = json.loads(report.read_text())["extra"]["before_after"]["bundle_adjusted"] or {}
+        extra = json.loads(report.read_text())["extra"]
+        ba = extra["before_after"]["bundle_adjusted"] or {}
         row["ate_mm"] = None if ba.get("ate_rmse_m") is None else 1000 * ba["ate_rmse_m"]
+        row["keyframes"] = (extra.get("tracks") or {}).get("keyframes")
     man = out / "stages" / "manifest.json"
     if man.is_file():
         stages = json.loads(man.read_text())["stages"]
@@ -95,8 +98,10 @@ def reprocess(sess: Path, out: Path, preset: str, do_map: bool) -> dict:
 
 def print_row(frames: int, r: dict) -> None:
     ate = "n/a" if r["ate_mm"] is None else f"{r['ate_mm']:.3f}"
+    kf = r.get("keyframes")
+    per_kf = f"{kf} | {r['cpu_s'] / kf:.2f}" if kf else "n/a | n/a"
     print(f"| {frames} | {r['wall_s']:.0f} | {r['cpu_s']:.0f} | {r['peak_rss_mb'] / 1024:.2f} | "
-          f"{r['cpu_s'] / frames:.3f} | {ate} |{'' if r['status'] == 0 else ' FAILED'}", flush=True)
+          f"{r['cpu_s'] / frames:.3f} | {per_kf} | {ate} |{'' if r['status'] == 0 else ' FAILED'}", flush=True)
     for s in STAGES:
         st = r["stages"].get(s)
         if st is None:
@@ -134,8 +139,8 @@ def main() -> int:
         return 0
     print(f"preset {args.preset}, {'no map' if args.no_map else 'with map'}, trajectory {args.trajectory}, "
           f"{os.cpu_count()} cores")
-    print("| frames | wall s | CPU s | peak RSS GB | CPU s/frame | ATE mm |")
-    print("|---|---|---|---|---|---|")
+    print("| frames | wall s | CPU s | peak RSS GB | CPU s/frame | keyframes | CPU s/keyframe | ATE mm |")
+    print("|---|---|---|---|---|---|---|---|")
     rows = {}
     for n in lengths:
         out = args.cache / f"out-{args.trajectory}-{n}{'-' + args.tag if args.tag else ''}"
@@ -147,8 +152,13 @@ def main() -> int:
     if len(lengths) >= 2:
         a, b = lengths[-2], lengths[-1]
         ra, rb = rows[a], rows[b]
+        # a short session spends more of its frames in the still start and the speed ramps (fewer keyframes
+        # per frame): the per-keyframe ratio tells the work per unit of scan apart from that
+        kfa, kfb = ra.get("keyframes"), rb.get("keyframes")
+        per_kf = f", per keyframe x{(rb['cpu_s'] / kfb) / (ra['cpu_s'] / kfa):.2f}" if kfa and kfb else ""
         print(f"peak RSS growth {a} -> {b} frames: {100 * (rb['peak_rss_mb'] / ra['peak_rss_mb'] - 1):+.1f} %; "
-              f"CPU per frame x{(rb['cpu_s'] / b) / (ra['cpu_s'] / a):.2f}")
+              f"CPU per frame x{(rb['cpu_s'] / b) / (ra['cpu_s'] / a):.2f}{per_kf}; "
+              f"keyframes per frame {kfa / a if kfa else float('nan'):.3f} -> {kfb / b if kfb else float('nan'):.3f}")
     if args.json_out:
         args.json_out.write_text(json.dumps({str(k): v for k, v in rows.items()}, indent=2) + "\n")
     return 0
