@@ -434,10 +434,17 @@ def odometry_factor(g: ModuleType, X: Callable[[int], int], k: int, T_k: np.ndar
     """The relative pose between poses ``k`` and ``k + 1`` as measured (``T_k``, ``T_next``), with a
     standard deviation that grows with the distance between them (drift per metre, at least
     ``min_sigma``: m and rad)."""
+    d = float(np.linalg.norm(T_next[:3, 3] - T_k[:3, 3]))
+    return relative_factor(g, X, k, T_k, T_next, max(rot_sigma_per_m * d, min_sigma), max(sigma_per_m * d, min_sigma))
+
+
+def relative_factor(g: ModuleType, X: Callable[[int], int], k: int, T_k: np.ndarray, T_next: np.ndarray,
+                    sigma_rot: float, sigma_t: float) -> gtsam.BetweenFactorPose3:
+    """The relative pose between poses ``k`` and ``k + 1`` as measured (``T_k``, ``T_next``), with the
+    standard deviations ``sigma_rot`` (rad) and ``sigma_t`` (m)."""
     rel = np.linalg.inv(T_k) @ T_next
-    d = float(np.linalg.norm(rel[:3, 3]))
-    sig = [max(rot_sigma_per_m * d, min_sigma)] * 3 + [max(sigma_per_m * d, min_sigma)] * 3
-    return g.BetweenFactorPose3(X(k), X(k + 1), _pose(g, rel), g.noiseModel.Diagonal.Sigmas(np.array(sig)))
+    sig = np.array([sigma_rot] * 3 + [sigma_t] * 3, float)
+    return g.BetweenFactorPose3(X(k), X(k + 1), _pose(g, rel), g.noiseModel.Diagonal.Sigmas(sig))
 
 
 def gauge_prior(g: ModuleType, X: Callable[[int], int], T: np.ndarray) -> gtsam.PriorFactorPose3:
@@ -455,10 +462,7 @@ def pose_graph_factors(g: ModuleType, X: Callable[[int], int], T: np.ndarray, lo
     graph.add(gauge_prior(g, X, T[0]))
     for k in range(len(T) - 1):
         if edge_sigmas is not None and np.all(np.isfinite(edge_sigmas[k])):
-            s_rot, s_t = edge_sigmas[k]
-            rel = np.linalg.inv(T[k]) @ T[k + 1]
-            graph.add(g.BetweenFactorPose3(X(k), X(k + 1), _pose(g, rel),
-                                           g.noiseModel.Diagonal.Sigmas(np.array([s_rot] * 3 + [s_t] * 3))))
+            graph.add(relative_factor(g, X, k, T[k], T[k + 1], float(edge_sigmas[k, 0]), float(edge_sigmas[k, 1])))
         else:
             graph.add(odometry_factor(g, X, k, T[k], T[k + 1], sigma_per_m, rot_sigma_per_m, min_sigma))
     add_loop_factors(g, graph, X, loops)
