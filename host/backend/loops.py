@@ -2,7 +2,10 @@
 
 A loop is a pair of keyframes ``(i, j)``, ``j - i > min_separation``, that see the same part of the
 scene: camera centres within ``max_distance_m`` and viewing directions within ``max_angle_deg`` on the
-estimated path, at least ``min_matches`` descriptor matches, then PnP RANSAC of keyframe i's stereo
+estimated path, at least ``min_matches`` descriptor matches (first only near where keyframe i's
+stereo points fall in keyframe j on the estimated path, :func:`guided_matches`, which finds a loop whose
+drift is within ``guided_radius_px``; the full match of the two keyframes when that fails), then PnP
+RANSAC of keyframe i's stereo
 points on keyframe j's pixels with enough inliers, a consistent scale between the two keyframes' stereo
 points, and a relative pose within the drift the path could have accumulated (a repeated texture
 elsewhere fails this).  A keyframe's candidates are tried nearest first, and the first
@@ -56,6 +59,7 @@ class LoopConfig:
     min_matches: int = ranged(40, 1, 100_000)
     candidates_per_keyframe: int = ranged(1, 1, 1000)  # loops kept per keyframe (the live closer keeps one) ...
     nearest_checked: int = ranged(3, 1, 1000)  # ... of its spatially nearest candidates, tried nearest first
+    guided_radius_px: float = ranged(16.0, 0.0, 500.0)  # first try: matches this near the estimated path's prediction (0: none)
     check: LoopCheck = field(default_factory=LoopCheck)
 
     def __post_init__(self) -> None:
@@ -119,6 +123,22 @@ def descriptor_matches(a: KeyframeFeatures, b: KeyframeFeatures) -> np.ndarray:
     return match(a.feats, b.feats, MatchConfig(ratio=0.8, mutual=True, per_view=False)).idx
 
 
+def guided_matches(rig: Rig, cand: LoopCandidate, radius_px: float) -> np.ndarray:
+    """(M, 2) matches of keyframe i's keypoints with keyframe j's within ``radius_px`` of where i's stereo
+    points fall in j on the estimated path (``T_wi``, ``T_wj``): a fraction of the full match's cost, and
+    the same loop whenever the path's drift between the two moves the points less than the radius."""
+    from stereopath.device.core.matching import MatchConfig, match_guided
+    from stereopath.host.backend.tracks import project_left
+
+    a, b = cand.a, cand.b
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros((0, 2), np.int64)
+    T_ji = invert_pose(cand.T_wj) @ cand.T_wi
+    pred = project_left(rig, a.X_cam @ T_ji[:3, :3].T + T_ji[:3, 3], 1e-3)
+    cfg = MatchConfig(ratio=0.8, mutual=True, per_view=False)
+    return np.asarray(match_guided(a.feats, b.feats, pred, radius_px, cfg).idx, np.int64).reshape(-1, 2)
+
+
 def _pnp(rig: Rig, X_i: np.ndarray, uv_j: np.ndarray, cfg: LoopCheck
          ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """T_cj_ci from 3D points in camera i and pixels in camera j, with the inlier indices (or None)."""
@@ -144,10 +164,22 @@ def _pnp(rig: Rig, X_i: np.ndarray, uv_j: np.ndarray, cfg: LoopCheck
 
 
 def verify_pair(rig: Rig, cand: LoopCandidate, cfg: LoopConfig) -> tuple[Loop | None, str]:
-    """Geometric verification of a loop candidate (its descriptor matches computed when not given);
-    (the loop or None, the reason)."""
+    """Geometric verification of a loop candidate; (the loop or None, the reason).  Its descriptor
+    matches when not given: the guided ones first (``cfg.guided_radius_px``), the full match of the two
+    keyframes when those do not verify."""
+    if cand.matches is not None:
+        return _verify(rig, cand, cand.matches, cfg)
+    if cfg.guided_radius_px > 0:
+        loop, why = _verify(rig, cand, guided_matches(rig, cand, cfg.guided_radius_px), cfg)
+        if loop is not None:
+            return loop, why + " (guided)"
+        log.debug("loop candidate %d-%d, guided: %s; the full match", cand.i, cand.j, why)
+    return _verify(rig, cand, descriptor_matches(cand.a, cand.b), cfg)
+
+
+def _verify(rig: Rig, cand: LoopCandidate, m: np.ndarray, cfg: LoopConfig) -> tuple[Loop | None, str]:
+    """:func:`verify_pair` on the matches ``m``."""
     a, b, i, j = cand.a, cand.b, cand.i, cand.j
-    m = descriptor_matches(a, b) if cand.matches is None else cand.matches
     chk = cfg.check
     if len(m) < cfg.min_matches:
         return None, f"{len(m)} matches"

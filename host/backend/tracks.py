@@ -263,7 +263,7 @@ class _Tracks:
             kfs.pop(rb, None)
 
 
-def _project(rig: Rig, X_cam: np.ndarray, min_depth: float) -> np.ndarray:
+def project_left(rig: Rig, X_cam: np.ndarray, min_depth: float) -> np.ndarray:
     """Left-camera pixels (with distortion) of camera points; NaN behind ``min_depth``."""
     K0 = rig.cam0.K
     pred = np.full((len(X_cam), 2), np.nan)
@@ -286,7 +286,7 @@ def view_change(rig: Rig, kf: KeyframeFeatures, T_world_kf: np.ndarray, T_world_
     if len(kf) == 0:
         return float("inf"), float("inf")
     T = invert_pose(T_world_cam) @ T_world_kf
-    pred = _project(rig, kf.X_cam @ T[:3, :3].T + T[:3, 3], min_depth_m)
+    pred = project_left(rig, kf.X_cam @ T[:3, :3].T + T[:3, 3], min_depth_m)
     d = np.linalg.norm(pred - kf.feats.xy, axis=1)
     X, c = kf.X_cam, invert_pose(T)[:3, 3]  # the camera's centre in the keyframe
     cos = np.einsum("ij,ij->i", X, X - c) / np.maximum(np.linalg.norm(X, axis=1) * np.linalg.norm(X - c, axis=1), 1e-12)
@@ -324,7 +324,7 @@ def match_keyframes(rig: Rig, a: KeyframeFeatures, b: KeyframeFeatures, T_world_
         return np.zeros((0, 2), np.int64)
     mcfg = MatchConfig(ratio=cfg.match.ratio, per_view=False)
     T_b_a = invert_pose(T_world_b) @ T_world_a
-    pred = _project(rig, a.X_cam @ T_b_a[:3, :3].T + T_b_a[:3, 3], cfg.stereo.min_depth_m)
+    pred = project_left(rig, a.X_cam @ T_b_a[:3, :3].T + T_b_a[:3, 3], cfg.stereo.min_depth_m)
     idx = np.asarray(match_guided(a.feats, b.feats, pred, cfg.match.radius_px, mcfg).idx, np.int64).reshape(-1, 2)
     if len(idx) == 0:
         return idx
@@ -335,7 +335,7 @@ def match_keyframes(rig: Rig, a: KeyframeFeatures, b: KeyframeFeatures, T_world_
         T_b_a = _refine_relative_pose(rig, a.X_cam[idx[pre, 0]], xy_b[pre], T_b_a)
     Xa = a.X_cam[idx[:, 0]]
     Xb = Xa @ T_b_a[:3, :3].T + T_b_a[:3, 3]
-    pred = _project(rig, Xb, cfg.stereo.min_depth_m)
+    pred = project_left(rig, Xb, cfg.stereo.min_depth_m)
     res = xy_b - pred
     res = res - np.nanmedian(res, axis=0)
     disp_err = _disparity(rig, Xb) - _disparity(rig, b.X_cam[idx[:, 1]])
@@ -361,7 +361,7 @@ def _off_depth_segment(rig: Rig, Xa: np.ndarray, T_b_a: np.ndarray, pred: np.nda
     for dd in (-delta, delta):
         s = (d / np.maximum(d + dd, 1e-3))[:, None]  # nearer (+delta) or farther (-delta), far end capped
         s = np.where((d + dd)[:, None] > 1e-3, s, 1e3)
-        ends.append(_project(rig, (Xa * s) @ T_b_a[:3, :3].T + T_b_a[:3, 3], min_depth_m) - pred)
+        ends.append(project_left(rig, (Xa * s) @ T_b_a[:3, :3].T + T_b_a[:3, 3], min_depth_m) - pred)
     seg = ends[1] - ends[0]  # from the far end to the near end
     L2 = np.einsum("ij,ij->i", seg, seg)
     ok = np.isfinite(L2) & (L2 > 1e-12)

@@ -83,6 +83,50 @@ def test_a_repeated_texture_gives_no_false_loop(scene):
     assert not any(abs(lp.i - lp.j) == 9 for lp in loops)
 
 
+def _count_matches(monkeypatch, kfs, matched: list, full: list) -> None:
+    """Record each keyframe pair the loops module matches (once, guided or full) and the fully matched ones."""
+    from stereopath.host.backend import loops as loops_mod
+
+    def pair(a, b):
+        return next(k for k, f in enumerate(kfs) if f is a), next(k for k, f in enumerate(kfs) if f is b)
+
+    real_full, real_guided = loops_mod.descriptor_matches, loops_mod.guided_matches
+
+    def counting_full(a, b):
+        p = pair(a, b)
+        full.append(p)
+        if not matched or matched[-1] != p:
+            matched.append(p)
+        return real_full(a, b)
+
+    def counting_guided(rig, cand, radius_px):
+        matched.append(pair(cand.a, cand.b))
+        return real_guided(rig, cand, radius_px)
+
+    monkeypatch.setattr(loops_mod, "descriptor_matches", counting_full)
+    monkeypatch.setattr(loops_mod, "guided_matches", counting_guided)
+
+
+def test_the_guided_match_finds_a_loop_within_its_radius_and_the_full_match_one_beyond(scene, monkeypatch):
+    from stereopath.host.backend import loops as loops_mod
+
+    rig, rng = paper_rig(), np.random.default_rng(5)
+    X, desc = scene
+    T_a, T_b = make_pose(np.eye(3), [0.0, 0.0, 0.0]), make_pose(so3_exp([0, 0.03, 0]), [0.05, 0.02, 0.0])
+    a, b = _keyframe(rig, X, desc, T_a, rng), _keyframe(rig, X, desc, T_b, rng)
+    full: list = []
+    real = loops_mod.descriptor_matches
+    monkeypatch.setattr(loops_mod, "descriptor_matches", lambda x, y: full.append(1) or real(x, y))
+    for drift_m, guided in ((0.004, True), (0.09, False)):  # 2 px and 45 px off at the wall (16 px radius)
+        T_b_est = T_b @ make_pose(np.eye(3), [drift_m, 0.0, 0.0])
+        full.clear()
+        loop, why = verify_pair(rig, LoopCandidate(a, b, T_a, T_b_est, path_m=6.0), LoopConfig(min_separation=0))
+        assert loop is not None and why.endswith("(guided)") == guided and len(full) == (0 if guided else 1)
+        assert abs(loop.correction_m - drift_m) < 0.003  # the measured pose is the true one either way
+        T_ab = invert_pose(T_a) @ T_b
+        assert np.linalg.norm(loop.T_ci_cj[:3, 3] - T_ab[:3, 3]) < 0.003
+
+
 def test_candidates_are_tried_nearest_first_and_none_after_an_accepted_loop(scene, monkeypatch):
     from stereopath.host.backend import loops as loops_mod
 
@@ -90,14 +134,9 @@ def test_candidates_are_tried_nearest_first_and_none_after_an_accepted_loop(scen
     X, desc = scene
     T_true = _path(40)
     kfs = [_keyframe(rig, X, desc, T, rng) for T in T_true]
-    matched: list[tuple[int, int]] = []
-    real = loops_mod.descriptor_matches
-
-    def counting(a, b):
-        matched.append((next(k for k, f in enumerate(kfs) if f is a), next(k for k, f in enumerate(kfs) if f is b)))
-        return real(a, b)
-
-    monkeypatch.setattr(loops_mod, "descriptor_matches", counting)
+    matched: list[tuple[int, int]] = []  # the pairs matched (guided or full), in order, once each
+    full: list[tuple[int, int]] = []  # the pairs fully matched
+    _count_matches(monkeypatch, kfs, matched, full)
     cfg = LoopConfig(min_separation=25, nearest_checked=3)
     loops = detect_loops(rig, kfs, T_true, cfg)
     by_i: dict[int, list[int]] = {}
@@ -112,15 +151,16 @@ def test_candidates_are_tried_nearest_first_and_none_after_an_accepted_loop(scen
             assert tried[-1] == accepted[i]
         else:  # every candidate tried
             assert tried == js
-    # the true path's nearest candidate sees the same view: it is the one accepted, and the only one matched
+    # the true path's nearest candidate sees the same view: it is the one accepted, and the only one matched,
+    # by the guided match alone
     assert sum(len([j for ii, j in matched if ii == i]) for i in accepted) == len(accepted)
-    # a nearest candidate that fails (its descriptors scrambled) is passed over for the next one
+    assert not [p for p in full if p[0] in accepted]
+    # a nearest candidate that fails (its stereo points at the wrong scale: every match rejected) is passed over
+    # for the next one
     i0 = min(accepted)
     j_near = by_i[i0][0]
     bad = kfs[j_near]
-    kfs[j_near] = KeyframeFeatures(
-        Features(bad.feats.xy, np.ascontiguousarray(bad.feats.desc[::-1]), bad.feats.size, bad.feats.angle,
-                 bad.feats.response, bad.feats.view), bad.uv0, bad.uv1, bad.X_cam)
+    kfs[j_near] = KeyframeFeatures(bad.feats, bad.uv0, bad.uv1, 1.2 * bad.X_cam)
     matched.clear()
     again = {lp.i: lp.j for lp in detect_loops(rig, kfs, T_true, cfg)}
     assert len(by_i[i0]) > 1 and again.get(i0) == by_i[i0][1]
@@ -138,26 +178,18 @@ def test_the_live_closer_tries_the_nearest_earlier_keyframe_first(scene, monkeyp
     for f, T in zip(kfs, T_true):  # what add() does once a keyframe's features are known
         closer.feats.append(f)
         closer.graph.add(T)
-    tried: list[int] = []
-    real = loops_mod.descriptor_matches
-
-    def counting(a, b):
-        tried.append(next(k for k, f in enumerate(kfs) if f is a))
-        return real(a, b)
-
-    monkeypatch.setattr(loops_mod, "descriptor_matches", counting)
+    pairs: list[tuple[int, int]] = []
+    _count_matches(monkeypatch, kfs, pairs, [])
     j = 39
     loop = closer._check(j)
     C = T_true[:, :3, 3]
     earlier = [i for i, jj in loops_mod.candidate_pairs(T_true, closer.cfg) if jj == j]
     nearest = min(earlier, key=lambda i: np.linalg.norm(C[i] - C[j]))
-    assert len(earlier) >= 2 and loop is not None and loop.i == nearest and tried == [nearest]
-    # the nearest one failing (its descriptors scrambled), the next nearest is taken
+    assert len(earlier) >= 2 and loop is not None and loop.i == nearest and [p[0] for p in pairs] == [nearest]
+    # the nearest one failing (its stereo points at the wrong scale), the next nearest is taken
     bad = kfs[nearest]
-    kfs[nearest] = closer.feats[nearest] = KeyframeFeatures(
-        Features(bad.feats.xy, np.ascontiguousarray(bad.feats.desc[::-1]), bad.feats.size, bad.feats.angle,
-                 bad.feats.response, bad.feats.view), bad.uv0, bad.uv1, bad.X_cam)
-    tried.clear()
+    kfs[nearest] = closer.feats[nearest] = KeyframeFeatures(bad.feats, bad.uv0, bad.uv1, 1.2 * bad.X_cam)
+    pairs.clear()
     second = sorted(earlier, key=lambda i: np.linalg.norm(C[i] - C[j]))[1]
     loop = closer._check(j)
-    assert loop is not None and loop.i == second and tried == [nearest, second]
+    assert loop is not None and loop.i == second and [p[0] for p in pairs] == [nearest, second]
