@@ -2,16 +2,15 @@
 
 A loop is a pair of keyframes ``(i, j)``, ``j - i > min_separation``, that see the same part of the
 scene: camera centres within ``max_distance_m`` and viewing directions within ``max_angle_deg`` on the
-estimated path, at least ``min_matches`` descriptor matches (first only near where keyframe i's
-stereo points fall in keyframe j on the estimated path, :func:`guided_matches`, which finds a loop whose
-drift is within ``guided_radius_px``; the full match of the two keyframes when that fails), then PnP
-RANSAC of keyframe i's stereo
+estimated path, at least ``min_matches`` descriptor matches, then PnP RANSAC of keyframe i's stereo
 points on keyframe j's pixels with enough inliers, a consistent scale between the two keyframes' stereo
 points, and a relative pose within the drift the path could have accumulated (a repeated texture
-elsewhere fails this).  A keyframe's candidates are tried nearest first, and the first
-``candidates_per_keyframe`` accepted are kept.  Each accepted loop is a relative-pose constraint
-``T_ci_cj`` with a deviation from the PnP residuals (:class:`Loop`).  Pure
-computation on arrays.  See docs/architecture.md, "Reprocessing".
+elsewhere fails this).  The matches are first searched only near where keyframe i's stereo points fall
+in keyframe j on the estimated path (:func:`guided_matches`, within ``guided_radius_px``), and in the
+whole of keyframe j when those do not verify (the path drifted further, or too few matched).  A
+keyframe's candidates are tried nearest first, and the first ``candidates_per_keyframe`` accepted are
+kept.  Each accepted loop is a relative-pose constraint ``T_ci_cj`` with a deviation from the PnP
+residuals (:class:`Loop`).  Pure computation on arrays.  See docs/architecture.md, "Reprocessing".
 """
 
 from __future__ import annotations
@@ -123,10 +122,14 @@ def descriptor_matches(a: KeyframeFeatures, b: KeyframeFeatures) -> np.ndarray:
     return match(a.feats, b.feats, MatchConfig(ratio=0.8, mutual=True, per_view=False)).idx
 
 
+MIN_DEPTH_M = 1e-3  # a point predicted nearer than this (or behind) is not searched for
+
+
 def guided_matches(rig: Rig, cand: LoopCandidate, radius_px: float) -> np.ndarray:
     """(M, 2) matches of keyframe i's keypoints with keyframe j's within ``radius_px`` of where i's stereo
-    points fall in j on the estimated path (``T_wi``, ``T_wj``): a fraction of the full match's cost, and
-    the same loop whenever the path's drift between the two moves the points less than the radius."""
+    points fall in j on the estimated path (``T_wi``, ``T_wj``): cheaper than the full match, and the same
+    loop whenever the path's drift between the two moves the points less than the radius.  A keypoint
+    alone within the radius passes the ratio test by position: the geometric checks decide then."""
     from stereopath.device.core.matching import MatchConfig, match_guided
     from stereopath.host.backend.tracks import project_left
 
@@ -134,7 +137,7 @@ def guided_matches(rig: Rig, cand: LoopCandidate, radius_px: float) -> np.ndarra
     if len(a) == 0 or len(b) == 0:
         return np.zeros((0, 2), np.int64)
     T_ji = invert_pose(cand.T_wj) @ cand.T_wi
-    pred = project_left(rig, a.X_cam @ T_ji[:3, :3].T + T_ji[:3, 3], 1e-3)
+    pred = project_left(rig, a.X_cam @ T_ji[:3, :3].T + T_ji[:3, 3], MIN_DEPTH_M)
     cfg = MatchConfig(ratio=0.8, mutual=True, per_view=False)
     return np.asarray(match_guided(a.feats, b.feats, pred, radius_px, cfg).idx, np.int64).reshape(-1, 2)
 

@@ -13,10 +13,10 @@ from stereopath.host.fleet.sessions import FleetSession
 
 # memory declared per session task (GB): the peak resident set of one reprocessing, with and without the
 # dense model, that benchmarks/bench_scale.py measures on the simulated scan from 200 to 4,000 frames
-# (0.75-2.09 GB with the model; without it the bundle adjustment's window is the peak, at most 1.47 GB),
-# rounded up to half a GB
+# (with the model, its stage is the peak; without it, one bundle-adjustment window is), rounded up to
+# half a GB: docs/reprocess.md has the figures
 TASK_MEMORY_GB = 2.5
-TASK_MEMORY_NO_MAP_GB = 1.5
+TASK_MEMORY_NO_MAP_GB = 2.0
 
 
 @dataclass(frozen=True)

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
+
+import cv2
 import numpy as np
 import pytest
 
 from stereopath.device.core.features import Features
 from stereopath.device.core.geometry import invert_pose, make_pose, so3_exp
-from stereopath.device.core.rig import paper_rig
-from stereopath.host.backend.loops import LoopCandidate, LoopConfig, detect_loops, verify_pair
+from stereopath.device.core.rig import CameraModel, paper_rig
+from stereopath.host.backend.loops import LoopCandidate, LoopConfig, detect_loops, guided_matches, verify_pair
 from stereopath.host.backend.tracks import KeyframeFeatures
 
 SHIFT = np.array([3.0, 0.0, 0.0])  # the second copy of the textured wall
@@ -34,7 +37,11 @@ def _keyframe(rig, X_world, desc, T_world_cam, rng) -> KeyframeFeatures:
     uv = uv[vis] + rng.normal(0, 0.3, (vis.sum(), 2))
     Xs = Xc[vis] * (1 + rng.normal(0, 0.002, (vis.sum(), 1)))  # stereo depth noise
     n = int(vis.sum())
-    f = Features(uv.astype(np.float32), desc[vis], np.full(n, 4, np.float32), np.zeros(n, np.float32),
+    xy = uv  # the raw pixels: with the rig's distortion when it has one
+    if np.any(rig.cam0.dist):
+        xy = cv2.projectPoints(Xc[vis].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, rig.cam0.dist)[0].reshape(-1, 2)
+        xy = xy + (uv - Xc[vis, :2] / Xc[vis, 2:] * [K[0, 0], K[1, 1]] - K[:2, 2])  # the same noise
+    f = Features(xy.astype(np.float32), desc[vis], np.full(n, 4, np.float32), np.zeros(n, np.float32),
                  np.ones(n, np.float32), np.zeros(n, np.int32))
     return KeyframeFeatures(f, uv, uv, Xs)
 
@@ -125,6 +132,25 @@ def test_the_guided_match_finds_a_loop_within_its_radius_and_the_full_match_one_
         assert abs(loop.correction_m - drift_m) < 0.003  # the measured pose is the true one either way
         T_ab = invert_pose(T_a) @ T_b
         assert np.linalg.norm(loop.T_ci_cj[:3, 3] - T_ab[:3, 3]) < 0.003
+
+
+def test_the_guided_match_predicts_raw_pixels_of_a_distorting_lens(scene):
+    """The keypoints' raw pixels are distorted: the prediction must be too (a pinhole prediction is
+    tens of pixels off towards the corners of this lens)."""
+    rig = paper_rig()
+    rig_d = dataclasses.replace(rig, cam0=CameraModel(rig.cam0.K, np.array([-0.3, 0.1, 0.0, 0.0, 0.0]), rig.cam0.size))
+    X, desc = scene
+    T_a, T_b = make_pose(np.eye(3), [0.0, 0.0, 0.0]), make_pose(so3_exp([0, 0.02, 0]), [0.03, 0.0, 0.0])
+    T_ba = invert_pose(T_b) @ T_a
+    found = []
+    for r in (rig, rig_d):
+        rng = np.random.default_rng(6)
+        a, b = _keyframe(r, X, desc, T_a, rng), _keyframe(r, X, desc, T_b, rng)
+        m = guided_matches(r, LoopCandidate(a, b, T_a, T_b, path_m=1.0), 3.0)
+        same = np.linalg.norm(a.X_cam[m[:, 0]] @ T_ba[:3, :3].T + T_ba[:3, 3] - b.X_cam[m[:, 1]], axis=1)
+        assert len(m) > 100 and np.median(same) < 0.02  # pairs of the same wall points
+        found.append(len(m))
+    assert found[1] >= 0.95 * found[0]
 
 
 def test_candidates_are_tried_nearest_first_and_none_after_an_accepted_loop(scene, monkeypatch):
