@@ -26,6 +26,7 @@ from stereopath.device.core.geometry import invert_pose, rotation_angle_deg
 from stereopath.device.core.rig import Rig
 
 if TYPE_CHECKING:
+    from stereopath.device.core.matching import MatchConfig
     from stereopath.host.backend.tracks import KeyframeFeatures, KeyframeList
 
 log = logging.getLogger(__name__)
@@ -116,10 +117,17 @@ def candidate_pairs(T_world_cam: np.ndarray, cfg: LoopConfig) -> list[tuple[int,
     return out
 
 
-def descriptor_matches(a: KeyframeFeatures, b: KeyframeFeatures) -> np.ndarray:
-    from stereopath.device.core.matching import MatchConfig, match
+def _match_config() -> MatchConfig:
+    """How two keyframes' keypoints are matched for a loop, guided or in full."""
+    from stereopath.device.core.matching import MatchConfig
 
-    return match(a.feats, b.feats, MatchConfig(ratio=0.8, mutual=True, per_view=False)).idx
+    return MatchConfig(ratio=0.8, mutual=True, per_view=False)
+
+
+def descriptor_matches(a: KeyframeFeatures, b: KeyframeFeatures) -> np.ndarray:
+    from stereopath.device.core.matching import match
+
+    return match(a.feats, b.feats, _match_config()).idx
 
 
 MIN_DEPTH_M = 1e-3  # a point predicted nearer than this (or behind) is not searched for
@@ -130,16 +138,12 @@ def guided_matches(rig: Rig, cand: LoopCandidate, radius_px: float) -> np.ndarra
     points fall in j on the estimated path (``T_wi``, ``T_wj``): cheaper than the full match, and the same
     loop whenever the path's drift between the two moves the points less than the radius.  A keypoint
     alone within the radius passes the ratio test by position: the geometric checks decide then."""
-    from stereopath.device.core.matching import MatchConfig, match_guided
-    from stereopath.host.backend.tracks import project_left
+    from stereopath.host.backend.tracks import match_projected
 
-    a, b = cand.a, cand.b
-    if len(a) == 0 or len(b) == 0:
+    if len(cand.a) == 0 or len(cand.b) == 0:
         return np.zeros((0, 2), np.int64)
     T_ji = invert_pose(cand.T_wj) @ cand.T_wi
-    pred = project_left(rig, a.X_cam @ T_ji[:3, :3].T + T_ji[:3, 3], MIN_DEPTH_M)
-    cfg = MatchConfig(ratio=0.8, mutual=True, per_view=False)
-    return np.asarray(match_guided(a.feats, b.feats, pred, radius_px, cfg).idx, np.int64).reshape(-1, 2)
+    return match_projected(rig, cand.a, cand.b, T_ji, radius_px, _match_config(), MIN_DEPTH_M)[0]
 
 
 def _pnp(rig: Rig, X_i: np.ndarray, uv_j: np.ndarray, cfg: LoopCheck

@@ -16,7 +16,7 @@ import array
 import dataclasses
 import logging
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import cv2
 import numpy as np
@@ -31,6 +31,9 @@ from stereopath.device.errors import ConfigError
 from stereopath.host.backend.observations import OBSERVATION_DTYPE, compact_observations
 from stereopath.host.backend.parallel import ThreadSpreader, opencv_threads, parallel_map
 from stereopath.host.backend.slanted_stereo import SlantedFit, refine_slanted
+
+if TYPE_CHECKING:
+    from stereopath.device.core.matching import MatchConfig
 
 log = logging.getLogger(__name__)
 
@@ -263,7 +266,7 @@ class _Tracks:
             kfs.pop(rb, None)
 
 
-def project_left(rig: Rig, X_cam: np.ndarray, min_depth: float) -> np.ndarray:
+def _project(rig: Rig, X_cam: np.ndarray, min_depth: float) -> np.ndarray:
     """Left-camera pixels (with distortion) of camera points; NaN behind ``min_depth``."""
     K0 = rig.cam0.K
     pred = np.full((len(X_cam), 2), np.nan)
@@ -286,7 +289,7 @@ def view_change(rig: Rig, kf: KeyframeFeatures, T_world_kf: np.ndarray, T_world_
     if len(kf) == 0:
         return float("inf"), float("inf")
     T = invert_pose(T_world_cam) @ T_world_kf
-    pred = project_left(rig, kf.X_cam @ T[:3, :3].T + T[:3, 3], min_depth_m)
+    pred = _project(rig, kf.X_cam @ T[:3, :3].T + T[:3, 3], min_depth_m)
     d = np.linalg.norm(pred - kf.feats.xy, axis=1)
     X, c = kf.X_cam, invert_pose(T)[:3, 3]  # the camera's centre in the keyframe
     cos = np.einsum("ij,ij->i", X, X - c) / np.maximum(np.linalg.norm(X, axis=1) * np.linalg.norm(X - c, axis=1), 1e-12)
@@ -308,6 +311,17 @@ def _refine_relative_pose(rig: Rig, X_a: np.ndarray, xy_b: np.ndarray, T_b_a: np
     return T if np.all(np.isfinite(T)) else T_b_a
 
 
+def match_projected(rig: Rig, a: KeyframeFeatures, b: KeyframeFeatures, T_b_a: np.ndarray, radius_px: float,
+                    mcfg: MatchConfig, min_depth_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 2) index pairs of keypoints of ``a`` and ``b`` matched by ``mcfg`` within ``radius_px`` of where a's stereo points
+    fall in b with the relative pose ``T_b_a`` (points nearer than ``min_depth_m`` not searched for), and
+    those predicted pixels (N, 2; NaN where not searched for)."""
+    from stereopath.device.core.matching import match_guided
+
+    pred = _project(rig, a.X_cam @ T_b_a[:3, :3].T + T_b_a[:3, 3], min_depth_m)
+    return np.asarray(match_guided(a.feats, b.feats, pred, radius_px, mcfg).idx, np.int64).reshape(-1, 2), pred
+
+
 def match_keyframes(rig: Rig, a: KeyframeFeatures, b: KeyframeFeatures, T_world_a: np.ndarray,
                     T_world_b: np.ndarray, cfg: TrackConfig) -> np.ndarray:
     """(M, 2) index pairs of keypoints of ``a`` and ``b`` that match near their predicted positions.
@@ -318,14 +332,13 @@ def match_keyframes(rig: Rig, a: KeyframeFeatures, b: KeyframeFeatures, T_world_
     when it lies within ``verify_px`` of its position predicted with the refined pose and its
     stereo disparity agrees within ``verify_disparity_px``.
     """
-    from stereopath.device.core.matching import MatchConfig, match_guided
+    from stereopath.device.core.matching import MatchConfig
 
     if len(a) == 0 or len(b) == 0:
         return np.zeros((0, 2), np.int64)
     mcfg = MatchConfig(ratio=cfg.match.ratio, per_view=False)
     T_b_a = invert_pose(T_world_b) @ T_world_a
-    pred = project_left(rig, a.X_cam @ T_b_a[:3, :3].T + T_b_a[:3, 3], cfg.stereo.min_depth_m)
-    idx = np.asarray(match_guided(a.feats, b.feats, pred, cfg.match.radius_px, mcfg).idx, np.int64).reshape(-1, 2)
+    idx, pred = match_projected(rig, a, b, T_b_a, cfg.match.radius_px, mcfg, cfg.stereo.min_depth_m)
     if len(idx) == 0:
         return idx
     xy_b = b.feats.xy[idx[:, 1]].astype(np.float64)
@@ -335,7 +348,7 @@ def match_keyframes(rig: Rig, a: KeyframeFeatures, b: KeyframeFeatures, T_world_
         T_b_a = _refine_relative_pose(rig, a.X_cam[idx[pre, 0]], xy_b[pre], T_b_a)
     Xa = a.X_cam[idx[:, 0]]
     Xb = Xa @ T_b_a[:3, :3].T + T_b_a[:3, 3]
-    pred = project_left(rig, Xb, cfg.stereo.min_depth_m)
+    pred = _project(rig, Xb, cfg.stereo.min_depth_m)
     res = xy_b - pred
     res = res - np.nanmedian(res, axis=0)
     disp_err = _disparity(rig, Xb) - _disparity(rig, b.X_cam[idx[:, 1]])
@@ -361,7 +374,7 @@ def _off_depth_segment(rig: Rig, Xa: np.ndarray, T_b_a: np.ndarray, pred: np.nda
     for dd in (-delta, delta):
         s = (d / np.maximum(d + dd, 1e-3))[:, None]  # nearer (+delta) or farther (-delta), far end capped
         s = np.where((d + dd)[:, None] > 1e-3, s, 1e3)
-        ends.append(project_left(rig, (Xa * s) @ T_b_a[:3, :3].T + T_b_a[:3, 3], min_depth_m) - pred)
+        ends.append(_project(rig, (Xa * s) @ T_b_a[:3, :3].T + T_b_a[:3, 3], min_depth_m) - pred)
     seg = ends[1] - ends[0]  # from the far end to the near end
     L2 = np.einsum("ij,ij->i", seg, seg)
     ok = np.isfinite(L2) & (L2 > 1e-12)
